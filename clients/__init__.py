@@ -1,0 +1,1 @@
+"""Modbus clients: soft PLC, recorder, live monitor."""

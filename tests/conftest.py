@@ -1,0 +1,133 @@
+"""Shared fixtures: async hygiene, a loop-bank test double, the mbpoll client, fake time."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+from typing import Callable
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture
+async def no_task_leak():
+    """Fail the test if it leaves asyncio tasks running (servers and tick tasks must be awaited on exit)."""
+    before = set(asyncio.all_tasks())
+    yield
+    await asyncio.sleep(0)  # let just-cancelled tasks finish their cleanup
+    leaked = [t for t in asyncio.all_tasks() - before if not t.done() and t is not asyncio.current_task()]
+    for task in leaked:
+        task.cancel()
+    assert not leaked, f"tasks leaked: {[t.get_name() for t in leaked]}"
+
+
+@pytest.fixture
+def mbpoll() -> str:
+    """Path of the mbpoll binary; missing: fail on CI (``CI`` set), skip elsewhere."""
+    path = shutil.which("mbpoll")
+    if path is None:
+        if os.environ.get("CI"):
+            pytest.fail("mbpoll is required on CI (apt-get install mbpoll)")
+        pytest.skip("mbpoll not installed")
+    return path
+
+
+class FakeClock:
+    """Manual monotonic clock; ``sleep`` advances it by the requested delay plus an optional extra."""
+
+    def __init__(self, start: float = 1000.0) -> None:
+        self.now = start
+        self.extra: Callable[[], float] = lambda: 0.0   # lateness added to every sleep
+
+    def __call__(self) -> float:
+        return self.now
+
+    async def sleep(self, delay: float) -> None:
+        self.now += max(delay, 0.0) + self.extra()
+        await asyncio.sleep(0)
+
+
+@pytest.fixture
+def fake_clock() -> FakeClock:
+    return FakeClock()
+
+
+class FakeLoopBank:
+    """Test double of ``valve_emulator.sim.loop.LoopBank`` for device tests that must not depend on physics.
+
+    MV follows OP exactly (clipped to 0..100), flow = MV, PV a first-order lag of flow mapped onto
+    ``pv_gain·(flow − 50)``; loops with a controller run a P controller around ``bias`` in auto. Every
+    setter call is recorded in ``calls``; ``on_step`` callbacks run inside ``step`` (to inject slow steps).
+    """
+
+    def __init__(self, n: int, *, dt: float = 0.1, has_controller=False, pv_gain: float = 0.2) -> None:
+        self.n, self.dt, self.t, self.k = n, dt, 0.0, 0
+        self.has_controller = np.broadcast_to(np.asarray(has_controller, dtype=bool), (n,)).copy()
+        self.auto = self.has_controller.copy()
+        self.op_external = np.full(n, 50.0)
+        self.manual_op = np.full(n, 50.0)
+        self.op = np.full(n, 50.0)
+        self.mv = self.op.copy()
+        self.flow = self.op.copy()
+        self.pv = np.zeros(n)
+        self.sp = np.zeros(n)
+        self.kc, self.ti, self.td = np.full(n, 0.2), np.full(n, 10.0), np.zeros(n)
+        self.S, self.J = np.zeros(n), np.zeros(n)
+        self.stuck = np.ones(n, dtype=bool)
+        self.sat_low = np.zeros(n, dtype=bool)
+        self.sat_high = np.zeros(n, dtype=bool)
+        self.pv_gain = pv_gain
+        self.calls: list[tuple] = []
+        self.on_step: list[Callable[[FakeLoopBank], None]] = []
+
+    @classmethod
+    def for_config(cls, config, **kwargs) -> "FakeLoopBank":
+        ctl = [lp.controller is not None for lp in config.loops]
+        return cls(len(config.loops), dt=config.device.tick, has_controller=ctl, **kwargs)
+
+    def step(self) -> None:
+        for hook in self.on_step:
+            hook(self)
+        auto = self.has_controller & self.auto
+        ext = np.where(self.has_controller, self.manual_op, self.op_external)
+        op = np.where(auto, 50.0 + self.kc * (self.sp - self.pv), ext)
+        self.sat_low, self.sat_high = op < 0, op > 100
+        mv = np.clip(op, 0.0, 100.0)
+        self.stuck = mv == self.mv
+        self.op, self.mv, self.flow = op, mv, mv.copy()
+        self.pv = self.pv + 0.5 * (self.pv_gain * (self.flow - 50.0) - self.pv)
+        self.k += 1
+        self.t = self.k * self.dt
+
+    def set_sp(self, i, value):
+        self.calls.append(("sp", i, value))
+        self.sp[i] = value
+
+    def set_auto(self, i, flag):
+        self.calls.append(("auto", i, flag))
+        self.auto[i] = flag
+
+    def set_manual_op(self, i, op):
+        self.calls.append(("manual_op", i, op))
+        self.manual_op[i] = op
+
+    def set_tuning(self, i, kc=None, ti=None, td=None):
+        self.calls.append(("tuning", i, kc, ti, td))
+        for name, v in (("kc", kc), ("ti", ti), ("td", td)):
+            if v is not None:
+                getattr(self, name)[i] = v
+
+    def set_valve(self, i, S=None, J=None):
+        self.calls.append(("valve", i, S, J))
+        if S is not None:
+            self.S[i] = S
+        if J is not None:
+            self.J[i] = J
+
+
+@pytest.fixture
+def fake_bank_cls():
+    """The :class:`FakeLoopBank` test double (a class, so tests can size and configure it)."""
+    return FakeLoopBank

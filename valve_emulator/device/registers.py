@@ -1,0 +1,404 @@
+"""The Modbus register map: every address, type and scaling of the emulated device, in one table.
+
+Pure code (numpy only, no pymodbus, no I/O). Addresses are zero-based PDU addresses (mbpoll ``-0``). Every
+unit id carries the same layout; only the per-loop scalings (PV range, mA table) differ. :data:`REGISTERS`
+is the single source of truth; :func:`registers_table` and :func:`format_registers` render it as
+Markdown, CSV or JSON, and the table below is that rendering (a test keeps them equal).
+
+Holding registers (function codes 3, 6, 16, 23)::
+
+    | name        | table   | address | type    | scale | units               | access        |
+    |-------------|---------|---------|---------|-------|---------------------|---------------|
+    | op_pct      | holding | 0       | uint16  | 100   | % travel            | RW            |
+    | op_ma       | holding | 1       | uint16  | 1000  | mA                  | RW            |
+    | mv_pct      | holding | 2       | uint16  | 100   | % travel            | R             |
+    | flow_pct    | holding | 3       | uint16  | 100   | % flow              | R             |
+    | pv          | holding | 4       | int16   | 100   | % of pv_range       | R             |
+    | sp          | holding | 5       | int16   | 100   | % of pv_range       | RW-controller |
+    | mode        | holding | 6       | uint16  | 1     | 0 manual, 1 auto    | RW-controller |
+    | kc          | holding | 7       | uint16  | 1000  | % per PV unit       | RW-controller |
+    | ti          | holding | 8       | uint16  | 10    | s (0 = no integral) | RW-controller |
+    | td          | holding | 9       | uint16  | 10    | s                   | RW-controller |
+    | S           | holding | 10      | uint16  | 100   | % travel            | RW-instructor |
+    | J           | holding | 11      | uint16  | 100   | % travel            | RW-instructor |
+    | status      | holding | 12      | uint16  | 1     | bits                | R             |
+    | map_version | holding | 13      | uint16  | 1     |                     | R             |
+    | tick        | holding | 14      | uint32  | 1     | ticks               | R             |
+    | overruns    | holding | 16      | uint32  | 1     | ticks               | R             |
+    | time        | holding | 18      | float32 | 1     | s                   | R             |
+    | op_f32      | holding | 20      | float32 | 1     | % travel            | R             |
+    | mv_f32      | holding | 22      | float32 | 1     | % travel            | R             |
+    | pv_f32      | holding | 24      | float32 | 1     | PV units            | R             |
+    | sp_f32      | holding | 26      | float32 | 1     | PV units            | R             |
+
+The read-only (``R``) rows also appear as input registers (function code 4) at the same addresses; the
+input table has holes where the holding table has writable registers, and reading a hole is an illegal
+address, as is reading past address 27.
+
+Encoding (``raw = physical × scale``, rounded to the nearest integer, clipped to the type's range):
+
+- ``op_pct``/``mv_pct``/``flow_pct``: % × 100, 0..10000. ``op_ma``: the OP as loop current through the
+  loop's ``valve.ma_table`` (default linear 4–20 mA), mA × 1000. Writing either one sets OP; both read
+  back consistently. The writable ``op_ma`` range is the current that maps onto 0..100 % travel
+  (4000..20000 for the default table).
+- ``pv``/``sp``: int16, ``10000·(x − lo)/(hi − lo)`` over the loop's ``plant.pv_range`` = (lo, hi), so
+  0..10000 spans the range and values outside it stay readable down to −327.68 % / up to 327.67 %.
+  ``sp`` writes must lie in 0..10000. The float32 copies carry engineering units.
+- ``ti`` = 0 means no integral action (P only; the bank gets ``ti = inf``). ``kc`` must be ≥ 0.001.
+- ``status`` bits: see :class:`Status`.
+- 32-bit values (``uint32`` and ``float32``) use the configured word order: ``ABCD`` puts the high word
+  at the lower address (mbpoll ``-B``), ``CDAB`` the low word first (mbpoll's default).
+
+Access:
+
+- ``R``: read only. ``RW``: writable; on a loop with an internal controller OP is writable only while the
+  controller is in manual (it then sets the manual OP) and only within the controller's ``op_limits``. ``RW-controller``: writable only on loops with an
+  internal controller, reads 0 on the others. ``RW-instructor``: writable only when the server allows
+  instructor writes for the requesting client.
+
+Errors are :class:`RegisterError` (a ``ValueError``) subclasses that name the register; the Modbus
+adapter alone translates them into exception codes. A rejected multi-register write changes nothing.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from dataclasses import dataclass
+from enum import IntFlag
+from typing import Any, Final, Sequence
+
+import numpy as np
+
+from valve_emulator.device.scaling import ABCD, CDAB, Scaling
+
+__all__ = [
+    "ABCD",
+    "CDAB",
+    "MAP_VERSION",
+    "N_REGISTERS",
+    "REGISTERS",
+    "INPUT_REGISTERS",
+    "ACCESS_VALUES",
+    "Register",
+    "Status",
+    "Scaling",
+    "RegisterError",
+    "RegisterAddressError",
+    "RegisterAccessError",
+    "RegisterValueError",
+    "address_of",
+    "check_read",
+    "encode",
+    "patch",
+    "decode_write",
+    "registers_table",
+    "format_registers",
+]
+
+MAP_VERSION: Final = 1
+
+R: Final = "R"
+RW: Final = "RW"
+RW_CONTROLLER: Final = "RW-controller"
+RW_INSTRUCTOR: Final = "RW-instructor"
+ACCESS_VALUES: Final = (R, RW, RW_CONTROLLER, RW_INSTRUCTOR)
+
+_WIDTH: Final = {"uint16": 1, "int16": 1, "uint32": 2, "float32": 2}
+
+
+class Status(IntFlag):
+    """Bits of the ``status`` register."""
+
+    STUCK = 1           # valve at rest (stiction holds it)
+    MOVING = 2          # valve moving (the complement of STUCK)
+    SAT_LOW = 4         # OP clipped at 0 %
+    SAT_HIGH = 8        # OP clipped at 100 %
+    CONTROLLER = 16     # the loop has an internal PI(D) controller
+    AUTO = 32           # that controller is in auto
+
+
+@dataclass(frozen=True, slots=True)
+class Register:
+    """One row of the map. ``quantity`` names the model value it carries; ``lo..hi`` is the raw write range."""
+
+    name: str
+    address: int
+    type: str
+    scale: int
+    units: str
+    access: str
+    quantity: str
+    lo: int = 0
+    hi: int = 0
+
+    @property
+    def width(self) -> int:
+        return _WIDTH[self.type]
+
+
+REGISTERS: Final[tuple[Register, ...]] = (
+    Register("op_pct", 0, "uint16", 100, "% travel", RW, "op", 0, 10000),   # write range per loop:
+    Register("op_ma", 1, "uint16", 1000, "mA", RW, "op", 4000, 20000),     # see Scaling.op_limits
+    Register("mv_pct", 2, "uint16", 100, "% travel", R, "mv"),
+    Register("flow_pct", 3, "uint16", 100, "% flow", R, "flow"),
+    Register("pv", 4, "int16", 100, "% of pv_range", R, "pv"),
+    Register("sp", 5, "int16", 100, "% of pv_range", RW_CONTROLLER, "sp", 0, 10000),
+    Register("mode", 6, "uint16", 1, "0 manual, 1 auto", RW_CONTROLLER, "auto", 0, 1),
+    Register("kc", 7, "uint16", 1000, "% per PV unit", RW_CONTROLLER, "kc", 1, 65535),
+    Register("ti", 8, "uint16", 10, "s (0 = no integral)", RW_CONTROLLER, "ti", 0, 65535),
+    Register("td", 9, "uint16", 10, "s", RW_CONTROLLER, "td", 0, 65535),
+    Register("S", 10, "uint16", 100, "% travel", RW_INSTRUCTOR, "S", 0, 10000),
+    Register("J", 11, "uint16", 100, "% travel", RW_INSTRUCTOR, "J", 0, 10000),
+    Register("status", 12, "uint16", 1, "bits", R, "status"),
+    Register("map_version", 13, "uint16", 1, "", R, "map_version"),
+    Register("tick", 14, "uint32", 1, "ticks", R, "tick"),
+    Register("overruns", 16, "uint32", 1, "ticks", R, "overruns"),
+    Register("time", 18, "float32", 1, "s", R, "time"),
+    Register("op_f32", 20, "float32", 1, "% travel", R, "op"),
+    Register("mv_f32", 22, "float32", 1, "% travel", R, "mv"),
+    Register("pv_f32", 24, "float32", 1, "PV units", R, "pv"),
+    Register("sp_f32", 26, "float32", 1, "PV units", R, "sp"),
+)
+INPUT_REGISTERS: Final = tuple(r for r in REGISTERS if r.access == R)
+N_REGISTERS: Final = REGISTERS[-1].address + REGISTERS[-1].width
+
+_BY_NAME: Final = {r.name: r for r in REGISTERS}
+_HOLDING_AT: Final = {r.address + w: r for r in REGISTERS for w in range(r.width)}
+# _INPUT_RUN_END[a]: first address after the run of mapped input registers starting at a (a if unmapped);
+# lets the adapter validate any FC4 read with one comparison.
+_INPUT_MAPPED: Final = [any(r.address <= a < r.address + r.width for r in INPUT_REGISTERS)
+                        for a in range(N_REGISTERS)] + [False]
+_INPUT_RUN_END: Final = list(range(N_REGISTERS + 1))
+for _a in range(N_REGISTERS - 1, -1, -1):
+    if _INPUT_MAPPED[_a]:
+        _INPUT_RUN_END[_a] = _INPUT_RUN_END[_a + 1] if _INPUT_MAPPED[_a + 1] else _a + 1
+_A: Final = {r.name: r.address for r in REGISTERS}
+
+
+class RegisterError(ValueError):
+    """A request the register map refuses; the message names the register."""
+
+
+class RegisterAddressError(RegisterError):
+    """The addresses are not in the map (or not in the requested table)."""
+
+
+class RegisterAccessError(RegisterError):
+    """The register exists but may not be written (read-only, no controller, no permission, auto mode)."""
+
+
+class RegisterValueError(RegisterError):
+    """The raw value is outside the register's range."""
+
+
+def address_of(name: str) -> int:
+    """Zero-based address of register ``name`` (``KeyError`` naming it when unknown)."""
+    try:
+        return _BY_NAME[name].address
+    except KeyError:
+        raise KeyError(f"no register named {name!r}; known: {', '.join(_BY_NAME)}") from None
+
+
+def check_read(table: str, address: int, count: int) -> None:
+    """Raise :class:`RegisterAddressError` unless ``count`` registers from ``address`` are all mapped."""
+    end = address + count
+    if count < 1 or address < 0 or end > N_REGISTERS:
+        raise RegisterAddressError(f"{table} registers {address}..{end - 1} outside the map 0..{N_REGISTERS - 1}")
+    if table == "input" and _INPUT_RUN_END[address] < end:
+        raise RegisterAddressError(f"input registers {address}..{end - 1} include unmapped addresses "
+                                   f"(input registers mirror only the read-only holding registers)")
+
+
+def _u16(x: Any, scale: float, lo: int = 0, hi: int = 65535) -> np.ndarray:
+    """Scale, round half-to-even and clip; NaN reads as ``lo`` rather than as an undefined integer."""
+    y = np.rint(np.asarray(x, dtype=float) * scale)
+    return np.fmin(np.fmax(y, lo), hi).astype(np.int64)   # fmax/fmin, unlike clip, replace NaN
+
+
+def _i16(raw: Any) -> np.ndarray:
+    """Signed raw values (float) -> two's-complement 16-bit words."""
+    return _u16(raw, 1.0, -32768, 32767) & 0xFFFF
+
+
+def _words32(values: np.ndarray, dtype: str, word_order: str) -> np.ndarray:
+    """(n,) values -> (n, 2) words in register order."""
+    w = np.ascontiguousarray(values, dtype=dtype).view(">u2").reshape(-1, 2).astype(np.int64)
+    return w[:, ::-1] if word_order == CDAB else w
+
+
+def encode(state: Any, scaling: Scaling, *, tick: int, overruns: int, time: float,
+           out: np.ndarray | None = None) -> np.ndarray:
+    """Register words of every unit: array (n, N_REGISTERS) of int64 in 0..65535.
+
+    Parameters
+    ----------
+    state : object with arrays (n,) ``op, mv, flow, pv, sp, kc, ti, td, S, J`` and bool arrays
+        ``stuck, sat_low, sat_high, has_controller, auto`` (a ``LoopBank`` qualifies).
+    scaling : the per-unit :class:`Scaling`.
+    tick, overruns, time : device counters and simulated time (the same on every unit).
+    out : optional preallocated array to fill.
+    """
+    n, wo = scaling.n, scaling.word_order
+    w = np.zeros((n, N_REGISTERS), dtype=np.int64) if out is None else out
+    op = np.asarray(state.op, dtype=float)
+    ctl = np.asarray(state.has_controller, dtype=bool)
+    auto = np.asarray(state.auto, dtype=bool) & ctl
+    stuck = np.asarray(state.stuck, dtype=bool)
+    w[:, _A["op_pct"]] = _u16(op, 100, 0, 10000)
+    w[:, _A["op_ma"]] = _u16(scaling.op_to_ma(op), 1000)
+    w[:, _A["mv_pct"]] = _u16(state.mv, 100, 0, 10000)
+    w[:, _A["flow_pct"]] = _u16(state.flow, 100, 0, 10000)
+    w[:, _A["pv"]] = _i16(scaling.eng_to_raw(state.pv))
+    w[:, _A["sp"]] = np.where(ctl, _i16(scaling.eng_to_raw(state.sp)), 0)
+    w[:, _A["mode"]] = auto
+    w[:, _A["kc"]] = np.where(ctl, _u16(state.kc, 1000), 0)
+    w[:, _A["ti"]] = np.where(ctl, _ti_raw(state.ti), 0)
+    w[:, _A["td"]] = np.where(ctl, _u16(state.td, 10), 0)
+    w[:, _A["S"]] = _u16(state.S, 100)
+    w[:, _A["J"]] = _u16(state.J, 100)
+    w[:, _A["status"]] = (stuck * Status.STUCK + ~stuck * Status.MOVING
+                          + np.asarray(state.sat_low, bool) * Status.SAT_LOW
+                          + np.asarray(state.sat_high, bool) * Status.SAT_HIGH
+                          + ctl * Status.CONTROLLER + auto * Status.AUTO)
+    w[:, _A["map_version"]] = MAP_VERSION
+    w[:, 14:16] = _words32(np.array([int(tick) & 0xFFFFFFFF]), ">u4", wo)
+    w[:, 16:18] = _words32(np.array([int(overruns) & 0xFFFFFFFF]), ">u4", wo)
+    w[:, 18:20] = _words32(np.array([time]), ">f4", wo)
+    sp = np.where(ctl, np.asarray(state.sp, dtype=float), 0.0)
+    w[:, 20:28] = _words32(np.column_stack([op, state.mv, state.pv, sp]).reshape(-1), ">f4", wo).reshape(n, 8)
+    return w
+
+
+def _ti_raw(ti: Any) -> np.ndarray:
+    ti = np.asarray(ti, dtype=float)
+    p_only = ~np.isfinite(ti) | (ti <= 0)
+    return np.where(p_only, 0, _u16(np.where(p_only, 0.0, ti), 10, 1, 65535))
+
+
+def patch(row: np.ndarray, quantity: str, value: float, scaling: Scaling, index: int) -> None:
+    """Overwrite, in one unit's word ``row``, the registers that show ``quantity`` (after an accepted write)."""
+    if quantity == "op":
+        row[_A["op_pct"]] = _u16(value, 100, 0, 10000)
+        row[_A["op_ma"]] = _u16(scaling.op_to_ma(value, np.array([index]))[0], 1000)
+        row[20:22] = _words32(np.array([value]), ">f4", scaling.word_order)[0]
+    elif quantity == "sp":
+        row[_A["sp"]] = _i16(scaling.eng_to_raw(value, index))
+        row[26:28] = _words32(np.array([value]), ">f4", scaling.word_order)[0]
+    elif quantity == "auto":
+        row[_A["mode"]] = int(bool(value))
+        row[_A["status"]] = (row[_A["status"]] & ~int(Status.AUTO)) | (Status.AUTO if value else 0)
+    elif quantity == "ti":
+        row[_A["ti"]] = _ti_raw(value)
+    elif quantity in ("kc", "td", "S", "J"):
+        reg = _BY_NAME[quantity]
+        row[reg.address] = _u16(value, reg.scale)
+    else:
+        raise KeyError(f"quantity {quantity!r} is not writable")
+
+
+def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: int, *,
+                 auto: bool = False, instructor: bool = False) -> list[tuple[str, float]]:
+    """Validate a write of raw ``values`` from ``address`` on unit ``index``; return the physical changes.
+
+    Returns ``[(quantity, value), ...]`` in address order with quantity one of ``op`` (% travel), ``sp``
+    (PV units), ``auto`` (bool), ``kc``, ``ti`` (s, ``inf`` = no integral), ``td`` (s), ``S``, ``J``
+    (% travel). Every register is checked before anything is returned, so a refused write changes nothing.
+
+    Raises
+    ------
+    RegisterAddressError : an address outside the map.
+    RegisterAccessError : read-only register; controller register on a loop without one; instructor
+        register without ``instructor``; OP while the internal controller is in ``auto``.
+    RegisterValueError : a raw value outside the register's range, e.g.
+        ``register op_pct: 12000 out of range 0..10000``.
+    """
+    count = len(values)
+    if count < 1 or address < 0 or address + count > N_REGISTERS:
+        raise RegisterAddressError(f"holding registers {address}..{address + count - 1} outside the map "
+                                   f"0..{N_REGISTERS - 1}")
+    has_ctl = bool(scaling.has_controller[index])
+    changes: list[tuple[str, float]] = []
+    for a, raw in zip(range(address, address + count), values):
+        reg = _HOLDING_AT[a]
+        where = f"register {reg.name} (holding {reg.address})"
+        if reg.access == R:
+            raise RegisterAccessError(f"{where} is read-only")
+        if reg.access == RW_CONTROLLER and not has_ctl:
+            raise RegisterAccessError(f"{where} needs an internal controller; this loop has none")
+        if reg.access == RW_INSTRUCTOR and not instructor:
+            raise RegisterAccessError(f"{where} needs instructor write permission")
+        if reg.quantity == "op" and has_ctl and auto:
+            raise RegisterAccessError(f"{where} is writable only while the controller is in manual")
+        raw = int(raw)
+        lo, hi = _RANGE_OF.get(reg.name, lambda sc, i: (reg.lo, reg.hi))(scaling, index)
+        signed = raw - 65536 if reg.type == "int16" and raw >= 32768 else raw
+        if not (lo <= signed <= hi) or not (0 <= raw <= 65535):
+            raise RegisterValueError(f"register {reg.name}: {signed} out of range {lo}..{hi}")
+        changes.append((reg.quantity, _to_physical(reg, signed, scaling, index)))
+    return changes
+
+
+_RANGE_OF: Final = {  # registers whose write range depends on the loop
+    "op_pct": lambda sc, i: tuple(sc.op_raw_range[i]),
+    "op_ma": lambda sc, i: tuple(sc.ma_raw_range[i]),
+}
+
+
+def _to_physical(reg: Register, raw: int, scaling: Scaling, index: int) -> float:
+    if reg.name == "op_ma":
+        lo, hi = scaling.op_limits[index]
+        return float(np.clip(scaling.tables[index].to_pct(raw / 1000.0), lo, hi))
+    if reg.name == "sp":
+        lo, hi = scaling.pv_lo[index], scaling.pv_hi[index]
+        return float(lo + raw * (hi - lo) / 10000.0)
+    if reg.name == "mode":
+        return bool(raw)
+    if reg.name == "ti" and raw == 0:
+        return math.inf
+    return raw / reg.scale
+
+
+# --- documentation renderings ------------------------------------------------------------------------
+
+_COLUMNS: Final = ("name", "table", "address", "type", "scale", "units", "access")
+
+
+def registers_table(config: Any = None) -> list[dict]:
+    """The map as rows with exactly the keys name, table, address, type, scale, units, access.
+
+    ``config`` (a ``ServerConfig`` or ``None``) only fills in the PV engineering units of the float32
+    copies when every loop shares them. Holding rows come first, then the input mirror.
+    """
+    pv_units = "PV units"
+    if config is not None:
+        units = {lp.plant.units for lp in config.loops}
+        if len(units) == 1 and next(iter(units)):
+            pv_units = next(iter(units))
+    rows = []
+    for table, regs in (("holding", REGISTERS), ("input", INPUT_REGISTERS)):
+        for r in regs:
+            units = pv_units if r.units == "PV units" else r.units
+            rows.append(dict(zip(_COLUMNS, (r.name, table, r.address, r.type, r.scale, units, r.access))))
+    return rows
+
+
+def format_registers(rows: Sequence[dict], fmt: str = "md") -> str:
+    """Render rows from :func:`registers_table` as ``"md"`` (Markdown table), ``"csv"`` or ``"json"``."""
+    if fmt == "json":
+        return json.dumps(list(rows), indent=2) + "\n"
+    if fmt == "csv":
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=_COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+        return buf.getvalue()
+    if fmt == "md":
+        cells = [list(_COLUMNS)] + [[str(row[c]) for c in _COLUMNS] for row in rows]
+        widths = [max(len(r[j]) for r in cells) for j in range(len(_COLUMNS))]
+        line = lambda r: "| " + " | ".join(c.ljust(wd) for c, wd in zip(r, widths)) + " |"  # noqa: E731
+        sep = "|" + "|".join("-" * (wd + 2) for wd in widths) + "|"
+        return "\n".join([line(cells[0]), sep] + [line(r) for r in cells[1:]]) + "\n"
+    raise ValueError(f"format_registers: fmt must be 'md', 'csv' or 'json', got {fmt!r}")

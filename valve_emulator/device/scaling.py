@@ -1,0 +1,118 @@
+"""Per-loop register scalings: PV range, mA table, OP limits and word order of each emulated unit.
+
+Pure (numpy and the physics signal chain). :class:`Scaling` holds, for ``n`` units at once, the constants
+that :mod:`valve_emulator.device.registers` needs to turn model values into register words and back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Final, Sequence
+
+import numpy as np
+
+from valve_emulator.physics.signal_chain import DEFAULT_MA_TABLE, LookupTable
+
+__all__ = ["ABCD", "CDAB", "Scaling"]
+
+ABCD: Final = "ABCD"   # 32-bit values: high word at the lower address (mbpoll -B)
+CDAB: Final = "CDAB"   # low word first (mbpoll's default)
+
+
+@dataclass(frozen=True, eq=False)
+class Scaling:
+    """Per-unit constants that turn model values into register words, for ``n`` units (one per loop).
+
+    Parameters
+    ----------
+    pv_lo, pv_hi : arrays (n,), the engineering range mapped onto 0..10000 of ``pv`` and ``sp``.
+    has_controller : bool array (n,), loops with an internal controller.
+    tables : one :class:`~valve_emulator.physics.signal_chain.LookupTable` (mA <-> %) per unit.
+    word_order : ``"ABCD"`` or ``"CDAB"`` for every 32-bit value.
+    pv_units : engineering-unit strings per unit (documentation only).
+    op_limits : array (n, 2) of the OP a client may write (% travel), default 0..100; a loop with a
+        controller takes its ``op_limits`` (the controller refuses a manual OP outside them).
+
+    Derived: ``op_raw_range`` and ``ma_raw_range`` (n, 2), the writable raw ranges of ``op_pct`` and
+    ``op_ma`` per unit.
+    """
+
+    pv_lo: np.ndarray
+    pv_hi: np.ndarray
+    has_controller: np.ndarray
+    tables: tuple[LookupTable, ...]
+    word_order: str = ABCD
+    pv_units: tuple[str, ...] = ()
+    op_limits: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        lo = np.asarray(self.pv_lo, dtype=float).reshape(-1)
+        hi = np.asarray(self.pv_hi, dtype=float).reshape(-1)
+        ctl = np.asarray(self.has_controller, dtype=bool).reshape(-1)
+        n = lo.size
+        lim = np.tile([0.0, 100.0], (n, 1)) if self.op_limits is None else np.asarray(self.op_limits, float)
+        if hi.size != n or ctl.size != n or len(self.tables) != n or lim.shape != (n, 2):
+            raise ValueError(f"Scaling: pv_lo, pv_hi, has_controller, tables and op_limits must all describe "
+                             f"{n} units")
+        if not np.all(hi > lo):
+            raise ValueError(f"Scaling: pv_range must have lo < hi, got {list(zip(lo, hi))}")
+        lim = np.clip(lim, 0.0, 100.0)
+        if not np.all(lim[:, 1] > lim[:, 0]):
+            raise ValueError(f"Scaling: op_limits must have lo < hi within 0..100, got {lim.tolist()}")
+        if self.word_order not in (ABCD, CDAB):
+            raise ValueError(f"word_order must be ABCD or CDAB, got {self.word_order!r}")
+        for name, value in (("pv_lo", lo), ("pv_hi", hi), ("has_controller", ctl), ("op_limits", lim)):
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "pv_units", tuple(self.pv_units) or ("",) * n)
+        default = LookupTable(DEFAULT_MA_TABLE)
+        # The default table is linear: convert those units in one vectorised expression each tick.
+        object.__setattr__(self, "_custom", tuple(i for i, t in enumerate(self.tables) if t != default))
+        op_raw = np.column_stack([np.ceil(lim[:, 0] * 100 - 1e-9), np.floor(lim[:, 1] * 100 + 1e-9)])
+        object.__setattr__(self, "op_raw_range", op_raw.astype(np.int64))
+        ma = np.sort(np.array([t.to_ma(row) for t, row in zip(self.tables, lim)]).reshape(n, 2), axis=1)
+        ma_raw = np.column_stack([np.ceil(ma[:, 0] * 1000 - 1e-9), np.floor(ma[:, 1] * 1000 + 1e-9)])
+        object.__setattr__(self, "ma_raw_range", np.clip(ma_raw, 0, 65535).astype(np.int64))
+
+    @property
+    def n(self) -> int:
+        return self.pv_lo.size
+
+    @classmethod
+    def build(cls, n: int, *, pv_range: Sequence[float] | Sequence[Sequence[float]] = (0.0, 100.0),
+              has_controller: Any = False, ma_table: Any = None, word_order: str = ABCD,
+              pv_units: str | Sequence[str] = "", op_limits: Sequence[float] = (0.0, 100.0)) -> "Scaling":
+        """Convenience constructor broadcasting one setting to ``n`` units (``ma_table=None``: 4–20 mA)."""
+        rng = np.broadcast_to(np.asarray(pv_range, dtype=float), (n, 2))
+        table = LookupTable(tuple(map(tuple, ma_table))) if ma_table is not None else LookupTable()
+        units = (pv_units,) * n if isinstance(pv_units, str) else tuple(pv_units)
+        return cls(rng[:, 0].copy(), rng[:, 1].copy(), np.broadcast_to(has_controller, (n,)).copy(),
+                   (table,) * n, word_order, units, np.broadcast_to(np.asarray(op_limits, float), (n, 2)))
+
+    @classmethod
+    def from_config(cls, config: Any) -> "Scaling":
+        """Scalings of a ``ServerConfig`` (one unit per loop, in ``config.loops`` order)."""
+        loops = config.loops
+        rng = np.array([lp.plant.pv_range for lp in loops], dtype=float).reshape(len(loops), 2)
+        tables = tuple(LookupTable(tuple(map(tuple, lp.valve.ma_table))) for lp in loops)
+        limits = [lp.controller.op_limits if lp.controller is not None else (0.0, 100.0) for lp in loops]
+        return cls(rng[:, 0].copy(), rng[:, 1].copy(), np.array([lp.controller is not None for lp in loops]),
+                   tables, config.device.word_order, tuple(lp.plant.units for lp in loops),
+                   np.array(limits, dtype=float).reshape(len(loops), 2))
+
+    # --- scalar/array conversions shared by encode, patch and decode ---------------------------------
+
+    def op_to_ma(self, op: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
+        """OP (% travel) of units ``index`` (default all) -> loop current in mA."""
+        op = np.atleast_1d(np.asarray(op, dtype=float))
+        idx = np.arange(self.n) if index is None else np.atleast_1d(index)
+        ma = 4.0 + 0.16 * op
+        for i in self._custom:
+            sel = idx == i
+            if np.any(sel):
+                ma = np.where(sel, self.tables[i].to_ma(op), ma)
+        return ma
+
+    def eng_to_raw(self, x: np.ndarray, index: Any = slice(None)) -> np.ndarray:
+        """Engineering units -> % of pv_range × 100 (unclipped float)."""
+        lo, hi = self.pv_lo[index], self.pv_hi[index]
+        return (np.asarray(x, dtype=float) - lo) * (10000.0 / (hi - lo))

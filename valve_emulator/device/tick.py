@@ -1,0 +1,300 @@
+"""The device's heartbeat: a drift-free real-time schedule that steps the loop bank and refreshes registers.
+
+Pure asyncio (no pymodbus). One :class:`Device` owns a ``LoopBank`` of ``n`` loops, the register
+:class:`~valve_emulator.device.registers.Scaling` of those loops and the register image the Modbus adapter
+serves (one contiguous ``bytearray``, big-endian words, ``2·N_REGISTERS`` bytes per unit).
+
+Schedule
+--------
+Tick ``j`` is due at the absolute deadline ``d_j = t0 + j·P`` with ``P = dt / time_scale`` (``dt`` the
+bank's simulated step, ``t0`` the clock at start). Sleeping until an absolute deadline rather than for
+``P`` after the previous tick keeps the mean period exact: lateness of one tick (jitter) never
+accumulates. Each tick
+
+1. applies the writes received since the previous tick, in arrival order (the last write to a quantity
+   wins; OP is then held until the next write),
+2. steps every loop one ``dt`` (``bank.step()``),
+3. re-encodes the register image of every unit.
+
+Lateness ``L = clock() − d_j`` is recorded in a bounded ring buffer (:class:`JitterBuffer`, p50/p99).
+When a tick wakes more than one period late (``L > P``: a slow step, a stalled event loop) it counts one
+*overrun*, runs that tick once, and re-anchors to the next deadline still in the future on the same
+grid, ``d_{j+m}`` with ``m = ⌊L/P⌋ + 1``. The missed ticks are skipped, not replayed in a burst, so
+simulated time then lags wall-clock time by ``(m − 1)·dt`` for each overrun.
+
+Time scale: ``time_scale = 1`` is real time, ``> 1`` faster. ``math.inf`` runs ticks back to back as fast
+as possible (yielding to the event loop between ticks; no jitter is recorded). ``0`` freezes time: no tick
+task runs and only :meth:`Device.advance` steps the bank. Tests synchronise on :meth:`Device.wait_for_tick`
+instead of sleeping. The clock and the sleep function are injectable for tests.
+
+Writes arrive through :meth:`Device.write` (validated by the register map; a refused write raises a
+:class:`~valve_emulator.device.registers.RegisterError` and changes nothing). An accepted write shows in
+the register image at once, so a client reads back what it wrote; the physics sees it at the next tick.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+import logging
+import math
+import time
+from typing import Any, Awaitable, Callable, Sequence
+
+import numpy as np
+
+from valve_emulator.device.registers import N_REGISTERS, Scaling, decode_write, encode, patch
+
+__all__ = ["JitterBuffer", "Device", "TICK_TASK_NAME"]
+
+TICK_TASK_NAME = "valve-emulator-tick"
+_log = logging.getLogger(__name__)
+
+
+class JitterBuffer:
+    """The last ``size`` tick latenesses (s), with percentile helpers."""
+
+    def __init__(self, size: int = 4096) -> None:
+        if size < 1:
+            raise ValueError(f"JitterBuffer size must be >= 1, got {size}")
+        self._buf = np.zeros(size)
+        self._count = 0
+
+    def add(self, lateness: float) -> None:
+        self._buf[self._count % self._buf.size] = lateness
+        self._count += 1
+
+    def __len__(self) -> int:
+        return min(self._count, self._buf.size)
+
+    @property
+    def total(self) -> int:
+        """Latenesses recorded since the start (the buffer keeps only the last ``size``)."""
+        return self._count
+
+    def values(self) -> np.ndarray:
+        """Copy of the retained latenesses, oldest first."""
+        n, size = len(self), self._buf.size
+        return np.roll(self._buf, -(self._count % size))[size - n:] if self._count > size else self._buf[:n].copy()
+
+    def percentile(self, q: float) -> float:
+        """``q``-th percentile (0..100) of the retained latenesses; ``nan`` when empty."""
+        return float(np.percentile(self._buf[: len(self)], q)) if len(self) else math.nan
+
+    @property
+    def p50(self) -> float:
+        return self.percentile(50.0)
+
+    @property
+    def p99(self) -> float:
+        return self.percentile(99.0)
+
+
+class Device:
+    """``n`` emulated loops (one per Modbus unit id) behind a register image, advanced by a tick task.
+
+    Parameters
+    ----------
+    bank : a ``LoopBank`` (or anything with its interface: ``n, dt, t, step(), op_external, set_sp,
+        set_auto, set_manual_op, set_tuning, set_valve`` and the state arrays read by
+        :func:`~valve_emulator.device.registers.encode`).
+    scaling : register scalings of the same ``n`` loops.
+    units : the unit id of each loop, in bank order (unique).
+    time_scale : simulated seconds per real second; ``math.inf`` as fast as possible, ``0`` frozen
+        (step with :meth:`advance`).
+    clock, sleep : ``time.monotonic`` and ``asyncio.sleep`` unless injected (fake time in tests).
+    jitter_size : capacity of the lateness ring buffer.
+    """
+
+    def __init__(self, bank: Any, scaling: Scaling, *, units: Sequence[int], time_scale: float = 1.0,
+                 clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> None:
+        units = tuple(int(u) for u in units)
+        if not (bank.n == scaling.n == len(units)):
+            raise ValueError(f"Device: bank ({bank.n}), scaling ({scaling.n}) and units ({len(units)}) "
+                             f"must describe the same number of loops")
+        if len(set(units)) != len(units) or not all(0 <= u <= 255 for u in units):
+            raise ValueError(f"Device: units must be unique ids in 0..255, got {units}")
+        if not (time_scale >= 0):  # also refuses NaN
+            raise ValueError(f"Device: time_scale must be >= 0 (inf = as fast as possible), got {time_scale}")
+        if not (bank.dt > 0):
+            raise ValueError(f"Device: bank.dt must be > 0, got {bank.dt}")
+        self.bank, self.scaling, self.units = bank, scaling, units
+        self.unit_index = {u: i for i, u in enumerate(units)}
+        self.time_scale = float(time_scale)
+        self.period = float(bank.dt) / self.time_scale if 0 < self.time_scale < math.inf else math.nan
+        self.stride = 2 * N_REGISTERS
+        self.ticks = 0
+        self.overruns = 0
+        self.jitter = JitterBuffer(jitter_size)
+        self.error: BaseException | None = None
+        self._clock, self._sleep = clock, sleep
+        self._pending: dict[tuple[int, str], float] = {}
+        self._waiters: list[tuple[int, int, asyncio.Future]] = []
+        self._seq = itertools.count()
+        self._task: asyncio.Task | None = None
+        self._words = np.zeros((bank.n, N_REGISTERS), dtype=np.int64)
+        self.image = bytearray(self.stride * bank.n)
+        self._refresh()
+
+    @classmethod
+    def from_config(cls, config: Any, *, bank: Any = None, time_scale: float = 1.0,
+                    clock: Callable[[], float] = time.monotonic,
+                    sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> "Device":
+        """Device for a ``ServerConfig``: one unit per loop; ``bank`` defaults to a new ``LoopBank``."""
+        if bank is None:
+            from valve_emulator.sim.loop import LoopBank  # the bank is heavy; import only when needed
+            # documented constructor is LoopBank.from_configs; fall back to the plain constructor
+            make = getattr(LoopBank, "from_configs", LoopBank)
+            bank = make(config.loops, dt=config.device.tick)
+        units = [lp.device.unit for lp in config.loops]
+        return cls(bank, Scaling.from_config(config), units=units, time_scale=time_scale, clock=clock,
+                   sleep=sleep, jitter_size=jitter_size)
+
+    # --- writes -------------------------------------------------------------------------------------
+
+    def effective_auto(self, index: int) -> bool:
+        """Controller mode of loop ``index`` including a mode write not yet applied."""
+        pending = self._pending.get((index, "auto"))
+        return bool(self.bank.auto[index]) if pending is None else bool(pending)
+
+    def write(self, index: int, address: int, values: Sequence[int], *,
+              instructor: bool = False) -> list[tuple[str, float]]:
+        """Validate and queue a write of raw register ``values`` at ``address`` on loop ``index``.
+
+        Returns the accepted ``(quantity, value)`` changes; raises a ``RegisterError`` (nothing changed).
+        """
+        changes = decode_write(address, values, self.scaling, index, auto=self.effective_auto(index),
+                               instructor=instructor)
+        row = self._words[index]
+        for quantity, value in changes:
+            self._pending.pop((index, quantity), None)  # re-insert: keep arrival order for the tick
+            self._pending[(index, quantity)] = value
+            patch(row, quantity, value, self.scaling, index)
+        start = index * self.stride
+        self.image[start:start + self.stride] = row.astype(">u2").tobytes()
+        return changes
+
+    def _apply_pending(self) -> None:
+        bank = self.bank
+        for (i, quantity), value in self._pending.items():
+            try:
+                if quantity == "op":
+                    if bank.has_controller[i]:
+                        bank.set_manual_op(i, value)
+                    else:
+                        bank.op_external[i] = value
+                elif quantity == "sp":
+                    bank.set_sp(i, value)
+                elif quantity == "auto":
+                    bank.set_auto(i, bool(value))
+                elif quantity in ("kc", "ti", "td"):
+                    bank.set_tuning(i, **{quantity: value})
+                else:  # S, J
+                    bank.set_valve(i, **{quantity: value})
+            except ValueError as exc:
+                # The register map validated the value; a bank that still refuses it must not stop the
+                # tick of every other loop. The next refresh shows the bank's unchanged value.
+                _log.error("unit %d: write %s = %r refused by the loop bank: %s", self.units[i], quantity,
+                           value, exc)
+        self._pending.clear()
+
+    # --- one tick -----------------------------------------------------------------------------------
+
+    def _refresh(self) -> None:
+        encode(self.bank, self.scaling, tick=self.ticks, overruns=self.overruns, time=self.bank.t,
+               out=self._words)
+        self.image[:] = self._words.astype(">u2").tobytes()
+
+    def tick(self) -> None:
+        """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""
+        self._apply_pending()
+        self.bank.step()
+        self.ticks += 1
+        self._refresh()
+        waiters = self._waiters
+        while waiters and waiters[0][0] <= self.ticks:
+            fut = heapq.heappop(waiters)[2]
+            if not fut.done():
+                fut.set_result(self.ticks)
+
+    def advance(self, k: int = 1) -> int:
+        """Run ``k`` ticks immediately (only with ``time_scale == 0``); returns the tick count."""
+        if self.time_scale != 0:
+            raise RuntimeError(f"Device.advance needs time_scale=0 (frozen time), not {self.time_scale}")
+        for _ in range(int(k)):
+            self.tick()
+        return self.ticks
+
+    async def wait_for_tick(self, k: int) -> int:
+        """Wait until at least ``k`` ticks have run; returns the tick count."""
+        if self.error is not None:
+            raise RuntimeError("the tick task has failed") from self.error
+        if self.ticks >= k:
+            return self.ticks
+        fut = asyncio.get_running_loop().create_future()
+        heapq.heappush(self._waiters, (k, next(self._seq), fut))
+        return await fut
+
+    # --- schedule and lifecycle ---------------------------------------------------------------------
+
+    async def _run(self) -> None:
+        try:
+            if self.time_scale == math.inf:
+                while True:
+                    self.tick()
+                    await asyncio.sleep(0)  # let requests in between back-to-back ticks
+            period, clock = self.period, self._clock
+            t0, j = clock(), 0
+            while True:
+                j += 1
+                deadline = t0 + j * period  # absolute: jitter never accumulates into drift
+                delay = deadline - clock()
+                await (self._sleep(delay) if delay > 0 else asyncio.sleep(0))
+                late = clock() - deadline
+                if late > period:
+                    self.overruns += 1
+                    j += int(late // period)  # next deadline is the first grid point after now
+                self.jitter.add(late)
+                self.tick()
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # a broken bank: keep serving the last image, report once
+            self.error = exc
+            _log.error("tick task stopped at tick %d: %r", self.ticks, exc, exc_info=exc)
+            for _, _, fut in self._waiters:
+                if not fut.done():
+                    fut.set_exception(RuntimeError("the tick task has failed"))
+            self._waiters.clear()
+
+    @property
+    def running(self) -> bool:
+        return self._task is not None and not self._task.done()
+
+    async def start(self) -> None:
+        """Start the tick task (nothing to start with ``time_scale == 0``)."""
+        if self._task is None and self.time_scale != 0:
+            self._task = asyncio.get_running_loop().create_task(self._run(), name=TICK_TASK_NAME)
+
+    async def stop(self) -> None:
+        """Cancel the tick task and wait for it; cancel whoever still waits for a tick."""
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            try:
+                await task
+            except asyncio.CancelledError:
+                current = asyncio.current_task()
+                if current is not None and current.cancelling():
+                    raise  # our caller is being cancelled too: do not swallow that
+        for _, _, fut in self._waiters:
+            fut.cancel()
+        self._waiters.clear()
+
+    async def __aenter__(self) -> "Device":
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc_info: Any) -> None:
+        await self.stop()

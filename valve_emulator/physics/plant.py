@@ -1,0 +1,409 @@
+r"""Linear plants with dead time, discretised exactly by zero-order hold, stepped as a bank.
+
+A plant is a transfer function with dead time
+
+.. math:: G(s) = \frac{b_0 s^q + \dots + b_q}{a_0 s^p + \dots + a_p}\, e^{-\theta s},
+   \qquad q \le p,
+
+driven by the flow deviation :math:`u - u_0` (% of valve flow) and read as
+:math:`\mathrm{pv} = \mathrm{pv}_0 + y` (engineering units).
+
+Exact ZOH with a fractional dead time
+-------------------------------------
+Write :math:`\theta = (m + f)\,\Delta t` with integer :math:`m \ge 0` and :math:`0 \le f < 1`, and let
+the input be held, :math:`u(t) = u_k` on :math:`[t_k, t_{k+1})`. The delayed input seen by the
+state-space realisation :math:`\dot x = A x + B u_d`, :math:`y = C x + D u_d` is, over
+:math:`[t_k, t_{k+1})`, :math:`u_{k-m-1}` for the first :math:`f\Delta t` and :math:`u_{k-m}` for the rest.
+Splitting the ZOH convolution integral at :math:`f\Delta t` gives exactly
+
+.. math::
+   x_{k+1} = \Phi x_k + \Gamma_1 u_{k-m} + \Gamma_0 u_{k-m-1},\qquad
+   \Phi = e^{A\Delta t},\quad
+   \Gamma_1 = \int_0^{(1-f)\Delta t} e^{A\tau}d\tau\,B,\quad
+   \Gamma_0 = e^{A(1-f)\Delta t}\int_0^{f\Delta t} e^{A\tau}d\tau\,B
+
+(the modified z-transform / state augmentation of Åström & Wittenmark, *Computer-Controlled Systems*,
+3rd ed., §2.3). Each integral comes from one matrix exponential of the augmented matrix,
+:math:`\exp\!\big(\begin{smallmatrix}A & B\\ 0 & 0\end{smallmatrix}\big)h =
+\big(\begin{smallmatrix}e^{Ah} & \int_0^h e^{A\tau}d\tau B\\ 0 & 1\end{smallmatrix}\big)`, so integrators
+(singular :math:`A`) need no :math:`A^{-1}`. With :math:`f = 0`, :math:`\Gamma_0 = 0`.
+
+PV convention: ``pv`` at :math:`t_k` is :math:`C x_k + D u_{k-1-m}`, the continuous output just before
+:math:`t_k` (:math:`y(t_k^-)`); it equals :math:`y(t_k)` except at an instant where the delayed input
+switches and :math:`D \ne 0`.
+
+Kernel for compiled time loops
+------------------------------
+``plant_step_kernel(u, u0, pv0, A, B0, B1, C, D, m, buf, head, x, ud, pv, work) -> int``
+
+====== ============ ===================================================================
+name   shape/dtype  meaning
+====== ============ ===================================================================
+u      (n,) f8      flow (%) applied over :math:`[t_k, t_k+\Delta t)` (read only)
+u0     (n,) f8      operating-point flow
+pv0    (n,) f8      PV at the operating point
+A      (n,p,p) f8   :math:`\Phi`, zero-padded to the largest order p in the bank
+B0     (n,p) f8     :math:`\Gamma_0` (multiplies the older input :math:`u_{k-m-1}`)
+B1     (n,p) f8     :math:`\Gamma_1` (multiplies :math:`u_{k-m}`)
+C      (n,p) f8     output row
+D      (n,) f8      feed-through
+m      (n,) i8      integer delay in samples
+buf    (n,L) f8     ring buffer of input deviations :math:`u-u_0`, L ≥ max(m)+2 (mutated)
+head   (1,) i8      ring-buffer column of the newest input (mutated)
+x      (n,p) f8     state (mutated)
+ud     (n,) f8      delayed input in effect just before the next sample (mutated)
+pv     (n,) f8      PV at :math:`t_{k+1}` (output, mutated)
+work   (p,) f8      scratch
+====== ============ ===================================================================
+
+It returns ``-1``, or the index of the first non-finite ``u`` — in which case nothing was changed.
+:meth:`PlantBank.kernel_args` returns every argument after ``u`` in this order.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.linalg import expm
+
+__all__ = [
+    "DiscretePlant",
+    "PlantBank",
+    "transfer_function_to_zoh",
+    "fopdt",
+    "integrator",
+    "plant_step_kernel",
+    "MAX_DELAY_SAMPLES",
+]
+
+#: Largest integer dead time in samples (sizes the ring buffer; guards against delay/dt typos).
+MAX_DELAY_SAMPLES = 1_000_000
+# A delay within this many samples of an integer is that integer: 0.3/0.1 is 2.9999999999999996.
+_SNAP = 1e-9
+
+
+@dataclass(frozen=True, eq=False)
+class DiscretePlant:
+    """Exact ZOH discretisation of one transfer function with dead time (arrays are read-only).
+
+    Attributes
+    ----------
+    A : ndarray (p, p)
+        :math:`\\Phi = e^{A_c \\Delta t}`.
+    B0, B1 : ndarray (p,)
+        :math:`\\Gamma_0` (older input, fractional part of the delay) and :math:`\\Gamma_1` (newer input).
+    C : ndarray (p,)
+    D : float
+    m : int
+        Integer part of the delay in samples.
+    dt : float
+    frac : float
+        Fractional part f of the delay, ``delay = (m + frac) * dt``.
+    x_rest : ndarray (p,)
+        State at rest for a unit constant input deviation (zeros for integrating plants).
+    integrating : bool
+        The denominator has a root at s = 0 (no steady state for a non-zero input deviation).
+    """
+
+    A: np.ndarray
+    B0: np.ndarray
+    B1: np.ndarray
+    C: np.ndarray
+    D: float
+    m: int
+    dt: float
+    frac: float = 0.0
+    x_rest: np.ndarray | None = None
+    integrating: bool = False
+
+    @property
+    def order(self) -> int:
+        """Number of states p."""
+        return self.A.shape[0]
+
+    @property
+    def delay(self) -> float:
+        """Dead time in seconds, (m + frac)·dt."""
+        return (self.m + self.frac) * self.dt
+
+
+def _coefficients(name: str, value: ArrayLike) -> np.ndarray:
+    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be a 1-D coefficient sequence, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} has non-finite coefficients: {arr.tolist()}")
+    return arr
+
+
+def _realise(num: np.ndarray, den: np.ndarray):
+    """Controllable canonical realisation (A, B, C, D) of num/den, den monic, deg num ≤ deg den."""
+    p = den.size - 1
+    b = np.concatenate([np.zeros(p + 1 - num.size), num])
+    d = b[0]
+    A = np.zeros((p, p))
+    if p:
+        A[0, :] = -den[1:]
+        A[np.arange(1, p), np.arange(p - 1)] = 1.0
+    B = np.zeros(p)
+    if p:
+        B[0] = 1.0
+    C = b[1:] - d * den[1:]  # strictly proper remainder after taking out the feed-through d
+    return A, B, C, d
+
+
+def _zoh_integral(A: np.ndarray, B: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return (e^{Ah}, ∫_0^h e^{Aτ}dτ B) from one augmented matrix exponential (no A^{-1})."""
+    p = A.shape[0]
+    M = np.zeros((p + 1, p + 1))
+    M[:p, :p] = A * h
+    M[:p, p] = B * h
+    E = expm(M)
+    return E[:p, :p], E[:p, p]
+
+
+def transfer_function_to_zoh(num: ArrayLike, den: ArrayLike, delay: float, dt: float) -> DiscretePlant:
+    """Discretise ``num(s)/den(s)·exp(-delay·s)`` exactly by zero-order hold at step ``dt``.
+
+    Parameters
+    ----------
+    num, den : array_like
+        Coefficients, highest power first (as ``scipy.signal``). Leading zeros are ignored.
+    delay : float
+        Dead time θ ≥ 0 in seconds, split as θ = (m + f)·dt; a θ/dt within 1e-9 of an integer is
+        taken as that integer.
+    dt : float
+        Sample time > 0.
+
+    Returns
+    -------
+    DiscretePlant
+
+    Raises
+    ------
+    ValueError
+        Naming ``num``, ``den``, ``delay`` or ``dt``: non-finite values, empty or zero ``den``,
+        improper transfer function (deg num > deg den), negative delay, dt ≤ 0, or a delay longer than
+        :data:`MAX_DELAY_SAMPLES` samples.
+    """
+    num_a = _coefficients("num", num)
+    den_a = _coefficients("den", den)
+    dt = float(dt)
+    delay = float(delay)
+    if not np.isfinite(dt) or dt <= 0.0:
+        raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+    if not np.isfinite(delay) or delay < 0.0:
+        raise ValueError(f"delay must be a finite number >= 0, got {delay!r}")
+    nz = np.flatnonzero(den_a)
+    if nz.size == 0:
+        raise ValueError(f"den must have a non-zero coefficient, got {den_a.tolist()}")
+    den_a = den_a[nz[0]:]
+    nzn = np.flatnonzero(num_a)
+    num_a = num_a[nzn[0]:] if nzn.size else np.zeros(1)
+    if num_a.size > den_a.size:
+        raise ValueError(
+            f"num has degree {num_a.size - 1} > degree {den_a.size - 1} of den: improper transfer function"
+        )
+    num_a = num_a / den_a[0]
+    den_a = den_a / den_a[0]
+
+    ratio = delay / dt
+    if ratio > MAX_DELAY_SAMPLES:
+        raise ValueError(f"delay is {ratio:.6g} samples of dt={dt}, more than {MAX_DELAY_SAMPLES}")
+    m = round(ratio)
+    if abs(ratio - m) <= _SNAP * max(1.0, ratio):
+        f = 0.0
+    else:
+        m = int(np.floor(ratio))
+        f = ratio - m
+
+    Ac, Bc, C, d = _realise(num_a, den_a)
+    integrating = den_a.size > 1 and den_a[-1] == 0.0
+    Phi = expm(Ac * dt)
+    Phi1, G1 = _zoh_integral(Ac, Bc, (1.0 - f) * dt)
+    if f > 0.0:
+        _, g0 = _zoh_integral(Ac, Bc, f * dt)
+        G0 = Phi1 @ g0
+    else:
+        G0 = np.zeros_like(G1)
+    if integrating or Ac.shape[0] == 0:
+        x_rest = np.zeros(Ac.shape[0])
+    else:
+        # Continuous equilibrium A x + B = 0 is also the fixed point of the exact discrete map.
+        x_rest = np.linalg.solve(Ac, -Bc)
+    arrays = [Phi, G0, G1, C, x_rest]
+    for arr in arrays:
+        arr.setflags(write=False)
+    return DiscretePlant(A=Phi, B0=G0, B1=G1, C=C, D=float(d), m=int(m), dt=dt, frac=float(f),
+                         x_rest=x_rest, integrating=bool(integrating))
+
+
+def fopdt(gain: float, tau: float, delay: float) -> tuple[list[float], list[float], float]:
+    """First order plus dead time K·e^{-θs}/(τs+1) as ``(num, den, delay)``; ``tau=0`` is a pure gain."""
+    if not np.isfinite(tau) or tau < 0.0:
+        raise ValueError(f"tau must be a finite number >= 0, got {tau!r}")
+    den = [float(tau), 1.0] if tau > 0.0 else [1.0]
+    return [float(gain)], den, float(delay)
+
+
+def integrator(gain: float, delay: float = 0.0) -> tuple[list[float], list[float], float]:
+    """Integrator with dead time K·e^{-θs}/s as ``(num, den, delay)``."""
+    return [float(gain)], [1.0, 0.0], float(delay)
+
+
+@numba.njit(cache=True)
+def plant_step_kernel(u, u0, pv0, A, B0, B1, C, D, m, buf, head, x, ud, pv, work):  # pragma: no cover
+    """Advance every plant one sample in place; see the module docstring for the arguments."""
+    n = u.shape[0]
+    for i in range(n):
+        if not np.isfinite(u[i]):
+            return i  # reject before touching any state
+    L = buf.shape[1]
+    p = x.shape[1]
+    h = head[0] + 1
+    if h == L:
+        h = 0
+    head[0] = h
+    for i in range(n):
+        buf[i, h] = u[i] - u0[i]
+        j = h - m[i]
+        if j < 0:
+            j += L
+        k = j - 1
+        if k < 0:
+            k += L
+        unew = buf[i, j]
+        uold = buf[i, k]
+        # Padded rows/columns are exact zeros, so a padded plant adds only +0.0 terms in the same
+        # order as its unpadded self: bank results equal single-plant results bit for bit.
+        for r in range(p):
+            s = B1[i, r] * unew + B0[i, r] * uold
+            for c in range(p):
+                s += A[i, r, c] * x[i, c]
+            work[r] = s
+        y = D[i] * unew
+        for r in range(p):
+            x[i, r] = work[r]
+            y += C[i, r] * work[r]
+        ud[i] = unew
+        pv[i] = pv0[i] + y
+    return -1
+
+
+def _vector(name: str, value: ArrayLike, n: int) -> np.ndarray:
+    try:
+        arr = np.array(np.broadcast_to(np.asarray(value, dtype=float), (n,)))
+    except ValueError:
+        raise ValueError(f"{name} must be a scalar or have length {n}, got shape {np.shape(value)}") from None
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
+    return arr
+
+
+class PlantBank:
+    """``n`` plants stepped together: pv = pv0 + G(s)·(u − u0).
+
+    Plants may differ in order (state-space zero-padded to the largest order) and in delay (ring
+    buffers of a common length); they must share ``dt``. The bank starts at rest with ``u = u0``.
+
+    Parameters
+    ----------
+    plants : sequence of DiscretePlant
+    u0 : array_like
+        Operating-point flow (%), scalar or (n,).
+    pv0 : array_like
+        PV at the operating point (engineering units), scalar or (n,).
+    """
+
+    def __init__(self, plants: Sequence[DiscretePlant], *, u0: ArrayLike, pv0: ArrayLike):
+        plants = list(plants)
+        if not plants or not all(isinstance(p, DiscretePlant) for p in plants):
+            raise ValueError("plants must be a non-empty sequence of DiscretePlant")
+        dts = {p.dt for p in plants}
+        if len(dts) != 1:
+            raise ValueError(f"plants must share one dt, got {sorted(dts)}")
+        n = len(plants)
+        self._n = n
+        self._dt = plants[0].dt
+        self._u0 = _vector("u0", u0, n)
+        self._pv0 = _vector("pv0", pv0, n)
+        p = max(1, max(pl.order for pl in plants))
+        self._A = np.zeros((n, p, p))
+        self._B0 = np.zeros((n, p))
+        self._B1 = np.zeros((n, p))
+        self._C = np.zeros((n, p))
+        self._xr = np.zeros((n, p))
+        for i, pl in enumerate(plants):
+            q = pl.order
+            self._A[i, :q, :q] = pl.A
+            self._B0[i, :q] = pl.B0
+            self._B1[i, :q] = pl.B1
+            self._C[i, :q] = pl.C
+            if pl.x_rest is not None:
+                self._xr[i, :q] = pl.x_rest
+        self._D = np.array([pl.D for pl in plants])
+        self._m = np.array([pl.m for pl in plants], dtype=np.int64)
+        self._buf = np.zeros((n, int(self._m.max()) + 2))
+        self._head = np.zeros(1, dtype=np.int64)
+        self._x = np.zeros((n, p))
+        self._ud = np.zeros(n)
+        self._pv = self._pv0.copy()
+        self._work = np.zeros(p)
+        self._pv_view = self._pv.view()
+        self._pv_view.setflags(write=False)
+        self.reset(self._u0)
+
+    @property
+    def n(self) -> int:
+        """Number of plants."""
+        return self._n
+
+    @property
+    def dt(self) -> float:
+        """Common sample time (s)."""
+        return self._dt
+
+    @property
+    def pv(self) -> np.ndarray:
+        """Noise-free PV at the current sample instant (read-only view, length n)."""
+        return self._pv_view
+
+    def reset(self, u_init: ArrayLike) -> None:
+        """Put every plant at rest for the constant input ``u_init`` (scalar or (n,)).
+
+        The state is the equilibrium for u_init − u0 (x = 0, i.e. pv = pv0, for integrating plants)
+        and the delay buffers are filled with u_init, so pv = pv0 + G(0)·(u_init − u0).
+        """
+        du = _vector("u_init", u_init, self._n) - self._u0
+        self._x[:] = self._xr * du[:, None]
+        self._buf[:] = du[:, None]
+        self._head[0] = 0
+        self._ud[:] = du
+        self._pv[:] = self._pv0 + np.einsum("ij,ij->i", self._C, self._x) + self._D * du
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        """Apply flow ``u`` (%, shape (n,)) over [t_k, t_k+dt); return PV at t_{k+1} (a new array).
+
+        Raises ValueError naming ``u`` for a wrong shape or a non-finite value; the state is then
+        unchanged.
+        """
+        if not (isinstance(u, np.ndarray) and u.dtype == np.float64 and u.shape == (self._n,)
+                and u.flags.c_contiguous):
+            u = np.ascontiguousarray(u, dtype=np.float64)
+            if u.shape != (self._n,):
+                if u.size == 1:
+                    u = np.full(self._n, float(u.reshape(-1)[0]))
+                else:
+                    raise ValueError(f"u must have shape ({self._n},), got {u.shape}")
+        bad = plant_step_kernel(u, *self.kernel_args())
+        if bad >= 0:
+            raise ValueError(f"u[{bad}] must be finite, got {u[bad]!r}")
+        return self._pv.copy()
+
+    def kernel_args(self) -> tuple:
+        """Arguments of :func:`plant_step_kernel` after ``u``; the arrays are the bank's live state."""
+        return (self._u0, self._pv0, self._A, self._B0, self._B1, self._C, self._D, self._m,
+                self._buf, self._head, self._x, self._ud, self._pv, self._work)

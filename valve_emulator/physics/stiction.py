@@ -1,0 +1,423 @@
+"""Data-driven valve stiction: three published state machines sharing the parameters (S, J).
+
+All quantities are in % of valve travel and follow the 2005 convention of Choudhury, Thornhill & Shah
+("Modelling valve stiction", Control Engineering Practice 13 (2005) 641-658):
+
+* ``S`` -- deadband plus stickband, measured on the input (OP) axis;
+* ``J`` -- slip jump, measured on the output (MV, valve position) axis.
+
+While the valve moves in direction ``d`` (+1 opening, -1 closing) its position lags the input by a constant
+offset, ``MV = OP - d*(S - J)/2``: ``J = 0`` is a pure deadband, ``0 < J < S`` undershoot, ``J = S`` no offset
+and ``J > S`` overshoot. The seed paper (Choudhury, Thornhill & Shah, ADCHEM 2003) prints a slip jump ``j``
+that is half of this ``J``; :func:`seed_to_2005` converts.
+
+Models
+------
+``"choudhury"``
+    The 2005 flow chart, literally. Known to freeze on held (zero-order-hold) or noisy input and to need only
+    J, not S, to restart in the opposite direction after a stop; kept for comparison with the paper.
+``"kano"`` (default)
+    Kano, Maruta, Kugemoto & Shimizu, "Practical model and detection algorithm for valve stiction",
+    IFAC DYCOPS 2004. The same cycles as ``"choudhury"`` on clean input, but the stuck reference ``us`` only
+    changes while the valve moves, so held or noisy input does not reset it. This is why it is the default.
+    One addition of ours, ``rest_samples``: the valve counts as come to rest only after OP has stayed
+    unchanged for that many consecutive samples (the literal model is ``rest_samples = 1``); a reversal of OP
+    stops it at once whatever the setting. See :func:`rest_samples_for`.
+``"he"``
+    He, Wang, Pottmann & Qin, "A curve fitting method for detecting valve stiction in oscillating control
+    loops", Ind. Eng. Chem. Res. 46 (2007). A residual force with static band ``fs = (S + J)/2`` and kinetic
+    band ``fd = (S - J)/2``. For J > 0 it re-sticks during slow one-directional motion, so its cycles depend
+    on the sample time.
+
+Initial state (no paper fixes it; ours is deliberate): the valve is at rest at ``OP(0)`` *as if it had just
+stopped after moving in direction* ``direction`` (default +1). So ``MV(0) = OP(0) - direction*(S - J)/2``, a
+further move in the same direction needs J of input, a reversal needs S.
+
+Saturation: OP is clipped to [0, 100] before the model, and MV to [0, 100] after it (the travel stops). The
+literal ``"choudhury"`` chart additionally puts MV at 0/100 whenever OP is outside [0, 100].
+
+Implementation: every model keeps its state in one ``(n, NSTATE)`` float array, one row per valve, and a
+numba kernel ``step(u, S, J, R, state)`` advances ``n`` valves one sample in place. The same kernels serve
+one valve over a long array (:func:`simulate`), many candidate valves at once (:func:`simulate_many`) and the
+emulator's tick (:class:`StictionBank`).
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike
+
+__all__ = [
+    "MODELS",
+    "DEFAULT_MODEL",
+    "StictionBank",
+    "Valve",
+    "simulate",
+    "simulate_many",
+    "seed_to_2005",
+    "rest_samples_for",
+    "validate_parameters",
+    "stiction_step_kernel",
+    "initial_state",
+    "NSTATE",
+]
+
+MODELS: Final = ("choudhury", "kano", "he")
+DEFAULT_MODEL: Final = "kano"
+
+# Columns of the state array (one row per valve).
+MV, U_PREV, REF, DIR, FLAG, STILL, STUCK = range(7)
+NSTATE: Final = 7
+# REF:  kano -> stuck input us;  choudhury -> xss;  he -> residual ur
+# DIR:  kano -> friction direction d (+-1);  choudhury -> sign of the previous slope (-1, 0, +1)
+# FLAG: kano -> stp (1 stopped);  choudhury -> I (1 after a stop with zero slope)
+# STILL: kano -> samples since OP last changed (the rest criterion);  STUCK: 1 when MV is held this sample
+
+
+@numba.njit(cache=True, inline="always")
+def _clip(x: float) -> float:
+    return min(max(x, 0.0), 100.0)
+
+
+@numba.njit(cache=True, inline="always")
+def _kano_valve(i, u_raw, S, J, R, st):  # pragma: no cover - compiled
+    u = _clip(u_raw)
+    du = u - st[i, U_PREV]
+    if du == 0.0:
+        st[i, STILL] += 1.0
+    else:
+        st[i, STILL] = 0.0
+    half = 0.5 * (S - J)
+    if st[i, FLAG] == 0.0:
+        # Moving: it stops on a reversal of OP, or when OP has been still for R samples.
+        if du * st[i, DIR] < 0.0 or st[i, STILL] >= R:
+            st[i, REF] = st[i, U_PREV]
+            st[i, FLAG] = 1.0
+    if st[i, FLAG] == 0.0:
+        st[i, MV] = _clip(u - st[i, DIR] * half)
+        st[i, STUCK] = 0.0
+    else:
+        d = st[i, DIR]
+        if -d * (u - st[i, REF]) > S:  # reversal that overcomes deadband + stickband
+            d = -d
+            st[i, DIR] = d
+            st[i, MV] = _clip(u - d * half)
+            st[i, FLAG] = 0.0
+            st[i, STUCK] = 0.0
+        elif d * (u - st[i, REF]) > J:  # same direction again: only the slip jump to overcome
+            st[i, MV] = _clip(u - d * half)
+            st[i, FLAG] = 0.0
+            st[i, STUCK] = 0.0
+        else:
+            st[i, STUCK] = 1.0
+    st[i, U_PREV] = u
+
+
+@numba.njit(cache=True, inline="always")
+def _choudhury_valve(i, x, S, J, R, st):  # pragma: no cover - compiled
+    if x < 0.0 or x > 100.0:  # saturated: the valve sits on its stop
+        x = _clip(x)
+        st[i, MV] = x
+        st[i, REF] = x
+        st[i, DIR] = np.sign(x - st[i, U_PREV])
+        st[i, STUCK] = 0.0
+        st[i, U_PREV] = x
+        return
+    v = x - st[i, U_PREV]
+    sv = np.sign(v)
+    if sv != st[i, DIR]:  # the slope changed sign, or became zero: the valve sticks
+        st[i, REF] = st[i, U_PREV]
+        if v == 0.0:
+            st[i, FLAG] = 1.0
+        st[i, STUCK] = 1.0
+    else:
+        band = J if st[i, FLAG] == 1.0 else S
+        if abs(x - st[i, REF]) > band:
+            st[i, FLAG] = 0.0
+            st[i, MV] = _clip(x - sv * 0.5 * (S - J))
+            st[i, STUCK] = 0.0
+        else:
+            st[i, STUCK] = 1.0
+    st[i, DIR] = sv
+    st[i, U_PREV] = x
+
+
+@numba.njit(cache=True, inline="always")
+def _he_valve(i, u_raw, S, J, R, st):  # pragma: no cover - compiled
+    u = _clip(u_raw)
+    fs = 0.5 * (S + J)
+    fd = 0.5 * (S - J)
+    tmp = st[i, REF] + (u - st[i, U_PREV])
+    if abs(tmp) > fs:
+        st[i, REF] = np.sign(tmp) * fd
+        st[i, MV] = _clip(u - st[i, REF])
+        st[i, STUCK] = 0.0
+    else:
+        st[i, REF] = tmp  # MV = u - ur is unchanged in exact arithmetic: hold it exactly
+        st[i, STUCK] = 1.0
+    st[i, U_PREV] = u
+
+
+@numba.njit(cache=True)
+def _kano_step(u, S, J, R, st):  # pragma: no cover - compiled
+    for i in range(u.shape[0]):
+        _kano_valve(i, u[i], S[i], J[i], R[i], st)
+
+
+@numba.njit(cache=True)
+def _choudhury_step(u, S, J, R, st):  # pragma: no cover - compiled
+    for i in range(u.shape[0]):
+        _choudhury_valve(i, u[i], S[i], J[i], R[i], st)
+
+
+@numba.njit(cache=True)
+def _he_step(u, S, J, R, st):  # pragma: no cover - compiled
+    for i in range(u.shape[0]):
+        _he_valve(i, u[i], S[i], J[i], R[i], st)
+
+
+@numba.njit(cache=True)
+def stiction_step_kernel(u, S, J, R, codes, st):  # pragma: no cover - compiled
+    """Advance valves of mixed models one sample: ``codes[i]`` indexes :data:`MODELS`."""
+    for i in range(u.shape[0]):
+        c = codes[i]
+        if c == 1:
+            _kano_valve(i, u[i], S[i], J[i], R[i], st)
+        elif c == 0:
+            _choudhury_valve(i, u[i], S[i], J[i], R[i], st)
+        else:
+            _he_valve(i, u[i], S[i], J[i], R[i], st)
+
+
+@numba.njit(cache=True)
+def _run(step, op, S, J, R, st, out):  # pragma: no cover - compiled
+    for k in range(op.shape[0]):
+        step(op[k], S, J, R, st)
+        for i in range(st.shape[0]):
+            out[k, i] = st[i, MV]
+
+
+_STEPS: Final = {"kano": _kano_step, "choudhury": _choudhury_step, "he": _he_step}
+
+
+def seed_to_2005(s: float, j: float) -> tuple[float, float]:
+    """Convert the seed paper's ``(s, j)`` to the 2005 convention ``(S, J)``.
+
+    The seed (ADCHEM 2003) states that there is no offset at ``j = s/2``, undershoot below and overshoot above.
+    With ``MV = OP - d*(S - J)/2`` no offset means ``J = S``; hence ``S = s`` and ``J = 2*j``.
+    """
+    return float(s), 2.0 * float(j)
+
+
+def rest_samples_for(rest_time: float, dt: float) -> int:
+    """Samples of unchanged OP after which a valve counts as at rest: ``max(1, ceil(rest_time/dt))``.
+
+    A real valve comes to rest when its input stops changing. A controller that writes every 100 ms to an
+    emulator that ticks every 10 ms leaves OP unchanged for nine ticks out of ten; with the literal model
+    (one sample) each of those pauses would stop the valve and make it overcome J again, turning smooth
+    motion into stick-slip that depends on the tick. Choose ``rest_time`` longer than the writer's period.
+    """
+    if not np.isfinite(rest_time) or rest_time < 0:
+        raise ValueError(f"rest_time must be a finite number >= 0, got {rest_time!r}")
+    if not np.isfinite(dt) or dt <= 0:
+        raise ValueError(f"dt must be > 0, got {dt!r}")
+    return max(1, int(np.ceil(rest_time / dt - 1e-9)))
+
+
+def validate_parameters(S: ArrayLike, J: ArrayLike, model: str, rest_samples: ArrayLike = 1) -> None:
+    """Raise ValueError naming the offending parameter."""
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {', '.join(MODELS)}; got {model!r}")
+    for name, value in (("S", S), ("J", J)):
+        arr = np.asarray(value, dtype=float)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+        if np.any(arr < 0):
+            raise ValueError(f"{name} must be >= 0 (% of valve travel), got {value!r}")
+    r = np.asarray(rest_samples)
+    if not np.issubdtype(r.dtype, np.integer) or np.any(r < 1):
+        raise ValueError(f"rest_samples must be an integer >= 1, got {rest_samples!r}")
+
+
+def _check_op(op: np.ndarray) -> None:
+    bad = ~np.isfinite(op)
+    if bad.any():
+        k = np.argwhere(bad)[0]
+        where = ", ".join(str(int(i)) for i in k)
+        raise ValueError(f"op[{where}] is {op[tuple(k)]!r}; OP must be finite (% of valve travel)")
+
+
+def _broadcast(value: ArrayLike, n: int, name: str, dtype=float) -> np.ndarray:
+    arr = np.asarray(value, dtype=dtype)
+    if arr.ndim == 0:
+        return np.full(n, arr, dtype=dtype)
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must be a scalar or have shape ({n},), got shape {arr.shape}")
+    return np.ascontiguousarray(arr)
+
+
+def initial_state(state: np.ndarray, op0: np.ndarray, direction: np.ndarray, S: np.ndarray, J: np.ndarray,
+                  codes: np.ndarray) -> None:
+    """Fill ``state`` (n, NSTATE): valves at rest at ``op0`` as if just stopped after moving in ``direction``.
+
+    ``codes[i]`` indexes :data:`MODELS`. See the module docstring for why this initial state.
+    """
+    d = np.asarray(direction, dtype=float)
+    if not np.all(np.abs(d) == 1):
+        raise ValueError(f"direction must be +1 or -1, got {direction!r}")
+    u0 = np.clip(np.asarray(op0, dtype=float), 0.0, 100.0)
+    half = 0.5 * (S - J)
+    kano, choudhury = codes == MODELS.index("kano"), codes == MODELS.index("choudhury")
+    state[:, MV] = np.clip(u0 - d * half, 0.0, 100.0)
+    state[:, U_PREV] = u0
+    state[:, STILL] = 0.0
+    state[:, STUCK] = 1.0
+    state[:, REF] = np.where(kano | choudhury, u0, d * half)        # us / xss / residual ur
+    state[:, DIR] = np.where(kano, d, 0.0)                          # d / previous slope sign / unused
+    state[:, FLAG] = np.where(kano | choudhury, 1.0, 0.0)           # stopped / I flag / unused
+
+
+class StictionBank:
+    """``n`` sticky valves stepped together, one sample per :meth:`step`.
+
+    Parameters
+    ----------
+    n : number of valves.
+    S, J : deadband+stickband and slip jump, % travel, scalars or arrays of length ``n``.
+    model : ``"kano"`` (default), ``"choudhury"`` or ``"he"``.
+    rest_samples : rest criterion of the ``"kano"`` model (samples of unchanged OP), scalar or per valve.
+    """
+
+    def __init__(self, n: int, *, S: ArrayLike, J: ArrayLike, model: str = DEFAULT_MODEL,
+                 rest_samples: ArrayLike = 1) -> None:
+        if int(n) < 1:
+            raise ValueError(f"n must be >= 1, got {n!r}")
+        validate_parameters(S, J, model, np.asarray(rest_samples))
+        self.n = int(n)
+        self.model = model
+        self._step = _STEPS[model]
+        self._S = _broadcast(S, self.n, "S")
+        self._J = _broadcast(J, self.n, "J")
+        self._R = _broadcast(rest_samples, self.n, "rest_samples", dtype=np.int64).astype(float)
+        self._state = np.zeros((self.n, NSTATE))
+        self.reset(0.0)
+
+    def reset(self, op0: ArrayLike, direction: ArrayLike = 1) -> None:
+        """Put every valve at rest at ``op0`` as if it had just stopped moving in ``direction`` (+1/-1)."""
+        codes = np.full(self.n, MODELS.index(self.model))
+        initial_state(self._state, _broadcast(op0, self.n, "op0"), _broadcast(direction, self.n, "direction"),
+                      self._S, self._J, codes)
+
+    def step(self, op: ArrayLike) -> np.ndarray:
+        """Advance every valve one sample with input ``op`` (% travel); return MV (a view, do not keep)."""
+        u = np.asarray(op, dtype=float)
+        if u.ndim == 0:
+            u = np.full(self.n, float(u))
+        self._step(u, self._S, self._J, self._R, self._state)
+        return self._state[:, MV]
+
+    def set_parameters(self, *, S: ArrayLike | None = None, J: ArrayLike | None = None,
+                       index: int | slice | np.ndarray | None = None) -> None:
+        """Change S and/or J (for all valves, or those at ``index``); takes effect at the next step."""
+        newS = self._S.copy()
+        newJ = self._J.copy()
+        sel = slice(None) if index is None else index
+        if S is not None:
+            newS[sel] = S
+        if J is not None:
+            newJ[sel] = J
+        validate_parameters(newS, newJ, self.model)
+        self._S[:], self._J[:] = newS, newJ
+
+    @property
+    def S(self) -> np.ndarray:
+        return self._S.copy()
+
+    @property
+    def J(self) -> np.ndarray:
+        return self._J.copy()
+
+    @property
+    def mv(self) -> np.ndarray:
+        """Valve position, % travel (read-only copy)."""
+        return self._state[:, MV].copy()
+
+    @property
+    def stuck(self) -> np.ndarray:
+        """True where the valve held its position at the last step."""
+        return self._state[:, STUCK] == 1.0
+
+    def run(self, op: np.ndarray) -> np.ndarray:
+        """Step through ``op`` of shape ``(T, n)``; return MV of shape ``(T, n)``; state carries on."""
+        op = np.ascontiguousarray(op, dtype=float)
+        out = np.empty_like(op)
+        _run(self._step, op, self._S, self._J, self._R, self._state, out)
+        return out
+
+
+class Valve:
+    """One sticky valve for per-sample use (a bank of one): ``mv = valve.step(op)``."""
+
+    def __init__(self, *, S: float, J: float, model: str = DEFAULT_MODEL, rest_samples: int = 1,
+                 op0: float = 0.0, direction: int = 1) -> None:
+        self._bank = StictionBank(1, S=S, J=J, model=model, rest_samples=rest_samples)
+        self._bank.reset(op0, direction)
+        self._u = np.zeros(1)
+
+    def step(self, op: float) -> float:
+        self._u[0] = op
+        return float(self._bank.step(self._u)[0])
+
+    @property
+    def mv(self) -> float:
+        return float(self._bank.mv[0])
+
+    @property
+    def stuck(self) -> bool:
+        return bool(self._bank.stuck[0])
+
+
+def simulate_many(op: ArrayLike, S: ArrayLike, J: ArrayLike, *, model: str = DEFAULT_MODEL,
+                  rest_samples: ArrayLike = 1, direction: ArrayLike = 1,
+                  op0: ArrayLike | None = None) -> np.ndarray:
+    """MV of many valves, shape ``(T, n)``, for OP of shape ``(T,)`` (shared) or ``(T, n)``.
+
+    ``S`` and ``J`` have shape ``(n,)`` (or are scalars with a 2-D ``op``); the valves start at rest at
+    ``op0`` (default ``op[0]``) as described in the module docstring.
+    """
+    op = np.asarray(op, dtype=float)
+    _check_op(op)
+    S_arr, J_arr = np.atleast_1d(np.asarray(S, dtype=float)), np.atleast_1d(np.asarray(J, dtype=float))
+    n = max(S_arr.shape[0], J_arr.shape[0], op.shape[1] if op.ndim == 2 else 1)
+    if op.ndim == 1:
+        op2 = np.ascontiguousarray(np.broadcast_to(op[:, None], (op.shape[0], n)))
+    elif op.ndim == 2 and op.shape[1] == n:
+        op2 = np.ascontiguousarray(op)
+    else:
+        raise ValueError(f"op must have shape (T,) or (T, {n}), got {op.shape}")
+    bank = StictionBank(n, S=np.broadcast_to(S_arr, (n,)), J=np.broadcast_to(J_arr, (n,)), model=model,
+                        rest_samples=np.broadcast_to(np.asarray(rest_samples), (n,)))
+    if op2.shape[0] == 0:
+        return np.empty((0, n))
+    bank.reset(op2[0] if op0 is None else op0, direction)
+    return bank.run(op2)
+
+
+def simulate(op: ArrayLike, *, S: float, J: float, model: str = DEFAULT_MODEL, rest_samples: int = 1,
+             direction: int = 1) -> np.ndarray:
+    """Valve position MV (% travel) of one sticky valve driven by ``op`` (% travel), same length.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> op = 50 + 10 * np.sin(np.linspace(0, 4 * np.pi, 2000))
+    >>> mv = simulate(op, S=5.0, J=2.0)   # undershoot: MV lags OP by (S - J)/2 = 1.5 % while moving
+    """
+    op = np.asarray(op, dtype=float)
+    if op.ndim != 1:
+        raise ValueError(f"op must be one-dimensional, got shape {op.shape}")
+    validate_parameters(S, J, model, np.asarray(rest_samples))
+    return simulate_many(op, [S], [J], model=model, rest_samples=rest_samples, direction=direction)[:, 0]

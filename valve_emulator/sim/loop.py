@@ -1,0 +1,356 @@
+"""Control loops -- sticky valve, plant and optional internal PI(D) -- stepped together as a bank.
+
+One loop is a bank of one. Both the offline simulator (:meth:`LoopBank.run`, :func:`simulate_loop`) and the
+emulator's tick (:meth:`LoopBank.step`) call the same compiled kernel, :func:`loop_step_kernel`, so an
+emulated device and an offline run of the same config give the same trajectory sample for sample.
+
+Order inside one sample k, for every loop at once (see ``docs/design.md``):
+
+1. ``pv_k``  = plant output at ``t_k`` + measurement noise;
+2. ``op_k``  = PI(D)(sp_k, pv_k) where the loop has an internal controller, else the external OP held since
+   the last write (``op_external``);
+3. ``mv_k``  = stiction(saturate(op_k)), ``flow_k`` = characteristic(mv_k);
+4. the plant integrates ``flow_k`` + load disturbance over ``[t_k, t_k + dt)``, giving ``pv_{k+1}``.
+
+The initial state is an equilibrium: the valve at rest at its initial OP (controller bias, or ``valve.op0``
+without a controller), the plant's operating-point flow ``u0`` equal to the valve's initial flow unless the
+config sets it, so PV starts at ``pv0`` and nothing moves until something is changed.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numba
+import numpy as np
+
+from valve_emulator.config import LoopConfig
+from valve_emulator.physics.controller import PIDBank, pid_step_kernel
+from valve_emulator.physics.disturbance import DisturbanceBank, NoiseBank
+from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_function_to_zoh
+from valve_emulator.physics.signal_chain import CHARACTERISTICS, Characteristic, LookupTable
+from valve_emulator.physics.stiction import (
+    MODELS,
+    MV,
+    NSTATE,
+    STUCK,
+    initial_state,
+    rest_samples_for,
+    stiction_step_kernel,
+    validate_parameters,
+)
+from valve_emulator.sim.recording import Recording
+
+__all__ = ["LoopBank", "simulate_loop", "loop_step_kernel"]
+
+_LINEAR, _EQUAL_PERCENTAGE, _QUICK_OPENING = (CHARACTERISTICS.index(k) for k in CHARACTERISTICS)
+
+
+@numba.njit(cache=True, inline="always")
+def _flow(mv, kind, rangeability):  # pragma: no cover - compiled
+    x = min(max(mv, 0.0), 100.0) / 100.0
+    if kind == _EQUAL_PERCENTAGE:
+        return 100.0 * rangeability ** (x - 1.0)
+    if kind == _QUICK_OPENING:
+        return 100.0 * math.sqrt(x)
+    return 100.0 * x
+
+
+@numba.njit(cache=True)
+def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, pid, pid_op, valve, char_kind, char_r, plant,
+                     plant_pv, pv_meas, op, flow, u_in):  # pragma: no cover - compiled
+    """Advance every loop one sample in place (see the module docstring for the order).
+
+    ``pid`` and ``plant`` are the argument tuples of ``pid_step_kernel`` and ``plant_step_kernel`` after
+    their inputs, ``pid_op`` and ``plant_pv`` the output arrays inside them; ``valve`` is ``(S, J, R, codes, state)`` of ``stiction_step_kernel``. Outputs:
+    ``pv_meas`` (PV measured at t_k), ``op``, ``flow``; ``u_in`` is scratch. Returns 0, or a nonzero
+    code when an input was not finite (the controller or plant kernel refused it).
+    """
+    n = sp.shape[0]
+    for i in range(n):
+        pv_meas[i] = plant_pv[i] + noise[i]
+    code = pid_step_kernel(sp, pv_meas, *pid)
+    if code != 0:
+        return code
+    for i in range(n):
+        op[i] = pid_op[i] if has_ctrl[i] else op_ext[i]
+    stiction_step_kernel(op, valve[0], valve[1], valve[2], valve[3], valve[4])
+    st = valve[4]
+    for i in range(n):
+        flow[i] = _flow(st[i, MV], char_kind[i], char_r[i])
+        u_in[i] = flow[i] + dist[i]
+    bad = plant_step_kernel(u_in, *plant)
+    if bad >= 0:
+        return 10 + bad
+    return 0
+
+
+@numba.njit(cache=True)
+def _run_kernel(sp, noise, dist, op_ext, has_ctrl, pid, pid_op, valve, char_kind, char_r, plant, plant_pv,
+                pv_meas, op, flow, u_in, out_pv, out_op, out_mv, out_flow, out_stuck):  # pragma: no cover
+    st = valve[4]
+    for k in range(sp.shape[0]):
+        code = loop_step_kernel(sp[k], noise[k], dist[k], op_ext[k], has_ctrl, pid, pid_op, valve,
+                                char_kind, char_r, plant, plant_pv, pv_meas, op, flow, u_in)
+        if code != 0:
+            return k
+        for i in range(sp.shape[1]):
+            out_pv[k, i] = pv_meas[i]
+            out_op[k, i] = op[i]
+            out_mv[k, i] = st[i, MV]
+            out_flow[k, i] = flow[i]
+            out_stuck[k, i] = st[i, STUCK] == 1.0
+    return -1
+
+
+class LoopBank:
+    """``n`` control loops stepped together, built from :class:`~valve_emulator.config.LoopConfig` objects.
+
+    Parameters
+    ----------
+    loops : the loops' configs.
+    dt : sample time (s); default the first loop's ``simulation.dt`` (the device passes its tick).
+    """
+
+    def __init__(self, loops: Sequence[LoopConfig], *, dt: float | None = None) -> None:
+        loops = tuple(loops)
+        if not loops:
+            raise ValueError("loops must contain at least one LoopConfig")
+        self.loops = loops
+        self.n = n = len(loops)
+        self.dt = float(loops[0].simulation.dt if dt is None else dt)
+        self.k = 0
+        valves = [c.valve for c in loops]
+
+        # valve: stiction state machines and characteristics
+        self._S = np.array([v.S for v in valves], dtype=float)
+        self._J = np.array([v.J for v in valves], dtype=float)
+        self._R = np.array([rest_samples_for(v.rest_time, self.dt) for v in valves], dtype=float)
+        self._codes = np.array([MODELS.index(v.model) for v in valves], dtype=np.int64)
+        self._vstate = np.zeros((n, NSTATE))
+        self._char_kind = np.array([CHARACTERISTICS.index(v.characteristic) for v in valves], dtype=np.int64)
+        self._char_r = np.array([v.rangeability for v in valves], dtype=float)
+        self.characteristics = [Characteristic(v.characteristic, v.rangeability) for v in valves]
+        self.tables = [LookupTable(v.ma_table) for v in valves]
+
+        # controller (a dummy P controller where a loop has none; its output is not used there)
+        ctrls = [c.controller for c in loops]
+        self.has_controller = np.array([c is not None for c in ctrls])
+        self._pid = PIDBank(
+            n,
+            kc=[c.kc if c else 1.0 for c in ctrls],
+            ti=[c.ti if (c and c.ti is not None) else math.inf for c in ctrls],
+            td=[c.td if c else 0.0 for c in ctrls],
+            bias=[c.bias if c else 50.0 for c in ctrls],
+            direct=[bool(c and c.action == "direct") for c in ctrls],
+            op_min=[c.op_limits[0] if c else 0.0 for c in ctrls],
+            op_max=[c.op_limits[1] if c else 100.0 for c in ctrls],
+            dt=self.dt,
+        )
+        op_init = np.array([
+            min(max(c.bias, c.op_limits[0]), c.op_limits[1]) if c else v.op0 for c, v in zip(ctrls, valves)
+        ])
+        self.op_external = np.array([v.op0 for v in valves], dtype=float)
+
+        # valve at rest at its initial OP; plant in equilibrium at the resulting flow
+        initial_state(self._vstate, op_init, np.array([v.initial_direction for v in valves], dtype=float),
+                      self._S, self._J, self._codes)
+        mv0 = self._vstate[:, MV]
+        flow0 = np.array([ch.flow(m) for ch, m in zip(self.characteristics, mv0)], dtype=float)
+        plants = [transfer_function_to_zoh(c.plant.num, c.plant.den, c.plant.delay, self.dt) for c in loops]
+        u0 = np.array([c.plant.u0 if c.plant.u0 is not None else f for c, f in zip(loops, flow0)])
+        self._plant = PlantBank(plants, u0=u0, pv0=[c.plant.pv0 for c in loops])
+        self._plant.reset(flow0)
+
+        # set points, modes
+        self._sp = np.array([c.sp if c else c_l.plant.pv0 for c, c_l in zip(ctrls, loops)], dtype=float)
+        self._sp_steps = [list(c.sp_steps) if c else [] for c in ctrls]
+        self._pid.reset(self._plant.pv, self._sp, op_init)
+        for i, c in enumerate(ctrls):
+            if c is not None and c.mode == "manual":
+                self._pid.set_manual(i, op_init[i])
+
+        # disturbances and noise: each loop's streams depend only on its own simulation.seed
+        dist = [c.plant.disturbance for c in loops]
+        seeds = [c.simulation.seed for c in loops]
+        self._dist = DisturbanceBank([d.type for d in dist], dt=self.dt, seed=0, index=seeds,
+                                     amplitude=[d.amplitude for d in dist], time=[d.time for d in dist],
+                                     period=[d.period if d.period > 0 else 1.0 for d in dist],
+                                     phase=[d.phase for d in dist], std=[d.std for d in dist])
+        self._noise = NoiseBank(np.array([c.plant.noise for c in loops], dtype=float), 0, index=seeds)
+
+        # outputs of the current sample
+        self.pv = self._plant.pv.copy()           # measured PV at t_k (before the first step: noise-free)
+        self.op = op_init.astype(float)
+        self.flow = flow0.copy()
+        self._u_in = np.zeros(n)
+        self._valve_args = (self._S, self._J, self._R, self._codes, self._vstate)
+
+    # -- read-only views ------------------------------------------------------------------------------------
+    @property
+    def t(self) -> float:
+        """Simulated time of the current sample (s)."""
+        return self.k * self.dt
+
+    @property
+    def mv(self) -> np.ndarray:
+        return self._vstate[:, MV].copy()
+
+    @property
+    def sp(self) -> np.ndarray:
+        return self._sp.copy()
+
+    @property
+    def stuck(self) -> np.ndarray:
+        return self._vstate[:, STUCK] == 1.0
+
+    @property
+    def sat_low(self) -> np.ndarray:
+        return self.op <= 0.0
+
+    @property
+    def sat_high(self) -> np.ndarray:
+        return self.op >= 100.0
+
+    @property
+    def auto(self) -> np.ndarray:
+        return self._pid.auto & self.has_controller
+
+    @property
+    def S(self) -> np.ndarray:
+        return self._S.copy()
+
+    @property
+    def J(self) -> np.ndarray:
+        return self._J.copy()
+
+    @property
+    def kc(self) -> np.ndarray:
+        return self._pid._kc.copy()
+
+    @property
+    def ti(self) -> np.ndarray:
+        """Integral time (s); inf where there is no integral action."""
+        with np.errstate(divide="ignore"):
+            return 1.0 / self._pid._ti_inv
+
+    @property
+    def td(self) -> np.ndarray:
+        return self._pid._td.copy()
+
+    # -- commands (the device's instructor and operator writes) -----------------------------------------------
+    def set_valve(self, i: int, *, S: float | None = None, J: float | None = None) -> None:
+        """Change stiction of loop ``i``; it takes effect at the next sample."""
+        newS = self._S[i] if S is None else float(S)
+        newJ = self._J[i] if J is None else float(J)
+        validate_parameters(newS, newJ, MODELS[self._codes[i]])
+        self._S[i], self._J[i] = newS, newJ
+
+    def set_sp(self, i: int, value: float) -> None:
+        if not math.isfinite(value):
+            raise ValueError(f"sp must be finite, got {value!r}")
+        self._sp[i] = value
+        self._sp_steps[i] = [s for s in self._sp_steps[i] if s[0] > self.t]
+
+    def set_auto(self, i: int, auto: bool) -> None:
+        if auto:
+            self._pid.set_auto(i)
+        else:
+            self._pid.set_manual(i, float(self.op[i]))
+
+    def set_manual_op(self, i: int, op: float) -> None:
+        self._pid.set_manual(i, op)
+
+    def set_tuning(self, i: int, *, kc: float | None = None, ti: float | None = None,
+                   td: float | None = None) -> None:
+        self._pid.set_tuning(i, kc=kc, ti=ti, td=td)
+
+    # -- stepping ---------------------------------------------------------------------------------------------
+    def _apply_sp_schedule(self, t: float) -> None:
+        for i, steps in enumerate(self._sp_steps):
+            while steps and steps[0][0] <= t + 1e-9 * self.dt:
+                self._sp[i] = steps.pop(0)[1]
+
+    def _sp_table(self, steps: int) -> np.ndarray:
+        """Set point of every loop at each of the next ``steps`` samples (consumes the schedule)."""
+        sp = np.empty((steps, self.n))
+        times = (self.k + np.arange(steps)) * self.dt
+        for i in range(self.n):
+            sp[:, i] = self._sp[i]
+            for t_s, value in self._sp_steps[i]:
+                sp[times >= t_s - 1e-9 * self.dt, i] = value
+            if self._sp_steps[i]:
+                done = [s for s in self._sp_steps[i] if s[0] <= times[-1] + 1e-9 * self.dt]
+                if done:
+                    self._sp[i] = done[-1][1]
+                self._sp_steps[i] = [s for s in self._sp_steps[i] if s[0] > times[-1] + 1e-9 * self.dt]
+        return sp
+
+    def _kernel_args(self) -> tuple:
+        pid, plant = self._pid.kernel_args(), self._plant.kernel_args()
+        return (pid, self._pid._op, self._valve_args, self._char_kind, self._char_r, plant, self._plant._pv)
+
+    def step(self) -> None:
+        """Advance every loop one sample ``dt``; afterwards ``pv``, ``op``, ``mv`` … describe sample k."""
+        t = self.t
+        self._apply_sp_schedule(t)
+        dist = self._dist.step(t)
+        noise = self._noise.step()
+        pv_meas = np.empty(self.n)
+        code = loop_step_kernel(self._sp, noise, dist, self.op_external, self.has_controller,
+                                *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in)
+        if code != 0:
+            raise ValueError(f"non-finite value in loop step at t = {t} s (code {code})")
+        self.pv = pv_meas
+        self.k += 1
+
+    def run(self, steps: int) -> dict[str, np.ndarray]:
+        """Advance ``steps`` samples in one compiled loop; return arrays of shape (steps, n).
+
+        Keys: ``t`` (steps,), ``sp``, ``op``, ``mv``, ``flow``, ``pv``, ``stuck``. The bank's state carries on,
+        so ``run(a)`` then ``run(b)`` equals ``run(a + b)`` and equals ``a + b`` calls of :meth:`step`.
+        """
+        steps = int(steps)
+        times = (self.k + np.arange(steps)) * self.dt
+        sp = self._sp_table(steps)
+        # loops without disturbance or noise need no per-sample generator calls
+        quiet_dist = all(c.plant.disturbance.type == "none" for c in self.loops)
+        quiet_noise = all(c.plant.noise == 0 for c in self.loops)
+        dist = np.zeros((steps, self.n)) if quiet_dist else np.ascontiguousarray(
+            self._dist.step_many(times)).reshape(steps, self.n)
+        noise = np.zeros((steps, self.n)) if quiet_noise else np.ascontiguousarray(
+            self._noise.step_many(steps)).reshape(steps, self.n)
+        op_ext = np.ascontiguousarray(np.broadcast_to(self.op_external, (steps, self.n)))
+        out = {name: np.empty((steps, self.n)) for name in ("pv", "op", "mv", "flow")}
+        stuck = np.empty((steps, self.n), dtype=np.bool_)
+        pv_meas = np.empty(self.n)
+        bad = _run_kernel(sp, noise, dist, op_ext, self.has_controller, *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in, out["pv"], out["op"], out["mv"],
+                          out["flow"], stuck)
+        if bad >= 0:
+            raise ValueError(f"non-finite value in loop step at t = {times[bad]} s")
+        self.k += steps
+        if steps:
+            self.pv = pv_meas.copy()
+        return {"t": times, "sp": sp, **out, "stuck": stuck}
+
+
+def simulate_loop(config: LoopConfig, duration: float | None = None) -> Recording:
+    """Run one loop offline for ``duration`` s (default ``simulation.duration``); deterministic.
+
+    Returns a :class:`~valve_emulator.sim.recording.Recording` with columns ``t, sp, op, mv, pv`` and the
+    extras ``flow`` (%), ``op_ma`` (controller output through the valve's mA table) and ``stuck`` (0/1).
+    """
+    duration = config.simulation.duration if duration is None else float(duration)
+    if not (math.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration must be > 0 s, got {duration!r}")
+    bank = LoopBank([config])
+    steps = int(round(duration / bank.dt)) + 1
+    out = bank.run(steps)
+    table = bank.tables[0]
+    return Recording(
+        t=out["t"], sp=out["sp"][:, 0], op=out["op"][:, 0], mv=out["mv"][:, 0], pv=out["pv"][:, 0],
+        extra={"flow": out["flow"][:, 0], "op_ma": table.to_ma(out["op"][:, 0]),
+               "stuck": out["stuck"][:, 0].astype(float)},
+        source=config.source or config.name,
+    )
