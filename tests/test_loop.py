@@ -153,3 +153,29 @@ def test_cli_limit_cycle_prints_prediction_and_simulation(capsys):
     cells = line.split("|")
     df_period, sim_period = float(cells[1].split()[1]), float(cells[2].split()[1])
     assert abs(df_period - sim_period) / sim_period < 0.15
+
+
+def test_instructor_faults_frozen_valve_load_and_noise():
+    cfg = replace(table1("concentration", "no_stiction"), controller=None)
+    bank = LoopBank([cfg])
+    bank.set_frozen(0, True)
+    bank.op_external[0] = 70.0
+    bank.run(600)
+    assert bank.mv[0] == 50.0 and bank.stuck[0]  # seized: OP moved 20 %, the valve did not
+    bank.set_frozen(0, False)
+    bank.run(10)
+    assert bank.mv[0] == 70.0  # released, no stiction: follows OP
+    bank.run(2000)
+    pv_before = bank.pv[0]
+    assert pv_before == pytest.approx(3.0 * 20.0, rel=1e-3)
+    bank.set_load(0, -5.0)  # 5 % less flow reaches the process
+    bank.run(2000)
+    assert bank.pv[0] == pytest.approx(pv_before - 3.0 * 5.0, rel=1e-3)
+    quiet = bank.run(100)["pv"][:, 0]
+    assert np.ptp(quiet) < 1e-6  # still settling by ~1e-7: no noise yet
+    bank.set_noise(0, 0.2)
+    noisy = bank.run(2000)["pv"][:, 0]
+    assert 0.17 < noisy.std() < 0.23
+    with pytest.raises(ValueError, match="noise"):
+        bank.set_noise(0, -1.0)
+    assert bank.noise_std[0] == 0.2

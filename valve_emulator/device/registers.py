@@ -46,6 +46,8 @@ Encoding (``raw = physical × scale``, rounded to the nearest integer, clipped t
   ``sp`` writes must lie in 0..10000. The float32 copies carry engineering units.
 - ``ti`` = 0 means no integral action (P only; the bank gets ``ti = inf``). ``kc`` must be ≥ 0.001.
 - ``status`` bits: see :class:`Status`.
+- ``time`` (simulated s) is a float32: 0.1 s resolution holds for about six days of simulated time; for
+  exact time use ``tick × dt``. ``tick`` and ``overruns`` wrap at 2³².
 - 32-bit values (``uint32`` and ``float32``) use the configured word order: ``ABCD`` puts the high word
   at the lower address (mbpoll ``-B``), ``CDAB`` the low word first (mbpoll's default).
 
@@ -369,12 +371,12 @@ _COLUMNS: Final = ("name", "table", "address", "type", "scale", "units", "access
 def registers_table(config: Any = None) -> list[dict]:
     """The map as rows with exactly the keys name, table, address, type, scale, units, access.
 
-    ``config`` (a ``ServerConfig`` or ``None``) only fills in the PV engineering units of the float32
-    copies when every loop shares them. Holding rows come first, then the input mirror.
+    ``config`` (a ``ServerConfig``, a ``LoopConfig`` or ``None``) only fills in the PV engineering units of
+    the float32 copies when every loop shares them. Holding rows come first, then the input mirror.
     """
     pv_units = "PV units"
     if config is not None:
-        units = {lp.plant.units for lp in config.loops}
+        units = {lp.plant.units for lp in getattr(config, "loops", (config,))}
         if len(units) == 1 and next(iter(units)):
             pv_units = next(iter(units))
     rows = []

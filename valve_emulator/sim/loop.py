@@ -35,6 +35,7 @@ from valve_emulator.physics.stiction import (
     MV,
     NSTATE,
     STUCK,
+    U_PREV,
     initial_state,
     rest_samples_for,
     stiction_step_kernel,
@@ -58,7 +59,7 @@ def _flow(mv, kind, rangeability):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, pid, pid_op, valve, char_kind, char_r, plant,
+def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, valve, char_kind, char_r, plant,
                      plant_pv, pv_meas, op, flow, u_in):  # pragma: no cover - compiled
     """Advance every loop one sample in place (see the module docstring for the order).
 
@@ -73,10 +74,11 @@ def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, pid, pid_op, valve, char
     code = pid_step_kernel(sp, pv_meas, *pid)
     if code != 0:
         return code
+    st = valve[4]
     for i in range(n):
         op[i] = pid_op[i] if has_ctrl[i] else op_ext[i]
-    stiction_step_kernel(op, valve[0], valve[1], valve[2], valve[3], valve[4])
-    st = valve[4]
+        u_in[i] = st[i, U_PREV] if frozen[i] else op[i]
+    stiction_step_kernel(u_in, valve[0], valve[1], valve[2], valve[3], valve[4])
     for i in range(n):
         flow[i] = _flow(st[i, MV], char_kind[i], char_r[i])
         u_in[i] = flow[i] + dist[i]
@@ -87,11 +89,11 @@ def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, pid, pid_op, valve, char
 
 
 @numba.njit(cache=True)
-def _run_kernel(sp, noise, dist, op_ext, has_ctrl, pid, pid_op, valve, char_kind, char_r, plant, plant_pv,
+def _run_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, valve, char_kind, char_r, plant, plant_pv,
                 pv_meas, op, flow, u_in, out_pv, out_op, out_mv, out_flow, out_stuck):  # pragma: no cover
     st = valve[4]
     for k in range(sp.shape[0]):
-        code = loop_step_kernel(sp[k], noise[k], dist[k], op_ext[k], has_ctrl, pid, pid_op, valve,
+        code = loop_step_kernel(sp[k], noise[k], dist[k], op_ext[k], has_ctrl, frozen, pid, pid_op, valve,
                                 char_kind, char_r, plant, plant_pv, pv_meas, op, flow, u_in)
         if code != 0:
             return k
@@ -178,7 +180,13 @@ class LoopBank:
                                      amplitude=[d.amplitude for d in dist], time=[d.time for d in dist],
                                      period=[d.period if d.period > 0 else 1.0 for d in dist],
                                      phase=[d.phase for d in dist], std=[d.std for d in dist])
-        self._noise = NoiseBank(np.array([c.plant.noise for c in loops], dtype=float), 0, index=seeds)
+        # measurement noise = noise_std * unit normals; the generator exists once any loop has noise
+        self.noise_std = np.array([c.plant.noise for c in loops], dtype=float)
+        self._seeds = seeds
+        self._noise: NoiseBank | None = None
+        #: instructor faults: extra load (% flow added to the plant input) and a valve stuck completely
+        self.load = np.zeros(n)
+        self.frozen = np.zeros(n, dtype=np.bool_)
 
         # outputs of the current sample
         self.pv = self._plant.pv.copy()           # measured PV at t_k (before the first step: noise-free)
@@ -287,6 +295,30 @@ class LoopBank:
                 self._sp_steps[i] = [s for s in self._sp_steps[i] if s[0] > times[-1] + 1e-9 * self.dt]
         return sp
 
+    def _unit_noise(self, steps: int) -> np.ndarray:
+        """Standard normals of shape (steps, n), from each loop's own stream (zeros while no loop is noisy)."""
+        if self._noise is None:
+            if not np.any(self.noise_std > 0):
+                return np.zeros((steps, self.n))
+            self._noise = NoiseBank(np.ones(self.n), 0, index=self._seeds)
+        return np.asarray(self._noise.step_many(steps)).reshape(steps, self.n)
+
+    def set_noise(self, i: int, std: float) -> None:
+        """Measurement noise of loop ``i`` (PV units); takes effect at the next sample."""
+        if not (math.isfinite(std) and std >= 0):
+            raise ValueError(f"noise must be >= 0 (PV units), got {std!r}")
+        self.noise_std[i] = std
+
+    def set_load(self, i: int, load: float) -> None:
+        """Extra load disturbance of loop ``i`` (% flow added to the plant input)."""
+        if not math.isfinite(load):
+            raise ValueError(f"load must be finite (% flow), got {load!r}")
+        self.load[i] = load
+
+    def set_frozen(self, i: int, frozen: bool) -> None:
+        """Make valve ``i`` stick completely (``True``) or release it (``False``)."""
+        self.frozen[i] = bool(frozen)
+
     def _kernel_args(self) -> tuple:
         pid, plant = self._pid.kernel_args(), self._plant.kernel_args()
         return (pid, self._pid._op, self._valve_args, self._char_kind, self._char_r, plant, self._plant._pv)
@@ -295,10 +327,10 @@ class LoopBank:
         """Advance every loop one sample ``dt``; afterwards ``pv``, ``op``, ``mv`` … describe sample k."""
         t = self.t
         self._apply_sp_schedule(t)
-        dist = self._dist.step(t)
-        noise = self._noise.step()
+        dist = self._dist.step(t) + self.load
+        noise = self._unit_noise(1)[0] * self.noise_std
         pv_meas = np.empty(self.n)
-        code = loop_step_kernel(self._sp, noise, dist, self.op_external, self.has_controller,
+        code = loop_step_kernel(self._sp, noise, dist, self.op_external, self.has_controller, self.frozen,
                                 *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in)
         if code != 0:
             raise ValueError(f"non-finite value in loop step at t = {t} s (code {code})")
@@ -316,16 +348,15 @@ class LoopBank:
         sp = self._sp_table(steps)
         # loops without disturbance or noise need no per-sample generator calls
         quiet_dist = all(c.plant.disturbance.type == "none" for c in self.loops)
-        quiet_noise = all(c.plant.noise == 0 for c in self.loops)
         dist = np.zeros((steps, self.n)) if quiet_dist else np.ascontiguousarray(
             self._dist.step_many(times)).reshape(steps, self.n)
-        noise = np.zeros((steps, self.n)) if quiet_noise else np.ascontiguousarray(
-            self._noise.step_many(steps)).reshape(steps, self.n)
+        dist += self.load
+        noise = np.ascontiguousarray(self._unit_noise(steps) * self.noise_std)
         op_ext = np.ascontiguousarray(np.broadcast_to(self.op_external, (steps, self.n)))
         out = {name: np.empty((steps, self.n)) for name in ("pv", "op", "mv", "flow")}
         stuck = np.empty((steps, self.n), dtype=np.bool_)
         pv_meas = np.empty(self.n)
-        bad = _run_kernel(sp, noise, dist, op_ext, self.has_controller, *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in, out["pv"], out["op"], out["mv"],
+        bad = _run_kernel(sp, noise, dist, op_ext, self.has_controller, self.frozen, *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in, out["pv"], out["op"], out["mv"],
                           out["flow"], stuck)
         if bad >= 0:
             raise ValueError(f"non-finite value in loop step at t = {times[bad]} s")
