@@ -30,10 +30,14 @@ Holding registers (function codes 3, 6, 16, 23)::
     | mv_f32      | holding | 22      | float32 | 1     | % travel            | R             |
     | pv_f32      | holding | 24      | float32 | 1     | PV units            | R             |
     | sp_f32      | holding | 26      | float32 | 1     | PV units            | R             |
+    | load        | holding | 28      | int16   | 100   | % flow              | RW-instructor |
+    | noise       | holding | 29      | uint16  | 100   | % of pv_range       | RW-instructor |
+    | fault       | holding | 30      | uint16  | 1     | bits                | RW-instructor |
 
-The read-only (``R``) rows also appear as input registers (function code 4) at the same addresses; the
-input table has holes where the holding table has writable registers, and reading a hole is an illegal
-address, as is reading past address 27.
+The rows a controller cannot write -- read-only (``R``) and instructor (``RW-instructor``) -- also appear
+as input registers (function code 4) at the same addresses, so a read-only client sees injected faults
+too; the input table has holes where the holding table has registers a controller writes (``op_pct`` ..
+``td``), and reading a hole is an illegal address, as is reading past address 30.
 
 Encoding (``raw = physical × scale``, rounded to the nearest integer, clipped to the type's range):
 
@@ -46,6 +50,11 @@ Encoding (``raw = physical × scale``, rounded to the nearest integer, clipped t
   ``sp`` writes must lie in 0..10000. The float32 copies carry engineering units.
 - ``ti`` = 0 means no integral action (P only; the bank gets ``ti = inf``). ``kc`` must be ≥ 0.001.
 - ``status`` bits: see :class:`Status`.
+- Instructor faults (issue 5): ``load`` adds a load disturbance of ``load/100`` % flow to the plant input
+  (int16, -10000..10000); ``noise`` sets the standard deviation of the PV measurement noise in % of the
+  loop's ``pv_range`` × 100 (0..10000; % of span, like ``pv``, so one number means the same on every
+  loop); ``fault`` bit 0 (:class:`Fault`) seizes the valve: it holds its position whatever OP does until
+  the bit is cleared (other bits are refused). ``status`` bit ``SEIZED`` mirrors it.
 - ``time`` (simulated s) is a float32: 0.1 s resolution holds for about six days of simulated time; for
   exact time use ``tick × dt``. ``tick`` and ``overruns`` wrap at 2³².
 - 32-bit values (``uint32`` and ``float32``) use the configured word order: ``ABCD`` puts the high word
@@ -86,6 +95,7 @@ __all__ = [
     "ACCESS_VALUES",
     "Register",
     "Status",
+    "Fault",
     "Scaling",
     "RegisterError",
     "RegisterAddressError",
@@ -100,7 +110,7 @@ __all__ = [
     "format_registers",
 ]
 
-MAP_VERSION: Final = 1
+MAP_VERSION: Final = 2   # 2: load, noise, fault registers; instructor rows mirrored as input
 
 R: Final = "R"
 RW: Final = "RW"
@@ -120,6 +130,13 @@ class Status(IntFlag):
     SAT_HIGH = 8        # OP clipped at 100 %
     CONTROLLER = 16     # the loop has an internal PI(D) controller
     AUTO = 32           # that controller is in auto
+    SEIZED = 64         # instructor fault: the valve is seized (``fault`` bit 0), it does not move at all
+
+
+class Fault(IntFlag):
+    """Bits of the instructor's ``fault`` register (bits not listed here are refused)."""
+
+    SEIZED = 1          # the valve sticks completely, whatever OP does
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,8 +180,13 @@ REGISTERS: Final[tuple[Register, ...]] = (
     Register("mv_f32", 22, "float32", 1, "% travel", R, "mv"),
     Register("pv_f32", 24, "float32", 1, "PV units", R, "pv"),
     Register("sp_f32", 26, "float32", 1, "PV units", R, "sp"),
+    # instructor fault injection (issue 5): written by the training-scenario player, read by everyone
+    Register("load", 28, "int16", 100, "% flow", RW_INSTRUCTOR, "load", -10000, 10000),
+    Register("noise", 29, "uint16", 100, "% of pv_range", RW_INSTRUCTOR, "noise", 0, 10000),
+    Register("fault", 30, "uint16", 1, "bits", RW_INSTRUCTOR, "fault", 0, 1),
 )
-INPUT_REGISTERS: Final = tuple(r for r in REGISTERS if r.access == R)
+# Input registers mirror what a controller cannot write: the read-only rows and the instructor rows.
+INPUT_REGISTERS: Final = tuple(r for r in REGISTERS if r.access in (R, RW_INSTRUCTOR))
 N_REGISTERS: Final = REGISTERS[-1].address + REGISTERS[-1].width
 
 _BY_NAME: Final = {r.name: r for r in REGISTERS}
@@ -238,7 +260,9 @@ def encode(state: Any, scaling: Scaling, *, tick: int, overruns: int, time: floa
     Parameters
     ----------
     state : object with arrays (n,) ``op, mv, flow, pv, sp, kc, ti, td, S, J`` and bool arrays
-        ``stuck, sat_low, sat_high, has_controller, auto`` (a ``LoopBank`` qualifies).
+        ``stuck, sat_low, sat_high, has_controller, auto`` (a ``LoopBank`` qualifies); the instructor's
+        fault arrays ``load`` (% flow), ``noise_std`` (PV units) and ``frozen`` (bool) are optional and
+        read as zero when the state has none.
     scaling : the per-unit :class:`Scaling`.
     tick, overruns, time : device counters and simulated time (the same on every unit).
     out : optional preallocated array to fill.
@@ -261,17 +285,27 @@ def encode(state: Any, scaling: Scaling, *, tick: int, overruns: int, time: floa
     w[:, _A["td"]] = np.where(ctl, _u16(state.td, 10), 0)
     w[:, _A["S"]] = _u16(state.S, 100)
     w[:, _A["J"]] = _u16(state.J, 100)
+    frozen = _optional(state, "frozen", n).astype(bool)
     w[:, _A["status"]] = (stuck * Status.STUCK + ~stuck * Status.MOVING
                           + np.asarray(state.sat_low, bool) * Status.SAT_LOW
                           + np.asarray(state.sat_high, bool) * Status.SAT_HIGH
-                          + ctl * Status.CONTROLLER + auto * Status.AUTO)
+                          + ctl * Status.CONTROLLER + auto * Status.AUTO + frozen * Status.SEIZED)
     w[:, _A["map_version"]] = MAP_VERSION
     w[:, 14:16] = _words32(np.array([int(tick) & 0xFFFFFFFF]), ">u4", wo)
     w[:, 16:18] = _words32(np.array([int(overruns) & 0xFFFFFFFF]), ">u4", wo)
     w[:, 18:20] = _words32(np.array([time]), ">f4", wo)
     sp = np.where(ctl, np.asarray(state.sp, dtype=float), 0.0)
     w[:, 20:28] = _words32(np.column_stack([op, state.mv, state.pv, sp]).reshape(-1), ">f4", wo).reshape(n, 8)
+    w[:, _A["load"]] = _i16(_optional(state, "load", n) * 100)
+    w[:, _A["noise"]] = _u16(scaling.eng_to_raw(scaling.pv_lo + _optional(state, "noise_std", n)), 1, 0, 10000)
+    w[:, _A["fault"]] = frozen * Fault.SEIZED
     return w
+
+
+def _optional(state: Any, name: str, n: int) -> np.ndarray:
+    """``state.name`` as a float array (n,), zeros when the state does not model that fault."""
+    value = getattr(state, name, None)
+    return np.zeros(n) if value is None else np.asarray(value, dtype=float)
 
 
 def _ti_raw(ti: Any) -> np.ndarray:
@@ -297,6 +331,14 @@ def patch(row: np.ndarray, quantity: str, value: float, scaling: Scaling, index:
     elif quantity in ("kc", "td", "S", "J"):
         reg = _BY_NAME[quantity]
         row[reg.address] = _u16(value, reg.scale)
+    elif quantity == "load":
+        row[_A["load"]] = _i16(value * 100)
+    elif quantity == "noise":
+        row[_A["noise"]] = _u16(scaling.eng_to_raw(scaling.pv_lo[index] + value, index), 1, 0, 10000)
+    elif quantity == "fault":
+        row[_A["fault"]] = int(value)
+        seized = Status.SEIZED if int(value) & Fault.SEIZED else 0
+        row[_A["status"]] = (row[_A["status"]] & ~int(Status.SEIZED)) | seized
     else:
         raise KeyError(f"quantity {quantity!r} is not writable")
 
@@ -307,7 +349,8 @@ def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: i
 
     Returns ``[(quantity, value), ...]`` in address order with quantity one of ``op`` (% travel), ``sp``
     (PV units), ``auto`` (bool), ``kc``, ``ti`` (s, ``inf`` = no integral), ``td`` (s), ``S``, ``J``
-    (% travel). Every register is checked before anything is returned, so a refused write changes nothing.
+    (% travel), ``load`` (% flow), ``noise`` (standard deviation, PV units), ``fault`` (int, :class:`Fault`
+    bits). Every register is checked before anything is returned, so a refused write changes nothing.
 
     Raises
     ------
@@ -360,6 +403,10 @@ def _to_physical(reg: Register, raw: int, scaling: Scaling, index: int) -> float
         return bool(raw)
     if reg.name == "ti" and raw == 0:
         return math.inf
+    if reg.name == "noise":  # % of the PV range x 100 -> PV units, what the loop bank takes
+        return raw / 10000.0 * float(scaling.pv_hi[index] - scaling.pv_lo[index])
+    if reg.name == "fault":
+        return int(raw)
     return raw / reg.scale
 
 

@@ -44,7 +44,7 @@ from typing import Any, Awaitable, Callable, Sequence
 
 import numpy as np
 
-from valve_emulator.device.registers import N_REGISTERS, Scaling, decode_write, encode, patch
+from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, encode, patch
 
 __all__ = ["JitterBuffer", "Device", "TICK_TASK_NAME"]
 
@@ -98,7 +98,8 @@ class Device:
     ----------
     bank : a ``LoopBank`` (or anything with its interface: ``n, dt, t, step(), op_external, set_sp,
         set_auto, set_manual_op, set_tuning, set_valve`` and the state arrays read by
-        :func:`~valve_emulator.device.registers.encode`).
+        :func:`~valve_emulator.device.registers.encode`; the instructor's fault registers also need
+        ``set_load, set_noise, set_frozen``).
     scaling : register scalings of the same ``n`` loops.
     units : the unit id of each loop, in bank order (unique).
     time_scale : simulated seconds per real second; ``math.inf`` as fast as possible, ``0`` frozen
@@ -145,9 +146,7 @@ class Device:
         """Device for a ``ServerConfig``: one unit per loop; ``bank`` defaults to a new ``LoopBank``."""
         if bank is None:
             from valve_emulator.sim.loop import LoopBank  # the bank is heavy; import only when needed
-            # documented constructor is LoopBank.from_configs; fall back to the plain constructor
-            make = getattr(LoopBank, "from_configs", LoopBank)
-            bank = make(config.loops, dt=config.device.tick)
+            bank = LoopBank(config.loops, dt=config.device.tick)
         units = [lp.device.unit for lp in config.loops]
         return cls(bank, Scaling.from_config(config), units=units, time_scale=time_scale, clock=clock,
                    sleep=sleep, jitter_size=jitter_size)
@@ -191,6 +190,12 @@ class Device:
                     bank.set_auto(i, bool(value))
                 elif quantity in ("kc", "ti", "td"):
                     bank.set_tuning(i, **{quantity: value})
+                elif quantity == "load":
+                    bank.set_load(i, value)
+                elif quantity == "noise":
+                    bank.set_noise(i, value)
+                elif quantity == "fault":
+                    bank.set_frozen(i, bool(int(value) & Fault.SEIZED))
                 else:  # S, J
                     bank.set_valve(i, **{quantity: value})
             except ValueError as exc:

@@ -1,0 +1,81 @@
+r"""Candidate ``actuator_lag``: a first-order lag τ between the controller output and the valve.
+
+A pneumatic actuator and positioner fill with air before the stem moves; to first order the travel
+demand follows OP through ``1/(τ s + 1)``. The lag acts before the valve's friction (the force builds up,
+then the stem breaks free), so it sits in the ``actuator`` slot, ahead of stiction.
+
+Discretisation: OP is held over each sample, so the lag state obeys the exact ZOH recursion
+``x_{k+1} = a x_k + (1 − a) OP_k`` with ``a = e^{−Δt/τ}``; the plant, itself discretised by ZOH, is fed the
+*average* of the lag output over the sample, ``x_k + (OP_k − x_k)(1 − (τ/Δt)(1 − a))``, which is the
+input-equivalent value for a plant much slower than Δt and reduces to OP_k as τ → 0.
+
+Grid: τ log-spaced from Δt/4 to max(30 Δt, 2 τ_plant) (a lag much longer than the plant would be the plant
+itself); :meth:`refine` searches a finer log grid around the best.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numba
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+
+__all__ = ["ActuatorLag", "first_order_lag"]
+
+
+@numba.njit(cache=True)
+def _lag_kernel(x, a, w, out):  # pragma: no cover - compiled
+    T, n = out.shape
+    shared = x.shape[1] == 1
+    for c in range(n):
+        j = 0 if shared else c
+        s = x[0, j]
+        for k in range(T):
+            u = x[k, j]
+            out[k, c] = s + (u - s) * w[c]
+            s = a[c] * s + (1.0 - a[c]) * u
+
+
+def first_order_lag(x: np.ndarray, tau: np.ndarray, dt: float) -> np.ndarray:
+    """Sample-averaged output (T, n) of ``1/(τ s + 1)`` for each τ, started at rest at ``x[0]``."""
+    x = np.asarray(x, dtype=float)
+    x2 = np.ascontiguousarray(x[:, None] if x.ndim == 1 else x)
+    tau = np.atleast_1d(np.asarray(tau, dtype=float))
+    with np.errstate(divide="ignore", over="ignore"):
+        a = np.where(tau > 0, np.exp(-dt / np.maximum(tau, 1e-300)), 0.0)
+        w = np.where(tau > 0, 1.0 - (tau / dt) * (1.0 - a), 1.0)
+    out = np.empty((x2.shape[0], tau.size))
+    _lag_kernel(x2, a, w, out)
+    return out
+
+
+class ActuatorLag(Candidate):
+    name: ClassVar[str] = "actuator_lag"
+    slot: ClassVar[str] = "actuator"
+    param_names: ClassVar[tuple[str, ...]] = ("tau",)
+    n_params: ClassVar[int] = 1
+
+    def grid(self, ctx: ChainContext) -> np.ndarray:
+        hi = max(30.0 * ctx.dt, 2.0 * ctx.tau_plant)
+        return np.geomspace(ctx.dt / 4.0, hi, 16)[:, None]
+
+    def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
+        tau = best[0] * np.exp(np.linspace(-0.4, 0.4, 17))
+        return np.vstack([best[None, :], tau[:, None]])
+
+    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        return first_order_lag(x, params[:, 0], ctx.dt)
+
+    def parameters(self, p: np.ndarray) -> dict:
+        return {"tau": round(float(p[0]), 3)}
+
+    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+        return f"an actuator lag: τ ≈ {p[0]:.2g} s"
+
+    def identity(self) -> np.ndarray:
+        return np.array([0.0])
+
+
+register(ActuatorLag())

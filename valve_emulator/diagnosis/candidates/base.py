@@ -1,0 +1,127 @@
+r"""The tiny base every candidate physics implements, and the registry that finds them by name.
+
+A candidate is one piece of physics the nominal model may have left out. It sits in one *slot* of the
+signal chain
+
+    OP --[actuator]--> --[valve]--> MV --[characteristic]--> flow --[linear plant, dead time θ]--> PV
+
+and knows three things: the grid of its parameters worth trying (from the data), how to transform the
+signal at its slot for a whole batch of parameter vectors at once (the search is vectorised over
+candidates, never a Python loop over them), and how to say its parameters in the words of the issue.
+The dead time lives inside the linear fit (every fit searches it on a grid, see ``search.py``); its
+candidate declares ``slot = "delay"`` and the transform is the identity.
+
+New candidates (issue 7: quantisation, saturation, external disturbance, tuning) subclass
+:class:`Candidate` in their own module and call :func:`register`.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar, Final
+
+import numpy as np
+
+__all__ = ["SLOTS", "Candidate", "ChainContext", "register", "registry", "get"]
+
+#: Chain positions, in signal order. At most one candidate per slot is active in a model.
+SLOTS: Final = ("actuator", "valve", "characteristic", "delay")
+
+
+@dataclass(frozen=True)
+class ChainContext:
+    """What a candidate may know about the data and the nominal model when it builds its grid.
+
+    Attributes
+    ----------
+    dt : sample time (s).
+    op : controller output (% travel), the chain's input.
+    op_span : robust OP range, 99.5th minus 0.5th percentile (% travel).
+    valve_model : stiction state machine of the nominal valve (``"kano"``, ...).
+    rest_samples : rest criterion for that machine.
+    characteristic : nominal flow characteristic ``(kind, rangeability)``.
+    tau_plant : dominant time constant of the current linear part (s); bounds the actuator-lag grid.
+    delay : current dead time (s).
+    """
+
+    dt: float
+    op: np.ndarray
+    op_span: float
+    valve_model: str = "kano"
+    rest_samples: int = 1
+    characteristic: tuple[str, float] = ("linear", 50.0)
+    tau_plant: float = 10.0
+    delay: float = 0.0
+
+
+class Candidate(ABC):
+    """One piece of left-out physics: a parameter grid and a batched signal transform.
+
+    Class attributes
+    ----------------
+    name : the word used in findings (``"stiction"``, ...).
+    slot : one of :data:`SLOTS`.
+    param_names : names of the parameter vector's entries, in order.
+    n_params : parameters counted by BIC (may differ from ``len(param_names)`` when a name is a label,
+        e.g. the characteristic's type).
+    """
+
+    name: ClassVar[str]
+    slot: ClassVar[str]
+    param_names: ClassVar[tuple[str, ...]]
+    n_params: ClassVar[int]
+
+    @abstractmethod
+    def grid(self, ctx: ChainContext) -> np.ndarray:
+        """Coarse grid of parameter vectors, shape (n, len(param_names))."""
+
+    @abstractmethod
+    def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
+        """A finer grid around ``best`` (which it must contain)."""
+
+    @abstractmethod
+    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        """Transform the chain signal at this slot.
+
+        ``x`` is (T,) shared by all parameter rows, or (T, n) one column per row; ``params`` is
+        (n, len(param_names)). Returns (T, n).
+        """
+
+    @abstractmethod
+    def parameters(self, p: np.ndarray) -> dict:
+        """The JSON ``parameters`` dict for one parameter vector (keys fixed by the issue)."""
+
+    @abstractmethod
+    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+        """A short phrase for the verdict, e.g. ``"valve stiction: S ≈ 4.8 %, J ≈ 2.1 % (undershoot)"``."""
+
+    # -- conveniences shared by all candidates -------------------------------------------------------------
+    def identity(self) -> np.ndarray | None:
+        """Parameter vector that leaves the signal unchanged (None when there is none)."""
+        return None
+
+
+_REGISTRY: dict[str, Candidate] = {}
+
+
+def register(candidate: Candidate) -> Candidate:
+    """Add a candidate instance to the library under its ``name`` (the last registration wins)."""
+    if candidate.slot not in SLOTS:
+        raise ValueError(f"candidate {candidate.name!r}: slot must be one of {', '.join(SLOTS)}, "
+                         f"got {candidate.slot!r}")
+    _REGISTRY[candidate.name] = candidate
+    return candidate
+
+
+def registry() -> dict[str, Candidate]:
+    """The registered candidates by name (a copy; registration order)."""
+    return dict(_REGISTRY)
+
+
+def get(name: str) -> Candidate:
+    """The candidate called ``name``; ValueError listing the known names otherwise."""
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise ValueError(f"unknown candidate physics {name!r}; known: {', '.join(_REGISTRY)}") from None

@@ -1,0 +1,77 @@
+r"""Candidate ``characteristic``: the valve's inherent flow characteristic differs from the nominal one.
+
+Flow through the valve is ``f(MV)`` on the travel x ∈ [0, 1] (ISA-75.11; Choudhury et al. 2005): linear
+``x``, equal percentage ``R^(x−1)`` with rangeability R, quick opening ``√x``
+(:class:`~valve_emulator.physics.signal_chain.Characteristic`). Its signature is a process gain that
+depends on the operating point: the residual of a linear-valve model correlates with the OP *level*.
+
+Parameters: ``kind`` (index into ``CHARACTERISTICS``; a label) and ``R``; one parameter for BIC. The grid
+holds every kind except the nominal one, and equal percentage at R ∈ {3 … 150} (log-spaced) unless the
+nominal is that very curve; :meth:`refine` searches R on a finer log grid.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.physics.signal_chain import CHARACTERISTICS, Characteristic
+
+__all__ = ["FlowCharacteristic", "R_GRID"]
+
+#: Rangeabilities tried by the coarse grid.
+R_GRID = (3.0, 5.0, 8.0, 12.0, 20.0, 30.0, 50.0, 80.0, 150.0)
+_EQP = CHARACTERISTICS.index("equal_percentage")
+
+
+def _curve(p: np.ndarray) -> Characteristic:
+    return Characteristic(CHARACTERISTICS[int(p[0])], p[1] if p[1] > 1 else 50.0)
+
+
+class FlowCharacteristic(Candidate):
+    name: ClassVar[str] = "characteristic"
+    slot: ClassVar[str] = "characteristic"
+    param_names: ClassVar[tuple[str, ...]] = ("kind", "R")
+    n_params: ClassVar[int] = 1
+
+    def grid(self, ctx: ChainContext) -> np.ndarray:
+        nominal_kind, nominal_r = ctx.characteristic
+        rows = []
+        for i, kind in enumerate(CHARACTERISTICS):
+            if kind == "equal_percentage":
+                rows += [(i, r) for r in R_GRID if not (nominal_kind == kind and np.isclose(r, nominal_r))]
+            elif kind != nominal_kind:
+                rows.append((i, 0.0))
+        return np.array(rows, dtype=float)
+
+    def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
+        if int(best[0]) != _EQP:
+            return best[None, :]
+        R = best[1] * np.exp(np.linspace(-0.45, 0.45, 19))
+        R = R[R > 1.05]
+        return np.vstack([best[None, :], np.column_stack([np.full(R.size, _EQP), R])])
+
+    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        n = params.shape[0]
+        if x.ndim == 2 and np.all(params == params[0]):  # one curve for many columns: one array call
+            return _curve(params[0]).flow(x)
+        out = np.empty((x.shape[0], n))
+        for c in range(n):  # a grid of a dozen curves over one signal
+            out[:, c] = _curve(params[c]).flow(x if x.ndim == 1 else x[:, c])
+        return out
+
+    def parameters(self, p: np.ndarray) -> dict:
+        kind = CHARACTERISTICS[int(p[0])]
+        return {"type": kind, "R": round(float(p[1]), 3) if kind == "equal_percentage" else None}
+
+    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+        kind = CHARACTERISTICS[int(p[0])]
+        if kind == "equal_percentage":
+            return f"an equal-percentage flow characteristic: R ≈ {p[1]:.2g}"
+        return f"a {kind.replace('_', '-')} flow characteristic"
+
+
+register(FlowCharacteristic())

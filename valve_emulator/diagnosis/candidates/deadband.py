@@ -1,0 +1,55 @@
+r"""Candidate ``deadband``: a pure deadband (backlash) of width S, the stiction model with J = 0.
+
+With ``J = 0`` the (S, J) valve moves with ``MV = OP − d·S/2`` and never jumps, which is the classical
+backlash (Choudhury, Thornhill & Shah 2005: "J = 0 pure deadband"). It is a separate candidate because it
+has one parameter fewer than stiction, so BIC prefers it when no slip jump is visible. The initial state is
+handled as in :mod:`~valve_emulator.diagnosis.candidates.stiction` (direction on the grid, not counted).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.stiction import valve_output
+
+__all__ = ["Deadband"]
+
+
+def _step(span: float) -> float:
+    return max(0.05, span / 40.0)
+
+
+class Deadband(Candidate):
+    name: ClassVar[str] = "deadband"
+    slot: ClassVar[str] = "valve"
+    param_names: ClassVar[tuple[str, ...]] = ("S", "direction")
+    n_params: ClassVar[int] = 1
+
+    def grid(self, ctx: ChainContext) -> np.ndarray:
+        h = _step(ctx.op_span)
+        S = np.arange(1, max(2, int(np.floor(ctx.op_span / h)) + 1)) * h
+        return np.column_stack([np.repeat(S, 2), np.tile([1.0, -1.0], S.size)])
+
+    def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
+        f = _step(ctx.op_span) / 10.0
+        S = best[0] + f * np.arange(-12, 13)
+        S = S[S > 0]
+        return np.vstack([best[None, :], np.column_stack([S, np.full(S.size, best[1])])])
+
+    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        return valve_output(x, params[:, 0], np.zeros(params.shape[0]), params[:, 1], ctx)
+
+    def parameters(self, p: np.ndarray) -> dict:
+        return {"S": round(float(p[0]), 3)}
+
+    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+        return f"a valve deadband (backlash): S ≈ {p[0]:.1f} %"
+
+    def identity(self) -> np.ndarray:
+        return np.array([0.0, 1.0])
+
+
+register(Deadband())

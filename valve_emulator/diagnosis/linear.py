@@ -1,0 +1,371 @@
+r"""The linear part of a Hammerstein model, fitted by output error for many input candidates at once.
+
+Model
+-----
+The plant input :math:`u_k` (valve flow, %, one column per candidate valve) drives
+
+.. math::
+   \hat y_k = \sum_{j=0}^{p-1} b_j\, z_{k-d-j} + c_0 + c_1\,\frac{k - k_0}{T}\;[\text{integrating only}],
+   \qquad z = \frac{q^{-1}\,g}{A_s(q)\,(1 - q^{-1})^{i}}\, u ,
+
+with :math:`A_s(q) = \prod_l (1 - e^{-\Delta t/\tau_l} q^{-1})` (the stable poles, fixed for one fit),
+:math:`i \in \{0, 1\}` an integrator (scaled by :math:`\Delta t`, so the gain is per second),
+:math:`g = A_s(1)` (unit DC gain of the stable part), :math:`p = \max(1, \text{order})` numerator taps
+and an integer dead time of :math:`d` samples. Every exact zero-order-hold discretisation of a proper
+:math:`K e^{-\theta s}/\mathrm{den}(s)` with :math:`\theta = d\Delta t` is of this form (Åström & Wittenmark,
+*Computer-Controlled Systems*, 3rd ed., §2.3), so a correct structure can replay a noise-free recording
+exactly. The trend term of an integrating plant absorbs the unknown operating-point flow :math:`u_0`
+(:math:`\sum (u - u_0) = \sum u - k u_0`); the constant absorbs :math:`\mathrm{pv}_0` and the integrator's
+initial state.
+
+Why output error, fitted by linear least squares
+-------------------------------------------------
+With the poles fixed, :math:`\hat y` is linear in :math:`(b, c)`, and the regressors are filtered *inputs*
+only, never past outputs. The residual is then the measurement noise itself, which is white and, in closed
+loop, independent of the past inputs that form the regressors (OP at sample k depends on noise up to k,
+while :math:`\hat y_k` uses flow up to :math:`k - d - 1`). Equation-error ARX, whose regressors contain
+noisy past PV, is biased in that setting; this least-squares problem is not (direct prediction-error
+identification with the correct noise model :math:`H = 1`; Ljung, *System Identification*, 2nd ed., §13.4).
+The poles and a fractional dead time are refined afterwards by :func:`polish` (variable projection:
+Nelder–Mead on the poles, least squares inside).
+
+Vectorised search
+-----------------
+:func:`delay_grid_sse` returns the residual sum of squares for every candidate column and every dead
+time of a grid in one compiled, parallel call (normal equations of at most five unknowns, solved by
+Cholesky per column and delay). The first sample scored, ``w0``, must leave room for the longest delay.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numba
+import numpy as np
+from scipy.optimize import minimize
+
+__all__ = [
+    "LinearStructure",
+    "LinearFit",
+    "filter_inputs",
+    "delay_grid_sse",
+    "fit_columns",
+    "fit_one",
+    "polish",
+]
+
+# Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
+# without changing any well-posed fit beyond rounding.
+_RIDGE = 1e-10
+
+
+@dataclass(frozen=True)
+class LinearStructure:
+    """Denominator of the linear part and its dead time.
+
+    Attributes
+    ----------
+    taus : time constants (s, > 0) of the real stable poles; refined by :func:`polish`.
+    integrating : one pole at s = 0.
+    fixed_poles : further continuous-time poles (complex pairs of a nominal model), kept as given.
+    delay : dead time θ (s, >= 0); fractional multiples of ``dt`` are allowed.
+    """
+
+    taus: tuple[float, ...] = ()
+    integrating: bool = False
+    fixed_poles: tuple[complex, ...] = ()
+    delay: float = 0.0
+
+    @property
+    def order(self) -> int:
+        return len(self.taus) + len(self.fixed_poles) + int(self.integrating)
+
+    @property
+    def ntaps(self) -> int:
+        return max(1, self.order)
+
+    def n_params(self) -> int:
+        """Parameters of the linear part counted by BIC: taps, offset, trend, fitted time constants."""
+        return self.ntaps + 1 + int(self.integrating) + len(self.taus)
+
+    def denominator(self, dt: float) -> np.ndarray:
+        """Coefficients ``[1, α1, …]`` of the stable part :math:`A_s(q)` in powers of :math:`q^{-1}`."""
+        poles = [np.exp(-dt / t) for t in self.taus] + [np.exp(p * dt) for p in self.fixed_poles]
+        return np.real(np.poly(poles)) if poles else np.ones(1)
+
+    def describe(self) -> str:
+        parts = [f"1/({t:.3g}s+1)" for t in self.taus]
+        if self.fixed_poles:
+            parts.append(f"{len(self.fixed_poles)} fixed poles")
+        if self.integrating:
+            parts.insert(0, "1/s")
+        return ("·".join(parts) or "gain") + f"·e^(-{self.delay:.3g}s)"
+
+
+@dataclass(frozen=True)
+class LinearFit:
+    """A fitted linear part: structure, numerator taps and offsets, and its scores on the fit window."""
+
+    structure: LinearStructure
+    taps: np.ndarray = field(repr=False)
+    offset: float
+    trend: float
+    sse: float
+    n: int
+
+    @property
+    def gain(self) -> float:
+        """Steady-state gain (PV units per % flow; per second for an integrating plant)."""
+        return float(np.sum(self.taps))
+
+    def predict(self, u: np.ndarray, dt: float) -> np.ndarray:
+        """Free-run PV for the input ``u`` (T,) over the whole record (same conventions as the fit)."""
+        z = filter_inputs(u[None, :], self.structure, dt)[0]
+        x = _delayed_regressors(z, self.structure.delay / dt, self.structure.ntaps)
+        T = u.shape[0]
+        return x @ self.taps + self.offset + self.trend * (np.arange(T) / T)
+
+
+@numba.njit(cache=True, parallel=True)
+def _filter_kernel(u, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
+    n, T = u.shape
+    p = alpha.shape[0] - 1
+    for c in numba.prange(n):
+        # start the stable part at rest for the first input: no transient when it is already settled
+        for k in range(min(p, T)):
+            out[c, k] = u[c, 0]
+        if p == 0:
+            out[c, 0] = u[c, 0]
+        for k in range(max(p, 1), T):
+            s = gain * u[c, k - 1]
+            for i in range(1, p + 1):
+                s -= alpha[i] * out[c, k - i]
+            out[c, k] = s
+        if integ:
+            acc = 0.0
+            for k in range(T):
+                acc += dt * out[c, k]
+                out[c, k] = acc
+
+
+def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float) -> np.ndarray:
+    """The regressor source :math:`z` (see the module docstring) for every row of ``u`` (n, T)."""
+    # A constant per column changes z by a constant (or, integrating, by a ramp) that the offset and
+    # trend regressors absorb; removing the mean keeps the cumulative sums of an integrator small.
+    u = np.ascontiguousarray(u - u.mean(axis=1, keepdims=True), dtype=np.float64)
+    alpha = structure.denominator(dt)
+    out = np.empty_like(u)
+    _filter_kernel(u, alpha, float(np.sum(alpha)), bool(structure.integrating), float(dt), out)
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
+    """Cholesky solve of G beta = r (upper triangle of G filled); return yy - beta·r."""
+    L = np.zeros((q, q))
+    for i in range(q):
+        for j in range(i + 1):
+            s = G[j, i] if j <= i else G[i, j]
+            if i == j:
+                s += _RIDGE * (G[i, i] + 1e-300)
+            for m in range(j):
+                s -= L[i, m] * L[j, m]
+            if i == j:
+                L[i, i] = np.sqrt(s) if s > 0 else 1e-150
+            else:
+                L[i, j] = s / L[j, j]
+    w = np.empty(q)
+    for i in range(q):
+        s = r[i]
+        for m in range(i):
+            s -= L[i, m] * w[m]
+        w[i] = s / L[i, i]
+    for i in range(q - 1, -1, -1):
+        s = w[i]
+        for m in range(i + 1, q):
+            s -= L[m, i] * beta[m]
+        beta[i] = s / L[i, i]
+    sse = yy
+    for i in range(q):
+        sse -= beta[i] * r[i]
+    return max(sse, 0.0)
+
+
+@numba.njit(cache=True, parallel=True)
+def _grid_kernel(z, y, w0, w1, delays, ntaps, trend, sse, coef):  # pragma: no cover - compiled
+    # Gram entries come from prefix sums (O(1) per delay); only the cross-correlation with PV costs
+    # O(T) per lag, and neighbouring delays share lags: the work is (delays + taps - 1)·T per column.
+    n, T = z.shape
+    nd = delays.shape[0]
+    q = ntaps + 1 + trend
+    dmin, dmax = delays.min(), delays.max()
+    nlag = dmax - dmin + ntaps
+    nw = w1 - w0
+    yy = 0.0
+    ty = 0.0
+    sy = 0.0
+    tt = 0.0
+    st = 0.0
+    for k in range(w0, w1):
+        yy += y[k] * y[k]
+        sy += y[k]
+        ty += (k / T) * y[k]
+        tt += (k / T) * (k / T)
+        st += k / T
+    for c in numba.prange(n):
+        P = np.zeros((ntaps, T + 1))      # P[l, m] = sum_{i<m} z[i] z[i-l]
+        P1 = np.zeros(T + 1)              # sum z
+        PK = np.zeros(T + 1)              # sum i z[i]
+        for m in range(T):
+            zm = z[c, m]
+            P1[m + 1] = P1[m] + zm
+            PK[m + 1] = PK[m] + m * zm
+            for l in range(ntaps):
+                P[l, m + 1] = P[l, m] + (zm * z[c, m - l] if m >= l else 0.0)
+        X = np.zeros(nlag)                # X[i] = sum_k z[k - (dmin + i)] y[k]
+        for i in range(nlag):
+            lag = dmin + i
+            s = 0.0
+            for k in range(w0, w1):
+                s += z[c, k - lag] * y[k]
+            X[i] = s
+        G = np.zeros((q, q))
+        r = np.zeros(q)
+        beta = np.zeros(q)
+        for di in range(nd):
+            d = delays[di]
+            for i in range(ntaps):
+                a0, a1 = w0 - d - i, w1 - d - i          # index range of z for tap i
+                for j in range(i, ntaps):
+                    l = j - i
+                    G[i, j] = P[l, a1] - P[l, a0]
+                G[i, ntaps] = P1[a1] - P1[a0]
+                if trend:
+                    # sum_k (k/T) z[k-s] = sum_m (m+s) z[m] / T
+                    s_ = d + i
+                    G[i, ntaps + 1] = (PK[a1] - PK[a0] + s_ * (P1[a1] - P1[a0])) / T
+                r[i] = X[d - dmin + i]
+            G[ntaps, ntaps] = nw
+            r[ntaps] = sy
+            if trend:
+                G[ntaps, ntaps + 1] = st
+                G[ntaps + 1, ntaps + 1] = tt
+                r[ntaps + 1] = ty
+            sse[c, di] = _solve_sse(G, r, yy, q, beta)
+            for i in range(q):
+                coef[c, di, i] = beta[i]
+
+
+def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays: np.ndarray,
+                   structure: LinearStructure, *, return_coef: bool = False):
+    """Residual sum of squares of the least-squares fit for every column of ``z`` and every delay.
+
+    Parameters
+    ----------
+    z : (n, T) filtered inputs from :func:`filter_inputs`.
+    y : (T,) measured PV (centre and scale it for conditioning; the constant regressor absorbs the mean).
+    window : ``(w0, w1)`` samples scored; ``w0 >= max(delays) + ntaps - 1``.
+    delays : integer dead times in samples.
+    structure : supplies ``ntaps`` and ``integrating`` (the trend regressor).
+
+    Returns
+    -------
+    sse : (n, len(delays)); with ``return_coef`` also coef (n, len(delays), q) = taps, offset[, trend].
+    """
+    z = np.ascontiguousarray(z, dtype=np.float64)
+    delays = np.ascontiguousarray(delays, dtype=np.int64)
+    w0, w1 = int(window[0]), int(window[1])
+    ntaps = structure.ntaps
+    if delays.size and w0 < int(delays.max()) + ntaps - 1:
+        raise ValueError(f"window start {w0} leaves no room for delay {int(delays.max())} samples")
+    q = ntaps + 1 + int(structure.integrating)
+    sse = np.empty((z.shape[0], delays.size))
+    coef = np.empty((z.shape[0], delays.size, q))
+    _grid_kernel(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, ntaps,
+                 int(structure.integrating), sse, coef)
+    return (sse, coef) if return_coef else sse
+
+
+def _shift(z: np.ndarray, s: int) -> np.ndarray:
+    """``z_{k-s}``, holding the first value before the record starts."""
+    if s <= 0:
+        return z
+    out = np.empty_like(z)
+    out[s:] = z[:-s]
+    out[:s] = z[0]
+    return out
+
+
+def _delayed_regressors(z: np.ndarray, delay_samples: float, ntaps: int) -> np.ndarray:
+    """Columns ``z_{k-d-j}`` for a possibly fractional delay ``d = m + f`` (linear interpolation).
+
+    Interpolating the filtered input between samples is the first-order (in Δt/τ) form of the exact
+    fractional-delay ZOH of Åström & Wittenmark; it is exact for the integer delays the grid uses.
+    """
+    m = int(np.floor(delay_samples + 1e-9))
+    f = max(0.0, delay_samples - m)
+    cols = []
+    for j in range(ntaps):
+        col = _shift(z, m + j)
+        if f > 0.0:
+            col = (1.0 - f) * col + f * _shift(z, m + j + 1)
+        cols.append(col)
+    return np.stack(cols, axis=1)
+
+
+def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
+            dt: float) -> LinearFit:
+    """Least-squares fit of the taps and offsets for one input column and a (fractional) delay."""
+    z = filter_inputs(u[None, :], structure, dt)[0]
+    x = _delayed_regressors(z, structure.delay / dt, structure.ntaps)
+    T = u.shape[0]
+    cols = [x, np.ones((T, 1))]
+    if structure.integrating:
+        cols.append((np.arange(T) / T)[:, None])
+    X = np.hstack(cols)
+    w0, w1 = window
+    Xw, yw = X[w0:w1], y[w0:w1]
+    G = Xw.T @ Xw
+    G[np.diag_indices_from(G)] *= 1.0 + _RIDGE
+    beta = np.linalg.solve(G + 1e-300 * np.eye(G.shape[0]), Xw.T @ yw)
+    res = yw - Xw @ beta
+    nt = structure.ntaps
+    return LinearFit(structure, beta[:nt].copy(), float(beta[nt]),
+                     float(beta[nt + 1]) if structure.integrating else 0.0, float(res @ res), w1 - w0)
+
+
+def fit_columns(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
+                dt: float, delays: np.ndarray) -> np.ndarray:
+    """SSE (n, len(delays)) for input columns ``u`` (n, T): filter once, then all delays."""
+    return delay_grid_sse(filter_inputs(u, structure, dt), y, window, delays, structure)
+
+
+def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float,
+           *, free_delay: bool, delay_bounds: tuple[float, float], max_evals: int = 200) -> LinearFit:
+    """Refine the real poles (and the dead time when ``free_delay``) by Nelder–Mead on the output error.
+
+    The taps and offsets are solved by least squares at every evaluation (variable projection), so the
+    search has only ``len(taus) (+1)`` dimensions. Time constants are searched on a log scale and kept
+    within [dt/20, 1e3·record length]; the delay within ``delay_bounds`` (s).
+    """
+    taus0 = np.log(np.asarray(structure.taus, dtype=float))
+    lo_tau, hi_tau = np.log(dt / 20.0), np.log(1e3 * dt * u.shape[0])
+    lo_d, hi_d = delay_bounds
+    if taus0.size == 0 and not free_delay:
+        return fit_one(u, y, window, structure, dt)
+
+    def make(p: np.ndarray) -> LinearStructure:
+        taus = tuple(float(np.exp(np.clip(v, lo_tau, hi_tau))) for v in p[:taus0.size])
+        delay = float(np.clip(p[-1], lo_d, hi_d)) if free_delay else structure.delay
+        return replace(structure, taus=taus, delay=delay)
+
+    def cost(p: np.ndarray) -> float:
+        return fit_one(u, y, window, make(p), dt).sse
+
+    x0 = np.concatenate([taus0, [structure.delay] if free_delay else []])
+    step = np.concatenate([np.full(taus0.size, 0.3), [max(dt, 0.1 * structure.delay)] if free_delay else []])
+    simplex = np.vstack([x0] + [x0 + np.eye(x0.size)[i] * step[i] for i in range(x0.size)])
+    res = minimize(cost, x0, method="Nelder-Mead",
+                   options={"initial_simplex": simplex, "maxfev": max_evals, "xatol": 1e-3, "fatol": 1e-12})
+    best = make(res.x) if res.fun <= cost(x0) else structure
+    return fit_one(u, y, window, best, dt)
