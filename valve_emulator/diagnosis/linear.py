@@ -57,6 +57,8 @@ __all__ = [
 # Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
 # without changing any well-posed fit beyond rounding.
 _RIDGE = 1e-10
+# Fewer columns than this run serially: starting the thread pool costs more than it saves.
+_PARALLEL_MIN = 16
 
 
 @dataclass(frozen=True)
@@ -126,26 +128,37 @@ class LinearFit:
         return x @ self.taps + self.offset + self.trend * (np.arange(T) / T)
 
 
-@numba.njit(cache=True, parallel=True)
-def _filter_kernel(u, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
-    n, T = u.shape
+@numba.njit(cache=True, inline="always")
+def _filter_column(u, c, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
+    T = u.shape[1]
     p = alpha.shape[0] - 1
-    for c in numba.prange(n):
-        # start the stable part at rest for the first input: no transient when it is already settled
-        for k in range(min(p, T)):
-            out[c, k] = u[c, 0]
-        if p == 0:
-            out[c, 0] = u[c, 0]
-        for k in range(max(p, 1), T):
-            s = gain * u[c, k - 1]
-            for i in range(1, p + 1):
-                s -= alpha[i] * out[c, k - i]
-            out[c, k] = s
-        if integ:
-            acc = 0.0
-            for k in range(T):
-                acc += dt * out[c, k]
-                out[c, k] = acc
+    # start the stable part at rest for the first input: no transient when it is already settled
+    for k in range(min(p, T)):
+        out[c, k] = u[c, 0]
+    if p == 0:
+        out[c, 0] = u[c, 0]
+    for k in range(max(p, 1), T):
+        s = gain * u[c, k - 1]
+        for i in range(1, p + 1):
+            s -= alpha[i] * out[c, k - i]
+        out[c, k] = s
+    if integ:
+        acc = 0.0
+        for k in range(T):
+            acc += dt * out[c, k]
+            out[c, k] = acc
+
+
+@numba.njit(cache=True, parallel=True)
+def _filter_parallel(u, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
+    for c in numba.prange(u.shape[0]):
+        _filter_column(u, c, alpha, gain, integ, dt, out)
+
+
+@numba.njit(cache=True)
+def _filter_serial(u, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
+    for c in range(u.shape[0]):
+        _filter_column(u, c, alpha, gain, integ, dt, out)
 
 
 def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float) -> np.ndarray:
@@ -155,7 +168,8 @@ def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float) -> np.nd
     u = np.ascontiguousarray(u - u.mean(axis=1, keepdims=True), dtype=np.float64)
     alpha = structure.denominator(dt)
     out = np.empty_like(u)
-    _filter_kernel(u, alpha, float(np.sum(alpha)), bool(structure.integrating), float(dt), out)
+    kernel = _filter_parallel if u.shape[0] >= _PARALLEL_MIN else _filter_serial
+    kernel(u, alpha, float(np.sum(alpha)), bool(structure.integrating), float(dt), out)
     return out
 
 
@@ -171,7 +185,9 @@ def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
             for m in range(j):
                 s -= L[i, m] * L[j, m]
             if i == j:
-                L[i, i] = np.sqrt(s) if s > 0 else 1e-150
+                # A regressor (numerically) in the span of the earlier ones, e.g. a valve that never
+                # moves: drop it (a huge pivot makes its coefficient zero) instead of dividing by ~0.
+                L[i, i] = np.sqrt(s) if s > 1e-9 * (G[i, i] + 1e-300) else 1e150
             else:
                 L[i, j] = s / L[j, j]
     w = np.empty(q)
@@ -191,69 +207,85 @@ def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
     return max(sse, 0.0)
 
 
-@numba.njit(cache=True, parallel=True)
-def _grid_kernel(z, y, w0, w1, delays, ntaps, trend, sse, coef):  # pragma: no cover - compiled
+@numba.njit(cache=True, inline="always")
+def _grid_column(c, z, y, w0, w1, delays, ntaps, trend, sums, sse, coef):  # pragma: no cover - compiled
     # Gram entries come from prefix sums (O(1) per delay); only the cross-correlation with PV costs
     # O(T) per lag, and neighbouring delays share lags: the work is (delays + taps - 1)·T per column.
-    n, T = z.shape
+    T = z.shape[1]
     nd = delays.shape[0]
     q = ntaps + 1 + trend
     dmin, dmax = delays.min(), delays.max()
     nlag = dmax - dmin + ntaps
     nw = w1 - w0
-    yy = 0.0
-    ty = 0.0
-    sy = 0.0
-    tt = 0.0
-    st = 0.0
-    for k in range(w0, w1):
-        yy += y[k] * y[k]
-        sy += y[k]
-        ty += (k / T) * y[k]
-        tt += (k / T) * (k / T)
-        st += k / T
-    for c in numba.prange(n):
-        P = np.zeros((ntaps, T + 1))      # P[l, m] = sum_{i<m} z[i] z[i-l]
-        P1 = np.zeros(T + 1)              # sum z
-        PK = np.zeros(T + 1)              # sum i z[i]
-        for m in range(T):
-            zm = z[c, m]
-            P1[m + 1] = P1[m] + zm
-            PK[m + 1] = PK[m] + m * zm
-            for l in range(ntaps):
-                P[l, m + 1] = P[l, m] + (zm * z[c, m - l] if m >= l else 0.0)
-        X = np.zeros(nlag)                # X[i] = sum_k z[k - (dmin + i)] y[k]
-        for i in range(nlag):
-            lag = dmin + i
-            s = 0.0
-            for k in range(w0, w1):
-                s += z[c, k - lag] * y[k]
-            X[i] = s
-        G = np.zeros((q, q))
-        r = np.zeros(q)
-        beta = np.zeros(q)
-        for di in range(nd):
-            d = delays[di]
-            for i in range(ntaps):
-                a0, a1 = w0 - d - i, w1 - d - i          # index range of z for tap i
-                for j in range(i, ntaps):
-                    l = j - i
-                    G[i, j] = P[l, a1] - P[l, a0]
-                G[i, ntaps] = P1[a1] - P1[a0]
-                if trend:
-                    # sum_k (k/T) z[k-s] = sum_m (m+s) z[m] / T
-                    s_ = d + i
-                    G[i, ntaps + 1] = (PK[a1] - PK[a0] + s_ * (P1[a1] - P1[a0])) / T
-                r[i] = X[d - dmin + i]
-            G[ntaps, ntaps] = nw
-            r[ntaps] = sy
+    yy, sy, ty, tt, st = sums[0], sums[1], sums[2], sums[3], sums[4]
+    P = np.zeros((ntaps, T + 1))      # P[l, m] = sum_{i<m} z[i] z[i-l]
+    P1 = np.zeros(T + 1)              # sum z
+    PK = np.zeros(T + 1)              # sum i z[i]
+    for m in range(T):
+        zm = z[c, m]
+        P1[m + 1] = P1[m] + zm
+        PK[m + 1] = PK[m] + m * zm
+        for l in range(ntaps):
+            P[l, m + 1] = P[l, m] + (zm * z[c, m - l] if m >= l else 0.0)
+    X = np.zeros(nlag)                # X[i] = sum_k z[k - (dmin + i)] y[k]
+    for i in range(nlag):
+        lag = dmin + i
+        s = 0.0
+        for k in range(w0, w1):
+            s += z[c, k - lag] * y[k]
+        X[i] = s
+    G = np.zeros((q, q))
+    r = np.zeros(q)
+    beta = np.zeros(q)
+    for di in range(nd):
+        d = delays[di]
+        for i in range(ntaps):
+            a0, a1 = w0 - d - i, w1 - d - i          # index range of z for tap i
+            for j in range(i, ntaps):
+                l = j - i
+                G[i, j] = P[l, a1] - P[l, a0]
+            G[i, ntaps] = P1[a1] - P1[a0]
             if trend:
-                G[ntaps, ntaps + 1] = st
-                G[ntaps + 1, ntaps + 1] = tt
-                r[ntaps + 1] = ty
-            sse[c, di] = _solve_sse(G, r, yy, q, beta)
-            for i in range(q):
-                coef[c, di, i] = beta[i]
+                # sum_k (k/T) z[k-s] = sum_m (m+s) z[m] / T
+                s_ = d + i
+                G[i, ntaps + 1] = (PK[a1] - PK[a0] + s_ * (P1[a1] - P1[a0])) / T
+            r[i] = X[d - dmin + i]
+        G[ntaps, ntaps] = nw
+        r[ntaps] = sy
+        if trend:
+            G[ntaps, ntaps + 1] = st
+            G[ntaps + 1, ntaps + 1] = tt
+            r[ntaps + 1] = ty
+        sse[c, di] = _solve_sse(G, r, yy, q, beta)
+        for i in range(q):
+            coef[c, di, i] = beta[i]
+
+
+@numba.njit(cache=True)
+def _window_sums(y, w0, w1, T):  # pragma: no cover - compiled
+    s = np.zeros(5)  # yy, sum y, sum t y, sum t^2, sum t  with t = k/T
+    for k in range(w0, w1):
+        t = k / T
+        s[0] += y[k] * y[k]
+        s[1] += y[k]
+        s[2] += t * y[k]
+        s[3] += t * t
+        s[4] += t
+    return s
+
+
+@numba.njit(cache=True, parallel=True)
+def _grid_parallel(z, y, w0, w1, delays, ntaps, trend, sse, coef):  # pragma: no cover - compiled
+    sums = _window_sums(y, w0, w1, z.shape[1])
+    for c in numba.prange(z.shape[0]):
+        _grid_column(c, z, y, w0, w1, delays, ntaps, trend, sums, sse, coef)
+
+
+@numba.njit(cache=True)
+def _grid_serial(z, y, w0, w1, delays, ntaps, trend, sse, coef):  # pragma: no cover - compiled
+    sums = _window_sums(y, w0, w1, z.shape[1])
+    for c in range(z.shape[0]):
+        _grid_column(c, z, y, w0, w1, delays, ntaps, trend, sums, sse, coef)
 
 
 def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays: np.ndarray,
@@ -281,8 +313,9 @@ def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     q = ntaps + 1 + int(structure.integrating)
     sse = np.empty((z.shape[0], delays.size))
     coef = np.empty((z.shape[0], delays.size, q))
-    _grid_kernel(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, ntaps,
-                 int(structure.integrating), sse, coef)
+    kernel = _grid_parallel if z.shape[0] >= _PARALLEL_MIN else _grid_serial
+    kernel(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, ntaps, int(structure.integrating),
+           sse, coef)
     return (sse, coef) if return_coef else sse
 
 

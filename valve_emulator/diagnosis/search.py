@@ -46,6 +46,10 @@ __all__ = ["DELTA_BIC", "DELTA_FIT", "Model", "Surface", "Option", "Round", "Sea
 DELTA_BIC = 10.0
 #: Least held-out free-run fit gain, percentage points, for an addition to count.
 DELTA_FIT = 0.5
+#: Width of a "flat" cost bottom, in units of -2 log-likelihood (the 95 % point of chi-square, 1 dof).
+_FLAT = 3.84
+#: Grid rows pushed through the chain at once (bounds memory to a few hundred MB at 10^4 samples).
+_CHUNK = 512
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,6 +90,7 @@ class Option:
     added: tuple[str, ...]
     model: Model
     coarse: Surface | None
+    scan: Surface | None
     fine: Surface | None
 
     @property
@@ -150,13 +155,59 @@ class Search:
         return Model(tuple(acts), fit, delay_free, k, bic(fit.sse, fit.n, k), self.p.heldout_fit(y_hat),
                      y_hat, flow)
 
-    def _structures(self, model: Model) -> list[LinearStructure]:
-        alts = [replace(s, delay=s.delay) for s in self.nominal.alternates]
-        return [model.fit.structure] + alts
+    def _pole_set(self, model: Model) -> list[LinearStructure]:
+        """Linear dynamics tried by the coarse stage of every candidate search.
+
+        A missing valve nonlinearity biases the poles re-fitted around the nominal chain (stiction in the
+        concentration loop drags the fitted time constant from 10 s to about 80 s), and with wrong poles
+        the valve's cost basin disappears. So the coarse stage also tries the nominal poles scaled by
+        2^(±1/2), 2^(±1) — or, without a model, first order with time constants from Δt to a tenth of the
+        record and an integrator — and later stages use the best.
+        """
+        st = model.fit.structure
+        out = [st]
+        if self.nominal.given:
+            nom = replace(self.nominal.structure, delay=st.delay)
+            for f in (1.0, 0.5, 2 ** -0.5, 2 ** 0.5, 2.0):
+                if nom.taus or f == 1.0:
+                    out.append(replace(nom, taus=tuple(t * f for t in nom.taus)))
+        else:
+            dt = self.p.dt
+            out += [replace(a, delay=st.delay) for a in self.nominal.alternates]
+            out += [LinearStructure(taus=(float(t),), delay=st.delay)
+                    for t in np.geomspace(dt, max(2 * dt, self.p.T * dt / 10.0), 8)]
+            out.append(LinearStructure(integrating=True, delay=st.delay))
+        return out
 
     def _polish(self, flow, st, free):
         return polish(flow, self.p.y, self.p.train, st, self.p.dt, free_delay=free,
                       delay_bounds=(0.0, self.dmax))
+
+    def _sse_flows(self, flows: np.ndarray, st: LinearStructure, delays: np.ndarray | None) -> tuple:
+        """SSE (n, nd) for chain outputs ``flows`` (T, n) and the delays searched (samples).
+
+        ``delays=None`` holds the structure's own (possibly fractional) dead time.
+        """
+        z = filter_inputs(flows.T, st, self.p.dt)
+        if delays is None:
+            ds = st.delay / self.p.dt
+            m = int(np.floor(ds + 1e-9))
+            z, delays = _frac_shift(z, ds - m), np.array([m])
+        return delay_grid_sse(z, self.p.y, self.p.train, delays, st), delays
+
+    def _sse_grid(self, active, ctx, cand, grid, st, delays) -> tuple:
+        """:meth:`_sse_flows` for a parameter grid, in chunks of :data:`_CHUNK` rows (bounded memory)."""
+        parts, used = [], None
+        for a in range(0, grid.shape[0], _CHUNK):
+            flows = self.chain(active, ctx, cand, grid[a:a + _CHUNK])
+            sse, used = self._sse_flows(flows, st, delays)
+            parts.append(sse)
+        return np.vstack(parts), used
+
+    def _near(self, d: float, r: int) -> np.ndarray:
+        d0 = int(round(d / self.p.dt))
+        lo, hi = int(self.p.delays.min()), int(self.p.delays.max())
+        return np.arange(max(lo, d0 - r), min(hi, d0 + r) + 1)
 
     # -- the base model --------------------------------------------------------------------------------------
     def base(self) -> Model:
@@ -168,78 +219,96 @@ class Search:
         return self.model({}, fit, free, flow)
 
     # -- one candidate ---------------------------------------------------------------------------------------
-    def _grid_sse(self, flows: np.ndarray, st: LinearStructure, free: bool) -> tuple[np.ndarray, np.ndarray]:
-        """SSE (n, nd) and the delays (samples) searched: the whole grid, or the structure's own delay."""
-        z = filter_inputs(flows.T, st, self.p.dt)
-        if free:
-            delays = self.p.delays
-        else:
-            ds = st.delay / self.p.dt
-            m = int(np.floor(ds + 1e-9))
-            z, delays = _frac_shift(z, ds - m), np.array([m])
-        return delay_grid_sse(z, self.p.y, self.p.train, delays, st), delays
-
     def _refine(self, model: Model, cand: Candidate, best: np.ndarray, st: LinearStructure, free: bool):
-        """Two passes of fine grid + polish around ``best``; returns (fitted Model, fine Surface)."""
+        """Two passes of fine grid + polish around ``best``; returns (active, fit, flow, fine Surface)."""
         active = model.by_slot()
         ctx = self.ctx(model)
-        fit = None
         for _ in range(2):
             g = cand.refine(ctx, best)
-            flows = self.chain(active, ctx, cand, g)
-            if free:
-                d0 = int(round(st.delay / self.p.dt))
-                delays = np.arange(max(0, d0 - 2), min(int(self.p.delays.max()), d0 + 2) + 1)
-                z = filter_inputs(flows.T, st, self.p.dt)
-                sse = delay_grid_sse(z, self.p.y, self.p.train, delays, st)
-            else:
-                sse, delays = self._grid_sse(flows, st, False)
+            sse, delays = self._sse_grid(active, ctx, cand, g, st, self._near(st.delay, 2) if free else None)
             i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
             best = g[i]
             st0 = replace(st, delay=float(delays[j]) * self.p.dt) if free else st
-            fit = self._polish(flows[:, i], st0, free)
+            flow = self.chain(active, ctx, cand, g[i:i + 1])[:, 0]
+            fit = self._polish(flow, st0, free)
             st = fit.structure
+        fine = Surface(cand.name, g, sse.min(axis=1), self.p.n_fit)
+        if cand.threshold_axes:
+            best = self._centre(active, ctx, cand, best, st)
+            flow = self.chain(active, ctx, cand, best[None, :])[:, 0]
+            fit = self._polish(flow, st, free)
         new_active = dict(active)
         new_active[cand.slot] = Active(cand, best)
-        flow = self.chain(new_active, ctx)[:, 0]
-        surface = Surface(cand.name, g, sse.min(axis=1), self.p.n_fit)
-        return new_active, fit, flow, surface
+        return new_active, fit, flow, fine
+
+    def _centre(self, active, ctx, cand, best, st) -> np.ndarray:
+        """Move each threshold parameter to the middle of the flat bottom of its cost.
+
+        With noisy OP the fit-part cost is piecewise constant in a threshold (each slip happens at the
+        first sample past it), so every value inside the cell that contains the argmin replays the fit
+        part equally well, and the argmin may sit at the cell's edge. Events in the held-out part cut the
+        cell at uniformly distributed places; its middle is the value least likely to miss one. The
+        flat bottom is the contiguous run around the argmin with N·ln(SSE/SSE_min) ≤ :data:`_FLAT`.
+        """
+        for axis in cand.threshold_axes:
+            rows = cand.line(ctx, best, axis)
+            sse, _ = self._sse_grid(active, ctx, cand, rows, st, None)
+            cost = self.p.n_fit * np.log(np.maximum(sse[:, 0], 1e-300) / max(sse[:, 0].min(), 1e-300))
+            i = int(np.argmin(cost))
+            lo = hi = i
+            while lo > 0 and cost[lo - 1] <= _FLAT:
+                lo -= 1
+            while hi < cost.size - 1 and cost[hi + 1] <= _FLAT:
+                hi += 1
+            best = rows[i].copy()
+            best[axis] = 0.5 * (rows[lo, axis] + rows[hi, axis])
+        return best
+
+    def _delay_option(self, model: Model, cand: Candidate) -> Option:
+        flow = model.flow
+        sse, delays = self._sse_flows(flow[:, None], model.fit.structure, self.p.delays)
+        st = replace(model.fit.structure, delay=float(delays[int(np.argmin(sse[0]))]) * self.p.dt)
+        fit = self._polish(flow, st, True)
+        active = model.by_slot()
+        active["delay"] = Active(cand, np.array([fit.structure.delay]))
+        surf = Surface(cand.name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
+        return Option((cand.name,), self.model(active, fit, True, flow), surf, None, surf)
 
     def evaluate(self, model: Model, cand: Candidate) -> list[Option]:
-        """Options that add ``cand`` to ``model`` (see the module docstring)."""
-        ctx = self.ctx(model)
-        dead_time = self.library.get("dead_time")
+        """Options that add ``cand`` to ``model``: coarse grid × pole set, global scan, refinement."""
         if cand.slot == "delay":
-            flow = model.flow
-            sse, delays = self._grid_sse(flow[:, None], model.fit.structure, True)
-            st = replace(model.fit.structure, delay=float(delays[int(np.argmin(sse[0]))]) * self.p.dt)
-            fit = self._polish(flow, st, True)
-            active = model.by_slot()
-            active["delay"] = Active(cand, np.array([fit.structure.delay]))
-            surf = Surface(cand.name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
-            return [Option((cand.name,), self.model(active, fit, True, flow), surf, surf)]
-        grid = cand.grid(ctx)
-        flows = self.chain(model.by_slot(), ctx, cand, grid)
+            return [self._delay_option(model, cand)]
+        ctx = self.ctx(model)
+        active = model.by_slot()
+        dead_time = self.library.get("dead_time")
         variants = [(model.delay_free, (cand.name,))]
         if not model.delay_free and dead_time is not None:
             variants.append((True, (cand.name, dead_time.name)))
-        options = []
-        for free, added in variants:
-            best = None
-            for st in self._structures(model):
-                st_v = st if (free or st is model.fit.structure) else replace(st, delay=model.fit.structure.delay)
-                sse, _ = self._grid_sse(flows, st_v, free)
+        grid = cand.grid(ctx)
+        flows = self.chain(active, ctx, cand, grid)
+        best: dict[bool, tuple] = {}
+        for st in self._pole_set(model):
+            for free, _ in variants:
+                sse, delays = self._sse_flows(flows, st, self.p.delays if free else None)
                 flat = sse.min(axis=1)
                 i = int(np.argmin(flat))
-                if best is None or flat[i] < best[0]:
-                    j = int(np.argmin(sse[i]))
-                    st_b = replace(st_v, delay=float(self.p.delays[j]) * self.p.dt) if free else st_v
-                    best = (flat[i], i, st_b, Surface(cand.name, grid, flat, self.p.n_fit))
-            _, i, st_b, coarse = best
-            active, fit, flow, fine = self._refine(model, cand, grid[i], st_b, free)
+                if free not in best or flat[i] < best[free][0]:
+                    st_b = replace(st, delay=float(delays[int(np.argmin(sse[i]))]) * self.p.dt) if free else st
+                    best[free] = (flat[i], grid[i], st_b, Surface(cand.name, grid, flat, self.p.n_fit))
+        scan = cand.scan(ctx)
+        options = []
+        for free, added in variants:
+            _, p0, st_b, coarse = best[free]
+            scan_surface = None
+            if scan is not None:
+                sse, _ = self._sse_grid(active, ctx, cand, scan, st_b, self._near(st_b.delay, 3) if free else None)
+                flat = sse.min(axis=1)
+                p0 = scan[int(np.argmin(flat))]
+                scan_surface = Surface(cand.name, scan, flat, self.p.n_fit)
+            new_active, fit, flow, fine = self._refine(model, cand, p0, st_b, free)
             if free and not model.delay_free:
-                active["delay"] = Active(dead_time, np.array([fit.structure.delay]))
-            options.append(Option(added, self.model(active, fit, free, flow), coarse, fine))
+                new_active["delay"] = Active(dead_time, np.array([fit.structure.delay]))
+            options.append(Option(added, self.model(new_active, fit, free, flow), coarse, scan_surface, fine))
         return options
 
     # -- the rounds ------------------------------------------------------------------------------------------

@@ -5,7 +5,8 @@ signal chain
 
     OP --[actuator]--> --[valve]--> MV --[characteristic]--> flow --[linear plant, dead time θ]--> PV
 
-and knows three things: the grid of its parameters worth trying (from the data), how to transform the
+and knows three things: the grids of its parameters worth trying (from the data: coarse, optionally a
+denser global scan, and a local refinement), how to transform the
 signal at its slot for a whole batch of parameter vectors at once (the search is vectorised over
 candidates, never a Python loop over them), and how to say its parameters in the words of the issue.
 The dead time lives inside the linear fit (every fit searches it on a grid, see ``search.py``); its
@@ -71,14 +72,29 @@ class Candidate(ABC):
     slot: ClassVar[str]
     param_names: ClassVar[tuple[str, ...]]
     n_params: ClassVar[int]
+    #: Indices of threshold parameters: their cost is flat-bottomed (piecewise constant at fine scale), so
+    #: the search takes the middle of the flat bottom along each of them (see :meth:`line`).
+    threshold_axes: ClassVar[tuple[int, ...]] = ()
 
     @abstractmethod
     def grid(self, ctx: ChainContext) -> np.ndarray:
         """Coarse grid of parameter vectors, shape (n, len(param_names))."""
 
+    def scan(self, ctx: ChainContext) -> np.ndarray | None:
+        """An optional global grid finer than :meth:`grid`, searched once the linear dynamics are chosen.
+
+        For parameters whose cost is rough at fine scale (stiction's S) a coarse grid can miss the basin;
+        the scan is denser along such directions. None (the default) skips this stage.
+        """
+        return None
+
     @abstractmethod
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         """A finer grid around ``best`` (which it must contain)."""
+
+    def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
+        """Rows varying parameter ``axis`` finely around ``best`` (for ``threshold_axes`` only)."""
+        raise NotImplementedError(f"{self.name} has no threshold axes")
 
     @abstractmethod
     def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:

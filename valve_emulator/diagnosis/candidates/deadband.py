@@ -27,6 +27,7 @@ class Deadband(Candidate):
     slot: ClassVar[str] = "valve"
     param_names: ClassVar[tuple[str, ...]] = ("S", "direction")
     n_params: ClassVar[int] = 1
+    threshold_axes: ClassVar[tuple[int, ...]] = (0,)
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         h = _step(ctx.op_span)
@@ -38,6 +39,12 @@ class Deadband(Candidate):
         S = best[0] + f * np.arange(-12, 13)
         S = S[S > 0]
         return np.vstack([best[None, :], np.column_stack([S, np.full(S.size, best[1])])])
+
+    def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
+        h = _step(ctx.op_span) / 200.0
+        rows = np.repeat(best[None, :], 81, axis=0)
+        rows[:, 0] = best[0] + h * np.arange(-40, 41)
+        return rows[rows[:, 0] > 0]
 
     def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
         return valve_output(x, params[:, 0], np.zeros(params.shape[0]), params[:, 1], ctx)

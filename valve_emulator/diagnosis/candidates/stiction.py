@@ -8,10 +8,15 @@ direction ``d = ±1`` (both are on the grid): it is put at rest at ``OP(0) − d
 in direction ``d``, so the first sample already overcomes J and the valve moves with ``MV = OP − d(S−J)/2``.
 A moving valve synchronises with the true one at the first OP reversal, so only a short burn-in is lost.
 
-Grid: ``S`` from one step to the robust OP span (a valve whose S exceeds the OP excursions never moves
-and carries no information), ``J`` from 0 to ``1.6 S`` (overshoot included), step ``span/20`` (at least
-0.1 %); :meth:`refine` searches ±1.5 steps at a fifth of the step. The valve's model and rest criterion
-are the nominal valve's.
+Grids: ``S`` from one step to the robust OP span (a valve whose S exceeds the OP excursions never moves
+and carries no information), ``J`` from 0 to ``1.6 S`` (overshoot included). Why three stages: with OP
+noise the valve re-sticks at every small OP reversal, so a slip happens at the sample where OP first
+crosses its threshold, and each half-cycle's slip sample flips at its own value of S. The cost is
+therefore piecewise constant in S with cells a few hundredths of a percent wide, while within a cell it is
+smooth in J (J scales the jump, not its timing). The coarse grid (step span/12) only picks the linear
+dynamics; the scan is fine in S (span/160) and coarse in J (span/16) over the whole range; the refinement
+searches ±2 scan steps of S at a quarter step and ±1.5 J steps at a sixth. The valve's model and rest
+criterion are the nominal valve's.
 """
 
 from __future__ import annotations
@@ -45,8 +50,21 @@ def stiction_kind(S: float, J: float) -> str:
     return "undershoot" if J < S else "overshoot"
 
 
-def _step(span: float) -> float:
-    return max(0.1, span / 20.0)
+def _coarse(span: float) -> float:
+    return max(0.2, span / 12.0)
+
+
+def _scan_steps(span: float) -> tuple[float, float]:
+    """(S step, J step) of the global scan: S fine, J coarse."""
+    return max(0.01, span / 160.0), max(0.1, span / 16.0)
+
+
+def _grid(S_values: np.ndarray, hJ: float) -> np.ndarray:
+    rows = []
+    for S in S_values:
+        for J in np.arange(0, int(np.floor(1.6 * S / hJ + 1e-9)) + 1) * hJ:
+            rows += [(S, J, 1.0), (S, J, -1.0)]
+    return np.array(rows)
 
 
 class Stiction(Candidate):
@@ -54,24 +72,30 @@ class Stiction(Candidate):
     slot: ClassVar[str] = "valve"
     param_names: ClassVar[tuple[str, ...]] = ("S", "J", "direction")
     n_params: ClassVar[int] = 2
+    threshold_axes: ClassVar[tuple[int, ...]] = (0, 1)
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
-        h = _step(ctx.op_span)
-        rows = []
-        for S in np.arange(1, int(np.floor(ctx.op_span / h)) + 1) * h:
-            for J in np.arange(0, int(np.floor(1.6 * S / h + 1e-9)) + 1) * h:
-                rows += [(S, J, 1.0), (S, J, -1.0)]
-        return np.array(rows) if rows else np.array([[h, 0.0, 1.0], [h, 0.0, -1.0]])
+        h = _coarse(ctx.op_span)
+        return _grid(np.arange(1, max(2, int(np.floor(ctx.op_span / h)) + 1)) * h, h)
+
+    def scan(self, ctx: ChainContext) -> np.ndarray:
+        hS, hJ = _scan_steps(ctx.op_span)
+        return _grid(np.arange(1, max(2, int(np.floor(ctx.op_span / hS)) + 1)) * hS, hJ)
 
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
-        h = _step(ctx.op_span)
-        f = h / 5.0
+        hS, hJ = _scan_steps(ctx.op_span)
         S0, J0, d = best
-        S = S0 + f * np.arange(-7, 8)
-        J = J0 + f * np.arange(-7, 8)
+        S = S0 + hS / 4.0 * np.arange(-8, 9)
+        J = J0 + hJ / 6.0 * np.arange(-9, 10)
         SS, JJ = np.meshgrid(S[S > 0], J[J >= 0], indexing="ij")
         out = np.column_stack([SS.ravel(), JJ.ravel(), np.full(SS.size, d)])
         return np.vstack([best[None, :], out])
+
+    def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
+        h = _scan_steps(ctx.op_span)[axis] / (80.0 if axis == 0 else 60.0)
+        rows = np.repeat(best[None, :], 81, axis=0)
+        rows[:, axis] = best[axis] + h * np.arange(-40, 41)
+        return rows[rows[:, axis] >= (1e-9 if axis == 0 else 0.0)]
 
     def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
         return valve_output(x, params[:, 0], params[:, 1], params[:, 2], ctx)

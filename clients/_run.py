@@ -1,0 +1,46 @@
+"""Running a client's coroutine from ``main``: Ctrl-C / SIGTERM set a stop event instead of killing it."""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+from typing import Awaitable, Callable, TypeVar
+
+__all__ = ["run_until_stopped", "pause"]
+
+T = TypeVar("T")
+
+
+async def _with_signals(body: Callable[[asyncio.Event], Awaitable[T]]) -> T:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    installed = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+            installed.append(sig)
+        except (NotImplementedError, RuntimeError):  # not the main thread, or no signals here
+            pass
+    try:
+        return await body(stop)
+    finally:
+        for sig in installed:
+            loop.remove_signal_handler(sig)
+
+
+def run_until_stopped(body: Callable[[asyncio.Event], Awaitable[T]]) -> T:
+    """``asyncio.run(body(stop))`` where SIGINT and SIGTERM set ``stop`` (the body finishes cleanly)."""
+    return asyncio.run(_with_signals(body))
+
+
+async def pause(delay: float, stop: asyncio.Event | None) -> None:
+    """Sleep ``delay`` s of wall time, returning early once ``stop`` is set."""
+    if stop is None:
+        await asyncio.sleep(max(delay, 0.0))
+        return
+    if stop.is_set():
+        return
+    try:
+        await asyncio.wait_for(stop.wait(), timeout=max(delay, 0.0))
+    except TimeoutError:
+        pass

@@ -1,0 +1,212 @@
+"""``python -m clients.recorder --out REC.csv``: poll a Modbus device and write the standard recording CSV.
+
+The file is the project's recording format (:mod:`valve_emulator.sim.recording`): header
+``t,sp,op,mv,pv`` then the extra columns (by default the emulator's ``flow, op_ma, stuck, S, J, load,
+noise, fault, tick``; see :mod:`clients._channels` for pointing the columns at any device). Each sample is
+one line, written and flushed at once (``--fsync`` also forces it to disk), so a recorder that is killed
+loses at most the line it was writing; :func:`~valve_emulator.sim.recording.read_csv` drops such a partial
+last line with a warning.
+
+Time axis
+---------
+``t`` is the device's own simulated time (the emulator's ``time`` register) when it has one, so a run at
+``--time-scale 10`` records simulated seconds; a sample whose device time has not moved since the last row
+(polling faster than the device ticks) is not written again. With ``--time none`` ``t`` is wall seconds
+since the start. Float32 registers are written as the shortest decimal that reads back to the same
+float32 (``12.3``, not ``12.300000190734863``).
+
+Sampling
+--------
+Polls are due at absolute wall-clock deadlines ``k·period`` from the start, so lateness never accumulates
+into drift; a poll more than one period late skips the missed deadlines (counted as ``late``) instead of
+bursting. Recordings are checked on reading for gaps (a step of ``t`` more than 1.5 times the median step,
+``read_csv(gap_factor=1.5)``): keep each sample several device ticks long (``period × time-scale ≥ 4 ×
+tick``), so ordinary jitter stays far inside that bound. A stall longer than about half a period (a
+suspended process, a saturated machine) is a real gap in the data, and the recorder reports it at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, TextIO
+
+import numpy as np
+
+from valve_emulator.sim.recording import CsvRecordingWriter
+
+from clients._channels import Channels, add_channel_arguments, channels_from_args
+from clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
+from clients._run import pause, run_until_stopped
+
+__all__ = ["RecorderOptions", "RecordSummary", "record", "build_parser", "options_from_args", "main"]
+
+PROG = "python -m clients.recorder"
+
+
+@dataclass(frozen=True)
+class RecorderOptions:
+    """Everything :func:`record` needs; :func:`options_from_args` builds it from the command line."""
+
+    out: Path
+    channels: Channels
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_PORT
+    unit: int = 1
+    timeout: float = 1.0
+    word_order: str = ABCD
+    period: float = 0.1             # s of wall time between polls
+    duration: float | None = None   # s of wall time; None = until stopped
+    until: float | None = None      # stop once t reaches this (the t column's seconds)
+    max_gap: int = 8
+    fsync: bool = False
+
+
+@dataclass
+class RecordSummary:
+    """What a recording run did: rows written, polls skipped, read errors, the span of ``t``."""
+
+    path: Path
+    rows: int = 0
+    repeats: int = 0        # polls that found the device time unchanged (not written again)
+    late: int = 0           # deadlines skipped because a poll came more than one period late
+    errors: int = 0         # failed polls (connection lost, exception responses) after the first
+    gaps: int = 0           # steps of t larger than 1.5 x the median step (read_csv would reject them)
+    t_first: float = math.nan
+    t_last: float = math.nan
+    steps: list[float] = field(default_factory=list, repr=False)
+
+    def line(self) -> str:
+        span = f"t = {self.t_first:g} .. {self.t_last:g} s" if self.rows else "no rows"
+        extra = "".join(f", {n} {w}" for n, w in ((self.late, "late polls"), (self.errors, "read errors"),
+                                                  (self.gaps, "gaps")) if n)
+        return f"{self.path}: {self.rows} rows, {span}{extra}"
+
+
+async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, progress: TextIO | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> RecordSummary:
+    """Poll the device every ``opts.period`` wall seconds and append rows to ``opts.out`` until ``stop`` is
+    set, ``duration`` has passed or ``t`` reaches ``until``.
+
+    The first poll must succeed (``ConnectionError``/:class:`DeviceError`, nothing written beyond the
+    header otherwise); later failures are counted and polling goes on (reconnecting as needed).
+    ``progress`` receives a progress line (``\\r``-updated on a terminal) and the summary.
+    """
+    ch = opts.channels
+    reader = ch.reader(word_order=opts.word_order, max_gap=opts.max_gap)
+    link = Link(opts.host, opts.port, opts.unit, timeout=opts.timeout)
+    summary = RecordSummary(opts.out)
+    tty = progress is not None and getattr(progress, "isatty", lambda: False)()
+    writer = CsvRecordingWriter(opts.out, extra_columns=tuple(ch.extras), fsync=opts.fsync)
+    try:
+        await link.connect()
+        sample: dict[str, float] | None = await reader.read(link)  # fail early: wrong port, unit, address
+        writer.open()
+        t0 = now = clock()
+        k, last_t, next_report = 0, -math.inf, t0
+        while True:
+            if sample is not None:
+                t = sample["t"] if ch.t is not None else now - t0
+                sp, op, mv, pv, extras = ch.values(sample)
+                if t > last_t:
+                    writer.write_row(t, sp, op, mv, pv, *extras)
+                    if summary.rows:
+                        summary.steps.append(t - last_t)
+                    else:
+                        summary.t_first = t
+                    summary.rows += 1
+                    summary.t_last = last_t = t
+                elif t < last_t and ch.t is not None:
+                    raise ValueError(f"device time went back from {last_t!r} to {t!r} s (device restarted?); "
+                                     f"{opts.out} holds everything up to then")
+                else:
+                    summary.repeats += 1   # the device has not ticked since the last row
+            if progress is not None and now >= next_report:
+                next_report = now + (0.5 if tty else 5.0)
+                text = f"{PROG}: {summary.rows} rows, t = {summary.t_last:.1f} s"
+                print("\r" + text if tty else text, end="" if tty else "\n", file=progress, flush=True)
+            if ((stop is not None and stop.is_set()) or (opts.until is not None and last_t >= opts.until)
+                    or (opts.duration is not None and clock() - t0 >= opts.duration)):
+                break
+            k += 1
+            deadline = t0 + k * opts.period
+            await pause(deadline - clock(), stop)
+            if stop is not None and stop.is_set():
+                break
+            late = clock() - deadline
+            if late > opts.period:   # skip the deadlines already missed instead of bursting
+                skipped = int(late // opts.period)
+                k += skipped
+                summary.late += skipped
+            now = clock()
+            try:
+                sample = await reader.read(link)
+            except (ConnectionError, DeviceError) as exc:
+                sample = None
+                summary.errors += 1
+                if progress is not None and summary.errors == 1:
+                    print(("\n" if tty else "") + f"{PROG}: {exc}; retrying", file=progress, flush=True)
+    finally:
+        writer.close()
+        link.close()
+    if len(summary.steps) > 1:
+        steps = np.asarray(summary.steps)
+        summary.gaps = int(np.count_nonzero(steps > 1.5 * np.median(steps)))
+    if progress is not None:
+        print(("\r" if tty else "") + f"{PROG}: wrote {summary.line()}", file=progress, flush=True)
+    return summary
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description="Poll a Modbus TCP device and write the standard "
+                                "recording CSV (t,sp,op,mv,pv,...), one flushed line per sample.")
+    add_connection_arguments(p)
+    g = p.add_argument_group("recording")
+    g.add_argument("--out", required=True, type=Path, metavar="REC.csv", help="file to write (overwritten)")
+    g.add_argument("--period", type=float, default=0.1, metavar="S", help="wall seconds between polls (default %(default)s)")
+    g.add_argument("--duration", type=float, metavar="S", help="stop after this many wall seconds (default: Ctrl-C)")
+    g.add_argument("--until", type=float, metavar="T", help="stop once t reaches T (device seconds)")
+    g.add_argument("--fsync", action="store_true", help="force every line to disk (survives a power cut)")
+    g.add_argument("--quiet", action="store_true", help="no progress line")
+    add_channel_arguments(p)
+    return p
+
+
+def options_from_args(args: argparse.Namespace) -> RecorderOptions:
+    """Checked options; ``ValueError`` naming the flag."""
+    check_connection_arguments(args)
+    if not (math.isfinite(args.period) and args.period > 0):
+        raise ValueError(f"--period must be > 0 s, got {args.period}")
+    if args.duration is not None and not args.duration > 0:
+        raise ValueError(f"--duration must be > 0 s, got {args.duration}")
+    if args.until is not None and not math.isfinite(args.until):
+        raise ValueError(f"--until must be a finite time, got {args.until}")
+    return RecorderOptions(out=args.out, channels=channels_from_args(args), host=args.host, port=args.port,
+                           unit=args.unit, timeout=args.timeout, word_order=args.word_order, period=args.period,
+                           duration=args.duration, until=args.until, max_gap=args.max_gap, fsync=args.fsync)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Exit codes: 0 done (also after Ctrl-C), 1 the device failed, 2 bad flags."""
+    args = build_parser().parse_args(argv)
+    try:
+        opts = options_from_args(args)
+    except ValueError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    progress = None if args.quiet else sys.stderr
+    try:
+        run_until_stopped(lambda stop: record(opts, stop=stop, progress=progress))
+    except (OSError, ValueError) as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
