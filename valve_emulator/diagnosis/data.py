@@ -52,6 +52,8 @@ class Problem:
     train : ``(w0, w1)``, the fit part; ``test`` is ``(w1, T)``.
     delays : integer dead times (samples) that every fit searches.
     op_span : robust OP range, 99.5th − 0.5th percentile of the fit part (% travel).
+    difference : fit first differences of PV (plants that may integrate; see
+        :func:`~valve_emulator.diagnosis.linear.difference`); the held-out fit is always on PV itself.
     source : the recording's name, for messages.
     """
 
@@ -65,6 +67,7 @@ class Problem:
     train: tuple[int, int]
     delays: np.ndarray
     op_span: float
+    difference: bool = False
     source: str = ""
 
     @property
@@ -96,7 +99,8 @@ def _delay_grid(dt: float, T: int, nominal_delay: float | None) -> np.ndarray:
     return np.arange(max(0, d - r), d + r + 1)
 
 
-def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: float = 0.0) -> Problem:
+def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: float = 0.0,
+            difference: bool = False) -> Problem:
     """Check a recording and split it (see the module docstring).
 
     Parameters
@@ -104,6 +108,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     rec : the recording (``t``, ``op``, ``pv`` used; ``sp``/``mv`` may be absent).
     nominal_delay : the nominal model's dead time (s), which centres the dead-time grid; None = no model.
     settle_time : the nominal plant's settling time (s), a lower bound for the burn-in.
+    difference : fit first differences (see :class:`Problem`).
 
     Raises
     ------
@@ -140,4 +145,4 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     for a in arrays:
         a.setflags(write=False)
     return Problem(*arrays[:3], arrays[3], y_mean, y_scale, float(dt), (w0, w1), delays,
-                   float(max(hi - lo, 1e-6)), src)
+                   float(max(hi - lo, 1e-6)), bool(difference), src)

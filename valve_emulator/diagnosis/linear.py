@@ -47,6 +47,7 @@ from scipy.optimize import minimize
 __all__ = [
     "LinearStructure",
     "LinearFit",
+    "difference",
     "filter_inputs",
     "delay_grid_sse",
     "fit_columns",
@@ -289,7 +290,7 @@ def _grid_serial(z, y, w0, w1, delays, ntaps, trend, sse, coef):  # pragma: no c
 
 
 def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays: np.ndarray,
-                   structure: LinearStructure, *, return_coef: bool = False):
+                   structure: LinearStructure, *, difference: bool = False, return_coef: bool = False):
     """Residual sum of squares of the least-squares fit for every column of ``z`` and every delay.
 
     Parameters
@@ -299,6 +300,7 @@ def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     window : ``(w0, w1)`` samples scored; ``w0 >= max(delays) + ntaps - 1``.
     delays : integer dead times in samples.
     structure : supplies ``ntaps`` and ``integrating`` (the trend regressor).
+    difference : ``z`` and ``y`` are first differences (see :func:`difference`): no trend regressor.
 
     Returns
     -------
@@ -310,12 +312,12 @@ def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     ntaps = structure.ntaps
     if delays.size and w0 < int(delays.max()) + ntaps - 1:
         raise ValueError(f"window start {w0} leaves no room for delay {int(delays.max())} samples")
-    q = ntaps + 1 + int(structure.integrating)
+    trend = int(structure.integrating and not difference)
+    q = ntaps + 1 + trend
     sse = np.empty((z.shape[0], delays.size))
     coef = np.empty((z.shape[0], delays.size, q))
     kernel = _grid_parallel if z.shape[0] >= _PARALLEL_MIN else _grid_serial
-    kernel(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, ntaps, int(structure.integrating),
-           sse, coef)
+    kernel(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, ntaps, trend, sse, coef)
     return (sse, coef) if return_coef else sse
 
 
@@ -346,14 +348,35 @@ def _delayed_regressors(z: np.ndarray, delay_samples: float, ntaps: int) -> np.n
     return np.stack(cols, axis=1)
 
 
+def difference(x: np.ndarray) -> np.ndarray:
+    """First difference along the last axis, ``x_k − x_{k−1}``, with 0 at k = 0 (same shape).
+
+    Why: fitting ΔPV on Δz instead of PV on z is the same linear model (Δ commutes with the filter) but
+    turns an integrating plant into a static one for the cost. In the PV domain an integrator makes every
+    slip-timing error of a candidate valve a permanent offset, so the cost over (S, J) is needle-sharp
+    (an island of a few hundredths of a percent); on differences an error costs only while it lasts and
+    the cost is a smooth bowl around the truth. The trend regressor becomes a constant (the offset).
+    """
+    out = np.zeros_like(x)
+    out[..., 1:] = np.diff(x, axis=-1)
+    return out
+
+
 def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
-            dt: float) -> LinearFit:
-    """Least-squares fit of the taps and offsets for one input column and a (fractional) delay."""
+            dt: float, *, difference_: bool = False) -> LinearFit:
+    """Least-squares fit of the taps and offsets for one input column and a (fractional) delay.
+
+    With ``difference_`` the fit is done on first differences of ``y`` and of the filtered input (no trend
+    regressor); the returned fit then predicts differences, so use it for its ``sse`` only.
+    """
     z = filter_inputs(u[None, :], structure, dt)[0]
+    if difference_:
+        z, y = difference(z), difference(y)
     x = _delayed_regressors(z, structure.delay / dt, structure.ntaps)
     T = u.shape[0]
     cols = [x, np.ones((T, 1))]
-    if structure.integrating:
+    trend = structure.integrating and not difference_
+    if trend:
         cols.append((np.arange(T) / T)[:, None])
     X = np.hstack(cols)
     w0, w1 = window
@@ -363,8 +386,8 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
     beta = np.linalg.solve(G + 1e-300 * np.eye(G.shape[0]), Xw.T @ yw)
     res = yw - Xw @ beta
     nt = structure.ntaps
-    return LinearFit(structure, beta[:nt].copy(), float(beta[nt]),
-                     float(beta[nt + 1]) if structure.integrating else 0.0, float(res @ res), w1 - w0)
+    return LinearFit(structure, beta[:nt].copy(), float(beta[nt]), float(beta[nt + 1]) if trend else 0.0,
+                     float(res @ res), w1 - w0)
 
 
 def fit_columns(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
@@ -374,18 +397,32 @@ def fit_columns(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure
 
 
 def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float,
-           *, free_delay: bool, delay_bounds: tuple[float, float], max_evals: int = 200) -> LinearFit:
+           *, free_delay: bool, delay_bounds: tuple[float, float], difference_: bool = False,
+           prior: tuple[float, ...] | None = None, max_evals: int = 200) -> LinearFit:
     """Refine the real poles (and the dead time when ``free_delay``) by Nelder–Mead on the output error.
 
     The taps and offsets are solved by least squares at every evaluation (variable projection), so the
     search has only ``len(taus) (+1)`` dimensions. Time constants are searched on a log scale and kept
     within [dt/20, 1e3·record length]; the delay within ``delay_bounds`` (s).
+
+    ``prior`` (time constants of a nominal model, same count as ``structure.taus``) adds a weak
+    log-normal prior, ``Σ ((ln τ − ln τ_nom)/ln 2)²``, to ``N ln SSE`` (−2 log posterior up to a constant).
+    The data dominate whenever they determine the poles; the prior only decides between near-equivalent
+    solutions — notably an actuator lag in series with a re-fitted plant pole, where (6s+1)² and
+    (4s+1)(8s+1) differ by one part in ten in the s² term — in favour of the plant the user believes in.
     """
     taus0 = np.log(np.asarray(structure.taus, dtype=float))
     lo_tau, hi_tau = np.log(dt / 20.0), np.log(1e3 * dt * u.shape[0])
     lo_d, hi_d = delay_bounds
+    use_prior = prior is not None and len(prior) == taus0.size and taus0.size > 0
+    log_prior = np.log(np.asarray(prior, dtype=float)) if use_prior else None
+    n = window[1] - window[0]
+
+    def fit(st: LinearStructure) -> LinearFit:
+        return fit_one(u, y, window, st, dt, difference_=difference_)
+
     if taus0.size == 0 and not free_delay:
-        return fit_one(u, y, window, structure, dt)
+        return fit(structure)
 
     def make(p: np.ndarray) -> LinearStructure:
         taus = tuple(float(np.exp(np.clip(v, lo_tau, hi_tau))) for v in p[:taus0.size])
@@ -393,12 +430,15 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
         return replace(structure, taus=taus, delay=delay)
 
     def cost(p: np.ndarray) -> float:
-        return fit_one(u, y, window, make(p), dt).sse
+        c = n * np.log(max(fit(make(p)).sse, 1e-300))
+        if use_prior:
+            c += float(np.sum(((np.sort(p[:taus0.size]) - np.sort(log_prior)) / np.log(2.0)) ** 2))
+        return c
 
     x0 = np.concatenate([taus0, [structure.delay] if free_delay else []])
     step = np.concatenate([np.full(taus0.size, 0.3), [max(dt, 0.1 * structure.delay)] if free_delay else []])
     simplex = np.vstack([x0] + [x0 + np.eye(x0.size)[i] * step[i] for i in range(x0.size)])
     res = minimize(cost, x0, method="Nelder-Mead",
-                   options={"initial_simplex": simplex, "maxfev": max_evals, "xatol": 1e-3, "fatol": 1e-12})
+                   options={"initial_simplex": simplex, "maxfev": max_evals, "xatol": 1e-3, "fatol": 1e-6})
     best = make(res.x) if res.fun <= cost(x0) else structure
-    return fit_one(u, y, window, best, dt)
+    return fit(best)

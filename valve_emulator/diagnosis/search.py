@@ -37,7 +37,15 @@ import numpy as np
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
 from valve_emulator.diagnosis.chain import Active, run_chain
 from valve_emulator.diagnosis.data import Problem
-from valve_emulator.diagnosis.linear import LinearFit, LinearStructure, delay_grid_sse, filter_inputs, polish
+from valve_emulator.diagnosis.linear import (
+    LinearFit,
+    LinearStructure,
+    delay_grid_sse,
+    difference,
+    filter_inputs,
+    fit_one,
+    polish,
+)
 from valve_emulator.diagnosis.nominal import Nominal, bic
 
 __all__ = ["DELTA_BIC", "DELTA_FIT", "Model", "Surface", "Option", "Round", "Search"]
@@ -129,6 +137,9 @@ class Search:
         self.library = library
         self.say = progress or (lambda msg: None)
         self.dmax = float(problem.delays.max()) * problem.dt
+        self.diff = problem.difference
+        self.target = difference(problem.y) if problem.difference else problem.y
+        self.prior = nominal.structure.taus if nominal.given else None
 
     # -- building blocks -------------------------------------------------------------------------------------
     def ctx(self, model: Model | None) -> ChainContext:
@@ -144,6 +155,8 @@ class Search:
                          grid_candidate=cand, grid=grid)
 
     def model(self, active: dict[str, Active], fit: LinearFit, delay_free: bool, flow: np.ndarray) -> Model:
+        """Score a fitted model: BIC from the fit-part SSE of ``fit`` (the search domain, differences when
+        the problem says so), the held-out fit from a PV-domain fit at the same structure."""
         acts = []
         for a in active.values():
             if a.slot == "delay":  # the dead-time candidate's parameter is the fitted dead time
@@ -151,8 +164,9 @@ class Search:
             acts.append(a)
         k = fit.structure.n_params() + int(delay_free) + sum(
             a.candidate.n_params for a in acts if a.slot != "delay")
-        y_hat = fit.predict(flow, self.p.dt)
-        return Model(tuple(acts), fit, delay_free, k, bic(fit.sse, fit.n, k), self.p.heldout_fit(y_hat),
+        level = fit_one(flow, self.p.y, self.p.train, fit.structure, self.p.dt) if self.diff else fit
+        y_hat = level.predict(flow, self.p.dt)
+        return Model(tuple(acts), level, delay_free, k, bic(fit.sse, fit.n, k), self.p.heldout_fit(y_hat),
                      y_hat, flow)
 
     def _pole_set(self, model: Model) -> list[LinearStructure]:
@@ -179,9 +193,16 @@ class Search:
             out.append(LinearStructure(integrating=True, delay=st.delay))
         return out
 
+    def _prior_penalty(self, st: LinearStructure) -> float:
+        """The weak prior of :func:`~valve_emulator.diagnosis.linear.polish`, for comparing pole sets."""
+        if self.prior is None or len(self.prior) != len(st.taus) or not st.taus:
+            return 0.0
+        d = np.sort(np.log(st.taus)) - np.sort(np.log(self.prior))
+        return float(np.sum((d / np.log(2.0)) ** 2))
+
     def _polish(self, flow, st, free):
         return polish(flow, self.p.y, self.p.train, st, self.p.dt, free_delay=free,
-                      delay_bounds=(0.0, self.dmax))
+                      delay_bounds=(0.0, self.dmax), difference_=self.diff, prior=self.prior)
 
     def _sse_flows(self, flows: np.ndarray, st: LinearStructure, delays: np.ndarray | None) -> tuple:
         """SSE (n, nd) for chain outputs ``flows`` (T, n) and the delays searched (samples).
@@ -189,11 +210,13 @@ class Search:
         ``delays=None`` holds the structure's own (possibly fractional) dead time.
         """
         z = filter_inputs(flows.T, st, self.p.dt)
+        if self.diff:
+            z = difference(z)
         if delays is None:
             ds = st.delay / self.p.dt
             m = int(np.floor(ds + 1e-9))
             z, delays = _frac_shift(z, ds - m), np.array([m])
-        return delay_grid_sse(z, self.p.y, self.p.train, delays, st), delays
+        return delay_grid_sse(z, self.target, self.p.train, delays, st, difference=self.diff), delays
 
     def _sse_grid(self, active, ctx, cand, grid, st, delays) -> tuple:
         """:meth:`_sse_flows` for a parameter grid, in chunks of :data:`_CHUNK` rows (bounded memory)."""
@@ -288,13 +311,15 @@ class Search:
         flows = self.chain(active, ctx, cand, grid)
         best: dict[bool, tuple] = {}
         for st in self._pole_set(model):
+            penalty = self._prior_penalty(st)
             for free, _ in variants:
                 sse, delays = self._sse_flows(flows, st, self.p.delays if free else None)
                 flat = sse.min(axis=1)
                 i = int(np.argmin(flat))
-                if free not in best or flat[i] < best[free][0]:
+                score = self.p.n_fit * np.log(max(flat[i], 1e-300)) + penalty
+                if free not in best or score < best[free][0]:
                     st_b = replace(st, delay=float(delays[int(np.argmin(sse[i]))]) * self.p.dt) if free else st
-                    best[free] = (flat[i], grid[i], st_b, Surface(cand.name, grid, flat, self.p.n_fit))
+                    best[free] = (score, grid[i], st_b, Surface(cand.name, grid, flat, self.p.n_fit))
         scan = cand.scan(ctx)
         options = []
         for free, added in variants:

@@ -59,7 +59,7 @@ class ActuatorLag(Candidate):
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         hi = max(30.0 * ctx.dt, 2.0 * ctx.tau_plant)
-        return np.geomspace(ctx.dt / 4.0, hi, 16)[:, None]
+        return np.geomspace(ctx.dt / 4.0, hi, 40)[:, None]
 
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         tau = best[0] * np.exp(np.linspace(-0.4, 0.4, 17))
