@@ -49,6 +49,8 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
+from valve_emulator.physics._arrays import vector
+
 __all__ = ["PIDBank", "PID", "pid_step_kernel", "DERIVATIVE_FILTER"]
 
 #: N in the derivative filter time constant Td/N.
@@ -91,14 +93,6 @@ def pid_step_kernel(sp, pv, kc, ti_inv, td, bias, sign, op_min, op_max, dt, n_fi
         u_last[i] = u
         op[i] = min(max(u, op_min[i]), op_max[i])
     return 0
-
-
-def _vector(name: str, value: ArrayLike, n: int, *, dtype=float) -> np.ndarray:
-    try:
-        arr = np.array(np.broadcast_to(np.asarray(value, dtype=dtype), (n,)))
-    except (ValueError, TypeError):
-        raise ValueError(f"{name} must be a scalar or have length {n}, got {value!r}") from None
-    return arr
 
 
 def _ti_inverse(ti, n: int) -> np.ndarray:
@@ -154,13 +148,13 @@ class PIDBank:
         if not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
         self._n, self._dt = n, float(dt)
-        self._kc = self._check_kc(_vector("kc", kc, n))
+        self._kc = self._check_kc(vector("kc", kc, n))
         self._ti_inv = _ti_inverse(ti, n)
-        self._td = self._check_td(_vector("td", td, n))
-        self._bias = _vector("bias", bias, n)
-        self._sign = np.where(_vector("direct", direct, n, dtype=bool), -1.0, 1.0)
-        self._op_min = _vector("op_min", op_min, n)
-        self._op_max = _vector("op_max", op_max, n)
+        self._td = self._check_td(vector("td", td, n))
+        self._bias = vector("bias", bias, n)
+        self._sign = np.where(vector("direct", direct, n, dtype=bool), -1.0, 1.0)
+        self._op_min = vector("op_min", op_min, n)
+        self._op_max = vector("op_max", op_max, n)
         for name, arr in (("bias", self._bias), ("op_min", self._op_min), ("op_max", self._op_max)):
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"{name} must be finite, got {arr.tolist()}")
@@ -222,9 +216,9 @@ class PIDBank:
 
         With sp0 == pv0 the next ``step(sp0, pv0)`` returns exactly ``op0``.
         """
-        pv0 = _vector("pv0", pv0, self._n)
-        sp0 = _vector("sp0", sp0, self._n)
-        op0 = np.clip(self._bias, self._op_min, self._op_max) if op0 is None else _vector("op0", op0, self._n)
+        pv0 = vector("pv0", pv0, self._n)
+        sp0 = vector("sp0", sp0, self._n)
+        op0 = np.clip(self._bias, self._op_min, self._op_max) if op0 is None else vector("op0", op0, self._n)
         for name, arr in (("pv0", pv0), ("sp0", sp0), ("op0", op0)):
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"{name} must be finite, got {arr.tolist()}")
@@ -311,9 +305,9 @@ class PIDBank:
         td_new = self._td.copy()
         ti_inv_new = self._ti_inv.copy()
         if kc is not None:
-            kc_new[sel] = self._check_kc(_vector("kc", kc, k))
+            kc_new[sel] = self._check_kc(vector("kc", kc, k))
         if td is not None:
-            td_new[sel] = self._check_td(_vector("td", td, k))
+            td_new[sel] = self._check_td(vector("td", td, k))
         if ti is not None:
             ti_inv_new[sel] = _ti_inverse(ti, k)
         e, d = self._e_last, self._deriv

@@ -28,6 +28,8 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
+from valve_emulator.physics._arrays import vector
+
 __all__ = ["KINDS", "BLOCK", "DisturbanceBank", "NoiseBank"]
 
 KINDS = ("none", "step", "sine", "random_walk")
@@ -35,16 +37,6 @@ KINDS = ("none", "step", "sine", "random_walk")
 BLOCK = 256
 _STREAM_DISTURBANCE = 0
 _STREAM_NOISE = 1
-
-
-def _vector(name: str, value: ArrayLike, n: int) -> np.ndarray:
-    try:
-        arr = np.array(np.broadcast_to(np.asarray(value, dtype=float), (n,)))
-    except ValueError:
-        raise ValueError(f"{name} must be a scalar or have length {n}, got shape {np.shape(value)}") from None
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
-    return arr
 
 
 def _seed_and_index(seed: int, index: ArrayLike | None, n: int) -> np.ndarray:
@@ -117,11 +109,11 @@ class DisturbanceBank:
         if not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
         kind = np.array([KINDS.index(k) for k in kinds])
-        self._amp = _vector("amplitude", amplitude, n)
-        self._time = _vector("time", time, n)
-        self._period = _vector("period", period, n)
-        self._phase = _vector("phase", phase, n)
-        self._std = _vector("std", std, n)
+        self._amp = vector("amplitude", amplitude, n, finite=True)
+        self._time = vector("time", time, n, finite=True)
+        self._period = vector("period", period, n, finite=True)
+        self._phase = vector("phase", phase, n, finite=True)
+        self._std = vector("std", std, n, finite=True)
         sine = kind == KINDS.index("sine")
         walk = kind == KINDS.index("random_walk")
         if np.any(self._period[sine] <= 0):

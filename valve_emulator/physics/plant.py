@@ -67,6 +67,8 @@ from typing import Sequence
 import numba
 import numpy as np
 from numpy.typing import ArrayLike
+
+from valve_emulator.physics._arrays import vector
 from scipy.linalg import expm
 
 __all__ = [
@@ -293,16 +295,6 @@ def plant_step_kernel(u, u0, pv0, A, B0, B1, C, D, m, buf, head, x, ud, pv, work
     return -1
 
 
-def _vector(name: str, value: ArrayLike, n: int) -> np.ndarray:
-    try:
-        arr = np.array(np.broadcast_to(np.asarray(value, dtype=float), (n,)))
-    except ValueError:
-        raise ValueError(f"{name} must be a scalar or have length {n}, got shape {np.shape(value)}") from None
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
-    return arr
-
-
 class PlantBank:
     """``n`` plants stepped together: pv = pv0 + G(s)·(u − u0).
 
@@ -328,8 +320,8 @@ class PlantBank:
         n = len(plants)
         self._n = n
         self._dt = plants[0].dt
-        self._u0 = _vector("u0", u0, n)
-        self._pv0 = _vector("pv0", pv0, n)
+        self._u0 = vector("u0", u0, n, finite=True)
+        self._pv0 = vector("pv0", pv0, n, finite=True)
         p = max(1, max(pl.order for pl in plants))
         self._A = np.zeros((n, p, p))
         self._B0 = np.zeros((n, p))
@@ -377,7 +369,7 @@ class PlantBank:
         The state is the equilibrium for u_init − u0 (x = 0, i.e. pv = pv0, for integrating plants)
         and the delay buffers are filled with u_init, so pv = pv0 + G(0)·(u_init − u0).
         """
-        du = _vector("u_init", u_init, self._n) - self._u0
+        du = vector("u_init", u_init, self._n, finite=True) - self._u0
         self._x[:] = self._xr * du[:, None]
         self._buf[:] = du[:, None]
         self._head[0] = 0

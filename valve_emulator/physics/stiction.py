@@ -50,6 +50,8 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
+from valve_emulator.physics._arrays import vector
+
 __all__ = [
     "MODELS",
     "DEFAULT_MODEL",
@@ -250,15 +252,6 @@ def _check_op(op: np.ndarray) -> None:
         raise ValueError(f"op[{where}] is {op[tuple(k)]!r}; OP must be finite (% of valve travel)")
 
 
-def _broadcast(value: ArrayLike, n: int, name: str, dtype=float) -> np.ndarray:
-    arr = np.asarray(value, dtype=dtype)
-    if arr.ndim == 0:
-        return np.full(n, arr, dtype=dtype)
-    if arr.shape != (n,):
-        raise ValueError(f"{name} must be a scalar or have shape ({n},), got shape {arr.shape}")
-    return np.ascontiguousarray(arr)
-
-
 def initial_state(state: np.ndarray, op0: np.ndarray, direction: np.ndarray, S: np.ndarray, J: np.ndarray,
                   codes: np.ndarray) -> None:
     """Fill ``state`` (n, NSTATE): valves at rest at ``op0`` as if just stopped after moving in ``direction``.
@@ -299,16 +292,16 @@ class StictionBank:
         self.n = int(n)
         self.model = model
         self._step = _STEPS[model]
-        self._S = _broadcast(S, self.n, "S")
-        self._J = _broadcast(J, self.n, "J")
-        self._R = _broadcast(rest_samples, self.n, "rest_samples", dtype=np.int64).astype(float)
+        self._S = vector("S", S, self.n)
+        self._J = vector("J", J, self.n)
+        self._R = vector("rest_samples", rest_samples, self.n, dtype=np.int64).astype(float)
         self._state = np.zeros((self.n, NSTATE))
         self.reset(0.0)
 
     def reset(self, op0: ArrayLike, direction: ArrayLike = 1) -> None:
         """Put every valve at rest at ``op0`` as if it had just stopped moving in ``direction`` (+1/-1)."""
         codes = np.full(self.n, MODELS.index(self.model))
-        initial_state(self._state, _broadcast(op0, self.n, "op0"), _broadcast(direction, self.n, "direction"),
+        initial_state(self._state, vector("op0", op0, self.n), vector("direction", direction, self.n),
                       self._S, self._J, codes)
 
     def step(self, op: ArrayLike) -> np.ndarray:
