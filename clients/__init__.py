@@ -1,1 +1,14 @@
-"""Modbus clients: soft PLC, recorder, live monitor."""
+"""Modbus TCP clients for the emulator -- or any Modbus device (layer 5, beside the command line).
+
+Each is ``python -m clients.NAME`` with ``--help`` and a ``main(argv=None) -> int``:
+
+- :mod:`clients.pi_controller` -- a soft PLC: PI(D) at a fixed scan time, any register addresses
+- :mod:`clients.recorder` -- polls a device and writes the standard recording CSV, a flushed line per row
+- :mod:`clients.monitor` -- the instructor's live terminal view: values, valve state, scrolling trend
+- :mod:`clients.scenario` -- plays an operator-training scenario through the device's registers
+  (also ``valve-emulator scenario``)
+
+Shared parts: :mod:`clients._modbus` (register specs, grouped reads, the connection),
+:mod:`clients._channels` (what a recorder/monitor reads), :mod:`clients._schedule` (when to poll),
+:mod:`clients._run` (Ctrl-C as a clean stop).
+"""

@@ -35,7 +35,7 @@ import numpy as np
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from valve_emulator.device.registers import REGISTERS
+from valve_emulator.device.registers import DEFAULT_PORT, REGISTERS
 
 __all__ = [
     "ABCD",
@@ -53,7 +53,6 @@ __all__ = [
 
 ABCD: Final = "ABCD"
 CDAB: Final = "CDAB"
-DEFAULT_PORT: Final = 5020          # what `valve-emulator serve` listens on
 TYPES: Final = {"uint16": (1, ">H"), "int16": (1, ">h"), "uint32": (2, ">I"), "int32": (2, ">i"),
                 "float32": (2, ">f")}
 _TABLES: Final = {"holding": "holding", "hr": "holding", "input": "input", "ir": "input"}

@@ -11,8 +11,8 @@ which only grows). The valve state comes from the emulator's ``status`` word whe
 from the samples: MV unchanged since the previous sample = stuck.
 
 Modes: on a terminal the screen is redrawn in place (ANSI escapes); ``--plain`` (the default when the
-output is not a terminal) prints the header once and then one trend row per sample, which scrolls by
-itself. ``--once`` prints one sample and exits; ``--duration S`` stops after S wall seconds. Reads the
+output is not a terminal) prints one trend row per sample, which scrolls by itself, and the column heading
+again whenever the PV axis has grown. ``--once`` prints one sample and exits; ``--duration S`` stops after S wall seconds. Reads the
 same channels as the recorder (see :mod:`clients._channels`), so it works on any device.
 """
 
@@ -156,6 +156,7 @@ async def monitor(opts: MonitorOptions, *, out: TextIO, stop: asyncio.Event | No
     history: deque[Sample] = deque(maxlen=max(opts.rows, 1))
     axis = _Range(opts.pv_range)
     shown, mv_before, t0 = 0, None, clock()
+    heading_range: tuple[float, float] | None = None
     try:
         await link.connect()
         k = 0
@@ -176,7 +177,10 @@ async def monitor(opts: MonitorOptions, *, out: TextIO, stop: asyncio.Event | No
                 rng = axis.update(sp, pv)
                 if opts.plain:
                     if shown == 0:
-                        print(f"valve monitor -- {where}\n" + _heading(opts.width, rng), file=out)
+                        print(f"valve monitor -- {where}", file=out)
+                    if rng != heading_range:   # the PV axis grew: say so before rows drawn on it
+                        print(_heading(opts.width, rng), file=out)
+                        heading_range = rng
                     print(render_row(history[-1], width=opts.width, pv_range=rng), file=out, flush=True)
                 else:
                     out.write(_CLEAR + render_frame(history, where=where, width=opts.width, rows=opts.rows,

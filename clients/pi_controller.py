@@ -11,12 +11,16 @@ OP. Defaults fit the emulator's map: PV from ``pv_f32`` (float32, engineering un
 
 Settings come from flags, or from a YAML file (``--config``) whose keys are the long flag names with
 ``_`` for ``-`` (``host, port, unit, timeout, word_order, scan, time_scale, kc, ti, td, action, bias,
-op_limits, sp, sp_register, pv, op, duration``); a flag given on the command line wins over the file.
+op_limits, sp, sp_register, pv, op, device_time, duration``); a flag on the command line wins over the file.
 
 Time: the controller's sample time is ``dt = scan × time_scale``: ``--scan`` is the wall-clock period
 of the PLC and ``--time-scale`` tells it how many process seconds pass per wall second (1 for a real
 plant; 10 for ``valve-emulator serve --time-scale 10``). Scans are due at absolute deadlines, so their
 mean period is exact; a scan more than one period late skips the missed ones (counted as overruns).
+A device that publishes its own clock can pace the PLC instead (``--device-time time`` for the
+emulator): the PLC then scans on the device's time grid, exactly every ``dt`` device seconds (see
+:mod:`clients._schedule`), so an emulator that runs faster than real time, or falls behind under load,
+sees exactly the controller a real plant would.
 
 Start and stop are bumpless: the controller starts from the OP it reads back from the device (the
 ``--op`` register) and, without ``--sp``, holds the PV it finds as set point. Ctrl-C (SIGINT) or SIGTERM
@@ -43,6 +47,7 @@ from clients._modbus import (
     check_connection_arguments, parse_point,
 )
 from clients._run import pause, run_until_stopped
+from clients._schedule import GridSchedule, WallSchedule
 
 __all__ = ["ControllerSettings", "ControllerSummary", "run_controller", "settings_from_args", "build_parser",
            "main"]
@@ -72,6 +77,7 @@ class ControllerSettings:
     pv: str = "pv_f32"                # SPEC
     op: str = "op_pct"                # SPEC (a holding register)
     duration: float | None = None     # wall s, then stop as on Ctrl-C (None = run until stopped)
+    device_time: str | None = None    # SPEC of the device's clock: scan on it instead of the wall clock
 
     def __post_init__(self) -> None:
         def bad(key: str, msg: str) -> ValueError:
@@ -108,7 +114,7 @@ class ControllerSettings:
             raise bad("duration", f"must be > 0 s, got {self.duration!r}")
         if self.sp is not None and self.sp_register is not None:
             raise ValueError("give either sp (a fixed set point) or sp-register, not both")
-        for key in ("pv", "op", "sp_register"):
+        for key in ("pv", "op", "sp_register", "device_time"):
             if getattr(self, key) is not None:
                 parse_point(getattr(self, key), what=key.replace("_", "-"))
         if parse_point(self.op, what="op").table != "holding":
@@ -141,6 +147,8 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
     points: dict[str, Point] = {"pv": pv_point}
     if s.sp_register is not None:
         points["sp"] = parse_point(s.sp_register, what="sp-register")
+    if s.device_time is not None:
+        points["t"] = parse_point(s.device_time, what="device-time")
     reader = Reader(points, word_order=s.word_order)
     link = Link(s.host, s.port, s.unit, timeout=s.timeout)
     summary = ControllerSummary()
@@ -162,7 +170,14 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
             print(f"{PROG}: unit {s.unit} at {s.host}:{s.port}; PV {first['pv']:g}, SP {sp:g}, OP {op0:g} %; "
                   f"scan {s.scan:g} s, dt {s.dt:g} s", file=log, flush=True)
         t0 = clock()
-        k = 0
+        schedule = (GridSchedule(s.dt, clock=clock, hint=s.scan) if s.device_time is not None
+                    else WallSchedule(s.scan, clock=clock))
+        if s.device_time is not None:
+            schedule.seen(first["t"])
+
+        async def read() -> dict[str, float]:
+            return await reader.read(link)
+
         sample: dict[str, float] | None = first
         while True:
             if sample is not None:
@@ -181,23 +196,15 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
                 summary.scans += 1
             if (stop is not None and stop.is_set()) or (s.duration is not None and clock() - t0 >= s.duration):
                 break
-            k += 1
-            deadline = t0 + k * s.scan
-            await pause(deadline - clock(), stop)
-            if stop is not None and stop.is_set():
-                break
-            late = clock() - deadline
-            if late > s.scan:
-                missed = int(late // s.scan)
-                k += missed
-                summary.overruns += missed
             try:
-                sample = await reader.read(link)
+                sample = await schedule.next(read, stop)
             except (ConnectionError, DeviceError) as exc:
                 sample = None
                 summary.errors += 1
                 if log is not None and summary.errors == 1:
                     print(f"{PROG}: {exc}; holding OP and retrying", file=log, flush=True)
+                await pause(s.scan, stop)
+            summary.overruns = schedule.late + schedule.off_grid
     finally:
         link.close()   # nothing is written on the way out: OP stays where it was
     if log is not None:
@@ -225,6 +232,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--sp-register", metavar="SPEC", help="read the set point from the device instead")
     g.add_argument("--pv", metavar="SPEC", help="PV register (default pv_f32)")
     g.add_argument("--op", metavar="SPEC", help="OP register, written (default op_pct)")
+    g.add_argument("--device-time", metavar="SPEC",
+                   help="scan on the device's clock read from this register (the emulator's: time): exactly "
+                        "one scan per dt = scan x time-scale device seconds")
     g.add_argument("--duration", type=float, metavar="S", help="stop after S wall seconds (default: Ctrl-C)")
     return p
 

@@ -17,12 +17,15 @@ float32 (``12.3``, not ``12.300000190734863``).
 
 Sampling
 --------
-Polls are due at absolute wall-clock deadlines ``k·period`` from the start, so lateness never accumulates
-into drift; a poll more than one period late skips the missed deadlines (counted as ``late``) instead of
-bursting. Recordings are checked on reading for gaps (a step of ``t`` more than 1.5 times the median step,
-``read_csv(gap_factor=1.5)``): keep each sample several device ticks long (``period × time-scale ≥ 4 ×
-tick``), so ordinary jitter stays far inside that bound. A stall longer than about half a period (a
-suspended process, a saturated machine) is a real gap in the data, and the recorder reports it at the end.
+``--period S`` polls every S wall seconds at absolute deadlines (lateness never accumulates into drift; a
+poll more than one period late skips the missed deadlines, counted as ``late``). The device time then
+advances by about ``period × time-scale`` per row, give or take a tick of polling jitter: the steps of
+``t`` are uneven. ``read_csv`` accepts that (its gap check rejects only steps over 1.5 × the median: keep
+each row several device ticks long), but identification (``valve_emulator.diagnosis``) wants uniform
+sampling. ``--step S`` gives it: rows are taken on the device's own time grid, exactly S device seconds
+apart (S a multiple of the device tick; see :mod:`clients._schedule`); a row the recorder was too slow to
+catch on time is taken late and counted as ``off-grid``. The summary line reports late polls, off-grid
+rows and gaps, so a recording that a strict reader would refuse never goes unnoticed.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from valve_emulator.sim.recording import CsvRecordingWriter
 from clients._channels import Channels, add_channel_arguments, channels_from_args
 from clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
 from clients._run import pause, run_until_stopped
+from clients._schedule import GridSchedule, WallSchedule
 
 __all__ = ["RecorderOptions", "RecordSummary", "record", "build_parser", "options_from_args", "main"]
 
@@ -61,6 +65,7 @@ class RecorderOptions:
     timeout: float = 1.0
     word_order: str = ABCD
     period: float = 0.1             # s of wall time between polls
+    step: float | None = None       # device s between rows, on the device's time grid (needs the t channel)
     duration: float | None = None   # s of wall time; None = until stopped
     until: float | None = None      # stop once t reaches this (the t column's seconds)
     max_gap: int = 8
@@ -75,6 +80,7 @@ class RecordSummary:
     rows: int = 0
     repeats: int = 0        # polls that found the device time unchanged (not written again)
     late: int = 0           # deadlines skipped because a poll came more than one period late
+    off_grid: int = 0       # --step: rows taken after their grid time (the grid tick went by unseen)
     errors: int = 0         # failed polls (connection lost, exception responses) after the first
     gaps: int = 0           # steps of t larger than 1.5 x the median step (read_csv would reject them)
     t_first: float = math.nan
@@ -83,35 +89,46 @@ class RecordSummary:
 
     def line(self) -> str:
         span = f"t = {self.t_first:g} .. {self.t_last:g} s" if self.rows else "no rows"
-        extra = "".join(f", {n} {w}" for n, w in ((self.late, "late polls"), (self.errors, "read errors"),
-                                                  (self.gaps, "gaps")) if n)
+        extra = "".join(f", {n} {w}" for n, w in ((self.late, "late polls"), (self.off_grid, "off-grid rows"),
+                                                  (self.errors, "read errors"), (self.gaps, "gaps")) if n)
         return f"{self.path}: {self.rows} rows, {span}{extra}"
 
 
 async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, progress: TextIO | None = None,
                  clock: Callable[[], float] = time.monotonic) -> RecordSummary:
-    """Poll the device every ``opts.period`` wall seconds and append rows to ``opts.out`` until ``stop`` is
-    set, ``duration`` has passed or ``t`` reaches ``until``.
+    """Poll the device and append rows to ``opts.out`` until ``stop`` is set, ``duration`` (wall s) has
+    passed or ``t`` reaches ``until``; every ``opts.period`` wall seconds, or on the device's time grid
+    every ``opts.step`` device seconds (see :mod:`clients._schedule`).
 
     The first poll must succeed (``ConnectionError``/:class:`DeviceError`, nothing written beyond the
     header otherwise); later failures are counted and polling goes on (reconnecting as needed).
     ``progress`` receives a progress line (``\\r``-updated on a terminal) and the summary.
     """
     ch = opts.channels
+    if opts.step is not None and ch.t is None:
+        raise ValueError("--step samples the device's time grid: it needs the --time channel")
     reader = ch.reader(word_order=opts.word_order, max_gap=opts.max_gap)
     link = Link(opts.host, opts.port, opts.unit, timeout=opts.timeout)
     summary = RecordSummary(opts.out)
     tty = progress is not None and getattr(progress, "isatty", lambda: False)()
     writer = CsvRecordingWriter(opts.out, extra_columns=tuple(ch.extras), fsync=opts.fsync)
+
+    async def read() -> dict[str, float]:
+        return await reader.read(link)
+
     try:
         await link.connect()
-        sample: dict[str, float] | None = await reader.read(link)  # fail early: wrong port, unit, address
+        sample: dict[str, float] | None = await read()  # fail early: wrong port, unit or address
         writer.open()
         t0 = now = clock()
-        k, last_t, next_report = 0, -math.inf, t0
+        schedule = (GridSchedule(opts.step, clock=clock, hint=opts.period) if opts.step is not None
+                    else WallSchedule(opts.period, clock=clock))
+        last_t, next_report = -math.inf, t0
         while True:
             if sample is not None:
                 t = sample["t"] if ch.t is not None else now - t0
+                if summary.rows == 0:
+                    schedule.seen(t)
                 sp, op, mv, pv, extras = ch.values(sample)
                 if t > last_t:
                     writer.write_row(t, sp, op, mv, pv, *extras)
@@ -133,24 +150,18 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
             if ((stop is not None and stop.is_set()) or (opts.until is not None and last_t >= opts.until)
                     or (opts.duration is not None and clock() - t0 >= opts.duration)):
                 break
-            k += 1
-            deadline = t0 + k * opts.period
-            await pause(deadline - clock(), stop)
-            if stop is not None and stop.is_set():
-                break
-            late = clock() - deadline
-            if late > opts.period:   # skip the deadlines already missed instead of bursting
-                skipped = int(late // opts.period)
-                k += skipped
-                summary.late += skipped
-            now = clock()
             try:
-                sample = await reader.read(link)
+                sample = await schedule.next(read, stop)
             except (ConnectionError, DeviceError) as exc:
                 sample = None
                 summary.errors += 1
                 if progress is not None and summary.errors == 1:
                     print(("\n" if tty else "") + f"{PROG}: {exc}; retrying", file=progress, flush=True)
+                await pause(opts.period, stop)   # do not hammer a device that just failed
+            now = clock()
+            if sample is None and stop is not None and stop.is_set():
+                break
+        summary.late, summary.off_grid = schedule.late, schedule.off_grid
     finally:
         writer.close()
         link.close()
@@ -169,6 +180,9 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("recording")
     g.add_argument("--out", required=True, type=Path, metavar="REC.csv", help="file to write (overwritten)")
     g.add_argument("--period", type=float, default=0.1, metavar="S", help="wall seconds between polls (default %(default)s)")
+    g.add_argument("--step", type=float, metavar="S",
+                   help="instead: one row every S seconds of device time, on the device's own time grid "
+                        "(uniform sampling; S a multiple of the device tick)")
     g.add_argument("--duration", type=float, metavar="S", help="stop after this many wall seconds (default: Ctrl-C)")
     g.add_argument("--until", type=float, metavar="T", help="stop once t reaches T (device seconds)")
     g.add_argument("--fsync", action="store_true", help="force every line to disk (survives a power cut)")
@@ -184,10 +198,13 @@ def options_from_args(args: argparse.Namespace) -> RecorderOptions:
         raise ValueError(f"--period must be > 0 s, got {args.period}")
     if args.duration is not None and not args.duration > 0:
         raise ValueError(f"--duration must be > 0 s, got {args.duration}")
+    if args.step is not None and not (math.isfinite(args.step) and args.step > 0):
+        raise ValueError(f"--step must be > 0 s, got {args.step}")
     if args.until is not None and not math.isfinite(args.until):
         raise ValueError(f"--until must be a finite time, got {args.until}")
     return RecorderOptions(out=args.out, channels=channels_from_args(args), host=args.host, port=args.port,
                            unit=args.unit, timeout=args.timeout, word_order=args.word_order, period=args.period,
+                           step=args.step,
                            duration=args.duration, until=args.until, max_gap=args.max_gap, fsync=args.fsync)
 
 

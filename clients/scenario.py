@@ -39,8 +39,7 @@ from clients._modbus import DEFAULT_PORT, DeviceError, Link, Point
 from clients._run import pause, run_until_stopped
 from clients.recorder import RecorderOptions, record
 
-__all__ = ["Applied", "DeviceClock", "ModbusClock", "probe", "play", "run_scenario", "add_arguments", "run",
-           "main"]
+__all__ = ["Applied", "DeviceClock", "ModbusClock", "probe", "play", "run_scenario", "run", "main"]
 
 PROG = "valve-emulator scenario"
 _BY_NAME = {r.name: r for r in REGISTERS}
@@ -67,11 +66,20 @@ class Clock(Protocol):
 class DeviceClock:
     """Waits on the tick counter of an emulator running in this process (exact, no polling)."""
 
-    def __init__(self, device: Any) -> None:
-        self.device = device
+    def __init__(self, device: Any, *, stop: asyncio.Event | None = None) -> None:
+        self.device, self.stop = device, stop
 
     async def until(self, tick: int) -> int:
-        return await self.device.wait_for_tick(tick)
+        if self.stop is None:
+            return await self.device.wait_for_tick(tick)
+        waits = [asyncio.ensure_future(self.device.wait_for_tick(tick)), asyncio.ensure_future(self.stop.wait())]
+        try:
+            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for w in waits:
+                w.cancel()
+            await asyncio.gather(*waits, return_exceptions=True)
+        return self.device.ticks
 
 
 class ModbusClock:
@@ -81,6 +89,7 @@ class ModbusClock:
                  stop: asyncio.Event | None = None, clock: Callable[[], float] = time.monotonic) -> None:
         self.link, self.word_order, self.stop, self.clock = link, word_order, stop, clock
         self.rate = ticks_per_second   # first guess; measured once the device has ticked
+        self.measured = False
         self._origin: tuple[float, int] | None = None
 
     async def now(self) -> int:
@@ -90,6 +99,7 @@ class ModbusClock:
             self._origin = (wall, tick)
         elif tick > self._origin[1] and wall > self._origin[0]:
             self.rate = (tick - self._origin[1]) / (wall - self._origin[0])
+            self.measured = True
         return tick
 
     async def until(self, tick: int) -> int:
@@ -97,7 +107,9 @@ class ModbusClock:
             now = await self.now()
             if now >= tick or (self.stop is not None and self.stop.is_set()):
                 return now
-            await pause(min(max(0.5 * (tick - now) / self.rate, 0.001), 0.5), self.stop)
+            # half the predicted time to go; short naps until the device's rate has been measured
+            wait = 0.5 * (tick - now) / self.rate
+            await pause(min(max(wait, 0.001), 0.5 if self.measured else 0.01), self.stop)
 
 
 def _groups(writes: tuple[tuple[str, int], ...]) -> list[tuple[int, list[int]]]:
@@ -175,14 +187,17 @@ async def play(scenario: Scenario, link: Link, clock: Clock, *, start_tick: int 
 
 async def run_scenario(scenario: Scenario, *, attach: tuple[str, int] | None = None, host: str = "127.0.0.1",
                        port: int = DEFAULT_PORT, time_scale: float | None = None, record_to: Path | None = None,
-                       period: float | None = None, log: TextIO | None = None,
-                       stop: asyncio.Event | None = None) -> list[Applied]:
+                       record_step: float | None = None, log: TextIO | None = None,
+                       stop: asyncio.Event | None = None, ready: Callable[[Any], None] | None = None) -> list[Applied]:
     """Start an emulator (or attach to one), check it, play the scenario, and optionally record it.
 
-    ``time_scale`` defaults to the scenario's; ``period`` (recorder, wall s) to 5 ticks, at least 20 ms.
+    ``time_scale`` defaults to the scenario's. The recording takes a row every ``record_step`` simulated
+    seconds (default 5 ticks) on the device's time grid (uniform sampling, see :mod:`clients.recorder`).
+    ``ready(server)`` is called once an emulator started here listens (before the check and the events).
     """
     scale = scenario.time_scale if time_scale is None else time_scale
-    period = max(5 * scenario.dt / scale, 0.02) if period is None else period
+    step = 5 * scenario.dt if record_step is None else record_step
+    period = step / scale   # wall time per row: paces the recorder until it has measured the device
 
     async def session(target: tuple[str, int], clock_for: Callable[[Link], Clock], server: Any = None) -> list[Applied]:
         link = Link(*target, scenario.unit, timeout=2.0)
@@ -195,7 +210,7 @@ async def run_scenario(scenario: Scenario, *, attach: tuple[str, int] | None = N
             if record_to is not None:
                 opts = RecorderOptions(out=record_to, channels=emulator_channels(), host=target[0],
                                        port=target[1], unit=scenario.unit, word_order=scenario.config.device.word_order,
-                                       period=period,
+                                       period=period, step=step,
                                        until=(start + scenario.tick_of(scenario.duration)) * scenario.dt)
                 recorder = asyncio.create_task(record(opts, stop=rec_stop), name="scenario-recorder")
             try:
@@ -224,18 +239,9 @@ async def run_scenario(scenario: Scenario, *, attach: tuple[str, int] | None = N
             print(f"{PROG}: {scenario.name}: emulator on {host}:{srv.port} unit {scenario.unit}, time-scale "
                   f"{scale:g}, {scenario.duration:g} s simulated ({scenario.duration / scale:.0f} s wall)",
                   file=log, flush=True)
-        return await session((host, srv.port), lambda link: DeviceClock(srv.device), server=srv)
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", type=Path, metavar="SCENARIO.yaml", help="the timeline (see configs/scenarios/)")
-    p.add_argument("--check", action="store_true", help="only check the scenario and list its events")
-    p.add_argument("--attach", metavar="HOST:PORT", help="play on a running emulator instead of starting one")
-    p.add_argument("--host", default="127.0.0.1", help="address the started emulator binds (default %(default)s)")
-    p.add_argument("--port", type=int, default=DEFAULT_PORT, help="its port (default %(default)s; 0 = any free)")
-    p.add_argument("--time-scale", type=float, metavar="X", help="simulated s per wall s (default: the scenario's)")
-    p.add_argument("--record", type=Path, metavar="REC.csv", help="also record the run (standard recording CSV)")
-    p.add_argument("--period", type=float, metavar="S", help="recorder period, wall s (default: 5 ticks, at least 0.02)")
+        if ready is not None:
+            ready(srv)
+        return await session((host, srv.port), lambda link: DeviceClock(srv.device, stop=stop), server=srv)
 
 
 def _attach(text: str) -> tuple[str, int]:
@@ -251,8 +257,8 @@ def run(args: argparse.Namespace) -> int:
     attach = _attach(args.attach) if args.attach else None
     if args.time_scale is not None and not (math.isfinite(args.time_scale) and args.time_scale > 0):
         raise ValueError(f"--time-scale must be a finite number > 0, got {args.time_scale}")
-    if args.period is not None and not args.period > 0:
-        raise ValueError(f"--period must be > 0 s, got {args.period}")
+    if args.record_step is not None and not args.record_step > 0:
+        raise ValueError(f"--record-step must be > 0 s, got {args.record_step}")
     if not 0 <= args.port <= 65535:
         raise ValueError(f"--port must be 0..65535, got {args.port}")
     print(f"{scenario.name}: {len(scenario.events)} events over {scenario.duration:g} s on unit {scenario.unit} "
@@ -265,13 +271,15 @@ def run(args: argparse.Namespace) -> int:
         return 0
     applied = run_until_stopped(lambda stop: run_scenario(
         scenario, attach=attach, host=args.host, port=args.port, time_scale=args.time_scale,
-        record_to=args.record, period=args.period, log=sys.stdout, stop=stop))
+        record_to=args.record, record_step=args.record_step, log=sys.stdout, stop=stop))
     print(f"{PROG}: {len(applied)} of {len(scenario.events)} events applied")
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m clients.scenario``: the same as ``valve-emulator scenario``."""
+    from valve_emulator.commands.scenario import add_arguments
+
     p = argparse.ArgumentParser(prog="python -m clients.scenario", description=__doc__.splitlines()[0])
     add_arguments(p)
     args = p.parse_args(argv)

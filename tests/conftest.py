@@ -82,6 +82,10 @@ class FakeLoopBank:
         self.calls: list[tuple] = []
         self.on_step: list[Callable[[FakeLoopBank], None]] = []
 
+    @property
+    def sample_time(self) -> float:
+        return max(self.k - 1, 0) * self.dt
+
     @classmethod
     def for_config(cls, config, **kwargs) -> "FakeLoopBank":
         ctl = [lp.controller is not None for lp in config.loops]

@@ -424,3 +424,35 @@ def test_docs_document_every_key():
     documented |= set(re.findall(r"`([a-z_]+)`, `", rows))  # the loops[i] row lists several keys
     every = {key for keys in KEYS.values() for key in keys}
     assert every - documented == set()
+
+
+# --- connection hygiene keys (issue 9) ----------------------------------------------------------------
+
+def test_connection_keys_default_and_load(tmp_path):
+    d = DeviceConfig()
+    assert (d.max_connections, d.idle_timeout, d.frame_timeout, d.error_rate) == (64, 60.0, 5.0, 100.0)
+    text = VALID_PLANT + "device:\n  max_connections: 3\n  idle_timeout: 1.5\n  frame_timeout: 2\n  error_rate: 10\n"
+    device = load_loop(write(tmp_path, text)).device
+    assert (device.max_connections, device.idle_timeout, device.frame_timeout, device.error_rate) == (3, 1.5, 2.0, 10.0)
+    server = load_server(write(tmp_path, "device: {max_connections: 7, frame_timeout: 0.25}\nloops:\n  - {unit: 1, "
+                                         + VALID_PLANT[:-1] + "}\n", "s.yaml"))
+    assert server.device.max_connections == 7 and server.loops[0].device.frame_timeout == 0.25
+
+
+@pytest.mark.parametrize("text, parts, line", [
+    (VALID_PLANT + "device:\n  max_connections: 0\n", ["device.max_connections must be in 1..65535, got 0"], 3),
+    (VALID_PLANT + "device:\n  max_connections: 1.0e+2\n", ["device.max_connections must be an integer"], 3),
+    (VALID_PLANT + "device:\n  max_connections: 70000\n", ["device.max_connections must be in 1..65535"], 3),
+    (VALID_PLANT + "device: {idle_timeout: 0}\n", ["device.idle_timeout must be > 0, got 0"], 2),
+    (VALID_PLANT + "device: {idle_timeout: .inf}\n", ["device.idle_timeout must be finite"], 2),
+    (VALID_PLANT + "device: {frame_timeout: -1}\n", ["device.frame_timeout must be > 0, got -1"], 2),
+    (VALID_PLANT + "device: {frame_timeout: soon}\n", ["device.frame_timeout must be a number, got 'soon'"], 2),
+    (VALID_PLANT + "device: {error_rate: 0}\n", ["device.error_rate must be > 0, got 0"], 2),
+    ("device: {max_connections: true}\nloops:\n  - {unit: 1, " + VALID_PLANT[:-1] + "}\n",
+     ["device.max_connections must be an integer, got true"], 1),
+])
+def test_connection_key_errors_name_file_key_and_line(tmp_path, text, parts, line):
+    err = error_of(load_server, write(tmp_path, text))
+    for part in parts:
+        assert part in str(err)
+    assert err.line == line

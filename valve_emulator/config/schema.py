@@ -38,7 +38,8 @@ WORD_ORDERS = ("ABCD", "CDAB")
 MAX_UNIT = 247  # highest Modbus unit (slave) id a server may answer as
 
 _LOOP_SECTIONS = ("name", "description", "valve", "plant", "controller", "simulation")
-_DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts", "read_only")
+_DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts", "read_only",
+           "max_connections", "idle_timeout", "frame_timeout", "error_rate")
 
 #: Allowed YAML keys per section ("" = top level of a single-loop file, "server" = top level of a
 #: multi-loop file). Anything else is an error naming the key.
@@ -370,6 +371,12 @@ class DeviceConfig:
     instructor_writes: bool = False  # allow writes to S, J and fault-injection registers
     instructor_hosts: tuple[str, ...] = ()  # client IPs allowed instructor writes (empty = any), normalised
     read_only: bool = False         # refuse every write
+    # Connection hygiene (issue 9): a Modbus TCP server facing unknown clients must not let floods, idle
+    # or half-open sockets, or a client trickling one byte a second use up its connections.
+    max_connections: int = 64       # 1..65535, simultaneous client connections; more are refused and logged
+    idle_timeout: float = 60.0      # s > 0, close a connection that has sent no complete request this long
+    frame_timeout: float = 5.0      # s > 0, a request frame must arrive completely within this time
+    error_rate: float = 100.0       # > 0, exception answers per s per connection before it is read slower
 
     def __post_init__(self) -> None:
         hosts = []
@@ -384,7 +391,11 @@ class DeviceConfig:
         _set(self, unit=None if self.unit is None else integer(self.unit, "unit", ge=1, le=MAX_UNIT),
              tick=real(self.tick, "tick", gt=0), word_order=choice(self.word_order, "word_order", WORD_ORDERS),
              instructor_writes=boolean(self.instructor_writes, "instructor_writes"),
-             instructor_hosts=tuple(hosts), read_only=boolean(self.read_only, "read_only"))
+             instructor_hosts=tuple(hosts), read_only=boolean(self.read_only, "read_only"),
+             max_connections=integer(self.max_connections, "max_connections", ge=1, le=65535),
+             idle_timeout=real(self.idle_timeout, "idle_timeout", gt=0),
+             frame_timeout=real(self.frame_timeout, "frame_timeout", gt=0),
+             error_rate=real(self.error_rate, "error_rate", gt=0))
 
 
 def _instance(value: Any, key: str, cls: type, *, none_ok: bool = False) -> None:

@@ -87,6 +87,7 @@ from valve_emulator.device.scaling import ABCD, CDAB, Scaling
 
 __all__ = [
     "ABCD",
+    "DEFAULT_PORT",
     "CDAB",
     "MAP_VERSION",
     "N_REGISTERS",
@@ -110,6 +111,8 @@ __all__ = [
     "format_registers",
 ]
 
+#: TCP port `valve-emulator serve` listens on by default (clients default to it too).
+DEFAULT_PORT: Final = 5020
 MAP_VERSION: Final = 2   # 2: load, noise, fault registers; instructor rows mirrored as input
 
 R: Final = "R"

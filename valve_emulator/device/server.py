@@ -8,15 +8,26 @@ pymodbus 3.16's server drops every request but the first when several frames arr
 (its receive buffer is cleared on send), logs a full traceback for an unknown unit id, runs datastore
 "actions" twice for function code 6 and blocks the owner's own writes to client-read-only registers. Fixing
 that inside its connection and datastore classes would mean overriding private methods of several classes.
-So this module runs a plain ``asyncio`` TCP server with MBAP framing (~40 lines) and uses pymodbus where it
+So this module runs a plain ``asyncio`` TCP server with its own MBAP framing and uses pymodbus where it
 is good: decoding request PDUs (:class:`pymodbus.pdu.DecodePDU`, which validates quantities) and encoding
 write responses, exception responses and MBAP headers (:class:`pymodbus.framer.FramerSocket`). Read
 responses are the byte count plus a slice of the precomputed big-endian register image, with no
 per-register work.
 
-Framing: every complete MBAP frame in the receive buffer is answered, in order, and all answers to one
-segment go out in one write, so pipelined requests work; a partial frame waits for more data. A frame with
-a protocol id other than 0 or a length outside 2..254 cannot be resynchronised: the connection is closed.
+Framing and connection hygiene live in :mod:`~valve_emulator.device.connection` (every complete MBAP frame
+answered in order, pipelined answers in one write; fairness per event-loop turn; an error budget per
+connection; a frame that is not Modbus TCP ends the connection after a short tarpit) and
+:mod:`~valve_emulator.device.guard` (connection limit, idle / half-open / slow-client deadlines,
+rate-limited logs). This module answers one complete frame at a time (:meth:`EmulatorServer.handle`).
+
+Hostile input (issue 9)
+-----------------------
+Every request PDU is checked against the structure the specification prescribes for its function code
+(:func:`~valve_emulator.device.pdu.malformed`: exact length, quantities 1..125 read, 1..123 written by
+FC16, 1..121 written by FC23, byte count = 2 × quantity) *before* pymodbus decodes it, so no malformed PDU
+reaches the decoder (which would log a warning per frame) and every one is answered ``0x03``. Every
+refused write is logged once per client address, register and exception code
+(:class:`~valve_emulator.device.guard.RefusalLog`). Listening on all interfaces logs a warning at start.
 
 Answers (exception codes):
 
@@ -29,16 +40,20 @@ Answers (exception codes):
   to a controller register of a loop without controller, to an instructor register without permission
   (``instructor_writes`` off, or the client's IP not in ``instructor_hosts``), or to OP while the internal
   controller is in auto: ``0x02`` illegal data address; nothing changes.
-- a value out of range or a malformed quantity/byte count: ``0x03`` illegal data value; nothing changes
-  (a multi-register write is checked completely before any of it is applied).
+- a value out of range, or a malformed PDU (wrong length for its function code, a quantity of 0 or above
+  the limits, a byte count that disagrees with the quantity or with the bytes sent): ``0x03`` illegal
+  data value; nothing changes (a multi-register write is checked completely before any of it is applied).
 - an unexpected failure inside the emulator (a bug): ``0x04`` server device failure, logged with traceback.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import ipaddress
 import logging
+import re
+import socket
 import time
 from typing import Any, Awaitable, Callable
 
@@ -47,6 +62,9 @@ from pymodbus.framer import FramerSocket
 from pymodbus.pdu import DecodePDU, ExceptionResponse
 from pymodbus.pdu.register_message import WriteMultipleRegistersResponse, WriteSingleRegisterResponse
 
+from valve_emulator.device.connection import SOCKET_BUFFER, ModbusConnection, TurnBudget
+from valve_emulator.device.guard import ConnectionGuard, RefusalLog, binds_all_interfaces
+from valve_emulator.device.pdu import WRITE_FUNCTIONS, malformed, register_names, write_target
 from valve_emulator.device.registers import (
     RegisterAccessError,
     RegisterAddressError,
@@ -56,16 +74,20 @@ from valve_emulator.device.registers import (
 )
 from valve_emulator.device.tick import Device
 
-__all__ = ["EmulatorServer"]
+__all__ = ["EmulatorServer", "LIVE_DEVICE_KEYS"]
 
 _log = logging.getLogger(__name__)
 
 _READS = {3: "holding", 4: "input"}
-_WRITES = frozenset({6, 16, 23})
+_WRITES = WRITE_FUNCTIONS
 _SUPPORTED = frozenset(_READS) | _WRITES
-_MAX_WRITE = {16: 123, 23: 121}  # register counts allowed by the Modbus spec
 _CODE_OF = ((RegisterValueError, ExcCodes.ILLEGAL_VALUE), (RegisterAccessError, ExcCodes.ILLEGAL_ADDRESS),
             (RegisterAddressError, ExcCodes.ILLEGAL_ADDRESS))
+_REGISTER_NAME = re.compile(r"\bregister (\w+)")
+
+#: ``device`` settings :meth:`EmulatorServer.reconfigure` applies to a running server.
+LIVE_DEVICE_KEYS = ("read_only", "instructor_writes", "instructor_hosts", "max_connections", "idle_timeout",
+                    "frame_timeout", "error_rate")
 
 
 class _Refused(Exception):
@@ -87,31 +109,51 @@ class EmulatorServer:
     bank : an existing ``LoopBank`` (default: built from ``config``).
     clock, sleep, jitter_size : see :class:`~valve_emulator.device.tick.Device` (fake time in tests).
 
-    A bind failure raises ``OSError`` after the tick task has been stopped again.
+    A bind failure raises ``OSError`` after the tick task has been stopped again. Connection limits,
+    timeouts and the error budget come from ``config.device`` (``max_connections``, ``idle_timeout``,
+    ``frame_timeout``, ``error_rate``) and always run on the real clock. Counters: :attr:`requests`,
+    :attr:`exceptions`, :attr:`violations` (connections closed for a frame that is not Modbus TCP),
+    :attr:`throttled` (times a connection ran out of its error budget), :attr:`guard` (``refused``,
+    ``expired``), :attr:`refusals` (``refused`` writes).
     """
 
     def __init__(self, config: Any, *, host: str = "127.0.0.1", port: int = 0, time_scale: float = 1.0,
                  bank: Any = None, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> None:
-        self.config = config
         self.host = host
         self.port = port
         self.device = Device.from_config(config, bank=bank, time_scale=time_scale, clock=clock, sleep=sleep,
                                          jitter_size=jitter_size)
         dev = config.device
-        self._read_only = bool(dev.read_only)
-        self._instructor = bool(dev.instructor_writes)
-        self._instructor_hosts = frozenset(_normalise_ip(h) for h in dev.instructor_hosts)
+        self.guard = ConnectionGuard(max_connections=dev.max_connections, idle_timeout=dev.idle_timeout,
+                                     frame_timeout=dev.frame_timeout, error_rate=dev.error_rate)
+        self.refusals = RefusalLog(_log)
+        self._apply_access(config)
         self._decoder = DecodePDU(is_server=True)
         self._framer = FramerSocket(self._decoder)
         self._server: asyncio.Server | None = None
-        self._connections: set[_Connection] = set()
+        self.connection_set: set[ModbusConnection] = set()
+        self.turns = TurnBudget()
         self.requests = 0
         self.exceptions = 0
+        self.violations = 0
+        self.throttled = 0
+
+    def _apply_access(self, config: Any) -> None:
+        dev = config.device
+        self.config = config
+        self._read_only = bool(dev.read_only)
+        self._instructor = bool(dev.instructor_writes)
+        self._instructor_hosts = frozenset(_normalise_ip(h) for h in dev.instructor_hosts)
 
     @property
     def units(self) -> tuple[int, ...]:
         return self.device.units
+
+    @property
+    def connections(self) -> int:
+        """Client connections open now."""
+        return len(self.connection_set)
 
     def instructor_allowed(self, peer_ip: str) -> bool:
         """May a client at ``peer_ip`` write the instructor registers?"""
@@ -119,24 +161,62 @@ class EmulatorServer:
             return False
         return not self._instructor_hosts or _normalise_ip(peer_ip) in self._instructor_hosts
 
+    def reconfigure(self, config: Any) -> list[str]:
+        """Apply the live settings (:data:`LIVE_DEVICE_KEYS`) of a new ``ServerConfig`` to the running server.
+
+        Returns the settings that differ but need a restart (``device.tick``, ``device.word_order``, the
+        loops); those keep their running values. Open connections get the new instructor permission at
+        once; a lower ``max_connections`` refuses new connections but drops none.
+        """
+        old, new = self.config.device, config.device
+        self.guard.configure(max_connections=new.max_connections, idle_timeout=new.idle_timeout,
+                             frame_timeout=new.frame_timeout, error_rate=new.error_rate)
+        restart = [f"device.{f.name}" for f in dataclasses.fields(new) if f.name not in LIVE_DEVICE_KEYS
+                   and f.name != "unit" and getattr(new, f.name) != getattr(old, f.name)]
+
+        def shape(cfg: Any) -> list[tuple]:
+            return [(lp.device.unit, lp.name, lp.valve, lp.plant, lp.controller, lp.simulation) for lp in cfg.loops]
+
+        if shape(config) != shape(self.config):
+            restart.append("loops")
+        live = dataclasses.replace(old, **{k: getattr(new, k) for k in LIVE_DEVICE_KEYS})
+        self._apply_access(dataclasses.replace(self.config, device=live))
+        self.refusals.clear()  # new rules: report refusals under them afresh
+        for conn in self.connection_set:
+            conn.instructor = self.instructor_allowed(conn.peer_ip)
+        return restart
+
     # --- lifecycle ----------------------------------------------------------------------------------
 
     async def start(self) -> None:
         await self.device.start()
         try:
             loop = asyncio.get_running_loop()
-            self._server = await loop.create_server(lambda: _Connection(self), self.host, self.port)
+            self._server = await loop.create_server(lambda: ModbusConnection(self), self.host, self.port)
         except BaseException:
             await self.device.stop()  # no half-started server: the tick task must not outlive us
             raise
+        for sock in self._server.sockets:
+            # Accepted sockets inherit the listener's buffer size, and the TCP window is negotiated from
+            # it during the handshake: set it here, not only after accepting (ModbusConnection does both).
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)
+            except OSError:
+                pass
+        self.guard.start()
         self.port = self._server.sockets[0].getsockname()[1]
         _log.info("serving units %s on %s:%d", list(self.units), self.host, self.port)
+        if binds_all_interfaces(self.host):
+            _log.warning("listening on all interfaces (%r): Modbus TCP has no authentication, anyone who can "
+                         "reach port %d can read and write this device; use an isolated network",
+                         self.host, self.port)
 
     async def stop(self) -> None:
         server, self._server = self._server, None
+        self.guard.stop()
         if server is not None:
             server.close()
-            for conn in list(self._connections):
+            for conn in list(self.connection_set):
                 conn.transport.abort()
             await server.wait_closed()
         await self.device.stop()
@@ -150,8 +230,11 @@ class EmulatorServer:
 
     # --- one request --------------------------------------------------------------------------------
 
-    def handle(self, frame: bytes, instructor: bool) -> bytes:
-        """Answer one complete MBAP ``frame`` (header + PDU) with a complete response frame."""
+    def handle(self, frame: bytes, instructor: bool, *, peer: str = "") -> bytes:
+        """Answer one complete MBAP ``frame`` (header + PDU) with a complete response frame.
+
+        ``peer`` (the client's address) names the client when a refused write is logged.
+        """
         self.requests += 1
         tid, unit, fc = (frame[0] << 8) | frame[1], frame[6], frame[7]
         try:
@@ -160,25 +243,39 @@ class EmulatorServer:
                 raise _Refused(ExcCodes.GATEWAY_NO_RESPONSE, f"no loop on unit {unit}")
             if fc not in _SUPPORTED:
                 raise _Refused(ExcCodes.ILLEGAL_FUNCTION, f"function code {fc} not supported")
+            pdu = frame[7:]
+            problem = malformed(fc, pdu)
+            if problem is not None:
+                raise _Refused(ExcCodes.ILLEGAL_VALUE, f"malformed request: {problem}")
             if self._read_only and fc in _WRITES:
-                raise _Refused(ExcCodes.ILLEGAL_FUNCTION, "server is read-only")
-            pdu = self._decoder.decode(frame[7:])
-            if pdu is None:
+                raise _Refused(ExcCodes.ILLEGAL_FUNCTION, "server is read-only (device.read_only)")
+            request = self._decoder.decode(pdu)
+            if request is None:  # cannot happen after _malformed; never let it reach _execute
                 raise _Refused(ExcCodes.ILLEGAL_VALUE, "malformed request")
-            payload = self._execute(fc, pdu, len(frame) - 7, index, instructor)
+            payload = self._execute(fc, request, index, instructor)
         except RegisterError as exc:
             code = next(c for cls, c in _CODE_OF if isinstance(exc, cls))
-            payload = self._refuse(fc, code, unit, exc)
+            payload = self._refuse(fc, code, unit, exc, frame, peer)
         except _Refused as exc:
-            payload = self._refuse(fc, exc.code, unit, exc)
+            payload = self._refuse(fc, exc.code, unit, exc, frame, peer)
         except Exception as exc:  # a bug, not a client error: say so loudly, answer, keep serving
             _log.exception("unit %d fc %d: request failed", unit, fc)
-            payload = self._refuse(fc, ExcCodes.DEVICE_FAILURE, unit, exc)
+            payload = self._refuse(fc, ExcCodes.DEVICE_FAILURE, unit, exc, frame, peer)
         return self._framer.encode(payload, unit, tid)
 
-    def _refuse(self, fc: int, code: int, unit: int, reason: Exception) -> bytes:
+    def _refuse(self, fc: int, code: int, unit: int, reason: Exception, frame: bytes, peer: str) -> bytes:
         self.exceptions += 1
         _log.debug("unit %d fc %d -> exception 0x%02X: %s", unit, fc, code, reason)
+        if fc in _WRITES and code != ExcCodes.GATEWAY_NO_RESPONSE and (
+                isinstance(reason, RegisterError) or code == ExcCodes.ILLEGAL_FUNCTION):
+            address, count = write_target(fc, frame[7:])
+            span = register_names(address, count)
+            match = _REGISTER_NAME.search(str(reason))
+            # one key for everything outside the map: a client scanning addresses must not flood the log
+            register = match.group(1) if match else (span[0] if span else "(outside the map)")
+            where = f"holding {address}" + (f"..{address + count - 1}" if count > 1 else "")
+            self.refusals.note(peer, register, code, "refused write from %s to unit %d %s (%s): exception 0x%02X, %s",
+                               peer or "?", unit, where, ", ".join(span) or "outside the map", code, reason)
         response = ExceptionResponse(fc, code)
         return bytes((response.function_code,)) + response.encode()
 
@@ -187,7 +284,7 @@ class EmulatorServer:
         start = index * self.device.stride + 2 * address
         return bytes((fc, 2 * count)) + self.device.image[start:start + 2 * count]
 
-    def _execute(self, fc: int, pdu: Any, pdu_len: int, index: int, instructor: bool) -> bytes:
+    def _execute(self, fc: int, pdu: Any, index: int, instructor: bool) -> bytes:
         if fc in _READS:
             return self._read(fc, _READS[fc], index, pdu.address, pdu.count)
         device = self.device
@@ -195,66 +292,12 @@ class EmulatorServer:
             device.write(index, pdu.address, pdu.registers, instructor=instructor)
             response = WriteSingleRegisterResponse(address=pdu.address, registers=pdu.registers)
             return b"\x06" + response.encode()
-        # pymodbus decodes the write quantity but leaves checking it against the byte count to its
-        # datastore layer, which we do not use: check count, byte count and the bytes actually sent.
-        if fc == 16:
-            count, nbytes, header = pdu.count, pdu.byte_count, 6
-        else:
-            count, nbytes, header = pdu.write_count, pdu.write_byte_count, 10
-        if not (1 <= count <= _MAX_WRITE[fc] and nbytes == 2 * count == pdu_len - header):
-            raise _Refused(ExcCodes.ILLEGAL_VALUE, f"write count {count} / byte count {nbytes} inconsistent")
         if fc == 16:
             device.write(index, pdu.address, pdu.registers, instructor=instructor)
-            return b"\x10" + WriteMultipleRegistersResponse(address=pdu.address, count=count).encode()
+            return b"\x10" + WriteMultipleRegistersResponse(address=pdu.address, count=pdu.count).encode()
         check_read("holding", pdu.read_address, pdu.read_count)  # refuse before writing anything
         device.write(index, pdu.write_address, pdu.write_registers, instructor=instructor)
         return self._read(23, "holding", index, pdu.read_address, pdu.read_count)
-
-
-class _Connection(asyncio.Protocol):
-    """One client: MBAP framing over a byte stream, every complete frame answered in order."""
-
-    def __init__(self, server: EmulatorServer) -> None:
-        self.server = server
-        self.transport: asyncio.Transport
-        self._buf = bytearray()
-        self._instructor = False
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
-        peer = transport.get_extra_info("peername")
-        self._instructor = self.server.instructor_allowed(peer[0] if peer else "")
-        self.server._connections.add(self)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self.server._connections.discard(self)
-
-    # A client that pipelines requests but does not read the answers must not fill our memory.
-    def pause_writing(self) -> None:
-        self.transport.pause_reading()
-
-    def resume_writing(self) -> None:
-        self.transport.resume_reading()
-
-    def data_received(self, data: bytes) -> None:
-        buf = self._buf
-        buf += data
-        end_of_data, pos, answers = len(buf), 0, []
-        while end_of_data - pos >= 7:
-            length = (buf[pos + 4] << 8) | buf[pos + 5]
-            if buf[pos + 2] or buf[pos + 3] or not 2 <= length <= 254:
-                _log.warning("closing connection: not a Modbus TCP frame (%s)", bytes(buf[pos:pos + 7]).hex())
-                self.transport.close()
-                buf.clear()
-                return
-            end = pos + 6 + length
-            if end > end_of_data:
-                break  # partial frame: wait for the rest
-            answers.append(self.server.handle(bytes(buf[pos:end]), self._instructor))
-            pos = end
-        del buf[:pos]
-        if answers:
-            self.transport.write(b"".join(answers))
 
 
 def _normalise_ip(host: str) -> str:

@@ -96,7 +96,7 @@ class Device:
 
     Parameters
     ----------
-    bank : a ``LoopBank`` (or anything with its interface: ``n, dt, t, step(), op_external, set_sp,
+    bank : a ``LoopBank`` (or anything with its interface: ``n, dt, t, sample_time, step(), op_external, set_sp,
         set_auto, set_manual_op, set_tuning, set_valve`` and the state arrays read by
         :func:`~valve_emulator.device.registers.encode`; the instructor's fault registers also need
         ``set_load, set_noise, set_frozen``).
@@ -208,7 +208,7 @@ class Device:
     # --- one tick -----------------------------------------------------------------------------------
 
     def _refresh(self) -> None:
-        encode(self.bank, self.scaling, tick=self.ticks, overruns=self.overruns, time=self.bank.t,
+        encode(self.bank, self.scaling, tick=self.ticks, overruns=self.overruns, time=self.bank.sample_time,
                out=self._words)
         self.image[:] = self._words.astype(">u2").tobytes()
 

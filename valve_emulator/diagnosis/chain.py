@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
-from valve_emulator.diagnosis.candidates.stiction import valve_output
+from valve_emulator.diagnosis.candidates.valve_start import PRE_ROLL, valve_output
 from valve_emulator.physics.signal_chain import Characteristic
 
 __all__ = ["Active", "CHAIN_SLOTS", "run_chain"]
@@ -41,13 +41,13 @@ class Active:
 def _nominal(slot: str, x: np.ndarray, ctx: ChainContext, S: float, J: float) -> np.ndarray:
     if slot == "valve" and S > 0.0:
         n = 1 if x.ndim == 1 else x.shape[1]
-        mv = valve_output(x, np.full(n, S), np.full(n, J), np.ones(n), ctx)
+        mv = valve_output(x, np.full(n, S), np.full(n, J), np.full(n, PRE_ROLL), ctx)
         return mv[:, 0] if x.ndim == 1 else mv
     if slot == "characteristic" and ctx.characteristic[0] != "linear":
         return Characteristic(*ctx.characteristic).flow(x)
-    if slot == "characteristic":
-        return np.clip(x, 0.0, 100.0)  # the linear curve: travel stops at 0/100
-    return x
+    if slot == "characteristic" and (x.min() < 0.0 or x.max() > 100.0):
+        return np.clip(x, 0.0, 100.0)  # the linear curve: travel stops at 0/100 (valve outputs never
+    return x                           # leave them, so most calls skip the copy)
 
 
 def run_chain(op: np.ndarray, active: dict[str, Active], ctx: ChainContext, *, nominal_valve=(0.0, 0.0),

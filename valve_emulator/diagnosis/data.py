@@ -22,7 +22,7 @@ import numpy as np
 
 from valve_emulator.sim.recording import Recording, RecordingError
 
-__all__ = ["Problem", "prepare", "HELD_OUT", "MIN_SAMPLES", "fit_percent"]
+__all__ = ["Problem", "prepare", "prefilter_for", "HELD_OUT", "MIN_SAMPLES", "fit_percent"]
 
 #: Fraction of the record, at its end, held out from fitting.
 HELD_OUT = 0.3
@@ -52,8 +52,9 @@ class Problem:
     train : ``(w0, w1)``, the fit part; ``test`` is ``(w1, T)``.
     delays : integer dead times (samples) that every fit searches.
     op_span : robust OP range, 99.5th − 0.5th percentile of the fit part (% travel).
-    difference : fit first differences of PV (plants that may integrate; see
-        :func:`~valve_emulator.diagnosis.linear.difference`); the held-out fit is always on PV itself.
+    prefilter : λ of the high-pass prefilter for integrating plants (see
+        :func:`~valve_emulator.diagnosis.linear.highpass`), None to fit PV itself; the held-out fit is
+        always on PV itself.
     source : the recording's name, for messages.
     """
 
@@ -67,7 +68,7 @@ class Problem:
     train: tuple[int, int]
     delays: np.ndarray
     op_span: float
-    difference: bool = False
+    prefilter: float | None = None
     source: str = ""
 
     @property
@@ -90,6 +91,16 @@ class Problem:
         return fit_percent(self.y[a:b], y_scaled_hat[a:b])
 
 
+def prefilter_for(response_time: float, dt: float) -> float:
+    """λ of the high-pass prefilter for an integrating plant: ``1 − 1/T_c``, ``T_c`` in samples.
+
+    ``T_c`` is three response times (dead time + time constants), kept within [20, 200] samples: long enough
+    that the prefiltered PV keeps the shape of a cycle, short enough that a slip-timing error is forgiven.
+    """
+    tc = float(np.clip(3.0 * response_time / dt, 20.0, 200.0))
+    return 1.0 - 1.0 / tc
+
+
 def _delay_grid(dt: float, T: int, nominal_delay: float | None) -> np.ndarray:
     """Dead times tried: around the nominal one (±max(4, nominal) samples), or 0..T/20 without a model."""
     if nominal_delay is None:
@@ -100,7 +111,7 @@ def _delay_grid(dt: float, T: int, nominal_delay: float | None) -> np.ndarray:
 
 
 def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: float = 0.0,
-            difference: bool = False) -> Problem:
+            prefilter: float | None = None) -> Problem:
     """Check a recording and split it (see the module docstring).
 
     Parameters
@@ -108,13 +119,13 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     rec : the recording (``t``, ``op``, ``pv`` used; ``sp``/``mv`` may be absent).
     nominal_delay : the nominal model's dead time (s), which centres the dead-time grid; None = no model.
     settle_time : the nominal plant's settling time (s), a lower bound for the burn-in.
-    difference : fit first differences (see :class:`Problem`).
+    prefilter : see :class:`Problem`.
 
     Raises
     ------
     RecordingError
-        Fewer samples than the diagnosis needs (naming the last line of the file), a constant OP or PV,
-        or a non-uniform time axis.
+        Fewer samples than the diagnosis needs (naming the last line of the file), a non-finite value, a
+        constant OP or PV, or a non-uniform time axis (lines counted as in the CSV: the header is line 1).
     """
     T = len(rec)
     src = rec.source or "recording"
@@ -125,6 +136,11 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
         raise RecordingError(f"{src}: line {T + 1}: {T} data row(s), the diagnosis needs at least {need} "
                              f"(burn-in for a dead time of up to {int(delays.max())} samples, a fit part and "
                              f"a held-out part)")
+    for name, col in (("t", rec.t), ("op", rec.op), ("pv", rec.pv)):
+        bad = np.flatnonzero(~np.isfinite(col))
+        if bad.size:
+            raise RecordingError(f"{src}: line {int(bad[0]) + 2}, column {name!r}: {float(col[bad[0]])!r} is not a "
+                                 "finite number")
     steps = np.diff(rec.t)
     if np.any(np.abs(steps - dt) > 0.01 * dt):
         i = int(np.flatnonzero(np.abs(steps - dt) > 0.01 * dt)[0]) + 1
@@ -145,4 +161,4 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     for a in arrays:
         a.setflags(write=False)
     return Problem(*arrays[:3], arrays[3], y_mean, y_scale, float(dt), (w0, w1), delays,
-                   float(max(hi - lo, 1e-6)), bool(difference), src)
+                   float(max(hi - lo, 1e-6)), prefilter, src)

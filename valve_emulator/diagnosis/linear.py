@@ -40,26 +40,25 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-import numba
 import numpy as np
 from scipy.optimize import minimize
+from scipy.signal import lfilter
+
+from valve_emulator.diagnosis.linear_kernels import RIDGE, filter_columns, grid_sse
 
 __all__ = [
+    "PRIOR_WIDTH",
     "LinearStructure",
     "LinearFit",
-    "difference",
+    "highpass",
     "filter_inputs",
     "delay_grid_sse",
-    "fit_columns",
     "fit_one",
     "polish",
 ]
 
-# Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
-# without changing any well-posed fit beyond rounding.
-_RIDGE = 1e-10
-# Fewer columns than this run serially: starting the thread pool costs more than it saves.
-_PARALLEL_MIN = 16
+#: Width (1 σ, natural log) of the prior on re-fitted time constants: the nominal within a factor 1.5.
+PRIOR_WIDTH = float(np.log(1.5))
 
 
 @dataclass(frozen=True)
@@ -123,184 +122,38 @@ class LinearFit:
 
     def predict(self, u: np.ndarray, dt: float) -> np.ndarray:
         """Free-run PV for the input ``u`` (T,) over the whole record (same conventions as the fit)."""
-        z = filter_inputs(u[None, :], self.structure, dt)[0]
+        z = filter_inputs(u, self.structure, dt)
         x = _delayed_regressors(z, self.structure.delay / dt, self.structure.ntaps)
         T = u.shape[0]
         return x @ self.taps + self.offset + self.trend * (np.arange(T) / T)
 
 
-@numba.njit(cache=True, inline="always")
-def _filter_column(u, c, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
-    T = u.shape[1]
-    p = alpha.shape[0] - 1
-    # start the stable part at rest for the first input: no transient when it is already settled
-    for k in range(min(p, T)):
-        out[c, k] = u[c, 0]
-    if p == 0:
-        out[c, 0] = u[c, 0]
-    for k in range(max(p, 1), T):
-        s = gain * u[c, k - 1]
-        for i in range(1, p + 1):
-            s -= alpha[i] * out[c, k - i]
-        out[c, k] = s
-    if integ:
-        acc = 0.0
-        for k in range(T):
-            acc += dt * out[c, k]
-            out[c, k] = acc
-
-
-@numba.njit(cache=True, parallel=True)
-def _filter_parallel(u, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
-    for c in numba.prange(u.shape[0]):
-        _filter_column(u, c, alpha, gain, integ, dt, out)
-
-
-@numba.njit(cache=True)
-def _filter_serial(u, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
-    for c in range(u.shape[0]):
-        _filter_column(u, c, alpha, gain, integ, dt, out)
-
-
 def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float) -> np.ndarray:
-    """The regressor source :math:`z` (see the module docstring) for every row of ``u`` (n, T)."""
+    """The regressor source :math:`z` (see the module docstring), time along axis 0: (T,) or (T, n)."""
+    u = np.asarray(u, dtype=np.float64)
+    u2 = u[:, None] if u.ndim == 1 else u
+    u2 = np.ascontiguousarray(u2)
     # A constant per column changes z by a constant (or, integrating, by a ramp) that the offset and
     # trend regressors absorb; removing the mean keeps the cumulative sums of an integrator small.
-    u = np.ascontiguousarray(u - u.mean(axis=1, keepdims=True), dtype=np.float64)
+    mean = u2.mean(axis=0)
     alpha = structure.denominator(dt)
-    out = np.empty_like(u)
-    kernel = _filter_parallel if u.shape[0] >= _PARALLEL_MIN else _filter_serial
-    kernel(u, alpha, float(np.sum(alpha)), bool(structure.integrating), float(dt), out)
-    return out
-
-
-@numba.njit(cache=True, inline="always")
-def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
-    """Cholesky solve of G beta = r (upper triangle of G filled); return yy - beta·r."""
-    L = np.zeros((q, q))
-    for i in range(q):
-        for j in range(i + 1):
-            s = G[j, i] if j <= i else G[i, j]
-            if i == j:
-                s += _RIDGE * (G[i, i] + 1e-300)
-            for m in range(j):
-                s -= L[i, m] * L[j, m]
-            if i == j:
-                # A regressor (numerically) in the span of the earlier ones, e.g. a valve that never
-                # moves: drop it (a huge pivot makes its coefficient zero) instead of dividing by ~0.
-                L[i, i] = np.sqrt(s) if s > 1e-9 * (G[i, i] + 1e-300) else 1e150
-            else:
-                L[i, j] = s / L[j, j]
-    w = np.empty(q)
-    for i in range(q):
-        s = r[i]
-        for m in range(i):
-            s -= L[i, m] * w[m]
-        w[i] = s / L[i, i]
-    for i in range(q - 1, -1, -1):
-        s = w[i]
-        for m in range(i + 1, q):
-            s -= L[m, i] * beta[m]
-        beta[i] = s / L[i, i]
-    sse = yy
-    for i in range(q):
-        sse -= beta[i] * r[i]
-    return max(sse, 0.0)
-
-
-@numba.njit(cache=True, inline="always")
-def _grid_column(c, z, y, w0, w1, delays, ntaps, trend, sums, sse, coef):  # pragma: no cover - compiled
-    # Gram entries come from prefix sums (O(1) per delay); only the cross-correlation with PV costs
-    # O(T) per lag, and neighbouring delays share lags: the work is (delays + taps - 1)·T per column.
-    T = z.shape[1]
-    nd = delays.shape[0]
-    q = ntaps + 1 + trend
-    dmin, dmax = delays.min(), delays.max()
-    nlag = dmax - dmin + ntaps
-    nw = w1 - w0
-    yy, sy, ty, tt, st = sums[0], sums[1], sums[2], sums[3], sums[4]
-    P = np.zeros((ntaps, T + 1))      # P[l, m] = sum_{i<m} z[i] z[i-l]
-    P1 = np.zeros(T + 1)              # sum z
-    PK = np.zeros(T + 1)              # sum i z[i]
-    for m in range(T):
-        zm = z[c, m]
-        P1[m + 1] = P1[m] + zm
-        PK[m + 1] = PK[m] + m * zm
-        for l in range(ntaps):
-            P[l, m + 1] = P[l, m] + (zm * z[c, m - l] if m >= l else 0.0)
-    X = np.zeros(nlag)                # X[i] = sum_k z[k - (dmin + i)] y[k]
-    for i in range(nlag):
-        lag = dmin + i
-        s = 0.0
-        for k in range(w0, w1):
-            s += z[c, k - lag] * y[k]
-        X[i] = s
-    G = np.zeros((q, q))
-    r = np.zeros(q)
-    beta = np.zeros(q)
-    for di in range(nd):
-        d = delays[di]
-        for i in range(ntaps):
-            a0, a1 = w0 - d - i, w1 - d - i          # index range of z for tap i
-            for j in range(i, ntaps):
-                l = j - i
-                G[i, j] = P[l, a1] - P[l, a0]
-            G[i, ntaps] = P1[a1] - P1[a0]
-            if trend:
-                # sum_k (k/T) z[k-s] = sum_m (m+s) z[m] / T
-                s_ = d + i
-                G[i, ntaps + 1] = (PK[a1] - PK[a0] + s_ * (P1[a1] - P1[a0])) / T
-            r[i] = X[d - dmin + i]
-        G[ntaps, ntaps] = nw
-        r[ntaps] = sy
-        if trend:
-            G[ntaps, ntaps + 1] = st
-            G[ntaps + 1, ntaps + 1] = tt
-            r[ntaps + 1] = ty
-        sse[c, di] = _solve_sse(G, r, yy, q, beta)
-        for i in range(q):
-            coef[c, di, i] = beta[i]
-
-
-@numba.njit(cache=True)
-def _window_sums(y, w0, w1, T):  # pragma: no cover - compiled
-    s = np.zeros(5)  # yy, sum y, sum t y, sum t^2, sum t  with t = k/T
-    for k in range(w0, w1):
-        t = k / T
-        s[0] += y[k] * y[k]
-        s[1] += y[k]
-        s[2] += t * y[k]
-        s[3] += t * t
-        s[4] += t
-    return s
-
-
-@numba.njit(cache=True, parallel=True)
-def _grid_parallel(z, y, w0, w1, delays, ntaps, trend, sse, coef):  # pragma: no cover - compiled
-    sums = _window_sums(y, w0, w1, z.shape[1])
-    for c in numba.prange(z.shape[0]):
-        _grid_column(c, z, y, w0, w1, delays, ntaps, trend, sums, sse, coef)
-
-
-@numba.njit(cache=True)
-def _grid_serial(z, y, w0, w1, delays, ntaps, trend, sse, coef):  # pragma: no cover - compiled
-    sums = _window_sums(y, w0, w1, z.shape[1])
-    for c in range(z.shape[0]):
-        _grid_column(c, z, y, w0, w1, delays, ntaps, trend, sums, sse, coef)
+    out = np.empty_like(u2)
+    filter_columns(u2, mean, alpha, float(np.sum(alpha)), bool(structure.integrating), float(dt), out)
+    return out[:, 0] if u.ndim == 1 else out
 
 
 def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays: np.ndarray,
-                   structure: LinearStructure, *, difference: bool = False, return_coef: bool = False):
+                   structure: LinearStructure, *, prefiltered: bool = False, return_coef: bool = False):
     """Residual sum of squares of the least-squares fit for every column of ``z`` and every delay.
 
     Parameters
     ----------
-    z : (n, T) filtered inputs from :func:`filter_inputs`.
+    z : (T, n) filtered inputs from :func:`filter_inputs` (time along axis 0).
     y : (T,) measured PV (centre and scale it for conditioning; the constant regressor absorbs the mean).
     window : ``(w0, w1)`` samples scored; ``w0 >= max(delays) + ntaps - 1``.
     delays : integer dead times in samples.
     structure : supplies ``ntaps`` and ``integrating`` (the trend regressor).
-    difference : ``z`` and ``y`` are first differences (see :func:`difference`): no trend regressor.
+    prefiltered : ``z`` and ``y`` went through :func:`highpass`: no trend regressor.
 
     Returns
     -------
@@ -312,12 +165,11 @@ def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     ntaps = structure.ntaps
     if delays.size and w0 < int(delays.max()) + ntaps - 1:
         raise ValueError(f"window start {w0} leaves no room for delay {int(delays.max())} samples")
-    trend = int(structure.integrating and not difference)
+    trend = int(structure.integrating and not prefiltered)
     q = ntaps + 1 + trend
-    sse = np.empty((z.shape[0], delays.size))
-    coef = np.empty((z.shape[0], delays.size, q))
-    kernel = _grid_parallel if z.shape[0] >= _PARALLEL_MIN else _grid_serial
-    kernel(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, ntaps, trend, sse, coef)
+    sse = np.empty((z.shape[1], delays.size))
+    coef = np.empty((z.shape[1], delays.size, q))
+    grid_sse(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, ntaps, trend, sse, coef)
     return (sse, coef) if return_coef else sse
 
 
@@ -348,41 +200,44 @@ def _delayed_regressors(z: np.ndarray, delay_samples: float, ntaps: int) -> np.n
     return np.stack(cols, axis=1)
 
 
-def difference(x: np.ndarray) -> np.ndarray:
-    """First difference along the last axis, ``x_k − x_{k−1}``, with 0 at k = 0 (same shape).
+def highpass(x: np.ndarray, lam: float) -> np.ndarray:
+    r"""Prefilter :math:`L(q) = (1 - q^{-1})/(1 - \lambda q^{-1})` along the time axis (0), at rest at x[0].
 
-    Why: fitting ΔPV on Δz instead of PV on z is the same linear model (Δ commutes with the filter) but
-    turns an integrating plant into a static one for the cost. In the PV domain an integrator makes every
-    slip-timing error of a candidate valve a permanent offset, so the cost over (S, J) is needle-sharp
-    (an island of a few hundredths of a percent); on differences an error costs only while it lasts and
-    the cost is a smooth bowl around the truth. The trend regressor becomes a constant (the offset).
+    Why, for integrating plants: fitting :math:`L\,\mathrm{PV}` on :math:`L z` is the same linear model
+    (L commutes with the plant; Ljung, *System Identification*, 2nd ed., §14.4, prefiltering as frequency
+    weighting) but changes what a slip-timing error of a candidate valve costs. In the PV itself an
+    integrator turns every such error into a permanent offset, so the cost over (S, J) is needle-sharp and
+    rough (an island of a few hundredths of a percent); on first differences (λ = 0) an error costs one
+    sample and the measurement noise, amplified, hides J. With :math:`\lambda = 1 - 1/T_c` an error costs
+    for about :math:`T_c` samples: smooth enough to search, sharp enough to separate stiction from
+    deadband. The trend regressor of an integrating plant becomes (after a transient) a constant, and the
+    constant a decaying transient, so a prefiltered fit uses taps plus one constant (no trend).
     """
-    out = np.zeros_like(x)
-    out[..., 1:] = np.diff(x, axis=-1)
-    return out
+    x = np.asarray(x, dtype=float)
+    return lfilter([1.0, -1.0], [1.0, -float(lam)], x - x[0], axis=0)  # at rest at the first sample
 
 
 def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
-            dt: float, *, difference_: bool = False) -> LinearFit:
+            dt: float, *, prefilter: float | None = None) -> LinearFit:
     """Least-squares fit of the taps and offsets for one input column and a (fractional) delay.
 
-    With ``difference_`` the fit is done on first differences of ``y`` and of the filtered input (no trend
-    regressor); the returned fit then predicts differences, so use it for its ``sse`` only.
+    With ``prefilter`` (λ of :func:`highpass`) the fit is done on prefiltered ``y`` and filtered input (no
+    trend regressor); the returned fit then predicts prefiltered PV, so use it for its ``sse`` only.
     """
-    z = filter_inputs(u[None, :], structure, dt)[0]
-    if difference_:
-        z, y = difference(z), difference(y)
+    z = filter_inputs(u, structure, dt)
+    if prefilter is not None:
+        z, y = highpass(z, prefilter), highpass(y, prefilter)
     x = _delayed_regressors(z, structure.delay / dt, structure.ntaps)
     T = u.shape[0]
     cols = [x, np.ones((T, 1))]
-    trend = structure.integrating and not difference_
+    trend = structure.integrating and prefilter is None
     if trend:
         cols.append((np.arange(T) / T)[:, None])
     X = np.hstack(cols)
     w0, w1 = window
     Xw, yw = X[w0:w1], y[w0:w1]
     G = Xw.T @ Xw
-    G[np.diag_indices_from(G)] *= 1.0 + _RIDGE
+    G[np.diag_indices_from(G)] *= 1.0 + RIDGE
     beta = np.linalg.solve(G + 1e-300 * np.eye(G.shape[0]), Xw.T @ yw)
     res = yw - Xw @ beta
     nt = structure.ntaps
@@ -390,14 +245,8 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
                      float(res @ res), w1 - w0)
 
 
-def fit_columns(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
-                dt: float, delays: np.ndarray) -> np.ndarray:
-    """SSE (n, len(delays)) for input columns ``u`` (n, T): filter once, then all delays."""
-    return delay_grid_sse(filter_inputs(u, structure, dt), y, window, delays, structure)
-
-
 def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float,
-           *, free_delay: bool, delay_bounds: tuple[float, float], difference_: bool = False,
+           *, free_delay: bool, delay_bounds: tuple[float, float], prefilter: float | None = None,
            prior: tuple[float, ...] | None = None, max_evals: int = 200) -> LinearFit:
     """Refine the real poles (and the dead time when ``free_delay``) by Nelder–Mead on the output error.
 
@@ -406,7 +255,8 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     within [dt/20, 1e3·record length]; the delay within ``delay_bounds`` (s).
 
     ``prior`` (time constants of a nominal model, same count as ``structure.taus``) adds a weak
-    log-normal prior, ``Σ ((ln τ − ln τ_nom)/ln 2)²``, to ``N ln SSE`` (−2 log posterior up to a constant).
+    log-normal prior, ``Σ ((ln τ − ln τ_nom)/ln 1.5)²`` (:data:`PRIOR_WIDTH`), to ``N ln SSE`` (−2 log
+    posterior up to a constant).
     The data dominate whenever they determine the poles; the prior only decides between near-equivalent
     solutions — notably an actuator lag in series with a re-fitted plant pole, where (6s+1)² and
     (4s+1)(8s+1) differ by one part in ten in the s² term — in favour of the plant the user believes in.
@@ -419,7 +269,7 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     n = window[1] - window[0]
 
     def fit(st: LinearStructure) -> LinearFit:
-        return fit_one(u, y, window, st, dt, difference_=difference_)
+        return fit_one(u, y, window, st, dt, prefilter=prefilter)
 
     if taus0.size == 0 and not free_delay:
         return fit(structure)
@@ -432,7 +282,7 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     def cost(p: np.ndarray) -> float:
         c = n * np.log(max(fit(make(p)).sse, 1e-300))
         if use_prior:
-            c += float(np.sum(((np.sort(p[:taus0.size]) - np.sort(log_prior)) / np.log(2.0)) ** 2))
+            c += float(np.sum(((np.sort(p[:taus0.size]) - np.sort(log_prior)) / PRIOR_WIDTH) ** 2))
         return c
 
     x0 = np.concatenate([taus0, [structure.delay] if free_delay else []])

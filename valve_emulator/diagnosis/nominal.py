@@ -29,7 +29,7 @@ from valve_emulator.diagnosis.linear import (
     LinearFit,
     LinearStructure,
     delay_grid_sse,
-    difference,
+    highpass,
     filter_inputs,
     polish,
 )
@@ -143,19 +143,19 @@ def _family_fits(problem: Problem, u: np.ndarray, integrating: bool) -> LinearFi
     else:
         taus_grid = [(float(t),) for t in np.geomspace(dt, max(2 * dt, problem.T * dt / 10.0), 28)]
     best = (np.inf, None, 0)
-    diff = problem.difference
-    target = difference(problem.y) if diff else problem.y
+    lam = problem.prefilter
+    target = problem.y if lam is None else highpass(problem.y, lam)
     for taus in taus_grid:
         st = LinearStructure(taus=taus, integrating=integrating)
-        z = filter_inputs(u[None, :], st, dt)
-        z = difference(z) if diff else z
-        sse = delay_grid_sse(z, target, problem.train, problem.delays, st, difference=diff)[0]
+        z = filter_inputs(u[:, None], st, dt)
+        z = z if lam is None else highpass(z, lam)
+        sse = delay_grid_sse(z, target, problem.train, problem.delays, st, prefiltered=lam is not None)[0]
         i = int(np.argmin(sse))
         if sse[i] < best[0]:
             best = (float(sse[i]), st, int(problem.delays[i]))
     st = LinearStructure(taus=best[1].taus, integrating=integrating, delay=best[2] * dt)
     return polish(u, problem.y, problem.train, st, dt, free_delay=True,
-                  delay_bounds=(0.0, float(problem.delays.max()) * dt), difference_=diff)
+                  delay_bounds=(0.0, float(problem.delays.max()) * dt), prefilter=lam)
 
 
 def identify(problem: Problem, *, valve_model: str = "kano", rest_samples: int = 1) -> Nominal:

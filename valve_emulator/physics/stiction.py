@@ -36,10 +36,11 @@ further move in the same direction needs J of input, a reversal needs S.
 Saturation: OP is clipped to [0, 100] before the model, and MV to [0, 100] after it (the travel stops). The
 literal ``"choudhury"`` chart additionally puts MV at 0/100 whenever OP is outside [0, 100].
 
-Implementation: every model keeps its state in one ``(n, NSTATE)`` float array, one row per valve, and a
-numba kernel ``step(u, S, J, R, state)`` advances ``n`` valves one sample in place. The same kernels serve
-one valve over a long array (:func:`simulate`), many candidate valves at once (:func:`simulate_many`) and the
-emulator's tick (:class:`StictionBank`).
+Implementation: every model keeps its state in one ``(n, NSTATE)`` float array, one row per valve, and one
+numba kernel, :func:`stiction_step_kernel` ``(u, S, J, R, codes, state)``, advances ``n`` valves (of any mix
+of models, ``codes`` indexing :data:`MODELS`) one sample in place. The same kernel serves one valve over a
+long array (:func:`simulate`), many candidate valves at once (:func:`simulate_many`), the emulator's tick
+(:class:`StictionBank`) and the loop kernel of :mod:`valve_emulator.sim.loop`.
 """
 
 from __future__ import annotations
@@ -163,46 +164,30 @@ def _he_valve(i, u_raw, S, J, R, st):  # pragma: no cover - compiled
     st[i, U_PREV] = u
 
 
-@numba.njit(cache=True)
-def _kano_step(u, S, J, R, st):  # pragma: no cover - compiled
-    for i in range(u.shape[0]):
-        _kano_valve(i, u[i], S[i], J[i], R[i], st)
+@numba.njit(cache=True, inline="always")
+def _valve(i, u, S, J, R, code, st):  # pragma: no cover - compiled
+    if code == 1:
+        _kano_valve(i, u, S, J, R, st)
+    elif code == 0:
+        _choudhury_valve(i, u, S, J, R, st)
+    else:
+        _he_valve(i, u, S, J, R, st)
 
 
 @numba.njit(cache=True)
-def _choudhury_step(u, S, J, R, st):  # pragma: no cover - compiled
-    for i in range(u.shape[0]):
-        _choudhury_valve(i, u[i], S[i], J[i], R[i], st)
-
-
-@numba.njit(cache=True)
-def _he_step(u, S, J, R, st):  # pragma: no cover - compiled
-    for i in range(u.shape[0]):
-        _he_valve(i, u[i], S[i], J[i], R[i], st)
+def _run(op, S, J, R, codes, st, out):  # pragma: no cover - compiled
+    for k in range(op.shape[0]):
+        for i in range(st.shape[0]):
+            _valve(i, op[k, i], S[i], J[i], R[i], codes[i], st)
+            out[k, i] = st[i, MV]
 
 
 @numba.njit(cache=True)
 def stiction_step_kernel(u, S, J, R, codes, st):  # pragma: no cover - compiled
     """Advance valves of mixed models one sample: ``codes[i]`` indexes :data:`MODELS`."""
     for i in range(u.shape[0]):
-        c = codes[i]
-        if c == 1:
-            _kano_valve(i, u[i], S[i], J[i], R[i], st)
-        elif c == 0:
-            _choudhury_valve(i, u[i], S[i], J[i], R[i], st)
-        else:
-            _he_valve(i, u[i], S[i], J[i], R[i], st)
+        _valve(i, u[i], S[i], J[i], R[i], codes[i], st)
 
-
-@numba.njit(cache=True)
-def _run(step, op, S, J, R, st, out):  # pragma: no cover - compiled
-    for k in range(op.shape[0]):
-        step(op[k], S, J, R, st)
-        for i in range(st.shape[0]):
-            out[k, i] = st[i, MV]
-
-
-_STEPS: Final = {"kano": _kano_step, "choudhury": _choudhury_step, "he": _he_step}
 
 
 def seed_to_2005(s: float, j: float) -> tuple[float, float]:
@@ -291,7 +276,7 @@ class StictionBank:
         validate_parameters(S, J, model, np.asarray(rest_samples))
         self.n = int(n)
         self.model = model
-        self._step = _STEPS[model]
+        self._codes = np.full(self.n, MODELS.index(model), dtype=np.int64)
         self._S = vector("S", S, self.n)
         self._J = vector("J", J, self.n)
         self._R = vector("rest_samples", rest_samples, self.n, dtype=np.int64).astype(float)
@@ -300,16 +285,15 @@ class StictionBank:
 
     def reset(self, op0: ArrayLike, direction: ArrayLike = 1) -> None:
         """Put every valve at rest at ``op0`` as if it had just stopped moving in ``direction`` (+1/-1)."""
-        codes = np.full(self.n, MODELS.index(self.model))
         initial_state(self._state, vector("op0", op0, self.n), vector("direction", direction, self.n),
-                      self._S, self._J, codes)
+                      self._S, self._J, self._codes)
 
     def step(self, op: ArrayLike) -> np.ndarray:
         """Advance every valve one sample with input ``op`` (% travel); return MV (a view, do not keep)."""
         u = np.asarray(op, dtype=float)
         if u.ndim == 0:
             u = np.full(self.n, float(u))
-        self._step(u, self._S, self._J, self._R, self._state)
+        stiction_step_kernel(u, self._S, self._J, self._R, self._codes, self._state)
         return self._state[:, MV]
 
     def set_parameters(self, *, S: ArrayLike | None = None, J: ArrayLike | None = None,
@@ -347,7 +331,7 @@ class StictionBank:
         """Step through ``op`` of shape ``(T, n)``; return MV of shape ``(T, n)``; state carries on."""
         op = np.ascontiguousarray(op, dtype=float)
         out = np.empty_like(op)
-        _run(self._step, op, self._S, self._J, self._R, self._state, out)
+        _run(op, self._S, self._J, self._R, self._codes, self._state, out)
         return out
 
 

@@ -198,8 +198,13 @@ class LoopBank:
     # -- read-only views ------------------------------------------------------------------------------------
     @property
     def t(self) -> float:
-        """Simulated time of the current sample (s)."""
+        """Simulated time of the next sample to be computed, ``k·dt`` (s)."""
         return self.k * self.dt
+
+    @property
+    def sample_time(self) -> float:
+        """Simulated time of the values ``op``, ``mv``, ``pv`` now hold (s): the sample last computed."""
+        return max(self.k - 1, 0) * self.dt
 
     @property
     def mv(self) -> np.ndarray:

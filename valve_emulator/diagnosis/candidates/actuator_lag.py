@@ -72,7 +72,7 @@ class ActuatorLag(Candidate):
         return {"tau": round(float(p[0]), 3)}
 
     def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
-        return f"an actuator lag: τ ≈ {p[0]:.2g} s"
+        return f"an actuator lag: τ ≈ {p[0]:.1f} s"
 
     def identity(self) -> np.ndarray:
         return np.array([0.0])

@@ -92,6 +92,14 @@ class Candidate(ABC):
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         """A finer grid around ``best`` (which it must contain)."""
 
+    def burn_in(self, ctx: ChainContext) -> int:
+        """Samples after which this candidate's unknown initial state no longer matters (default 0).
+
+        The search starts scoring every model after the largest burn-in of the library, so that all
+        candidates are compared on the same samples.
+        """
+        return 0
+
     def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
         """Rows varying parameter ``axis`` finely around ``best`` (for ``threshold_axes`` only)."""
         raise NotImplementedError(f"{self.name} has no threshold axes")

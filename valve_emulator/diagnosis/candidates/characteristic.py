@@ -70,7 +70,7 @@ class FlowCharacteristic(Candidate):
     def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
         kind = CHARACTERISTICS[int(p[0])]
         if kind == "equal_percentage":
-            return f"an equal-percentage flow characteristic: R ≈ {p[1]:.2g}"
+            return f"an equal-percentage flow characteristic: R ≈ {p[1]:.0f}"
         return f"a {kind.replace('_', '-')} flow characteristic"
 
 

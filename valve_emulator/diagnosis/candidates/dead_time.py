@@ -39,7 +39,7 @@ class DeadTime(Candidate):
 
     def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
         extra = f" (nominal {nominal['theta']:.3g} s)" if nominal and "theta" in nominal else ""
-        return f"a dead-time error: θ ≈ {p[0]:.3g} s{extra}"
+        return f"a dead-time error: θ ≈ {p[0]:.1f} s{extra}"
 
 
 register(DeadTime())

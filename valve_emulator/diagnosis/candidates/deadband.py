@@ -2,8 +2,8 @@ r"""Candidate ``deadband``: a pure deadband (backlash) of width S, the stiction 
 
 With ``J = 0`` the (S, J) valve moves with ``MV = OP − d·S/2`` and never jumps, which is the classical
 backlash (Choudhury, Thornhill & Shah 2005: "J = 0 pure deadband"). It is a separate candidate because it
-has one parameter fewer than stiction, so BIC prefers it when no slip jump is visible. The initial state is
-handled as in :mod:`~valve_emulator.diagnosis.candidates.stiction` (direction on the grid, not counted).
+has one parameter fewer than stiction, so BIC prefers it when no slip jump is visible. The initial state
+``start`` is a nuisance on the grid, as for stiction (:mod:`~valve_emulator.diagnosis.candidates.valve_start`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import ClassVar
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
-from valve_emulator.diagnosis.candidates.stiction import valve_output
+from valve_emulator.diagnosis.candidates.valve_start import STARTS, sync_burn_in, valve_output
 
 __all__ = ["Deadband"]
 
@@ -25,20 +25,24 @@ def _step(span: float) -> float:
 class Deadband(Candidate):
     name: ClassVar[str] = "deadband"
     slot: ClassVar[str] = "valve"
-    param_names: ClassVar[tuple[str, ...]] = ("S", "direction")
+    param_names: ClassVar[tuple[str, ...]] = ("S", "start")
     n_params: ClassVar[int] = 1
     threshold_axes: ClassVar[tuple[int, ...]] = (0,)
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         h = _step(ctx.op_span)
         S = np.arange(1, max(2, int(np.floor(ctx.op_span / h)) + 1)) * h
-        return np.column_stack([np.repeat(S, 2), np.tile([1.0, -1.0], S.size)])
+        return np.column_stack([np.repeat(S, len(STARTS)), np.tile(STARTS, S.size)])
 
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         f = _step(ctx.op_span) / 10.0
         S = best[0] + f * np.arange(-12, 13)
         S = S[S > 0]
-        return np.vstack([best[None, :], np.column_stack([S, np.full(S.size, best[1])])])
+        rows = [np.column_stack([S, np.full(S.size, start)]) for start in STARTS]
+        return np.vstack([best[None, :], *rows])
+
+    def burn_in(self, ctx: ChainContext) -> int:
+        return sync_burn_in(self.apply(ctx.op, self.grid(ctx), ctx))
 
     def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
         h = _step(ctx.op_span) / 200.0
@@ -56,7 +60,7 @@ class Deadband(Candidate):
         return f"a valve deadband (backlash): S ≈ {p[0]:.1f} %"
 
     def identity(self) -> np.ndarray:
-        return np.array([0.0, 1.0])
+        return np.array([0.0, STARTS[0]])
 
 
 register(Deadband())

@@ -1,12 +1,8 @@
 r"""Candidate ``stiction``: the (S, J) valve of Choudhury, Thornhill & Shah (2005) between OP and MV.
 
-Parameters: ``S`` (deadband + stickband, % travel, OP axis), ``J`` (slip jump, % travel, MV axis) and, as
-a nuisance not counted by BIC, the valve's initial state. A recording starts mid-cycle and the valve's
-state at the first sample is unknown (``/shared/notes`` §5); a model started stuck at OP(0) may never break
-free when OP swings only a little more than S. We therefore start the valve *moving* at OP(0), in either
-direction ``d = ±1`` (both are on the grid): it is put at rest at ``OP(0) − d(J + ε)`` having last moved
-in direction ``d``, so the first sample already overcomes J and the valve moves with ``MV = OP − d(S−J)/2``.
-A moving valve synchronises with the true one at the first OP reversal, so only a short burn-in is lost.
+Parameters: ``S`` (deadband + stickband, % travel, OP axis), ``J`` (slip jump, % travel, MV axis) and,
+as a nuisance not counted by BIC, the valve's initial state ``start``
+(:mod:`~valve_emulator.diagnosis.candidates.valve_start`, which also sets the burn-in).
 
 Grids: ``S`` from one step to the robust OP span (a valve whose S exceeds the OP excursions never moves
 and carries no information), ``J`` from 0 to ``1.6 S`` (overshoot included). Why three stages: with OP
@@ -26,22 +22,9 @@ from typing import ClassVar
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
-from valve_emulator.physics.stiction import simulate_many
+from valve_emulator.diagnosis.candidates.valve_start import STARTS, sync_burn_in, valve_output
 
-__all__ = ["Stiction", "valve_output", "stiction_kind"]
-
-_EPS = 1e-6
-
-
-def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, direction: np.ndarray,
-                 ctx: ChainContext) -> np.ndarray:
-    """MV (T, n) of valves started moving at ``x[0]`` in ``direction`` (see the module docstring)."""
-    x = np.asarray(x, dtype=float)
-    first = x[0] if x.ndim == 1 else x[0, :]
-    S, J, d = (np.asarray(a, dtype=float) for a in (S, J, direction))
-    op0 = np.clip(first - d * (J + _EPS), 0.0, 100.0)
-    return simulate_many(x, S, J, model=ctx.valve_model, rest_samples=ctx.rest_samples, direction=d, op0=op0)
-
+__all__ = ["Stiction", "stiction_kind"]
 
 def stiction_kind(S: float, J: float) -> str:
     """``undershoot`` (J < S), ``no offset`` (J = S within 10 % of S) or ``overshoot`` (J > S)."""
@@ -63,14 +46,14 @@ def _grid(S_values: np.ndarray, hJ: float) -> np.ndarray:
     rows = []
     for S in S_values:
         for J in np.arange(0, int(np.floor(1.6 * S / hJ + 1e-9)) + 1) * hJ:
-            rows += [(S, J, 1.0), (S, J, -1.0)]
+            rows += [(S, J, start) for start in STARTS]
     return np.array(rows)
 
 
 class Stiction(Candidate):
     name: ClassVar[str] = "stiction"
     slot: ClassVar[str] = "valve"
-    param_names: ClassVar[tuple[str, ...]] = ("S", "J", "direction")
+    param_names: ClassVar[tuple[str, ...]] = ("S", "J", "start")
     n_params: ClassVar[int] = 2
     threshold_axes: ClassVar[tuple[int, ...]] = (0, 1)
 
@@ -84,12 +67,15 @@ class Stiction(Candidate):
 
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         hS, hJ = _scan_steps(ctx.op_span)
-        S0, J0, d = best
+        S0, J0, _ = best
         S = S0 + hS / 4.0 * np.arange(-8, 9)
         J = J0 + hJ / 6.0 * np.arange(-9, 10)
         SS, JJ = np.meshgrid(S[S > 0], J[J >= 0], indexing="ij")
-        out = np.column_stack([SS.ravel(), JJ.ravel(), np.full(SS.size, d)])
-        return np.vstack([best[None, :], out])
+        out = [np.column_stack([SS.ravel(), JJ.ravel(), np.full(SS.size, start)]) for start in STARTS]
+        return np.vstack([best[None, :], *out])
+
+    def burn_in(self, ctx: ChainContext) -> int:
+        return sync_burn_in(self.apply(ctx.op, self.grid(ctx), ctx))
 
     def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
         h = _scan_steps(ctx.op_span)[axis] / (80.0 if axis == 0 else 60.0)
@@ -107,7 +93,7 @@ class Stiction(Candidate):
         return f"valve stiction: S ≈ {p[0]:.1f} %, J ≈ {p[1]:.1f} % ({stiction_kind(p[0], p[1])})"
 
     def identity(self) -> np.ndarray:
-        return np.array([0.0, 0.0, 1.0])
+        return np.array([0.0, 0.0, STARTS[0]])
 
 
 register(Stiction())

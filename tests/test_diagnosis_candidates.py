@@ -1,0 +1,185 @@
+"""The candidate physics: registry, parameter vocabulary, grids, and each batched transform against physics."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+import pytest
+
+from valve_emulator.diagnosis.candidates import SLOTS, Candidate, ChainContext, get, register, registry
+from valve_emulator.diagnosis.candidates.actuator_lag import first_order_lag
+from valve_emulator.diagnosis.candidates.stiction import stiction_kind
+from valve_emulator.diagnosis.candidates.valve_start import PRE_ROLL, STARTS, sync_burn_in, valve_output
+from valve_emulator.diagnosis.chain import Active, run_chain
+from valve_emulator.physics.signal_chain import Characteristic
+from valve_emulator.physics.stiction import StictionBank
+
+
+def simulate(op, *, S, J, model="kano", direction=1.0, op0=None):
+    """The physics layer's valve stepped sample by sample (an independent path to the same kernels)."""
+    bank = StictionBank(1, S=S, J=J, model=model)
+    bank.reset(op[0] if op0 is None else op0, direction)
+    return np.array([bank.step(np.array([x]))[0] for x in op])
+
+T = 400
+OP = 50.0 + 8.0 * np.sin(np.linspace(0.0, 6 * np.pi, T))
+CTX = ChainContext(dt=1.0, op=OP, op_span=16.0, tau_plant=10.0, delay=5.0)
+
+VOCABULARY = {
+    "stiction": ("valve", {"S", "J"}),
+    "deadband": ("valve", {"S"}),
+    "dead_time": ("delay", {"theta"}),
+    "characteristic": ("characteristic", {"type", "R"}),
+    "actuator_lag": ("actuator", {"tau"}),
+}
+
+
+def test_registry_holds_the_issue_vocabulary_with_json_parameter_keys():
+    lib = registry()
+    assert set(VOCABULARY) <= set(lib)
+    for name, (slot, keys) in VOCABULARY.items():
+        cand = lib[name]
+        assert cand.slot == slot and slot in SLOTS
+        grid = cand.grid(CTX)
+        assert grid.ndim == 2 and grid.shape[1] == len(cand.param_names) and grid.shape[0] >= 1
+        assert set(cand.parameters(grid[0])) == keys
+        fine = cand.refine(CTX, grid[0])
+        np.testing.assert_array_equal(fine[0], grid[0])  # a refinement contains its centre
+
+
+def test_unknown_candidate_names_the_known_ones():
+    with pytest.raises(ValueError, match="unknown candidate physics 'friction'.*stiction"):
+        get("friction")
+
+
+def test_a_new_candidate_slots_in_by_registration():
+    class Offset(Candidate):  # a toy: adds a constant to OP
+        name: ClassVar[str] = "toy_offset"
+        slot: ClassVar[str] = "actuator"
+        param_names: ClassVar[tuple[str, ...]] = ("c",)
+        n_params: ClassVar[int] = 1
+
+        def grid(self, ctx):
+            return np.array([[0.0], [1.0]])
+
+        def refine(self, ctx, best):
+            return best[None, :]
+
+        def apply(self, x, params, ctx):
+            x = np.asarray(x, dtype=float)
+            return (x[:, None] if x.ndim == 1 else x) + params[:, 0]
+
+        def parameters(self, p):
+            return {"c": float(p[0])}
+
+        def describe(self, p, nominal=None):
+            return f"an offset {p[0]}"
+
+    try:
+        register(Offset())
+        assert get("toy_offset").apply(OP, np.array([[2.0]]), CTX)[:, 0] == pytest.approx(OP + 2.0)
+        with pytest.raises(ValueError, match="slot must be one of"):
+            bad = Offset()
+            bad.slot = "nowhere"
+            register(bad)
+    finally:
+        from valve_emulator.diagnosis.candidates import base
+        base._REGISTRY.pop("toy_offset", None)
+    assert "toy_offset" not in registry()
+
+
+def test_pre_rolled_valve_breaks_free_where_a_valve_stuck_at_op0_never_does():
+    # OP swings 3.6 % peak to peak around its start; with S = J = 3 a valve at rest at OP(0) never moves
+    # (it needs 3 % either way), while a valve that has lived through such swings cycles with them.
+    op = 50.0 + 1.8 * np.sin(np.linspace(0.0, 12 * np.pi, 1200))
+    assert np.ptp(simulate(op, S=3.0, J=3.0)) == 0.0
+    mv = valve_output(op, np.full(3, 3.0), np.full(3, 3.0), np.array(STARTS), CTX)
+    assert np.ptp(mv[:, 0]) > 3.0
+    # starting to move up at OP(0) also cycles and agrees with the pre-rolled valve after the first swing;
+    # starting to move down does not (OP rises at once, the valve sticks mid-swing for good): no single
+    # start is safe, hence three of them on every grid
+    assert np.allclose(mv[200:, 0], mv[200:, 1])
+    assert np.ptp(mv[:, 2]) == 0.0
+
+
+def test_burn_in_is_when_different_starts_merge():
+    mv = np.zeros((1000, 6))
+    mv[:100, 1] = 1.0     # group 1 agrees from sample 100 on
+    mv[:300, 5] = 1.0     # group 2 from sample 300 on
+    assert sync_burn_in(mv) == int(np.percentile([100, 300], 90))
+    mv[-1, 4] = 1.0       # a group that never agrees does not count
+    assert sync_burn_in(mv) == 100
+    assert sync_burn_in(mv[:, :4], n_starts=2) == int(np.percentile([100, 0], 90))
+    assert get("stiction").burn_in(CTX) >= 0
+
+
+@pytest.mark.parametrize("model", ["kano", "choudhury", "he"])
+def test_moving_starts_are_the_physics_valve_started_just_below_its_jump(model):
+    rng = np.random.default_rng(0)
+    op = 50.0 + np.cumsum(rng.normal(size=600)) * 0.3
+    ctx = ChainContext(dt=1.0, op=op, op_span=10.0, valve_model=model)
+    for start in (1.0, -1.0):
+        mv = valve_output(op, [4.0], [1.5], [start], ctx)[:, 0]
+        ref = simulate(op, S=4.0, J=1.5, model=model, direction=start, op0=op[0] - start * (1.5 + 1e-6))
+        np.testing.assert_array_equal(mv, ref)
+
+
+def test_stiction_candidate_is_the_physics_model_and_deadband_is_j_zero():
+    st, db = get("stiction"), get("deadband")
+    mv = st.apply(OP, np.array([[4.0, 1.5, 1.0]]), CTX)[:, 0]
+    # the physics model, started at rest as if it had moved up, synchronises at the first reversal
+    ref = simulate(OP, S=4.0, J=1.5)
+    assert np.allclose(mv[T // 3:], ref[T // 3:])
+    np.testing.assert_allclose(db.apply(OP, np.array([[4.0, 1.0]]), CTX),
+                               st.apply(OP, np.array([[4.0, 0.0, 1.0]]), CTX))
+    assert stiction_kind(5, 2) == "undershoot" and stiction_kind(5, 5.2) == "no offset"
+    assert stiction_kind(5, 7) == "overshoot"
+
+
+def test_stiction_scan_is_fine_in_s_and_the_line_is_finer_still():
+    st = get("stiction")
+    coarse, scan = st.grid(CTX), st.scan(CTX)
+    ds = lambda g: np.min(np.diff(np.unique(g[:, 0])))  # noqa: E731
+    assert ds(scan) < ds(coarse) / 5
+    line = st.line(CTX, np.array([5.0, 2.0, 1.0]), 0)
+    assert ds(line) < ds(scan) / 10 and np.all(line[:, 1] == 2.0)
+
+
+def test_actuator_lag_follows_the_exact_zoh_state_and_vanishes_at_zero():
+    step = np.concatenate([np.zeros(5), np.ones(60)])
+    tau = 4.0
+    out = first_order_lag(step, np.array([tau, 0.0]), 1.0)
+    a = np.exp(-1.0 / tau)
+    state = 1.0 - a ** np.arange(0, 60)          # exact ZOH lag state after k samples of the step
+    w = 1.0 - tau * (1.0 - a)                      # weight of the sample average toward the input
+    np.testing.assert_allclose(out[5:, 0], state + (1.0 - state) * w, rtol=1e-12)
+    np.testing.assert_array_equal(out[:, 1], step)
+    # the sample average of the continuous lag response is what the ZOH plant integrates
+    tt = np.linspace(0.0, 1.0, 10001)
+    k = 7
+    cont = 1.0 - np.exp(-(k + tt) / tau)
+    assert out[5 + k, 0] == pytest.approx(np.trapezoid(cont, tt), rel=1e-6)
+
+
+def test_characteristic_candidate_is_the_physics_characteristic():
+    ch = get("characteristic")
+    grid = ch.grid(CTX)
+    kinds = {ch.parameters(g)["type"] for g in grid}
+    assert kinds == {"equal_percentage", "quick_opening"}  # the nominal (linear) is not a candidate
+    rows = np.array([[1.0, 30.0], [2.0, 0.0]])
+    out = ch.apply(OP, rows, CTX)
+    np.testing.assert_allclose(out[:, 0], Characteristic("equal_percentage", 30.0).flow(OP))
+    np.testing.assert_allclose(out[:, 1], Characteristic("quick_opening").flow(OP))
+    assert ch.parameters(rows[1]) == {"type": "quick_opening", "R": None}
+
+
+def test_chain_applies_slots_in_signal_order_with_the_grid_in_between():
+    lag = Active(get("actuator_lag"), np.array([3.0]))
+    grid = np.array([[4.0, 1.5, 1.0], [2.0, 0.0, -1.0]])
+    flows = run_chain(OP, {"actuator": lag}, CTX, grid_candidate=get("stiction"), grid=grid)
+    lagged = first_order_lag(OP, np.array([3.0]), 1.0)[:, 0]
+    expect = valve_output(lagged, grid[:, 0], grid[:, 1], grid[:, 2], CTX)
+    np.testing.assert_allclose(flows, np.clip(expect, 0, 100))
+    nominal_valve = run_chain(OP, {}, CTX, nominal_valve=(4.0, 1.5))[:, 0]
+    np.testing.assert_allclose(nominal_valve, valve_output(OP, [4.0], [1.5], [PRE_ROLL], CTX)[:, 0])

@@ -1,0 +1,119 @@
+"""The linear part of the diagnosis: exact recovery of ZOH plants, the batched grid, differences, polish."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from valve_emulator.diagnosis.linear import (
+    LinearStructure,
+    delay_grid_sse,
+    highpass,
+    filter_inputs,
+    fit_one,
+    polish,
+)
+from valve_emulator.physics.plant import PlantBank, transfer_function_to_zoh
+
+DT = 1.0
+T = 3000
+WINDOW = (60, 2100)
+
+
+def _input(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return 50.0 + np.cumsum(rng.normal(size=T)) * 0.3 + rng.normal(size=T)
+
+
+def _plant_output(u: np.ndarray, num, den, delay) -> np.ndarray:
+    """PV of the physics layer's exact ZOH plant, the recording convention pv_k <- flow up to k-1."""
+    bank = PlantBank([transfer_function_to_zoh(num, den, delay, DT)], u0=50.0, pv0=2.0)
+    bank.reset(u[0])
+    y = np.empty(u.size)
+    y[0] = bank.pv[0]
+    for k in range(u.size - 1):
+        y[k + 1] = bank.step(np.array([u[k]]))[0]
+    return y
+
+
+PLANTS = [
+    ((3.0,), (10.0, 1.0), 10.0, LinearStructure(taus=(10.0,), delay=10.0), 3.0),
+    ((1.0,), (1.0, 0.0), 3.0, LinearStructure(integrating=True, delay=3.0), 1.0),
+    ((2.0,), (15.0, 8.0, 1.0), 4.0, LinearStructure(taus=(5.0, 3.0), delay=4.0), 2.0),
+    ((0.5,), (4.0, 1.0, 0.0), 2.0, LinearStructure(taus=(4.0,), integrating=True, delay=2.0), 0.5),
+]
+
+
+@pytest.mark.parametrize("num, den, delay, structure, gain", PLANTS)
+def test_exact_structure_replays_a_zoh_plant_exactly(num, den, delay, structure, gain):
+    u = _input()
+    y = _plant_output(u, num, den, delay)
+    fit = fit_one(u, y, WINDOW, structure, DT)
+    assert fit.gain == pytest.approx(gain, rel=1e-6)
+    y_hat = fit.predict(u, DT)
+    scale = np.ptp(y)
+    assert np.max(np.abs(y_hat - y)[WINDOW[1]:]) < 1e-5 * scale  # the held-out part too
+
+
+@pytest.mark.parametrize("structure", [LinearStructure(taus=(7.0,)), LinearStructure(integrating=True),
+                                       LinearStructure(taus=(4.0, 2.0)), LinearStructure()])
+def test_delay_grid_equals_direct_least_squares(structure):
+    rng = np.random.default_rng(3)
+    u = rng.normal(size=(5, T))
+    y = np.cumsum(rng.normal(size=T)) * 0.1
+    delays = np.array([0, 3, 7, 12])
+    sse = delay_grid_sse(filter_inputs(u.T, structure, DT), y, WINDOW, delays, structure)
+    direct = np.array([[fit_one(u[c], y, WINDOW, LinearStructure(structure.taus, structure.integrating,
+                                                                   delay=float(d)), DT).sse
+                        for d in delays] for c in range(u.shape[0])])
+    np.testing.assert_allclose(sse, direct, rtol=1e-6)
+
+
+def test_grid_finds_the_true_delay_and_a_constant_column_changes_nothing():
+    u = _input(1)
+    y = _plant_output(u, (3.0,), (10.0, 1.0), 10.0)
+    st = LinearStructure(taus=(10.0,))
+    cols = np.column_stack([u, np.full(T, 42.0)])  # a valve that never moves: no information, no blow-up
+    sse = delay_grid_sse(filter_inputs(cols, st, DT), y - y.mean(), WINDOW, np.arange(0, 21), st)
+    assert int(np.argmin(sse[0])) == 10
+    yw = (y - y.mean())[WINDOW[0]:WINDOW[1]]
+    baseline = np.sum((yw - yw.mean()) ** 2)
+    np.testing.assert_allclose(sse[1], baseline, rtol=1e-9)
+    assert np.all(np.isfinite(sse))
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.95])
+def test_prefiltered_fit_is_the_same_model_and_absorbs_the_integrator_trend(lam):
+    u = _input(2)
+    y = _plant_output(u, (1.0,), (1.0, 0.0), 3.0) + 0.01 * np.arange(T)  # a drifting operating point
+    st = LinearStructure(integrating=True, delay=3.0)
+    window = (300, 2100)  # after the prefilter's own transient
+    fit = fit_one(u, y, window, st, DT, prefilter=lam)
+    assert fit.sse < 1e-10 * np.sum(highpass(y, lam)[window[0]:window[1]] ** 2)
+    assert fit.gain == pytest.approx(1.0, rel=1e-5)
+    z = highpass(filter_inputs(u[:, None], st, DT), lam)
+    sse = delay_grid_sse(z, highpass(y, lam), window, np.arange(0, 8), st, prefiltered=True)
+    assert int(np.argmin(sse[0])) == 3
+
+
+def test_highpass_is_the_first_difference_at_lambda_zero():
+    x = np.cumsum(np.random.default_rng(7).normal(size=(50, 2)), axis=0)
+    np.testing.assert_allclose(highpass(x, 0.0)[1:], np.diff(x, axis=0))
+
+
+def test_polish_recovers_time_constant_and_fractional_dead_time_from_a_wrong_start():
+    u = _input(4)
+    y = _plant_output(u, (3.0,), (10.0, 1.0), 10.5) + np.random.default_rng(5).normal(0, 0.05, T)
+    start = LinearStructure(taus=(16.0,), delay=12.0)
+    fit = polish(u, y, WINDOW, start, DT, free_delay=True, delay_bounds=(0.0, 25.0))
+    assert fit.structure.taus[0] == pytest.approx(10.0, rel=0.03)
+    assert fit.structure.delay == pytest.approx(10.5, abs=0.15)
+
+
+def test_polish_prior_decides_between_equivalent_pole_sets():
+    # Two real poles are interchangeable; with a prior the one nearer the nominal plant is kept.
+    u = _input(6)
+    y = _plant_output(u, (1.0,), (32.0, 12.0, 1.0), 2.0)  # (4s+1)(8s+1)
+    st = LinearStructure(taus=(3.0, 9.0), delay=2.0)
+    fit = polish(u, y, WINDOW, st, DT, free_delay=False, delay_bounds=(0, 10), prior=(4.0, 8.0))
+    assert sorted(fit.structure.taus) == pytest.approx([4.0, 8.0], rel=0.02)

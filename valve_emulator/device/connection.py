@@ -1,0 +1,279 @@
+"""One Modbus TCP client connection: MBAP framing, fairness and self-defence (no pymodbus, no tasks).
+
+:class:`ModbusConnection` is the ``asyncio.Protocol`` of the emulator's server. It cuts the byte stream into
+MBAP frames (7-byte header: transaction id, protocol id 0, length 2..254, unit id) and hands every complete
+frame to ``server.handle``, answering in order; pipelined requests are answered together in one write.
+
+Defences (issue 9), all driven by callbacks and timer handles, never by tasks:
+
+- *Fairness.* At most :data:`FRAMES_PER_TURN` frames of one connection, and :data:`FRAMES_PER_ITERATION`
+  of all connections together, are answered per event-loop iteration; the rest wait, with reading
+  paused, for a later turn, taken in round-robin order (:class:`TurnBudget`). One client pipelining
+  thousands of requests gets the same turns as everyone else, and however many clients pipeline, an
+  iteration of the loop (and so the tick's lateness) stays within a couple of milliseconds.
+- *Memory.* A client that does not read its answers stops being read (asyncio's write-buffer flow
+  control), so its requests cannot pile up in our buffers; the guard's idle / frame deadlines end it. The
+  kernel's socket buffers of each connection are capped at :data:`SOCKET_BUFFER`.
+- *Error budget.* Exception answers cost a token each from a bucket of ``error_rate`` tokens refilled at
+  ``error_rate`` per second (``device.error_rate``). A connection that runs out is read again only when
+  the bucket is back above zero, so a client sending garbage in well-formed frames gets at most
+  ``error_rate`` answers per second instead of the server's whole CPU; clients that make the occasional
+  mistake never notice.
+- *Tarpit.* A frame that is not Modbus TCP (protocol id not 0, length outside 2..254) cannot be
+  resynchronised: the answers to the frames before it are sent, reading stops, and the connection is
+  closed :data:`VIOLATION_DELAY` seconds later. A client that sends garbage and reconnects at once can then
+  open at most one connection per ``VIOLATION_DELAY`` instead of thousands per second.
+- *End of stream.* The frames received before a FIN are still answered; a partial frame left at the end
+  can never complete, so the connection is then closed.
+
+Reading is paused whenever any of: the peer does not read (``pause_writing``), frames wait for their turn,
+the error budget is exhausted, or the connection is closing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import socket
+from typing import Any
+
+__all__ = ["FRAMES_PER_ITERATION", "FRAMES_PER_TURN", "SOCKET_BUFFER", "VIOLATION_DELAY", "ModbusConnection",
+           "TurnBudget"]
+
+#: Frames answered per connection per event-loop iteration.
+FRAMES_PER_TURN = 32
+#: Frames answered by all connections together per event-loop iteration (a frame costs 5-20 µs).
+FRAMES_PER_ITERATION = 128
+#: Seconds between a protocol violation and the close (reading is stopped at once).
+VIOLATION_DELAY = 1.0
+#: Kernel receive and send buffer of each client socket, bytes (Linux doubles it for bookkeeping). A
+#: Modbus request is at most 260 bytes and an answer 259, so this holds hundreds of pipelined requests;
+#: it bounds the kernel memory a client that stops reading, or a tarpitted one, can make us hold.
+SOCKET_BUFFER = 32 * 1024
+
+
+class TurnBudget:
+    """Round-robin scheduler for connections with more complete frames than one turn may answer.
+
+    :attr:`left` frames may still be answered in the current event-loop iteration. A connection that has
+    frames left over (or found the budget spent) queues itself with :meth:`wait`; once per iteration
+    (a ``call_soon`` callback, armed by the first :meth:`spend` or :meth:`wait`) the budget is refilled
+    and the queue served from the front, each waiting connection at most once, until the budget runs
+    out. A connection still busy afterwards queues again at the back, so every waiting connection gets a
+    turn in order, whoever sends the most.
+    """
+
+    def __init__(self, frames: int = FRAMES_PER_ITERATION) -> None:
+        self.frames = self.left = int(frames)
+        self.waiting: collections.deque = collections.deque()
+        self._armed = False
+
+    def spend(self, n: int) -> None:
+        self.left -= n
+        self._arm()
+
+    def wait(self, conn: "ModbusConnection") -> None:
+        self.waiting.append(conn)
+        self._arm()
+
+    def _arm(self) -> None:
+        if not self._armed:
+            self._armed = True
+            asyncio.get_running_loop().call_soon(self._run)
+
+    def _run(self) -> None:
+        self._armed = False
+        self.left = self.frames
+        for _ in range(len(self.waiting)):
+            if self.left <= 0:
+                self._arm()  # the rest keep their place for the next iteration
+                break
+            self.waiting.popleft()._serve()
+
+
+class ModbusConnection(asyncio.Protocol):
+    """One client of ``server``.
+
+    ``server`` provides ``guard`` (:class:`~valve_emulator.device.guard.ConnectionGuard`), ``turns``
+    (:class:`TurnBudget`), ``handle(frame, instructor, peer=...) -> bytes``, ``instructor_allowed(ip)``, the
+    set ``connection_set`` and the counters ``exceptions``, ``violations``, ``throttled``.
+    """
+
+    def __init__(self, server: Any) -> None:
+        self.server = server
+        self.transport: asyncio.Transport
+        self.peer_ip = ""
+        self.instructor = False
+        self.slot = None
+        self._buf = bytearray()
+        self._write_paused = False
+        self._backlog = False
+        self._scheduled = False
+        self._closing = False
+        self._eof = False
+        self._throttle: asyncio.TimerHandle | None = None
+        self._close_timer: asyncio.TimerHandle | None = None
+        self._tokens = 0.0
+        self._stamp = 0.0
+
+    # --- asyncio.Protocol -----------------------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+        peer = transport.get_extra_info("peername")
+        self.peer_ip = peer[0] if peer else ""
+        guard = self.server.guard
+        self.slot = guard.admit(f"{peer[0]}:{peer[1]}" if peer else "?", transport.abort)
+        if self.slot is None:
+            transport.abort()
+            return
+        self._tokens, self._stamp = float(guard.error_rate), guard.clock()
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            try:
+                for option in (socket.SO_RCVBUF, socket.SO_SNDBUF):
+                    sock.setsockopt(socket.SOL_SOCKET, option, SOCKET_BUFFER)
+            except OSError:  # not every transport (or platform) allows it; the defaults then apply
+                pass
+        self.instructor = self.server.instructor_allowed(self.peer_ip)
+        self.server.connection_set.add(self)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.server.connection_set.discard(self)
+        self.server.guard.release(self.slot)
+        self._buf.clear()
+        for timer in (self._throttle, self._close_timer):
+            if timer is not None:
+                timer.cancel()
+
+    def pause_writing(self) -> None:
+        self._write_paused = True
+        self._sync_reading()
+
+    def resume_writing(self) -> None:
+        self._write_paused = False
+        self._schedule()
+        self._sync_reading()
+
+    def data_received(self, data: bytes) -> None:
+        if self.slot is None or self._closing:
+            return
+        self._buf += data
+        if not self._backlog:
+            self._serve()
+
+    def eof_received(self) -> bool:
+        self._eof = True
+        if not self._backlog:
+            self._close_now()
+        return True   # we close the transport ourselves, after answering the frames still queued
+
+    # --- serving --------------------------------------------------------------------------------------
+
+    def _serve(self) -> None:
+        self._scheduled = False
+        transport, slot, server = self.transport, self.slot, self.server
+        if slot is None or self._closing or transport.is_closing():
+            return
+        buf, errors0, turns = self._buf, server.exceptions, server.turns
+        end_of_data, pos, answers = len(buf), 0, []
+        limit = min(FRAMES_PER_TURN, turns.left)
+        while end_of_data - pos >= 7 and len(answers) < limit:
+            length = (buf[pos + 4] << 8) | buf[pos + 5]
+            if buf[pos + 2] or buf[pos + 3] or not 2 <= length <= 254:
+                turns.spend(len(answers))
+                self._violation(bytes(buf[pos:pos + 7]), answers)
+                return
+            end = pos + 6 + length
+            if end > end_of_data:
+                break  # partial frame: wait for the rest
+            answers.append(server.handle(bytes(buf[pos:end]), self.instructor, peer=self.peer_ip))
+            pos = end
+        del buf[:pos]
+        if answers:
+            turns.spend(len(answers))
+        now = server.guard.clock()
+        if answers:
+            slot.last_request = now
+            slot.partial_since = now if buf else None  # the deadline runs from the current frame's start
+            transport.write(b"".join(answers))
+        elif buf and slot.partial_since is None:
+            slot.partial_since = now
+        if server.exceptions != errors0:
+            self._spend(server.exceptions - errors0, now)
+        self._backlog = len(answers) == limit and _complete(buf)
+        if self._backlog:
+            self._schedule()
+        elif self._eof:
+            self._close_now()
+        self._sync_reading()
+
+    def _schedule(self) -> None:
+        """Queue for a turn to serve the waiting frames, unless something holds this connection back."""
+        if (self._backlog and not self._scheduled and not self._write_paused and self._throttle is None
+                and not self._closing):
+            self._scheduled = True
+            self.server.turns.wait(self)
+
+    def _sync_reading(self) -> None:
+        transport = self.transport
+        if transport.is_closing():
+            return
+        hold = self._write_paused or self._backlog or self._throttle is not None or self._closing
+        if hold and transport.is_reading():
+            transport.pause_reading()
+        elif not hold and not transport.is_reading():
+            transport.resume_reading()
+
+    # --- defences -------------------------------------------------------------------------------------
+
+    def _spend(self, errors: int, now: float) -> None:
+        """Take ``errors`` tokens from the error budget; out of tokens: stop reading until it refills."""
+        guard = self.server.guard
+        rate = guard.error_rate
+        self._tokens = min(float(rate), self._tokens + (now - self._stamp) * rate) - errors
+        self._stamp = now
+        if self._tokens < 0 and self._throttle is None:
+            self.server.throttled += 1
+            guard.limiter.log("throttled", logging.INFO, "slowing down connection from %s: more than %g "
+                              "exception answers per second (device.error_rate)", self.slot.peer, rate)
+            self._throttle = asyncio.get_running_loop().call_later(-self._tokens / rate, self._unthrottle)
+
+    def _unthrottle(self) -> None:
+        self._throttle = None
+        self._schedule()
+        self._sync_reading()
+
+    def _violation(self, header: bytes, answers: list[bytes]) -> None:
+        """Not a Modbus TCP frame: answer what came before it, stop reading, close a little later."""
+        server = self.server
+        server.violations += 1
+        server.guard.limiter.log("not modbus", logging.WARNING,
+                                 "closing connection from %s: not a Modbus TCP frame (header %s)",
+                                 self.slot.peer, header.hex())
+        self._buf.clear()
+        if answers:
+            self.transport.write(b"".join(answers))
+        self._closing = True
+        self._mark_closing()
+        self._sync_reading()
+        self._close_timer = asyncio.get_running_loop().call_later(VIOLATION_DELAY, self.transport.close)
+
+    def _close_now(self) -> None:
+        self._closing = True
+        self._buf.clear()  # a partial frame at the end of the stream can never complete
+        self._mark_closing()
+        self.transport.close()
+
+    def _mark_closing(self) -> None:
+        if self.slot is not None:
+            self.server.guard.closing(self.slot)
+
+
+def _complete(buf: bytearray) -> bool:
+    """Does ``buf`` start with a complete frame, or with a header the next turn will reject at once?"""
+    if len(buf) < 7:
+        return False
+    length = (buf[4] << 8) | buf[5]
+    return bool(buf[2] or buf[3]) or not 2 <= length <= 254 or len(buf) >= 6 + length

@@ -1,0 +1,106 @@
+r"""The unknown state of a sticky valve at the first sample of a recording, and when it stops mattering.
+
+A recording starts mid-cycle (notes §5). A model valve started in the wrong state can stay wrong for long:
+with OP swinging only a little more than S — common, because the controller reverses as soon as the valve
+moves — a valve put at rest at OP(0) mid-swing may never reach S (to reverse) nor J (to go on), and its
+replay explains nothing. Which start synchronises soonest with the real valve depends on the data, so the
+start is a nuisance parameter of every valve candidate (not counted by BIC), with three values:
+
+``PRE_ROLL`` (2)
+    The valve first runs through the first fifth of the record (at least 100 samples) mirrored in time,
+    ``OP[K], …, OP[1]``, which joins the record continuously at OP(0) and has its excursions; by OP(0) it
+    is in a state a valve cycling on this OP reaches — stuck at a recent extreme, or moving. It starts the
+    pre-roll moving upwards.
+``+1`` / ``−1``
+    The valve is moving up / down at OP(0): put at rest at ``OP(0) ∓ (J + ε)`` having last moved that way,
+    so the first sample overcomes J. These are the most eager states in each direction.
+
+Burn-in: the three starts are very different states; once their replays agree, the valve's true initial
+state (which lies among such states) has almost always been forgotten too. :func:`sync_burn_in` returns the
+sample by which the three agree for good, the 90th percentile over a grid of (S, J); the search scores every
+model only after the largest such burn-in (capped), so that no candidate is rewarded for a lucky start.
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+import numba
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import ChainContext
+from valve_emulator.physics.stiction import MODELS, MV, NSTATE, initial_state, stiction_step_kernel
+
+__all__ = ["PRE_ROLL", "STARTS", "valve_output", "sync_burn_in"]
+
+PRE_ROLL: Final = 2.0
+#: The start values, in the order grids use them.
+STARTS: Final = (PRE_ROLL, 1.0, -1.0)
+_EPS = 1e-6
+
+
+def _pre_roll(T: int) -> int:
+    return min(T - 1, max(100, T // 5))
+
+
+@numba.njit(cache=True)
+def _run_valves(op, K, pre, S, J, R, codes, state, out):  # pragma: no cover - compiled
+    # The physics layer's step kernel in a compiled time loop over the record preceded by its mirrored
+    # pre-roll (op[K], ..., op[1]). Pre-rolled valves step from the start of the pre-roll, the others from
+    # the record's first sample; both write straight into out (T, n). op is (T, n), or (T, 1) shared.
+    shared = op.shape[1] == 1
+    for g in range(2):
+        idx = np.flatnonzero(pre) if g == 0 else np.flatnonzero(~pre)
+        first = 0 if g == 0 else K
+        m = idx.shape[0]
+        if m == 0:
+            continue
+        Sg, Jg, Rg, cg = S[idx], J[idx], R[idx], codes[idx]
+        st = state[idx]
+        u = np.empty(m)
+        for kk in range(first, K + op.shape[0]):
+            k = K - kk if kk < K else kk - K   # pre-roll: op[K], ..., op[1]; then op[0], op[1], ...
+            for i in range(m):
+                u[i] = min(max(op[k, 0 if shared else idx[i]], 0.0), 100.0)
+            stiction_step_kernel(u, Sg, Jg, Rg, cg, st)
+            if kk >= K:
+                for i in range(m):
+                    out[kk - K, idx[i]] = st[i, MV]
+
+
+def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray, ctx: ChainContext) -> np.ndarray:
+    """MV (T, n) of valves with parameters ``S, J`` and initial state ``start`` (see the module docstring).
+
+    ``x`` is OP (T,) shared by all, or (T, n) one column per valve.
+    """
+    x = np.asarray(x, dtype=float)
+    x2 = np.ascontiguousarray(x[:, None] if x.ndim == 1 else x)
+    S, J, start = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (S, J, start))
+    n = max(S.size, J.size, start.size, x2.shape[1])
+    S, J, start = (np.ascontiguousarray(np.broadcast_to(a, (n,))) for a in (S, J, start))
+    T = x2.shape[0]
+    K = _pre_roll(T)
+    pre = start == PRE_ROLL
+    d = np.where(pre, 1.0, start)
+    cols = np.zeros(n, dtype=np.int64) if x2.shape[1] == 1 else np.arange(n)
+    first = np.where(pre, x2[K, cols], x2[0, cols])   # the OP each valve starts from
+    codes = np.full(n, MODELS.index(ctx.valve_model), dtype=np.int64)
+    state = np.zeros((n, NSTATE))
+    initial_state(state, np.clip(first - d * (J + _EPS), 0.0, 100.0), d, S, J, codes)
+    out = np.empty((T, n))
+    _run_valves(x2, K, pre, S, J, np.full(n, float(ctx.rest_samples)), codes, state, out)
+    return out
+
+
+def sync_burn_in(mv: np.ndarray, n_starts: int = len(STARTS)) -> int:
+    """Samples until valves with different starts agree for good (columns in groups of ``n_starts``).
+
+    For each group, the sample after which all its columns give the same MV to the end of the record; the
+    90th percentile over the groups that do agree over at least the last tenth of the record.
+    """
+    T = mv.shape[0]
+    groups = mv.reshape(T, -1, n_starts)
+    differ = (np.ptp(groups, axis=2) > 1e-9)
+    last = np.where(differ.any(axis=0), T - 1 - np.argmax(differ[::-1], axis=0), -1)
+    merged = last < T - 1 - T // 10
+    return int(np.percentile(last[merged] + 1, 90)) if merged.any() else 0

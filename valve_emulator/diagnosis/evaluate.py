@@ -1,0 +1,226 @@
+r"""Fitting one candidate: coarse grid × pole hypotheses, a global scan, refinement, a polish of the poles.
+
+Stages, for every candidate and every dead-time variant (θ held at its current value, or freed together with
+``dead_time`` while the nominal dead time is still trusted):
+
+1. **coarse**: the candidate's coarse grid through the chain at once, scored for every pole hypothesis of
+   :meth:`Evaluator._pole_set` and every dead time of the grid; the best row of each hypothesis is a start,
+   ranked by ``N ln SSE`` plus the prior on the poles;
+2. **scan** (candidates that define one, e.g. stiction): a global grid fine along the rough directions,
+   scored at the top :data:`_STARTS` starts' poles and nearby dead times;
+3. **refine**, twice: the candidate's fine local grid (dead time ±2 samples when free), then a Nelder–Mead
+   polish of the poles (and of a free dead time, to a fraction of a sample);
+4. **centre** threshold parameters in their flat cost bottom (:meth:`Evaluator._centre`).
+
+The start that ends with the lowest BIC (plus prior) is the option. Why several starts: a continuous
+parameter trades off against the poles (an actuator lag against the plant's time constant) and stiction's
+coarse cost is rough, so the coarse winner can be an artefact of grid placement.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import Candidate
+from valve_emulator.diagnosis.chain import Active
+from valve_emulator.diagnosis.linear import LinearStructure
+from valve_emulator.diagnosis.models import Model, Option, Surface
+from valve_emulator.diagnosis.scoring import Scorer
+
+__all__ = ["Evaluator"]
+
+#: Pole hypotheses whose best coarse start is scanned and refined.
+_STARTS = 2
+#: Width of a "flat" cost bottom, in units of -2 log-likelihood (the 95 % point of chi-square, 1 dof).
+_FLAT = 3.84
+
+
+class Evaluator(Scorer):
+    """Fits candidates into a model (see the module docstring); its results are :class:`Option` objects."""
+
+    def _pole_set(self, model: Model) -> list[LinearStructure]:
+        """Linear dynamics tried by the coarse stage of every candidate search.
+
+        A missing valve nonlinearity biases the poles re-fitted around the nominal chain (stiction in the
+        concentration loop drags the fitted time constant from 10 s to about 80 s), and with wrong poles
+        the valve's cost basin disappears. So the coarse stage also tries the nominal poles scaled by
+        2^(±1/2), 2^(±1) — or, without a model, first order with time constants from Δt to a tenth of the
+        record and an integrator — and later stages use the best.
+        """
+        st = model.fit.structure
+        out = [st]
+        if self.nominal.given:
+            nom = replace(self.nominal.structure, delay=st.delay)
+            for f in (1.0, 0.5, 2 ** -0.5, 2 ** 0.5, 2.0):
+                if nom.taus or f == 1.0:
+                    out.append(replace(nom, taus=tuple(t * f for t in nom.taus)))
+        else:
+            dt = self.p.dt
+            out += [replace(a, delay=st.delay) for a in self.nominal.alternates]
+            out += [LinearStructure(taus=(float(t),), delay=st.delay)
+                    for t in np.geomspace(dt, max(2 * dt, self.p.T * dt / 10.0), 8)]
+            out.append(LinearStructure(integrating=True, delay=st.delay))
+        return out
+
+    def base(self) -> Model:
+        """Nominal chain with the linear part re-fitted (poles; the dead time too when there is no model)."""
+        ctx = self.ctx(None)
+        flow = self.chain({}, ctx)[:, 0]
+        free = not self.nominal.given
+        fit = self._polish(flow, self.nominal.structure, free)
+        return self.model({}, fit, free, flow)
+
+    def _refine(self, model: Model, cand: Candidate, best: np.ndarray, st: LinearStructure, free: bool):
+        """Two passes of fine grid + polish around ``best``; returns (active, fit, flow, fine Surface)."""
+        active = model.by_slot()
+        ctx = self.ctx(model)
+        for _ in range(2):
+            g = cand.refine(ctx, best)
+            sse, delays = self._sse_grid(active, ctx, cand, g, st, self._near(st.delay, 2) if free else None)
+            i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
+            best = g[i]
+            st0 = replace(st, delay=float(delays[j]) * self.p.dt) if free else st
+            flow = self.chain(active, ctx, cand, g[i:i + 1])[:, 0]
+            fit = self._polish(flow, st0, free)
+            st = fit.structure
+        fine = Surface(cand.name, g, sse.min(axis=1), self.p.n_fit)
+        if cand.threshold_axes:
+            best = self._centre(active, ctx, cand, best, st)
+            flow = self.chain(active, ctx, cand, best[None, :])[:, 0]
+            fit = self._polish(flow, st, free)
+        new_active = dict(active)
+        new_active[cand.slot] = Active(cand, best)
+        return new_active, fit, flow, fine
+
+    def _centre(self, active, ctx, cand, best, st) -> np.ndarray:
+        """Move each threshold parameter to the middle of the flat bottom of its cost.
+
+        With noisy OP the fit-part cost is piecewise constant in a threshold (each slip happens at the
+        first sample past it), so every value inside the cell that contains the argmin replays the fit
+        part equally well, and the argmin may sit at the cell's edge. Events in the held-out part cut the
+        cell at uniformly distributed places; its middle is the value least likely to miss one. The
+        flat bottom is the contiguous run around the argmin with N·ln(SSE/SSE_min) ≤ :data:`_FLAT`.
+        """
+        for axis in cand.threshold_axes:
+            rows = cand.line(ctx, best, axis)
+            sse, _ = self._sse_grid(active, ctx, cand, rows, st, None)
+            cost = self.p.n_fit * np.log(np.maximum(sse[:, 0], 1e-300) / max(sse[:, 0].min(), 1e-300))
+            i = int(np.argmin(cost))
+            lo = hi = i
+            while lo > 0 and cost[lo - 1] <= _FLAT:
+                lo -= 1
+            while hi < cost.size - 1 and cost[hi + 1] <= _FLAT:
+                hi += 1
+            best = rows[i].copy()
+            best[axis] = 0.5 * (rows[lo, axis] + rows[hi, axis])
+        return best
+
+    def _delay_option(self, model: Model, cand: Candidate) -> Option:
+        flow = model.flow
+        sse, delays = self._sse_flows(flow[:, None], model.fit.structure, self.p.delays)
+        st = replace(model.fit.structure, delay=float(delays[int(np.argmin(sse[0]))]) * self.p.dt)
+        fit = self._polish(flow, st, True)
+        active = model.by_slot()
+        active["delay"] = Active(cand, np.array([fit.structure.delay]))
+        surf = Surface(cand.name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
+        return Option((cand.name,), self.model(active, fit, True, flow), surf, None, surf)
+
+    def evaluate(self, model: Model, cand: Candidate) -> list[Option]:
+        """Options that add ``cand`` to ``model``: coarse grid × pole set, global scan, refinement."""
+        if cand.slot == "delay":
+            return [self._delay_option(model, cand)]
+        ctx = self.ctx(model)
+        active = model.by_slot()
+        dead_time = self.library.get("dead_time")
+        variants = [(model.delay_free, (cand.name,))]
+        if not model.delay_free and dead_time is not None:
+            variants.append((True, (cand.name, dead_time.name)))
+        grid = cand.grid(ctx)
+        flows = self.chain(active, ctx, cand, grid)
+        starts: dict[bool, list[tuple]] = {free: [] for free, _ in variants}
+        for st in self._pole_set(model):
+            penalty = self._prior_penalty(st)
+            for free, _ in variants:
+                sse, delays = self._sse_flows(flows, st, self.p.delays if free else None)
+                flat = sse.min(axis=1)
+                i = int(np.argmin(flat))
+                score = self.p.n_fit * np.log(max(flat[i], 1e-300)) + penalty
+                st_b = replace(st, delay=float(delays[int(np.argmin(sse[i]))]) * self.p.dt) if free else st
+                starts[free].append((score, grid[i], st_b, Surface(cand.name, grid, flat, self.p.n_fit)))
+        scan = cand.scan(ctx)
+        # The coarse winner can be an artefact of grid placement — a continuous parameter trades off
+        # against the poles (an actuator lag against the plant's time constant), and stiction's coarse
+        # cost is rough — so the best start of each of the top pole hypotheses is scanned and refined, and
+        # the choice is made afterwards.
+        ranked = {free: sorted(starts[free], key=lambda r: r[0])[:_STARTS] for free, _ in variants}
+        scanned = self._scan(active, ctx, cand, scan, ranked) if scan is not None else {}
+        options = []
+        for free, added in variants:
+            results = []
+            for i, (_, p0, st_b, _) in enumerate(ranked[free]):
+                scan_surface = scanned.get((free, i))
+                if scan_surface is not None:
+                    p0 = scan[int(np.argmin(scan_surface.sse))]
+                new_active, fit, flow, fine = self._refine(model, cand, p0, st_b, free)
+                if free and not model.delay_free:
+                    new_active["delay"] = Active(dead_time, np.array([fit.structure.delay]))
+                m = self.model(new_active, fit, free, flow)
+                results.append((m.bic + self._prior_penalty(m.fit.structure), m, scan_surface, fine))
+            _, m, scan_surface, fine = min(results, key=lambda r: r[0])
+            options.append(Option(added, m, ranked[free][0][3], scan_surface, fine))
+        return options
+
+    def _scan(self, active, ctx, cand, scan, ranked) -> dict:
+        """Scan surfaces for every (variant, start), merging starts that share their poles into one job.
+
+        A θ-free start needs the integer delays near its coarse best; a θ-fixed start its own delay (its
+        column, when that delay is a whole number of samples; a separate job otherwise).
+        """
+        jobs: dict[tuple, set] = {}
+        need = {}
+        for free, starts in ranked.items():
+            for i, (_, _, st_b, _) in enumerate(starts):
+                key = (st_b.taus, st_b.integrating, st_b.fixed_poles)
+                ds = st_b.delay / self.p.dt
+                if free:
+                    want = set(self._near(st_b.delay, 3).tolist())
+                elif abs(ds - round(ds)) < 1e-9:
+                    want = {int(round(ds))}
+                else:
+                    key, want = key + (ds,), None  # fractional: its own job
+                if want is None:
+                    jobs[key] = None
+                else:
+                    jobs.setdefault(key, set()).update(want)
+                need[(free, i)] = (key, want, st_b)
+        keys = list(jobs)
+        job_list = []
+        for key in keys:
+            st = next(v[2] for v in need.values() if v[0] == key)
+            job_list.append((st, None if jobs[key] is None else np.array(sorted(jobs[key]))))
+        results = dict(zip(keys, self._sse_jobs(active, ctx, cand, scan, job_list)))
+        out = {}
+        for vi, (key, want, _) in need.items():
+            sse, delays = results[key]
+            cols = slice(None) if want is None else np.isin(delays, sorted(want))
+            out[vi] = Surface(cand.name, scan, sse[:, cols].min(axis=1), self.p.n_fit)
+        return out
+
+    def profile(self, model: Model, name: str) -> Surface:
+        """Cost surface of one active candidate around its final value, the others held (for intervals).
+
+        The dead time is profiled over integer samples around its value; other candidates over their
+        refinement grid with the dead time held.
+        """
+        a = next(x for x in model.active if x.name == name)
+        st = model.fit.structure
+        if a.slot == "delay":
+            sse, delays = self._sse_flows(model.flow[:, None], st, self._near(st.delay, 6))
+            return Surface(name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
+        rest = {k: v for k, v in model.by_slot().items() if k != a.slot}
+        ctx = self.ctx(model)
+        g = a.candidate.refine(ctx, a.params)
+        sse, _ = self._sse_grid(rest, ctx, a.candidate, g, st, None)
+        return Surface(name, g, sse[:, 0], self.p.n_fit)

@@ -1,0 +1,219 @@
+r"""``diagnose(recording, nominal)``: replay, locate, search the candidate library, report.
+
+1. **Replay** the nominal model on the recorded OP (:mod:`~valve_emulator.diagnosis.nominal`); its
+   held-out free-run fit is ``fit_before``. Without a nominal model the linear part is identified from the
+   data first and *that* is the nominal model.
+2. **Locate** the residual in time and operating conditions (:mod:`~valve_emulator.diagnosis.locate`).
+3. **Search** (:mod:`~valve_emulator.diagnosis.search`): add the most significant candidate physics,
+   round after round, the linear part re-fitted around each.
+4. **Report** each accepted piece with its parameters, 95 % intervals from the cost surface, where it
+   reduces the residual (windows) and why it was accepted (evidence); ``fit_after`` is the final model's
+   held-out fit.
+
+Which cost: PV itself, or a high-pass prefiltered PV for an integrating plant (see
+:func:`~valve_emulator.diagnosis.linear.highpass`): the prefilter makes an integrator's cost smooth in the
+valve parameters, but would only throw away a self-regulating plant's slow response. With a nominal model
+its plant decides; without one the search runs on PV (its pole set spans both families) and, if the result
+integrates, once more prefiltered, whose result is kept.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+
+from valve_emulator.config import LoopConfig
+from valve_emulator.diagnosis.candidates import get, registry
+from valve_emulator.diagnosis.chain import run_chain
+from valve_emulator.diagnosis.data import Problem, fit_percent, prefilter_for, prepare
+from valve_emulator.diagnosis.locate import Located, condition_masks, locate
+from valve_emulator.diagnosis.nominal import Nominal, identify, nominal_from_config, replay_plant
+from valve_emulator.diagnosis.result import Diagnosis, Finding, RankRow, Traces
+from valve_emulator.diagnosis.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
+from valve_emulator.diagnosis.uncertainty import intervals
+from valve_emulator.sim.recording import Recording
+
+__all__ = ["diagnose", "RULE"]
+
+RULE = (f"An addition counts when BIC (N ln σ̂² + k ln N on the fit part) falls by at least {DELTA_BIC:g} and the "
+        f"free-run fit on the held-out last 30 % rises by at least {DELTA_FIT:g} points, against the current "
+        "model and against each of its own sub-options; the lowest-BIC option that counts is added.")
+
+
+def _replay_nominal(problem: Problem, nominal: Nominal, search: Search) -> np.ndarray:
+    """Nominal chain + exact nominal plant on the recorded OP; only the operating point is fitted."""
+    flow = search.chain({}, search.ctx(None))[:, 0]
+    y0 = replay_plant(nominal, flow, problem.dt)
+    T = problem.T
+    cols = [np.ones(T)] + ([np.arange(T) / T] if nominal.structure.integrating else [])
+    X = np.column_stack(cols)
+    w0, w1 = problem.train
+    coef, *_ = np.linalg.lstsq(X[w0:w1], (problem.pv - y0)[w0:w1], rcond=None)
+    return y0 + X @ coef
+
+
+def _gain(num: Sequence[float], den: Sequence[float]) -> float:
+    den = np.trim_zeros(np.asarray(den, dtype=float), "b")  # an integrator's s drops out: gain per second
+    return float(num[-1] / den[-1])
+
+
+def _linear_table(nominal: Nominal, model: Model, problem: Problem) -> dict:
+    st, fit = model.fit.structure, model.fit
+    k = fit.gain * problem.y_scale
+    unit = " (per s)" if st.integrating else ""
+    nom_k = f"{_gain(nominal.num, nominal.den):.4g}" if nominal.given else "—"
+    taus = lambda s: ", ".join(f"{t:.4g}" for t in s.taus) or "—"  # noqa: E731
+    return {f"gain, PV per % flow{unit}": (nom_k, f"{k:.4g}"),
+            "time constants (s)": (taus(nominal.structure) if nominal.given else "—", taus(st)),
+            "dead time (s)": (f"{nominal.delay:.4g}" if nominal.given else "—", f"{st.delay:.4g}"),
+            "integrating": ("yes" if nominal.structure.integrating else "no",) * 2}
+
+
+def _param_text(model: Model, added: tuple[str, ...]) -> str:
+    parts = []
+    for a in model.active:
+        if a.name in added:
+            parts.append(", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                   for k, v in a.candidate.parameters(a.params).items() if v is not None))
+    return "; ".join(parts)
+
+
+def _surface(rounds: list[Round], n: int):
+    """ΔBIC over (S, J) from the stiction scan of the round that accepted stiction (else round 1)."""
+    pick = None
+    for rnd in rounds:
+        for o in rnd.options:
+            if o.added == ("stiction",) and o.scan is not None:
+                if pick is None or (rnd.chosen is not None and "stiction" in rnd.chosen.added):
+                    pick = o
+    if pick is None:
+        return None, None
+    P, sse = pick.scan.params, pick.scan.sse
+    S, J = np.unique(P[:, 0]), np.unique(P[:, 1])
+    cost = n * np.log(np.maximum(sse, 1e-300) / max(sse.min(), 1e-300))
+    grid = np.full((J.size, S.size), np.nan)
+    iS, iJ = np.searchsorted(S, P[:, 0]), np.searchsorted(J, P[:, 1])
+    for a, b, c in zip(iJ, iS, cost):
+        grid[a, b] = c if np.isnan(grid[a, b]) else min(grid[a, b], c)
+    best = pick.model.by_slot()["valve"].params
+    return (S, J, grid), (float(best[0]), float(best[1]))
+
+
+def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located) -> str:
+    text = (f"against the model without it, BIC falls by {delta_bic:.0f} and the held-out fit rises from "
+            f"{f0:.1f} % to {f1:.1f} %")
+    if ivs:
+        text += "; 95 % interval " + ", ".join(f"{k} {a:.4g}–{b:.4g}" for k, (a, b) in ivs.items())
+    strong = [a for a in loc.alignments if a.energy_share >= 0.2 and a.lift > 1.2]
+    if strong:
+        text += f"; the improvement is concentrated: {strong[0].sentence()}"
+    return text + "."
+
+
+def _findings(search: Search, problem: Problem, model: Model, rounds: list[Round], masks, horizon,
+              nominal: Nominal) -> tuple[Finding, ...]:
+    out = []
+    final = {a.name: a for a in model.active}
+    for rnd in rounds:
+        if rnd.chosen is None:
+            continue
+        chosen = rnd.chosen
+        for name in chosen.added:
+            rest = set(chosen.added) - {name}
+            without = rnd.baseline if not rest else next(o.model for o in rnd.options if set(o.added) == rest)
+            r0, r1 = problem.y - without.y_hat, problem.y - chosen.model.y_hat
+            loc = locate(problem.t, problem.op, r0 ** 2 - r1 ** 2, dt=problem.dt, response_time=horizon,
+                         masks=masks)
+            act = final[name]
+            cand = act.candidate
+            params = cand.parameters(act.params)
+            surf = search.profile(model, name)
+            names = tuple(k for k, v in params.items() if isinstance(v, (int, float)) and k in cand.param_names)
+            axes = tuple(cand.param_names.index(k) for k in names)
+            ivs = intervals(surf.params, surf.sse, surf.n, names, cand.n_params, axes=axes) if names else {}
+            dbic = without.bic - chosen.model.bic
+            nominal_info = {"theta": nominal.delay} if nominal.given else None
+            out.append(Finding(name, params, loc.windows, _evidence(dbic, without.heldout, chosen.model.heldout,
+                                                                    ivs, loc),
+                               cand.describe(act.params, nominal_info), ivs, dbic, without.heldout,
+                               chosen.model.heldout))
+    return tuple(out)
+
+
+def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib: dict, say):
+    """Prepare, (identify,) search: one pass in one cost domain."""
+    problem = prepare(recording, nominal_delay=nom.delay if nom else None,
+                      settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter)
+    if nom is None:
+        say("identifying the linear part from the data (FOPDT or IPDT)")
+        nom = identify(problem)
+    search = Search(problem, nom, lib, progress=say)
+    model, rounds = search.run()
+    return search.p, nom, search, model, rounds  # the search may have lengthened the burn-in
+
+
+def diagnose(recording: Recording, nominal: LoopConfig | None = None, *,
+             candidates: Sequence[str] | None = None,
+             progress: Callable[[str], None] | None = None) -> Diagnosis:
+    """Diagnose what the nominal model leaves out (see the module docstring).
+
+    Parameters
+    ----------
+    recording : ``t``, ``op``, ``pv`` are used (``sp`` and ``mv`` may be absent).
+    nominal : the loop the user believes in; None identifies a linear model (FOPDT or IPDT) from the data.
+    candidates : names from the candidate registry (default: all); ``dead_time`` needs a nominal model.
+    progress : called with a short message at each stage (the CLI prints them on stderr).
+
+    Raises
+    ------
+    RecordingError
+        Too few samples, constant OP or PV, non-uniform sampling (naming the file and line).
+    ValueError
+        A nominal plant the linear part cannot represent; an unknown candidate name.
+    """
+    start = time.perf_counter()
+    say = progress or (lambda msg: None)
+    lib = registry() if candidates is None else {n: get(n) for n in candidates}
+    dt = recording.dt if len(recording) >= 2 else 1.0
+    nom = nominal_from_config(nominal, dt) if nominal is not None else None
+    if nom is None:
+        lib.pop("dead_time", None)  # without a nominal model the dead time is simply identified
+        problem, nom, search, model, rounds = _run(recording, None, None, lib, say)
+        st = model.fit.structure
+        if st.integrating:
+            say("the plant integrates: searching again on prefiltered PV")
+            lam = prefilter_for(st.delay + sum(st.taus), dt)
+            problem, nom, search, model, rounds = _run(recording, None, lam, lib, say)
+    else:
+        st = nom.structure
+        lam = prefilter_for(st.delay + sum(st.taus), dt) if st.integrating else None
+        problem, nom, search, model, rounds = _run(recording, nom, lam, lib, say)
+    base = rounds[0].baseline if rounds else model
+    if nom.given:
+        pv_before = _replay_nominal(problem, nom, search)
+        fit_before = fit_percent(problem.pv[problem.test[0]:], pv_before[problem.test[0]:])
+    else:
+        pv_before = problem.to_pv(base.y_hat)
+        fit_before = base.heldout
+    st = model.fit.structure
+    horizon = max(st.delay + 2.0 * sum(st.taus), 10.0 * problem.dt)
+    w = max(3, int(round(horizon / problem.dt / 2)))
+    masks = condition_masks(problem.op, w=w, horizon=max(2, int(round(horizon / problem.dt))))
+    located = locate(problem.t, problem.op, (problem.pv - pv_before) ** 2, dt=problem.dt,
+                     response_time=horizon, masks=masks)
+    say("estimating parameter intervals")
+    findings = _findings(search, problem, model, rounds, masks, horizon, nom)
+    ranking = tuple(RankRow(i + 1, o.label, _param_text(o.model, o.added), rnd.baseline.bic - o.model.bic,
+                            o.model.heldout, o is rnd.chosen)
+                    for i, rnd in enumerate(rounds) for o in rnd.options)
+    ctx = search.ctx(model)
+    valve_only = {k: v for k, v in model.by_slot().items() if k in ("actuator", "valve")}
+    mv = run_chain(problem.op, valve_only, ctx.__class__(**{**ctx.__dict__, "characteristic": ("linear", 50.0)}),
+                   nominal_valve=(nom.S, nom.J))[:, 0]
+    surface, surface_best = _surface(rounds, problem.n_fit)
+    traces = Traces(problem.t, problem.op, problem.pv, pv_before, problem.to_pv(base.y_hat),
+                    problem.to_pv(model.y_hat), mv, model.flow, problem.test[0], surface, surface_best)
+    return Diagnosis(problem.source, nom.given, fit_before, base.heldout, model.heldout, findings, located,
+                     _linear_table(nom, model, problem), ranking, traces, RULE, time.perf_counter() - start)

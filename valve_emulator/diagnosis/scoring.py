@@ -1,0 +1,148 @@
+r"""Scoring parameter grids: the chain, the batched linear fit and the bookkeeping every candidate search uses.
+
+:class:`Scorer` holds one problem (data, nominal model, candidate library) and answers "what is the fit-part
+SSE of every row of this parameter grid, for these linear structures and dead times?" — pushing the grid
+through the chain in chunks of :data:`_CHUNK` rows (the valve simulation is the costly part, so each chunk is
+scored for every requested structure before the next is simulated), filtering each chunk once per structure
+and solving the least-squares problems of all rows and all dead times in one compiled call.
+
+It also owns three choices that must be the same for every model of a problem:
+
+* the scored samples: the fit part starts after the largest burn-in the candidates claim (a valve's unknown
+  initial state must be forgotten before it is scored; capped at :data:`_BURN_CAP` of the record);
+* the cost domain: PV, or high-pass prefiltered PV for an integrating plant
+  (:func:`~valve_emulator.diagnosis.linear.highpass`);
+* the weak prior that ties re-fitted time constants to the nominal ones
+  (:data:`~valve_emulator.diagnosis.linear.PRIOR_WIDTH`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Callable
+
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
+from valve_emulator.diagnosis.chain import Active, run_chain
+from valve_emulator.diagnosis.data import Problem
+from valve_emulator.diagnosis.linear import (
+    PRIOR_WIDTH,
+    LinearFit,
+    LinearStructure,
+    delay_grid_sse,
+    filter_inputs,
+    fit_one,
+    highpass,
+    polish,
+)
+from valve_emulator.diagnosis.models import Model
+from valve_emulator.diagnosis.nominal import Nominal, bic
+
+__all__ = ["Scorer"]
+
+#: Longest burn-in (fraction of the record) that candidates' initial states may claim.
+_BURN_CAP = 0.35
+#: Grid rows pushed through the chain at once (bounds memory to a few hundred MB at 10^4 samples).
+_CHUNK = 512
+
+
+def _frac_shift(z: np.ndarray, f: float) -> np.ndarray:
+    """Columns of ``z`` (T, n) delayed by a fraction ``f`` of a sample (linear interpolation)."""
+    if f <= 0.0:
+        return z
+    out = z.copy()
+    out[1:] = (1.0 - f) * z[1:] + f * z[:-1]
+    return out
+
+
+class Scorer:
+    """Grid scoring for one problem (see the module docstring)."""
+
+    def __init__(self, problem: Problem, nominal: Nominal, library: dict[str, Candidate], *,
+                 progress: Callable[[str], None] | None = None) -> None:
+        self.p = problem
+        self.nominal = nominal
+        burn = max((c.burn_in(self.ctx(None)) for c in library.values()), default=0)
+        w0, w1 = problem.train
+        if burn > w0:  # start scoring once every candidate's unknown initial state is forgotten
+            self.p = replace(problem, train=(min(burn, int(_BURN_CAP * problem.T)), w1))
+        self.library = library
+        self.say = progress or (lambda msg: None)
+        self.dmax = float(problem.delays.max()) * problem.dt
+        self.lam = problem.prefilter
+        self.target = problem.y if self.lam is None else highpass(problem.y, self.lam)
+        self.prior = nominal.structure.taus if nominal.given else None
+
+    def ctx(self, model: Model | None) -> ChainContext:
+        st = model.fit.structure if model else self.nominal.structure
+        return ChainContext(dt=self.p.dt, op=self.p.op, op_span=self.p.op_span,
+                            valve_model=self.nominal.valve_model, rest_samples=self.nominal.rest_samples,
+                            characteristic=self.nominal.characteristic,
+                            tau_plant=max(st.taus, default=10.0 * self.p.dt), delay=st.delay)
+
+    def chain(self, active: dict[str, Active], ctx: ChainContext, cand: Candidate | None = None,
+              grid: np.ndarray | None = None) -> np.ndarray:
+        return run_chain(self.p.op, active, ctx, nominal_valve=(self.nominal.S, self.nominal.J),
+                         grid_candidate=cand, grid=grid)
+
+    def model(self, active: dict[str, Active], fit: LinearFit, delay_free: bool, flow: np.ndarray) -> Model:
+        """Score a fitted model: BIC from the fit-part SSE of ``fit`` (the search domain: prefiltered PV
+        when the problem says so), the held-out fit from a PV-domain fit at the same structure."""
+        acts = []
+        for a in active.values():
+            if a.slot == "delay":  # the dead-time candidate's parameter is the fitted dead time
+                a = Active(a.candidate, np.array([fit.structure.delay]))
+            acts.append(a)
+        k = fit.structure.n_params() + int(delay_free) + sum(
+            a.candidate.n_params for a in acts if a.slot != "delay")
+        level = fit if self.lam is None else fit_one(flow, self.p.y, self.p.train, fit.structure, self.p.dt)
+        y_hat = level.predict(flow, self.p.dt)
+        return Model(tuple(acts), level, delay_free, k, bic(fit.sse, fit.n, k), self.p.heldout_fit(y_hat),
+                     y_hat, flow)
+
+    def _prior_penalty(self, st: LinearStructure) -> float:
+        """The weak prior of :func:`~valve_emulator.diagnosis.linear.polish`, for comparing pole sets."""
+        if self.prior is None or len(self.prior) != len(st.taus) or not st.taus:
+            return 0.0
+        d = np.sort(np.log(st.taus)) - np.sort(np.log(self.prior))
+        return float(np.sum((d / PRIOR_WIDTH) ** 2))
+
+    def _polish(self, flow, st, free):
+        return polish(flow, self.p.y, self.p.train, st, self.p.dt, free_delay=free,
+                      delay_bounds=(0.0, self.dmax), prefilter=self.lam, prior=self.prior)
+
+    def _sse_flows(self, flows: np.ndarray, st: LinearStructure, delays: np.ndarray | None) -> tuple:
+        """SSE (n, nd) for chain outputs ``flows`` (T, n) and the delays searched (samples).
+
+        ``delays=None`` holds the structure's own (possibly fractional) dead time.
+        """
+        z = filter_inputs(flows, st, self.p.dt)
+        if self.lam is not None:
+            z = highpass(z, self.lam)
+        if delays is None:
+            ds = st.delay / self.p.dt
+            m = int(np.floor(ds + 1e-9))
+            z, delays = _frac_shift(z, ds - m), np.array([m])
+        return delay_grid_sse(z, self.target, self.p.train, delays, st, prefiltered=self.lam is not None), delays
+
+    def _sse_grid(self, active, ctx, cand, grid, st, delays) -> tuple:
+        """:meth:`_sse_flows` for a parameter grid, in chunks of :data:`_CHUNK` rows (bounded memory)."""
+        return self._sse_jobs(active, ctx, cand, grid, [(st, delays)])[0]
+
+    def _sse_jobs(self, active, ctx, cand, grid, jobs) -> list[tuple]:
+        """Several ``(structure, delays)`` evaluations of one grid in one pass: each chunk of rows is pushed
+        through the chain once (the valve simulation is the costly part) and scored for every job."""
+        parts: list[list] = [[] for _ in jobs]
+        used: list = [None] * len(jobs)
+        for a in range(0, grid.shape[0], _CHUNK):
+            flows = self.chain(active, ctx, cand, grid[a:a + _CHUNK])
+            for i, (st, delays) in enumerate(jobs):
+                sse, used[i] = self._sse_flows(flows, st, delays)
+                parts[i].append(sse)
+        return [(np.vstack(p), u) for p, u in zip(parts, used)]
+
+    def _near(self, d: float, r: int) -> np.ndarray:
+        d0 = int(round(d / self.p.dt))
+        lo, hi = int(self.p.delays.min()), int(self.p.delays.max())
+        return np.arange(max(lo, d0 - r), min(hi, d0 + r) + 1)
