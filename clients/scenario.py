@@ -38,6 +38,7 @@ from clients._channels import emulator_channels
 from clients._modbus import DEFAULT_PORT, DeviceError, Link, Point
 from clients._run import pause, run_until_stopped
 from clients.recorder import RecorderOptions, record
+from valve_emulator.device.record import TickRecorder
 
 __all__ = ["Applied", "DeviceClock", "ModbusClock", "probe", "play", "run_scenario", "run", "main"]
 
@@ -192,7 +193,9 @@ async def run_scenario(scenario: Scenario, *, attach: tuple[str, int] | None = N
     """Start an emulator (or attach to one), check it, play the scenario, and optionally record it.
 
     ``time_scale`` defaults to the scenario's. The recording takes a row every ``record_step`` simulated
-    seconds (default 5 ticks) on the device's time grid (uniform sampling, see :mod:`clients.recorder`).
+    seconds (default 5 ticks) on the device's time grid: inside the emulator when it is started here
+    (:class:`~valve_emulator.device.record.TickRecorder`, nothing missed at any time-scale), by polling over
+    Modbus when attached (:mod:`clients.recorder`).
     ``ready(server)`` is called once an emulator started here listens (before the check and the events).
     """
     scale = scenario.time_scale if time_scale is None else time_scale
@@ -207,7 +210,13 @@ async def run_scenario(scenario: Scenario, *, attach: tuple[str, int] | None = N
             start = 0 if server is not None else tick   # a started emulator: scenario time = device time
             rec_stop = asyncio.Event()
             recorder = None
-            if record_to is not None:
+            tick_recorder = None
+            if record_to is not None and server is not None:
+                # an emulator of our own: record inside it, every row on the tick grid, nothing missed
+                tick_recorder = TickRecorder(server.device, record_to, units=[scenario.unit],
+                                             every=max(1, round(step / scenario.dt)))
+                await tick_recorder.start()
+            elif record_to is not None:
                 opts = RecorderOptions(out=record_to, channels=emulator_channels(), host=target[0],
                                        port=target[1], unit=scenario.unit, word_order=scenario.config.device.word_order,
                                        period=period, step=step,
@@ -219,6 +228,12 @@ async def run_scenario(scenario: Scenario, *, attach: tuple[str, int] | None = N
                     # it stops by itself once it has recorded the end time: a poll or two from now
                     await asyncio.wait([recorder], timeout=10 * period + 5.0)
             finally:
+                if tick_recorder is not None:
+                    await tick_recorder.stop()
+                    if log is not None:
+                        print(f"recorded {record_to}: {tick_recorder.rows} rows on the tick grid"
+                              + "".join(f"; FAILED: {why}" for why in tick_recorder.failed.values()),
+                              file=log, flush=True)
                 if recorder is not None:
                     rec_stop.set()
                     summary = await recorder

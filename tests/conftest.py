@@ -75,6 +75,7 @@ class FakeLoopBank:
         self.sp = np.zeros(n)
         self.kc, self.ti, self.td = np.full(n, 0.2), np.full(n, 10.0), np.zeros(n)
         self.S, self.J = np.zeros(n), np.zeros(n)
+        self.load, self.noise_std, self.frozen = np.zeros(n), np.zeros(n), np.zeros(n, dtype=bool)
         self.stuck = np.ones(n, dtype=bool)
         self.sat_low = np.zeros(n, dtype=bool)
         self.sat_high = np.zeros(n, dtype=bool)

@@ -170,3 +170,20 @@ async def test_stop_ends_the_scenario_between_events(tmp_path):
     await asyncio.gather(*tasks)
     assert [a.event.kind for a in applied] == ["seize"]
     assert len(read_csv(tmp_path / "r.csv", min_samples=1)) >= 1
+
+
+async def test_recording_of_an_own_emulator_has_every_row_on_the_tick_grid_even_when_fast(tmp_path):
+    """Started here, the scenario records inside the emulator: at time-scale 200 (0.5 ms of wall time per
+    tick) a poller would miss ticks; the in-process recorder misses none."""
+    scenario = level_scenario("""\
+        - {at: 2.0, event: stiction, S: 3.0, J: 1.5}
+        - {at: 3.0, event: sp, value: 1.0}
+        """, duration=60.0)
+    out = tmp_path / "rec.csv"
+    await run_scenario(scenario, port=0, time_scale=200.0, record_to=out, record_step=0.2)
+    rec = read_csv(out)
+    steps = np.diff(rec.t)
+    np.testing.assert_allclose(steps, 0.2, atol=1e-9)           # uniform: no late or missing row
+    assert rec.t[-1] >= 59.0
+    assert set(np.unique(rec.extra["S"])) == {0.0, 3.0}        # the instructor's change is in the file
+    assert rec.extra["S"][rec.t >= 2.2].min() == 3.0

@@ -1,7 +1,8 @@
 """A recorder inside the emulator process: one flushed CSV line per tick for each recorded loop.
 
 ``valve-emulator serve --record FILE.csv`` uses it. Each loop's file is the project's standard recording
-(:mod:`valve_emulator.sim.recording`): header ``t,sp,op,mv,pv,flow,tick``, then one row per tick written by
+(:mod:`valve_emulator.sim.recording`): header ``t,sp,op,mv,pv`` then :data:`EXTRA_COLUMNS` (flow, the valve's
+state, the instructor's stiction and faults, the tick), then one row per tick (or every ``every``-th) written by
 :class:`~valve_emulator.sim.recording.CsvRecordingWriter`, which emits every row with a single ``write``
 followed by ``flush``. Once ``write`` has returned the line is in the kernel's page cache, so killing the
 emulator (even ``SIGKILL``) loses at most the line being written, and
@@ -9,9 +10,8 @@ emulator (even ``SIGKILL``) loses at most the line being written, and
 power cut as well needs ``fsync=True``: a disk round trip per row.)
 
 Row ``k`` holds the state at sample instant ``t_k``, as :func:`~valve_emulator.sim.loop.simulate_loop`
-records it: after the bank's step ``t`` has moved on to ``t_{k+1}``, while ``sp, op, mv, pv, flow``
-describe sample ``k``; so ``t = bank.t − dt``, written as ``k·dt`` like the offline recordings. ``tick``
-is the device's tick counter.
+records it: ``t = bank.sample_time``, the time of the values ``sp, op, mv, pv, flow`` describe, written as
+``k·dt`` like the offline recordings. ``tick`` is the device's tick counter.
 
 Disk failures (full, read-only, removed) are reported once per file with the file name and the system's
 reason, that file stops recording, and the device keeps ticking and serving: a recorder must never be the
@@ -33,7 +33,7 @@ from valve_emulator.sim.recording import CsvRecordingWriter
 
 __all__ = ["EXTRA_COLUMNS", "TickRecorder", "recording_paths"]
 
-EXTRA_COLUMNS = ("flow", "tick")
+EXTRA_COLUMNS = ("flow", "stuck", "S", "J", "load", "noise", "seized", "tick")
 _log = logging.getLogger(__name__)
 
 
@@ -54,13 +54,17 @@ class TickRecorder:
     path : the CSV file (one unit) or the name the per-unit files derive from (:func:`recording_paths`).
     units : the units to record (default all, in device order); each must be one of ``device.units``.
     fsync : also ``os.fsync`` every row.
+    every : record every ``every``-th tick (default 1: every tick).
 
     Use ``async with TickRecorder(device, path): ...`` or :meth:`start` / :meth:`stop`. Counters:
     :attr:`rows` (written), :attr:`failed` (unit -> reason for files that stopped).
     """
 
     def __init__(self, device: Any, path: str | Path, *, units: Sequence[int] | None = None,
-                 fsync: bool = False) -> None:
+                 fsync: bool = False, every: int = 1) -> None:
+        if int(every) < 1:
+            raise ValueError(f"every must be a whole number of ticks >= 1, got {every!r}")
+        self.every = int(every)
         units = tuple(device.units if units is None else units)
         unknown = [u for u in units if u not in device.unit_index]
         if not units or unknown or len(set(units)) != len(units):
@@ -120,7 +124,7 @@ class TickRecorder:
         device, k = self.device, self.device.ticks
         while self._writers:
             try:
-                k = await device.wait_for_tick(k + 1)
+                k = await device.wait_for_tick(k + self.every)
             except RuntimeError as exc:   # the tick task failed: there is nothing more to record
                 _log.error("recording stopped at tick %d: %s", device.ticks, exc)
                 return
@@ -129,14 +133,15 @@ class TickRecorder:
     def record(self) -> None:
         """Append the current state of every recorded loop (one row per file)."""
         bank, index = self.device.bank, self.device.unit_index
-        dt = float(bank.dt)
-        t = (round(float(bank.t) / dt) - 1) * dt   # k·dt, as simulate_loop writes it
-        sp, op, mv, pv, flow = bank.sp, bank.op, bank.mv, bank.pv, bank.flow
+        t = float(bank.sample_time)   # k·dt, as simulate_loop writes it
+        sp, op, mv, pv, flow, stuck = bank.sp, bank.op, bank.mv, bank.pv, bank.flow, bank.stuck
+        S, J, load, noise, seized = bank.S, bank.J, bank.load, bank.noise_std, bank.frozen
         tick = float(self.device.ticks)
         for unit, writer in list(self._writers.items()):
             i = index[unit]
             try:
-                writer.write_row(t, sp[i], op[i], mv[i], pv[i], flow[i], tick)
+                writer.write_row(t, sp[i], op[i], mv[i], pv[i], flow[i], float(stuck[i]), S[i], J[i], load[i],
+                                 noise[i], float(seized[i]), tick)
                 self.rows += 1
             except OSError as exc:
                 self._fail(unit, writer, exc)
