@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import signal
-from typing import Awaitable, Callable, TypeVar
+import sys
+from typing import Any, Awaitable, Callable, TypeVar
 
-__all__ = ["run_until_stopped", "pause"]
+__all__ = ["run_until_stopped", "pause", "client_main"]
 
 T = TypeVar("T")
 
@@ -44,3 +46,23 @@ async def pause(delay: float, stop: asyncio.Event | None) -> None:
         await asyncio.wait_for(stop.wait(), timeout=max(delay, 0.0))
     except TimeoutError:
         pass
+
+
+def client_main(prog: str, args: argparse.Namespace, options: Callable[[argparse.Namespace], Any],
+                body: Callable[[Any, asyncio.Event], Awaitable[Any]]) -> int:
+    """The shared ``main`` of the clients: settings from the flags, then run until done or stopped.
+
+    Exit codes: 0 done (also after Ctrl-C / SIGTERM), 1 the device failed (connection, Modbus error),
+    2 bad settings. Errors are one line on stderr, prefixed with ``prog``.
+    """
+    try:
+        opts = options(args)
+    except ValueError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        run_until_stopped(lambda stop: body(opts, stop))
+    except (OSError, ValueError) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 1
+    return 0

@@ -31,7 +31,7 @@ from valve_emulator.device.registers import Status
 
 from clients._channels import Channels, add_channel_arguments, channels_from_args
 from clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
-from clients._run import pause, run_until_stopped
+from clients._run import client_main, pause
 
 __all__ = ["MonitorOptions", "Sample", "valve_state", "render_row", "render_frame", "monitor", "build_parser",
            "main"]
@@ -235,17 +235,8 @@ def options_from_args(args: argparse.Namespace, *, tty: bool) -> MonitorOptions:
 def main(argv: list[str] | None = None) -> int:
     """Exit codes: 0 done (also after Ctrl-C), 1 the device failed, 2 bad flags."""
     args = build_parser().parse_args(argv)
-    try:
-        opts = options_from_args(args, tty=sys.stdout.isatty())
-    except ValueError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
-    try:
-        run_until_stopped(lambda stop: monitor(opts, out=sys.stdout, stop=stop))
-    except (OSError, ValueError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 1
-    return 0
+    return client_main(PROG, args, lambda a: options_from_args(a, tty=sys.stdout.isatty()),
+                       lambda opts, stop: monitor(opts, out=sys.stdout, stop=stop))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -46,7 +46,7 @@ from clients._modbus import (
     ABCD, CDAB, DEFAULT_PORT, DeviceError, Link, Point, Reader, add_connection_arguments,
     check_connection_arguments, parse_point,
 )
-from clients._run import pause, run_until_stopped
+from clients._run import client_main, pause
 from clients._schedule import GridSchedule, WallSchedule
 
 __all__ = ["ControllerSettings", "ControllerSummary", "run_controller", "settings_from_args", "build_parser",
@@ -282,17 +282,8 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
 def main(argv: list[str] | None = None) -> int:
     """Exit codes: 0 stopped cleanly (Ctrl-C, SIGTERM, --duration), 1 the device failed, 2 bad settings."""
     args = build_parser().parse_args(argv)
-    try:
-        settings = settings_from_args(args)
-    except ValueError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
-    try:
-        run_until_stopped(lambda stop: run_controller(settings, stop=stop, log=sys.stderr))
-    except (OSError, ValueError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 1
-    return 0
+    return client_main(PROG, args, settings_from_args,
+                       lambda settings, stop: run_controller(settings, stop=stop, log=sys.stderr))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -45,7 +45,7 @@ from valve_emulator.sim.recording import CsvRecordingWriter
 
 from clients._channels import Channels, add_channel_arguments, channels_from_args
 from clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
-from clients._run import pause, run_until_stopped
+from clients._run import client_main, pause
 from clients._schedule import GridSchedule, WallSchedule
 
 __all__ = ["RecorderOptions", "RecordSummary", "record", "build_parser", "options_from_args", "main"]
@@ -211,18 +211,8 @@ def options_from_args(args: argparse.Namespace) -> RecorderOptions:
 def main(argv: list[str] | None = None) -> int:
     """Exit codes: 0 done (also after Ctrl-C), 1 the device failed, 2 bad flags."""
     args = build_parser().parse_args(argv)
-    try:
-        opts = options_from_args(args)
-    except ValueError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
     progress = None if args.quiet else sys.stderr
-    try:
-        run_until_stopped(lambda stop: record(opts, stop=stop, progress=progress))
-    except (OSError, ValueError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 1
-    return 0
+    return client_main(PROG, args, options_from_args, lambda opts, stop: record(opts, stop=stop, progress=progress))
 
 
 if __name__ == "__main__":  # pragma: no cover
