@@ -1,9 +1,19 @@
-"""``valve-emulator diagnose REC.csv [--model NOMINAL.yaml] [--json OUT] [--report OUT.md] [--plot OUT.png]``.
+"""``valve-emulator diagnose FILE [--model NOMINAL.yaml] [reader flags] [--json OUT] [--report OUT.md] [--plot OUT.png]``.
 
-Replays the nominal model on the recorded OP, locates the mismatch, names the physics the model leaves out,
-fits it and shows the fit improve (see :mod:`valve_emulator.diagnosis`). The verdict goes to stdout,
-progress to stderr. Inputs are checked before anything is written: a bad recording or config is one error
-line naming the file and line, exit code 2, and no output file.
+With ``--model``: replays the nominal model on the recorded OP, locates the mismatch, names the physics the
+model leaves out, fits it and shows the fit improve (see :mod:`valve_emulator.diagnosis`). Without it — plant
+data — identifies the linear part from the data and answers *stiction*, *no stiction* (and why) or *cannot
+tell* (and why) (:mod:`valve_emulator.diagnosis.assessment`).
+
+FILE is read by :func:`valve_emulator.io.read_recording`: the standard recording CSV, a generic CSV/TSV with
+a column mapping (``--op --pv --sp --time`` or ``--ts``, ``--skip``, ``--decimal``...), or the DCS text export.
+A recording whose time steps jitter (the Modbus recorder's rows can come a tick late) is put on a uniform
+grid — OP held, PV interpolated — and the output says so; a real gap (more than
+:data:`~valve_emulator.diagnosis.resample.MAX_GAP` samples) is refused.
+
+The verdict goes to stdout (after any note on what was done to the data), progress to stderr. Inputs are
+checked before anything is written: a bad file, flag or config is one error line naming the file (and line),
+exit code 2, and no output file.
 """
 
 from __future__ import annotations
@@ -16,17 +26,32 @@ import time
 from pathlib import Path
 
 NAME = "diagnose"
-HELP = "find where a recording and its simulation differ, name the physics the model leaves out, fit it"
+HELP = ("find what a recording's model leaves out (with --model), or whether a plant loop's valve sticks (without): "
+        "name the physics, fit it")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", type=Path, metavar="REC.csv", help="standard recording (t,sp,op,mv,pv; mv/sp may be empty)")
+    p.add_argument("recording", type=Path, metavar="FILE",
+                   help="recording: standard CSV (t,sp,op,mv,pv), generic CSV/TSV (map columns below) or DCS export")
     p.add_argument("--model", type=Path, metavar="NOMINAL.yaml",
-                   help="loop config of the nominal simulation (default: identify a linear model from the data)")
+                   help="loop config of the nominal simulation (default: plant data, identify the linear part)")
     p.add_argument("--json", type=Path, metavar="OUT.json", help="write fit_before, fit_after, findings, verdict")
     p.add_argument("--report", type=Path, metavar="OUT.md", help="write a Markdown report")
-    p.add_argument("--plot", type=Path, metavar="OUT.png", help="write the four-panel figure")
+    p.add_argument("--plot", type=Path, metavar="OUT.png", help="write the figure")
     p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
+    g = p.add_argument_group("reading the file (see valve_emulator.io.read_recording)")
+    g.add_argument("--format", dest="fmt", choices=("auto", "standard", "csv", "dcs"), default="auto",
+                   help="file format (default: detect)")
+    g.add_argument("--op", metavar="COL", help="controller output column (name or 1-based number)")
+    g.add_argument("--pv", metavar="COL", help="process value column")
+    g.add_argument("--sp", metavar="COL", help="set point column")
+    g.add_argument("--time", metavar="COL", help="time column (seconds or date-times)")
+    g.add_argument("--ts", type=float, metavar="SECONDS", help="sample time, when there is no time column")
+    g.add_argument("--skip", type=int, default=0, metavar="N", help="lines to skip before the header")
+    g.add_argument("--decimal", choices=(".", ","), default=".", help="decimal mark (default '.')")
+    g.add_argument("--op-units", choices=("%", "mA"), default="%", help="OP's units in the file (default %%)")
+    g.add_argument("--pv-units", default="", metavar="UNITS", help="PV's engineering units (for the report)")
+    g.add_argument("--encoding", default="utf-8", help="text encoding of the file (default utf-8)")
 
 
 def _progress(quiet: bool):
@@ -39,28 +64,82 @@ def _progress(quiet: bool):
     return say
 
 
+def _mapped(args: argparse.Namespace) -> bool:
+    return (any(getattr(args, k) is not None for k in ("op", "pv", "sp", "time", "ts")) or args.skip
+            or args.decimal != "." or args.op_units != "%" or args.encoding.lower().replace("-", "") != "utf8")
+
+
+def _format(args: argparse.Namespace) -> str:
+    """The reader format: as given, except that a comma-separated header starting with ``t`` is the project's
+    standard recording when no mapping is asked for (so a missing standard column is reported as such)."""
+    if args.fmt != "auto" or _mapped(args):
+        return args.fmt
+    try:
+        with open(args.recording, encoding="utf-8", errors="replace") as fh:
+            first = fh.readline()
+    except OSError:
+        return args.fmt  # the reader reports it
+    cells = [c.strip() for c in first.removeprefix("\ufeff").split(",")]
+    return "standard" if len(cells) > 1 and cells[0] == "t" else args.fmt
+
+
+def _read(args: argparse.Namespace):
+    from valve_emulator.diagnosis.resample import MAX_GAP, regularize
+    from valve_emulator.io import read_recording
+
+    loaded = read_recording(args.recording, fmt=_format(args), op=args.op, pv=args.pv, sp=args.sp, time=args.time,
+                            ts=args.ts, skip=args.skip, decimal=args.decimal, op_units=args.op_units,
+                            pv_units=args.pv_units, encoding=args.encoding, gap_factor=MAX_GAP)
+    rec, note = regularize(loaded.recording)
+    return rec, list(loaded.notes) + ([note] if note else [])
+
+
 def run(args: argparse.Namespace) -> int:
     from valve_emulator.config import load_loop
-    from valve_emulator.diagnosis import diagnose
-    from valve_emulator.sim.recording import read_csv
 
+    for flag, p in (("--json", args.json), ("--report", args.report), ("--plot", args.plot)):
+        if p is not None and not p.parent.is_dir():
+            raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
     nominal = load_loop(args.model) if args.model is not None else None
-    rec = read_csv(args.recording)
-    result = diagnose(rec, nominal, progress=_progress(args.quiet))
+    rec, notes = _read(args)
+    say = _progress(args.quiet)
+    if nominal is not None:
+        from valve_emulator.diagnosis import diagnose
+
+        result = diagnose(rec, nominal, progress=say)
+        verdict, data, diag = result.verdict, result.to_json(), result
+        report = result.report
+    else:
+        from valve_emulator.diagnosis.assessment import assess
+
+        a = assess(rec, progress=say)
+        verdict, data, diag = a.verdict, a.to_json(), a.diagnosis
+        notes += list(a.notes)
+        report = a.report
     written = []
     if args.plot:
-        from valve_emulator.diagnosis.plot import plot_diagnosis
+        if diag is not None:
+            from valve_emulator.diagnosis.plot import plot_diagnosis
 
-        plot_diagnosis(result, args.plot)
+            plot_diagnosis(diag, args.plot)
+        else:
+            from valve_emulator.diagnosis.plot_loop import plot_loop
+
+            plot_loop(rec, a, args.plot, title=str(args.recording))
         written.append(args.plot)
     if args.json:
-        args.json.write_text(json.dumps(result.to_json(), indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+        args.json.write_text(json.dumps(data, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
         written.append(args.json)
     if args.report:
         figure = os.path.relpath(args.plot, args.report.parent) if args.plot else None
-        args.report.write_text(result.report(figure=figure), encoding="utf-8")
+        text = report(figure=figure)
+        if notes:
+            text = text.replace("\n\n", "\n\n" + "".join(f"- note: {n}\n" for n in notes) + "\n", 1)
+        args.report.write_text(text, encoding="utf-8")
         written.append(args.report)
-    print(result.verdict)
+    for n in dict.fromkeys(notes):
+        print(f"note: {n}")
+    print(verdict)
     if written:
         print("wrote " + ", ".join(str(p) for p in written))
     return 0

@@ -5,6 +5,13 @@ SIGHUP re-reads CONFIG and applies its connection and access settings (``device.
 ``instructor_*``, ``max_connections``, ``idle_timeout``, ``frame_timeout``, ``error_rate``) at once; other
 changes are reported as needing a restart, and an invalid file keeps the running config and logs why.
 ``--read-only`` and ``--max-connections`` win over the file, also after a reload.
+
+Several processes (plant-size fleets, ``docs/scale.md``): ``--processes N --process-index I`` serves
+slice ``I`` of the config's loops (whole units, :func:`valve_emulator.config.layout.partition`) on port
+``PORT + I``; this is what an orchestrator starts once per process or machine. ``--processes N`` alone is
+the same N processes started by this one: the parent prints which port holds which units, forwards
+SIGINT/SIGTERM/SIGHUP to them, and stops them all within a second (a process that does not stop in time
+is killed). If one of them exits on its own, the parent stops the others and exits with status 1.
 """
 
 from __future__ import annotations
@@ -15,8 +22,13 @@ import dataclasses
 import gc
 import logging
 import math
+import queue
+import re
 import signal
+import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 NAME = "serve"
@@ -45,6 +57,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "each unit U goes to FILE_uUUU.csv")
     p.add_argument("--record-unit", type=int, action="append", metavar="U",
                    help="record only this unit (repeatable; one unit records to FILE.csv itself)")
+    p.add_argument("--processes", type=int, default=1, metavar="N",
+                   help="split the loops over N server processes on ports PORT..PORT+N-1, each owning whole "
+                        "units (default 1; one per core)")
+    p.add_argument("--process-index", type=int, metavar="I",
+                   help="serve only slice I (0..N-1) of --processes N, on port PORT+I (for an orchestrator "
+                        "that starts each process itself)")
 
 
 def _check(args: argparse.Namespace) -> None:
@@ -56,6 +74,15 @@ def _check(args: argparse.Namespace) -> None:
         raise ValueError(f"--max-connections must be 1..65535, got {args.max_connections}")
     if args.record_unit and args.record is None:
         raise ValueError("--record-unit needs --record FILE.csv")
+    if args.processes < 1:
+        raise ValueError(f"--processes must be >= 1, got {args.processes}")
+    if args.process_index is not None and not 0 <= args.process_index < args.processes:
+        raise ValueError(f"--process-index must be 0..{args.processes - 1} for --processes {args.processes}, "
+                         f"got {args.process_index}")
+    if args.processes > 1 and args.process_index is None and args.record is not None:
+        raise ValueError("--record with --processes: record in each process (--process-index) instead")
+    if args.port and args.port + args.processes - 1 > 65535:
+        raise ValueError(f"--port {args.port} + --processes {args.processes} runs past port 65535")
 
 
 def apply_overrides(config, *, read_only: bool = False, max_connections: int | None = None):
@@ -69,15 +96,22 @@ def apply_overrides(config, *, read_only: bool = False, max_connections: int | N
 
 
 def reload_config(server, path: Path | None, *, read_only: bool = False,
-                  max_connections: int | None = None) -> bool:
-    """Re-read ``path`` and apply its live settings to ``server``; ``False`` (logged, nothing changed) if bad."""
+                  max_connections: int | None = None, process: tuple[int, int] | None = None) -> bool:
+    """Re-read ``path`` and apply its live settings to ``server``; ``False`` (logged, nothing changed) if bad.
+
+    ``process = (index, count)``: the server runs that slice of the file (``--process-index``).
+    """
     from valve_emulator.config import load_server
+    from valve_emulator.config.layout import server_slice
 
     if path is None:
         _log.warning("config reload: no config file (serving the embedded default device); nothing to reload")
         return False
     try:
-        config = apply_overrides(load_server(path), read_only=read_only, max_connections=max_connections)
+        config = load_server(path)
+        if process is not None:
+            config = server_slice(config, *process)
+        config = apply_overrides(config, read_only=read_only, max_connections=max_connections)
     except (ValueError, OSError) as exc:  # ConfigError is a ValueError and names file, line and key
         _log.error("config reload failed, keeping the running config: %s", exc)
         return False
@@ -87,13 +121,26 @@ def reload_config(server, path: Path | None, *, read_only: bool = False,
     return True
 
 
+def describe_units(config) -> str:
+    """The unit ids of ``config`` for the "listening" line: each with its loop's name, or a summary for fleets."""
+    from valve_emulator.config.layout import unit_ranges
+
+    units = list(dict.fromkeys(lp.device.unit for lp in config.loops))
+    n = len(config.loops)
+    if n == len(units) and n <= 32:
+        return ", ".join(f"{lp.device.unit} ({lp.name})" for lp in config.loops)
+    per_unit = max(lp.device.block for lp in config.loops) + 1
+    return f"{unit_ranges(units)} ({n:,} loops" + (f", up to {per_unit} per unit)" if per_unit > 1 else ")")
+
+
 async def serve(config, *, host: str, port: int, time_scale: float, ready=None, config_path: Path | None = None,
                 record: Path | None = None, record_units=None, read_only: bool = False,
-                max_connections: int | None = None) -> None:
+                max_connections: int | None = None, process: tuple[int, int] | None = None) -> None:
     """Serve until SIGINT/SIGTERM (or cancellation); ``ready(server)`` is called once listening.
 
     SIGHUP reloads ``config_path`` (:func:`reload_config`); ``record`` records ``record_units`` (default
-    all) with :class:`~valve_emulator.device.record.TickRecorder`.
+    all) with :class:`~valve_emulator.device.record.TickRecorder`. ``process = (index, count)`` names the
+    slice this server runs (``config`` is already that slice).
     """
     from valve_emulator.device.guard import binds_all_interfaces
     from valve_emulator.device.record import TickRecorder
@@ -112,14 +159,14 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
             hup = getattr(signal, "SIGHUP", None)
             if hup is not None:  # installed before the "listening" line, which tells a supervisor we are up
                 handlers[hup] = lambda: reload_config(srv, config_path, read_only=read_only,
-                                                      max_connections=max_connections)
+                                                      max_connections=max_connections, process=process)
                 try:
                     loop.add_signal_handler(hup, handlers[hup])
                 except (NotImplementedError, RuntimeError):
                     pass
-            units = ", ".join(f"{u} ({lp.name})" for u, lp in zip(srv.units, config.loops))
-            print(f"valve-emulator: listening on {host}:{srv.port}, unit ids {units}; tick {config.device.tick:g} s, "
-                  f"time-scale {time_scale:g}; Ctrl-C stops", flush=True)
+            who = f"process {process[0]}/{process[1]} " if process is not None else ""
+            print(f"valve-emulator: {who}listening on {host}:{srv.port}, unit ids {describe_units(config)}; "
+                  f"tick {config.device.tick:g} s, time-scale {time_scale:g}; Ctrl-C stops", flush=True)
             if binds_all_interfaces(host):
                 print("valve-emulator: WARNING: bound to all interfaces. Modbus TCP has no authentication: "
                       "anyone who can reach this port can move the valve. Use an isolated network.",
@@ -149,12 +196,24 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
 
 def run(args: argparse.Namespace) -> int:
     from valve_emulator.commands._config import load_server_or_default
+    from valve_emulator.config.layout import server_slice
 
     _check(args)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    cfg = apply_overrides(load_server_or_default(args.config), read_only=args.read_only,
-                          max_connections=args.max_connections)
+    if args.processes > 1 and args.process_index is None:
+        return run_processes(args)
+    process = None if args.process_index is None else (args.process_index, args.processes)
+    fmt = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+    if process is not None:
+        fmt = f"%(asctime)s %(levelname)s [process {process[0]}] %(name)s: %(message)s"
+    logging.basicConfig(level=args.log_level, format=fmt)
+    cfg = load_server_or_default(args.config)
+    if process is not None:
+        cfg = server_slice(cfg, *process)
+    cfg = apply_overrides(cfg, read_only=args.read_only, max_connections=args.max_connections)
     units = [lp.device.unit for lp in cfg.loops]
+    if args.record is not None and any(lp.device.block for lp in cfg.loops):
+        raise ValueError("--record: recording needs one loop per unit id; this config puts several loops behind "
+                         "a unit (fleet.loops_per_unit > 1)")
     for u in args.record_unit or ():
         if u not in units:
             raise ValueError(f"--record-unit {u}: the device has units {units}")
@@ -166,8 +225,115 @@ def run(args: argparse.Namespace) -> int:
         runner = uvloop.run
     else:
         runner = asyncio.run
-    runner(serve(cfg, host=args.host, port=args.port, time_scale=args.time_scale, config_path=args.config,
+    port = args.port + args.process_index if args.port and process is not None else args.port
+    runner(serve(cfg, host=args.host, port=port, time_scale=args.time_scale, config_path=args.config,
                  record=args.record, record_units=args.record_unit, read_only=args.read_only,
-                 max_connections=args.max_connections))
+                 max_connections=args.max_connections, process=process))
     print("valve-emulator: stopped", flush=True)
     return 0
+
+
+# --- several processes started by this one ----------------------------------------------------------------
+
+_LISTENING = re.compile(r"listening on (\S+):(\d+),")
+#: Seconds the parent gives its processes to stop before it kills them (the whole stop stays under 1 s).
+STOP_GRACE = 0.8
+
+
+def _child_argv(args: argparse.Namespace, index: int) -> list[str]:
+    argv = [sys.executable, "-m", "valve_emulator", "serve", str(args.config), "--processes", str(args.processes),
+            "--process-index", str(index), "--host", args.host, "--port", str(args.port),
+            "--time-scale", repr(args.time_scale), "--log-level", args.log_level]
+    if args.uvloop:
+        argv.append("--uvloop")
+    if args.read_only:
+        argv.append("--read-only")
+    if args.max_connections is not None:
+        argv += ["--max-connections", str(args.max_connections)]
+    return argv
+
+
+def run_processes(args: argparse.Namespace) -> int:
+    """Start ``args.processes`` slices as child processes, print the layout, supervise and stop them."""
+    from valve_emulator.commands._config import load_server_or_default
+    from valve_emulator.config.layout import partition
+
+    if args.config is None:
+        raise ValueError("--processes needs a CONFIG with at least that many unit ids")
+    config = load_server_or_default(args.config)   # fail here, once, rather than in N children
+    slices = partition(config, args.processes)
+    total, tick = len(config.loops), config.device.tick
+    del config
+    events: queue.Queue = queue.Queue()
+    procs = [subprocess.Popen(_child_argv(args, i), stdout=subprocess.PIPE, text=True, bufsize=1)
+             for i in range(args.processes)]
+
+    def relay(i: int, proc: subprocess.Popen) -> None:
+        listening = False
+        for line in proc.stdout:
+            m = None if listening else _LISTENING.search(line)
+            if m:
+                listening = True
+                events.put(("ready", i, (m.group(1), int(m.group(2)))))
+            else:
+                print(f"[process {i}] {line}", end="", flush=True)
+        events.put(("exit", i, None))
+
+    relays = [threading.Thread(target=relay, args=(i, proc), daemon=True, name=f"serve-relay-{i}")
+              for i, proc in enumerate(procs)]
+    for thread in relays:
+        thread.start()
+    forwarded = (signal.SIGINT, signal.SIGTERM) + ((signal.SIGHUP,) if hasattr(signal, "SIGHUP") else ())
+    previous = {sig: signal.signal(sig, lambda sig, _frame: events.put(("signal", sig, None))) for sig in forwarded}
+    hup = getattr(signal, "SIGHUP", None)
+    ready: dict[int, tuple[str, int]] = {}
+    status = 0
+    try:
+        while True:
+            try:
+                kind, i, info = events.get(timeout=0.5)   # a timeout keeps the signal handlers responsive
+            except queue.Empty:
+                continue
+            if kind == "ready":
+                ready[i] = info
+                if len(ready) == len(procs):
+                    print(f"valve-emulator: {len(procs)} processes serve {total:,} loops; tick {tick:g} s, "
+                          f"time-scale {args.time_scale:g}; Ctrl-C stops", flush=True)
+                    for p, part in enumerate(slices):
+                        host, port = ready[p]
+                        print(f"valve-emulator: process {p} (pid {procs[p].pid}) listening on {host}:{port}, "
+                              f"{part.describe()}", flush=True)
+            elif kind == "signal" and i == hup:   # reload: each process re-reads the file itself
+                for proc in procs:
+                    if proc.poll() is None:
+                        proc.send_signal(i)
+            elif kind == "signal":
+                break
+            else:  # a process ended although nobody asked it to
+                code = procs[i].wait()
+                print(f"valve-emulator: process {i} exited with status {code}; stopping the others",
+                      file=sys.stderr, flush=True)
+                status = 1
+                break
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        _stop_all(procs)
+        for thread in relays:   # let the processes' last lines out before ours
+            thread.join(timeout=0.1)
+    print("valve-emulator: stopped", flush=True)
+    return status
+
+
+def _stop_all(procs: list[subprocess.Popen]) -> None:
+    """SIGTERM every running child, wait up to :data:`STOP_GRACE` s in total, then kill the rest."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    deadline = time.monotonic() + STOP_GRACE
+    for proc in procs:
+        try:
+            proc.wait(timeout=max(deadline - time.monotonic(), 0.0))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

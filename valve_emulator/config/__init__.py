@@ -4,6 +4,7 @@ Downstream code takes these typed objects, never dicts; use ``dataclasses.replac
 result is validated again).
 """
 
+from valve_emulator.config.layout import Slice, partition, server_slice
 from valve_emulator.config.loader import load_loop, load_server, loop_from_mapping, server_from_mapping
 from valve_emulator.config.schema import (
     ConfigError,
@@ -26,9 +27,12 @@ __all__ = [
     "PlantConfig",
     "ServerConfig",
     "SimulationConfig",
+    "Slice",
     "ValveConfig",
     "load_loop",
     "load_server",
     "loop_from_mapping",
+    "partition",
     "server_from_mapping",
+    "server_slice",
 ]

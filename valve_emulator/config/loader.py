@@ -25,7 +25,7 @@ from typing import Any, Callable, NoReturn
 import yaml
 
 from valve_emulator.config.schema import (
-    DISTURBANCES, KEYS, MAX_UNIT, ConfigError, ControllerConfig, DeviceConfig, DisturbanceConfig,
+    DISTURBANCES, KEYS, MAX_BLOCKS, MAX_UNIT, ConfigError, ControllerConfig, DeviceConfig, DisturbanceConfig,
     LoopConfig, PlantConfig, ServerConfig, SimulationConfig, ValveConfig, choice, integer, real, sequence,
 )
 from valve_emulator.physics.plant import fopdt, integrator, transfer_function_to_zoh
@@ -265,19 +265,27 @@ def _vary(ctx: _Context, value: Any) -> dict[str, tuple[float, float]]:
 def _fleet(ctx: _Context, value: Any, device: DeviceConfig, used: set[int]) -> list[LoopConfig]:
     """Expand ``fleet`` into concrete loops on the lowest free units from ``first_unit``.
 
+    With ``loops_per_unit = L`` each of those units carries ``L`` loops in blocks ``0..L-1`` (the last one
+    possibly fewer): loop k sits on the (k // L)-th free unit, block k % L, so a fleet of N loops needs
+    ``ceil(N / L)`` units and one port holds up to 247 × 2048 loops.
+
     Each varied quantity has its own random stream, ``random.Random("valve_emulator.fleet/<seed>/<key>")``
     (string seeds are hashed with SHA-512, so the stream is the same in every process), and loop k takes
-    the k-th draw of ``uniform(lo, hi)``: adding a ``vary`` entry does not change the others' values.
+    the k-th draw of ``uniform(lo, hi)``: adding a ``vary`` entry does not change the others' values, and
+    neither does ``loops_per_unit`` (only where each loop answers).
     """
     m = ctx.section(value, "fleet", KEYS["fleet"], none_ok=False)
     ctx.require(m, "fleet", "count", "base")
     count = ctx.call("", integer, m["count"], "fleet.count", ge=1)
     first = ctx.call("", integer, m.get("first_unit", 1), "fleet.first_unit", ge=1, le=MAX_UNIT)
+    per_unit = ctx.call("", integer, m.get("loops_per_unit", 1), "fleet.loops_per_unit", ge=1, le=MAX_BLOCKS)
     seed = ctx.call("", integer, m.get("seed", 0), "fleet.seed", ge=0)
     free = [u for u in range(first, MAX_UNIT + 1) if u not in used]
-    if count > len(free):
-        ctx.fail("fleet.count", f"{{key}} must be <= {len(free)} (units {first}..{MAX_UNIT} not used by "
-                 f"loops), got {count}")
+    if count > len(free) * per_unit:
+        times = f" × loops_per_unit {per_unit}" if per_unit > 1 else ""
+        hint = "" if per_unit > 1 else " (more loops: put several behind each unit with fleet.loops_per_unit)"
+        ctx.fail("fleet.count", f"{{key}} must be <= {len(free) * per_unit} (units {first}..{MAX_UNIT} not used "
+                 f"by loops{times}), got {count}{hint}")
     base_m = ctx.section(m["base"], "fleet.base", KEYS["fleet.base"], none_ok=False)
     base = _loop(ctx, base_m, "fleet.base", device=dataclasses.replace(device, unit=free[0]),
                  default_name="fleet")
@@ -287,8 +295,9 @@ def _fleet(ctx: _Context, value: Any, device: DeviceConfig, used: set[int]) -> l
         _check_discretisation(ctx, worst, base.simulation.dt, "fleet.vary")
     streams = {k: random.Random(f"valve_emulator.fleet/{seed}/{k}") for k in ranges}
     loops = []
-    for unit in free[:count]:
-        draw = {k: streams[k].uniform(*ranges[k]) for k in KEYS["fleet.vary"] if k in ranges}
+    for k in range(count):
+        unit, block = free[k // per_unit], k % per_unit
+        draw = {q: streams[q].uniform(*ranges[q]) for q in KEYS["fleet.vary"] if q in ranges}
         valve, plant = base.valve, base.plant
         if "S" in draw or "J" in draw:  # the typed seed-paper form no longer describes this valve
             valve = dataclasses.replace(valve, S=draw.get("S", valve.S), J=draw.get("J", valve.J),
@@ -296,8 +305,9 @@ def _fleet(ctx: _Context, value: Any, device: DeviceConfig, used: set[int]) -> l
         if "gain" in draw or "delay" in draw:
             plant = dataclasses.replace(plant, num=tuple(c * draw.get("gain", 1.0) for c in plant.num),
                                         delay=draw.get("delay", plant.delay))
-        loops.append(dataclasses.replace(base, name=f"{base.name}_{unit:03d}", valve=valve, plant=plant,
-                                         device=dataclasses.replace(device, unit=unit)))
+        name = f"{base.name}_{unit:03d}" + (f"_{block:04d}" if per_unit > 1 else "")
+        loops.append(dataclasses.replace(base, name=name, valve=valve, plant=plant,
+                                         device=dataclasses.replace(device, unit=unit, block=block)))
     return loops
 
 

@@ -26,7 +26,8 @@ from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_MA_TABL
 from valve_emulator.physics.stiction import MODELS, seed_to_2005
 
 __all__ = [
-    "ACTIONS", "CHARACTERISTICS", "DISTURBANCES", "KEYS", "MAX_UNIT", "MODELS", "MODES", "WORD_ORDERS",
+    "ACTIONS", "CHARACTERISTICS", "DISTURBANCES", "KEYS", "MAX_BLOCKS", "MAX_UNIT", "MODELS", "MODES",
+    "WORD_ORDERS",
     "ConfigError", "ControllerConfig", "DeviceConfig", "DisturbanceConfig", "LoopConfig", "PlantConfig",
     "ServerConfig", "SimulationConfig", "ValveConfig",
 ]
@@ -36,6 +37,9 @@ ACTIONS = ("reverse", "direct")
 MODES = ("auto", "manual")
 WORD_ORDERS = ("ABCD", "CDAB")
 MAX_UNIT = 247  # highest Modbus unit (slave) id a server may answer as
+# Most loops behind one unit id: blocks of 32 registers fill the 16-bit address space (the register map,
+# valve_emulator.device.registers.MAX_BLOCKS, says the same; a test keeps them equal).
+MAX_BLOCKS = 2048
 
 _LOOP_SECTIONS = ("name", "description", "valve", "plant", "controller", "simulation")
 _DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts", "read_only",
@@ -62,7 +66,7 @@ KEYS: dict[str, tuple[str, ...]] = {
     "server": ("device", "loops", "fleet"),
     "server.device": _DEVICE[1:],
     "loops[i]": _LOOP_SECTIONS + ("unit",),
-    "fleet": ("count", "first_unit", "seed", "base", "vary"),
+    "fleet": ("count", "first_unit", "loops_per_unit", "seed", "base", "vary"),
     "fleet.base": _LOOP_SECTIONS,
     "fleet.vary": ("S", "J", "gain", "delay"),
 }
@@ -366,6 +370,8 @@ class DeviceConfig:
     """
 
     unit: int | None = 1            # Modbus unit id 1..247
+    block: int = 0                  # 0..MAX_BLOCKS-1, the loop's block of 32 registers within its unit
+                                    # (fleet.loops_per_unit > 1; set by the fleet, not a YAML key)
     tick: float = 0.1               # s > 0, simulated time per tick (= real-time period at time-scale 1)
     word_order: str = "ABCD"        # ABCD | CDAB, register order of float32 / uint32 values
     instructor_writes: bool = False  # allow writes to S, J and fault-injection registers
@@ -389,6 +395,7 @@ class DeviceConfig:
                 raise ConfigError(f"{{key}} must be an IP address, got {host!r}",
                                   key=f"instructor_hosts[{i}]") from None
         _set(self, unit=None if self.unit is None else integer(self.unit, "unit", ge=1, le=MAX_UNIT),
+             block=integer(self.block, "block", ge=0, le=MAX_BLOCKS - 1),
              tick=real(self.tick, "tick", gt=0), word_order=choice(self.word_order, "word_order", WORD_ORDERS),
              instructor_writes=boolean(self.instructor_writes, "instructor_writes"),
              instructor_hosts=tuple(hosts), read_only=boolean(self.read_only, "read_only"),
@@ -433,24 +440,36 @@ class LoopConfig:
 
 @dataclass(frozen=True, slots=True)
 class ServerConfig:
-    """A Modbus server: server-wide device settings and one or more loops on distinct units."""
+    """A Modbus server: server-wide device settings and one or more loops on distinct addresses.
+
+    A loop's address is ``(device.unit, device.block)``. The blocks of one unit must be ``0 .. B−1``
+    without gaps (a fleet with ``loops_per_unit`` > 1 fills them in order).
+    """
 
     device: DeviceConfig            # server-wide keys; its unit is None (units are per loop)
-    loops: tuple[LoopConfig, ...]   # non-empty, units unique
+    loops: tuple[LoopConfig, ...]   # non-empty, (unit, block) addresses unique
     _: KW_ONLY
     source: str = ""
 
     def __post_init__(self) -> None:
         _instance(self.device, "device", DeviceConfig)
         loops = sequence(self.loops, "loops", min_len=1)
-        seen: dict[int, int] = {}
+        seen: dict[tuple[int, int], int] = {}
+        blocks: dict[int, int] = {}
         for i, loop in enumerate(loops):
             _instance(loop, f"loops[{i}]", LoopConfig)
-            unit = loop.device.unit
-            if unit in seen:
-                j = seen[unit]
-                raise ConfigError(f"{{key}} {unit} is already used by loops[{j}] ({loops[j].name!r})",
+            address = (loop.device.unit, loop.device.block)
+            if address in seen:
+                j = seen[address]
+                where = f"{address[0]}" + (f" block {address[1]}" if address[1] else "")
+                raise ConfigError(f"{{key}} {where} is already used by loops[{j}] ({loops[j].name!r})",
                                   key=f"loops[{i}].unit")
-            seen[unit] = i
+            seen[address] = i
+            blocks[address[0]] = max(blocks.get(address[0], 0), address[1] + 1)
+        for unit, count in blocks.items():
+            missing = next((b for b in range(count) if (unit, b) not in seen), None)
+            if missing is not None:
+                raise ConfigError(f"{{key}}: unit {unit} has block {count - 1} but no block {missing}; the blocks "
+                                  f"of a unit must be 0..B-1 without gaps", key="loops")
         _set(self, loops=loops)
         text(self.source, "source")

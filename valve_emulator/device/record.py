@@ -53,6 +53,7 @@ class TickRecorder:
     device : the running device.
     path : the CSV file (one unit) or the name the per-unit files derive from (:func:`recording_paths`).
     units : the units to record (default all, in device order); each must be one of ``device.units``.
+        A device with several loops behind one unit (blocks) is refused with ``ValueError``.
     fsync : also ``os.fsync`` every row.
     every : record every ``every``-th tick (default 1: every tick).
 
@@ -65,6 +66,10 @@ class TickRecorder:
         if int(every) < 1:
             raise ValueError(f"every must be a whole number of ticks >= 1, got {every!r}")
         self.every = int(every)
+        layout = getattr(device, "layout", None)
+        if layout is not None and layout.blocked:
+            raise ValueError("recording needs one loop per unit id; this device has several loops behind a unit "
+                             "(fleet.loops_per_unit > 1)")
         units = tuple(device.units if units is None else units)
         unknown = [u for u in units if u not in device.unit_index]
         if not units or unknown or len(set(units)) != len(units):

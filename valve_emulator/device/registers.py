@@ -69,6 +69,22 @@ Access:
 
 Errors are :class:`RegisterError` (a ``ValueError``) subclasses that name the register; the Modbus
 adapter alone translates them into exception codes. A rejected multi-register write changes nothing.
+
+Many loops per unit id (blocks)
+-------------------------------
+A plant-size fleet (``fleet.loops_per_unit`` > 1, see ``docs/config.md``) puts several loops behind one
+unit id, each in its own *block* of :data:`BLOCK_STRIDE` = 32 registers: loop ``k`` of the unit answers
+at addresses ``32k .. 32k + 30`` with exactly the map above shifted by ``32k``, so loop 3's ``pv`` is
+holding register ``3·32 + 4 = 100``. Address ``32k + 31`` is a pad. A unit of ``B`` blocks spans
+``0 .. 32(B−1) + 30``: at most :data:`MAX_BLOCKS` = 2048 blocks (the 16-bit address space), so one port
+serves up to 247 × 2048 loops.
+
+- Holding reads (FC3 and the read half of FC23) may span blocks: one read of 125 registers polls about
+  four loops, which is how a SCADA driver polls many loops cheaply. Pads read 0.
+- Input reads (FC4) stay inside one block (the input table has holes in every block anyway).
+- Writes stay inside one block; a write that reaches a pad or the next block is an illegal address.
+
+With one block per unit (the default) nothing changes: the unit's map is 0..30 and address 31 is outside it.
 """
 
 from __future__ import annotations
@@ -87,9 +103,11 @@ from valve_emulator.device.scaling import ABCD, CDAB, Scaling
 
 __all__ = [
     "ABCD",
+    "BLOCK_STRIDE",
     "DEFAULT_PORT",
     "CDAB",
     "MAP_VERSION",
+    "MAX_BLOCKS",
     "N_REGISTERS",
     "REGISTERS",
     "INPUT_REGISTERS",
@@ -191,6 +209,11 @@ REGISTERS: Final[tuple[Register, ...]] = (
 # Input registers mirror what a controller cannot write: the read-only rows and the instructor rows.
 INPUT_REGISTERS: Final = tuple(r for r in REGISTERS if r.access in (R, RW_INSTRUCTOR))
 N_REGISTERS: Final = REGISTERS[-1].address + REGISTERS[-1].width
+#: Registers between the starts of consecutive loops of one unit (blocks layout); one pad after the map.
+BLOCK_STRIDE: Final = 32
+#: Most loops (blocks) one unit id can carry: the 16-bit register address space / BLOCK_STRIDE.
+MAX_BLOCKS: Final = 65536 // BLOCK_STRIDE
+assert N_REGISTERS < BLOCK_STRIDE  # a block must hold the whole map
 
 _BY_NAME: Final = {r.name: r for r in REGISTERS}
 _HOLDING_AT: Final = {r.address + w: r for r in REGISTERS for w in range(r.width)}
@@ -229,14 +252,21 @@ def address_of(name: str) -> int:
         raise KeyError(f"no register named {name!r}; known: {', '.join(_BY_NAME)}") from None
 
 
-def check_read(table: str, address: int, count: int) -> None:
-    """Raise :class:`RegisterAddressError` unless ``count`` registers from ``address`` are all mapped."""
+def check_read(table: str, address: int, count: int, *, blocks: int = 1) -> None:
+    """Raise :class:`RegisterAddressError` unless ``count`` registers from ``address`` are all mapped.
+
+    ``blocks`` is the number of loops behind the unit (see *Many loops per unit id*): a holding read may
+    then span blocks (pads read 0), an input read must stay inside one block.
+    """
     end = address + count
-    if count < 1 or address < 0 or end > N_REGISTERS:
-        raise RegisterAddressError(f"{table} registers {address}..{end - 1} outside the map 0..{N_REGISTERS - 1}")
-    if table == "input" and _INPUT_RUN_END[address] < end:
-        raise RegisterAddressError(f"input registers {address}..{end - 1} include unmapped addresses "
-                                   f"(input registers mirror only the read-only holding registers)")
+    last = BLOCK_STRIDE * (blocks - 1) + N_REGISTERS
+    if count < 1 or address < 0 or end > last:
+        raise RegisterAddressError(f"{table} registers {address}..{end - 1} outside the map 0..{last - 1}")
+    if table == "input":
+        offset = address % BLOCK_STRIDE
+        if offset >= N_REGISTERS or _INPUT_RUN_END[offset] < offset + count:
+            raise RegisterAddressError(f"input registers {address}..{end - 1} include unmapped addresses "
+                                       f"(input registers mirror only the read-only holding registers)")
 
 
 def _u16(x: Any, scale: float, lo: int = 0, hi: int = 65535) -> np.ndarray:
@@ -269,46 +299,17 @@ def encode(state: Any, scaling: Scaling, *, tick: int, overruns: int, time: floa
     scaling : the per-unit :class:`Scaling`.
     tick, overruns, time : device counters and simulated time (the same on every unit).
     out : optional preallocated array to fill.
+
+    The device encodes straight into its byte image with the same compiled pass
+    (:func:`valve_emulator.device.image.encode_image`); this returns that pass's words.
     """
-    n, wo = scaling.n, scaling.word_order
-    w = np.zeros((n, N_REGISTERS), dtype=np.int64) if out is None else out
-    op = np.asarray(state.op, dtype=float)
-    ctl = np.asarray(state.has_controller, dtype=bool)
-    auto = np.asarray(state.auto, dtype=bool) & ctl
-    stuck = np.asarray(state.stuck, dtype=bool)
-    w[:, _A["op_pct"]] = _u16(op, 100, 0, 10000)
-    w[:, _A["op_ma"]] = _u16(scaling.op_to_ma(op), 1000)
-    w[:, _A["mv_pct"]] = _u16(state.mv, 100, 0, 10000)
-    w[:, _A["flow_pct"]] = _u16(state.flow, 100, 0, 10000)
-    w[:, _A["pv"]] = _i16(scaling.eng_to_raw(state.pv))
-    w[:, _A["sp"]] = np.where(ctl, _i16(scaling.eng_to_raw(state.sp)), 0)
-    w[:, _A["mode"]] = auto
-    w[:, _A["kc"]] = np.where(ctl, _u16(state.kc, 1000), 0)
-    w[:, _A["ti"]] = np.where(ctl, _ti_raw(state.ti), 0)
-    w[:, _A["td"]] = np.where(ctl, _u16(state.td, 10), 0)
-    w[:, _A["S"]] = _u16(state.S, 100)
-    w[:, _A["J"]] = _u16(state.J, 100)
-    frozen = _optional(state, "frozen", n).astype(bool)
-    w[:, _A["status"]] = (stuck * Status.STUCK + ~stuck * Status.MOVING
-                          + np.asarray(state.sat_low, bool) * Status.SAT_LOW
-                          + np.asarray(state.sat_high, bool) * Status.SAT_HIGH
-                          + ctl * Status.CONTROLLER + auto * Status.AUTO + frozen * Status.SEIZED)
-    w[:, _A["map_version"]] = MAP_VERSION
-    w[:, 14:16] = _words32(np.array([int(tick) & 0xFFFFFFFF]), ">u4", wo)
-    w[:, 16:18] = _words32(np.array([int(overruns) & 0xFFFFFFFF]), ">u4", wo)
-    w[:, 18:20] = _words32(np.array([time]), ">f4", wo)
-    sp = np.where(ctl, np.asarray(state.sp, dtype=float), 0.0)
-    w[:, 20:28] = _words32(np.column_stack([op, state.mv, state.pv, sp]).reshape(-1), ">f4", wo).reshape(n, 8)
-    w[:, _A["load"]] = _i16(_optional(state, "load", n) * 100)
-    w[:, _A["noise"]] = _u16(scaling.eng_to_raw(scaling.pv_lo + _optional(state, "noise_std", n)), 1, 0, 10000)
-    w[:, _A["fault"]] = frozen * Fault.SEIZED
-    return w
+    from valve_emulator.device.image import encode_words  # the image module builds on this one
 
-
-def _optional(state: Any, name: str, n: int) -> np.ndarray:
-    """``state.name`` as a float array (n,), zeros when the state does not model that fault."""
-    value = getattr(state, name, None)
-    return np.zeros(n) if value is None else np.asarray(value, dtype=float)
+    w = encode_words(state, scaling, tick=tick, overruns=overruns, time=time)
+    if out is None:
+        return w
+    out[...] = w
+    return out
 
 
 def _ti_raw(ti: Any) -> np.ndarray:

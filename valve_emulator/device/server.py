@@ -32,7 +32,10 @@ refused write is logged once per client address, register and exception code
 Answers (exception codes):
 
 - unit id without a loop: ``0x0B`` gateway target device failed to respond (logged at DEBUG, no traceback).
-  Only the configured unit ids answer; there is no wildcard unit.
+  Only the configured unit ids answer; there is no wildcard unit. (A server process that runs one slice
+  of a fleet answers the other slices' units this way too: they live behind another port.)
+- units carrying several loops (blocks of 32 registers, see :mod:`~valve_emulator.device.registers`): a
+  holding read may span blocks, an input read and a write must stay inside one block.
 - function codes other than 3, 4, 6, 16, 23: ``0x01`` illegal function.
 - ``read_only`` mode: every write function code (6, 16, 23) gets ``0x01`` illegal function (the server
   does not offer writing at all), and nothing changes.
@@ -66,6 +69,7 @@ from valve_emulator.device.connection import SOCKET_BUFFER, ModbusConnection, Tu
 from valve_emulator.device.guard import ConnectionGuard, RefusalLog, binds_all_interfaces
 from valve_emulator.device.pdu import WRITE_FUNCTIONS, malformed, register_names, write_target
 from valve_emulator.device.registers import (
+    BLOCK_STRIDE,
     RegisterAccessError,
     RegisterAddressError,
     RegisterError,
@@ -124,6 +128,7 @@ class EmulatorServer:
         self.port = port
         self.device = Device.from_config(config, bank=bank, time_scale=time_scale, clock=clock, sleep=sleep,
                                          jitter_size=jitter_size)
+        self._regions = self.device.layout.regions   # unit -> (image start byte, blocks)
         dev = config.device
         self.guard = ConnectionGuard(max_connections=dev.max_connections, idle_timeout=dev.idle_timeout,
                                      frame_timeout=dev.frame_timeout, error_rate=dev.error_rate)
@@ -172,10 +177,11 @@ class EmulatorServer:
         self.guard.configure(max_connections=new.max_connections, idle_timeout=new.idle_timeout,
                              frame_timeout=new.frame_timeout, error_rate=new.error_rate)
         restart = [f"device.{f.name}" for f in dataclasses.fields(new) if f.name not in LIVE_DEVICE_KEYS
-                   and f.name != "unit" and getattr(new, f.name) != getattr(old, f.name)]
+                   and f.name not in ("unit", "block") and getattr(new, f.name) != getattr(old, f.name)]
 
         def shape(cfg: Any) -> list[tuple]:
-            return [(lp.device.unit, lp.name, lp.valve, lp.plant, lp.controller, lp.simulation) for lp in cfg.loops]
+            return [(lp.device.unit, lp.device.block, lp.name, lp.valve, lp.plant, lp.controller, lp.simulation)
+                    for lp in cfg.loops]
 
         if shape(config) != shape(self.config):
             restart.append("loops")
@@ -238,8 +244,8 @@ class EmulatorServer:
         self.requests += 1
         tid, unit, fc = (frame[0] << 8) | frame[1], frame[6], frame[7]
         try:
-            index = self.device.unit_index.get(unit)
-            if index is None:
+            region = self._regions.get(unit)
+            if region is None:
                 raise _Refused(ExcCodes.GATEWAY_NO_RESPONSE, f"no loop on unit {unit}")
             if fc not in _SUPPORTED:
                 raise _Refused(ExcCodes.ILLEGAL_FUNCTION, f"function code {fc} not supported")
@@ -252,7 +258,7 @@ class EmulatorServer:
             request = self._decoder.decode(pdu)
             if request is None:  # cannot happen after _malformed; never let it reach _execute
                 raise _Refused(ExcCodes.ILLEGAL_VALUE, "malformed request")
-            payload = self._execute(fc, request, index, instructor)
+            payload = self._execute(fc, request, unit, region, instructor)
         except RegisterError as exc:
             code = next(c for cls, c in _CODE_OF if isinstance(exc, cls))
             payload = self._refuse(fc, code, unit, exc, frame, peer)
@@ -269,7 +275,8 @@ class EmulatorServer:
         if fc in _WRITES and code != ExcCodes.GATEWAY_NO_RESPONSE and (
                 isinstance(reason, RegisterError) or code == ExcCodes.ILLEGAL_FUNCTION):
             address, count = write_target(fc, frame[7:])
-            span = register_names(address, count)
+            blocked = self._regions[unit][1] > 1   # name the registers inside the loop's block
+            span = register_names(address % BLOCK_STRIDE if blocked else address, count)
             match = _REGISTER_NAME.search(str(reason))
             # one key for everything outside the map: a client scanning addresses must not flood the log
             register = match.group(1) if match else (span[0] if span else "(outside the map)")
@@ -279,25 +286,29 @@ class EmulatorServer:
         response = ExceptionResponse(fc, code)
         return bytes((response.function_code,)) + response.encode()
 
-    def _read(self, fc: int, table: str, index: int, address: int, count: int) -> bytes:
-        check_read(table, address, count)
-        start = index * self.device.stride + 2 * address
+    def _read(self, fc: int, table: str, region: tuple[int, int], address: int, count: int) -> bytes:
+        start, blocks = region
+        check_read(table, address, count, blocks=blocks)
+        start += 2 * address
         return bytes((fc, 2 * count)) + self.device.image[start:start + 2 * count]
 
-    def _execute(self, fc: int, pdu: Any, index: int, instructor: bool) -> bytes:
+    def _write(self, unit: int, address: int, registers: Any, instructor: bool) -> None:
+        index, offset = self.device.layout.locate_write(unit, address, len(registers))
+        self.device.write(index, offset, registers, instructor=instructor)
+
+    def _execute(self, fc: int, pdu: Any, unit: int, region: tuple[int, int], instructor: bool) -> bytes:
         if fc in _READS:
-            return self._read(fc, _READS[fc], index, pdu.address, pdu.count)
-        device = self.device
+            return self._read(fc, _READS[fc], region, pdu.address, pdu.count)
         if fc == 6:
-            device.write(index, pdu.address, pdu.registers, instructor=instructor)
+            self._write(unit, pdu.address, pdu.registers, instructor)
             response = WriteSingleRegisterResponse(address=pdu.address, registers=pdu.registers)
             return b"\x06" + response.encode()
         if fc == 16:
-            device.write(index, pdu.address, pdu.registers, instructor=instructor)
+            self._write(unit, pdu.address, pdu.registers, instructor)
             return b"\x10" + WriteMultipleRegistersResponse(address=pdu.address, count=pdu.count).encode()
-        check_read("holding", pdu.read_address, pdu.read_count)  # refuse before writing anything
-        device.write(index, pdu.write_address, pdu.write_registers, instructor=instructor)
-        return self._read(23, "holding", index, pdu.read_address, pdu.read_count)
+        check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse before writing
+        self._write(unit, pdu.write_address, pdu.write_registers, instructor)
+        return self._read(23, "holding", region, pdu.read_address, pdu.read_count)
 
 
 def _normalise_ip(host: str) -> str:

@@ -2,7 +2,9 @@
 
 Pure asyncio (no pymodbus). One :class:`Device` owns a ``LoopBank`` of ``n`` loops, the register
 :class:`~valve_emulator.device.registers.Scaling` of those loops and the register image the Modbus adapter
-serves (one contiguous ``bytearray``, big-endian words, ``2·N_REGISTERS`` bytes per unit).
+serves (one contiguous ``bytearray`` of big-endian words laid out by
+:class:`~valve_emulator.device.image.ImageLayout`: ``2·N_REGISTERS`` bytes per unit with one loop per
+unit, a region of 32-register blocks per unit when units carry several loops).
 
 Schedule
 --------
@@ -13,8 +15,11 @@ accumulates. Each tick
 
 1. applies the writes received since the previous tick, in arrival order (the last write to a quantity
    wins; OP is then held until the next write),
-2. steps every loop one ``dt`` (``bank.step()``),
-3. re-encodes the register image of every unit.
+2. steps every loop one ``dt`` (``bank.step()``: one compiled call for all loops),
+3. re-encodes the register image of every loop (one compiled pass, :func:`~valve_emulator.device.image.encode_image`).
+
+At plant scale the tick's own compute time matters as much as its lateness: while it runs, no request is
+answered. :attr:`Device.tick_time` keeps the duration of each tick (steps 1–3) next to the lateness.
 
 Lateness ``L = clock() − d_j`` is recorded in a bounded ring buffer (:class:`JitterBuffer`, p50/p99).
 When a tick wakes more than one period late (``L > P``: a slow step, a stalled event loop) it counts one
@@ -44,7 +49,8 @@ from typing import Any, Awaitable, Callable, Sequence
 
 import numpy as np
 
-from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, encode, patch
+from valve_emulator.device.image import ImageLayout, encode_image
+from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, patch
 
 __all__ = ["JitterBuffer", "Device", "TICK_TASK_NAME"]
 
@@ -92,7 +98,7 @@ class JitterBuffer:
 
 
 class Device:
-    """``n`` emulated loops (one per Modbus unit id) behind a register image, advanced by a tick task.
+    """``n`` emulated loops behind a register image, advanced by a tick task.
 
     Parameters
     ----------
@@ -101,55 +107,67 @@ class Device:
         :func:`~valve_emulator.device.registers.encode`; the instructor's fault registers also need
         ``set_load, set_noise, set_frozen``).
     scaling : register scalings of the same ``n`` loops.
-    units : the unit id of each loop, in bank order (unique).
+    units : the unit id of each loop, in bank order (unique unless ``blocks`` tells loops of one unit apart).
+    blocks : the block of each loop inside its unit (default all 0: one loop per unit); see
+        :class:`~valve_emulator.device.image.ImageLayout`.
     time_scale : simulated seconds per real second; ``math.inf`` as fast as possible, ``0`` frozen
         (step with :meth:`advance`).
     clock, sleep : ``time.monotonic`` and ``asyncio.sleep`` unless injected (fake time in tests).
-    jitter_size : capacity of the lateness ring buffer.
+    jitter_size : capacity of the lateness ring buffer (and of :attr:`tick_time`).
+
+    The image is :attr:`image`; loop ``i``'s registers start at byte :attr:`offsets` ``[i]`` (with one loop
+    per unit that is ``i·stride``).
     """
 
-    def __init__(self, bank: Any, scaling: Scaling, *, units: Sequence[int], time_scale: float = 1.0,
+    def __init__(self, bank: Any, scaling: Scaling, *, units: Sequence[int], blocks: Sequence[int] | None = None,
+                 time_scale: float = 1.0,
                  clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> None:
         units = tuple(int(u) for u in units)
         if not (bank.n == scaling.n == len(units)):
             raise ValueError(f"Device: bank ({bank.n}), scaling ({scaling.n}) and units ({len(units)}) "
                              f"must describe the same number of loops")
-        if len(set(units)) != len(units) or not all(0 <= u <= 255 for u in units):
+        if blocks is None and (len(set(units)) != len(units) or not all(0 <= u <= 255 for u in units)):
             raise ValueError(f"Device: units must be unique ids in 0..255, got {units}")
         if not (time_scale >= 0):  # also refuses NaN
             raise ValueError(f"Device: time_scale must be >= 0 (inf = as fast as possible), got {time_scale}")
         if not (bank.dt > 0):
             raise ValueError(f"Device: bank.dt must be > 0, got {bank.dt}")
+        self.layout = ImageLayout(units, blocks)   # checks (unit, block) pairs
         self.bank, self.scaling, self.units = bank, scaling, units
-        self.unit_index = {u: i for i, u in enumerate(units)}
+        #: unit id -> index of its (first) loop, block 0
+        self.unit_index = {u: loops[0] for u, loops in self.layout.loops_of.items()}
         self.time_scale = float(time_scale)
         self.period = float(bank.dt) / self.time_scale if 0 < self.time_scale < math.inf else math.nan
         self.stride = 2 * N_REGISTERS
         self.ticks = 0
         self.overruns = 0
         self.jitter = JitterBuffer(jitter_size)
+        #: duration of each tick (apply writes, step, encode), s: requests wait while it runs
+        self.tick_time = JitterBuffer(jitter_size)
         self.error: BaseException | None = None
         self._clock, self._sleep = clock, sleep
         self._pending: dict[tuple[int, str], float] = {}
         self._waiters: list[tuple[int, int, asyncio.Future]] = []
         self._seq = itertools.count()
         self._task: asyncio.Task | None = None
-        self._words = np.zeros((bank.n, N_REGISTERS), dtype=np.int64)
-        self.image = bytearray(self.stride * bank.n)
+        self.offsets = self.layout.offsets
+        self.image = bytearray(self.layout.size)
         self._refresh()
 
     @classmethod
     def from_config(cls, config: Any, *, bank: Any = None, time_scale: float = 1.0,
                     clock: Callable[[], float] = time.monotonic,
                     sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> "Device":
-        """Device for a ``ServerConfig``: one unit per loop; ``bank`` defaults to a new ``LoopBank``."""
+        """Device for a ``ServerConfig`` (each loop at its ``device.unit`` and ``device.block``); ``bank``
+        defaults to a new ``LoopBank``."""
         if bank is None:
             from valve_emulator.sim.loop import LoopBank  # the bank is heavy; import only when needed
             bank = LoopBank(config.loops, dt=config.device.tick)
         units = [lp.device.unit for lp in config.loops]
-        return cls(bank, Scaling.from_config(config), units=units, time_scale=time_scale, clock=clock,
-                   sleep=sleep, jitter_size=jitter_size)
+        blocks = [lp.device.block for lp in config.loops]
+        return cls(bank, Scaling.from_config(config), units=units, blocks=blocks if any(blocks) else None,
+                   time_scale=time_scale, clock=clock, sleep=sleep, jitter_size=jitter_size)
 
     # --- writes -------------------------------------------------------------------------------------
 
@@ -166,12 +184,12 @@ class Device:
         """
         changes = decode_write(address, values, self.scaling, index, auto=self.effective_auto(index),
                                instructor=instructor)
-        row = self._words[index]
+        start = int(self.offsets[index])
+        row = np.frombuffer(self.image, dtype=">u2", count=N_REGISTERS, offset=start).astype(np.int64)
         for quantity, value in changes:
             self._pending.pop((index, quantity), None)  # re-insert: keep arrival order for the tick
             self._pending[(index, quantity)] = value
             patch(row, quantity, value, self.scaling, index)
-        start = index * self.stride
         self.image[start:start + self.stride] = row.astype(">u2").tobytes()
         return changes
 
@@ -208,16 +226,17 @@ class Device:
     # --- one tick -----------------------------------------------------------------------------------
 
     def _refresh(self) -> None:
-        encode(self.bank, self.scaling, tick=self.ticks, overruns=self.overruns, time=self.bank.sample_time,
-               out=self._words)
-        self.image[:] = self._words.astype(">u2").tobytes()
+        encode_image(self.bank, self.scaling, self.image, self.offsets, tick=self.ticks, overruns=self.overruns,
+                     time=self.bank.sample_time)
 
     def tick(self) -> None:
         """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""
+        start = self._clock()
         self._apply_pending()
         self.bank.step()
         self.ticks += 1
         self._refresh()
+        self.tick_time.add(self._clock() - start)
         waiters = self._waiters
         while waiters and waiters[0][0] <= self.ticks:
             fut = heapq.heappop(waiters)[2]

@@ -2,8 +2,8 @@
 
 ``diagnose(recording, nominal)`` replays the nominal model on the recorded OP, locates the residual, and
 searches a library of candidate physics (``stiction``, ``deadband``, ``dead_time``, ``characteristic``,
-``actuator_lag``; one module each under :mod:`~valve_emulator.diagnosis.candidates`) by Hammerstein
-identification: a global grid over each candidate's parameters, vectorised over candidates, the linear part
+``actuator_lag``, ``saturation``, ``quantization``, ``disturbance``, and ``tuning`` judged on the loop; one
+module each under :mod:`~valve_emulator.diagnosis.candidates`) by Hammerstein identification: a global grid over each candidate's parameters, vectorised over candidates, the linear part
 re-fitted by output error around every one, the dead time searched with them, ranked by BIC and by the
 free-run fit on a held-out part, added while significant. It returns a frozen
 :class:`~valve_emulator.diagnosis.result.Diagnosis` (JSON, verdict, Markdown report; figure in
@@ -16,12 +16,19 @@ state), ``models`` (result records), ``scoring`` (grids through the chain), ``ev
 coarse, scan, refine), ``search`` (the rounds and the significance rule), ``locate``, ``uncertainty``,
 ``result`` (JSON, verdict, report), ``pipeline`` (the whole thing), ``plot``, ``cases`` and ``proof``
 (concealed recordings with a known truth, ``valve-emulator prove``).
+
+Plant data without a model (issue 7): ``output`` (candidates after the plant: backfitting and joint least
+squares), ``crossval`` (two-fold blocked validation), ``resample`` (jittered recordings onto a grid),
+``adequacy`` (when the data cannot tell), ``assessment`` (stiction / no stiction / cannot tell, with the
+reason: ``assess(recording)``), ``plot_loop``, and for ``valve-emulator evaluate`` on a labelled set
+``labelled`` (index, one window), ``scorecard`` (calls, confusion, balanced accuracy) and ``evaluation``.
 """
 
+from valve_emulator.diagnosis.assessment import Assessment, assess
 from valve_emulator.diagnosis.candidates import Candidate, ChainContext, get, register, registry
-from valve_emulator.diagnosis.pipeline import RULE, diagnose
+from valve_emulator.diagnosis.pipeline import RULE, RULE_TWOFOLD, diagnose
 from valve_emulator.diagnosis.result import Diagnosis, Finding
 from valve_emulator.diagnosis.search import DELTA_BIC, DELTA_FIT
 
-__all__ = ["Candidate", "ChainContext", "DELTA_BIC", "DELTA_FIT", "Diagnosis", "Finding", "RULE", "diagnose",
-           "get", "register", "registry"]
+__all__ = ["Assessment", "Candidate", "ChainContext", "DELTA_BIC", "DELTA_FIT", "Diagnosis", "Finding", "RULE",
+           "RULE_TWOFOLD", "assess", "diagnose", "get", "register", "registry"]

@@ -1,4 +1,4 @@
-r"""The model's signal chain: OP → actuator → valve → characteristic → flow, slot by slot.
+r"""The model's signal chain: OP → actuator → valve → characteristic → limit → flow, slot by slot.
 
 A slot holds either an *active* candidate with fixed parameters, the nominal model's element (the
 nominal valve's S and J, the nominal characteristic; no actuator dynamics), or — for the candidate under
@@ -18,8 +18,9 @@ from valve_emulator.physics.signal_chain import Characteristic
 
 __all__ = ["Active", "CHAIN_SLOTS", "run_chain"]
 
-#: Slots that transform the signal, in order (the dead time is part of the linear fit).
-CHAIN_SLOTS = ("actuator", "valve", "characteristic")
+#: Slots that transform the signal, in order (the dead time is part of the linear fit; ``output`` candidates
+#: act after the plant, see :mod:`~valve_emulator.diagnosis.output`). The nominal model has no limit.
+CHAIN_SLOTS = ("actuator", "valve", "characteristic", "limit")
 
 
 @dataclass(frozen=True, eq=False)

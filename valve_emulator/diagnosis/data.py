@@ -10,6 +10,11 @@ The record of ``T`` samples is split as
                       as ``fit_before``/``fit_after`` is measured here only
 ====================  ======================================================================
 
+That is ``validation="split"``, used with a nominal model. Without one (real data, ``"twofold"``) the fit
+part runs to the end of the record and the held-out fit is cross-validated on two blocks instead
+(:func:`folds`, :mod:`~valve_emulator.diagnosis.crossval`): on plant data the evidence — a valve that
+slips twice in two hours — can all lie in the last 30 %, which a single split would never fit.
+
 PV is centred and scaled by the fit part's mean and standard deviation before fitting (conditioning only:
 the offset regressor absorbs any constant, and BIC differences do not depend on the scale).
 """
@@ -22,12 +27,15 @@ import numpy as np
 
 from valve_emulator.sim.recording import Recording, RecordingError
 
-__all__ = ["Problem", "prepare", "prefilter_for", "HELD_OUT", "MIN_SAMPLES", "fit_percent"]
+__all__ = ["Problem", "prepare", "prefilter_for", "folds", "HELD_OUT", "MIN_SAMPLES", "VALIDATIONS",
+           "fit_percent"]
 
 #: Fraction of the record, at its end, held out from fitting.
 HELD_OUT = 0.3
 #: Fewest samples the diagnosis accepts whatever the model (burn-in, fit part and held-out part).
 MIN_SAMPLES = 200
+#: How the held-out fit is measured: one split (last 30 % held out) or two blocked folds.
+VALIDATIONS = ("split", "twofold")
 #: Burn-in bounds, as fractions of the record.
 _BURN_MIN, _BURN_MAX = 0.05, 0.25
 
@@ -56,6 +64,7 @@ class Problem:
         :func:`~valve_emulator.diagnosis.linear.highpass`), None to fit PV itself; the held-out fit is
         always on PV itself.
     source : the recording's name, for messages.
+    validation : one of :data:`VALIDATIONS`; with ``"twofold"`` the fit part runs to the end.
     """
 
     t: np.ndarray
@@ -70,6 +79,7 @@ class Problem:
     op_span: float
     prefilter: float | None = None
     source: str = ""
+    validation: str = "split"
 
     @property
     def T(self) -> int:
@@ -101,6 +111,20 @@ def prefilter_for(response_time: float, dt: float) -> float:
     return 1.0 - 1.0 / tc
 
 
+def folds(problem: Problem) -> tuple[tuple[tuple[int, int], tuple[int, int]], ...]:
+    """The two blocked folds ``((fit, held out), ...)`` of a ``"twofold"`` problem.
+
+    Fold A fits ``[w0, a)`` and holds out the last :data:`HELD_OUT` ``[a, T)``; fold B fits ``[b, T)`` and
+    holds out ``[w0, b)``, the first :data:`HELD_OUT` after the burn-in. Free-run (output-error)
+    predictions depend on the recorded OP only, never on past PV, so a held-out block may precede the
+    samples fitted without leaking them.
+    """
+    T, w0 = problem.T, problem.train[0]
+    a = int(round((1.0 - HELD_OUT) * T))
+    b = max(w0 + 1, int(round(HELD_OUT * T)))
+    return ((w0, a), (a, T)), ((b, T), (w0, b))
+
+
 def _delay_grid(dt: float, T: int, nominal_delay: float | None) -> np.ndarray:
     """Dead times tried: around the nominal one (±max(4, nominal) samples), or 0..T/20 without a model."""
     if nominal_delay is None:
@@ -111,7 +135,7 @@ def _delay_grid(dt: float, T: int, nominal_delay: float | None) -> np.ndarray:
 
 
 def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: float = 0.0,
-            prefilter: float | None = None) -> Problem:
+            prefilter: float | None = None, validation: str = "split") -> Problem:
     """Check a recording and split it (see the module docstring).
 
     Parameters
@@ -120,6 +144,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     nominal_delay : the nominal model's dead time (s), which centres the dead-time grid; None = no model.
     settle_time : the nominal plant's settling time (s), a lower bound for the burn-in.
     prefilter : see :class:`Problem`.
+    validation : ``"split"`` (hold out the last 30 %) or ``"twofold"`` (fit on all, cross-validate).
 
     Raises
     ------
@@ -127,6 +152,8 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
         Fewer samples than the diagnosis needs (naming the last line of the file), a non-finite value, a
         constant OP or PV, or a non-uniform time axis (lines counted as in the CSV: the header is line 1).
     """
+    if validation not in VALIDATIONS:
+        raise ValueError(f"validation must be one of {', '.join(VALIDATIONS)}, got {validation!r}")
     T = len(rec)
     src = rec.source or "recording"
     dt = rec.dt if T >= 2 else 1.0
@@ -146,7 +173,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
         i = int(np.flatnonzero(np.abs(steps - dt) > 0.01 * dt)[0]) + 1
         raise RecordingError(f"{src}: line {i + 2}: sample step {steps[i - 1]!r} s differs from the median "
                              f"{dt!r} s by more than 1 %; the diagnosis needs uniform sampling")
-    w1 = int(round((1.0 - HELD_OUT) * T))
+    w1 = int(round((1.0 - HELD_OUT) * T)) if validation == "split" else T
     burn = max(int(delays.max()) + 4, int(np.ceil(settle_time / dt)), int(_BURN_MIN * T))
     w0 = min(burn, int(_BURN_MAX * T))
     for name, col in (("op", rec.op), ("pv", rec.pv)):
@@ -161,4 +188,4 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     for a in arrays:
         a.setflags(write=False)
     return Problem(*arrays[:3], arrays[3], y_mean, y_scale, float(dt), (w0, w1), delays,
-                   float(max(hi - lo, 1e-6)), prefilter, src)
+                   float(max(hi - lo, 1e-6)), prefilter, src, validation)

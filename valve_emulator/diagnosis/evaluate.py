@@ -15,6 +15,10 @@ Stages, for every candidate and every dead-time variant (θ held at its current 
 The start that ends with the lowest BIC (plus prior) is the option. Why several starts: a continuous
 parameter trades off against the poles (an actuator lag against the plant's time constant) and stiction's
 coarse cost is rough, so the coarse winner can be an artefact of grid placement.
+
+``output`` candidates (after the plant) are fitted by backfitting instead (:meth:`Evaluator._output_option`,
+:mod:`~valve_emulator.diagnosis.output`): their coarse grid and refinement are scored with the poles held,
+then the best is polished. ``loop`` candidates are not searched.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from valve_emulator.diagnosis.candidates.base import Candidate
 from valve_emulator.diagnosis.chain import Active
 from valve_emulator.diagnosis.linear import LinearStructure
 from valve_emulator.diagnosis.models import Model, Option, Surface
+from valve_emulator.diagnosis.output import backfit
 from valve_emulator.diagnosis.scoring import Scorer
 
 __all__ = ["Evaluator"]
@@ -65,12 +70,27 @@ class Evaluator(Scorer):
         return out
 
     def base(self) -> Model:
-        """Nominal chain with the linear part re-fitted (poles; the dead time too when there is no model)."""
+        """Nominal chain with the linear part re-fitted (poles; the dead time too when there is no model).
+
+        Without a nominal model the identified structure is only a start: the base also tries every pole
+        hypothesis of :meth:`_pole_set` (with the dead-time grid) and keeps the best after polishing, so
+        that no candidate earns its ΔBIC merely by giving the search a second chance at the linear part.
+        """
         ctx = self.ctx(None)
         flow = self.chain({}, ctx)[:, 0]
         free = not self.nominal.given
         fit = self._polish(flow, self.nominal.structure, free)
-        return self.model({}, fit, free, flow)
+        model = self.model({}, fit, free, flow)
+        if self.nominal.given:
+            return model
+        best = None
+        for st in self._pole_set(model):
+            sse, delays = self._sse_flows(flow[:, None], st, self.p.delays)
+            j = int(np.argmin(sse[0]))
+            if best is None or sse[0, j] < best[0]:
+                best = (float(sse[0, j]), replace(st, delay=float(delays[j]) * self.p.dt))
+        other = self.model({}, self._polish(flow, best[1], free), free, flow)
+        return other if other.bic < model.bic else model
 
     def _refine(self, model: Model, cand: Candidate, best: np.ndarray, st: LinearStructure, free: bool):
         """Two passes of fine grid + polish around ``best``; returns (active, fit, flow, fine Surface)."""
@@ -127,8 +147,50 @@ class Evaluator(Scorer):
         surf = Surface(cand.name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
         return Option((cand.name,), self.model(active, fit, True, flow), surf, None, surf)
 
+    def _output_sse(self, model: Model, cand: Candidate, rows: np.ndarray, st: LinearStructure | None = None,
+                    delays: np.ndarray | None = None) -> np.ndarray:
+        """Fit-part SSE of each output-candidate row by a quick backfit (structure ``st``, default the model's;
+        the dead time re-chosen from ``delays`` when given)."""
+        ctx = replace(self.ctx(model), residual=self.p.y - model.y_hat)
+        st = model.fit.structure if st is None else st
+        return np.array([backfit(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, r, ctx,
+                                 prefilter=self.lam, iterations=2, delays=delays).fit.sse for r in rows])
+
+    def _output_option(self, model: Model, cand: Candidate) -> list[Option]:
+        """The option that adds an ``output`` candidate: its grid by quick backfits from every pole hypothesis
+        (dead time on the grid when free), the refinement at the best structure, then the best row polished
+        (see :mod:`~valve_emulator.diagnosis.output`)."""
+        ctx = replace(self.ctx(model), residual=self.p.y - model.y_hat)
+        if not cand.applicable(ctx):
+            return []
+        grid = cand.grid(ctx)
+        if grid.shape[0] == 0:
+            return []
+        delays = self.p.delays if model.delay_free else None
+        best = None
+        for st in self._pole_set(model):
+            sse = self._output_sse(model, cand, grid, st, delays)
+            score = self.p.n_fit * np.log(max(float(sse.min()), 1e-300)) + self._prior_penalty(st)
+            if best is None or score < best[0]:
+                best = (score, st, sse)
+        _, st, sse = best
+        fine = cand.refine(ctx, grid[int(np.argmin(sse))])
+        sse_fine = self._output_sse(model, cand, fine, st, delays)
+        row = fine[int(np.argmin(sse_fine))]
+        bf = backfit(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, row, ctx, prefilter=self.lam,
+                     polish_kw=self.polish_kw(model.delay_free), delays=delays)
+        active = model.by_slot()
+        active[cand.slot] = Active(cand, bf.params)
+        m = self.model(active, bf.fit, model.delay_free, model.flow, target=bf.target)
+        return [Option((cand.name,), m, Surface(cand.name, grid, sse, self.p.n_fit), None,
+                       Surface(cand.name, fine, sse_fine, self.p.n_fit))]
+
     def evaluate(self, model: Model, cand: Candidate) -> list[Option]:
         """Options that add ``cand`` to ``model``: coarse grid × pole set, global scan, refinement."""
+        if cand.category == "loop":
+            return []
+        if cand.category == "output":
+            return self._output_option(model, cand)
         if cand.slot == "delay":
             return [self._delay_option(model, cand)]
         ctx = self.ctx(model)
@@ -212,15 +274,23 @@ class Evaluator(Scorer):
         """Cost surface of one active candidate around its final value, the others held (for intervals).
 
         The dead time is profiled over integer samples around its value; other candidates over their
-        refinement grid with the dead time held.
+        :meth:`~valve_emulator.diagnosis.candidates.base.Candidate.profile_grid`, with a free dead time
+        re-chosen within ±3 samples at every row (a profile, not a slice, of the likelihood) and a held one
+        held.
         """
         a = next(x for x in model.active if x.name == name)
         st = model.fit.structure
+        if a.candidate.category == "output":
+            rest = Model(tuple(x for x in model.active if x is not a), model.fit, model.delay_free, model.k,
+                         model.bic, model.heldout, model.y_hat, model.flow)
+            g = a.candidate.refine(self.ctx(model), a.params)
+            return Surface(name, g, self._output_sse(rest, a.candidate, g), self.p.n_fit)
         if a.slot == "delay":
             sse, delays = self._sse_flows(model.flow[:, None], st, self._near(st.delay, 6))
             return Surface(name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
         rest = {k: v for k, v in model.by_slot().items() if k != a.slot}
         ctx = self.ctx(model)
-        g = a.candidate.refine(ctx, a.params)
-        sse, _ = self._sse_grid(rest, ctx, a.candidate, g, st, None)
-        return Surface(name, g, sse[:, 0], self.p.n_fit)
+        g = a.candidate.profile_grid(ctx, a.params)
+        delays = self._near(st.delay, 3) if model.delay_free else None
+        sse, _ = self._sse_grid(rest, ctx, a.candidate, g, st, delays)
+        return Surface(name, g, sse.min(axis=1), self.p.n_fit)

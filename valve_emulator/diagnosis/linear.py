@@ -44,7 +44,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.signal import lfilter
 
-from valve_emulator.diagnosis.linear_kernels import RIDGE, filter_columns, grid_sse
+from valve_emulator.diagnosis.linear_kernels import RIDGE, filter_columns, grid_sse, normal_equations
 
 __all__ = [
     "PRIOR_WIDTH",
@@ -218,27 +218,32 @@ def highpass(x: np.ndarray, lam: float) -> np.ndarray:
 
 
 def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
-            dt: float, *, prefilter: float | None = None) -> LinearFit:
+            dt: float, *, prefilter: float | None = None, extra: np.ndarray | None = None) -> LinearFit:
     """Least-squares fit of the taps and offsets for one input column and a (fractional) delay.
 
     With ``prefilter`` (λ of :func:`highpass`) the fit is done on prefiltered ``y`` and filtered input (no
     trend regressor); the returned fit then predicts prefiltered PV, so use it for its ``sse`` only.
+    ``extra`` (T, m) are further regressors fitted jointly (an additive output term, e.g. a sinusoid); their
+    coefficients are not part of the fit's :meth:`~LinearFit.predict`, which stays the linear part's.
     """
     z = filter_inputs(u, structure, dt)
     if prefilter is not None:
         z, y = highpass(z, prefilter), highpass(y, prefilter)
+        extra = None if extra is None else highpass(extra, prefilter)
     x = _delayed_regressors(z, structure.delay / dt, structure.ntaps)
     T = u.shape[0]
     cols = [x, np.ones((T, 1))]
     trend = structure.integrating and prefilter is None
     if trend:
         cols.append((np.arange(T) / T)[:, None])
+    if extra is not None:
+        cols.append(np.asarray(extra, dtype=float).reshape(T, -1))
     X = np.hstack(cols)
     w0, w1 = window
-    Xw, yw = X[w0:w1], y[w0:w1]
-    G = Xw.T @ Xw
+    Xw, yw = np.ascontiguousarray(X[w0:w1]), np.ascontiguousarray(y[w0:w1], dtype=np.float64)
+    G, b = normal_equations(Xw, yw)
     G[np.diag_indices_from(G)] *= 1.0 + RIDGE
-    beta = np.linalg.solve(G + 1e-300 * np.eye(G.shape[0]), Xw.T @ yw)
+    beta = np.linalg.solve(G + 1e-300 * np.eye(G.shape[0]), b)
     res = yw - Xw @ beta
     nt = structure.ntaps
     return LinearFit(structure, beta[:nt].copy(), float(beta[nt]), float(beta[nt + 1]) if trend else 0.0,
@@ -247,12 +252,15 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
 
 def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float,
            *, free_delay: bool, delay_bounds: tuple[float, float], prefilter: float | None = None,
-           prior: tuple[float, ...] | None = None, max_evals: int = 200) -> LinearFit:
+           prior: tuple[float, ...] | None = None, max_evals: int = 200,
+           extra: np.ndarray | None = None) -> LinearFit:
     """Refine the real poles (and the dead time when ``free_delay``) by Nelder–Mead on the output error.
 
     The taps and offsets are solved by least squares at every evaluation (variable projection), so the
     search has only ``len(taus) (+1)`` dimensions. Time constants are searched on a log scale and kept
     within [dt/20, 1e3·record length]; the delay within ``delay_bounds`` (s).
+
+    ``extra`` regressors are fitted jointly at every evaluation (see :func:`fit_one`).
 
     ``prior`` (time constants of a nominal model, same count as ``structure.taus``) adds a weak
     log-normal prior, ``Σ ((ln τ − ln τ_nom)/ln 1.5)²`` (:data:`PRIOR_WIDTH`), to ``N ln SSE`` (−2 log
@@ -269,7 +277,7 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     n = window[1] - window[0]
 
     def fit(st: LinearStructure) -> LinearFit:
-        return fit_one(u, y, window, st, dt, prefilter=prefilter)
+        return fit_one(u, y, window, st, dt, prefilter=prefilter, extra=extra)
 
     if taus0.size == 0 and not free_delay:
         return fit(structure)

@@ -28,6 +28,7 @@ class Model:
     heldout: float
     y_hat: np.ndarray   # scaled PV prediction over the whole record
     flow: np.ndarray    # chain output (T,)
+    target: np.ndarray | None = None  # what the linear part was fitted to, when an output candidate made it
 
     def by_slot(self) -> dict[str, Active]:
         return {a.slot: a for a in self.active}

@@ -10,6 +10,11 @@ r"""``diagnose(recording, nominal)``: replay, locate, search the candidate libra
    reduces the residual (windows) and why it was accepted (evidence); ``fit_after`` is the final model's
    held-out fit.
 
+Validation: with a nominal model the last 30 % of the record is held out (``validation="split"``); without
+one — plant data, where the plant is unknown and the evidence may sit anywhere in the record — the search
+fits the whole record and cross-validates on two blocks (``"twofold"``, see
+:mod:`~valve_emulator.diagnosis.crossval`). Either can be asked for explicitly.
+
 Which cost: PV itself, or a high-pass prefiltered PV for an integrating plant (see
 :func:`~valve_emulator.diagnosis.linear.highpass`): the prefilter makes an integrator's cost smooth in the
 valve parameters, but would only throw away a self-regulating plant's slow response. With a nominal model
@@ -27,7 +32,7 @@ import numpy as np
 from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.chain import run_chain
-from valve_emulator.diagnosis.data import Problem, fit_percent, prefilter_for, prepare
+from valve_emulator.diagnosis.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
 from valve_emulator.diagnosis.locate import Located, condition_masks, locate
 from valve_emulator.diagnosis.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.result import Diagnosis, Finding, RankRow, Traces
@@ -35,11 +40,17 @@ from valve_emulator.diagnosis.search import DELTA_BIC, DELTA_FIT, Model, Round, 
 from valve_emulator.diagnosis.uncertainty import intervals
 from valve_emulator.sim.recording import Recording
 
-__all__ = ["diagnose", "RULE"]
+__all__ = ["diagnose", "RULE", "RULE_TWOFOLD"]
 
 RULE = (f"An addition counts when BIC (N ln σ̂² + k ln N on the fit part) falls by at least {DELTA_BIC:g} and the "
         f"free-run fit on the held-out last 30 % rises by at least {DELTA_FIT:g} points, against the current "
         "model and against each of its own sub-options; the lowest-BIC option that counts is added.")
+#: The rule without a nominal model (``validation="twofold"``).
+RULE_TWOFOLD = (f"An addition counts when BIC with an AR(1) error model (N ln σ̂²_w + (k + 1) ln N on the whole "
+                f"record after the burn-in, σ̂_w the prewhitened residual) falls by at least {DELTA_BIC:g} and the "
+                f"free-run fit cross-validated on two blocks (first and last 30 %) rises by at least "
+                f"{DELTA_FIT:g} points, against the current model and against each of its own sub-options; the "
+                "lowest-BIC option that counts is added.")
 
 
 def _replay_nominal(problem: Problem, nominal: Nominal, search: Search) -> np.ndarray:
@@ -112,10 +123,46 @@ def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located) -
     return text + "."
 
 
+def _n_scale(problem: Problem, model: Model) -> float:
+    """Factor turning the fit part's N into an effective sample size for the intervals.
+
+    With white errors (a nominal model, ``"split"``) it is 1. Without one the final residual is autocorrelated
+    and each sample carries less information: for AR(1) errors with lag-1 correlation ρ the variance of an
+    average grows by (1 + ρ)/(1 − ρ) (Bartlett), so N is scaled by (1 − ρ)/(1 + ρ) (at most 1, at least 1/N).
+    """
+    if problem.validation == "split":
+        return 1.0
+    w0, w1 = problem.train
+    r = (problem.y - model.y_hat)[w0:w1]
+    den = float(r[:-1] @ r[:-1])
+    rho = float(np.clip(r[1:] @ r[:-1] / den, 0.0, 0.999)) if den > 0 else 0.0
+    return max((1.0 - rho) / (1.0 + rho), 1.0 / max(r.size, 1))
+
+
+def _slip_interval(search: Search, model: Model, act, n: float) -> tuple[float, float]:
+    """95 % interval of the slip jump J when the accepted valve is a deadband (J = 0 by construction).
+
+    The stiction candidate is scored on S around the deadband's S times J from 0 to S, the rest of the model
+    held; the J extent of the region inside the χ²₂ bound says how large a slip the data still allow.
+    """
+    stc = search.library.get("stiction") or get("stiction")
+    S0, start = float(act.params[0]), float(act.params[-1])
+    hS = max(0.01, search.p.op_span / 160.0)
+    S = S0 + hS * np.arange(-4, 5)
+    S = S[S > 0]
+    J = np.linspace(0.0, max(S0, 1e-3), 25)
+    rows = np.array([(a, b, start) for a in S for b in J])
+    rest = {k: v for k, v in model.by_slot().items() if k != "valve"}
+    search.use(model)
+    sse, _ = search._sse_grid(rest, search.ctx(model), stc, rows, model.fit.structure, None)
+    return intervals(rows, sse[:, 0], n, ("J",), 2, axes=(1,))["J"]
+
+
 def _findings(search: Search, problem: Problem, model: Model, rounds: list[Round], masks, horizon,
               nominal: Nominal) -> tuple[Finding, ...]:
     out = []
     final = {a.name: a for a in model.active}
+    search.use(model)
     for rnd in rounds:
         if rnd.chosen is None:
             continue
@@ -132,7 +179,10 @@ def _findings(search: Search, problem: Problem, model: Model, rounds: list[Round
             surf = search.profile(model, name)
             names = tuple(k for k, v in params.items() if isinstance(v, (int, float)) and k in cand.param_names)
             axes = tuple(cand.param_names.index(k) for k in names)
-            ivs = intervals(surf.params, surf.sse, surf.n, names, cand.n_params, axes=axes) if names else {}
+            n_eff = surf.n * _n_scale(problem, model)
+            ivs = intervals(surf.params, surf.sse, n_eff, names, cand.n_params, axes=axes) if names else {}
+            if name == "deadband":
+                ivs["J"] = (0.0, max(0.0, _slip_interval(search, model, act, n_eff)[1]))
             dbic = without.bic - chosen.model.bic
             nominal_info = {"theta": nominal.delay} if nominal.given else None
             out.append(Finding(name, params, loc.windows, _evidence(dbic, without.heldout, chosen.model.heldout,
@@ -142,10 +192,10 @@ def _findings(search: Search, problem: Problem, model: Model, rounds: list[Round
     return tuple(out)
 
 
-def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib: dict, say):
+def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib: dict, say, validation: str):
     """Prepare, (identify,) search: one pass in one cost domain."""
     problem = prepare(recording, nominal_delay=nom.delay if nom else None,
-                      settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter)
+                      settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter, validation=validation)
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
         nom = identify(problem)
@@ -156,7 +206,7 @@ def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib
 
 def diagnose(recording: Recording, nominal: LoopConfig | None = None, *,
              candidates: Sequence[str] | None = None,
-             progress: Callable[[str], None] | None = None) -> Diagnosis:
+             progress: Callable[[str], None] | None = None, validation: str | None = None) -> Diagnosis:
     """Diagnose what the nominal model leaves out (see the module docstring).
 
     Parameters
@@ -165,6 +215,7 @@ def diagnose(recording: Recording, nominal: LoopConfig | None = None, *,
     nominal : the loop the user believes in; None identifies a linear model (FOPDT or IPDT) from the data.
     candidates : names from the candidate registry (default: all); ``dead_time`` needs a nominal model.
     progress : called with a short message at each stage (the CLI prints them on stderr).
+    validation : ``"split"`` or ``"twofold"`` (default: split with a nominal model, two-fold without).
 
     Raises
     ------
@@ -176,24 +227,26 @@ def diagnose(recording: Recording, nominal: LoopConfig | None = None, *,
     start = time.perf_counter()
     say = progress or (lambda msg: None)
     lib = registry() if candidates is None else {n: get(n) for n in candidates}
+    validation = validation or ("split" if nominal is not None else "twofold")
     dt = recording.dt if len(recording) >= 2 else 1.0
     nom = nominal_from_config(nominal, dt) if nominal is not None else None
     if nom is None:
         lib.pop("dead_time", None)  # without a nominal model the dead time is simply identified
-        problem, nom, search, model, rounds = _run(recording, None, None, lib, say)
+        problem, nom, search, model, rounds = _run(recording, None, None, lib, say, validation)
         st = model.fit.structure
         if st.integrating:
             say("the plant integrates: searching again on prefiltered PV")
             lam = prefilter_for(st.delay + sum(st.taus), dt)
-            problem, nom, search, model, rounds = _run(recording, None, lam, lib, say)
+            problem, nom, search, model, rounds = _run(recording, None, lam, lib, say, validation)
     else:
         st = nom.structure
         lam = prefilter_for(st.delay + sum(st.taus), dt) if st.integrating else None
-        problem, nom, search, model, rounds = _run(recording, nom, lam, lib, say)
+        problem, nom, search, model, rounds = _run(recording, nom, lam, lib, say, validation)
     base = rounds[0].baseline if rounds else model
+    test_start = problem.test[0] if validation == "split" else int(round((1.0 - HELD_OUT) * problem.T))
     if nom.given:
         pv_before = _replay_nominal(problem, nom, search)
-        fit_before = fit_percent(problem.pv[problem.test[0]:], pv_before[problem.test[0]:])
+        fit_before = fit_percent(problem.pv[test_start:], pv_before[test_start:])
     else:
         pv_before = problem.to_pv(base.y_hat)
         fit_before = base.heldout
@@ -214,6 +267,9 @@ def diagnose(recording: Recording, nominal: LoopConfig | None = None, *,
                    nominal_valve=(nom.S, nom.J))[:, 0]
     surface, surface_best = _surface(rounds, problem.n_fit)
     traces = Traces(problem.t, problem.op, problem.pv, pv_before, problem.to_pv(base.y_hat),
-                    problem.to_pv(model.y_hat), mv, model.flow, problem.test[0], surface, surface_best)
+                    problem.to_pv(model.y_hat), mv, model.flow, test_start, surface, surface_best)
+    plant = {"gain": model.fit.gain * problem.y_scale, "taus": tuple(st.taus), "delay": st.delay,
+             "integrating": st.integrating, "validation": problem.validation}
     return Diagnosis(problem.source, nom.given, fit_before, base.heldout, model.heldout, findings, located,
-                     _linear_table(nom, model, problem), ranking, traces, RULE, time.perf_counter() - start)
+                     _linear_table(nom, model, problem), ranking, traces,
+                     RULE if validation == "split" else RULE_TWOFOLD, time.perf_counter() - start, plant)

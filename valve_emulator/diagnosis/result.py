@@ -108,6 +108,7 @@ class Diagnosis:
     traces: Traces
     rule: str
     seconds: float = 0.0
+    plant: dict = field(default_factory=dict)  # the fitted linear part, numerically: gain (PV/%), taus, delay
 
     @property
     def verdict(self) -> str:

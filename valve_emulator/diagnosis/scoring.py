@@ -6,14 +6,25 @@ through the chain in chunks of :data:`_CHUNK` rows (the valve simulation is the 
 scored for every requested structure before the next is simulated), filtering each chunk once per structure
 and solving the least-squares problems of all rows and all dead times in one compiled call.
 
-It also owns three choices that must be the same for every model of a problem:
+It also owns the choices that must be the same for every model of a problem:
 
 * the scored samples: the fit part starts after the largest burn-in the candidates claim (a valve's unknown
   initial state must be forgotten before it is scored; capped at :data:`_BURN_CAP` of the record);
 * the cost domain: PV, or high-pass prefiltered PV for an integrating plant
   (:func:`~valve_emulator.diagnosis.linear.highpass`);
 * the weak prior that ties re-fitted time constants to the nominal ones
-  (:data:`~valve_emulator.diagnosis.linear.PRIOR_WIDTH`).
+  (:data:`~valve_emulator.diagnosis.linear.PRIOR_WIDTH`);
+* the target of the linear fits: the scaled PV, or — once a model holds an ``output`` candidate — the
+  target that candidate made of it, held while the model is extended (:meth:`Scorer.use`);
+* the error model BIC assumes. With a nominal model (``validation="split"``) it is white noise,
+  ``BIC = N ln(SSE/N) + k ln N``. Without one (``"twofold"``, plant data) the residual of even the best
+  model is strongly autocorrelated (unmeasured load disturbances are slow), and white-noise BIC would count
+  every one of N correlated samples as independent evidence; there BIC is that of an AR(1) error,
+  :math:`e_k = \rho e_{k-1} + w_k`, with ρ fitted per model (one more parameter):
+  ``BIC = N ln(SSE_w/N) + (k+1) ln N`` with ``SSE_w = Σ (r_k − ρ r_{k−1})²`` the prewhitened residual
+  (the Cochrane–Orcutt transformation; Box, Jenkins & Reinsel, *Time Series Analysis*, §9: a regression
+  with autocorrelated errors scored by its innovations). A slow mismatch the error model already
+  predicts from its own past then counts little; a mismatch at the instants a valve slips counts fully.
 """
 
 from __future__ import annotations
@@ -71,24 +82,37 @@ class Scorer:
         self.say = progress or (lambda msg: None)
         self.dmax = float(problem.delays.max()) * problem.dt
         self.lam = problem.prefilter
-        self.target = problem.y if self.lam is None else highpass(problem.y, self.lam)
         self.prior = nominal.structure.taus if nominal.given else None
+        self.use(None)
+
+    def use(self, model: Model | None) -> None:
+        """Fit the linear part to ``model``'s target from now on (the scaled PV unless it holds an output
+        candidate, see :mod:`~valve_emulator.diagnosis.output`)."""
+        self.y_fit = self.p.y if model is None or model.target is None else model.target
+        self.target = self.y_fit if self.lam is None else highpass(self.y_fit, self.lam)
 
     def ctx(self, model: Model | None) -> ChainContext:
         st = model.fit.structure if model else self.nominal.structure
         return ChainContext(dt=self.p.dt, op=self.p.op, op_span=self.p.op_span,
                             valve_model=self.nominal.valve_model, rest_samples=self.nominal.rest_samples,
                             characteristic=self.nominal.characteristic,
-                            tau_plant=max(st.taus, default=10.0 * self.p.dt), delay=st.delay)
+                            tau_plant=max(st.taus, default=10.0 * self.p.dt), delay=st.delay,
+                            pv=self.p.pv, y_scale=self.p.y_scale, y_mean=self.p.y_mean, window=self.p.train)
 
     def chain(self, active: dict[str, Active], ctx: ChainContext, cand: Candidate | None = None,
               grid: np.ndarray | None = None) -> np.ndarray:
         return run_chain(self.p.op, active, ctx, nominal_valve=(self.nominal.S, self.nominal.J),
                          grid_candidate=cand, grid=grid)
 
-    def model(self, active: dict[str, Active], fit: LinearFit, delay_free: bool, flow: np.ndarray) -> Model:
+    def model(self, active: dict[str, Active], fit: LinearFit, delay_free: bool, flow: np.ndarray, *,
+              target: np.ndarray | None = None) -> Model:
         """Score a fitted model: BIC from the fit-part SSE of ``fit`` (the search domain: prefiltered PV
-        when the problem says so), the held-out fit from a PV-domain fit at the same structure."""
+        when the problem says so), the held-out fit from a PV-domain fit at the same structure.
+
+        ``target`` is what ``fit`` was fitted to (default: the current one, :meth:`use`); with an ``output``
+        candidate in ``active`` the prediction is the candidate's of the linear part's. Without a held-out
+        part (two-fold validation) ``heldout`` is NaN until :mod:`~valve_emulator.diagnosis.crossval` fills it.
+        """
         acts = []
         for a in active.values():
             if a.slot == "delay":  # the dead-time candidate's parameter is the fitted dead time
@@ -96,10 +120,28 @@ class Scorer:
             acts.append(a)
         k = fit.structure.n_params() + int(delay_free) + sum(
             a.candidate.n_params for a in acts if a.slot != "delay")
-        level = fit if self.lam is None else fit_one(flow, self.p.y, self.p.train, fit.structure, self.p.dt)
+        target = self.y_fit if target is None else target
+        level = fit if self.lam is None else fit_one(flow, target, self.p.train, fit.structure, self.p.dt)
         y_hat = level.predict(flow, self.p.dt)
-        return Model(tuple(acts), level, delay_free, k, bic(fit.sse, fit.n, k), self.p.heldout_fit(y_hat),
-                     y_hat, flow)
+        out = active.get("output")
+        if out is not None:
+            y_hat = out.candidate.predict(y_hat, out.params, self.ctx(None))
+        if self.p.validation == "split":
+            score, heldout = bic(fit.sse, fit.n, k), self.p.heldout_fit(y_hat)
+        else:
+            score, heldout = self._ar1_bic(target - level.predict(flow, self.p.dt), k), float("nan")
+        return Model(tuple(acts), level, delay_free, k, score, heldout, y_hat, flow,
+                     target if out is not None else None)
+
+    def _ar1_bic(self, residual: np.ndarray, k: int) -> float:
+        """BIC under an AR(1) error (see the module docstring), on the fit part, in the search's domain."""
+        r = residual if self.lam is None else highpass(residual, self.lam)
+        w0, w1 = self.p.train
+        r = r[w0:w1]
+        den = float(r[:-1] @ r[:-1])
+        rho = float(np.clip(r[1:] @ r[:-1] / den, -0.999, 0.999)) if den > 0 else 0.0
+        w = r[1:] - rho * r[:-1]
+        return bic(float(w @ w), w.size, k + 1)
 
     def _prior_penalty(self, st: LinearStructure) -> float:
         """The weak prior of :func:`~valve_emulator.diagnosis.linear.polish`, for comparing pole sets."""
@@ -109,8 +151,11 @@ class Scorer:
         return float(np.sum((d / PRIOR_WIDTH) ** 2))
 
     def _polish(self, flow, st, free):
-        return polish(flow, self.p.y, self.p.train, st, self.p.dt, free_delay=free,
-                      delay_bounds=(0.0, self.dmax), prefilter=self.lam, prior=self.prior)
+        return polish(flow, self.y_fit, self.p.train, st, self.p.dt, **self.polish_kw(free))
+
+    def polish_kw(self, free: bool) -> dict:
+        """The keyword arguments of every polish of this problem (dead-time bounds, prefilter, prior)."""
+        return dict(free_delay=free, delay_bounds=(0.0, self.dmax), prefilter=self.lam, prior=self.prior)
 
     def _sse_flows(self, flows: np.ndarray, st: LinearStructure, delays: np.ndarray | None) -> tuple:
         """SSE (n, nd) for chain outputs ``flows`` (T, n) and the delays searched (samples).

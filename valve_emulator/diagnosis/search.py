@@ -25,13 +25,19 @@ Threshold parameters sit on boundaries, so likelihood-ratio tests do not apply (
 free-run test guards against fitting noise. The round accepts the option with the lowest BIC that is
 significant against the current model *and* against each of its own sub-options (so "stiction + dead time"
 is accepted only if both parts carry weight). Rounds repeat until no option is significant.
+
+With ``validation="twofold"`` (no nominal model, :mod:`~valve_emulator.diagnosis.data`) BIC is computed on
+the whole record and the held-out fit is the pooled two-fold cross-validated fit
+(:mod:`~valve_emulator.diagnosis.crossval`); it is computed only for the models a significance test needs
+(options whose BIC already passes, their sub-options and the current model) and is NaN for the others.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from valve_emulator.diagnosis.candidates.base import Candidate
+from valve_emulator.diagnosis.crossval import with_cv
 from valve_emulator.diagnosis.evaluate import Evaluator
 from valve_emulator.diagnosis.models import Model, Option, Surface
 
@@ -62,24 +68,35 @@ class Search(Evaluator):
         used = set(model.by_slot())
         out = []
         for cand in self.library.values():
-            if cand.slot in used:
+            if cand.slot in used or cand.category == "loop":
                 continue
             if cand.slot == "delay" and model.delay_free:
                 continue
             out.append(cand)
         return out
 
+    def _validated(self, model: Model) -> Model:
+        """``model`` with a held-out fit (two-fold validation computes it on demand)."""
+        return model if self.p.validation == "split" else with_cv(self, model)
+
     def round(self, model: Model, index: int) -> Round:
+        self.use(model)
         options: list[Option] = []
         cands = self._candidates(model)
         for c, cand in enumerate(cands):
             self.say(f"round {index}: {cand.name} ({c + 1}/{len(cands)})")
             options += self.evaluate(model, cand)
         options.sort(key=lambda o: o.model.bic)
+        model = self._validated(model)
         chosen = None
-        for o in options:
-            subs = [s for s in options if set(s.added) < set(o.added)]
-            if significant(o.model, model) and all(significant(o.model, s.model) for s in subs):
+        for i, o in enumerate(options):
+            if model.bic - o.model.bic < DELTA_BIC:
+                continue  # cannot count whatever its held-out fit (and needs no cross-validation)
+            subs = [j for j, s in enumerate(options) if set(s.added) < set(o.added)]
+            for j in [i, *subs]:
+                options[j] = replace(options[j], model=self._validated(options[j].model))
+            o = options[i]
+            if significant(o.model, model) and all(significant(o.model, options[j].model) for j in subs):
                 chosen = o
                 break
         return Round(model, tuple(options), chosen)
@@ -87,7 +104,7 @@ class Search(Evaluator):
     def run(self) -> tuple[Model, list[Round]]:
         """Base model, then rounds while an option is significant. Returns (final model, rounds)."""
         self.say("fitting the linear part around the nominal chain")
-        model = self.base()
+        model = self._validated(self.base())
         rounds = []
         while self._candidates(model):
             rnd = self.round(model, len(rounds) + 1)
@@ -96,16 +113,17 @@ class Search(Evaluator):
                 break
             self.say(f"round {len(rounds)}: added {rnd.chosen.label} (BIC {model.bic - rnd.chosen.model.bic:.0f} "
                      f"lower, held-out fit {model.heldout:.1f} -> {rnd.chosen.model.heldout:.1f} %)")
-            model = self._rerefine(rnd.chosen.model, rnd.chosen.added)
+            model = self._validated(self._rerefine(rnd.chosen.model, rnd.chosen.added))
         return model, rounds
 
     def _rerefine(self, model: Model, just_added: tuple[str, ...]) -> Model:
         """Refine earlier-accepted grid physics again with the new one in place; keep it if BIC improves."""
+        self.use(model)
         for a in model.active:
-            if a.name in just_added or a.slot == "delay":
+            if a.name in just_added or a.slot == "delay" or a.candidate.category != "chain":
                 continue
             rest = Model(tuple(b for b in model.active if b is not a), model.fit, model.delay_free, model.k,
-                         model.bic, model.heldout, model.y_hat, model.flow)
+                         model.bic, model.heldout, model.y_hat, model.flow, model.target)
             active, fit, flow, _ = self._refine(rest, a.candidate, a.params, model.fit.structure,
                                                 model.delay_free)
             if "delay" in model.by_slot():

@@ -133,8 +133,9 @@ class LoopBank:
         self._vstate = np.zeros((n, NSTATE))
         self._char_kind = np.array([CHARACTERISTICS.index(v.characteristic) for v in valves], dtype=np.int64)
         self._char_r = np.array([v.rangeability for v in valves], dtype=float)
-        self.characteristics = [Characteristic(v.characteristic, v.rangeability) for v in valves]
-        self.tables = [LookupTable(v.ma_table) for v in valves]
+        # Fleets repeat these: build each distinct one once (they are immutable, sharing is safe).
+        self.characteristics = _shared(Characteristic, [(v.characteristic, v.rangeability) for v in valves])
+        self.tables = _shared(LookupTable, [(v.ma_table,) for v in valves])
 
         # controller (a dummy P controller where a loop has none; its output is not used there)
         ctrls = [c.controller for c in loops]
@@ -160,7 +161,10 @@ class LoopBank:
                       self._S, self._J, self._codes)
         mv0 = self._vstate[:, MV]
         flow0 = np.array([ch.flow(m) for ch, m in zip(self.characteristics, mv0)], dtype=float)
-        plants = [transfer_function_to_zoh(c.plant.num, c.plant.den, c.plant.delay, self.dt) for c in loops]
+        # The exact discretisation (three matrix exponentials) dominates building a large bank; loops with the
+        # same transfer function and delay share one (same inputs, same result: nothing is approximated).
+        plants = _shared(transfer_function_to_zoh, [(c.plant.num, c.plant.den, c.plant.delay, self.dt)
+                                                    for c in loops])
         u0 = np.array([c.plant.u0 if c.plant.u0 is not None else f for c, f in zip(loops, flow0)])
         self._plant = PlantBank(plants, u0=u0, pv0=[c.plant.pv0 for c in loops])
         self._plant.reset(flow0)
@@ -168,6 +172,9 @@ class LoopBank:
         # set points, modes
         self._sp = np.array([c.sp if c else c_l.plant.pv0 for c, c_l in zip(ctrls, loops)], dtype=float)
         self._sp_steps = [list(c.sp_steps) if c else [] for c in ctrls]
+        # time of each loop's next scheduled set-point step (inf: none), so a tick finds the due ones
+        # with one vectorised comparison instead of a Python pass over every loop
+        self._sp_next = np.array([s[0][0] if s else math.inf for s in self._sp_steps], dtype=float)
         self._pid.reset(self._plant.pv, self._sp, op_init)
         for i, c in enumerate(ctrls):
             if c is not None and c.mode == "manual":
@@ -265,6 +272,7 @@ class LoopBank:
             raise ValueError(f"sp must be finite, got {value!r}")
         self._sp[i] = value
         self._sp_steps[i] = [s for s in self._sp_steps[i] if s[0] > self.t]
+        self._sp_next[i] = self._sp_steps[i][0][0] if self._sp_steps[i] else math.inf
 
     def set_auto(self, i: int, auto: bool) -> None:
         if auto:
@@ -281,16 +289,18 @@ class LoopBank:
 
     # -- stepping ---------------------------------------------------------------------------------------------
     def _apply_sp_schedule(self, t: float) -> None:
-        for i, steps in enumerate(self._sp_steps):
+        for i in np.flatnonzero(self._sp_next <= t + 1e-9 * self.dt):
+            steps = self._sp_steps[i]
             while steps and steps[0][0] <= t + 1e-9 * self.dt:
                 self._sp[i] = steps.pop(0)[1]
+            self._sp_next[i] = steps[0][0] if steps else math.inf
 
     def _sp_table(self, steps: int) -> np.ndarray:
         """Set point of every loop at each of the next ``steps`` samples (consumes the schedule)."""
         sp = np.empty((steps, self.n))
+        sp[:] = self._sp
         times = (self.k + np.arange(steps)) * self.dt
-        for i in range(self.n):
-            sp[:, i] = self._sp[i]
+        for i in np.flatnonzero(np.isfinite(self._sp_next)):
             for t_s, value in self._sp_steps[i]:
                 sp[times >= t_s - 1e-9 * self.dt, i] = value
             if self._sp_steps[i]:
@@ -298,6 +308,7 @@ class LoopBank:
                 if done:
                     self._sp[i] = done[-1][1]
                 self._sp_steps[i] = [s for s in self._sp_steps[i] if s[0] > times[-1] + 1e-9 * self.dt]
+                self._sp_next[i] = self._sp_steps[i][0][0] if self._sp_steps[i] else math.inf
         return sp
 
     def _unit_noise(self, steps: int) -> np.ndarray:
@@ -369,6 +380,12 @@ class LoopBank:
         if steps:
             self.pv = pv_meas.copy()
         return {"t": times, "sp": sp, **out, "stuck": stuck}
+
+
+def _shared(make, args: list[tuple]) -> list:
+    """``[make(*a) for a in args]``, calling ``make`` once per distinct ``a`` (hashable, immutable results)."""
+    made: dict[tuple, object] = {}
+    return [made[a] if a in made else made.setdefault(a, make(*a)) for a in args]
 
 
 def simulate_loop(config: LoopConfig, duration: float | None = None) -> Recording:

@@ -41,6 +41,12 @@ class Deadband(Candidate):
         rows = [np.column_stack([S, np.full(S.size, start)]) for start in STARTS]
         return np.vstack([best[None, :], *rows])
 
+    def profile_grid(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
+        """S within ±40 % of its estimate (41 values), every start."""
+        S = best[0] * np.linspace(0.6, 1.4, 41)
+        rows = [np.column_stack([S, np.full(S.size, start)]) for start in STARTS]
+        return np.vstack([best[None, :], *rows])
+
     def burn_in(self, ctx: ChainContext) -> int:
         return sync_burn_in(self.apply(ctx.op, self.grid(ctx), ctx))
 

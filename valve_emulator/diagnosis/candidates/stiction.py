@@ -74,6 +74,16 @@ class Stiction(Candidate):
         out = [np.column_stack([SS.ravel(), JJ.ravel(), np.full(SS.size, start)]) for start in STARTS]
         return np.vstack([best[None, :], *out])
 
+    def profile_grid(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
+        """S within ±40 % of its estimate (33 values) × J from 0 to twice its estimate or 0.8 S (25 values),
+        every start: the refinement grid (±2 scan steps) is far narrower than a short record's uncertainty."""
+        S0, J0, _ = best
+        S = S0 * np.linspace(0.6, 1.4, 33)
+        J = np.linspace(0.0, max(2.0 * J0, 0.8 * S0), 25)
+        SS, JJ = np.meshgrid(S, J, indexing="ij")
+        rows = [np.column_stack([SS.ravel(), JJ.ravel(), np.full(SS.size, start)]) for start in STARTS]
+        return np.vstack([best[None, :], *rows])
+
     def burn_in(self, ctx: ChainContext) -> int:
         return sync_burn_in(self.apply(ctx.op, self.grid(ctx), ctx))
 

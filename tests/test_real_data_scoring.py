@@ -1,0 +1,105 @@
+"""Scoring against labels: calls, the valve rule, confusion, balanced accuracy, leave-one-valve-out; the index."""
+
+from __future__ import annotations
+
+import pytest
+
+from valve_emulator.diagnosis.evaluation import Evaluation, misclassified
+from valve_emulator.diagnosis.labelled import read_index
+from valve_emulator.diagnosis.scorecard import (call, confusion, leave_one_valve_out, markdown_table, valve_calls,
+                                                window_calls)
+
+
+def _w(tag, label, decision, name=None, **kw):
+    return {"tag": tag, "label": label, "decision": decision, "name": name or f"{tag}-{decision}",
+            "detectors": {d: {"decision": kw.get(d, "undetermined"), "reason": ""}
+                          for d in ("horch", "he", "bicoherence")}, **kw}
+
+
+def test_calls_map_every_methods_answers():
+    assert [call(d) for d in ("stiction", "no stiction", "cannot tell", "undetermined", "not applicable")] == \
+        ["stiction", "no stiction", "abstain", "abstain", "abstain"]
+
+
+def test_confusion_counts_abstentions_as_not_called_and_balanced_accuracy_known_truth():
+    pairs = [(True, "stiction")] * 3 + [(True, "abstain")] + [(False, "no stiction")] * 5 + [(False, "stiction")]
+    c = confusion(pairs)
+    assert (c.tp, c.fn, c.fp, c.tn) == (3, 1, 1, 5)
+    assert c.sensitivity == 0.75 and c.specificity == pytest.approx(5 / 6)
+    assert c.balanced_accuracy == pytest.approx(0.5 * (0.75 + 5 / 6))
+    assert c.coverage == pytest.approx(0.9)
+    assert c.rows() == [("stiction", 3, 0, 1), ("no stiction", 1, 5, 0)]
+
+
+def test_the_valve_rule_half_of_the_answered_windows_and_abstentions_left_out():
+    res = [_w("A", True, "stiction"), _w("A", True, "no stiction"), _w("A", True, "cannot tell"),   # 1 of 2
+           _w("B", False, "stiction"), _w("B", False, "no stiction"), _w("B", False, "no stiction"),  # 1 of 3
+           _w("C", False, "cannot tell")]                                                          # none
+    v = valve_calls(res, lambda r: r["decision"])
+    assert [v[t]["call"] for t in "ABC"] == ["stiction", "no stiction", "abstain"]
+    assert v["A"]["counts"] == {"stiction": 1, "no stiction": 1, "abstain": 1}
+    assert len(window_calls(res, lambda r: r["decision"])) == 7
+
+
+def test_a_valve_with_two_labels_is_refused():
+    with pytest.raises(ValueError, match="valve 'A' has windows labelled both"):
+        valve_calls([_w("A", True, "stiction"), _w("A", False, "stiction")], lambda r: r["decision"])
+
+
+def test_leave_one_valve_out_chooses_the_threshold_on_the_other_valves():
+    # Each window carries a score; a threshold k calls stiction when score >= k. Valves A, B sticky (scores
+    # 5, 4), C, D not (1, 6). Without D, k = 2 separates A, B from C perfectly, so D is called with k = 2 (a
+    # false positive); without C, k = 2 and k = 7 tie at 50 % and the first of the grid is taken.
+    res = [_w(t, lab, "", score=s) for t, lab, s in (("A", True, 5), ("B", True, 4), ("C", False, 1), ("D", False, 6))]
+    c, chosen = leave_one_valve_out(res, (2.0, 5.0, 7.0), lambda r, k: "stiction" if r["score"] >= k else "no stiction")
+    assert chosen == {"A": 2.0, "B": 2.0, "C": 2.0, "D": 2.0}
+    assert (c.tp, c.fn, c.fp, c.tn) == (2, 0, 1, 1)
+
+
+def test_misclassified_valves_and_their_representative_window():
+    res = [_w("A", True, "cannot tell", "a1"), _w("A", True, "no stiction", "a2"), _w("B", False, "stiction", "b1"),
+           _w("C", False, "no stiction", "c1")]
+    wrong = {tag: r["name"] for tag, _, r in misclassified(res)}
+    assert wrong == {"A": "a2", "B": "b1"}   # a "no stiction" answer says more than an abstention
+
+
+def test_evaluation_tables_put_the_detectors_side_by_side():
+    res = [_w("A", True, "stiction", horch="stiction", S=2.0, J=0.5, S_95=[1.8, 2.2], J_95=[0.3, 0.7],
+              cause="stiction", reason="r"),
+           _w("B", False, "no stiction", he="stiction", cause="linear", reason="r")]
+    ev = Evaluation(res, seconds=3.0, jobs=2, source="set")
+    text = ev.text()
+    for m in ("diagnosis", "horch", "he", "bicoherence"):
+        assert m in text
+    md = ev.markdown()
+    assert "| diagnosis | 100 % | 100 % | 100 % |" in md and "| he | 0 % | 0 % | 0 % |" in md
+    assert "| A-stiction | A | stiction | stiction | 2 | 1.8–2.2 | 0.5 | 0.3–0.7 |" in md
+    assert markdown_table(("a", "b"), [(0.5, 3)]) == "| a | b |\n|---|---|\n| 50 % | 3 |"
+
+
+def test_an_index_names_its_errors_with_file_and_line(tmp_path):
+    (tmp_path / "w1.csv").write_text("t,op,pv\n", encoding="utf-8")
+    idx = tmp_path / "index.csv"
+    idx.write_text("file,label,tag\nw1.csv,stiction,V1\n", encoding="utf-8")
+    items = read_index(tmp_path)
+    assert [(i.label, i.tag, i.name) for i in items] == [(True, "V1", "w1.csv")]
+    idx.write_text("file,label\nw1.csv,maybe\n", encoding="utf-8")
+    with pytest.raises(ValueError, match=r"index.csv: line 2: label 'maybe' is neither stiction"):
+        read_index(idx)
+    idx.write_text("file,label\nnope.csv,stiction\n", encoding="utf-8")
+    with pytest.raises(ValueError, match=r"index.csv: line 2: file 'nope.csv' not found"):
+        read_index(idx)
+    idx.write_text("name,label\n", encoding="utf-8")
+    with pytest.raises(ValueError, match=r"index.csv: line 1: the index has no 'file' column"):
+        read_index(idx)
+
+
+def test_a_folder_without_index_is_labelled_by_its_sub_folders(tmp_path):
+    for sub, name in (("stiction_data", "a.txt"), ("non-stiction_data", "b.txt")):
+        (tmp_path / sub).mkdir()
+        (tmp_path / sub / name).write_text("x", encoding="utf-8")
+    items = read_index(tmp_path)
+    assert [(i.name, i.label) for i in items] == [("non-stiction_data/b.txt", False), ("stiction_data/a.txt", True)]
+    (tmp_path / "misc").mkdir()
+    with pytest.raises(ValueError, match="sub-folder 'misc' says neither"):
+        read_index(tmp_path)

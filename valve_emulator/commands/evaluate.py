@@ -1,0 +1,136 @@
+"""``valve-emulator evaluate DIR_OR_INDEX [--jobs N] [--report OUT.md] [--figures DIR] [--json OUT.json]``.
+
+Runs the plant-data assessment (:mod:`valve_emulator.diagnosis.assessment`) and the comparison detectors on
+every window of a labelled set (:mod:`valve_emulator.diagnosis.labelled`: an ``index.csv`` with ``file`` and
+``label`` columns, or a folder of labelled sub-folders) and prints, for this project's method and each
+detector side by side, the confusion matrices and balanced accuracy per valve and per window, and a per-loop
+table (:mod:`valve_emulator.diagnosis.evaluation`). Progress goes to stderr.
+
+``--jobs N`` runs N windows at a time in worker processes (each with single-threaded compiled kernels, so
+N workers use N cores without oversubscribing them). ``--report`` writes the results as Markdown: into an
+existing file between the markers ``<!-- valve-emulator evaluate: begin -->`` and ``<!-- ... end -->``
+(the text around them is kept), else as a new file. ``--figures`` draws one figure per misclassified valve.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
+from pathlib import Path
+
+NAME = "evaluate"
+HELP = ("assess every window of a labelled set of plant recordings, with the comparison detectors, and score "
+        "them per window and per valve")
+
+BEGIN = "<!-- valve-emulator evaluate: begin -->"
+END = "<!-- valve-emulator evaluate: end -->"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("set", metavar="DIR_OR_INDEX",
+                   help="a labelled set: its index.csv (columns file,label[,tag,loop_type]) or its folder")
+    p.add_argument("--jobs", type=int, default=1, metavar="N", help="windows assessed at once (default %(default)s)")
+    p.add_argument("--report", type=Path, metavar="OUT.md", help="write the results as Markdown (see above)")
+    p.add_argument("--figures", type=Path, metavar="DIR", help="one PNG per misclassified valve (linked from --report)")
+    p.add_argument("--json", type=Path, metavar="OUT.json", help="write every window's result")
+    p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
+
+
+def _init_worker() -> None:
+    import numba
+
+    numba.set_num_threads(1)  # N processes on N cores: compiled parallel kernels would oversubscribe them
+
+
+def _run_all(items, jobs: int, say) -> list[dict]:
+    from valve_emulator.diagnosis.labelled import run_window
+
+    results: list[dict | None] = [None] * len(items)
+
+    def done(i: int, r: dict) -> None:
+        results[i] = r
+        n = sum(x is not None for x in results)
+        say(f"{n}/{len(items)} {r['name']}: {r['decision']}")
+
+    if jobs == 1:
+        for i, item in enumerate(items):
+            done(i, run_window(item))
+    else:
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
+                                 initializer=_init_worker) as pool:
+            futures = {pool.submit(run_window, item): i for i, item in enumerate(items)}
+            for fut in as_completed(futures):
+                done(futures[fut], fut.result())
+    return [r for r in results if r is not None]
+
+
+def _figures(ev, folder: Path, report: Path | None, say) -> None:
+    from valve_emulator.diagnosis.assessment import assess
+    from valve_emulator.diagnosis.evaluation import misclassified
+    from valve_emulator.diagnosis.plot_loop import plot_loop
+    from valve_emulator.diagnosis.resample import regularize
+    from valve_emulator.io import read_recording
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for tag, v, r in misclassified(ev.results):
+        say(f"figure for {tag}")
+        rec, _ = regularize(read_recording(r["path"]).recording)
+        a = assess(rec)
+        name = "".join(c if c.isalnum() else "_" for c in tag) + ".png"
+        label = "stiction" if v["label"] else "no stiction"
+        plot_loop(rec, a, folder / name, title=f"{tag} — labelled {label}; window {r['name']}")
+        path = folder / name
+        ev.figures[tag] = os.path.relpath(path, report.parent) if report else str(path)
+
+
+def _write_report(path: Path, section: str, source: str) -> None:
+    body = f"{BEGIN}\n{section}\n{END}"
+    if path.exists():
+        text = path.read_text(encoding="utf-8")
+        if BEGIN in text and END in text:
+            head, rest = text.split(BEGIN, 1)
+            tail = rest.split(END, 1)[1]
+            path.write_text(head + body + tail, encoding="utf-8")
+            return
+    path.write_text(f"# Evaluation on `{source}`\n\n{body}\n", encoding="utf-8")
+
+
+def run(args: argparse.Namespace) -> int:
+    from valve_emulator.diagnosis.evaluation import Evaluation
+    from valve_emulator.diagnosis.labelled import read_index
+
+    if args.jobs < 1:
+        raise ValueError(f"--jobs must be a whole number >= 1, got {args.jobs}")
+    for flag, p in (("--report", args.report), ("--json", args.json)):
+        if p is not None and not p.parent.is_dir():
+            raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
+    items = read_index(args.set)
+    start = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    jobs = min(args.jobs, len(items))
+    say(f"{len(items)} windows, {jobs} job(s)")
+    results = _run_all(items, jobs, say)
+    ev = Evaluation(results, seconds=time.perf_counter() - start, jobs=jobs, source=str(args.set))
+    if args.figures is not None:
+        _figures(ev, args.figures, args.report, say)
+    print(ev.text())
+    written = []
+    if args.json is not None:
+        args.json.write_text(json.dumps(results, indent=1, ensure_ascii=False, default=float) + "\n",
+                             encoding="utf-8")
+        written.append(args.json)
+    if args.report is not None:
+        _write_report(args.report, ev.markdown(), str(args.set))
+        written.append(args.report)
+    if written:
+        print("wrote " + ", ".join(str(p) for p in written))
+    return 0

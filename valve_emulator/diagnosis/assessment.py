@@ -1,0 +1,246 @@
+r"""Plant data without a plant model: stiction, no stiction (and why), or a polite "cannot tell".
+
+:func:`assess` is what ``valve-emulator diagnose FILE`` (no ``--model``) and ``valve-emulator evaluate``
+run on each loop:
+
+1. **Uniform time** (:func:`~valve_emulator.diagnosis.resample.regularize`): a jittered recorder file is put
+   on a grid, real gaps are refused.
+2. **Can the data tell?** (:func:`~valve_emulator.diagnosis.adequacy.adequacy`): too short, a flat PV, no
+   oscillation and no excitation → ``cannot tell`` with the reason.
+3. **Diagnosis** (:func:`~valve_emulator.diagnosis.pipeline.diagnose`, no nominal model, two-fold
+   validation): the linear part (FOPDT or IPDT with its dead time) is identified together with every
+   candidate — the valve's (``stiction``, ``deadband``, ``actuator_lag``, ``characteristic``), and those
+   that imitate a sticky valve (``saturation``, ``quantization``, ``disturbance``) — in one ranking.
+4. **Decision**, one rule for every loop:
+
+   * ``stiction`` when the diagnosis accepts valve friction (``stiction``, or ``deadband``, its J = 0 case
+     in the 2005 model) and its band S is at least :data:`NOISE_BANDS` noise σ of OP
+     (:func:`~valve_emulator.diagnosis.adequacy.op_noise`). A band inside OP's own jitter cannot make
+     a valve stick and slip — the noise moves it either way — so it is no diagnosis of stiction;
+     3 σ is the package's convention for "beyond noise" (as for OP turning points in
+     :mod:`~valve_emulator.diagnosis.locate`). S and J are reported with 95 % intervals.
+   * ``cannot tell`` when no valve friction is accepted and the final model's cross-validated fit is below
+     :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their mean). Absence of evidence counts only
+     where a model explains the loop well enough for stiction to have shown; a stiction call needs no such
+     bound, its evidence being the improvement over the linear valve.
+   * otherwise ``no stiction``, with the cause: the first accepted non-valve candidate (an external
+     disturbance, a quantised PV, saturation, a flow characteristic, an actuator lag), or, for a loop that
+     cycles regularly, aggressive ``tuning`` when :meth:`~valve_emulator.diagnosis.candidates.tuning.Tuning.
+     assess` finds it, or "the linear model explains the loop". An accepted disturbance is the cause of a
+     regular cycle only when it has the cycle's period (within the tuning test's tolerance); one at another
+     period (a harmonic, a second small cycle) leaves the cycle to the tuning test.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from valve_emulator.diagnosis.adequacy import Adequacy, adequacy, op_noise
+from valve_emulator.diagnosis.candidates import get
+from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
+from valve_emulator.diagnosis.pipeline import diagnose
+from valve_emulator.diagnosis.resample import regularize
+from valve_emulator.diagnosis.result import Diagnosis, Finding
+from valve_emulator.sim.recording import Recording, RecordingError
+
+__all__ = ["Assessment", "assess", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS"]
+
+STICTION, NO_STICTION, CANNOT_TELL = "stiction", "no stiction", "cannot tell"
+#: The three answers.
+DECISIONS = (STICTION, NO_STICTION, CANNOT_TELL)
+#: A valve band S must reach this many OP noise σ to be called stiction.
+NOISE_BANDS = 3.0
+#: Least cross-validated fit (%) of the final model for a "no stiction" answer.
+MIN_FIT = 0.0
+#: Findings that are valve friction (the 2005 model's stiction, and its J = 0 case).
+VALVE_PHYSICS = ("stiction", "deadband")
+#: Order in which other findings name the cause of a "no stiction" answer.
+_CAUSES = ("disturbance", "quantization", "saturation", "characteristic", "actuator_lag", "dead_time")
+
+
+@dataclass(frozen=True, eq=False)
+class Assessment:
+    """The answer for one loop.
+
+    Attributes
+    ----------
+    source : the recording's name.
+    decision : one of :data:`DECISIONS`.
+    cause : the physics behind the answer (``stiction``, ``deadband``, ``disturbance``, ``tuning``,
+        ``linear``, ...; ``""`` for "cannot tell").
+    reason : one sentence saying why.
+    S, J : the valve band and slip jump (% travel) when the decision is stiction (J = 0 for a deadband).
+    intervals : 95 % intervals of ``S`` and ``J``.
+    diagnosis : the diagnosis (None when the data could not support one).
+    adequacy : the checks of step 2.
+    tuning : the loop's tuning judgement, when it was made.
+    notes : what was done to the data (resampling).
+    op_noise : OP noise σ (% travel).
+    band : S of the valve friction the diagnosis accepted, whether or not it was called stiction (None:
+        none accepted), for sensitivity studies of :data:`NOISE_BANDS`.
+    seconds : wall time.
+    """
+
+    source: str
+    decision: str
+    cause: str
+    reason: str
+    S: float | None = None
+    J: float | None = None
+    intervals: dict = field(default_factory=dict)
+    diagnosis: Diagnosis | None = None
+    adequacy: Adequacy | None = None
+    tuning: TuningAssessment | None = None
+    notes: tuple[str, ...] = ()
+    op_noise: float = float("nan")
+    band: float | None = None
+    seconds: float = 0.0
+
+    @property
+    def answer(self) -> str:
+        """``"<decision>: <reason>"``."""
+        return f"{self.decision}: {self.reason}"
+
+    @property
+    def verdict(self) -> str:
+        """The diagnosis' verdict (what the identified model leaves out), then the answer."""
+        if self.diagnosis is None:
+            return self.answer
+        return f"{self.diagnosis.verdict} — answer: {self.answer}"
+
+    @property
+    def stiction(self) -> bool:
+        return self.decision == STICTION
+
+    def to_json(self) -> dict:
+        """The diagnosis JSON (``fit_before``, ``fit_after``, ``findings``, ``verdict``) with this verdict."""
+        if self.diagnosis is None:
+            return {"fit_before": None, "fit_after": None, "findings": [], "verdict": self.verdict}
+        data = self.diagnosis.to_json()
+        data["verdict"] = self.verdict
+        return data
+
+    def summary(self) -> dict:
+        """A flat record for tables: decision, cause, S, J and intervals, fits, time."""
+        d = self.diagnosis
+        iv = {f"{k}_95": [round(a, 4), round(b, 4)] for k, (a, b) in self.intervals.items()}
+        return {"decision": self.decision, "cause": self.cause, "reason": self.reason,
+                "S": None if self.S is None else round(self.S, 4), "J": None if self.J is None else round(self.J, 4),
+                **iv, "fit_before": None if d is None else round(d.fit_before, 2),
+                "fit_after": None if d is None else round(d.fit_after, 2), "band": self.band,
+                "seconds": round(self.seconds, 2)}
+
+    def report(self, *, figure: str | None = None) -> str:
+        """Markdown: the verdict, then the diagnosis report (when there is one)."""
+        head = [f"# Assessment of `{self.source}`", "", f"**Answer — {self.decision}:** {self.reason}", ""]
+        head += [f"- note: {n}" for n in self.notes]
+        if self.tuning is not None:
+            head.append(f"- tuning: {self.tuning.reason}")
+        if self.diagnosis is None:
+            return "\n".join(head) + "\n"
+        body = self.diagnosis.report(figure=figure).split("\n", 1)[1]
+        return "\n".join(head) + "\n" + body
+
+
+def _valve(findings: tuple[Finding, ...]) -> Finding | None:
+    return next((f for f in findings if f.physics in VALVE_PHYSICS), None)
+
+
+def _same_period(a: float, b: float) -> bool:
+    """Periods equal within the tuning test's tolerance (the same cycle)."""
+    return abs(a / b - 1.0) <= PERIOD_TOLERANCE
+
+
+def _fmt_iv(iv: tuple[float, float]) -> str:
+    return f"{iv[0]:.3g}–{iv[1]:.3g}"
+
+
+def _tuning(rec: Recording, d: Diagnosis, facts: dict) -> TuningAssessment | None:
+    if not facts.get("oscillating") or not d.plant:
+        return None
+    p = d.plant
+    return get("tuning").assess(op=rec.op, pv=rec.pv, sp=rec.sp if rec.has_sp else None, dt=rec.dt, gain=p["gain"],
+                                taus=p["taus"], delay=p["delay"], integrating=p["integrating"],
+                                observed_period=facts.get("period", float("nan")))
+
+
+def _decide(rec: Recording, d: Diagnosis, ad: Adequacy, noise: float) -> dict:
+    valve = _valve(d.findings)
+    fits = f"held-out fit {d.fit_before:.0f} % → {d.fit_after:.0f} %"
+    small = ""
+    if valve is not None:
+        S = float(valve.parameters["S"])
+        J = float(valve.parameters.get("J", 0.0))
+        ivs = {k: v for k, v in valve.intervals.items() if k in ("S", "J")}
+        if S >= NOISE_BANDS * noise:
+            iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
+            kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
+            return dict(decision=STICTION, cause=valve.physics, S=S, J=J, intervals=ivs,
+                        reason=f"{kind}, S ≈ {S:.3g} %, J ≈ {J:.3g} % ({iv}); {fits}")
+        small = (f"a valve band S ≈ {S:.3g} % fits, but it is below {NOISE_BANDS:g} OP noise σ "
+                 f"({NOISE_BANDS * noise:.3g} %), where the noise moves such a valve either way; ")
+    if not d.fit_after >= MIN_FIT:
+        return dict(decision=CANNOT_TELL, cause="",
+                    reason=f"{small}no valve friction that could matter improves the model, but the best model "
+                           f"found predicts held-out PV worse than their mean (cross-validated fit "
+                           f"{d.fit_after:.0f} % < {MIN_FIT:g} %): the loop is not explained, so neither is the "
+                           "absence of stiction shown")
+    tune = _tuning(rec, d, ad.facts)
+    ranked = sorted((f for f in d.findings if f.physics in _CAUSES), key=lambda f: _CAUSES.index(f.physics))
+    cycle = ad.facts.get("period", float("nan")) if ad.facts.get("oscillating") else float("nan")
+    dist = next((f for f in ranked if f.physics == "disturbance"), None)
+    if dist is not None and (not np.isfinite(cycle) or _same_period(dist.parameters["period"], cycle)):
+        return dict(decision=NO_STICTION, cause="disturbance", tuning=tune,
+                    reason=f"{small}{dist.description}, not the valve; {fits}")
+    if tune is not None and tune.aggressive:
+        also = f"; also {ranked[0].description}" if ranked else ""
+        return dict(decision=NO_STICTION, cause="tuning", tuning=tune,
+                    reason=f"{small}the loop cycles through its own controller (aggressive tuning): {tune.reason}; "
+                           f"no valve nonlinearity explains it{also}; {fits}")
+    if ranked:
+        return dict(decision=NO_STICTION, cause=ranked[0].physics, tuning=tune,
+                    reason=f"{small}{ranked[0].description}; no valve friction that could matter; {fits}")
+    if small:
+        return dict(decision=NO_STICTION, cause="linear", tuning=tune, reason=f"{small}{fits}")
+    return dict(decision=NO_STICTION, cause="linear", tuning=tune,
+                reason=f"a linear valve and plant explain the loop: no candidate physics improves the model "
+                       f"significantly; {fits}")
+
+
+def assess(recording: Recording, *, progress: Callable[[str], None] | None = None) -> Assessment:
+    """Assess one loop's recording (see the module docstring).
+
+    Raises
+    ------
+    RecordingError
+        A gap in time longer than a few samples, or a non-finite value (the data are unusable as they are,
+        which is a different thing from data that cannot decide).
+    """
+    start = time.perf_counter()
+    say = progress or (lambda msg: None)
+    rec, note = regularize(recording)
+    notes = (note,) if note else ()
+    if note:
+        say(note)
+    src = rec.source or "recording"
+    ad = adequacy(rec)
+    if not ad.ok:
+        return Assessment(src, CANNOT_TELL, "", ad.reason, adequacy=ad, notes=notes,
+                          seconds=time.perf_counter() - start)
+    noise = op_noise(rec.op)
+    try:
+        d = diagnose(rec, None, progress=progress)
+    except RecordingError as exc:  # e.g. PV constant over the fit part: the data cannot decide
+        if "constant" not in str(exc) and "data row(s)" not in str(exc):
+            raise
+        return Assessment(src, CANNOT_TELL, "", str(exc).removeprefix(f"{src}: "), adequacy=ad, notes=notes,
+                          op_noise=noise, seconds=time.perf_counter() - start)
+    out = _decide(rec, d, ad, noise)
+    valve = _valve(d.findings)
+    band = None if valve is None else float(valve.parameters["S"])
+    return Assessment(src, diagnosis=d, adequacy=ad, notes=notes, op_noise=noise, band=band,
+                      seconds=time.perf_counter() - start, **out)

@@ -1,0 +1,74 @@
+r"""Candidate ``saturation``: the flow stops following the valve beyond a limit inside 0–100 %.
+
+A valve that reaches a travel stop early (a positioner range set short, a mechanical limit), or a flow that
+hits a hydraulic limit (a pump at its maximum, a line at choked flow), passes no more flow however far OP
+goes on; the controller then winds up, so OP ramps while PV stays put — which also looks like a stuck
+valve. The model clips the chain signal after the characteristic,
+
+.. math::  \text{flow} = \min(\max(x, \ell), h),
+
+with one active limit (``lo`` = ℓ or ``hi`` = h; the other one at the travel stop, 0 or 100 %), so one
+parameter for BIC. Its signature (notes §5): the residual of a model without it lives where OP sits beyond
+the limit.
+
+Grid: each side at the 2nd … 40th percentiles of OP (``lo``) and the 60th … 98th (``hi``), so that at least
+2 % of the samples lie beyond the limit (fewer could not be told from noise); :meth:`refine` searches
+±1.5 grid steps around the best at a tenth of a step.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+
+__all__ = ["Saturation", "PERCENTILES"]
+
+#: Percentiles of OP tried as a lower limit (and 100 − p as an upper one).
+PERCENTILES = (2.0, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0)
+
+
+class Saturation(Candidate):
+    name: ClassVar[str] = "saturation"
+    slot: ClassVar[str] = "limit"
+    param_names: ClassVar[tuple[str, ...]] = ("lo", "hi")
+    n_params: ClassVar[int] = 1
+
+    def grid(self, ctx: ChainContext) -> np.ndarray:
+        op = np.clip(np.asarray(ctx.op, dtype=float), 0.0, 100.0)
+        lo = np.unique(np.percentile(op, PERCENTILES))
+        hi = np.unique(np.percentile(op, [100.0 - p for p in PERCENTILES]))
+        rows = [(v, 100.0) for v in lo if v > 0.0] + [(0.0, v) for v in hi if v < 100.0]
+        return np.array(rows, dtype=float).reshape(-1, 2)
+
+    def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
+        step = max(ctx.op_span / 20.0, 1e-3)
+        offsets = step * np.linspace(-1.5, 1.5, 31)
+        lo, hi = float(best[0]), float(best[1])
+        if lo > 0.0:
+            rows = [(np.clip(lo + d, 1e-6, hi - 1e-6), hi) for d in offsets]
+        else:
+            rows = [(lo, np.clip(hi + d, lo + 1e-6, 100.0 - 1e-6)) for d in offsets]
+        return np.vstack([best[None, :], np.array(rows)])
+
+    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        x2 = x[:, None] if x.ndim == 1 else x
+        return np.clip(x2, params[:, 0][None, :], params[:, 1][None, :])
+
+    def parameters(self, p: np.ndarray) -> dict:
+        return {"lo": round(float(p[0]), 3) if p[0] > 0.0 else None,
+                "hi": round(float(p[1]), 3) if p[1] < 100.0 else None}
+
+    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+        if p[0] > 0.0:
+            return f"saturation: no less flow below {p[0]:.1f} % travel"
+        return f"saturation: no more flow above {p[1]:.1f} % travel"
+
+    def identity(self) -> np.ndarray:
+        return np.array([0.0, 100.0])
+
+
+register(Saturation())
