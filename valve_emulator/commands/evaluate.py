@@ -35,7 +35,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("set", metavar="DIR_OR_INDEX",
                    help="a labelled set: its index.csv (columns file,label[,tag,loop_type]) or its folder")
     p.add_argument("--jobs", type=int, default=1, metavar="N", help="windows assessed at once (default %(default)s)")
-    p.add_argument("--report", type=Path, metavar="OUT.md", help="write the results as Markdown (see above)")
+    p.add_argument("--report", type=Path, metavar="OUT.md",
+                   help="write the results as Markdown: between the file's '<!-- valve-emulator evaluate: begin/end "
+                        "-->' markers when it has them (the rest is kept), else a new file")
     p.add_argument("--figures", type=Path, metavar="DIR", help="one PNG per misclassified valve (linked from --report)")
     p.add_argument("--json", type=Path, metavar="OUT.json", help="write every window's result")
     p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")

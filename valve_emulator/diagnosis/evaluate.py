@@ -157,9 +157,10 @@ class Evaluator(Scorer):
                                  prefilter=self.lam, iterations=2, delays=delays).fit.sse for r in rows])
 
     def _output_option(self, model: Model, cand: Candidate) -> list[Option]:
-        """The option that adds an ``output`` candidate: its grid by quick backfits from every pole hypothesis
-        (dead time on the grid when free), the refinement at the best structure, then the best row polished
-        (see :mod:`~valve_emulator.diagnosis.output`)."""
+        """The option that adds an ``output`` candidate: its grid by quick backfits with the model's linear
+        structure, the :data:`_STARTS` + 1 best rows again from every pole hypothesis (dead time on the grid
+        when free), the refinement at the best structure, then the best row polished (see
+        :mod:`~valve_emulator.diagnosis.output`)."""
         ctx = replace(self.ctx(model), residual=self.p.y - model.y_hat)
         if not cand.applicable(ctx):
             return []
@@ -167,14 +168,16 @@ class Evaluator(Scorer):
         if grid.shape[0] == 0:
             return []
         delays = self.p.delays if model.delay_free else None
+        sse = self._output_sse(model, cand, grid, None, delays)
+        top = grid[np.argsort(sse)[:_STARTS + 1]]
         best = None
         for st in self._pole_set(model):
-            sse = self._output_sse(model, cand, grid, st, delays)
-            score = self.p.n_fit * np.log(max(float(sse.min()), 1e-300)) + self._prior_penalty(st)
+            s_top = self._output_sse(model, cand, top, st, delays)
+            score = self.p.n_fit * np.log(max(float(s_top.min()), 1e-300)) + self._prior_penalty(st)
             if best is None or score < best[0]:
-                best = (score, st, sse)
-        _, st, sse = best
-        fine = cand.refine(ctx, grid[int(np.argmin(sse))])
+                best = (score, st, top[int(np.argmin(s_top))])
+        _, st, row0 = best
+        fine = cand.refine(ctx, row0)
         sse_fine = self._output_sse(model, cand, fine, st, delays)
         row = fine[int(np.argmin(sse_fine))]
         bf = backfit(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, row, ctx, prefilter=self.lam,

@@ -128,7 +128,7 @@ class Evaluation:
             mark = "" if (v["call"] == POSITIVE) == v["label"] else " ✗"
             rows.append((tag, wins[0].get("loop_type", ""), _LABEL[v["label"]], len(wins),
                          f"{c[POSITIVE]}/{c['no stiction']}/{c[ABSTAIN]}", _call(v["call"]) + mark, s_text,
-                         *(_call(dets[d][tag]["call"]) for d in DETECTORS)))
+                         *(_call(dets[d][tag]["call"], ours=False) for d in DETECTORS)))
         return rows
 
     def _loop_header(self) -> tuple:
@@ -174,8 +174,8 @@ class Evaluation:
                "Per window:", "", markdown_table(self._MATRIX, self._matrix_rows("window")), "",
                "### Per loop", "",
                "Our window answers (stiction / no stiction / cannot tell), the valve's call by the valve rule, the "
-               "median S of the windows called stiction, and each detector's valve call (✗: our call disagrees "
-               "with the label).", "",
+               "median S of the windows called stiction, and each detector's valve call (undetermined: all its "
+               "windows were undetermined or not applicable; ✗: our call disagrees with the label).", "",
                markdown_table(self._loop_header(), self._loop_rows()), "",
                "### Windows called stiction: S and J with 95 % intervals", "",
                markdown_table(self._STICTION, self._stiction_rows()), "",
@@ -199,8 +199,9 @@ class Evaluation:
         return "\n".join(out)
 
 
-def _call(c: str) -> str:
-    return "cannot tell" if c == ABSTAIN else c
+def _call(c: str, *, ours: bool = True) -> str:
+    """A call in the method's own words (our abstention is "cannot tell", a detector's "undetermined")."""
+    return ("cannot tell" if ours else "undetermined") if c == ABSTAIN else c
 
 
 def _pct(x: float) -> str:

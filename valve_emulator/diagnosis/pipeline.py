@@ -183,6 +183,12 @@ def _findings(search: Search, problem: Problem, model: Model, rounds: list[Round
             ivs = intervals(surf.params, surf.sse, n_eff, names, cand.n_params, axes=axes) if names else {}
             if name == "deadband":
                 ivs["J"] = (0.0, max(0.0, _slip_interval(search, model, act, n_eff)[1]))
+            if cand.slot == "valve":  # a band and a jump are not negative
+                ivs = {k: (max(0.0, a), b) for k, (a, b) in ivs.items()}
+            # The profile re-chooses a free dead time on whole samples, the estimate has the polished one: the
+            # data are consistent with both, so the interval reaches the estimate.
+            ivs = {k: (min(a, float(params[k])), max(b, float(params[k]))) if isinstance(params.get(k), float)
+                   else (a, b) for k, (a, b) in ivs.items()}
             dbic = without.bic - chosen.model.bic
             nominal_info = {"theta": nominal.delay} if nominal.given else None
             out.append(Finding(name, params, loc.windows, _evidence(dbic, without.heldout, chosen.model.heldout,

@@ -45,7 +45,7 @@ class Deadband(Candidate):
         """S within ±40 % of its estimate (41 values), every start."""
         S = best[0] * np.linspace(0.6, 1.4, 41)
         rows = [np.column_stack([S, np.full(S.size, start)]) for start in STARTS]
-        return np.vstack([best[None, :], *rows])
+        return np.vstack(rows)  # a regular grid: the interval is widened by half its step
 
     def burn_in(self, ctx: ChainContext) -> int:
         return sync_burn_in(self.apply(ctx.op, self.grid(ctx), ctx))

@@ -82,7 +82,7 @@ class Stiction(Candidate):
         J = np.linspace(0.0, max(2.0 * J0, 0.8 * S0), 25)
         SS, JJ = np.meshgrid(S, J, indexing="ij")
         rows = [np.column_stack([SS.ravel(), JJ.ravel(), np.full(SS.size, start)]) for start in STARTS]
-        return np.vstack([best[None, :], *rows])
+        return np.vstack(rows)  # a regular grid: the interval is widened by half its step
 
     def burn_in(self, ctx: ChainContext) -> int:
         return sync_burn_in(self.apply(ctx.op, self.grid(ctx), ctx))
