@@ -136,3 +136,21 @@ class FakeLoopBank:
 def fake_bank_cls():
     """The :class:`FakeLoopBank` test double (a class, so tests can size and configure it)."""
     return FakeLoopBank
+
+
+@pytest.fixture
+async def client_for():
+    """``await client_for(server)``: a connected pymodbus client of a running server (closed after the test)."""
+    from pymodbus.client import AsyncModbusTcpClient
+
+    clients = []
+
+    async def connect(srv):
+        client = AsyncModbusTcpClient("127.0.0.1", port=srv.port, timeout=2, retries=0)
+        assert await client.connect()
+        clients.append(client)
+        return client
+
+    yield connect
+    for client in clients:
+        client.close()

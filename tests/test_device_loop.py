@@ -3,7 +3,6 @@
 import math
 
 import pytest
-from pymodbus.client import AsyncModbusTcpClient
 
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import N_REGISTERS, Status, address_of
@@ -21,21 +20,6 @@ def _config(**device):
         {"unit": 2, "valve": {"model": "kano", "S": S, "J": J}, **CONCENTRATION,
          "controller": {"kc": 0.2, "ti": 10.0, "sp": 0.0}},
     ]})
-
-
-@pytest.fixture
-async def client_for():
-    clients = []
-
-    async def connect(srv):
-        client = AsyncModbusTcpClient("127.0.0.1", port=srv.port, timeout=2, retries=0)
-        assert await client.connect()
-        clients.append(client)
-        return client
-
-    yield connect
-    for client in clients:
-        client.close()
 
 
 async def _regs(client, unit):

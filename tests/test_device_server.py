@@ -6,7 +6,6 @@ import socket
 import struct
 
 import pytest
-from pymodbus.client import AsyncModbusTcpClient
 
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import N_REGISTERS, address_of
@@ -33,21 +32,6 @@ def make_server(fake_bank_cls):
         kw.setdefault("time_scale", 0)
         return EmulatorServer(config, bank=fake_bank_cls.for_config(config), **kw)
     return make
-
-
-@pytest.fixture
-async def client_for():
-    clients = []
-
-    async def connect(srv):
-        client = AsyncModbusTcpClient("127.0.0.1", port=srv.port, timeout=2, retries=0)
-        assert await client.connect()
-        clients.append(client)
-        return client
-
-    yield connect
-    for client in clients:
-        client.close()
 
 
 async def _holding(client, unit, address=0, count=N_REGISTERS):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pymodbus.client import AsyncModbusTcpClient
 
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.image import ImageLayout, encode_image
@@ -35,21 +34,6 @@ def fleet_config():
                                      "disturbance": {"type": "sine", "amplitude": 4.0, "period": 3.0}}},
                   "vary": {"S": [0.5, 3.0], "J": [0.0, 1.0], "gain": [0.5, 2.0], "delay": [0.0, 1.0]}},
     })
-
-
-@pytest.fixture
-async def client_for():
-    clients = []
-
-    async def connect(srv):
-        client = AsyncModbusTcpClient("127.0.0.1", port=srv.port, timeout=2, retries=0)
-        assert await client.connect()
-        clients.append(client)
-        return client
-
-    yield connect
-    for client in clients:
-        client.close()
 
 
 async def read_unit(client, unit, blocks):

@@ -77,6 +77,20 @@ def test_evaluation_tables_put_the_detectors_side_by_side():
     assert markdown_table(("a", "b"), [(0.5, 3)]) == "| a | b |\n|---|---|\n| 50 % | 3 |"
 
 
+def test_the_load_check_answers_weak_stiction_calls_cannot_tell():
+    # A: sticky, one strong and one weak call; B: not sticky, one weak call (a false positive as answered).
+    kw = dict(cause="deadband", S=1.0, J=0.0, reason="r")
+    res = [_w("A", True, "stiction", "a1", load_delta_bic=40.0, **kw),
+           _w("A", True, "stiction", "a2", load_delta_bic=3.0, **kw),
+           _w("B", False, "stiction", "b1", load_delta_bic=-20.0, **kw), _w("C", False, "no stiction", "c1", **kw)]
+    rows = {(r[0], r[1]): r[2:] for r in Evaluation(res).load_check()}
+    assert rows["as answered", "valve"][3:] == (1, 0, 1, 1)          # TP FN FP TN
+    assert rows["strong calls only", "valve"][3:] == (1, 0, 0, 2)    # A still sticky (1 of 1 answered), B abstains
+    assert rows["strong calls only", "window"][3:] == (1, 1, 0, 2)   # a2 becomes an abstention
+    md = Evaluation(res).markdown()
+    assert "| 40.0 (strong) |" in md and "| 3.0 (weak) |" in md
+
+
 def test_an_index_names_its_errors_with_file_and_line(tmp_path):
     (tmp_path / "w1.csv").write_text("t,op,pv\n", encoding="utf-8")
     idx = tmp_path / "index.csv"

@@ -18,7 +18,12 @@ run on each loop:
      (:func:`~valve_emulator.diagnosis.adequacy.op_noise`). A band inside OP's own jitter cannot make
      a valve stick and slip — the noise moves it either way — so it is no diagnosis of stiction;
      3 σ is the package's convention for "beyond noise" (as for OP turning points in
-     :mod:`~valve_emulator.diagnosis.locate`). S and J are reported with 95 % intervals.
+     :mod:`~valve_emulator.diagnosis.locate`). S and J are reported with 95 % intervals, and the call is
+     qualified *strong* when the valve's evidence survives a drifting-load noise model
+     (:mod:`~valve_emulator.diagnosis.load_check`: ΔBIC ≥ :data:`~valve_emulator.diagnosis.search.DELTA_BIC`
+     there too), *weak* when a linear valve with a compensated drifting load explains the record about as
+     well. The qualifier does not change the answer (see ``docs/real-data.md`` for what requiring it would
+     do on labelled plant data).
    * ``cannot tell`` when no valve friction is accepted and the final model's cross-validated fit is below
      :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their mean). Absence of evidence counts only
      where a model explains the loop well enough for stiction to have shown; a stiction call needs no such
@@ -45,6 +50,7 @@ from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningA
 from valve_emulator.diagnosis.pipeline import diagnose
 from valve_emulator.diagnosis.resample import regularize
 from valve_emulator.diagnosis.result import Diagnosis, Finding
+from valve_emulator.diagnosis.search import DELTA_BIC
 from valve_emulator.sim.recording import Recording, RecordingError
 
 __all__ = ["Assessment", "assess", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS"]
@@ -82,6 +88,7 @@ class Assessment:
     op_noise : OP noise σ (% travel).
     band : S of the valve friction the diagnosis accepted, whether or not it was called stiction (None:
         none accepted), for sensitivity studies of :data:`NOISE_BANDS`.
+    load_delta_bic : that valve friction's ΔBIC under a drifting-load noise model (None: none accepted).
     seconds : wall time.
     """
 
@@ -98,6 +105,7 @@ class Assessment:
     notes: tuple[str, ...] = ()
     op_noise: float = float("nan")
     band: float | None = None
+    load_delta_bic: float | None = None
     seconds: float = 0.0
 
     @property
@@ -116,6 +124,13 @@ class Assessment:
     def stiction(self) -> bool:
         return self.decision == STICTION
 
+    @property
+    def strong(self) -> bool | None:
+        """For a stiction answer, whether its evidence survives a drifting-load noise model (None otherwise)."""
+        if not self.stiction or self.load_delta_bic is None:
+            return None
+        return self.load_delta_bic >= DELTA_BIC
+
     def to_json(self) -> dict:
         """The diagnosis JSON (``fit_before``, ``fit_after``, ``findings``, ``verdict``) with this verdict."""
         if self.diagnosis is None:
@@ -132,6 +147,7 @@ class Assessment:
                 "S": None if self.S is None else round(self.S, 4), "J": None if self.J is None else round(self.J, 4),
                 **iv, "fit_before": None if d is None else round(d.fit_before, 2),
                 "fit_after": None if d is None else round(d.fit_after, 2), "band": self.band,
+                "load_delta_bic": None if self.load_delta_bic is None else round(self.load_delta_bic, 2),
                 "seconds": round(self.seconds, 2)}
 
     def report(self, *, figure: str | None = None) -> str:
@@ -168,6 +184,16 @@ def _tuning(rec: Recording, d: Diagnosis, facts: dict) -> TuningAssessment | Non
                                 observed_period=facts.get("period", float("nan")))
 
 
+def _load_text(valve: Finding) -> str:
+    load = valve.load_delta_bic
+    if load is None:
+        return ""
+    if load >= DELTA_BIC:
+        return f"; strong evidence: it survives a drifting-load noise model (ΔBIC {load:.1f})"
+    return (f"; weak evidence: a linear valve with a slowly drifting load that the controller compensates "
+            f"explains the record about as well (ΔBIC {load:.1f} < {DELTA_BIC:g} under that noise model)")
+
+
 def _decide(rec: Recording, d: Diagnosis, ad: Adequacy, noise: float) -> dict:
     valve = _valve(d.findings)
     fits = f"held-out fit {d.fit_before:.0f} % → {d.fit_after:.0f} %"
@@ -180,7 +206,7 @@ def _decide(rec: Recording, d: Diagnosis, ad: Adequacy, noise: float) -> dict:
             iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
             kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
             return dict(decision=STICTION, cause=valve.physics, S=S, J=J, intervals=ivs,
-                        reason=f"{kind}, S ≈ {S:.3g} %, J ≈ {J:.3g} % ({iv}); {fits}")
+                        reason=f"{kind}, S ≈ {S:.3g} %, J ≈ {J:.3g} % ({iv}); {fits}{_load_text(valve)}")
         small = (f"a valve band S ≈ {S:.3g} % fits, but it is below {NOISE_BANDS:g} OP noise σ "
                  f"({NOISE_BANDS * noise:.3g} %), where the noise moves such a valve either way; ")
     if not d.fit_after >= MIN_FIT:
@@ -242,5 +268,6 @@ def assess(recording: Recording, *, progress: Callable[[str], None] | None = Non
     out = _decide(rec, d, ad, noise)
     valve = _valve(d.findings)
     band = None if valve is None else float(valve.parameters["S"])
-    return Assessment(src, diagnosis=d, adequacy=ad, notes=notes, op_noise=noise, band=band,
+    load = None if valve is None else valve.load_delta_bic
+    return Assessment(src, diagnosis=d, adequacy=ad, notes=notes, op_noise=noise, band=band, load_delta_bic=load,
                       seconds=time.perf_counter() - start, **out)

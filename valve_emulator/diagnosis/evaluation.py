@@ -7,7 +7,9 @@ Built from the per-window dicts of :func:`~valve_emulator.diagnosis.labelled.run
 The one threshold of the assessment that was not taken from the literature or from a convention used
 elsewhere in the package, :data:`~valve_emulator.diagnosis.assessment.NOISE_BANDS`, is also checked:
 the valve-level balanced accuracy for other values, and a leave-one-valve-out estimate in which each
-valve is called with the value that scores best on the other valves.
+valve is called with the value that scores best on the other valves. So is the qualifier of a stiction call
+(:mod:`~valve_emulator.diagnosis.load_check`): the figures had a *weak* call (one that a drifting-load noise
+model explains about as well) been answered "cannot tell".
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import Callable
 
 from valve_emulator.detectors import DETECTORS
 from valve_emulator.diagnosis.assessment import NOISE_BANDS
+from valve_emulator.diagnosis.search import DELTA_BIC
 from valve_emulator.diagnosis.scorecard import (ABSTAIN, POSITIVE, Confusion, confusion, leave_one_valve_out,
                                                 markdown_table, text_table, valve_calls, window_calls)
 
@@ -45,6 +48,14 @@ def _with_bands(k: float) -> Callable[[dict], str]:
         return "stiction" if r["band"] >= k * r["op_noise"] else (
             r["decision"] if r["decision"] != "stiction" else "no stiction")
     return decide
+
+
+def _strong_only(r: dict) -> str:
+    """Our decision had a weak stiction call (not surviving a drifting-load noise model) been "cannot tell"."""
+    load = r.get("load_delta_bic")
+    if r["decision"] == "stiction" and load is not None and load < DELTA_BIC:
+        return "cannot tell"
+    return r["decision"]
 
 
 def misclassified(results: list[dict], method: str = METHOD) -> list[tuple[str, dict, dict]]:
@@ -96,6 +107,16 @@ class Evaluation:
         lovo, _ = leave_one_valve_out(self.results, NOISE_GRID, lambda r, k: _with_bands(k)(r))
         return rows, lovo
 
+    def load_check(self) -> list[tuple]:
+        """Per valve and per window: the answers as given, and had weak stiction calls been "cannot tell"."""
+        rows = []
+        for name, dec in (("as answered", decision_of(METHOD)), ("strong calls only", _strong_only)):
+            for unit, c in (("valve", confusion((v["label"], v["call"])
+                                                for v in valve_calls(self.results, dec).values())),
+                            ("window", confusion(window_calls(self.results, dec)))):
+                rows.append((name, unit, c.sensitivity, c.specificity, c.balanced_accuracy, c.tp, c.fn, c.fp, c.tn))
+        return rows
+
     # -- tables ---------------------------------------------------------------------------------------------
     def _summary_rows(self, unit: str) -> list[tuple]:
         rows = []
@@ -141,12 +162,14 @@ class Evaluation:
             if r["decision"] != "stiction":
                 continue
             s95, j95 = r.get("S_95"), r.get("J_95")
+            load = r.get("load_delta_bic")
             rows.append((r["name"], r["tag"], _LABEL[r["label"]], r["cause"], f"{r['S']:.3g}",
                          f"{s95[0]:.3g}–{s95[1]:.3g}" if s95 else "—", f"{r['J']:.3g}",
-                         f"{j95[0]:.3g}–{j95[1]:.3g}" if j95 else "—"))
+                         f"{j95[0]:.3g}–{j95[1]:.3g}" if j95 else "—",
+                         "—" if load is None else f"{load:.1f} ({'strong' if load >= DELTA_BIC else 'weak'})"))
         return rows
 
-    _STICTION = ("window", "tag", "label", "physics", "S %", "S 95 %", "J %", "J 95 %")
+    _STICTION = ("window", "tag", "label", "physics", "S %", "S 95 %", "J %", "J 95 %", "ΔBIC, drifting load")
 
     def text(self) -> str:
         """Plain-text tables for the terminal."""
@@ -185,6 +208,12 @@ class Evaluation:
                f"other valves): sensitivity {_pct(lovo.sensitivity)}, specificity {_pct(lovo.specificity)}, "
                f"balanced accuracy **{_pct(lovo.balanced_accuracy)}**.", "",
                markdown_table(("k", "sensitivity", "specificity", "balanced accuracy"), rows), "",
+               "### Qualifier check: stiction calls that a drifting load explains as well", "",
+               f"A stiction call is *strong* when the valve still lowers BIC by at least {DELTA_BIC:g} under a "
+               "random-walk load noise model (`valve_emulator.diagnosis.load_check`), *weak* otherwise. The "
+               "answers count both; here is what answering \"cannot tell\" to the weak ones would give.", "",
+               markdown_table(("rule", "unit", "sensitivity", "specificity", "balanced accuracy", "TP", "FN", "FP",
+                               "TN"), self.load_check()), "",
                "### Misclassified valves", ""]
         wrong = misclassified(self.results)
         if not wrong:

@@ -33,6 +33,7 @@ from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.chain import run_chain
 from valve_emulator.diagnosis.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
+from valve_emulator.diagnosis.load_check import load_delta_bic
 from valve_emulator.diagnosis.locate import Located, condition_masks, locate
 from valve_emulator.diagnosis.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.result import Diagnosis, Finding, RankRow, Traces
@@ -112,9 +113,12 @@ def _surface(rounds: list[Round], n: int):
     return (S, J, grid), (float(best[0]), float(best[1]))
 
 
-def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located) -> str:
+def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located, load: float | None = None) -> str:
     text = (f"against the model without it, BIC falls by {delta_bic:.0f} and the held-out fit rises from "
             f"{f0:.1f} % to {f1:.1f} %")
+    if load is not None:
+        text += f" (under a drifting-load noise model BIC falls by {load:.0f})"
+
     if ivs:
         text += "; 95 % interval " + ", ".join(f"{k} {a:.4g}–{b:.4g}" for k, (a, b) in ivs.items())
     strong = [a for a in loc.alignments if a.energy_share >= 0.2 and a.lift > 1.2]
@@ -190,11 +194,15 @@ def _findings(search: Search, problem: Problem, model: Model, rounds: list[Round
             ivs = {k: (min(a, float(params[k])), max(b, float(params[k]))) if isinstance(params.get(k), float)
                    else (a, b) for k, (a, b) in ivs.items()}
             dbic = without.bic - chosen.model.bic
+            load = None
+            if cand.slot == "valve" and problem.validation == "twofold":
+                load = load_delta_bic(search, without, chosen.model)
+                search.use(model)
             nominal_info = {"theta": nominal.delay} if nominal.given else None
             out.append(Finding(name, params, loc.windows, _evidence(dbic, without.heldout, chosen.model.heldout,
-                                                                    ivs, loc),
+                                                                    ivs, loc, load),
                                cand.describe(act.params, nominal_info), ivs, dbic, without.heldout,
-                               chosen.model.heldout))
+                               chosen.model.heldout, load))
     return tuple(out)
 
 

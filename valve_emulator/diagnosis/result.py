@@ -31,6 +31,8 @@ class Finding:
     description : phrase for the verdict.
     intervals : 95 % profile intervals per parameter name.
     delta_bic, fit_without, fit_with : the test it passed.
+    load_delta_bic : for a valve finding on plant data (no nominal model), ΔBIC again under a drifting-load
+        noise model (:mod:`~valve_emulator.diagnosis.load_check`); None otherwise.
     """
 
     physics: str
@@ -42,6 +44,7 @@ class Finding:
     delta_bic: float = 0.0
     fit_without: float = 0.0
     fit_with: float = 0.0
+    load_delta_bic: float | None = None
 
     def to_json(self) -> dict:
         return {"physics": self.physics, "parameters": dict(self.parameters),
