@@ -154,10 +154,10 @@ def test_loops_with_the_same_plant_share_one_discretisation(monkeypatch):
     import valve_emulator.sim.loop as loop_module
 
     calls = []
-    real = loop_module.transfer_function_to_zoh
-    monkeypatch.setattr(loop_module, "transfer_function_to_zoh", lambda *a: calls.append(a) or real(*a))
+    real = loop_module.transfer_functions_to_zoh
+    monkeypatch.setattr(loop_module, "transfer_functions_to_zoh", lambda args: calls.append(args) or real(args))
     cfg = fleet(50, 10, vary={"S": [1.0, 5.0]})     # plants all equal, valves varied
     bank = LoopBank(cfg.loops, dt=0.1)
-    assert len(calls) == 1
+    assert len(calls) == 1 and len(calls[0]) == 1   # one batch holding the one distinct plant
     assert len({id(t) for t in bank.tables}) == 1 and len({id(c) for c in bank.characteristics}) == 1
     assert len(set(np.round(bank.S, 9))) == 50

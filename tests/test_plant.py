@@ -12,6 +12,7 @@ from valve_emulator.physics.plant import (
     integrator,
     plant_step_kernel,
     transfer_function_to_zoh,
+    transfer_functions_to_zoh,
 )
 
 DT = 0.5
@@ -208,6 +209,29 @@ def test_non_finite_input_raises_and_changes_nothing():
 def test_bad_transfer_function_raises_naming_parameter(args, name):
     with pytest.raises(ValueError, match=rf"^{name}\b"):
         transfer_function_to_zoh(*args)
+
+
+def test_many_plants_discretised_at_once_equal_each_alone():
+    rng = np.random.default_rng(3)
+    names = list(TFS)
+    args = [(*TFS[names[i % len(names)]], float(rng.uniform(0.0, 5.0)) * (i % 3 > 0), DT) for i in range(60)]
+    args += [([1.0], [tau, 1.0], 0.25, DT) for tau in (1e-3, 0.1, 1e4)] + [([3.0], [1.0], 0.7, DT)]
+    batch = transfer_functions_to_zoh(args)
+    for a, b in zip(args, batch):
+        one = transfer_function_to_zoh(*a)
+        for k in ("A", "B0", "B1", "C", "x_rest"):
+            np.testing.assert_allclose(getattr(b, k), getattr(one, k), rtol=1e-12, atol=1e-15)
+        assert (b.m, b.frac, b.D, b.integrating) == (one.m, one.frac, one.D, one.integrating)
+    # First order against its analytic discretisation K(1 - e^{-dt/τ}) (no delay), also for extreme τ.
+    for tau in (1e-3, 0.1, 1e4):
+        p = transfer_functions_to_zoh([([1.0], [tau, 1.0], 0.0, DT)])[0]
+        assert float(p.A[0, 0]) == pytest.approx(np.exp(-DT / tau), rel=1e-12, abs=1e-300)
+        assert float(p.C[0] * p.B1[0]) == pytest.approx(-np.expm1(-DT / tau), rel=1e-12)
+
+
+def test_a_bad_plant_among_many_is_named_by_its_index():
+    with pytest.raises(ValueError, match=r"^plant 1: delay must be"):
+        transfer_functions_to_zoh([([1.0], [2.0, 1.0], 0.0, 1.0), ([1.0], [2.0, 1.0], -1.0, 1.0)])
 
 
 def test_bank_rejects_mixed_dt_and_bad_operating_point():

@@ -28,7 +28,7 @@ from valve_emulator.config.schema import (
     DISTURBANCES, KEYS, MAX_BLOCKS, MAX_UNIT, ConfigError, ControllerConfig, DeviceConfig, DisturbanceConfig,
     LoopConfig, PlantConfig, ServerConfig, SimulationConfig, ValveConfig, choice, integer, real, sequence,
 )
-from valve_emulator.physics.plant import fopdt, integrator, transfer_function_to_zoh
+from valve_emulator.physics.plant import check_transfer_function, fopdt, integrator
 from valve_emulator.physics.stiction import seed_to_2005
 
 __all__ = ["load_loop", "load_server", "loop_from_mapping", "server_from_mapping"]
@@ -210,7 +210,7 @@ def _plant(ctx: _Context, value: Any, key: str) -> PlantConfig:
 def _check_discretisation(ctx: _Context, plant: PlantConfig, dt: float, key: str) -> None:
     """Let the physics layer confirm it can discretise the plant at this dt (e.g. delay/dt not absurd)."""
     try:
-        transfer_function_to_zoh(plant.num, plant.den, plant.delay, dt)
+        check_transfer_function(plant.num, plant.den, plant.delay, dt)
     except ValueError as exc:
         word = str(exc).split(" ", 1)[0]
         ctx.fail(_join(key, word) if word in ("num", "den", "delay") else key,

@@ -29,6 +29,7 @@ import logging
 from pathlib import Path
 from typing import Any, Sequence
 
+from valve_emulator.device._tasks import cancel_and_wait
 from valve_emulator.sim.recording import CsvRecordingWriter
 
 __all__ = ["EXTRA_COLUMNS", "TickRecorder", "recording_paths"]
@@ -101,14 +102,7 @@ class TickRecorder:
     async def stop(self) -> None:
         """Stop recording and close the files (every written row is already flushed)."""
         task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            try:
-                await task
-            except asyncio.CancelledError:
-                current = asyncio.current_task()
-                if current is not None and current.cancelling():
-                    raise
+        await cancel_and_wait(task)
         for unit, writer in list(self._writers.items()):
             try:
                 writer.close()

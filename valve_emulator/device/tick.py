@@ -49,6 +49,7 @@ from typing import Any, Awaitable, Callable, Sequence
 
 import numpy as np
 
+from valve_emulator.device._tasks import cancel_and_wait
 from valve_emulator.device.image import ImageLayout, encode_image
 from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, patch
 
@@ -304,14 +305,7 @@ class Device:
     async def stop(self) -> None:
         """Cancel the tick task and wait for it; cancel whoever still waits for a tick."""
         task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            try:
-                await task
-            except asyncio.CancelledError:
-                current = asyncio.current_task()
-                if current is not None and current.cancelling():
-                    raise  # our caller is being cancelled too: do not swallow that
+        await cancel_and_wait(task)
         for _, _, fut in self._waiters:
             fut.cancel()
         self._waiters.clear()

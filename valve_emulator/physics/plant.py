@@ -75,6 +75,8 @@ __all__ = [
     "DiscretePlant",
     "PlantBank",
     "transfer_function_to_zoh",
+    "transfer_functions_to_zoh",
+    "check_transfer_function",
     "fopdt",
     "integrator",
     "plant_step_kernel",
@@ -157,39 +159,34 @@ def _realise(num: np.ndarray, den: np.ndarray):
     return A, B, C, d
 
 
-def _zoh_integral(A: np.ndarray, B: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-    """Return (e^{Ah}, ∫_0^h e^{Aτ}dτ B) from one augmented matrix exponential (no A^{-1})."""
-    p = A.shape[0]
-    M = np.zeros((p + 1, p + 1))
-    M[:p, :p] = A * h
-    M[:p, p] = B * h
+def _zoh_batch(A: np.ndarray, B: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(e^{A h}, ∫_0^h e^{Aτ}dτ B)`` for stacks ``A`` (q, p, p), ``B`` (q, p), ``h`` (q,).
+
+    First order in closed form (e^{-a h} and (1 − e^{-a h})/a, by ``expm1``; h when a = 0), vectorised;
+    higher orders from the exponential of the augmented matrix [[A h, B h], [0, 0]] (no A^{-1}).
+    """
+    q, p = B.shape
+    if p == 0:
+        return np.ones((q, 0, 0)), np.zeros((q, 0))
+    if p == 1:
+        a = A[:, 0, 0]
+        e = np.exp(a * h)
+        small = a == 0.0
+        g = np.where(small, h, np.expm1(a * h) / np.where(small, 1.0, a)) * B[:, 0]
+        return e[:, None, None], g[:, None]
+    M = np.zeros((q, p + 1, p + 1))
+    M[:, :p, :p] = A * h[:, None, None]
+    M[:, :p, p] = B * h[:, None]
     E = expm(M)
-    return E[:p, :p], E[:p, p]
+    return E[:, :p, :p], E[:, :p, p]
 
 
-def transfer_function_to_zoh(num: ArrayLike, den: ArrayLike, delay: float, dt: float) -> DiscretePlant:
-    """Discretise ``num(s)/den(s)·exp(-delay·s)`` exactly by zero-order hold at step ``dt``.
+def check_transfer_function(num: ArrayLike, den: ArrayLike, delay: float, dt: float
+                            ) -> tuple[np.ndarray, np.ndarray, int, float, float]:
+    """Validate ``num(s)/den(s)·exp(-delay·s)`` at step ``dt`` without discretising it.
 
-    Parameters
-    ----------
-    num, den : array_like
-        Coefficients, highest power first (as ``scipy.signal``). Leading zeros are ignored.
-    delay : float
-        Dead time θ ≥ 0 in seconds, split as θ = (m + f)·dt; a θ/dt within 1e-9 of an integer is
-        taken as that integer.
-    dt : float
-        Sample time > 0.
-
-    Returns
-    -------
-    DiscretePlant
-
-    Raises
-    ------
-    ValueError
-        Naming ``num``, ``den``, ``delay`` or ``dt``: non-finite values, empty or zero ``den``,
-        improper transfer function (deg num > deg den), negative delay, dt ≤ 0, or a delay longer than
-        :data:`MAX_DELAY_SAMPLES` samples.
+    Returns ``(num, den, m, f, dt)``: the coefficients normalised (leading zeros dropped, ``den`` monic) and
+    the delay split as θ = (m + f)·dt. Raises the :class:`ValueError` of :func:`transfer_function_to_zoh`.
     """
     num_a = _coefficients("num", num)
     den_a = _coefficients("den", den)
@@ -221,26 +218,82 @@ def transfer_function_to_zoh(num: ArrayLike, den: ArrayLike, delay: float, dt: f
     else:
         m = int(np.floor(ratio))
         f = ratio - m
+    return num_a, den_a, int(m), float(f), dt
 
-    Ac, Bc, C, d = _realise(num_a, den_a)
-    integrating = den_a.size > 1 and den_a[-1] == 0.0
-    Phi = expm(Ac * dt)
-    Phi1, G1 = _zoh_integral(Ac, Bc, (1.0 - f) * dt)
-    if f > 0.0:
-        _, g0 = _zoh_integral(Ac, Bc, f * dt)
-        G0 = Phi1 @ g0
-    else:
+
+def transfer_function_to_zoh(num: ArrayLike, den: ArrayLike, delay: float, dt: float) -> DiscretePlant:
+    """Discretise ``num(s)/den(s)·exp(-delay·s)`` exactly by zero-order hold at step ``dt``.
+
+    Parameters
+    ----------
+    num, den : array_like
+        Coefficients, highest power first (as ``scipy.signal``). Leading zeros are ignored.
+    delay : float
+        Dead time θ ≥ 0 in seconds, split as θ = (m + f)·dt; a θ/dt within 1e-9 of an integer is
+        taken as that integer.
+    dt : float
+        Sample time > 0.
+
+    Returns
+    -------
+    DiscretePlant
+
+    Raises
+    ------
+    ValueError
+        Naming ``num``, ``den``, ``delay`` or ``dt``: non-finite values, empty or zero ``den``,
+        improper transfer function (deg num > deg den), negative delay, dt ≤ 0, or a delay longer than
+        :data:`MAX_DELAY_SAMPLES` samples.
+    """
+    return transfer_functions_to_zoh([(num, den, delay, dt)])[0]
+
+
+def transfer_functions_to_zoh(plants: Sequence[tuple]) -> list[DiscretePlant]:
+    """:func:`transfer_function_to_zoh` of many ``(num, den, delay, dt)`` at once (same results).
+
+    Plants of one order share three batched matrix exponentials (closed form and vectorised for first-order
+    plants, scipy's stacked ``expm`` above), which is what makes building a bank of 10^5 loops with different
+    plants take seconds, not minutes. Raises the
+    :class:`ValueError` of the first plant that cannot be discretised, prefixed by its index when there are
+    several.
+    """
+    checked = []
+    for i, args in enumerate(plants):
+        try:
+            checked.append(check_transfer_function(*args))
+        except ValueError as exc:
+            raise (exc if len(plants) == 1 else ValueError(f"plant {i}: {exc}")) from None
+    out: list[DiscretePlant | None] = [None] * len(checked)
+    by_order: dict[int, list[int]] = {}
+    for i, (_, den_a, *_rest) in enumerate(checked):
+        by_order.setdefault(den_a.size - 1, []).append(i)
+    for p, idx in by_order.items():
+        real = [_realise(checked[i][0], checked[i][1]) for i in idx]
+        Ac = np.array([r[0] for r in real]).reshape(len(idx), p, p)
+        Bc = np.array([r[1] for r in real]).reshape(len(idx), p)
+        f = np.array([checked[i][3] for i in idx])
+        dt = np.array([checked[i][4] for i in idx])
+        Phi, _ = _zoh_batch(Ac, Bc, dt)
+        Phi1, G1 = _zoh_batch(Ac, Bc, (1.0 - f) * dt)
         G0 = np.zeros_like(G1)
-    if integrating or Ac.shape[0] == 0:
-        x_rest = np.zeros(Ac.shape[0])
-    else:
-        # Continuous equilibrium A x + B = 0 is also the fixed point of the exact discrete map.
-        x_rest = np.linalg.solve(Ac, -Bc)
-    arrays = [Phi, G0, G1, C, x_rest]
-    for arr in arrays:
-        arr.setflags(write=False)
-    return DiscretePlant(A=Phi, B0=G0, B1=G1, C=C, D=float(d), m=int(m), dt=dt, frac=float(f),
-                         x_rest=x_rest, integrating=bool(integrating))
+        frac = np.flatnonzero(f > 0.0)
+        if frac.size:
+            _, g0 = _zoh_batch(Ac[frac], Bc[frac], f[frac] * dt[frac])
+            G0[frac] = np.einsum("qij,qj->qi", Phi1[frac], g0)
+        for j, i in enumerate(idx):
+            num_a, den_a, m, fj, dtj = checked[i]
+            integrating = den_a.size > 1 and den_a[-1] == 0.0
+            if integrating or p == 0:
+                x_rest = np.zeros(p)
+            else:
+                # Continuous equilibrium A x + B = 0 is also the fixed point of the exact discrete map.
+                x_rest = np.linalg.solve(Ac[j], -Bc[j])
+            arrays = [Phi[j].copy(), G0[j].copy(), G1[j].copy(), real[j][2], x_rest]
+            for arr in arrays:
+                arr.setflags(write=False)
+            out[i] = DiscretePlant(A=arrays[0], B0=arrays[1], B1=arrays[2], C=arrays[3], D=float(real[j][3]),
+                                   m=m, dt=dtj, frac=fj, x_rest=x_rest, integrating=bool(integrating))
+    return out
 
 
 def fopdt(gain: float, tau: float, delay: float) -> tuple[list[float], list[float], float]:

@@ -28,7 +28,7 @@ import numpy as np
 from valve_emulator.config import LoopConfig
 from valve_emulator.physics.controller import PIDBank, pid_step_kernel
 from valve_emulator.physics.disturbance import DisturbanceBank, NoiseBank
-from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_function_to_zoh
+from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_functions_to_zoh
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, Characteristic, LookupTable
 from valve_emulator.physics.stiction import (
     MODELS,
@@ -161,10 +161,11 @@ class LoopBank:
                       self._S, self._J, self._codes)
         mv0 = self._vstate[:, MV]
         flow0 = np.array([ch.flow(m) for ch, m in zip(self.characteristics, mv0)], dtype=float)
-        # The exact discretisation (three matrix exponentials) dominates building a large bank; loops with the
-        # same transfer function and delay share one (same inputs, same result: nothing is approximated).
-        plants = _shared(transfer_function_to_zoh, [(c.plant.num, c.plant.den, c.plant.delay, self.dt)
-                                                    for c in loops])
+        # The exact discretisation (three matrix exponentials) dominates building a large bank: loops with the
+        # same transfer function and delay share one (same inputs, same result: nothing is approximated), and
+        # the distinct ones are discretised in batches of one order.
+        plants = _shared_batch(transfer_functions_to_zoh, [(c.plant.num, c.plant.den, c.plant.delay, self.dt)
+                                                           for c in loops])
         u0 = np.array([c.plant.u0 if c.plant.u0 is not None else f for c, f in zip(loops, flow0)])
         self._plant = PlantBank(plants, u0=u0, pv0=[c.plant.pv0 for c in loops])
         self._plant.reset(flow0)
@@ -386,6 +387,13 @@ def _shared(make, args: list[tuple]) -> list:
     """``[make(*a) for a in args]``, calling ``make`` once per distinct ``a`` (hashable, immutable results)."""
     made: dict[tuple, object] = {}
     return [made[a] if a in made else made.setdefault(a, make(*a)) for a in args]
+
+
+def _shared_batch(make_many, args: list[tuple]) -> list:
+    """``make_many(args)``, called once on the distinct ``args`` (hashable, immutable results)."""
+    distinct = list(dict.fromkeys(args))
+    made = dict(zip(distinct, make_many(distinct)))
+    return [made[a] for a in args]
 
 
 def simulate_loop(config: LoopConfig, duration: float | None = None) -> Recording:
