@@ -117,7 +117,8 @@ def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located, l
     text = (f"against the model without it, BIC falls by {delta_bic:.0f} and the held-out fit rises from "
             f"{f0:.1f} % to {f1:.1f} %")
     if load is not None:
-        text += f" (under a drifting-load noise model BIC falls by {load:.0f})"
+        change = f"falls by {load:.0f}" if load >= 0 else f"rises by {-load:.0f}"
+        text += f" (under a drifting-load noise model BIC {change})"
 
     if ivs:
         text += "; 95 % interval " + ", ".join(f"{k} {a:.4g}–{b:.4g}" for k, (a, b) in ivs.items())
