@@ -78,5 +78,4 @@ def load_bic(scorer: Scorer, model: Model) -> tuple[float, float]:
 
 def load_delta_bic(scorer: Scorer, without: Model, with_: Model) -> float:
     """BIC of ``without`` minus that of ``with_``, both under the drifting-load noise model (see above)."""
-    scorer.use(None)
     return load_bic(scorer, without)[0] - load_bic(scorer, with_)[0]

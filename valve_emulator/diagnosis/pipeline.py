@@ -198,7 +198,6 @@ def _findings(search: Search, problem: Problem, model: Model, rounds: list[Round
             load = None
             if cand.slot == "valve" and problem.validation == "twofold":
                 load = load_delta_bic(search, without, chosen.model)
-                search.use(model)
             nominal_info = {"theta": nominal.delay} if nominal.given else None
             out.append(Finding(name, params, loc.windows, _evidence(dbic, without.heldout, chosen.model.heldout,
                                                                     ivs, loc, load),
