@@ -22,7 +22,7 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.io.loaded import Parsed, auto_mask, time_axis
+from valve_emulator.io.loaded import Parsed, signal_columns, time_axis
 from valve_emulator.io.text import ColumnSpec, ReaderError, Table, resolve_column
 
 __all__ = ["looks_like_dcs", "parse_dcs", "HEADER_LINES"]
@@ -127,10 +127,7 @@ def parse_dcs(lines: list[str], source: str, *, skip: int = 0, op: ColumnSpec | 
                 notes.append(f"{name} is set on {k} of {len(table)} rows (values kept)")
     return Parsed(
         source=source, fmt="dcs", t=t,
-        op=table.numbers(cols["op"], decimal=decimal),
-        pv=table.numbers(cols["pv"], decimal=decimal),
-        sp=table.numbers(cols["sp"], decimal=decimal, required=False) if "sp" in cols else None,
-        auto=auto_mask(table, cols["mode"], auto_values) if "mode" in cols else None,
+        **signal_columns(table, cols, decimal=decimal, auto_values=auto_values),
         columns={"time": names[jt] if stamps_used else f"ts={ts:g} s",
                  **{role: names[j] for role, j in cols.items()}},
         tag=tag, description=descs.get(names[cols["pv"]], ""),

@@ -16,7 +16,7 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.io.loaded import Parsed, auto_mask, time_axis
+from valve_emulator.io.loaded import Parsed, signal_columns, time_axis
 from valve_emulator.io.text import ColumnSpec, ReaderError, Table, resolve_column, sniff_delimiter, split_rows
 
 __all__ = ["parse_delimited", "TIME_NAMES"]
@@ -93,9 +93,6 @@ def parse_delimited(lines: list[str], source: str, *, skip: int = 0, header: boo
     columns.update({role: names[j] for role, j in cols.items()})
     return Parsed(
         source=source, fmt="csv", t=t,
-        op=table.numbers(cols["op"], decimal=decimal),
-        pv=table.numbers(cols["pv"], decimal=decimal),
-        sp=table.numbers(cols["sp"], decimal=decimal, required=False) if "sp" in cols else None,
-        auto=auto_mask(table, cols["mode"], auto_values) if "mode" in cols else None,
+        **signal_columns(table, cols, decimal=decimal, auto_values=auto_values),
         columns=columns, tag=Path(source).stem, start=start,
         info={"delimiter": {"\t": "tab"}.get(delimiter, delimiter)}, notes=notes)

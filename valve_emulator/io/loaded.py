@@ -26,7 +26,7 @@ import numpy as np
 
 from valve_emulator.io.text import ReaderError, Table
 from valve_emulator.physics.signal_chain import DEFAULT_MA_TABLE, LookupTable
-from valve_emulator.sim.recording import Recording
+from valve_emulator.sim.recording import Recording, first_gap
 
 __all__ = [
     "OP_UNITS",
@@ -35,6 +35,7 @@ __all__ = [
     "Parsed",
     "time_axis",
     "auto_mask",
+    "signal_columns",
     "finish",
 ]
 
@@ -123,7 +124,7 @@ class LoadedRecording:
         lines = [f"{self.full.source}: {self.source_format} format, tag {self.tag or '-'}",
                  f"  {len(rec)} samples used of {len(self.full)}, "
                  + (f"dt {rec.dt:g} s, " if len(rec) > 1 else "") + f"t {rec.t[0]:g}..{rec.t[-1]:g} s",
-                 f"  columns: " + ", ".join(f"{k}={v}" for k, v in self.columns.items()),
+                 "  columns: " + ", ".join(f"{k}={v}" for k, v in self.columns.items()),
                  f"  OP in {self.op_units} (shown in %), PV scale {self.pv_scale:g} {self.pv_units}".rstrip()]
         for t0, t1 in self.excluded:
             lines.append(f"  excluded (not AUTO): {t0:g}..{t1:g} s")
@@ -165,14 +166,11 @@ def time_axis(stamps: np.ndarray, table: Table, j: int, *, declared_ts: float | 
         raise ReaderError(f"{table.where(i, j)}: time stamp {table.rows[i][j].strip()!r} repeats line "
                           f"{table.first_line + i - 1}; time must increase (pass ts=SECONDS to ignore the "
                           "time column and use a regular grid)")
-    if gap_factor is not None and steps.size:
-        median = float(np.median(steps))
-        gaps = np.flatnonzero(steps > gap_factor * median)
-        if gaps.size:
-            i = int(gaps[0]) + 1
-            raise ReaderError(f"{table.where(i, j)}: gap in time: {float(steps[i - 1]):g} s after line "
-                              f"{table.first_line + i - 1}, more than {gap_factor:g} x the median step "
-                              f"{median:g} s")
+    if (gap := first_gap(steps, gap_factor)) is not None:
+        i, median = gap
+        raise ReaderError(f"{table.where(i, j)}: gap in time: {float(steps[i - 1]):g} s after line "
+                          f"{table.first_line + i - 1}, more than {gap_factor:g} x the median step "
+                          f"{median:g} s")
     return t, notes
 
 
@@ -187,6 +185,16 @@ def auto_mask(table: Table, j: int, auto_values: Collection[str] | None = None) 
     """True where the mode column ``j`` says AUTO (see :data:`DEFAULT_AUTO_VALUES`); empty cells are not."""
     auto = {_mode_key(str(v)) for v in (DEFAULT_AUTO_VALUES if auto_values is None else auto_values)}
     return np.array([bool(c) and _mode_key(c) in auto for c in table.cells(j)], dtype=bool)
+
+
+def signal_columns(table: Table, cols: Mapping[str, int], *, decimal: str = ".",
+                   auto_values: Collection[str] | None = None) -> dict:
+    """The :class:`Parsed` fields read from resolved columns ``cols`` (role → index): ``op`` and ``pv``
+    (required numbers), ``sp`` (numbers, empty cells allowed) and ``auto`` (:func:`auto_mask` of ``mode``),
+    None for a role without a column."""
+    return dict(op=table.numbers(cols["op"], decimal=decimal), pv=table.numbers(cols["pv"], decimal=decimal),
+                sp=table.numbers(cols["sp"], decimal=decimal, required=False) if "sp" in cols else None,
+                auto=auto_mask(table, cols["mode"], auto_values) if "mode" in cols else None)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike
 
 __all__ = [
     "CORE_COLUMNS",
+    "first_gap",
     "Recording",
     "RecordingError",
     "RecordingWarning",
@@ -364,6 +365,16 @@ def _parse_header(source: str, line: str) -> list[str]:
     return names
 
 
+def first_gap(steps: np.ndarray, gap_factor: float | None) -> tuple[int, float] | None:
+    """``(i, median)`` for the first time step longer than ``gap_factor`` × the median step: row ``i`` follows
+    the gap (step ``steps[i - 1]``). None when there is no such step, no step, or ``gap_factor`` is None."""
+    if gap_factor is None or not steps.size:
+        return None
+    median = float(np.median(steps))
+    gaps = np.flatnonzero(steps > gap_factor * median)
+    return (int(gaps[0]) + 1, median) if gaps.size else None
+
+
 def _parse_table(tab: _Table, gap_factor: float | None) -> dict[str, np.ndarray]:
     """Check every cell and the time axis; return the columns as float arrays."""
     ncol = len(tab.names)
@@ -413,14 +424,11 @@ def _parse_table(tab: _Table, gap_factor: float | None) -> dict[str, np.ndarray]
         verb = "repeats" if steps[i - 1] == 0 else "goes back from"
         raise RecordingError(f"{tab.where(i, jt)}: t must increase strictly; t = {float(t[i])!r} {verb} "
                              f"t = {float(t[i - 1])!r} on line {tab.first_line + i - 1}")
-    if gap_factor is not None and steps.size:
-        median = float(np.median(steps))
-        gaps = np.flatnonzero(steps > gap_factor * median)
-        if gaps.size:
-            i = int(gaps[0]) + 1
-            raise RecordingError(f"{tab.where(i, jt)}: gap in t: step of {float(steps[i - 1])!r} s from line "
-                                 f"{tab.first_line + i - 1} is more than {gap_factor!r} x the median step "
-                                 f"{median!r} s")
+    if (gap := first_gap(steps, gap_factor)) is not None:
+        i, median = gap
+        raise RecordingError(f"{tab.where(i, jt)}: gap in t: step of {float(steps[i - 1])!r} s from line "
+                             f"{tab.first_line + i - 1} is more than {gap_factor!r} x the median step "
+                             f"{median!r} s")
     return out
 
 
