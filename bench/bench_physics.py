@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import median_time, table  # noqa: E402
 
 from valve_emulator.config import load_loop  # noqa: E402
-from valve_emulator.sim.loop import LoopBank, simulate_loop  # noqa: E402
+from valve_emulator.simulation.loop import LoopBank, simulate_loop  # noqa: E402
 from valve_emulator.stiction import MODELS, StictionBank, simulate, simulate_many  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -337,8 +337,8 @@ def diagnose_rows(tmp: Path, lengths: list[int]) -> list[tuple]:
     import dataclasses
 
     from valve_emulator.config import load_loop
-    from valve_emulator.sim.loop import simulate_loop
-    from valve_emulator.sim.recording import write_csv
+    from valve_emulator.simulation.loop import simulate_loop
+    from valve_emulator.recordings.recording import write_csv
 
     cfg = load_loop(ROOT / "configs" / "table1" / "concentration_undershoot.yaml")
     cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, dt=1.0),

@@ -55,7 +55,7 @@ def fake_clock() -> FakeClock:
 
 
 class FakeLoopBank:
-    """Test double of ``valve_emulator.sim.loop.LoopBank`` for device tests that must not depend on physics.
+    """Test double of ``valve_emulator.simulation.loop.LoopBank`` for device tests that must not depend on physics.
 
     MV follows OP exactly (clipped to 0..100), flow = MV, PV a first-order lag of flow mapped onto
     ``pv_gain·(flow − 50)``; loops with a controller run a P controller around ``bias`` in auto. Every

@@ -11,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clients._channels import emulator_channels
-from clients.pi_controller import ControllerSettings, run_controller
-from clients.recorder import RecorderOptions, record
+from valve_emulator.clients._channels import emulator_channels
+from valve_emulator.clients.pi_controller import ControllerSettings, run_controller
+from valve_emulator.clients.recorder import RecorderOptions, record
 from valve_emulator.config import ServerConfig, load_loop
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.physics.controller import PID
-from valve_emulator.sim.limit_cycle import measure_limit_cycle
-from valve_emulator.sim.loop import simulate_loop
-from valve_emulator.sim.recording import read_csv
+from valve_emulator.simulation.limit_cycle import measure_limit_cycle
+from valve_emulator.simulation.loop import simulate_loop
+from valve_emulator.recordings.recording import read_csv
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from clients._channels import add_channel_arguments, channels_from_args, emulator_channels
-from clients._modbus import Link, Point, Reader, parse_point
+from valve_emulator.clients._channels import add_channel_arguments, channels_from_args, emulator_channels
+from valve_emulator.clients._modbus import Link, Point, Reader, parse_point
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import N_REGISTERS
 from valve_emulator.device.server import EmulatorServer

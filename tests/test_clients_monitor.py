@@ -7,8 +7,8 @@ import math
 
 import pytest
 
-from clients._modbus import Link
-from clients.monitor import (
+from valve_emulator.clients._modbus import Link
+from valve_emulator.clients.monitor import (
     Sample, build_parser, main, monitor, options_from_args, render_row, valve_state,
 )
 from valve_emulator.config import server_from_mapping

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from clients.pi_controller import ControllerSettings, build_parser, main, run_controller, settings_from_args
+from valve_emulator.clients.pi_controller import ControllerSettings, build_parser, main, run_controller, settings_from_args
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import address_of
 from valve_emulator.device.server import EmulatorServer
@@ -76,7 +76,7 @@ async def test_ctrl_c_stops_the_plc_and_leaves_op_where_it_was():
     """The PLC as a real process: SIGINT ends it with exit code 0 and no further write, so OP stays."""
     async with EmulatorServer(level(), time_scale=20.0) as srv:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "clients.pi_controller", "--port", str(srv.port), "--unit", "2",
+            sys.executable, "-m", "valve_emulator.clients.pi_controller", "--port", str(srv.port), "--unit", "2",
             "--scan", "0.005", "--time-scale", "20", "--kc", "0.4", "--ti", "2", "--sp", "2.0",
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         bank = srv.device.bank

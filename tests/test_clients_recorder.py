@@ -13,12 +13,12 @@ import warnings
 import numpy as np
 import pytest
 
-from clients import monitor, pi_controller, recorder, scenario
-from clients._channels import emulator_channels
-from clients.recorder import main
+from valve_emulator.clients import monitor, pi_controller, recorder, scenario
+from valve_emulator.clients._channels import emulator_channels
+from valve_emulator.clients.recorder import main
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.server import EmulatorServer
-from valve_emulator.sim.recording import RecordingWarning, read_csv
+from valve_emulator.recordings.recording import RecordingWarning, read_csv
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 
@@ -40,7 +40,7 @@ async def test_sigkill_leaves_a_csv_whose_every_complete_line_parses(tmp_path):
     out = tmp_path / "killed.csv"
     async with EmulatorServer(config(), time_scale=20.0) as srv:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "clients.recorder", "--port", str(srv.port), "--step", "0.5", "--period", "0.025",
+            sys.executable, "-m", "valve_emulator.clients.recorder", "--port", str(srv.port), "--step", "0.5", "--period", "0.025",
             "--out", str(out), "--quiet", stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
         try:
             for _ in range(3000):       # bounded wait for rows, paced by the device (no wall-clock sleep)
@@ -116,15 +116,15 @@ def test_bad_flags_and_no_device(tmp_path, capsys):
 def test_main_help(module, capsys):
     with pytest.raises(SystemExit) as exc:
         module.main(["--help"])
-    assert exc.value.code == 0 and "usage: python -m clients." in capsys.readouterr().out
+    assert exc.value.code == 0 and "usage: python -m valve_emulator.clients." in capsys.readouterr().out
 
 
 async def test_every_client_runs_as_a_module():
     names = ("recorder", "pi_controller", "monitor", "scenario")
-    procs = [await asyncio.create_subprocess_exec(sys.executable, "-m", f"clients.{n}", "--help",
+    procs = [await asyncio.create_subprocess_exec(sys.executable, "-m", f"valve_emulator.clients.{n}", "--help",
                                                   stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
              for n in names]
     results = [await asyncio.wait_for(p.communicate(), timeout=60) for p in procs]
     for name, proc, (out, err) in zip(names, procs, results):
         assert proc.returncode == 0, err.decode()
-        assert f"python -m clients.{name}" in out.decode()
+        assert f"python -m valve_emulator.clients.{name}" in out.decode()

@@ -17,7 +17,7 @@ from valve_emulator.detectors import (DECISIONS, DETECTORS, DetectorResult, bico
                                       oscillation, run_detectors)
 from valve_emulator.detectors.bicoherence import gaussianity_indices, squared_bicoherence
 from valve_emulator.detectors.ellipse import fit_ellipse, width_along_x
-from valve_emulator.sim.loop import simulate_loop
+from valve_emulator.simulation.loop import simulate_loop
 
 HISTORIAN = 5        # keep every 5th sample of the 1 s simulation
 BURN_IN = 500        # s, the start-up transient

@@ -17,8 +17,8 @@ from valve_emulator.config import ServerConfig, load_loop, server_from_mapping
 from valve_emulator.device.registers import address_of
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.physics.controller import PID
-from valve_emulator.sim.limit_cycle import measure_limit_cycle
-from valve_emulator.sim.loop import LoopBank, simulate_loop
+from valve_emulator.simulation.limit_cycle import measure_limit_cycle
+from valve_emulator.simulation.loop import LoopBank, simulate_loop
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 

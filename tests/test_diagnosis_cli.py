@@ -10,7 +10,7 @@ import yaml
 
 from valve_emulator.cli import main
 from valve_emulator.diagnosis.cases import CASES, generate
-from valve_emulator.sim.recording import write_csv
+from valve_emulator.recordings.recording import write_csv
 
 CASE = next(c for c in CASES if c.name == "stiction, overshoot")
 

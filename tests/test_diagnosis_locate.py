@@ -9,7 +9,7 @@ from scipy.stats import chi2
 from valve_emulator.diagnosis.data import fit_percent, prepare
 from valve_emulator.diagnosis.locate import SHARE, condition_masks, energy_windows, locate
 from valve_emulator.diagnosis.uncertainty import intervals
-from valve_emulator.sim.recording import Recording, RecordingError
+from valve_emulator.recordings.recording import Recording, RecordingError
 
 DT = 1.0
 

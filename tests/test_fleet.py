@@ -12,7 +12,7 @@ import pytest
 from valve_emulator.config import ConfigError, ServerConfig, server_from_mapping
 from valve_emulator.config.schema import MAX_BLOCKS
 from valve_emulator.device.registers import MAX_BLOCKS as MAP_MAX_BLOCKS
-from valve_emulator.sim.loop import LoopBank
+from valve_emulator.simulation.loop import LoopBank
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "config.md"
 BASE = {"valve": {"S": 4.0, "J": 1.0}, "plant": {"fopdt": {"gain": 1.0, "tau": 15.0, "delay": 2.0}},
@@ -151,7 +151,7 @@ def test_fleet_bank_run_matches_each_loop_run_alone():
 
 
 def test_loops_with_the_same_plant_share_one_discretisation(monkeypatch):
-    import valve_emulator.sim.loop as loop_module
+    import valve_emulator.simulation.loop as loop_module
 
     calls = []
     real = loop_module.transfer_functions_to_zoh

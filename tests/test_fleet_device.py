@@ -11,7 +11,7 @@ from valve_emulator.device.record import TickRecorder
 from valve_emulator.device.registers import BLOCK_STRIDE, N_REGISTERS, Scaling, address_of, encode
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.tick import Device
-from valve_emulator.sim.loop import LoopBank
+from valve_emulator.simulation.loop import LoopBank
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 

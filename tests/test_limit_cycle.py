@@ -9,7 +9,7 @@ import pytest
 
 from valve_emulator.physics.describing_function import describing_function
 from valve_emulator.physics.stiction import StictionBank
-from valve_emulator.sim.limit_cycle import (
+from valve_emulator.simulation.limit_cycle import (
     loop_frequency_response,
     measure_limit_cycle,
     predict_limit_cycle,

@@ -8,8 +8,8 @@ import pytest
 
 from valve_emulator.cli import main
 from valve_emulator.config import DisturbanceConfig, load_loop
-from valve_emulator.sim.limit_cycle import measure_limit_cycle, predict_limit_cycle
-from valve_emulator.sim.loop import LoopBank, simulate_loop
+from valve_emulator.simulation.limit_cycle import measure_limit_cycle, predict_limit_cycle
+from valve_emulator.simulation.loop import LoopBank, simulate_loop
 
 TABLE1 = Path(__file__).resolve().parents[1] / "configs" / "table1"
 CASES = ("no_stiction", "deadband", "undershoot", "no_offset", "overshoot")
@@ -88,7 +88,7 @@ def test_same_config_and_seed_give_byte_identical_recordings(tmp_path):
     cfg = table1("concentration", "undershoot")
     noisy = replace(cfg, plant=replace(cfg.plant, noise=0.05,
                                        disturbance=DisturbanceConfig(type="random_walk", std=0.05)))
-    from valve_emulator.sim.recording import write_csv
+    from valve_emulator.recordings.recording import write_csv
 
     paths = []
     for k in range(2):

@@ -1,4 +1,4 @@
-"""Readers for real recordings (valve_emulator.io): formats, column mapping, units, MANUAL segments, errors.
+"""Readers for real recordings (valve_emulator.recordings): formats, column mapping, units, MANUAL segments, errors.
 
 Every file is written here into tmp_path; nothing reads the shared plant data.
 """
@@ -13,8 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from valve_emulator.io import ReaderError, read_recording
-from valve_emulator.sim.recording import Recording, RecordingError, write_csv
+from valve_emulator.recordings import ReaderError, read_recording
+from valve_emulator.recordings.recording import Recording, RecordingError, write_csv
 
 TAG = "2111FIC46005"
 

@@ -14,7 +14,7 @@ import pytest
 from test_real_data_physics import STEPS_300, simulate
 
 from valve_emulator.cli import main
-from valve_emulator.sim.recording import Recording, write_csv
+from valve_emulator.recordings.recording import Recording, write_csv
 
 
 def _sticky(seed: int = 1, duration: float = 1000.0) -> Recording:

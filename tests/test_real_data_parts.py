@@ -12,8 +12,8 @@ from valve_emulator.diagnosis.candidates.quantization import on_few_levels, quan
 from valve_emulator.diagnosis.candidates.tuning import identify_pi, loop_response
 from valve_emulator.diagnosis.linear import LinearStructure
 from valve_emulator.diagnosis.output import backfit
-from valve_emulator.diagnosis.resample import regularize
-from valve_emulator.sim.recording import Recording, RecordingError
+from valve_emulator.recordings.resample import regularize
+from valve_emulator.recordings.recording import Recording, RecordingError
 
 RNG = np.random.default_rng(7)
 

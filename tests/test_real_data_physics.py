@@ -12,8 +12,8 @@ import pytest
 
 from valve_emulator.config import loop_from_mapping
 from valve_emulator.diagnosis.assessment import assess
-from valve_emulator.sim.loop import simulate_loop
-from valve_emulator.sim.recording import Recording
+from valve_emulator.simulation.loop import simulate_loop
+from valve_emulator.recordings.recording import Recording
 
 STEPS_150 = [(200 + 150 * i, float(v)) for i, v in enumerate([2, -2, 3, 0, -3, 1, 2, -1] * 2)]
 STEPS_300 = [(200 + 300 * i, float(v)) for i, v in enumerate([2, -2, 3, 0, -3, 1, 2, -1] * 2)]

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from valve_emulator.sim.recording import (
+from valve_emulator.recordings.recording import (
     CsvRecordingWriter,
     Recording,
     RecordingError,

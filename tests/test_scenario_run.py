@@ -10,14 +10,14 @@ import textwrap
 import numpy as np
 import pytest
 
-from clients._modbus import DeviceError, Link
-from clients.scenario import run_scenario
+from valve_emulator.clients._modbus import DeviceError, Link
+from valve_emulator.clients.scenario import run_scenario
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import N_REGISTERS, Status, address_of
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.scenario import parse_scenario
-from valve_emulator.sim.limit_cycle import measure_limit_cycle
-from valve_emulator.sim.recording import read_csv
+from valve_emulator.simulation.limit_cycle import measure_limit_cycle
+from valve_emulator.recordings.recording import read_csv
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 

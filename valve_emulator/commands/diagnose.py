@@ -5,11 +5,11 @@ model leaves out, fits it and shows the fit improve (see :mod:`valve_emulator.di
 data — identifies the linear part from the data and answers *stiction*, *no stiction* (and why) or *cannot
 tell* (and why) (:mod:`valve_emulator.diagnosis.assessment`).
 
-FILE is read by :func:`valve_emulator.io.read_recording`: the standard recording CSV, a generic CSV/TSV with
+FILE is read by :func:`valve_emulator.recordings.read_recording`: the standard recording CSV, a generic CSV/TSV with
 a column mapping (``--op --pv --sp --time`` or ``--ts``, ``--skip``, ``--decimal``...), or the DCS text export.
 A recording whose time steps jitter (the Modbus recorder's rows can come a tick late) is put on a uniform
 grid — OP held, PV interpolated — and the output says so; a real gap (more than
-:data:`~valve_emulator.diagnosis.resample.MAX_GAP` samples) is refused.
+:data:`~valve_emulator.recordings.resample.MAX_GAP` samples) is refused.
 
 The verdict goes to stdout (after any note on what was done to the data), progress to stderr. Inputs are
 checked before anything is written: a bad file, flag or config is one error line naming the file (and line),
@@ -39,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", type=Path, metavar="OUT.md", help="write a Markdown report")
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="write the figure")
     p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
-    g = p.add_argument_group("reading the file (see valve_emulator.io.read_recording)")
+    g = p.add_argument_group("reading the file (see valve_emulator.recordings.read_recording)")
     g.add_argument("--format", dest="fmt", choices=("auto", "standard", "csv", "dcs"), default="auto",
                    help="file format (default: detect)")
     g.add_argument("--op", metavar="COL", help="controller output column (name or 1-based number)")
@@ -84,8 +84,8 @@ def _format(args: argparse.Namespace) -> str:
 
 
 def _read(args: argparse.Namespace):
-    from valve_emulator.diagnosis.resample import MAX_GAP, regularize
-    from valve_emulator.io import read_recording
+    from valve_emulator.recordings.resample import MAX_GAP, regularize
+    from valve_emulator.recordings import read_recording
 
     loaded = read_recording(args.recording, fmt=_format(args), op=args.op, pv=args.pv, sp=args.sp, time=args.time,
                             ts=args.ts, skip=args.skip, decimal=args.decimal, op_units=args.op_units,

@@ -75,8 +75,8 @@ def _figures(ev, folder: Path, report: Path | None, say) -> None:
     from valve_emulator.diagnosis.assessment import assess
     from valve_emulator.diagnosis.evaluation import misclassified
     from valve_emulator.diagnosis.plot_loop import plot_loop
-    from valve_emulator.diagnosis.resample import regularize
-    from valve_emulator.io import read_recording
+    from valve_emulator.recordings.resample import regularize
+    from valve_emulator.recordings import read_recording
 
     folder.mkdir(parents=True, exist_ok=True)
     for tag, v, r in misclassified(ev.results):

@@ -18,8 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from valve_emulator.sim.figure5 import figure5_data
-    from valve_emulator.sim.figures import plot_open_loop_rows
+    from valve_emulator.simulation.figure5 import figure5_data
+    from valve_emulator.simulation.figures import plot_open_loop_rows
 
     data = figure5_data(model=args.model)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -18,8 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def compare(cfg, duration=None) -> dict:
     """Predicted and simulated OP amplitude (% travel) and period (s) of one loop config."""
     from valve_emulator.physics.signal_chain import Characteristic
-    from valve_emulator.sim.limit_cycle import measure_limit_cycle, predict_limit_cycle
-    from valve_emulator.sim.loop import simulate_loop
+    from valve_emulator.simulation.limit_cycle import measure_limit_cycle, predict_limit_cycle
+    from valve_emulator.simulation.loop import simulate_loop
 
     if cfg.controller is None:
         raise ValueError(f"{cfg.source or cfg.name}: controller is required for a limit-cycle prediction")

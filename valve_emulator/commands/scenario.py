@@ -1,6 +1,6 @@
 """``valve-emulator scenario SCENARIO.yaml``: play an operator-training timeline on an emulator.
 
-The flags live here (so that ``--help`` stays light); the player is a Modbus client, :mod:`clients.scenario`.
+The flags live here (so that ``--help`` stays light); the player is a Modbus client, :mod:`valve_emulator.clients.scenario`.
 """
 
 from __future__ import annotations
@@ -27,6 +27,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from clients.scenario import run as play
+    from valve_emulator.clients.scenario import run as play
 
     return play(args)

@@ -18,8 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from valve_emulator.config import load_loop
-    from valve_emulator.sim.loop import simulate_loop
-    from valve_emulator.sim.recording import write_csv
+    from valve_emulator.simulation.loop import simulate_loop
+    from valve_emulator.recordings.recording import write_csv
 
     cfg = load_loop(args.config)
     if args.duration is not None and not args.duration > 0:
@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     write_csv(rec, args.out)
     msg = f"wrote {args.out} ({len(rec)} samples, {rec.t[-1]:g} s of {cfg.name})"
     if args.plot:
-        from valve_emulator.sim.figures import plot_closed_loop
+        from valve_emulator.simulation.figures import plot_closed_loop
 
         v = cfg.valve
         plot_closed_loop(rec, args.plot, title=f"{cfg.name}: {v.model}, S = {v.S:g} %, J = {v.J:g} %")

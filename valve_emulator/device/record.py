@@ -1,15 +1,15 @@
 """A recorder inside the emulator process: one flushed CSV line per tick for each recorded loop.
 
 ``valve-emulator serve --record FILE.csv`` uses it. Each loop's file is the project's standard recording
-(:mod:`valve_emulator.sim.recording`): header ``t,sp,op,mv,pv`` then :data:`EXTRA_COLUMNS` (flow, the valve's
+(:mod:`valve_emulator.recordings.recording`): header ``t,sp,op,mv,pv`` then :data:`EXTRA_COLUMNS` (flow, the valve's
 state, the instructor's stiction and faults, the tick), then one row per tick (or every ``every``-th) written by
-:class:`~valve_emulator.sim.recording.CsvRecordingWriter`, which emits every row with a single ``write``
+:class:`~valve_emulator.recordings.recording.CsvRecordingWriter`, which emits every row with a single ``write``
 followed by ``flush``. Once ``write`` has returned the line is in the kernel's page cache, so killing the
 emulator (even ``SIGKILL``) loses at most the line being written, and
-:func:`~valve_emulator.sim.recording.read_csv` drops such a partial last line with a warning. (Surviving a
+:func:`~valve_emulator.recordings.recording.read_csv` drops such a partial last line with a warning. (Surviving a
 power cut as well needs ``fsync=True``: a disk round trip per row.)
 
-Row ``k`` holds the state at sample instant ``t_k``, as :func:`~valve_emulator.sim.loop.simulate_loop`
+Row ``k`` holds the state at sample instant ``t_k``, as :func:`~valve_emulator.simulation.loop.simulate_loop`
 records it: ``t = bank.sample_time``, the time of the values ``sp, op, mv, pv, flow`` describe, written as
 ``k·dt`` like the offline recordings. ``tick`` is the device's tick counter.
 
@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from valve_emulator.device._tasks import cancel_and_wait
-from valve_emulator.sim.recording import CsvRecordingWriter
+from valve_emulator.recordings.recording import CsvRecordingWriter
 
 __all__ = ["EXTRA_COLUMNS", "TickRecorder", "recording_paths"]
 

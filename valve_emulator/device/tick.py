@@ -163,7 +163,7 @@ class Device:
         """Device for a ``ServerConfig`` (each loop at its ``device.unit`` and ``device.block``); ``bank``
         defaults to a new ``LoopBank``."""
         if bank is None:
-            from valve_emulator.sim.loop import LoopBank  # the bank is heavy; import only when needed
+            from valve_emulator.simulation.loop import LoopBank  # the bank is heavy; import only when needed
             bank = LoopBank(config.loops, dt=config.device.tick)
         units = [lp.device.unit for lp in config.loops]
         blocks = [lp.device.block for lp in config.loops]

@@ -30,7 +30,7 @@ import numpy as np
 
 from valve_emulator.detectors.base import oscillation
 from valve_emulator.diagnosis.data import MIN_SAMPLES
-from valve_emulator.sim.recording import Recording
+from valve_emulator.recordings.recording import Recording
 
 __all__ = ["Adequacy", "adequacy", "op_noise", "longest_constant_run", "FLAT_SHARE", "EXCITATION"]
 

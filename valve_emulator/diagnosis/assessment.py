@@ -3,7 +3,7 @@ r"""Plant data without a plant model: stiction, no stiction (and why), or a poli
 :func:`assess` is what ``valve-emulator diagnose FILE`` (no ``--model``) and ``valve-emulator evaluate``
 run on each loop:
 
-1. **Uniform time** (:func:`~valve_emulator.diagnosis.resample.regularize`): a jittered recorder file is put
+1. **Uniform time** (:func:`~valve_emulator.recordings.resample.regularize`): a jittered recorder file is put
    on a grid, real gaps are refused.
 2. **Can the data tell?** (:func:`~valve_emulator.diagnosis.adequacy.adequacy`): too short, a flat PV, no
    oscillation and no excitation → ``cannot tell`` with the reason.
@@ -48,10 +48,10 @@ from valve_emulator.diagnosis.adequacy import Adequacy, adequacy, op_noise
 from valve_emulator.diagnosis.candidates import get
 from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
 from valve_emulator.diagnosis.pipeline import diagnose
-from valve_emulator.diagnosis.resample import regularize
+from valve_emulator.recordings.resample import regularize
 from valve_emulator.diagnosis.result import Diagnosis, Finding
 from valve_emulator.diagnosis.search import DELTA_BIC
-from valve_emulator.sim.recording import Recording, RecordingError
+from valve_emulator.recordings.recording import Recording, RecordingError
 
 __all__ = ["Assessment", "assess", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS"]
 

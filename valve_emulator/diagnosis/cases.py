@@ -1,7 +1,7 @@
 r"""Concealed test recordings with a known truth: the cases of ``valve-emulator prove``
 (run and tabulated by :mod:`valve_emulator.diagnosis.proof`).
 
-Each :class:`Case` is a closed loop simulated by :func:`~valve_emulator.sim.loop.simulate_loop` with one
+Each :class:`Case` is a closed loop simulated by :func:`~valve_emulator.simulation.loop.simulate_loop` with one
 piece of physics that its *nominal* model leaves out. What the diagnosis gets is concealed the way a plant
 historian conceals it:
 
@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from valve_emulator.config import LoopConfig, loop_from_mapping
-from valve_emulator.sim.loop import simulate_loop
-from valve_emulator.sim.recording import Recording
+from valve_emulator.simulation.loop import simulate_loop
+from valve_emulator.recordings.recording import Recording
 
 __all__ = ["Case", "CASES", "generate"]
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from valve_emulator.sim.recording import Recording, RecordingError
+from valve_emulator.recordings.recording import Recording, RecordingError
 
 __all__ = ["Problem", "prepare", "prefilter_for", "folds", "HELD_OUT", "MIN_SAMPLES", "VALIDATIONS",
            "fit_percent"]

@@ -15,8 +15,8 @@ stiction", one containing ``stic`` is "stiction"; any other name is an error).
 
 One window
 ----------
-:func:`run_window` reads the file (:func:`~valve_emulator.io.read_recording`, format detected), puts it on
-a uniform grid (:func:`~valve_emulator.diagnosis.resample.regularize`), assesses it
+:func:`run_window` reads the file (:func:`~valve_emulator.recordings.read_recording`, format detected), puts it on
+a uniform grid (:func:`~valve_emulator.recordings.resample.regularize`), assesses it
 (:func:`~valve_emulator.diagnosis.assessment.assess`) and runs the comparison detectors
 (:func:`~valve_emulator.detectors.run_detectors`) on the same samples; it returns a plain dict, so that it
 can run in a worker process.
@@ -32,7 +32,7 @@ from pathlib import Path
 
 from valve_emulator.detectors import DETECTORS, run_detectors
 from valve_emulator.diagnosis.assessment import assess
-from valve_emulator.diagnosis.resample import regularize
+from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Item", "read_index", "run_window", "parse_label", "INTEGRATING_TYPES"]
 
@@ -140,7 +140,7 @@ def run_window(item: Item) -> dict:
     ``detectors`` (name → decision and reason), ``seconds``; or ``error`` (the reader's or the diagnosis'
     message) when the file cannot be used.
     """
-    from valve_emulator.io import read_recording
+    from valve_emulator.recordings import read_recording
 
     start = time.perf_counter()
     out = {"name": item.name or Path(item.path).name, "path": item.path, "label": item.label,

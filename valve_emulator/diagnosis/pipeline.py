@@ -39,7 +39,7 @@ from valve_emulator.diagnosis.nominal import Nominal, identify, nominal_from_con
 from valve_emulator.diagnosis.result import Diagnosis, Finding, RankRow, Traces
 from valve_emulator.diagnosis.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
 from valve_emulator.diagnosis.uncertainty import intervals
-from valve_emulator.sim.recording import Recording
+from valve_emulator.recordings.recording import Recording
 
 __all__ = ["diagnose", "RULE", "RULE_TWOFOLD"]
 

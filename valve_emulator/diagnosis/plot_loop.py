@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from valve_emulator.diagnosis.assessment import Assessment  # noqa: E402
-from valve_emulator.sim.recording import Recording  # noqa: E402
+from valve_emulator.recordings.recording import Recording  # noqa: E402
 
 __all__ = ["plot_loop"]
 

@@ -40,7 +40,7 @@ Implementation: every model keeps its state in one ``(n, NSTATE)`` float array, 
 numba kernel, :func:`stiction_step_kernel` ``(u, S, J, R, codes, state)``, advances ``n`` valves (of any mix
 of models, ``codes`` indexing :data:`MODELS`) one sample in place. The same kernel serves one valve over a
 long array (:func:`simulate`), many candidate valves at once (:func:`simulate_many`), the emulator's tick
-(:class:`StictionBank`) and the loop kernel of :mod:`valve_emulator.sim.loop`.
+(:class:`StictionBank`) and the loop kernel of :mod:`valve_emulator.simulation.loop`.
 """
 
 from __future__ import annotations

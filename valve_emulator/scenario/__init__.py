@@ -1,6 +1,6 @@
 """Operator-training scenarios: timelines of instructor events, parsed and checked (see :mod:`.timeline`).
 
-The player that applies them to a device over Modbus is :mod:`clients.scenario`; the command line is
+The player that applies them to a device over Modbus is :mod:`valve_emulator.clients.scenario`; the command line is
 ``valve-emulator scenario SCENARIO.yaml``.
 """
 

@@ -24,9 +24,9 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.io.text import ReaderError, Table
+from valve_emulator.recordings.text import ReaderError, Table
 from valve_emulator.physics.signal_chain import DEFAULT_MA_TABLE, LookupTable
-from valve_emulator.sim.recording import Recording, first_gap
+from valve_emulator.recordings.recording import Recording, first_gap
 
 __all__ = [
     "OP_UNITS",

@@ -22,8 +22,8 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.io.loaded import Parsed, signal_columns, time_axis
-from valve_emulator.io.text import ColumnSpec, ReaderError, Table, resolve_column
+from valve_emulator.recordings.loaded import Parsed, signal_columns, time_axis
+from valve_emulator.recordings.text import ColumnSpec, ReaderError, Table, resolve_column
 
 __all__ = ["looks_like_dcs", "parse_dcs", "HEADER_LINES"]
 

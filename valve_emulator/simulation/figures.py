@@ -15,7 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from valve_emulator.sim.recording import Recording  # noqa: E402
+from valve_emulator.recordings.recording import Recording  # noqa: E402
 
 __all__ = ["plot_open_loop_rows", "plot_closed_loop"]
 

@@ -1,4 +1,4 @@
-"""``python -m clients.pi_controller``: a soft PLC -- PI(D) over Modbus TCP at a fixed scan time.
+"""``python -m valve_emulator.clients.pi_controller``: a soft PLC -- PI(D) over Modbus TCP at a fixed scan time.
 
 Every scan it reads PV (and the set point, when ``--sp-register`` names one), runs one step of
 :class:`valve_emulator.physics.controller.PID` (position form, anti-windup, derivative on PV) and writes
@@ -6,7 +6,7 @@ OP. Defaults fit the emulator's map: PV from ``pv_f32`` (float32, engineering un
 (% × 100). Any other device works through the address flags, e.g. PV from an input register and OP as a
 4-20 mA current in µA::
 
-    python -m clients.pi_controller --port 502 --pv input:24:float32 --op holding:1:uint16:160:4000 \\
+    python -m valve_emulator.clients.pi_controller --port 502 --pv input:24:float32 --op holding:1:uint16:160:4000 \\
         --word-order CDAB --kc 0.2 --ti 10 --sp 1.0
 
 Settings come from flags, or from a YAML file (``--config``) whose keys are the long flag names with
@@ -19,7 +19,7 @@ plant; 10 for ``valve-emulator serve --time-scale 10``). Scans are due at absolu
 mean period is exact; a scan more than one period late skips the missed ones (counted as overruns).
 A device that publishes its own clock can pace the PLC instead (``--device-time time`` for the
 emulator): the PLC then scans on the device's time grid, exactly every ``dt`` device seconds (see
-:mod:`clients._schedule`), so an emulator that runs faster than real time, or falls behind under load,
+:mod:`valve_emulator.clients._schedule`), so an emulator that runs faster than real time, or falls behind under load,
 sees exactly the controller a real plant would.
 
 Start and stop are bumpless: the controller starts from the OP it reads back from the device (the
@@ -42,17 +42,17 @@ import yaml
 
 from valve_emulator.physics.controller import PID
 
-from clients._modbus import (
+from valve_emulator.clients._modbus import (
     ABCD, CDAB, DEFAULT_PORT, DeviceError, Link, Point, Reader, add_connection_arguments,
     check_connection_arguments, parse_point,
 )
-from clients._run import client_main, pause
-from clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.clients._run import client_main, pause
+from valve_emulator.clients._schedule import GridSchedule, WallSchedule
 
 __all__ = ["ControllerSettings", "ControllerSummary", "run_controller", "settings_from_args", "build_parser",
            "main"]
 
-PROG = "python -m clients.pi_controller"
+PROG = "python -m valve_emulator.clients.pi_controller"
 
 
 @dataclass(frozen=True)

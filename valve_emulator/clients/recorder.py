@@ -1,10 +1,10 @@
-"""``python -m clients.recorder --out REC.csv``: poll a Modbus device and write the standard recording CSV.
+"""``python -m valve_emulator.clients.recorder --out REC.csv``: poll a Modbus device and write the standard recording CSV.
 
-The file is the project's recording format (:mod:`valve_emulator.sim.recording`): header
+The file is the project's recording format (:mod:`valve_emulator.recordings.recording`): header
 ``t,sp,op,mv,pv`` then the extra columns (by default the emulator's ``flow, op_ma, stuck, S, J, load,
-noise, fault, tick``; see :mod:`clients._channels` for pointing the columns at any device). Each sample is
+noise, fault, tick``; see :mod:`valve_emulator.clients._channels` for pointing the columns at any device). Each sample is
 one line, written and flushed at once (``--fsync`` also forces it to disk), so a recorder that is killed
-loses at most the line it was writing; :func:`~valve_emulator.sim.recording.read_csv` drops such a partial
+loses at most the line it was writing; :func:`~valve_emulator.recordings.recording.read_csv` drops such a partial
 last line with a warning.
 
 Time axis
@@ -23,7 +23,7 @@ advances by about ``period × time-scale`` per row, give or take a tick of polli
 ``t`` are uneven. ``read_csv`` accepts that (its gap check rejects only steps over 1.5 × the median: keep
 each row several device ticks long), but identification (``valve_emulator.diagnosis``) wants uniform
 sampling. ``--step S`` gives it: rows are taken on the device's own time grid, exactly S device seconds
-apart (S a multiple of the device tick; see :mod:`clients._schedule`); a row the recorder was too slow to
+apart (S a multiple of the device tick; see :mod:`valve_emulator.clients._schedule`); a row the recorder was too slow to
 catch on time is taken late and counted as ``off-grid``. The summary line reports late polls, off-grid
 rows and gaps, so a recording that a strict reader would refuse never goes unnoticed.
 """
@@ -41,16 +41,16 @@ from typing import Callable, TextIO
 
 import numpy as np
 
-from valve_emulator.sim.recording import CsvRecordingWriter
+from valve_emulator.recordings.recording import CsvRecordingWriter
 
-from clients._channels import Channels, add_channel_arguments, channels_from_args
-from clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
-from clients._run import client_main, pause
-from clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.clients._channels import Channels, add_channel_arguments, channels_from_args
+from valve_emulator.clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
+from valve_emulator.clients._run import client_main, pause
+from valve_emulator.clients._schedule import GridSchedule, WallSchedule
 
 __all__ = ["RecorderOptions", "RecordSummary", "record", "build_parser", "options_from_args", "main"]
 
-PROG = "python -m clients.recorder"
+PROG = "python -m valve_emulator.clients.recorder"
 
 
 @dataclass(frozen=True)
@@ -98,7 +98,7 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
                  clock: Callable[[], float] = time.monotonic) -> RecordSummary:
     """Poll the device and append rows to ``opts.out`` until ``stop`` is set, ``duration`` (wall s) has
     passed or ``t`` reaches ``until``; every ``opts.period`` wall seconds, or on the device's time grid
-    every ``opts.step`` device seconds (see :mod:`clients._schedule`).
+    every ``opts.step`` device seconds (see :mod:`valve_emulator.clients._schedule`).
 
     The first poll must succeed (``ConnectionError``/:class:`DeviceError`, nothing written beyond the
     header otherwise); later failures are counted and polling goes on (reconnecting as needed).

@@ -15,7 +15,7 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.sim.recording import RecordingError
+from valve_emulator.recordings.recording import RecordingError
 
 __all__ = [
     "ReaderError",
@@ -44,7 +44,7 @@ _TIME_FORMATS: Final = ("%Y/%m/%d %H:%M:%S", "%Y/%m/%d %H:%M:%S.%f", "%Y/%m/%d %
 class ReaderError(RecordingError):
     """A file that cannot be read as a recording; the message names the file and what was expected.
 
-    A :class:`~valve_emulator.sim.recording.RecordingError` (hence a ``ValueError``), so callers that already
+    A :class:`~valve_emulator.recordings.recording.RecordingError` (hence a ``ValueError``), so callers that already
     handle bad standard recordings handle these too.
     """
 

@@ -1,7 +1,7 @@
 r"""Put a jittered recording on a uniform time grid, or refuse it when it has real gaps.
 
 The diagnosis needs uniform sampling (its plant models are discrete in Δt). The recorder
-(``clients/recorder.py``) polls a device over Modbus: with ``--period`` a row can come a tick late, so a
+(``valve_emulator/clients/recorder.py``) polls a device over Modbus: with ``--period`` a row can come a tick late, so a
 1 s series holds steps of 1.2 s and 0.8 s. Such a record is resampled onto the grid
 ``t_0 + kΔt`` (Δt the median step), each signal the way it behaves between samples:
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from valve_emulator.sim.recording import Recording, RecordingError
+from valve_emulator.recordings.recording import Recording, RecordingError
 
 __all__ = ["regularize", "MAX_GAP", "TOLERANCE"]
 

@@ -1,7 +1,7 @@
 """The values a recorder or monitor reads from a device: ``t, sp, op, mv, pv`` and extra columns.
 
 Defaults fit the emulator's register map (``valve-emulator registers``); every channel can be pointed at
-another address with a SPEC (see :mod:`clients._modbus`) or dropped with ``none``:
+another address with a SPEC (see :mod:`valve_emulator.clients._modbus`) or dropped with ``none``:
 
 ============  ===================  ==============================================================
 channel       default              meaning
@@ -30,7 +30,7 @@ from typing import Final, Mapping
 
 from valve_emulator.device.registers import Status
 
-from clients._modbus import Point, Reader, parse_point
+from valve_emulator.clients._modbus import Point, Reader, parse_point
 
 __all__ = ["EXTRAS", "Channels", "add_channel_arguments", "channels_from_args", "emulator_channels"]
 

@@ -1,4 +1,4 @@
-"""``python -m clients.monitor``: the instructor's live view of a loop in a terminal.
+"""``python -m valve_emulator.clients.monitor``: the instructor's live view of a loop in a terminal.
 
 Shows the latest SP, PV, OP and MV, whether the valve is moving, stuck or seized, the instructor's fault
 settings (emulator only) and a scrolling trend, one row per sample, newest at the bottom::
@@ -13,7 +13,7 @@ from the samples: MV unchanged since the previous sample = stuck.
 Modes: on a terminal the screen is redrawn in place (ANSI escapes); ``--plain`` (the default when the
 output is not a terminal) prints one trend row per sample, which scrolls by itself, and the column heading
 again whenever the PV axis has grown. ``--once`` prints one sample and exits; ``--duration S`` stops after S wall seconds. Reads the
-same channels as the recorder (see :mod:`clients._channels`), so it works on any device.
+same channels as the recorder (see :mod:`valve_emulator.clients._channels`), so it works on any device.
 """
 
 from __future__ import annotations
@@ -29,14 +29,14 @@ from typing import Callable, Sequence, TextIO
 
 from valve_emulator.device.registers import Status
 
-from clients._channels import Channels, add_channel_arguments, channels_from_args
-from clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
-from clients._run import client_main, pause
+from valve_emulator.clients._channels import Channels, add_channel_arguments, channels_from_args
+from valve_emulator.clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
+from valve_emulator.clients._run import client_main, pause
 
 __all__ = ["MonitorOptions", "Sample", "valve_state", "render_row", "render_frame", "monitor", "build_parser",
            "main"]
 
-PROG = "python -m clients.monitor"
+PROG = "python -m valve_emulator.clients.monitor"
 _CLEAR = "\x1b[H\x1b[J"   # cursor home, clear to the end of the screen
 
 

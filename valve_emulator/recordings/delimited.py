@@ -2,7 +2,7 @@
 
 After ``skip`` lines comes one header line of column names (or none, with ``header=False``: the columns are
 then called ``1``, ``2``, ...), then one row per sample. Columns are chosen by name or 1-based number
-(:func:`~valve_emulator.io.text.resolve_column`); without a choice the reader takes the column called ``op``,
+(:func:`~valve_emulator.recordings.text.resolve_column`); without a choice the reader takes the column called ``op``,
 ``pv``, ``sp``, ``mode`` and ``t``/``time``/``timestamp``/``datetime``/``date`` (ignoring case), and asks for
 the mapping when ``op`` or ``pv`` is not found. Only the chosen columns are parsed, so other columns may hold
 anything. The time column holds seconds or date-times; without one, give the sample time ``ts``.
@@ -16,8 +16,8 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.io.loaded import Parsed, signal_columns, time_axis
-from valve_emulator.io.text import ColumnSpec, ReaderError, Table, resolve_column, sniff_delimiter, split_rows
+from valve_emulator.recordings.loaded import Parsed, signal_columns, time_axis
+from valve_emulator.recordings.text import ColumnSpec, ReaderError, Table, resolve_column, sniff_delimiter, split_rows
 
 __all__ = ["parse_delimited", "TIME_NAMES"]
 

@@ -20,7 +20,7 @@ import asyncio
 import math
 from typing import Awaitable, Callable
 
-from clients._run import pause
+from valve_emulator.clients._run import pause
 
 __all__ = ["WallSchedule", "GridSchedule"]
 

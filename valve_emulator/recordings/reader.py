@@ -15,11 +15,11 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.io.dcs import looks_like_dcs, parse_dcs
-from valve_emulator.io.delimited import parse_delimited
-from valve_emulator.io.loaded import OP_UNITS, LoadedRecording, Parsed, auto_mask, finish
-from valve_emulator.io.text import ColumnSpec, ReaderError, Table, decode, resolve_column, split_lines
-from valve_emulator.sim.recording import RecordingError, read_csv
+from valve_emulator.recordings.dcs import looks_like_dcs, parse_dcs
+from valve_emulator.recordings.delimited import parse_delimited
+from valve_emulator.recordings.loaded import OP_UNITS, LoadedRecording, Parsed, auto_mask, finish
+from valve_emulator.recordings.text import ColumnSpec, ReaderError, Table, decode, resolve_column, split_lines
+from valve_emulator.recordings.recording import RecordingError, read_csv
 
 __all__ = ["FORMATS", "read_recording", "detect_format"]
 
@@ -97,7 +97,7 @@ def read_recording(path: str | os.PathLike, *, fmt: str = "auto", op: ColumnSpec
     op_units : ``"%"`` (of travel) or ``"mA"``; mA is converted through ``ma_table`` (``[[mA, %], ...]``,
         default 4–20 mA = 0–100 %, linear beyond the ends).
     pv_units : PV's engineering units, reported back as given.
-    auto_values : mode cells meaning AUTO (default :data:`~valve_emulator.io.loaded.DEFAULT_AUTO_VALUES`).
+    auto_values : mode cells meaning AUTO (default :data:`~valve_emulator.recordings.loaded.DEFAULT_AUTO_VALUES`).
     encoding : the file's text encoding (default UTF-8, as in the shared plant data).
     gap_factor : a time step larger than this many median steps is an error (``None``: accept).
     min_samples : fewest samples the returned (AUTO) segment may have.

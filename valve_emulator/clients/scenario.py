@@ -1,6 +1,6 @@
 """The scenario player: plays an operator-training timeline on an emulator through its Modbus registers.
 
-``valve-emulator scenario SCENARIO.yaml`` (or ``python -m clients.scenario``) checks the scenario
+``valve-emulator scenario SCENARIO.yaml`` (or ``python -m valve_emulator.clients.scenario``) checks the scenario
 (:mod:`valve_emulator.scenario`), then either starts an emulator of the scenario's device config (with
 instructor writes allowed from this host) or attaches to a running one (``--attach HOST:PORT``), and
 applies each event at its simulated time by writing the device's own registers -- the same way a field
@@ -34,10 +34,10 @@ from typing import Any, Callable, Protocol, TextIO
 from valve_emulator.device.registers import MAP_VERSION, N_REGISTERS, REGISTERS, RW_INSTRUCTOR, Status, address_of
 from valve_emulator.scenario import Event, Scenario, load_scenario
 
-from clients._channels import emulator_channels
-from clients._modbus import DEFAULT_PORT, DeviceError, Link, Point
-from clients._run import pause, run_until_stopped
-from clients.recorder import RecorderOptions, record
+from valve_emulator.clients._channels import emulator_channels
+from valve_emulator.clients._modbus import DEFAULT_PORT, DeviceError, Link, Point
+from valve_emulator.clients._run import pause, run_until_stopped
+from valve_emulator.clients.recorder import RecorderOptions, record
 from valve_emulator.device.record import TickRecorder
 
 __all__ = ["Applied", "DeviceClock", "ModbusClock", "probe", "play", "run_scenario", "run", "main"]
@@ -195,7 +195,7 @@ async def run_scenario(scenario: Scenario, *, attach: tuple[str, int] | None = N
     ``time_scale`` defaults to the scenario's. The recording takes a row every ``record_step`` simulated
     seconds (default 5 ticks) on the device's time grid: inside the emulator when it is started here
     (:class:`~valve_emulator.device.record.TickRecorder`, nothing missed at any time-scale), by polling over
-    Modbus when attached (:mod:`clients.recorder`).
+    Modbus when attached (:mod:`valve_emulator.clients.recorder`).
     ``ready(server)`` is called once an emulator started here listens (before the check and the events).
     """
     scale = scenario.time_scale if time_scale is None else time_scale
@@ -292,10 +292,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m clients.scenario``: the same as ``valve-emulator scenario``."""
+    """``python -m valve_emulator.clients.scenario``: the same as ``valve-emulator scenario``."""
     from valve_emulator.commands.scenario import add_arguments
 
-    p = argparse.ArgumentParser(prog="python -m clients.scenario", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m valve_emulator.clients.scenario", description=__doc__.splitlines()[0])
     add_arguments(p)
     args = p.parse_args(argv)
     try:

@@ -41,7 +41,7 @@ from valve_emulator.physics.stiction import (
     stiction_step_kernel,
     validate_parameters,
 )
-from valve_emulator.sim.recording import Recording
+from valve_emulator.recordings.recording import Recording
 
 __all__ = ["LoopBank", "simulate_loop", "loop_step_kernel"]
 
@@ -399,7 +399,7 @@ def _shared_batch(make_many, args: list[tuple]) -> list:
 def simulate_loop(config: LoopConfig, duration: float | None = None) -> Recording:
     """Run one loop offline for ``duration`` s (default ``simulation.duration``); deterministic.
 
-    Returns a :class:`~valve_emulator.sim.recording.Recording` with columns ``t, sp, op, mv, pv`` and the
+    Returns a :class:`~valve_emulator.recordings.recording.Recording` with columns ``t, sp, op, mv, pv`` and the
     extras ``flow`` (%), ``op_ma`` (controller output through the valve's mA table) and ``stuck`` (0/1).
     """
     duration = config.simulation.duration if duration is None else float(duration)
