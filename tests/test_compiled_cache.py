@@ -1,0 +1,98 @@
+"""Compiled kernels are cached in a user folder, never inside the package, and only the first run compiles."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from valve_emulator import _cache
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# One process: run the stiction kernels and report numba's cache statistics for the module's compiled functions.
+PROBE = """
+import json, numpy as np
+import valve_emulator
+from valve_emulator.physics import stiction
+stiction.simulate(np.linspace(0.0, 50.0, 200), S=3.0, J=1.0)
+from numba.core.registry import CPUDispatcher
+kernels = [k for k in vars(stiction).values() if isinstance(k, CPUDispatcher)]
+print(json.dumps({"package": valve_emulator.__file__,
+                  "hits": sum(sum(k.stats.cache_hits.values()) for k in kernels),
+                  "misses": sum(sum(k.stats.cache_misses.values()) for k in kernels)}))
+"""
+
+
+def _env(tmp_path: Path, **extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env.update(XDG_CACHE_HOME=str(tmp_path / "xdg"), HOME=str(tmp_path / "home"), **extra)
+    return env
+
+
+def _probe(env: dict[str, str], cwd: Path) -> dict:
+    out = subprocess.run([sys.executable, "-c", PROBE], env=env, cwd=cwd, capture_output=True, text=True,
+                         timeout=300, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_cache_dir_follows_numba_cache_dir_then_xdg(monkeypatch, tmp_path):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "chosen"))
+    assert _cache.cache_dir() == tmp_path / "chosen"
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    if sys.platform.startswith("linux"):
+        assert _cache.cache_dir() == tmp_path / "xdg" / "valve_emulator" / "numba"
+        assert (tmp_path / "xdg" / "valve_emulator" / "numba").is_dir()
+
+
+def test_cache_dir_falls_back_to_temp_when_the_user_cache_cannot_be_created(monkeypatch, tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocker / "below"))
+    monkeypatch.setenv("HOME", str(blocker / "below"))
+    path = _cache.cache_dir()
+    assert not str(path).startswith(str(blocker))
+    assert path.name == "numba" and path.parent.name.startswith("valve_emulator-")
+
+
+@pytest.mark.slow
+def test_first_run_compiles_into_the_user_cache_and_the_second_does_not_compile(tmp_path):
+    env = _env(tmp_path)
+    first = _probe(env, tmp_path)
+    cached = list((tmp_path / "xdg" / "valve_emulator" / "numba").rglob("*.nbi"))
+    assert first["misses"] >= 1 and cached, "the first run compiles and writes the user cache"
+    second = _probe(env, tmp_path)
+    assert second["misses"] == 0 and second["hits"] >= 1, "the second run loads the kernel from the cache"
+
+
+@pytest.mark.slow
+def test_a_read_only_install_caches_outside_the_package(tmp_path):
+    """pip installs a copy of the package; made read-only, it runs, caches in the user folder and stays clean."""
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps",
+                    "--target", str(target), str(ROOT)], check=True, timeout=300, capture_output=True)
+    package = target / "valve_emulator"
+    before = sorted(p.relative_to(target) for p in package.rglob("*"))
+    for p in [package, *package.rglob("*")]:
+        p.chmod(p.stat().st_mode & ~0o222)
+    try:
+        env = _env(tmp_path, PYTHONPATH=str(target))
+        first = _probe(env, tmp_path)
+        assert Path(first["package"]).resolve().is_relative_to(target.resolve())
+        second = _probe(env, tmp_path)
+        assert second["misses"] == 0 and second["hits"] >= 1
+        after = sorted(p.relative_to(target) for p in package.rglob("*") if p.suffix in (".nbi", ".nbc"))
+        assert after == [], f"compiled code written into the installed package: {after[:3]}"
+        assert sorted(p.relative_to(target) for p in package.rglob("*")
+                      if "__pycache__" not in p.parts) == [p for p in before if "__pycache__" not in p.parts]
+    finally:
+        for p in [package, *package.rglob("*")]:
+            p.chmod(p.stat().st_mode | 0o200)
+        shutil.rmtree(target, ignore_errors=True)
