@@ -39,7 +39,8 @@ refuse, checked with the device's own register map (a register it does not have,
 point on a loop without internal controller, a value out of range).
 
 Pure: reads the files it is given, no sockets, no clock. Sits beside the device layer (it uses the
-register map); the player that talks Modbus is :mod:`valve_emulator.clients.scenario`.
+register map); the engine that plays it is :mod:`valve_emulator.scenario.player`, its Modbus front end
+:mod:`valve_emulator.clients.scenario`.
 """
 
 from __future__ import annotations
