@@ -1,4 +1,4 @@
-"""``python -m valve_emulator.clients.monitor``: the instructor's live view of a loop in a terminal.
+"""``valve-emulator monitor`` (or ``python -m valve_emulator.clients.monitor``): the instructor's live view of a loop in a terminal.
 
 Shows the latest SP, PV, OP and MV, whether the valve is moving, stuck or seized, the instructor's fault
 settings (emulator only) and a scrolling trend, one row per sample, newest at the bottom::

@@ -1,4 +1,4 @@
-"""``python -m valve_emulator.clients.recorder --out REC.csv``: poll a Modbus device and write the standard recording CSV.
+"""``valve-emulator record --out REC.csv`` (or ``python -m valve_emulator.clients.recorder``): poll a Modbus device and write the standard recording CSV.
 
 The file is the project's recording format (:mod:`valve_emulator.recordings.recording`): header
 ``t,sp,op,mv,pv`` then the extra columns (by default the emulator's ``flow, op_ma, stuck, S, J, load,

@@ -232,8 +232,8 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser(prog: str = "python -m valve_emulator.clients.scenario") -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m valve_emulator.clients.scenario", description=__doc__.splitlines()[0])
     add_arguments(p)
     return p
 

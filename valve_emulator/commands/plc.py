@@ -1,25 +1,22 @@
 """``valve-emulator plc``: the soft PLC, :mod:`valve_emulator.clients.pi_controller`, as a sub-command.
 
-The same flags and behaviour as ``python -m valve_emulator.clients.pi_controller`` (the client's own ``add_arguments``
-and ``run``; exit codes 0 done, 1 the device failed, 2 bad flags). The client, and with it pymodbus, is
-imported only when this command is chosen.
+The same flags and behaviour as ``python -m valve_emulator.clients.pi_controller`` (see :mod:`._client`).
 """
 
 from __future__ import annotations
 
-import argparse
+from types import ModuleType
+
+from valve_emulator.commands._client import client_command
 
 NAME = "plc"
 HELP = "soft PLC: a PI(D) controller over Modbus TCP (reads PV, writes OP at a fixed scan time)"
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    from valve_emulator.clients.pi_controller import add_arguments
+def _client() -> ModuleType:
+    from valve_emulator.clients import pi_controller
 
-    add_arguments(p)
+    return pi_controller
 
 
-def run(args: argparse.Namespace) -> int:
-    from valve_emulator.clients.pi_controller import run
-
-    return run(args, prog=f"valve-emulator {NAME}")
+add_arguments, run = client_command(NAME, _client)
