@@ -12,7 +12,12 @@ import pytest
 
 from valve_emulator.device.registers import MAP_VERSION, N_REGISTERS, Status
 from valve_emulator.scenario import (
-    DeviceMismatch, WriteRefused, due_ticks, parse_scenario, play, probe,
+    DeviceMismatch,
+    WriteRefused,
+    due_ticks,
+    parse_scenario,
+    play,
+    probe,
 )
 
 DEVICE = """\
@@ -122,10 +127,10 @@ async def test_probe_writes_nothing_when_no_event_needs_instructor_writes():
 
 
 @pytest.mark.parametrize("device, message", [
-    (dict(version=MAP_VERSION + 1), f"fake:502 unit 3: register map version {MAP_VERSION + 1}, this player needs"),
-    (dict(controller=False), "fake:502 unit 3: the loop has no internal controller"),
-    (dict(refuse_instructor=True), r"fake:502 unit 3 refuses instructor writes \(write holding 10: exception 0x02 "
-                                   r"\(illegal data address\)\); allow them with device.instructor_writes"),
+    ({"version": MAP_VERSION + 1}, f"fake:502 unit 3: register map version {MAP_VERSION + 1}, this player needs"),
+    ({"controller": False}, "fake:502 unit 3: the loop has no internal controller"),
+    ({"refuse_instructor": True}, (r"fake:502 unit 3 refuses instructor writes \(write holding 10: exception 0x02 "
+                                   r"\(illegal data address\)\); allow them with device.instructor_writes")),
 ])
 async def test_probe_names_the_device_that_does_not_fit_and_writes_nothing(device, message):
     dev = FakeDevice(**device)

@@ -24,17 +24,34 @@ import math
 import sys
 import time
 from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence, TextIO
-
-from valve_emulator.device.registers import Status
+from typing import TextIO
 
 from valve_emulator.clients._channels import Channels, add_channel_arguments, channels_from_args
-from valve_emulator.clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
+from valve_emulator.clients._modbus import (
+    ABCD,
+    DEFAULT_PORT,
+    DeviceError,
+    Link,
+    add_connection_arguments,
+    check_connection_arguments,
+)
 from valve_emulator.clients._run import client_main, pause
+from valve_emulator.device.registers import Status
 
-__all__ = ["MonitorOptions", "Sample", "valve_state", "render_row", "render_frame", "monitor", "add_arguments",
-           "build_parser", "run", "main"]
+__all__ = [
+    "MonitorOptions",
+    "Sample",
+    "add_arguments",
+    "build_parser",
+    "main",
+    "monitor",
+    "render_frame",
+    "render_row",
+    "run",
+    "valve_state",
+]
 
 PROG = "python -m valve_emulator.clients.monitor"
 _CLEAR = "\x1b[H\x1b[J"   # cursor home, clear to the end of the screen
@@ -112,8 +129,8 @@ def render_frame(history: Sequence[Sample], *, where: str, width: int, rows: int
     """The whole screen: title, latest values, instructor settings and the last ``rows`` trend rows."""
     last = history[-1]
     lines = [f"valve monitor -- {where}    t = {last.t:.1f} s",
-             f"  SP {_num(last.sp, 9, 3)}   PV {_num(last.pv, 9, 3)}   OP {_num(last.op, 7, 2)} %   "
-             f"MV {_num(last.mv, 7, 2)} %   valve {last.state}"]
+             (f"  SP {_num(last.sp, 9, 3)}   PV {_num(last.pv, 9, 3)}   OP {_num(last.op, 7, 2)} %   "
+              f"MV {_num(last.mv, 7, 2)} %   valve {last.state}")]
     faults = [(k, last.extras[k]) for k in ("S", "J", "load", "noise", "fault") if k in last.extras]
     if faults:
         units = {"S": " %", "J": " %", "load": " % flow", "noise": " % of range", "fault": ""}

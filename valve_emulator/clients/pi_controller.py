@@ -34,23 +34,39 @@ import asyncio
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Callable, TextIO
+from typing import Any, TextIO
 
 import yaml
 
-from valve_emulator.physics.controller import PID
-
 from valve_emulator.clients._modbus import (
-    ABCD, CDAB, DEFAULT_PORT, DeviceError, Link, Point, Reader, add_connection_arguments,
-    check_connection_arguments, parse_point,
+    ABCD,
+    CDAB,
+    DEFAULT_PORT,
+    DeviceError,
+    Link,
+    Point,
+    Reader,
+    add_connection_arguments,
+    check_connection_arguments,
+    parse_point,
 )
 from valve_emulator.clients._run import client_main, pause
 from valve_emulator.clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.physics.controller import PID
 
-__all__ = ["ControllerSettings", "ControllerSummary", "run_controller", "settings_from_args", "add_arguments",
-           "build_parser", "run", "main"]
+__all__ = [
+    "ControllerSettings",
+    "ControllerSummary",
+    "add_arguments",
+    "build_parser",
+    "main",
+    "run",
+    "run_controller",
+    "settings_from_args",
+]
 
 PROG = "python -m valve_emulator.clients.pi_controller"
 

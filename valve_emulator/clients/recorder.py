@@ -35,21 +35,36 @@ import asyncio
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, TextIO
+from typing import TextIO
 
 import numpy as np
 
-from valve_emulator.recordings.recording import CsvRecordingWriter
-
 from valve_emulator.clients._channels import Channels, add_channel_arguments, channels_from_args
-from valve_emulator.clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
+from valve_emulator.clients._modbus import (
+    ABCD,
+    DEFAULT_PORT,
+    DeviceError,
+    Link,
+    add_connection_arguments,
+    check_connection_arguments,
+)
 from valve_emulator.clients._run import client_main, pause
 from valve_emulator.clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.recordings.recording import CsvRecordingWriter
 
-__all__ = ["RecorderOptions", "RecordSummary", "record", "add_arguments", "build_parser", "options_from_args", "run",
-           "main"]
+__all__ = [
+    "RecordSummary",
+    "RecorderOptions",
+    "add_arguments",
+    "build_parser",
+    "main",
+    "options_from_args",
+    "record",
+    "run",
+]
 
 PROG = "python -m valve_emulator.clients.recorder"
 

@@ -28,21 +28,28 @@ import contextlib
 import math
 import sys
 import time
+from collections.abc import AsyncIterator, Callable, Sequence
 from pathlib import Path
-from typing import Any, AsyncIterator, Callable, Sequence, TextIO
-
-from valve_emulator.device.record import TickRecorder
-from valve_emulator.device.registers import address_of
-from valve_emulator.scenario import (
-    Applied, Clock, DeviceClock, Scenario, WriteRefused, load_scenario, play, probe,
-)
+from typing import Any, TextIO
 
 from valve_emulator.clients._channels import emulator_channels
 from valve_emulator.clients._modbus import DEFAULT_PORT, DeviceError, Link, Point
 from valve_emulator.clients._run import pause, run_until_stopped
 from valve_emulator.clients.recorder import RecorderOptions, record
+from valve_emulator.device.record import TickRecorder
+from valve_emulator.device.registers import address_of
+from valve_emulator.scenario import (
+    Applied,
+    Clock,
+    DeviceClock,
+    Scenario,
+    WriteRefused,
+    load_scenario,
+    play,
+    probe,
+)
 
-__all__ = ["LinkChannel", "ModbusClock", "run_scenario", "add_arguments", "build_parser", "run", "main"]
+__all__ = ["LinkChannel", "ModbusClock", "add_arguments", "build_parser", "main", "run", "run_scenario"]
 
 PROG = "valve-emulator scenario"
 _TICK = Point("holding", address_of("tick"), "uint32")

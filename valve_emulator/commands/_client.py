@@ -8,8 +8,8 @@ its command module names it and gets the two hooks the command line wants from :
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from types import ModuleType
-from typing import Callable
 
 __all__ = ["client_command"]
 

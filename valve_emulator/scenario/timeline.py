@@ -125,7 +125,7 @@ class Scenario:
 
     def tick_of(self, t: float) -> int:
         """The tick (counted from the start of the scenario) at which time ``t`` happens: the nearest one."""
-        return int(round(t / self.dt))
+        return round(t / self.dt)
 
     def server_config(self, *, instructor_hosts: tuple[str, ...] = ("127.0.0.1",)) -> ServerConfig:
         """The device config with instructor writes allowed (from ``instructor_hosts`` unless the config
@@ -210,7 +210,7 @@ def _number(value: Any, key: str, where: _Where, *, lo: float | None = None, hi:
 
 def _raw(reg: Register, value: float, key: str, where: _Where) -> int:
     """Register word for a physical ``value`` (raw = value × scale); int16 as two's complement."""
-    raw = int(round(value * reg.scale))
+    raw = round(value * reg.scale)
     if reg.type == "int16":
         if not -0x8000 <= raw <= 0x7FFF:
             raise where.fail(key, f"register {reg.name}: {raw} out of range {reg.lo}..{reg.hi}")
@@ -220,7 +220,7 @@ def _raw(reg: Register, value: float, key: str, where: _Where) -> int:
 
 def _writes(kind: str, p: dict[str, Any], key: str, loop: LoopConfig, where: _Where) -> list[tuple[str, int]]:
     lo, hi = loop.plant.pv_range
-    pct = lambda x: 100.0 * (x - lo) / (hi - lo)  # noqa: E731  engineering units -> % of pv_range
+    pct = lambda x: 100.0 * (x - lo) / (hi - lo)
     if kind == "stiction":
         return [(n, _raw(_BY_NAME[n], p[n], f"{key}.{n}", where)) for n in ("S", "J") if n in p]
     if kind == "load":
