@@ -1,6 +1,6 @@
 """End to end in accelerated time: the emulator (no internal controller) + the soft PLC + the recorder on the
-seed's undershoot concentration loop reproduce the offline limit cycle, and the recording shows the valve
-stuck after every reversal until OP has moved S."""
+undershoot concentration loop of Choudhury, Thornhill & Shah (2005) reproduce the offline limit cycle, and the
+recording shows the valve stuck after every reversal until OP has moved S."""
 
 from __future__ import annotations
 

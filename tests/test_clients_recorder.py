@@ -1,5 +1,5 @@
 """The recorder: killed with SIGKILL it leaves only whole lines, wall-time and generic channels, bad flags and
-unreachable devices, and every client's ``python -m clients.NAME --help``."""
+unreachable devices, and every client's ``python -m valve_emulator.clients.NAME --help``."""
 
 from __future__ import annotations
 

@@ -1,6 +1,8 @@
 """``valve-emulator`` command line: one sub-command per module in :mod:`valve_emulator.commands`.
 
-Each command module defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``. Errors
+Each command module defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``. Only the
+command being run gets its arguments added (a command may import its heavy parts in ``add_arguments``:
+``valve-emulator --help`` and the other commands do not pay for them). Errors
 the user can fix (bad config, bad recording, bad flag) are printed as one line on stderr with exit code 2;
 nothing is written in that case.
 """
@@ -10,9 +12,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
-__all__ = ["main", "COMMANDS"]
+__all__ = ["COMMANDS", "main"]
 
 #: Command modules, in the order ``--help`` lists them.
 COMMANDS = (
@@ -22,6 +24,9 @@ COMMANDS = (
     "limit_cycle",
     "figure5",
     "scenario",
+    "plc",
+    "record",
+    "monitor",
     "diagnose",
     "prove",
     "evaluate",
@@ -37,7 +42,8 @@ def _load(name: str):
         raise
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``valve-emulator`` parser; with ``command`` only that sub-command's arguments (default: all)."""
     parser = argparse.ArgumentParser(
         prog="valve-emulator",
         description="A sticky control valve (Choudhury-Thornhill-Shah stiction model) as a Modbus TCP device, "
@@ -49,14 +55,18 @@ def build_parser() -> argparse.ArgumentParser:
         if module is None:
             continue
         p = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
-        module.add_arguments(p)
+        if command is None or command == module.NAME:
+            module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # The top-level parser has no option that takes a value: the first word that is not an option is the
+    # command ("" when there is none: ``valve-emulator --help`` needs no command's arguments).
+    command = next((a for a in argv if not a.startswith("-")), "")
+    args = build_parser(command).parse_args(argv)
     try:
         return int(args._run(args) or 0)
     except (ValueError, OSError) as exc:  # ConfigError, RecordingError, ... subclass ValueError

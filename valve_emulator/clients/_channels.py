@@ -25,12 +25,12 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Final, Mapping
-
-from valve_emulator.device.registers import Status
+from typing import Final
 
 from valve_emulator.clients._modbus import Point, Reader, parse_point
+from valve_emulator.device.registers import Status
 
 __all__ = ["EXTRAS", "Channels", "add_channel_arguments", "channels_from_args", "emulator_channels"]
 
@@ -78,7 +78,7 @@ class Channels:
                 sp = math.nan   # the emulator has no set point for this loop: the register reads 0
         else:
             sp = math.nan if self.sp is None else float(self.sp)
-        mv = sample["mv"] if "mv" in sample else math.nan
+        mv = sample.get("mv", math.nan)
         return sp, sample["op"], mv, sample["pv"], [sample[f"extra:{k}"] for k in self.extras]
 
     @staticmethod

@@ -6,9 +6,10 @@ import argparse
 import asyncio
 import signal
 import sys
-from typing import Any, Awaitable, Callable, TypeVar
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
 
-__all__ = ["run_until_stopped", "pause", "client_main"]
+__all__ = ["client_main", "pause", "run_until_stopped"]
 
 T = TypeVar("T")
 

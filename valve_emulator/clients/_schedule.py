@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import asyncio
 import math
-from typing import Awaitable, Callable
+from collections.abc import Awaitable, Callable
 
 from valve_emulator.clients._run import pause
 
-__all__ = ["WallSchedule", "GridSchedule"]
+__all__ = ["GridSchedule", "WallSchedule"]
 
 Read = Callable[[], Awaitable[dict[str, float]]]
 
@@ -117,5 +117,5 @@ class GridSchedule:
             if t >= goal - eps:
                 if t > goal + eps:   # the tick at the grid time went by unseen: use this reading
                     self.off_grid += 1
-                    self.n = int(math.floor((t - self.t0) / self.step + 1e-9))
+                    self.n = math.floor((t - self.t0) / self.step + 1e-9)
                 return sample

@@ -1,4 +1,4 @@
-"""``python -m valve_emulator.clients.monitor``: the instructor's live view of a loop in a terminal.
+"""``valve-emulator monitor`` (or ``python -m valve_emulator.clients.monitor``): the instructor's live view of a loop in a terminal.
 
 Shows the latest SP, PV, OP and MV, whether the valve is moving, stuck or seized, the instructor's fault
 settings (emulator only) and a scrolling trend, one row per sample, newest at the bottom::
@@ -24,17 +24,34 @@ import math
 import sys
 import time
 from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence, TextIO
-
-from valve_emulator.device.registers import Status
+from typing import TextIO
 
 from valve_emulator.clients._channels import Channels, add_channel_arguments, channels_from_args
-from valve_emulator.clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
+from valve_emulator.clients._modbus import (
+    ABCD,
+    DEFAULT_PORT,
+    DeviceError,
+    Link,
+    add_connection_arguments,
+    check_connection_arguments,
+)
 from valve_emulator.clients._run import client_main, pause
+from valve_emulator.device.registers import Status
 
-__all__ = ["MonitorOptions", "Sample", "valve_state", "render_row", "render_frame", "monitor", "build_parser",
-           "main"]
+__all__ = [
+    "MonitorOptions",
+    "Sample",
+    "add_arguments",
+    "build_parser",
+    "main",
+    "monitor",
+    "render_frame",
+    "render_row",
+    "run",
+    "valve_state",
+]
 
 PROG = "python -m valve_emulator.clients.monitor"
 _CLEAR = "\x1b[H\x1b[J"   # cursor home, clear to the end of the screen
@@ -112,8 +129,8 @@ def render_frame(history: Sequence[Sample], *, where: str, width: int, rows: int
     """The whole screen: title, latest values, instructor settings and the last ``rows`` trend rows."""
     last = history[-1]
     lines = [f"valve monitor -- {where}    t = {last.t:.1f} s",
-             f"  SP {_num(last.sp, 9, 3)}   PV {_num(last.pv, 9, 3)}   OP {_num(last.op, 7, 2)} %   "
-             f"MV {_num(last.mv, 7, 2)} %   valve {last.state}"]
+             (f"  SP {_num(last.sp, 9, 3)}   PV {_num(last.pv, 9, 3)}   OP {_num(last.op, 7, 2)} %   "
+              f"MV {_num(last.mv, 7, 2)} %   valve {last.state}")]
     faults = [(k, last.extras[k]) for k in ("S", "J", "load", "noise", "fault") if k in last.extras]
     if faults:
         units = {"S": " %", "J": " %", "load": " % flow", "noise": " % of range", "fault": ""}
@@ -143,11 +160,11 @@ class _Range:
 
 
 async def monitor(opts: MonitorOptions, *, out: TextIO, stop: asyncio.Event | None = None,
-                  clock: Callable[[], float] = time.monotonic) -> int:
+                  clock: Callable[[], float] = time.monotonic, prog: str = PROG) -> int:
     """Show samples on ``out`` until stopped, ``duration`` passes or after one sample (``once``).
 
     Returns the number of samples shown. The first read must succeed (``ConnectionError`` /
-    :class:`DeviceError`); later failures are shown as a line and polling goes on.
+    :class:`DeviceError`); later failures are shown as a line (prefixed with ``prog``) and polling goes on.
     """
     ch = opts.channels
     reader = ch.reader(word_order=opts.word_order, max_gap=opts.max_gap)
@@ -167,7 +184,7 @@ async def monitor(opts: MonitorOptions, *, out: TextIO, stop: asyncio.Event | No
             except (ConnectionError, DeviceError) as exc:
                 if shown == 0:
                     raise
-                print(f"{PROG}: {exc}", file=out, flush=True)
+                print(f"{prog}: {exc}", file=out, flush=True)
             else:
                 sp, op, mv, pv, extras = ch.values(raw)
                 t = raw["t"] if ch.t is not None else now - t0
@@ -199,9 +216,11 @@ async def monitor(opts: MonitorOptions, *, out: TextIO, stop: asyncio.Event | No
     return shown
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description="Live terminal view of a control loop over Modbus TCP: "
-                                "SP, PV, OP, MV, valve state and a scrolling trend.")
+DESCRIPTION = "Live terminal view of a control loop over Modbus TCP: SP, PV, OP, MV, valve state and a scrolling trend."
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The monitor's flags (``python -m valve_emulator.clients.monitor`` and ``valve-emulator monitor``)."""
     add_connection_arguments(p)
     g = p.add_argument_group("display")
     g.add_argument("--period", type=float, default=0.5, metavar="S", help="wall seconds per sample (default %(default)s)")
@@ -212,6 +231,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--rows", type=int, default=20, help="trend rows on screen (default %(default)s)")
     g.add_argument("--pv-range", type=float, nargs=2, metavar=("LO", "HI"), help="PV/SP axis (default: as seen)")
     add_channel_arguments(p)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION)
+    add_arguments(p)
     return p
 
 
@@ -232,11 +256,18 @@ def options_from_args(args: argparse.Namespace, *, tty: bool) -> MonitorOptions:
                           max_gap=args.max_gap)
 
 
+def run(args: argparse.Namespace, *, prog: str = PROG) -> int:
+    """Show the loop as the flags say; messages start with ``prog``.
+
+    Exit codes: 0 done (also after Ctrl-C), 1 the device failed, 2 bad flags.
+    """
+    return client_main(prog, args, lambda a: options_from_args(a, tty=sys.stdout.isatty()),
+                       lambda opts, stop: monitor(opts, out=sys.stdout, stop=stop, prog=prog))
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Exit codes: 0 done (also after Ctrl-C), 1 the device failed, 2 bad flags."""
-    args = build_parser().parse_args(argv)
-    return client_main(PROG, args, lambda a: options_from_args(a, tty=sys.stdout.isatty()),
-                       lambda opts, stop: monitor(opts, out=sys.stdout, stop=stop))
+    """``python -m valve_emulator.clients.monitor``; exit codes as :func:`run`."""
+    return run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":  # pragma: no cover

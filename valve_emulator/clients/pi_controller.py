@@ -1,4 +1,4 @@
-"""``python -m valve_emulator.clients.pi_controller``: a soft PLC -- PI(D) over Modbus TCP at a fixed scan time.
+"""``valve-emulator plc`` (or ``python -m valve_emulator.clients.pi_controller``): a soft PLC -- PI(D) over Modbus TCP at a fixed scan time.
 
 Every scan it reads PV (and the set point, when ``--sp-register`` names one), runs one step of
 :class:`valve_emulator.physics.controller.PID` (position form, anti-windup, derivative on PV) and writes
@@ -34,23 +34,39 @@ import asyncio
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Callable, TextIO
+from typing import Any, TextIO
 
 import yaml
 
-from valve_emulator.physics.controller import PID
-
 from valve_emulator.clients._modbus import (
-    ABCD, CDAB, DEFAULT_PORT, DeviceError, Link, Point, Reader, add_connection_arguments,
-    check_connection_arguments, parse_point,
+    ABCD,
+    CDAB,
+    DEFAULT_PORT,
+    DeviceError,
+    Link,
+    Point,
+    Reader,
+    add_connection_arguments,
+    check_connection_arguments,
+    parse_point,
 )
 from valve_emulator.clients._run import client_main, pause
 from valve_emulator.clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.physics.controller import PID
 
-__all__ = ["ControllerSettings", "ControllerSummary", "run_controller", "settings_from_args", "build_parser",
-           "main"]
+__all__ = [
+    "ControllerSettings",
+    "ControllerSummary",
+    "add_arguments",
+    "build_parser",
+    "main",
+    "run",
+    "run_controller",
+    "settings_from_args",
+]
 
 PROG = "python -m valve_emulator.clients.pi_controller"
 
@@ -136,8 +152,11 @@ class ControllerSummary:
 
 
 async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | None = None,
-                         log: TextIO | None = None, clock: Callable[[], float] = time.monotonic) -> ControllerSummary:
+                         log: TextIO | None = None, clock: Callable[[], float] = time.monotonic,
+                         prog: str = PROG) -> ControllerSummary:
     """Run the PLC until ``stop`` is set (or ``settings.duration`` has passed); OP is left as last written.
+
+    ``log`` receives a line at the start, one at the first failure and one at the end, prefixed with ``prog``.
 
     The first read and the first write must succeed (``ConnectionError`` / :class:`DeviceError`); later
     failures are counted, reported once, and the scan is skipped (OP held).
@@ -167,7 +186,7 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
         pid.reset(first["pv"], sp, op0)
         summary.sp = sp
         if log is not None:
-            print(f"{PROG}: unit {s.unit} at {s.host}:{s.port}; PV {first['pv']:g}, SP {sp:g}, OP {op0:g} %; "
+            print(f"{prog}: unit {s.unit} at {s.host}:{s.port}; PV {first['pv']:g}, SP {sp:g}, OP {op0:g} %; "
                   f"scan {s.scan:g} s, dt {s.dt:g} s", file=log, flush=True)
         t0 = clock()
         schedule = (GridSchedule(s.dt, clock=clock, hint=s.scan) if s.device_time is not None
@@ -192,7 +211,7 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
                         raise
                     summary.errors += 1
                     if log is not None and summary.errors == 1:
-                        print(f"{PROG}: {exc}; holding OP and retrying", file=log, flush=True)
+                        print(f"{prog}: {exc}; holding OP and retrying", file=log, flush=True)
                 summary.scans += 1
             if (stop is not None and stop.is_set()) or (s.duration is not None and clock() - t0 >= s.duration):
                 break
@@ -202,20 +221,22 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
                 sample = None
                 summary.errors += 1
                 if log is not None and summary.errors == 1:
-                    print(f"{PROG}: {exc}; holding OP and retrying", file=log, flush=True)
+                    print(f"{prog}: {exc}; holding OP and retrying", file=log, flush=True)
                 await pause(s.scan, stop)
             summary.overruns = schedule.late + schedule.off_grid
     finally:
         link.close()   # nothing is written on the way out: OP stays where it was
     if log is not None:
-        print(f"{PROG}: stopped after {summary.scans} scans ({summary.overruns} overruns, {summary.errors} "
+        print(f"{prog}: stopped after {summary.scans} scans ({summary.overruns} overruns, {summary.errors} "
               f"errors); OP left at {summary.op:g} %", file=log, flush=True)
     return summary
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description="Soft PLC: a PI(D) controller over Modbus TCP "
-                                "(reads PV, writes OP at a fixed scan time).")
+DESCRIPTION = "Soft PLC: a PI(D) controller over Modbus TCP (reads PV, writes OP at a fixed scan time)."
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The soft PLC's flags (``python -m valve_emulator.clients.pi_controller`` and ``valve-emulator plc``)."""
     p.add_argument("--config", type=Path, metavar="PLC.yaml", help="settings file (keys = long flag names)")
     add_connection_arguments(p, defaults=False)   # unset flags fall back to the file, then the defaults
     g = p.add_argument_group("controller")
@@ -236,6 +257,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scan on the device's clock read from this register (the emulator's: time): exactly "
                         "one scan per dt = scan x time-scale device seconds")
     g.add_argument("--duration", type=float, metavar="S", help="stop after S wall seconds (default: Ctrl-C)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION)
+    add_arguments(p)
     return p
 
 
@@ -279,11 +305,18 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
     return settings
 
 
+def run(args: argparse.Namespace, *, prog: str = PROG) -> int:
+    """Run the PLC as the flags say; messages start with ``prog``.
+
+    Exit codes: 0 stopped cleanly (Ctrl-C, SIGTERM, --duration), 1 the device failed, 2 bad settings.
+    """
+    return client_main(prog, args, settings_from_args,
+                       lambda settings, stop: run_controller(settings, stop=stop, log=sys.stderr, prog=prog))
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Exit codes: 0 stopped cleanly (Ctrl-C, SIGTERM, --duration), 1 the device failed, 2 bad settings."""
-    args = build_parser().parse_args(argv)
-    return client_main(PROG, args, settings_from_args,
-                       lambda settings, stop: run_controller(settings, stop=stop, log=sys.stderr))
+    """``python -m valve_emulator.clients.pi_controller``; exit codes as :func:`run`."""
+    return run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":  # pragma: no cover

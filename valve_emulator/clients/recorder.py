@@ -1,4 +1,4 @@
-"""``python -m valve_emulator.clients.recorder --out REC.csv``: poll a Modbus device and write the standard recording CSV.
+"""``valve-emulator record --out REC.csv`` (or ``python -m valve_emulator.clients.recorder``): poll a Modbus device and write the standard recording CSV.
 
 The file is the project's recording format (:mod:`valve_emulator.recordings.recording`): header
 ``t,sp,op,mv,pv`` then the extra columns (by default the emulator's ``flow, op_ma, stuck, S, J, load,
@@ -35,20 +35,36 @@ import asyncio
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, TextIO
+from typing import TextIO
 
 import numpy as np
 
-from valve_emulator.recordings.recording import CsvRecordingWriter
-
 from valve_emulator.clients._channels import Channels, add_channel_arguments, channels_from_args
-from valve_emulator.clients._modbus import ABCD, DEFAULT_PORT, DeviceError, Link, add_connection_arguments, check_connection_arguments
+from valve_emulator.clients._modbus import (
+    ABCD,
+    DEFAULT_PORT,
+    DeviceError,
+    Link,
+    add_connection_arguments,
+    check_connection_arguments,
+)
 from valve_emulator.clients._run import client_main, pause
 from valve_emulator.clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.recordings.recording import CsvRecordingWriter
 
-__all__ = ["RecorderOptions", "RecordSummary", "record", "build_parser", "options_from_args", "main"]
+__all__ = [
+    "RecordSummary",
+    "RecorderOptions",
+    "add_arguments",
+    "build_parser",
+    "main",
+    "options_from_args",
+    "record",
+    "run",
+]
 
 PROG = "python -m valve_emulator.clients.recorder"
 
@@ -95,14 +111,14 @@ class RecordSummary:
 
 
 async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, progress: TextIO | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> RecordSummary:
+                 clock: Callable[[], float] = time.monotonic, prog: str = PROG) -> RecordSummary:
     """Poll the device and append rows to ``opts.out`` until ``stop`` is set, ``duration`` (wall s) has
     passed or ``t`` reaches ``until``; every ``opts.period`` wall seconds, or on the device's time grid
     every ``opts.step`` device seconds (see :mod:`valve_emulator.clients._schedule`).
 
     The first poll must succeed (``ConnectionError``/:class:`DeviceError`, nothing written beyond the
     header otherwise); later failures are counted and polling goes on (reconnecting as needed).
-    ``progress`` receives a progress line (``\\r``-updated on a terminal) and the summary.
+    ``progress`` receives a progress line (``\\r``-updated on a terminal) and the summary, prefixed with ``prog``.
     """
     ch = opts.channels
     if opts.step is not None and ch.t is None:
@@ -145,7 +161,7 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
                     summary.repeats += 1   # the device has not ticked since the last row
             if progress is not None and now >= next_report:
                 next_report = now + (0.5 if tty else 5.0)
-                text = f"{PROG}: {summary.rows} rows, t = {summary.t_last:.1f} s"
+                text = f"{prog}: {summary.rows} rows, t = {summary.t_last:.1f} s"
                 print("\r" + text if tty else text, end="" if tty else "\n", file=progress, flush=True)
             if ((stop is not None and stop.is_set()) or (opts.until is not None and last_t >= opts.until)
                     or (opts.duration is not None and clock() - t0 >= opts.duration)):
@@ -156,7 +172,7 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
                 sample = None
                 summary.errors += 1
                 if progress is not None and summary.errors == 1:
-                    print(("\n" if tty else "") + f"{PROG}: {exc}; retrying", file=progress, flush=True)
+                    print(("\n" if tty else "") + f"{prog}: {exc}; retrying", file=progress, flush=True)
                 await pause(opts.period, stop)   # do not hammer a device that just failed
             now = clock()
             if sample is None and stop is not None and stop.is_set():
@@ -169,13 +185,16 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
         steps = np.asarray(summary.steps)
         summary.gaps = int(np.count_nonzero(steps > 1.5 * np.median(steps)))
     if progress is not None:
-        print(("\r" if tty else "") + f"{PROG}: wrote {summary.line()}", file=progress, flush=True)
+        print(("\r" if tty else "") + f"{prog}: wrote {summary.line()}", file=progress, flush=True)
     return summary
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description="Poll a Modbus TCP device and write the standard "
-                                "recording CSV (t,sp,op,mv,pv,...), one flushed line per sample.")
+DESCRIPTION = ("Poll a Modbus TCP device and write the standard recording CSV (t,sp,op,mv,pv,...), one flushed "
+               "line per sample.")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The recorder's flags (``python -m valve_emulator.clients.recorder`` and ``valve-emulator record``)."""
     add_connection_arguments(p)
     g = p.add_argument_group("recording")
     g.add_argument("--out", required=True, type=Path, metavar="REC.csv", help="file to write (overwritten)")
@@ -188,6 +207,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--fsync", action="store_true", help="force every line to disk (survives a power cut)")
     g.add_argument("--quiet", action="store_true", help="no progress line")
     add_channel_arguments(p)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION)
+    add_arguments(p)
     return p
 
 
@@ -208,11 +232,19 @@ def options_from_args(args: argparse.Namespace) -> RecorderOptions:
                            duration=args.duration, until=args.until, max_gap=args.max_gap, fsync=args.fsync)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Exit codes: 0 done (also after Ctrl-C), 1 the device failed, 2 bad flags."""
-    args = build_parser().parse_args(argv)
+def run(args: argparse.Namespace, *, prog: str = PROG) -> int:
+    """Record as the flags say; messages start with ``prog``.
+
+    Exit codes: 0 done (also after Ctrl-C), 1 the device failed, 2 bad flags.
+    """
     progress = None if args.quiet else sys.stderr
-    return client_main(PROG, args, options_from_args, lambda opts, stop: record(opts, stop=stop, progress=progress))
+    return client_main(prog, args, options_from_args,
+                       lambda opts, stop: record(opts, stop=stop, progress=progress, prog=prog))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m valve_emulator.clients.recorder``; exit codes as :func:`run`."""
+    return run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":  # pragma: no cover

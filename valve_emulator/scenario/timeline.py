@@ -39,7 +39,8 @@ refuse, checked with the device's own register map (a register it does not have,
 point on a loop without internal controller, a value out of range).
 
 Pure: reads the files it is given, no sockets, no clock. Sits beside the device layer (it uses the
-register map); the player that talks Modbus is :mod:`valve_emulator.clients.scenario`.
+register map); the engine that plays it is :mod:`valve_emulator.scenario.player`, its Modbus front end
+:mod:`valve_emulator.clients.scenario`.
 """
 
 from __future__ import annotations
@@ -124,7 +125,7 @@ class Scenario:
 
     def tick_of(self, t: float) -> int:
         """The tick (counted from the start of the scenario) at which time ``t`` happens: the nearest one."""
-        return int(round(t / self.dt))
+        return round(t / self.dt)
 
     def server_config(self, *, instructor_hosts: tuple[str, ...] = ("127.0.0.1",)) -> ServerConfig:
         """The device config with instructor writes allowed (from ``instructor_hosts`` unless the config
@@ -209,7 +210,7 @@ def _number(value: Any, key: str, where: _Where, *, lo: float | None = None, hi:
 
 def _raw(reg: Register, value: float, key: str, where: _Where) -> int:
     """Register word for a physical ``value`` (raw = value × scale); int16 as two's complement."""
-    raw = int(round(value * reg.scale))
+    raw = round(value * reg.scale)
     if reg.type == "int16":
         if not -0x8000 <= raw <= 0x7FFF:
             raise where.fail(key, f"register {reg.name}: {raw} out of range {reg.lo}..{reg.hi}")
@@ -219,7 +220,7 @@ def _raw(reg: Register, value: float, key: str, where: _Where) -> int:
 
 def _writes(kind: str, p: dict[str, Any], key: str, loop: LoopConfig, where: _Where) -> list[tuple[str, int]]:
     lo, hi = loop.plant.pv_range
-    pct = lambda x: 100.0 * (x - lo) / (hi - lo)  # noqa: E731  engineering units -> % of pv_range
+    pct = lambda x: 100.0 * (x - lo) / (hi - lo)
     if kind == "stiction":
         return [(n, _raw(_BY_NAME[n], p[n], f"{key}.{n}", where)) for n in ("S", "J") if n in p]
     if kind == "load":
