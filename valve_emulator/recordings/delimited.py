@@ -2,7 +2,7 @@
 
 After ``skip`` lines comes one header line of column names (or none, with ``header=False``: the columns are
 then called ``1``, ``2``, ...), then one row per sample. Columns are chosen by name or 1-based number
-(:func:`~valve_emulator.recordings.text.resolve_column`); without a choice the reader takes the column called ``op``,
+(:func:`~valve_emulator.recordings.table.resolve_column`); without a choice the reader takes the column called ``op``,
 ``pv``, ``sp``, ``mode`` and ``t``/``time``/``timestamp``/``datetime``/``date`` (ignoring case), and asks for
 the mapping when ``op`` or ``pv`` is not found. Only the chosen columns are parsed, so other columns may hold
 anything. The time column holds seconds or date-times; without one, give the sample time ``ts``.
@@ -16,8 +16,10 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.recordings.loaded import Parsed, signal_columns, time_axis
-from valve_emulator.recordings.text import ColumnSpec, ReaderError, Table, resolve_column, sniff_delimiter, split_rows
+from valve_emulator.recordings.errors import ReaderError
+from valve_emulator.recordings.loaded import Format, Parsed, signal_columns, time_axis
+from valve_emulator.recordings.table import ColumnSpec, Table, resolve_column
+from valve_emulator.recordings.text import sniff_delimiter, split_rows
 
 __all__ = ["parse_delimited", "TIME_NAMES"]
 
@@ -59,9 +61,7 @@ def parse_delimited(lines: list[str], source: str, *, skip: int = 0, header: boo
     table = Table(source, names, rows, first_line=first)
     if not rows:
         raise ReaderError(f"{source}: line {first - 1}: no data rows after the header")
-    for i, row in enumerate(rows):
-        if not any(c.strip() for c in row):
-            raise ReaderError(f"{table.where(i)}: blank line inside the data")
+    table.refuse_blank_rows()
 
     cols: dict[str, int] = {}
     for role, spec in (("op", op), ("pv", pv), ("sp", sp), ("mode", mode)):
@@ -89,10 +89,10 @@ def parse_delimited(lines: list[str], source: str, *, skip: int = 0, header: boo
                               f"{'/'.join(TIME_NAMES)}); pass time= with a column, or ts= with the sample "
                               "time in seconds")
         t, notes = time_axis(table.times(jt), table, jt, gap_factor=gap_factor)
-        start, columns["time"] = table.rows[0][jt].strip(), names[jt]
+        start, columns["time"] = table.cell(0, jt), names[jt]
     columns.update({role: names[j] for role, j in cols.items()})
     return Parsed(
-        source=source, fmt="csv", t=t,
+        source=source, fmt=Format.CSV, t=t,
         **signal_columns(table, cols, decimal=decimal, auto_values=auto_values),
         columns=columns, tag=Path(source).stem, start=start,
         info={"delimiter": {"\t": "tab"}.get(delimiter, delimiter)}, notes=notes)

@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from valve_emulator.recordings.recording import Recording, RecordingError
+from valve_emulator.recordings.errors import RecordingError
+from valve_emulator.recordings.recording import Recording
 
 __all__ = ["regularize", "MAX_GAP", "TOLERANCE"]
 
