@@ -28,17 +28,13 @@ from valve_emulator.recordings.loaded import (
 )
 from valve_emulator.recordings.recording import read_csv
 from valve_emulator.recordings.table import ColumnSpec, Table, resolve_column
-from valve_emulator.recordings.text import decode, split_cells, split_lines
+from valve_emulator.recordings.text import decode, is_utf8, split_cells, split_lines
 
 __all__ = ["Format", "FORMATS", "read_recording", "detect_format"]
 
 
 FORMATS: Final = tuple(f.value for f in Format)
 _STANDARD_NAMES: Final = frozenset(("t", "op", "pv"))
-
-
-def _is_utf8(encoding: str) -> bool:
-    return encoding.lower().replace("-", "").replace("_", "") == "utf8"
 
 
 def detect_format(lines: Sequence[str], *, skip: int = 0, mapped: bool = False, op_units: str = "%",
@@ -60,7 +56,7 @@ def detect_format(lines: Sequence[str], *, skip: int = 0, mapped: bool = False, 
         cells = split_cells(body[0], ",")
         if _STANDARD_NAMES <= set(cells):
             return Format.STANDARD
-        if len(cells) > 1 and cells[0] == "t" and op_units == "%" and _is_utf8(encoding):
+        if len(cells) > 1 and cells[0] == "t" and op_units == "%" and is_utf8(encoding):
             return Format.STANDARD
     return Format.CSV
 
@@ -102,7 +98,10 @@ def read_recording(path: str | os.PathLike, *, fmt: Format | str = Format.AUTO, 
     Parameters
     ----------
     path : the file.
-    fmt : ``"auto"`` (detect, see :func:`detect_format`), ``"standard"``, ``"csv"`` or ``"dcs"``.
+    fmt : a :class:`Format` or its name: ``"auto"`` (detect, see :func:`detect_format`), ``"standard"``,
+        ``"csv"`` or ``"dcs"``. A file detected as standard that the standard reader refuses (a text mode
+        column, say) is tried as delimited text, with a note; if that fails too, the standard reader's error
+        is raised.
     op, pv, sp, time, mode : the columns for controller output, process value, set point, time and controller
         mode, by name or 1-based number (``None``: the format's default column, if any; ``mode=False``: ignore
         a mode column). The standard format has fixed columns and accepts only ``mode``.
@@ -165,7 +164,7 @@ def read_recording(path: str | os.PathLike, *, fmt: Format | str = Format.AUTO, 
                               "options but mode=; use fmt='csv' to map columns")
         if op_units != "%":
             raise ReaderError(f"{source}: the standard format holds OP in % of travel; op_units must be '%'")
-        if not _is_utf8(encoding):
+        if not is_utf8(encoding):
             raise ReaderError(f"{source}: the standard format is UTF-8 text; encoding must be 'utf-8'")
         try:
             parsed = _standard(source, mode=mode, auto_values=auto_values, gap_factor=gap_factor)

@@ -24,6 +24,7 @@ __all__ = [
     "DELIMITERS",
     "located",
     "decode",
+    "is_utf8",
     "split_lines",
     "split_terminated",
     "split_cells",
@@ -52,7 +53,8 @@ def located(source: str, what: str, *, line: int | None = None, column: str | No
     return ReaderError(f"{where}: {what}", source=source, line=line, column=column)
 
 
-def _is_utf8(encoding: str) -> bool:
+def is_utf8(encoding: str) -> bool:
+    """True for every spelling of UTF-8 (``utf-8``, ``UTF8``, ``utf_8``)."""
     return encoding.lower().replace("-", "").replace("_", "") == "utf8"
 
 
@@ -72,7 +74,7 @@ def decode(data: bytes, source: str, encoding: str = "utf-8", *, other_encodings
     except UnicodeDecodeError as exc:
         line = data.count(b"\n", 0, exc.start) + 1
         bad = data[exc.start:exc.start + 4].hex(" ")
-        utf8 = _is_utf8(encoding)
+        utf8 = is_utf8(encoding)
         name = "UTF-8" if utf8 else encoding
         what = (f"not {name} text at byte offset {exc.start} (bytes {bad}: {exc.reason}); expected the whole "
                 f"file in {name}")
