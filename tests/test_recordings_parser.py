@@ -166,6 +166,10 @@ def test_errors_carry_file_line_and_column_and_survive_pickling(tmp_path):
     assert (err.source, err.line, err.column) == (str(path), 3, "op")
     back = pickle.loads(pickle.dumps(err))
     assert str(back) == str(err) and (back.source, back.line, back.column) == (err.source, err.line, err.column)
+    path.write_text("time;op;pv\n0;1;2\n1;1;2\n1;1;2\n", encoding="utf-8")    # the delimited reader, too
+    with pytest.raises(ReaderError, match=r"line 4, column 'time' \(1\): time stamp '1' repeats line 3") as exc:
+        read_recording(path)
+    assert (exc.value.source, exc.value.line, exc.value.column) == (str(path), 4, "time")
 
 
 def test_quoted_cells_and_lone_cr_line_ends_are_read_by_every_reader(tmp_path):

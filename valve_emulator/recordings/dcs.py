@@ -25,7 +25,7 @@ import numpy as np
 from valve_emulator.recordings.errors import ReaderError
 from valve_emulator.recordings.loaded import Format, Parsed, signal_columns, time_axis
 from valve_emulator.recordings.table import ColumnSpec, Table, resolve_column
-from valve_emulator.recordings.text import split_cells
+from valve_emulator.recordings.text import located, split_cells
 
 __all__ = ["looks_like_dcs", "parse_dcs", "HEADER_LINES"]
 
@@ -47,9 +47,9 @@ def _cells(line: str) -> list[str]:
 def _expect(lines: list[str], k: int, word: str, source: str, skip: int) -> list[str]:
     cells = _cells(lines[k])
     if cells[0].lower() != word:
-        raise ReaderError(f"{source}: line {skip + k + 1}: expected a DCS export header line starting with "
-                          f"{word!r} (line 1 PROCESSDATA, 2 counts, 3 tagname, 4 desc, 5 parameters), "
-                          f"found {lines[k][:60]!r}")
+        raise located(source, f"expected a DCS export header line starting with {word!r} (line 1 PROCESSDATA, "
+                              f"2 counts, 3 tagname, 4 desc, 5 parameters), found {lines[k][:60]!r}",
+                      line=skip + k + 1)
     return cells
 
 
@@ -100,9 +100,8 @@ def parse_dcs(lines: list[str], source: str, *, skip: int = 0, op: ColumnSpec | 
                 cols[role] = resolve_column(_DEFAULT_COLUMNS[role], names, role=role, source=source)
             except ReaderError:
                 if role in ("op", "pv"):
-                    raise ReaderError(f"{source}: line {skip + 3}: no column ending in "
-                                      f".{_DEFAULT_COLUMNS[role]} for {role}; pass {role}= (the columns are "
-                                      f"{', '.join(names)})") from None
+                    raise located(source, f"no column ending in .{_DEFAULT_COLUMNS[role]} for {role}; pass "
+                                          f"{role}= (the columns are {', '.join(names)})", line=skip + 3) from None
             continue
         cols[role] = resolve_column(spec, names, role=role, source=source)
     jt = 0 if time is None else resolve_column(time, names, role="time", source=source)

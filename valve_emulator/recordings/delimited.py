@@ -19,7 +19,7 @@ import numpy as np
 from valve_emulator.recordings.errors import ReaderError
 from valve_emulator.recordings.loaded import Format, Parsed, signal_columns, time_axis
 from valve_emulator.recordings.table import ColumnSpec, Table, resolve_column
-from valve_emulator.recordings.text import sniff_delimiter, split_rows
+from valve_emulator.recordings.text import located, sniff_delimiter, split_cells
 
 __all__ = ["parse_delimited", "TIME_NAMES"]
 
@@ -47,20 +47,19 @@ def parse_delimited(lines: list[str], source: str, *, skip: int = 0, header: boo
     if delimiter is None:
         delimiter = sniff_delimiter(lines, decimal=decimal)
         if delimiter is None:
-            raise ReaderError(f"{source}: line {skip + 1}: cannot detect the format: expected a standard "
-                              "recording (header t,sp,op,mv,pv), a DCS export (first line PROCESSDATA) or "
-                              "delimited text with the same number (>= 2) of tab, ';', ',' or '|' separated "
-                              f"cells on every line (title lines above the header? pass skip=N); found "
-                              f"{lines[0][:60]!r}")
-    rows = split_rows(lines, delimiter)
+            raise located(source, "cannot detect the format: expected a standard recording (header "
+                                  "t,sp,op,mv,pv), a DCS export (first line PROCESSDATA) or delimited text with the "
+                                  "same number (>= 2) of tab, ';', ',' or '|' separated cells on every line (title "
+                                  f"lines above the header? pass skip=N); found {lines[0][:60]!r}", line=skip + 1)
+    first_cells = split_cells(lines[0], delimiter)
     if header:
-        names = [c.strip() or str(k + 1) for k, c in enumerate(rows[0])]
-        rows, first = rows[1:], skip + 2
+        names = [c or str(k + 1) for k, c in enumerate(first_cells)]
+        data, first = lines[1:], skip + 2
     else:
-        names, first = [str(k + 1) for k in range(len(rows[0]))], skip + 1
-    table = Table(source, names, rows, first_line=first)
-    if not rows:
-        raise ReaderError(f"{source}: line {first - 1}: no data rows after the header")
+        names, data, first = [str(k + 1) for k in range(len(first_cells))], lines, skip + 1
+    if not data:
+        raise located(source, "no data rows after the header", line=first - 1)
+    table = Table.from_lines(source, names, data, delimiter, first_line=first)
     table.refuse_blank_rows()
 
     cols: dict[str, int] = {}
@@ -72,9 +71,9 @@ def parse_delimited(lines: list[str], source: str, *, skip: int = 0, header: boo
         elif (j := _find(names, _DEFAULT_NAMES[role])) is not None:
             cols[role] = j
         elif role in ("op", "pv"):
-            raise ReaderError(f"{source}: line {first - 1}: no column called {role!r}; pass {role}= with a "
-                              f"column name or 1-based number (the columns are "
-                              f"{', '.join(f'{k + 1}: {n!r}' for k, n in enumerate(names))})")
+            raise located(source, f"no column called {role!r}; pass {role}= with a column name or 1-based number "
+                                  f"(the columns are {', '.join(f'{k + 1}: {n!r}' for k, n in enumerate(names))})",
+                          line=first - 1)
     columns = {}
     if ts is not None:
         if time is not None:
@@ -85,9 +84,8 @@ def parse_delimited(lines: list[str], source: str, *, skip: int = 0, header: boo
         jt = resolve_column(time, names, role="time", source=source) if time is not None else \
             _find(names, TIME_NAMES)
         if jt is None:
-            raise ReaderError(f"{source}: line {first - 1}: no time column (none called "
-                              f"{'/'.join(TIME_NAMES)}); pass time= with a column, or ts= with the sample "
-                              "time in seconds")
+            raise located(source, f"no time column (none called {'/'.join(TIME_NAMES)}); pass time= with a "
+                                  "column, or ts= with the sample time in seconds", line=first - 1)
         t, notes = time_axis(table.times(jt), table, jt, gap_factor=gap_factor)
         start, columns["time"] = table.cell(0, jt), names[jt]
     columns.update({role: names[j] for role, j in cols.items()})

@@ -162,8 +162,8 @@ def time_axis(stamps: np.ndarray, table: Table, j: int, *, declared_ts: float | 
     back = np.flatnonzero(steps < 0)
     if back.size:
         i = int(back[0]) + 1
-        raise ReaderError(f"{table.where(i, j)}: time goes backwards, {table.cell(i, j)!r} is earlier "
-                          f"than {table.cell(i - 1, j)!r} on line {table.first_line + i - 1}")
+        raise table.error(f"time goes backwards, {table.cell(i, j)!r} is earlier than {table.cell(i - 1, j)!r} "
+                          f"on line {table.first_line + i - 1}", i, j)
     t = stamps - stamps[0]
     if declared_ts is not None and t.size:
         grid = declared_ts * np.arange(t.size)
@@ -178,14 +178,13 @@ def time_axis(stamps: np.ndarray, table: Table, j: int, *, declared_ts: float | 
     same = np.flatnonzero(steps == 0)
     if same.size:
         i = int(same[0]) + 1
-        raise ReaderError(f"{table.where(i, j)}: time stamp {table.cell(i, j)!r} repeats line "
+        raise table.error(f"time stamp {table.cell(i, j)!r} repeats line "
                           f"{table.first_line + i - 1}; time must increase (pass ts=SECONDS to ignore the "
-                          "time column and use a regular grid)")
+                          "time column and use a regular grid)", i, j)
     if (gap := first_gap(steps, gap_factor)) is not None:
         i, median = gap
-        raise ReaderError(f"{table.where(i, j)}: gap in time: {float(steps[i - 1]):g} s after line "
-                          f"{table.first_line + i - 1}, more than {gap_factor:g} x the median step "
-                          f"{median:g} s")
+        raise table.error(f"gap in time: {float(steps[i - 1]):g} s after line {table.first_line + i - 1}, more "
+                          f"than {gap_factor:g} x the median step {median:g} s", i, j)
     return t, notes
 
 

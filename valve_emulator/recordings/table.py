@@ -87,15 +87,9 @@ class Table:
         """Row ``i``, column ``j`` (0-based), stripped."""
         return (self._columns[j][i] if self._columns is not None else self.rows[i][j]).strip()
 
-    def where(self, i: int, j: int | None = None) -> str:
-        """``file: line L, column 'name' (k)`` for row ``i`` and column ``j`` (0-based)."""
-        loc = f"{self.source}: line {self.first_line + i}"
-        if j is not None:
-            loc += f", column {self.names[j]!r} ({j + 1})"
-        return loc
-
     def error(self, what: str, i: int, j: int | None = None) -> ReaderError:
-        """The error ``where(i, j): what``, carrying the file, line and column as attributes."""
+        """The error ``file: line L, column 'name' (k): what`` for row ``i`` and column ``j`` (0-based), carrying
+        the file, line and column name as attributes."""
         return located(self.source, what, line=self.first_line + i,
                        column=None if j is None else self.names[j], number=None if j is None else j + 1)
 
