@@ -8,25 +8,35 @@
 
 Modules: :mod:`~valve_emulator.recordings.recording` (the :class:`Recording` record, the standard CSV writer
 and reader), :mod:`~valve_emulator.recordings.reader` (entry point and format detection),
-:mod:`~valve_emulator.recordings.dcs`, :mod:`~valve_emulator.recordings.delimited`,
+:mod:`~valve_emulator.recordings.dcs`, :mod:`~valve_emulator.recordings.delimited` (the plant exports),
 :mod:`~valve_emulator.recordings.loaded` (result, units, segments, time axis),
-:mod:`~valve_emulator.recordings.text` (decoding, cells, numbers, errors),
-:mod:`~valve_emulator.recordings.resample` (a jittered record onto a uniform grid).
+:mod:`~valve_emulator.recordings.text` (the one text parser: decoding, lines, cells),
+:mod:`~valve_emulator.recordings.table` (numbers, times and columns read from the cells, with their line),
+:mod:`~valve_emulator.recordings.errors`, :mod:`~valve_emulator.recordings.resample` (a jittered record onto a
+uniform grid).
 """
 
+from valve_emulator.recordings.errors import (
+    ReaderError,
+    RecordingError,
+    RecordingWarning,
+)
+from valve_emulator.recordings.loaded import (
+    DEFAULT_AUTO_VALUES,
+    OP_UNITS,
+    Format,
+    LoadedRecording,
+)
+from valve_emulator.recordings.reader import FORMATS, detect_format, read_recording
 from valve_emulator.recordings.recording import (
     CORE_COLUMNS,
     CsvRecordingWriter,
     Recording,
-    RecordingError,
-    RecordingWarning,
     read_csv,
     write_csv,
 )
-from valve_emulator.recordings.loaded import DEFAULT_AUTO_VALUES, OP_UNITS, LoadedRecording
-from valve_emulator.recordings.reader import FORMATS, detect_format, read_recording
 from valve_emulator.recordings.resample import MAX_GAP, regularize
-from valve_emulator.recordings.text import ColumnSpec, ReaderError
+from valve_emulator.recordings.table import ColumnSpec
 
 __all__ = [
     "Recording",
@@ -43,6 +53,7 @@ __all__ = [
     "LoadedRecording",
     "ReaderError",
     "ColumnSpec",
+    "Format",
     "FORMATS",
     "OP_UNITS",
     "DEFAULT_AUTO_VALUES",

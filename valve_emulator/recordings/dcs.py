@@ -22,8 +22,10 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.recordings.loaded import Parsed, signal_columns, time_axis
-from valve_emulator.recordings.text import ColumnSpec, ReaderError, Table, resolve_column
+from valve_emulator.recordings.errors import ReaderError
+from valve_emulator.recordings.loaded import Format, Parsed, signal_columns, time_axis
+from valve_emulator.recordings.table import ColumnSpec, Table, resolve_column
+from valve_emulator.recordings.text import located, split_cells
 
 __all__ = ["looks_like_dcs", "parse_dcs", "HEADER_LINES"]
 
@@ -33,21 +35,21 @@ _DEFAULT_COLUMNS: Final = {"op": "MV", "pv": "PV", "sp": "SV", "mode": "MODE"}
 
 def looks_like_dcs(lines: list[str]) -> bool:
     """True when the first line starts with ``PROCESSDATA`` or the third with ``tagname`` (tab-separated)."""
-    first = lines[0].split("\t", 1)[0].strip().upper()
-    third = lines[2].split("\t", 1)[0].strip().lower() if len(lines) > 2 else ""
+    first = _cells(lines[0])[0].upper()
+    third = _cells(lines[2])[0].lower() if len(lines) > 2 else ""
     return first == "PROCESSDATA" or third == "tagname"
 
 
 def _cells(line: str) -> list[str]:
-    return [c.strip() for c in line.split("\t")]
+    return split_cells(line, "\t")
 
 
 def _expect(lines: list[str], k: int, word: str, source: str, skip: int) -> list[str]:
     cells = _cells(lines[k])
     if cells[0].lower() != word:
-        raise ReaderError(f"{source}: line {skip + k + 1}: expected a DCS export header line starting with "
-                          f"{word!r} (line 1 PROCESSDATA, 2 counts, 3 tagname, 4 desc, 5 parameters), "
-                          f"found {lines[k][:60]!r}")
+        raise located(source, f"expected a DCS export header line starting with {word!r} (line 1 PROCESSDATA, "
+                              f"2 counts, 3 tagname, 4 desc, 5 parameters), found {lines[k][:60]!r}",
+                      line=skip + k + 1)
     return cells
 
 
@@ -65,10 +67,8 @@ def parse_dcs(lines: list[str], source: str, *, skip: int = 0, op: ColumnSpec | 
     names = ["timestamp"] + names_line[1:]
     descs = dict(zip(names[1:], desc_line[1:]))
     first = skip + HEADER_LINES + 1
-    table = Table(source, names, [_cells(ln) for ln in lines[HEADER_LINES:]], first_line=first)
-    for i, row in enumerate(table.rows):
-        if not any(row):
-            raise ReaderError(f"{table.where(i)}: blank line inside the data")
+    table = Table.from_lines(source, names, lines[HEADER_LINES:], "\t", first_line=first)
+    table.refuse_blank_rows()
 
     info: dict[str, str] = {}
     notes: list[str] = []
@@ -100,9 +100,8 @@ def parse_dcs(lines: list[str], source: str, *, skip: int = 0, op: ColumnSpec | 
                 cols[role] = resolve_column(_DEFAULT_COLUMNS[role], names, role=role, source=source)
             except ReaderError:
                 if role in ("op", "pv"):
-                    raise ReaderError(f"{source}: line {skip + 3}: no column ending in "
-                                      f".{_DEFAULT_COLUMNS[role]} for {role}; pass {role}= (the columns are "
-                                      f"{', '.join(names)})") from None
+                    raise located(source, f"no column ending in .{_DEFAULT_COLUMNS[role]} for {role}; pass "
+                                          f"{role}= (the columns are {', '.join(names)})", line=skip + 3) from None
             continue
         cols[role] = resolve_column(spec, names, role=role, source=source)
     jt = 0 if time is None else resolve_column(time, names, role="time", source=source)
@@ -126,10 +125,10 @@ def parse_dcs(lines: list[str], source: str, *, skip: int = 0, op: ColumnSpec | 
             if (k := int(np.count_nonzero(flags == 1))):
                 notes.append(f"{name} is set on {k} of {len(table)} rows (values kept)")
     return Parsed(
-        source=source, fmt="dcs", t=t,
+        source=source, fmt=Format.DCS, t=t,
         **signal_columns(table, cols, decimal=decimal, auto_values=auto_values),
         columns={"time": names[jt] if stamps_used else f"ts={ts:g} s",
                  **{role: names[j] for role, j in cols.items()}},
         tag=tag, description=descs.get(names[cols["pv"]], ""),
-        start=table.rows[0][jt].strip() or None,
+        start=table.cell(0, jt) or None,
         info=info, extra=extra, notes=notes)

@@ -17,6 +17,7 @@ file's PV units. A diagnosis divides by it to work on a unit-free PV and multipl
 
 from __future__ import annotations
 
+import enum
 import types
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -24,11 +25,13 @@ from typing import Final
 
 import numpy as np
 
-from valve_emulator.recordings.text import ReaderError, Table
 from valve_emulator.physics.signal_chain import DEFAULT_MA_TABLE, LookupTable
+from valve_emulator.recordings.errors import ReaderError
 from valve_emulator.recordings.recording import Recording, first_gap
+from valve_emulator.recordings.table import Table
 
 __all__ = [
+    "Format",
     "OP_UNITS",
     "DEFAULT_AUTO_VALUES",
     "LoadedRecording",
@@ -38,6 +41,17 @@ __all__ = [
     "signal_columns",
     "finish",
 ]
+
+
+class Format(enum.StrEnum):
+    """A recording file's format, as ``read_recording(fmt=...)`` and ``--format`` name it (compares equal to
+    those strings)."""
+
+    AUTO = "auto"  #: detect it (:func:`~valve_emulator.recordings.reader.detect_format`); a request, never a result
+    STANDARD = "standard"  #: the project's recording CSV (:mod:`~valve_emulator.recordings.recording`)
+    CSV = "csv"  #: generic delimited text with a column mapping (:mod:`~valve_emulator.recordings.delimited`)
+    DCS = "dcs"  #: the DCS text export (:mod:`~valve_emulator.recordings.dcs`)
+
 
 OP_UNITS: Final = ("%", "mA")
 #: Mode cells meaning "the controller is closing the loop" (compared case-insensitively; numbers by value):
@@ -52,7 +66,7 @@ class Parsed:
     """A format reader's output before the shared steps (internal; arrays not yet checked for units)."""
 
     source: str
-    fmt: str
+    fmt: Format
     t: np.ndarray
     op: np.ndarray
     pv: np.ndarray
@@ -78,7 +92,8 @@ class LoadedRecording:
         first sample, ``op`` in % travel, ``pv``/``sp`` in the file's units, ``mv`` NaN unless the file has
         the valve position (only the standard format does).
     full : every sample of the file, AUTO or not (mode and flag columns as extras when present).
-    source_format : ``"standard"``, ``"csv"`` or ``"dcs"``.
+    source_format : :attr:`Format.STANDARD`, :attr:`Format.CSV` or :attr:`Format.DCS` (equal to the strings
+        ``"standard"``, ``"csv"``, ``"dcs"``).
     tag, description : the loop's tag and description when the file names them (else the file stem, ``""``).
     op_units : OP's units in the file (``"%"`` or ``"mA"``); ``recording.op`` is always in %.
     pv_units : PV's units as given by the caller (``""`` = unknown; files of these formats do not say).
@@ -92,7 +107,7 @@ class LoadedRecording:
 
     recording: Recording
     full: Recording
-    source_format: str
+    source_format: Format
     tag: str = ""
     description: str = ""
     op_units: str = "%"
@@ -147,8 +162,8 @@ def time_axis(stamps: np.ndarray, table: Table, j: int, *, declared_ts: float | 
     back = np.flatnonzero(steps < 0)
     if back.size:
         i = int(back[0]) + 1
-        raise ReaderError(f"{table.where(i, j)}: time goes backwards, {table.rows[i][j].strip()!r} is earlier "
-                          f"than {table.rows[i - 1][j].strip()!r} on line {table.first_line + i - 1}")
+        raise table.error(f"time goes backwards, {table.cell(i, j)!r} is earlier than {table.cell(i - 1, j)!r} "
+                          f"on line {table.first_line + i - 1}", i, j)
     t = stamps - stamps[0]
     if declared_ts is not None and t.size:
         grid = declared_ts * np.arange(t.size)
@@ -163,14 +178,13 @@ def time_axis(stamps: np.ndarray, table: Table, j: int, *, declared_ts: float | 
     same = np.flatnonzero(steps == 0)
     if same.size:
         i = int(same[0]) + 1
-        raise ReaderError(f"{table.where(i, j)}: time stamp {table.rows[i][j].strip()!r} repeats line "
+        raise table.error(f"time stamp {table.cell(i, j)!r} repeats line "
                           f"{table.first_line + i - 1}; time must increase (pass ts=SECONDS to ignore the "
-                          "time column and use a regular grid)")
+                          "time column and use a regular grid)", i, j)
     if (gap := first_gap(steps, gap_factor)) is not None:
         i, median = gap
-        raise ReaderError(f"{table.where(i, j)}: gap in time: {float(steps[i - 1]):g} s after line "
-                          f"{table.first_line + i - 1}, more than {gap_factor:g} x the median step "
-                          f"{median:g} s")
+        raise table.error(f"gap in time: {float(steps[i - 1]):g} s after line {table.first_line + i - 1}, more "
+                          f"than {gap_factor:g} x the median step {median:g} s", i, j)
     return t, notes
 
 

@@ -17,40 +17,53 @@ import numpy as np
 
 from valve_emulator.recordings.dcs import looks_like_dcs, parse_dcs
 from valve_emulator.recordings.delimited import parse_delimited
-from valve_emulator.recordings.loaded import OP_UNITS, LoadedRecording, Parsed, auto_mask, finish
-from valve_emulator.recordings.text import ColumnSpec, ReaderError, Table, decode, resolve_column, split_lines
-from valve_emulator.recordings.recording import RecordingError, read_csv
+from valve_emulator.recordings.errors import ReaderError
+from valve_emulator.recordings.loaded import (
+    OP_UNITS,
+    Format,
+    LoadedRecording,
+    Parsed,
+    auto_mask,
+    finish,
+)
+from valve_emulator.recordings.recording import read_csv
+from valve_emulator.recordings.table import ColumnSpec, Table, resolve_column
+from valve_emulator.recordings.text import decode, is_utf8, split_cells, split_lines
 
-__all__ = ["FORMATS", "read_recording", "detect_format"]
-
-FORMATS: Final = ("auto", "standard", "csv", "dcs")
+__all__ = ["Format", "FORMATS", "read_recording", "detect_format"]
 
 
-def _is_standard_header(line: str) -> bool:
-    return {"t", "op", "pv"} <= {c.strip() for c in line.split(",")}
+FORMATS: Final = tuple(f.value for f in Format)
+_STANDARD_NAMES: Final = frozenset(("t", "op", "pv"))
 
 
-def detect_format(lines: Sequence[str], *, skip: int = 0, mapped: bool = False) -> str:
-    """``"dcs"``, ``"standard"`` or ``"csv"`` for decoded ``lines`` (the delimiter is checked when parsing).
+def detect_format(lines: Sequence[str], *, skip: int = 0, mapped: bool = False, op_units: str = "%",
+                  encoding: str = "utf-8") -> Format:
+    """The format of decoded ``lines``: :attr:`Format.DCS`, :attr:`Format.STANDARD` or :attr:`Format.CSV`.
 
-    A DCS export is recognised by its first (``PROCESSDATA``) or third (``tagname``) line; a standard recording
-    by a comma-separated first line naming ``t``, ``op`` and ``pv`` when no column mapping is asked for
-    (``mapped``) and nothing is skipped; anything else is tried as delimited text.
+    * **DCS export**: its first line (after ``skip``) starts with ``PROCESSDATA`` or its third with ``tagname``.
+    * **Standard recording**, only when nothing is skipped and no column mapping is asked for (``mapped``:
+      columns, a sample time, a decimal comma, a delimiter, no header): a comma-separated first line that
+      names ``t``, ``op`` and ``pv``; or one of two or more cells that begins with ``t`` when, besides, OP in %
+      and UTF-8 are asked for (the arguments as given to the reader) -- a standard file missing a column,
+      whose error then names the missing column.
+    * Anything else is tried as **delimited text** (the delimiter is checked when parsing).
     """
     body = lines[skip:]
     if body and looks_like_dcs(list(body)):
-        return "dcs"
-    if body and skip == 0 and not mapped and _is_standard_header(body[0]):
-        return "standard"
-    return "csv"
+        return Format.DCS
+    if body and skip == 0 and not mapped:
+        cells = split_cells(body[0], ",")
+        if _STANDARD_NAMES <= set(cells):
+            return Format.STANDARD
+        if len(cells) > 1 and cells[0] == "t" and op_units == "%" and is_utf8(encoding):
+            return Format.STANDARD
+    return Format.CSV
 
 
 def _standard(path: str, *, mode: ColumnSpec | None | bool, auto_values: Collection[str] | None,
               gap_factor: float | None) -> Parsed:
-    try:
-        rec = read_csv(path, min_samples=1, gap_factor=gap_factor)
-    except RecordingError as exc:
-        raise ReaderError(str(exc)) from None
+    rec = read_csv(path, min_samples=1, gap_factor=gap_factor)
     extra = dict(rec.extra)
     auto, columns = None, {"time": "t", "op": "op", "pv": "pv"}
     if rec.has_sp:
@@ -67,13 +80,13 @@ def _standard(path: str, *, mode: ColumnSpec | None | bool, auto_values: Collect
         auto = auto_mask(Table(path, [name], [[c] for c in cells], first_line=2), 0, auto_values)
         columns["mode"] = name
         extra.pop(name, None)
-    return Parsed(source=path, fmt="standard", t=rec.t - rec.t[0], op=rec.op, pv=rec.pv,
+    return Parsed(source=path, fmt=Format.STANDARD, t=rec.t - rec.t[0], op=rec.op, pv=rec.pv,
                   sp=rec.sp if rec.has_sp else None, mv=rec.mv if rec.has_mv else None, auto=auto,
                   columns=columns, tag=Path(path).stem, extra=extra,
                   info={"t0": repr(float(rec.t[0]))} if rec.t[0] != 0 else {})
 
 
-def read_recording(path: str | os.PathLike, *, fmt: str = "auto", op: ColumnSpec | None = None,
+def read_recording(path: str | os.PathLike, *, fmt: Format | str = Format.AUTO, op: ColumnSpec | None = None,
                    pv: ColumnSpec | None = None, sp: ColumnSpec | None = None, time: ColumnSpec | None = None,
                    ts: float | None = None, skip: int = 0, decimal: str = ".", delimiter: str | None = None,
                    header: bool = True, op_units: str = "%", ma_table: Sequence[Sequence[float]] | None = None,
@@ -85,7 +98,10 @@ def read_recording(path: str | os.PathLike, *, fmt: str = "auto", op: ColumnSpec
     Parameters
     ----------
     path : the file.
-    fmt : ``"auto"`` (detect, see :func:`detect_format`), ``"standard"``, ``"csv"`` or ``"dcs"``.
+    fmt : a :class:`Format` or its name: ``"auto"`` (detect, see :func:`detect_format`), ``"standard"``,
+        ``"csv"`` or ``"dcs"``. A file detected as standard that the standard reader refuses (a text mode
+        column, say) is tried as delimited text, with a note; if that fails too, the standard reader's error
+        is raised.
     op, pv, sp, time, mode : the columns for controller output, process value, set point, time and controller
         mode, by name or 1-based number (``None``: the format's default column, if any; ``mode=False``: ignore
         a mode column). The standard format has fixed columns and accepts only ``mode``.
@@ -139,19 +155,21 @@ def read_recording(path: str | os.PathLike, *, fmt: str = "auto", op: ColumnSpec
 
     lines = split_lines(decode(Path(path).read_bytes(), source, encoding), source)
     mapped = any(v is not None for v in (op, pv, sp, time, ts, delimiter)) or decimal != "." or not header
-    kind = detect_format(lines, skip=skip, mapped=mapped) if fmt == "auto" else fmt
-    if kind == "standard":
+    kind = Format(fmt)
+    if kind is Format.AUTO:
+        kind = detect_format(lines, skip=skip, mapped=mapped, op_units=op_units, encoding=encoding)
+    if kind is Format.STANDARD:
         if mapped or skip:
             raise ReaderError(f"{source}: the standard format has the fixed columns t,sp,op,mv,pv and no "
                               "options but mode=; use fmt='csv' to map columns")
         if op_units != "%":
             raise ReaderError(f"{source}: the standard format holds OP in % of travel; op_units must be '%'")
-        if encoding.lower().replace("-", "").replace("_", "") != "utf8":
+        if not is_utf8(encoding):
             raise ReaderError(f"{source}: the standard format is UTF-8 text; encoding must be 'utf-8'")
         try:
             parsed = _standard(source, mode=mode, auto_values=auto_values, gap_factor=gap_factor)
         except ReaderError as exc:
-            if fmt != "auto":
+            if fmt != Format.AUTO:
                 raise
             # A header naming t, op and pv is not proof of the standard format (a text mode column, say):
             # try it as generic delimited text, and report the standard format's complaint if that fails too.
@@ -161,7 +179,7 @@ def read_recording(path: str | os.PathLike, *, fmt: str = "auto", op: ColumnSpec
             except ReaderError:
                 raise exc from None
             parsed.notes.append(f"read as generic delimited text, not as a standard recording ({exc})")
-    elif kind == "dcs":
+    elif kind is Format.DCS:
         if not header or delimiter not in (None, "\t"):
             raise ReaderError(f"{source}: a DCS export is tab-separated with its own 5 header lines; "
                               "header= and delimiter= do not apply")

@@ -2,7 +2,8 @@
 
 File format
 -----------
-UTF-8 text, ``\\n`` line ends (``\\r\\n`` is accepted on reading), one header line, then one row per sample::
+UTF-8 text, ``\\n`` line ends (``\\r\\n`` and ``\\r`` are accepted on reading), one header line, then one row
+per sample::
 
     t,sp,op,mv,pv[,extra...]
     0.0,50.0,47.5,46.0,50.0
@@ -16,18 +17,19 @@ UTF-8 text, ``\\n`` line ends (``\\r\\n`` is accepted on reading), one header li
 * Written floats use ``repr`` (shortest text that reads back to the same double), so the same data always
   gives byte-identical files and a write/read round trip is exact. NaN is written as an empty cell.
 
-Reading checks the file and raises :class:`RecordingError` naming the file, the line (1-based, as an editor
-counts, the header being line 1) and the column for: undecodable UTF-8 (with the byte offset), an empty
-file, missing required columns, duplicate or empty column names, ragged rows, non-numeric cells, missing
-values in required columns, non-finite ``t``, ``t`` that repeats or goes back, gaps in ``t`` (a step larger
-than ``gap_factor`` times the median step) and too few rows. A last line without its newline -- a process
-killed in the middle of a write -- is kept if it is a complete, valid row and otherwise dropped with a
-:class:`RecordingWarning`.
+Reading goes through the package's one text parser (:mod:`~valve_emulator.recordings.text`,
+:mod:`~valve_emulator.recordings.table`; numbers in its ``PYTHON`` syntax, so ``inf`` and ``nan`` read back)
+and raises :class:`~valve_emulator.recordings.errors.ReaderError` (a :class:`RecordingError`) naming the file,
+the line (1-based, as an editor counts, the header being line 1) and the column for: undecodable UTF-8 (with
+the byte offset), an empty file, missing required columns, duplicate or empty column names, ragged rows,
+non-numeric cells, missing values in required columns, non-finite ``t``, ``t`` that repeats or goes back, gaps
+in ``t`` (a step larger than ``gap_factor`` times the median step) and too few rows. A last line without its
+newline -- a process killed in the middle of a write -- is kept if it is a complete, valid row and otherwise
+dropped with a :class:`RecordingWarning`.
 """
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 import types
@@ -40,11 +42,25 @@ from typing import IO, Final
 import numpy as np
 from numpy.typing import ArrayLike
 
+from valve_emulator.recordings.errors import (
+    ReaderError,
+    RecordingError,
+    RecordingWarning,
+)
+from valve_emulator.recordings.table import NumberSyntax, Table
+from valve_emulator.recordings.text import (
+    decode,
+    located,
+    split_cells,
+    split_terminated,
+)
+
 __all__ = [
     "CORE_COLUMNS",
     "first_gap",
     "Recording",
     "RecordingError",
+    "ReaderError",
     "RecordingWarning",
     "write_csv",
     "CsvRecordingWriter",
@@ -54,14 +70,6 @@ __all__ = [
 CORE_COLUMNS: Final = ("t", "sp", "op", "mv", "pv")
 _REQUIRED: Final = ("t", "op", "pv")  # sp and mv may be absent
 _FORBIDDEN_IN_NAMES: Final = frozenset(',"\r\n')
-
-
-class RecordingError(ValueError):
-    """A recording file or object that cannot be used; the message names file, line and column."""
-
-
-class RecordingWarning(UserWarning):
-    """Something in a recording file was tolerated but dropped (a truncated last line)."""
 
 
 def _frozen_array(x: ArrayLike | None, name: str, n: int | None, *, optional: bool = False) -> np.ndarray:
@@ -302,66 +310,24 @@ class CsvRecordingWriter:
 
 # --------------------------------------------------------------------------------------------- reading
 
-
-class _Table:
-    """The data lines of a CSV file, with the line number of the first one for messages."""
-
-    def __init__(self, source: str, names: list[str], lines: list[str], first_line: int) -> None:
-        self.source, self.names, self.lines, self.first_line = source, names, lines, first_line
-
-    def cells(self, i: int) -> list[str]:
-        return self.lines[i].split(",")
-
-    def where(self, i: int, j: int | None = None) -> str:
-        """``file: line L, column 'name' (k)`` for row ``i`` and column ``j`` (0-based)."""
-        loc = f"{self.source}: line {self.first_line + i}"
-        if j is not None:
-            loc += f", column {self.names[j]!r} ({j + 1})"
-        return loc
-
-
-def _split_lines(source: str, data: bytes) -> tuple[list[str], str | None]:
-    """Decode and split into complete lines (without terminators) and a trailing partial line, if any."""
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise RecordingError(f"{source}: line {line}: not UTF-8 text at byte offset {exc.start} "
-                             f"({exc.reason})") from None
-    text = text.removeprefix("\ufeff")  # a byte-order mark written by some spreadsheet programs
-    if not text.strip():
-        raise RecordingError(f"{source}: line 1: the file is empty")
-    lines = text.split("\n")
-    partial = lines.pop()  # "" when the file ends with a newline
-    partial = partial if partial.strip() else ""  # stray spaces after the last newline are not a row
-    lines = [ln.removesuffix("\r") for ln in lines]
-    if not lines:  # a header alone without newline: it is the header, not a partial row
-        return [partial.removesuffix("\r")], None
-    # Blank lines at the very end are harmless (an editor's extra newline); inside the data they are errors.
-    while lines and not lines[-1].strip() and not partial:
-        lines.pop()
-    return lines, (partial or None)
-
-
 def _parse_header(source: str, line: str) -> list[str]:
-    names = [c.strip() for c in next(csv.reader([line]))]
+    names = split_cells(line, ",")
     seen: dict[str, int] = {}
     for j, name in enumerate(names):
         if not name:
-            raise RecordingError(f"{source}: line 1, column {j + 1}: empty column name")
+            raise located(source, "empty column name", line=1, number=j + 1)
         if name in seen:
-            raise RecordingError(f"{source}: line 1, column {name!r} ({j + 1}): duplicate of column "
-                                 f"{seen[name] + 1}")
+            raise located(source, f"duplicate of column {seen[name] + 1}", line=1, column=name, number=j + 1)
         if name not in CORE_COLUMNS:
             try:
                 _check_column_name(name)
             except ValueError as exc:
-                raise RecordingError(f"{source}: line 1, column {j + 1}: {exc}") from None
+                raise located(source, str(exc), line=1, number=j + 1) from None
         seen[name] = j
     for name in _REQUIRED:
         if name not in seen:
-            raise RecordingError(f"{source}: line 1, column {name!r}: missing required column (the header "
-                                 f"must contain {', '.join(_REQUIRED)}; found {', '.join(names)})")
+            raise located(source, f"missing required column (the header must contain {', '.join(_REQUIRED)}; "
+                                  f"found {', '.join(names)})", line=1, column=name)
     return names
 
 
@@ -375,60 +341,28 @@ def first_gap(steps: np.ndarray, gap_factor: float | None) -> tuple[int, float] 
     return (int(gaps[0]) + 1, median) if gaps.size else None
 
 
-def _parse_table(tab: _Table, gap_factor: float | None) -> dict[str, np.ndarray]:
+def _columns(table: Table, gap_factor: float | None) -> dict[str, np.ndarray]:
     """Check every cell and the time axis; return the columns as float arrays."""
-    ncol = len(tab.names)
-    commas = np.fromiter((ln.count(",") for ln in tab.lines), dtype=np.int64, count=len(tab.lines))
-    ragged = np.flatnonzero(commas != ncol - 1)
-    if ragged.size:
-        i = int(ragged[0])
-        row = tab.cells(i)
-        if len(row) == 1 and not row[0].strip():
-            raise RecordingError(f"{tab.where(i)}: blank line inside the data")
-        if len(row) < ncol:
-            what = f"column {tab.names[len(row)]!r} ({len(row) + 1}) is missing"
-        else:
-            what = f"cell {ncol + 1} is beyond the last column {tab.names[-1]!r}"
-        raise RecordingError(f"{tab.where(i)}: expected {ncol} cells, found {len(row)} ({what})")
-    # One join and one split instead of a list per row: several times faster on long recordings.
-    flat = ",".join(tab.lines).split(",") if tab.lines else []
-    out: dict[str, np.ndarray] = {}
-    for j, name in enumerate(tab.names):
-        cells = flat[j::ncol]
-        try:
-            out[name] = np.array(cells, dtype=np.float64)
-            continue
-        except ValueError:
-            pass
-        # Slow path: find the first offending cell; empty cells are NaN except in required columns.
-        for i, c in enumerate(cells):
-            if not c.strip():
-                if name in _REQUIRED:
-                    raise RecordingError(f"{tab.where(i, j)}: empty cell; {name} is required in every row")
-                continue
-            try:
-                float(c)
-            except ValueError:
-                raise RecordingError(f"{tab.where(i, j)}: not a number: {c!r}") from None
-        out[name] = np.array([c if c.strip() else "nan" for c in cells], dtype=np.float64)
+    table.refuse_ragged_rows()
+    out = {name: table.numbers(j, syntax=NumberSyntax.PYTHON, required=name in _REQUIRED)
+           for j, name in enumerate(table.names)}
     for name in _REQUIRED:
         bad = np.flatnonzero(~np.isfinite(out[name]))
         if bad.size:
-            i, j = int(bad[0]), tab.names.index(name)
-            raise RecordingError(f"{tab.where(i, j)}: {name} must be finite, got {tab.cells(i)[j].strip()!r}")
-    t, jt = out["t"], tab.names.index("t")
+            i, j = int(bad[0]), table.names.index(name)
+            raise table.error(f"{name} must be finite, got {table.cell(i, j)!r}", i, j)
+    t, jt = out["t"], table.names.index("t")
     steps = np.diff(t)
     back = np.flatnonzero(steps <= 0)
     if back.size:
         i = int(back[0]) + 1
         verb = "repeats" if steps[i - 1] == 0 else "goes back from"
-        raise RecordingError(f"{tab.where(i, jt)}: t must increase strictly; t = {float(t[i])!r} {verb} "
-                             f"t = {float(t[i - 1])!r} on line {tab.first_line + i - 1}")
+        raise table.error(f"t must increase strictly; t = {float(t[i])!r} {verb} t = {float(t[i - 1])!r} on "
+                          f"line {table.first_line + i - 1}", i, jt)
     if (gap := first_gap(steps, gap_factor)) is not None:
         i, median = gap
-        raise RecordingError(f"{tab.where(i, jt)}: gap in t: step of {float(steps[i - 1])!r} s from line "
-                             f"{tab.first_line + i - 1} is more than {gap_factor!r} x the median step "
-                             f"{median!r} s")
+        raise table.error(f"gap in t: step of {float(steps[i - 1])!r} s from line {table.first_line + i - 1} "
+                          f"is more than {gap_factor!r} x the median step {median!r} s", i, jt)
     return out
 
 
@@ -449,8 +383,11 @@ def read_csv(path: str | os.PathLike, *, min_samples: int = 2, gap_factor: float
 
     Raises
     ------
-    RecordingError
-        For every defect listed in the module docstring; the message names the file, line and column.
+    ReaderError
+        (a :class:`RecordingError`) for every defect listed in the module docstring; the message names the
+        file, line and column, which the error also carries as attributes.
+    ValueError
+        For a bad ``min_samples`` or ``gap_factor``.
     OSError
         When the file cannot be read at all.
     """
@@ -459,26 +396,26 @@ def read_csv(path: str | os.PathLike, *, min_samples: int = 2, gap_factor: float
     if gap_factor is not None and not (math.isfinite(gap_factor) and gap_factor > 1):
         raise ValueError(f"gap_factor must be a finite number > 1 or None, got {gap_factor!r}")
     source = str(path)
-    lines, partial = _split_lines(source, Path(path).read_bytes())
+    text = decode(Path(path).read_bytes(), source, other_encodings=False)
+    lines, rest = split_terminated(text, source)
     names = _parse_header(source, lines[0])
-    tab = _Table(source, names, lines[1:], first_line=2)
-    cols = _parse_table(tab, gap_factor)
-    if partial is not None:
+    table = Table.from_lines(source, names, lines[1:], ",", first_line=2)
+    cols = _columns(table, gap_factor)
+    if rest is not None:
         # A last line without newline may be a write cut short: keep it only if the whole file still checks.
-        line_no = len(lines) + 1
-        longer = _Table(source, names, tab.lines + [partial.removesuffix("\r")], first_line=2)
+        longer = Table.from_lines(source, names, lines[1:] + [rest], ",", first_line=2)
         try:
-            cols = _parse_table(longer, gap_factor)
-            tab = longer
+            cols = _columns(longer, gap_factor)
+            table = longer
         except RecordingError as exc:
-            warnings.warn(f"{source}: line {line_no}: dropped an incomplete last line (no newline at end of "
-                          f"file): {exc}", RecordingWarning, stacklevel=2)
+            warnings.warn(f"{source}: line {len(lines) + 1}: dropped an incomplete last line (no newline at end "
+                          f"of file): {exc}", RecordingWarning, stacklevel=2)
     for arr in cols.values():
         _readonly(arr)  # so that Recording keeps these arrays without copying them
-    n = len(tab.lines)
+    n = len(table)
     if n < min_samples:
-        raise RecordingError(f"{source}: line {tab.first_line + n - 1}: {n} data row(s), at least "
-                             f"min_samples={min_samples} needed")
+        raise located(source, f"{n} data row(s), at least min_samples={min_samples} needed",
+                      line=table.first_line + n - 1)
     extra = {name: cols[name] for name in names if name not in CORE_COLUMNS}
     return Recording(cols["t"], cols.get("sp"), cols["op"], cols.get("mv"), cols["pv"], extra=extra,
                      source=source)

@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from valve_emulator.recordings.recording import Recording, RecordingError
+from valve_emulator.recordings.errors import RecordingError
+from valve_emulator.recordings.recording import Recording
 
 __all__ = ["regularize", "MAX_GAP", "TOLERANCE"]
 
@@ -59,7 +60,7 @@ def regularize(rec: Recording, *, max_gap: float = MAX_GAP) -> tuple[Recording, 
         i = int(gaps[0])
         raise RecordingError(f"{src}: line {i + 3}: a gap of {steps[i]:g} s after t = {t[i]:g} s, more than "
                              f"{max_gap:g} sample times of {dt:g} s; split the record there (resampling only "
-                             "bridges polling jitter)")
+                             "bridges polling jitter)", source=src, line=i + 3)
     off = np.abs(steps - dt) > TOLERANCE * dt
     if not off.any():
         return rec, None

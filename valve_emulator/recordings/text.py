@@ -1,97 +1,156 @@
-"""Text-level helpers shared by the readers: decoding, lines, delimiters, cells, numbers and time stamps.
+"""The one text parser of every recording reader: bytes → text → lines → cells.
 
-Everything here is strict on purpose: a cell that is not a number is an error naming the file, the line (1-based,
-as an editor counts) and the column, never a silent NaN. Bad input raises :class:`ReaderError` and returns
-nothing.
+The standard CSV (:mod:`~valve_emulator.recordings.recording`), the DCS export (:mod:`~valve_emulator.recordings.dcs`)
+and generic delimited text (:mod:`~valve_emulator.recordings.delimited`) all go through these steps; the numbers
+and times in the cells are read by :class:`~valve_emulator.recordings.table.Table`.
+
+Everything here is strict on purpose: bad input raises :class:`~valve_emulator.recordings.errors.ReaderError`
+naming the file and the line (1-based, as an editor counts) and returns nothing.
+
+Lines end at ``\\n``, ``\\r\\n`` or ``\\r`` and nowhere else (``str.splitlines`` would also split at a form feed
+or U+2028 inside a cell). Cells are split as CSV does: a cell in double quotes may hold the delimiter.
 """
 
 from __future__ import annotations
 
 import csv
-import re
 from collections.abc import Sequence
-from datetime import datetime, timezone
+from operator import methodcaller
 from typing import Final
 
-import numpy as np
-
-from valve_emulator.recordings.recording import RecordingError
+from valve_emulator.recordings.errors import ReaderError
 
 __all__ = [
-    "ReaderError",
-    "ColumnSpec",
     "DELIMITERS",
+    "located",
     "decode",
+    "is_utf8",
     "split_lines",
-    "sniff_delimiter",
+    "split_terminated",
     "split_cells",
     "split_rows",
-    "Table",
-    "resolve_column",
+    "split_columns",
+    "sniff_delimiter",
 ]
-
-#: A column chosen by name (exact, then case-insensitive, then the part after the last ``.``) or by its
-#: 1-based position (an ``int`` or a string of digits that is not itself a column name).
-ColumnSpec = str | int
 
 #: Delimiters tried by :func:`sniff_delimiter`, in order of preference when several fit.
 DELIMITERS: Final = ("\t", ";", ",", "|")
 
-_NUMBER: Final = re.compile(r"\s*[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\s*")
-_TIME_FORMATS: Final = ("%Y/%m/%d %H:%M:%S", "%Y/%m/%d %H:%M:%S.%f", "%Y/%m/%d %H:%M")
 
+def located(source: str, what: str, *, line: int | None = None, column: str | None = None,
+            number: int | None = None) -> ReaderError:
+    """The error ``source: line L, column 'name' (k): what`` carrying ``source``, ``line`` and ``column``.
 
-class ReaderError(RecordingError):
-    """A file that cannot be read as a recording; the message names the file and what was expected.
-
-    A :class:`~valve_emulator.recordings.recording.RecordingError` (hence a ``ValueError``), so callers that already
-    handle bad standard recordings handle these too.
+    ``number`` is the column's 1-based position; without a name the column is given by its number alone.
     """
+    where = source
+    if line is not None:
+        where += f": line {line}"
+    if column is not None:
+        where += f", column {column!r}" + (f" ({number})" if number is not None else "")
+    elif number is not None:
+        where += f", column {number}"
+    return ReaderError(f"{where}: {what}", source=source, line=line, column=column)
 
 
-def decode(data: bytes, source: str, encoding: str = "utf-8") -> str:
+def is_utf8(encoding: str) -> bool:
+    """True for every spelling of UTF-8 (``utf-8``, ``UTF8``, ``utf_8``)."""
+    return encoding.lower().replace("-", "").replace("_", "") == "utf8"
+
+
+def decode(data: bytes, source: str, encoding: str = "utf-8", *, other_encodings: bool = True) -> str:
     """Decode a whole file strictly; a byte-order mark is dropped.
 
     A file that is not valid in ``encoding`` is refused with the byte offset and line of the first bad byte.
     When the bytes before it already held valid non-ASCII UTF-8 text the file mixes encodings (typically a UTF-8
     export with rows pasted from a GBK or Latin-1 editor); the message says so, because no single ``encoding``
-    can then read it.
+    can then read it. Otherwise, with ``other_encodings`` (the caller accepts an ``encoding=`` argument), the
+    message suggests passing one.
     """
     try:
         text = data.decode(encoding)
     except LookupError:
-        raise ReaderError(f"{source}: unknown text encoding {encoding!r}") from None
+        raise ReaderError(f"{source}: unknown text encoding {encoding!r}", source=source) from None
     except UnicodeDecodeError as exc:
         line = data.count(b"\n", 0, exc.start) + 1
         bad = data[exc.start:exc.start + 4].hex(" ")
-        utf8 = encoding.lower().replace("-", "").replace("_", "") == "utf8"
+        utf8 = is_utf8(encoding)
         name = "UTF-8" if utf8 else encoding
-        msg = (f"{source}: line {line}: not {name} text at byte offset {exc.start} (bytes {bad}: "
-               f"{exc.reason}); expected the whole file in {name}")
+        what = (f"not {name} text at byte offset {exc.start} (bytes {bad}: {exc.reason}); expected the whole "
+                f"file in {name}")
         if utf8:
             # Whole earlier lines that decode to non-ASCII text mean the file started out as UTF-8; a stray
             # pair of bytes on the failing line itself proves nothing (a GBK pair can look like UTF-8).
             head = data[:data.rfind(b"\n", 0, exc.start) + 1]
             if any(b > 0x7F for b in head):
-                msg += ("; the lines before it are UTF-8 with non-ASCII characters, so the file mixes "
-                        "encodings (re-export it in one encoding)")
-            else:
-                msg += " (pass encoding=... if the whole file is in another encoding, e.g. 'gb18030')"
-        raise ReaderError(msg) from None
+                what += ("; the lines before it are UTF-8 with non-ASCII characters, so the file mixes "
+                         "encodings (re-export it in one encoding)")
+            elif other_encodings:
+                what += " (pass encoding=... if the whole file is in another encoding, e.g. 'gb18030')"
+        raise located(source, what, line=line) from None
     return text.removeprefix("\ufeff")
 
 
-def split_lines(text: str, source: str) -> list[str]:
-    """Lines without terminators (``\\n``, ``\\r\\n`` or ``\\r``); trailing blank lines dropped.
+def split_terminated(text: str, source: str) -> tuple[list[str], str | None]:
+    """``(lines, unterminated)``: the lines that end with a line end, and a last line that does not, if any.
 
-    Only these end a line: ``str.splitlines`` would also split at form feeds or U+2028 inside a cell.
+    A file that does not end with a line end may have been cut short by a writer that was killed; the caller
+    decides whether to keep its last line. Blank lines at the very end (an editor's extra newline) are dropped
+    when nothing follows them; a blank unterminated rest counts as none. A single line without a line end is
+    returned as a complete line (a header alone). An empty or all-blank text is an error.
     """
+    if not text.strip():
+        raise ReaderError(f"{source}: line 1: the file is empty", source=source, line=1)
     lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
-    while lines and not lines[-1].strip():
-        lines.pop()
+    rest = lines.pop()  # "" when the text ends with a line end
+    if not rest.strip():
+        rest = ""
     if not lines:
-        raise ReaderError(f"{source}: line 1: the file is empty")
-    return lines
+        return [rest], None
+    if not rest:
+        while not lines[-1].strip():
+            lines.pop()
+    return lines, (rest or None)
+
+
+def split_lines(text: str, source: str) -> list[str]:
+    """All lines without terminators, an unterminated last line included; trailing blank lines dropped."""
+    lines, rest = split_terminated(text, source)
+    return lines if rest is None else lines + [rest]
+
+
+def split_cells(line: str, delimiter: str) -> list[str]:
+    """Cells of one line, quotes handled as in CSV, surrounding spaces stripped (``[""]`` for a blank line)."""
+    return [c.strip() for c in split_rows([line], delimiter)[0]]
+
+
+def split_rows(lines: Sequence[str], delimiter: str) -> list[list[str]]:
+    """Cells of many lines, not stripped (:class:`~valve_emulator.recordings.table.Table` strips what it reads).
+
+    Each line is one row: a quote left open does not run on into the next line (the CSV parser would join
+    them, and every later line number would be off). Without a double quote in the text a cell cannot hold
+    the delimiter, and a plain split gives what the CSV parser would, faster.
+    """
+    if any('"' in line for line in lines):
+        return [next(csv.reader([line], delimiter=delimiter)) or [""] for line in lines]
+    return [line.split(delimiter) for line in lines]
+
+
+def split_columns(lines: Sequence[str], delimiter: str) -> list[list[str]] | None:
+    """Cells of many lines by column (not stripped), or ``None`` unless every line has as many cells.
+
+    The fast path for long, regular files: one join and one split of the whole text instead of a list per line
+    (several times faster on long recordings). ``None`` too when a double quote appears (use :func:`split_rows`).
+    """
+    joined = delimiter.join(lines)
+    if not lines or '"' in joined:
+        return None
+    counts = list(map(methodcaller("count", delimiter), lines))
+    if counts.count(counts[0]) != len(counts):
+        return None
+    width = counts[0] + 1
+    flat = joined.split(delimiter)
+    return [flat[j::width] for j in range(width)]
 
 
 def sniff_delimiter(lines: Sequence[str], *, decimal: str = ".") -> str | None:
@@ -109,150 +168,3 @@ def sniff_delimiter(lines: Sequence[str], *, decimal: str = ".") -> str | None:
         if len(counts) == 1 and (n := counts.pop()) > best_n:
             best, best_n = d, n
     return best
-
-
-def split_cells(line: str, delimiter: str) -> list[str]:
-    """Cells of one line, quotes handled as in CSV, surrounding spaces stripped."""
-    return [c.strip() for c in next(csv.reader([line], delimiter=delimiter), [""])]
-
-
-def split_rows(lines: Sequence[str], delimiter: str) -> list[list[str]]:
-    """Cells of many lines (not stripped: :class:`Table` strips the cells it reads)."""
-    return list(csv.reader(lines, delimiter=delimiter))
-
-
-class Table:
-    """Rows of cells with their line numbers, for parsing columns with precise messages.
-
-    Parameters
-    ----------
-    source : file name used in messages.
-    names : column names (from the header line, or ``"1"``, ``"2"``, … without one).
-    rows : the data rows as lists of cells.
-    first_line : 1-based line number of ``rows[0]`` in the file.
-    """
-
-    def __init__(self, source: str, names: Sequence[str], rows: list[list[str]], first_line: int) -> None:
-        self.source, self.names, self.rows, self.first_line = source, list(names), rows, first_line
-
-    def __len__(self) -> int:
-        return len(self.rows)
-
-    def where(self, i: int, j: int | None = None) -> str:
-        loc = f"{self.source}: line {self.first_line + i}"
-        if j is not None:
-            loc += f", column {self.names[j]!r} ({j + 1})"
-        return loc
-
-    def cells(self, j: int) -> list[str]:
-        """Column ``j`` (0-based); a row too short for it is an error."""
-        out = []
-        for i, row in enumerate(self.rows):
-            if j >= len(row):
-                raise ReaderError(f"{self.where(i)}: expected at least {j + 1} cells for column "
-                                  f"{self.names[j]!r}, found {len(row)}")
-            out.append(row[j].strip())
-        return out
-
-    def numbers(self, j: int, *, decimal: str = ".", required: bool = True) -> np.ndarray:
-        """Column ``j`` as float64. Empty cells are NaN unless ``required``; values must be finite.
-
-        Accepted: optional sign, digits with one decimal mark (``decimal``), optional exponent. Text such as
-        ``nan``, ``inf``, ``1_000`` or ``1.5`` with a decimal comma is refused with its line and column.
-        """
-        cells = self.cells(j)
-        values = np.full(len(cells), np.nan)
-        for i, c in enumerate(cells):
-            if not c:
-                if required:
-                    raise ReaderError(f"{self.where(i, j)}: empty cell; {self.names[j]!r} needs a number in "
-                                      "every row")
-                continue
-            text = c
-            if decimal != ".":
-                if "." in c:
-                    raise ReaderError(f"{self.where(i, j)}: not a number: {c!r} (decimal={decimal!r} was "
-                                      "given, so '.' is not accepted)")
-                text = c.replace(decimal, ".")
-            if _NUMBER.fullmatch(text) is None:
-                hint = ""
-                if decimal == "." and re.fullmatch(r"[+-]?\d+,\d+", c):
-                    hint = " (a decimal comma? pass decimal=',')"
-                raise ReaderError(f"{self.where(i, j)}: not a number: {c!r}{hint}")
-            values[i] = float(text)
-        bad = np.flatnonzero(np.isinf(values))
-        if bad.size:  # an overflowing exponent such as 1e999
-            i = int(bad[0])
-            raise ReaderError(f"{self.where(i, j)}: number out of range: {self.rows[i][j]!r}")
-        return values
-
-    def times(self, j: int) -> np.ndarray:
-        """Column ``j`` as time in seconds: plain numbers are seconds, otherwise date-times.
-
-        Date-times are ISO 8601 (``2024-06-27 21:55:00``, ``2024-06-27T21:55:00.5``, with or without a UTC
-        offset) or ``YYYY/MM/DD HH:MM[:SS[.f]]``; they are returned as POSIX seconds (naive stamps taken as
-        UTC, so only differences matter). All cells of the column must be of the same kind.
-        """
-        cells = self.cells(j)
-        if cells and _NUMBER.fullmatch(cells[0]):
-            return self.numbers(j)
-        out = np.empty(len(cells))
-        for i, c in enumerate(cells):
-            stamp = _parse_datetime(c)
-            if stamp is None:
-                raise ReaderError(f"{self.where(i, j)}: not a time: {c!r} (expected a date-time such as "
-                                  "'2024-06-27 21:55:00', or seconds in every row)")
-            out[i] = stamp
-        return out
-
-
-def _parse_datetime(cell: str) -> float | None:
-    try:
-        dt = datetime.fromisoformat(cell)
-    except ValueError:
-        dt = None
-        for fmt in _TIME_FORMATS:
-            try:
-                dt = datetime.strptime(cell, fmt)
-                break
-            except ValueError:
-                continue
-    if dt is None:
-        return None
-    if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=timezone.utc)
-    return dt.timestamp()
-
-
-def resolve_column(spec: ColumnSpec, names: Sequence[str], *, role: str, source: str) -> int:
-    """0-based index of the column that ``spec`` names, for the reader argument ``role`` (``op``, …).
-
-    Order: an ``int`` is a 1-based position; a string equal to a column name; equal ignoring case; equal to
-    the part of exactly one name after its last ``.`` (so ``"PV"`` finds ``FIC101.PV``); a string of digits is a
-    1-based position. Anything else is an error listing the available columns.
-    """
-    available = ", ".join(f"{k + 1}: {n!r}" for k, n in enumerate(names))
-    if isinstance(spec, bool) or not isinstance(spec, (int, str)):
-        raise ReaderError(f"{source}: {role}= must be a column name or a 1-based column number, got {spec!r}")
-    if isinstance(spec, str):
-        exact = [k for k, n in enumerate(names) if n == spec]
-        if len(exact) > 1:
-            raise ReaderError(f"{source}: {role}={spec!r} names {len(exact)} columns "
-                              f"({', '.join(str(k + 1) for k in exact)}); give its number instead")
-        if exact:
-            return exact[0]
-        for matcher in (lambda n: n.lower() == spec.lower(),
-                        lambda n: n.rsplit(".", 1)[-1].lower() == spec.lower()):
-            hits = [k for k, n in enumerate(names) if matcher(n)]
-            if len(hits) == 1:
-                return hits[0]
-            if len(hits) > 1:
-                raise ReaderError(f"{source}: {role}={spec!r} matches several columns "
-                                  f"({', '.join(repr(names[k]) for k in hits)}); give the full name")
-        if not spec.strip().isdigit():
-            raise ReaderError(f"{source}: {role}={spec!r}: no such column; the columns are {available}")
-        spec = int(spec)
-    if not 1 <= spec <= len(names):
-        raise ReaderError(f"{source}: {role}={spec}: column numbers are 1-based and the file has "
-                          f"{len(names)} columns ({available})")
-    return spec - 1
