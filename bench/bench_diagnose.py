@@ -17,7 +17,7 @@ import sys
 import time
 
 from valve_emulator.diagnosis import diagnose
-from valve_emulator.diagnosis.cases import CASES, generate
+from valve_emulator.benchmark.cases import CASES, generate
 
 
 def main(argv=None) -> int:

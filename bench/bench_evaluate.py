@@ -37,7 +37,7 @@ def time_evaluate(path: Path, jobs: int) -> tuple[float, str]:
 
 def time_diagnose(samples: int) -> float:
     """Seconds for ``valve-emulator diagnose REC.csv`` (no model) on a concealed stiction recording."""
-    from valve_emulator.diagnosis.cases import CASES, generate
+    from valve_emulator.benchmark.cases import CASES, generate
     from valve_emulator.recordings.recording import write_csv
 
     case = CASES[0]

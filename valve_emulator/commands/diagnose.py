@@ -3,7 +3,7 @@
 With ``--model``: replays the nominal model on the recorded OP, locates the mismatch, names the physics the
 model leaves out, fits it and shows the fit improve (see :mod:`valve_emulator.diagnosis`). Without it — plant
 data — identifies the linear part from the data and answers *stiction*, *no stiction* (and why) or *cannot
-tell* (and why) (:mod:`valve_emulator.diagnosis.assessment`).
+tell* (and why) (:mod:`valve_emulator.diagnosis.assess.decision`).
 
 FILE is read by :func:`valve_emulator.recordings.read_recording`: the standard recording CSV, a generic CSV/TSV with
 a column mapping (``--op --pv --sp --time`` or ``--ts``, ``--skip``, ``--decimal``...), or the DCS text export.
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         verdict, data, diag = result.verdict, result.to_json(), result
         report = result.report
     else:
-        from valve_emulator.diagnosis.assessment import assess
+        from valve_emulator.diagnosis.assess.decision import assess
 
         a = assess(rec, progress=say)
         verdict, data, diag = a.verdict, a.to_json(), a.diagnosis
@@ -119,11 +119,11 @@ def run(args: argparse.Namespace) -> int:
     written = []
     if args.plot:
         if diag is not None:
-            from valve_emulator.diagnosis.plot import plot_diagnosis
+            from valve_emulator.diagnosis.report.plot import plot_diagnosis
 
             plot_diagnosis(diag, args.plot)
         else:
-            from valve_emulator.diagnosis.plot_loop import plot_loop
+            from valve_emulator.diagnosis.report.plot_loop import plot_loop
 
             plot_loop(rec, a, args.plot, title=str(args.recording))
         written.append(args.plot)

@@ -1,6 +1,6 @@
 """``valve-emulator prove [--out DIR]``: the diagnosis on concealed data with a known truth, as one command.
 
-Simulates every case of :data:`valve_emulator.diagnosis.proof.CASES` (closed loop, only OP and PV kept, PV
+Simulates every case of :data:`valve_emulator.benchmark.proof.CASES` (closed loop, only OP and PV kept, PV
 noise), diagnoses each against a nominal model lacking the effect, prints the table and writes
 ``DIR/proof.md`` with one figure per case under ``DIR/proof/`` (default ``DIR = docs``).
 """
@@ -24,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from valve_emulator.diagnosis.proof import CASES, proof_markdown, run_case, table_text
+    from valve_emulator.benchmark.proof import CASES, proof_markdown, run_case, table_text
 
     cases = [c for c in CASES if not args.case or any(s in c.name for s in args.case)]
     if not cases:

@@ -24,7 +24,7 @@ Candidates come in four *kinds* (:data:`KINDS`), by where they act:
     oscillating disturbance added to PV). The chain ends at the flow, so these cannot be a transform of it;
     instead :meth:`Candidate.adjust` says, for the linear part's current prediction, which PV the linear part
     should be fitted to, and :meth:`Candidate.predict` what the whole model predicts (backfitting, see
-    :mod:`~valve_emulator.diagnosis.output`).
+    :mod:`~valve_emulator.diagnosis.fit.backfit`).
 ``loop``
     explains a cycle through the loop itself, not the OP → PV path (aggressive ``tuning``): it adds nothing
     to the replayed model, so it is not searched; :meth:`Candidate.assess` judges it on the final model.

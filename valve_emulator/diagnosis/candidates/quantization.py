@@ -13,7 +13,7 @@ so the true PV lies within ±h of every reading, ``h`` half the typical step bet
 
 (``q/2`` for a uniform quantum q; about the dead band for an archive that holds values). The linear part
 is fitted to the *interval* readings: its target is the point of :math:`[y_k - h, y_k + h]` nearest to its
-own prediction, re-computed by backfitting (:mod:`~valve_emulator.diagnosis.output`), which minimises the
+own prediction, re-computed by backfitting (:mod:`~valve_emulator.diagnosis.fit.backfit`), which minimises the
 dead-zone loss :math:`\sum_k \max(0, |\hat y_k - y_k| - h)^2` (the ε-insensitive loss of support-vector
 regression; Vapnik, *The Nature of Statistical Learning Theory*, 1995). The same loss scores the held-out
 part: a reading only says that PV lay within ±h, so the model's prediction of a reading is the value inside

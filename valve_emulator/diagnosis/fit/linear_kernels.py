@@ -2,8 +2,8 @@ r"""Compiled kernels of the batched linear fit (numba): all-pole filtering and l
 
 Arrays are time-major, ``(T, n)``, columns innermost — the layout the valve kernels produce — and the
 parallel versions split the columns into blocks of :data:`_BLOCK` (contiguous in every row). The Python
-entry points are :func:`~valve_emulator.diagnosis.linear.filter_inputs` and
-:func:`~valve_emulator.diagnosis.linear.delay_grid_sse`; the maths is in that module's docstring.
+entry points are :func:`~valve_emulator.diagnosis.fit.linear.filter_inputs` and
+:func:`~valve_emulator.diagnosis.fit.linear.delay_grid_sse`; the maths is in that module's docstring.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ The record of ``T`` samples is split as
 
 That is ``validation="split"``, used with a nominal model. Without one (real data, ``"twofold"``) the fit
 part runs to the end of the record and the held-out fit is cross-validated on two blocks instead
-(:func:`folds`, :mod:`~valve_emulator.diagnosis.crossval`): on plant data the evidence — a valve that
+(:func:`folds`, :mod:`~valve_emulator.diagnosis.fit.crossval`): on plant data the evidence — a valve that
 slips twice in two hours — can all lie in the last 30 %, which a single split would never fit.
 
 PV is centred and scaled by the fit part's mean and standard deviation before fitting (conditioning only:
@@ -61,7 +61,7 @@ class Problem:
     delays : integer dead times (samples) that every fit searches.
     op_span : robust OP range, 99.5th − 0.5th percentile of the fit part (% travel).
     prefilter : λ of the high-pass prefilter for integrating plants (see
-        :func:`~valve_emulator.diagnosis.linear.highpass`), None to fit PV itself; the held-out fit is
+        :func:`~valve_emulator.diagnosis.fit.linear.highpass`), None to fit PV itself; the held-out fit is
         always on PV itself.
     source : the recording's name, for messages.
     validation : one of :data:`VALIDATIONS`; with ``"twofold"`` the fit part runs to the end.

@@ -10,9 +10,9 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from valve_emulator.diagnosis.cases import CASES, Case, generate
-from valve_emulator.diagnosis.pipeline import RULE, diagnose
-from valve_emulator.diagnosis.result import Diagnosis
+from valve_emulator.benchmark.cases import CASES, Case, generate
+from valve_emulator.diagnosis.explain.pipeline import RULE, diagnose
+from valve_emulator.diagnosis.report.explanation import Diagnosis
 
 __all__ = ["CASES", "CaseResult", "run_case", "table_text", "table_markdown", "proof_markdown"]
 
@@ -45,7 +45,7 @@ def run_case(case: Case, *, duration: float | None = None, figure_dir: str | os.
     result = diagnose(rec, nominal)
     figure = None
     if figure_dir is not None:
-        from valve_emulator.diagnosis.plot import plot_diagnosis
+        from valve_emulator.diagnosis.report.plot import plot_diagnosis
 
         figure = f"{_slug(case.name)}.png"
         plot_diagnosis(result, os.path.join(figure_dir, figure))

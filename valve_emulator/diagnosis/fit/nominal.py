@@ -24,8 +24,8 @@ import numba
 import numpy as np
 
 from valve_emulator.config import LoopConfig
-from valve_emulator.diagnosis.data import Problem
-from valve_emulator.diagnosis.linear import (
+from valve_emulator.diagnosis.fit.data import Problem
+from valve_emulator.diagnosis.fit.linear import (
     LinearFit,
     LinearStructure,
     delay_grid_sse,

@@ -1,7 +1,7 @@
 r"""Does the valve's evidence survive a drifting load? A second look at a valve finding, under another noise model.
 
 The search scores models by their free-run (output-error) fit, with an AR(1) error model for BIC
-(:mod:`~valve_emulator.diagnosis.scoring`). That error model is stationary: it expects PV to come back to
+(:mod:`~valve_emulator.diagnosis.fit.scorer`). That error model is stationary: it expects PV to come back to
 what OP explains. A slow, wandering load that the controller compensates breaks the assumption in a way
 that imitates a stuck valve: OP drifts to cancel the load while PV holds its set point, so a linear valve
 replays OP into PV swings that never happened, and a valve that does not move (a band S) replays them
@@ -17,15 +17,15 @@ load plus white measurement noise — the local-level model, whose innovation fo
 
 so the one-step prediction errors are :math:`e = L(q)(\mathrm{pv} - G\,\mathrm{flow})` with
 :math:`L(q) = (1 - q^{-1})/(1 - \lambda q^{-1})`, the package's high-pass prefilter
-(:func:`~valve_emulator.diagnosis.linear.highpass`; Ljung, *System Identification*, 2nd ed., §7.2 and §14.4:
+(:func:`~valve_emulator.diagnosis.fit.linear.highpass`; Ljung, *System Identification*, 2nd ed., §7.2 and §14.4:
 a fixed noise model is a prefilter). λ, the noise model's one parameter (λ = 0: the load is a pure random
 walk; λ → 1: no load), is chosen per model from :data:`LAMBDAS` by BIC; the linear part (poles, dead time,
-taps) is re-fitted at every λ (:func:`~valve_emulator.diagnosis.linear.polish`); the valve keeps the
+taps) is re-fitted at every λ (:func:`~valve_emulator.diagnosis.fit.linear.polish`); the valve keeps the
 parameters the search found. Both models — with and without the valve finding — are scored the same way,
 and :func:`load_delta_bic` returns BIC without minus BIC with (k + 1 parameters, λ counted).
 
-What it is used for: the answer of :func:`~valve_emulator.diagnosis.assessment.assess` says whether a
-stiction call *survives a drifting load* (ΔBIC ≥ :data:`~valve_emulator.diagnosis.search.DELTA_BIC` here
+What it is used for: the answer of :func:`~valve_emulator.diagnosis.assess.decision.assess` says whether a
+stiction call *survives a drifting load* (ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` here
 too) — strong evidence — or not: a linear valve with a compensated drifting load explains the record about
 as well. It qualifies the answer and does not change it: on the labelled plant data of ``docs/real-data.md``
 requiring it would remove the one false stiction call and five true ones (one valve each way), which is
@@ -37,10 +37,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from valve_emulator.diagnosis.linear import LinearStructure, polish
-from valve_emulator.diagnosis.models import Model
-from valve_emulator.diagnosis.nominal import bic
-from valve_emulator.diagnosis.scoring import Scorer
+from valve_emulator.diagnosis.fit.linear import LinearStructure, polish
+from valve_emulator.diagnosis.fit.records import Model
+from valve_emulator.diagnosis.fit.nominal import bic
+from valve_emulator.diagnosis.fit.scorer import Scorer
 
 __all__ = ["LAMBDAS", "load_bic", "load_bic_of", "load_delta_bic"]
 

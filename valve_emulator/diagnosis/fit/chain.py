@@ -19,7 +19,7 @@ from valve_emulator.physics.signal_chain import Characteristic
 __all__ = ["Active", "CHAIN_SLOTS", "run_chain"]
 
 #: Slots that transform the signal, in order (the dead time is part of the linear fit; ``output`` candidates
-#: act after the plant, see :mod:`~valve_emulator.diagnosis.output`). The nominal model has no limit.
+#: act after the plant, see :mod:`~valve_emulator.diagnosis.fit.backfit`). The nominal model has no limit.
 CHAIN_SLOTS = ("actuator", "valve", "characteristic", "limit")
 
 

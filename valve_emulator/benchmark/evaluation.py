@@ -1,14 +1,14 @@
 r"""The result of ``valve-emulator evaluate``: every method scored per window and per valve, as text or Markdown.
 
-Built from the per-window dicts of :func:`~valve_emulator.diagnosis.labelled.run_window`, scored by
-:mod:`~valve_emulator.diagnosis.scorecard`. Methods: ``diagnosis`` (this project's assessment,
-:mod:`~valve_emulator.diagnosis.assessment`) and the comparison detectors side by side, on the same windows.
+Built from the per-window dicts of :func:`~valve_emulator.benchmark.labelled.run_window`, scored by
+:mod:`~valve_emulator.benchmark.scorecard`. Methods: ``diagnosis`` (this project's assessment,
+:mod:`~valve_emulator.diagnosis.assess.decision`) and the comparison detectors side by side, on the same windows.
 
 The one threshold of the assessment that was not taken from the literature or from a convention used
-elsewhere in the package, :data:`~valve_emulator.diagnosis.assessment.NOISE_BANDS`, is also checked:
+elsewhere in the package, :data:`~valve_emulator.diagnosis.assess.decision.NOISE_BANDS`, is also checked:
 the valve-level balanced accuracy for other values, and a leave-one-valve-out estimate in which each
 valve is called with the value that scores best on the other valves. So is the qualifier of a stiction call
-(:mod:`~valve_emulator.diagnosis.load_check`): the figures had a *weak* call (one that a drifting-load noise
+(:mod:`~valve_emulator.diagnosis.fit.load_check`): the figures had a *weak* call (one that a drifting-load noise
 model explains about as well) been answered "cannot tell".
 """
 
@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from valve_emulator.detectors import DETECTORS
-from valve_emulator.diagnosis.assessment import NOISE_BANDS
-from valve_emulator.diagnosis.search import DELTA_BIC
-from valve_emulator.diagnosis.scorecard import (ABSTAIN, POSITIVE, Confusion, confusion, leave_one_valve_out,
+from valve_emulator.diagnosis.assess.decision import NOISE_BANDS
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
+from valve_emulator.benchmark.scorecard import (ABSTAIN, POSITIVE, Confusion, confusion, leave_one_valve_out,
                                                 markdown_table, text_table, valve_calls, window_calls)
 
 __all__ = ["Evaluation", "METHOD", "NOISE_GRID", "decision_of", "misclassified"]
@@ -210,7 +210,7 @@ class Evaluation:
                markdown_table(("k", "sensitivity", "specificity", "balanced accuracy"), rows), "",
                "### Qualifier check: stiction calls that a drifting load explains as well", "",
                f"A stiction call is *strong* when the valve still lowers BIC by at least {DELTA_BIC:g} under a "
-               "random-walk load noise model (`valve_emulator.diagnosis.load_check`), *weak* otherwise. The "
+               "random-walk load noise model (`valve_emulator.diagnosis.fit.load_check`), *weak* otherwise. The "
                "answers count both; here is what answering \"cannot tell\" to the weak ones would give.", "",
                markdown_table(("rule", "unit", "sensitivity", "specificity", "balanced accuracy", "TP", "FN", "FP",
                                "TN"), self.load_check()), "",

@@ -1,10 +1,10 @@
 r"""``diagnose(recording, nominal)``: replay, locate, search the candidate library, report.
 
-1. **Replay** the nominal model on the recorded OP (:mod:`~valve_emulator.diagnosis.nominal`); its
+1. **Replay** the nominal model on the recorded OP (:mod:`~valve_emulator.diagnosis.fit.nominal`); its
    held-out free-run fit is ``fit_before``. Without a nominal model the linear part is identified from the
    data first and *that* is the nominal model.
-2. **Locate** the residual in time and operating conditions (:mod:`~valve_emulator.diagnosis.locate`).
-3. **Search** (:mod:`~valve_emulator.diagnosis.search`): add the most significant candidate physics,
+2. **Locate** the residual in time and operating conditions (:mod:`~valve_emulator.diagnosis.explain.locate`).
+3. **Search** (:mod:`~valve_emulator.diagnosis.explain.search`): add the most significant candidate physics,
    round after round, the linear part re-fitted around each.
 4. **Report** each accepted piece with its parameters, 95 % intervals from the cost surface, where it
    reduces the residual (windows) and why it was accepted (evidence); ``fit_after`` is the final model's
@@ -13,10 +13,10 @@ r"""``diagnose(recording, nominal)``: replay, locate, search the candidate libra
 Validation: with a nominal model the last 30 % of the record is held out (``validation="split"``); without
 one — plant data, where the plant is unknown and the evidence may sit anywhere in the record — the search
 fits the whole record and cross-validates on two blocks (``"twofold"``, see
-:mod:`~valve_emulator.diagnosis.crossval`). Either can be asked for explicitly.
+:mod:`~valve_emulator.diagnosis.fit.crossval`). Either can be asked for explicitly.
 
 Which cost: PV itself, or a high-pass prefiltered PV for an integrating plant (see
-:func:`~valve_emulator.diagnosis.linear.highpass`): the prefilter makes an integrator's cost smooth in the
+:func:`~valve_emulator.diagnosis.fit.linear.highpass`): the prefilter makes an integrator's cost smooth in the
 valve parameters, but would only throw away a self-regulating plant's slow response. With a nominal model
 its plant decides; without one the search runs on PV (its pole set spans both families) and, if the result
 integrates, once more prefiltered, whose result is kept.
@@ -31,14 +31,14 @@ import numpy as np
 
 from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.candidates import get, registry
-from valve_emulator.diagnosis.chain import run_chain
-from valve_emulator.diagnosis.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
-from valve_emulator.diagnosis.load_check import load_delta_bic
-from valve_emulator.diagnosis.locate import Located, condition_masks, locate
-from valve_emulator.diagnosis.nominal import Nominal, identify, nominal_from_config, replay_plant
-from valve_emulator.diagnosis.result import Diagnosis, Finding, RankRow, Traces
-from valve_emulator.diagnosis.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
-from valve_emulator.diagnosis.uncertainty import intervals
+from valve_emulator.diagnosis.fit.chain import run_chain
+from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
+from valve_emulator.diagnosis.fit.load_check import load_delta_bic
+from valve_emulator.diagnosis.explain.locate import Located, condition_masks, locate
+from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
+from valve_emulator.diagnosis.report.explanation import Diagnosis, Finding, RankRow, Traces
+from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
+from valve_emulator.diagnosis.fit.uncertainty import intervals
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["diagnose", "RULE", "RULE_TWOFOLD"]

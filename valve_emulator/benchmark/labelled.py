@@ -17,7 +17,7 @@ One window
 ----------
 :func:`run_window` reads the file (:func:`~valve_emulator.recordings.read_recording`, format detected), puts it on
 a uniform grid (:func:`~valve_emulator.recordings.resample.regularize`), assesses it
-(:func:`~valve_emulator.diagnosis.assessment.assess`) and runs the comparison detectors
+(:func:`~valve_emulator.diagnosis.assess.decision.assess`) and runs the comparison detectors
 (:func:`~valve_emulator.detectors.run_detectors`) on the same samples; it returns a plain dict, so that it
 can run in a worker process.
 """
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from valve_emulator.detectors import DETECTORS, run_detectors
-from valve_emulator.diagnosis.assessment import assess
+from valve_emulator.diagnosis.assess.decision import assess
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Item", "read_index", "run_window", "parse_label", "INTEGRATING_TYPES"]

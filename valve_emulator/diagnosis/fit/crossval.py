@@ -1,6 +1,6 @@
 r"""Two-fold blocked cross-validation of a fitted model: the held-out fit of searches without a nominal model.
 
-Each fold of :func:`~valve_emulator.diagnosis.data.folds` re-fits the model's linear part (poles, dead time,
+Each fold of :func:`~valve_emulator.diagnosis.fit.data.folds` re-fits the model's linear part (poles, dead time,
 taps, offsets; with an ``output`` candidate, the two together by backfitting) on the fold's fit block and
 predicts its held-out block by free-run simulation from the recorded OP. The chain's own parameters (S and
 J of a valve, a lag, a limit) are kept at their whole-record values: they are few, and re-searching their
@@ -11,7 +11,7 @@ the whole record (with the ΔBIC threshold) guards the valve parameters. The two
            \Big/ \sqrt{\textstyle\sum_{b}\sum_{k\in b}(y_k - \bar y_b)^2}\Big)
 
 (:math:`\hat y^{(b)}` the prediction of the fold that held block b out, :math:`\bar y_b` the block's mean),
-the same form as :func:`~valve_emulator.diagnosis.data.fit_percent`, in percent.
+the same form as :func:`~valve_emulator.diagnosis.fit.data.fit_percent`, in percent.
 """
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from valve_emulator.diagnosis.data import folds
-from valve_emulator.diagnosis.linear import fit_one, polish
-from valve_emulator.diagnosis.models import Model
-from valve_emulator.diagnosis.output import backfit
-from valve_emulator.diagnosis.scoring import Scorer
+from valve_emulator.diagnosis.fit.data import folds
+from valve_emulator.diagnosis.fit.linear import fit_one, polish
+from valve_emulator.diagnosis.fit.records import Model
+from valve_emulator.diagnosis.fit.backfit import backfit
+from valve_emulator.diagnosis.fit.scorer import Scorer
 
 __all__ = ["cross_validated_fit", "with_cv"]
 

@@ -11,9 +11,9 @@ It also owns the choices that must be the same for every model of a problem:
 * the scored samples: the fit part starts after the largest burn-in the candidates claim (a valve's unknown
   initial state must be forgotten before it is scored; capped at :data:`_BURN_CAP` of the record);
 * the cost domain: PV, or high-pass prefiltered PV for an integrating plant
-  (:func:`~valve_emulator.diagnosis.linear.highpass`);
+  (:func:`~valve_emulator.diagnosis.fit.linear.highpass`);
 * the weak prior that ties re-fitted time constants to the nominal ones
-  (:data:`~valve_emulator.diagnosis.linear.PRIOR_WIDTH`);
+  (:data:`~valve_emulator.diagnosis.fit.linear.PRIOR_WIDTH`);
 * the target of the linear fits: the scaled PV, or — once a model holds an ``output`` candidate — the
   target that candidate made of it, held while the model is extended (:meth:`Scorer.use`);
 * the error model BIC assumes. With a nominal model (``validation="split"``) it is white noise,
@@ -35,9 +35,9 @@ from typing import Callable
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
-from valve_emulator.diagnosis.chain import Active, run_chain
-from valve_emulator.diagnosis.data import Problem
-from valve_emulator.diagnosis.linear import (
+from valve_emulator.diagnosis.fit.chain import Active, run_chain
+from valve_emulator.diagnosis.fit.data import Problem
+from valve_emulator.diagnosis.fit.linear import (
     PRIOR_WIDTH,
     LinearFit,
     LinearStructure,
@@ -47,8 +47,8 @@ from valve_emulator.diagnosis.linear import (
     highpass,
     polish,
 )
-from valve_emulator.diagnosis.models import Model
-from valve_emulator.diagnosis.nominal import Nominal, bic
+from valve_emulator.diagnosis.fit.records import Model
+from valve_emulator.diagnosis.fit.nominal import Nominal, bic
 
 __all__ = ["Scorer"]
 
@@ -87,7 +87,7 @@ class Scorer:
 
     def use(self, model: Model | None) -> None:
         """Fit the linear part to ``model``'s target from now on (the scaled PV unless it holds an output
-        candidate, see :mod:`~valve_emulator.diagnosis.output`)."""
+        candidate, see :mod:`~valve_emulator.diagnosis.fit.backfit`)."""
         self.y_fit = self.p.y if model is None or model.target is None else model.target
         self.target = self.y_fit if self.lam is None else highpass(self.y_fit, self.lam)
 
@@ -111,7 +111,7 @@ class Scorer:
 
         ``target`` is what ``fit`` was fitted to (default: the current one, :meth:`use`); with an ``output``
         candidate in ``active`` the prediction is the candidate's of the linear part's. Without a held-out
-        part (two-fold validation) ``heldout`` is NaN until :mod:`~valve_emulator.diagnosis.crossval` fills it.
+        part (two-fold validation) ``heldout`` is NaN until :mod:`~valve_emulator.diagnosis.fit.crossval` fills it.
         """
         acts = []
         for a in active.values():
@@ -144,7 +144,7 @@ class Scorer:
         return bic(float(w @ w), w.size, k + 1)
 
     def _prior_penalty(self, st: LinearStructure) -> float:
-        """The weak prior of :func:`~valve_emulator.diagnosis.linear.polish`, for comparing pole sets."""
+        """The weak prior of :func:`~valve_emulator.diagnosis.fit.linear.polish`, for comparing pole sets."""
         if self.prior is None or len(self.prior) != len(st.taus) or not st.taus:
             return 0.0
         d = np.sort(np.log(st.taus)) - np.sort(np.log(self.prior))

@@ -1,5 +1,5 @@
 r"""Concealed test recordings with a known truth: the cases of ``valve-emulator prove``
-(run and tabulated by :mod:`valve_emulator.diagnosis.proof`).
+(run and tabulated by :mod:`valve_emulator.benchmark.proof`).
 
 Each :class:`Case` is a closed loop simulated by :func:`~valve_emulator.simulation.loop.simulate_loop` with one
 piece of physics that its *nominal* model leaves out. What the diagnosis gets is concealed the way a plant

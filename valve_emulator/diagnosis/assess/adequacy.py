@@ -3,7 +3,7 @@ r"""Can these data support a conclusion at all? The checks behind a polite "cann
 A diagnosis without a plant model must identify the plant from the data themselves, so some records cannot
 answer "is the valve sticky?" whatever the method, and saying so beats a wrong answer. In order:
 
-1. **Too short**: fewer than :data:`~valve_emulator.diagnosis.data.MIN_SAMPLES` samples (room for a burn-in,
+1. **Too short**: fewer than :data:`~valve_emulator.diagnosis.fit.data.MIN_SAMPLES` samples (room for a burn-in,
    a dead time and two cross-validation blocks).
 2. **Flat PV**: PV holds one value over at least :data:`FLAT_SHARE` of the record (the longest constant run).
    Half the record then carries no information about the valve, and a PV that does not move while OP
@@ -17,7 +17,7 @@ answer "is the valve sticky?" whatever the method, and saying so beats a wrong a
    at least :data:`EXCITATION` times its noise σ. White noise alone spans about 5 σ between those
    percentiles, so twice that is movement the noise cannot make. The noise σ is
    :func:`op_noise`, the robust standard deviation of sample-to-sample changes divided by √2 (as for the
-   OP turning points of :mod:`~valve_emulator.diagnosis.locate`).
+   OP turning points of :mod:`~valve_emulator.diagnosis.explain.locate`).
 
 Thresholds are constants, chosen once for every loop.
 """
@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from valve_emulator.detectors.base import oscillation
-from valve_emulator.diagnosis.data import MIN_SAMPLES
+from valve_emulator.diagnosis.fit.data import MIN_SAMPLES
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["Adequacy", "adequacy", "op_noise", "longest_constant_run", "FLAT_SHARE", "EXCITATION"]

@@ -4,7 +4,7 @@ Such a candidate acts after the plant, so the model is
 
 .. math::  \hat{\mathrm{pv}} = \mathcal{O}_\eta\big(G(q)\,u\big),
 
-with ``u`` the chain's flow, G the linear part of :mod:`~valve_emulator.diagnosis.linear` and
+with ``u`` the chain's flow, G the linear part of :mod:`~valve_emulator.diagnosis.fit.linear` and
 :math:`\mathcal O_\eta` the candidate (parameters η). It is fitted by *backfitting* (Hastie & Tibshirani,
 *Generalized Additive Models*, 1990, ch. 4): alternately (a) the candidate turns the measured PV into the
 target the linear part should match, given the linear part's current prediction (:meth:`Candidate.adjust`:
@@ -22,7 +22,7 @@ chain candidates' coarse stages do, so an output candidate is not stuck with a l
 without it (and so biased by it).
 
 While a model with an output candidate is extended further, the candidate's target is held fixed and the
-next candidate is fitted to it (:meth:`~valve_emulator.diagnosis.scoring.Scorer.use`); the refinement that
+next candidate is fitted to it (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.use`); the refinement that
 follows each acceptance re-fits the earlier pieces with the new one in place.
 """
 
@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
-from valve_emulator.diagnosis.linear import (LinearFit, LinearStructure, delay_grid_sse, filter_inputs, fit_one,
+from valve_emulator.diagnosis.fit.linear import (LinearFit, LinearStructure, delay_grid_sse, filter_inputs, fit_one,
                                              highpass, polish)
 
 __all__ = ["ITERATIONS", "Backfit", "backfit"]
@@ -94,7 +94,7 @@ def backfit(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], structure:
             delays: np.ndarray | None = None) -> Backfit:
     """Linear part + output candidate fitted on ``window`` (see the module docstring).
 
-    ``polish_kw`` (keyword arguments of :func:`~valve_emulator.diagnosis.linear.polish`; its ``prefilter``,
+    ``polish_kw`` (keyword arguments of :func:`~valve_emulator.diagnosis.fit.linear.polish`; its ``prefilter``,
     if any, must be ``prefilter``) enables the polish of the poles and dead time; ``None`` keeps
     ``structure`` (the quick version the grids use). ``delays`` (whole samples) re-chooses the dead time at
     every round.

@@ -1,6 +1,6 @@
 r"""The diagnosis result: findings, the JSON of issue 6, the verdict sentence and the Markdown report.
 
-A :class:`Diagnosis` is a frozen record (the fitting machine is :class:`~valve_emulator.diagnosis.search.
+A :class:`Diagnosis` is a frozen record (the fitting machine is :class:`~valve_emulator.diagnosis.explain.search.
 Search`). :meth:`Diagnosis.to_json` returns exactly the keys ``fit_before``, ``fit_after``, ``findings``
 (each ``physics``, ``parameters``, ``windows``, ``evidence``) and ``verdict``; everything else (intervals,
 rankings, the linear part) goes to :meth:`Diagnosis.report`.
@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from valve_emulator.diagnosis.locate import Located
+from valve_emulator.diagnosis.explain.locate import Located
 
 __all__ = ["Finding", "RankRow", "Traces", "Diagnosis", "verdict"]
 
@@ -32,7 +32,7 @@ class Finding:
     intervals : 95 % profile intervals per parameter name.
     delta_bic, fit_without, fit_with : the test it passed.
     load_delta_bic : for a valve finding on plant data (no nominal model), ΔBIC again under a drifting-load
-        noise model (:mod:`~valve_emulator.diagnosis.load_check`); None otherwise.
+        noise model (:mod:`~valve_emulator.diagnosis.fit.load_check`); None otherwise.
     """
 
     physics: str

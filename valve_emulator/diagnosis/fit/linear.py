@@ -44,7 +44,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.signal import lfilter
 
-from valve_emulator.diagnosis.linear_kernels import RIDGE, filter_columns, grid_sse, normal_equations
+from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, filter_columns, grid_sse, normal_equations
 
 __all__ = [
     "PRIOR_WIDTH",

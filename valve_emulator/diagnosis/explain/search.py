@@ -5,7 +5,7 @@ One round
 For every candidate not yet in the model (one per chain slot), the whole coarse parameter grid is pushed
 through the chain at once (``(T, n)`` signals), filtered once per linear structure, and the linear part is
 fitted by least squares for every grid row *and every dead time* of the delay grid in one compiled call
-(:func:`~valve_emulator.diagnosis.linear.delay_grid_sse`). The best row is then refined twice on the
+(:func:`~valve_emulator.diagnosis.fit.linear.delay_grid_sse`). The best row is then refined twice on the
 candidate's finer grid, each time followed by a Nelder–Mead polish of the poles (and of a free dead time).
 
 The dead time is searched jointly with every candidate's parameters (a wrong dead time passes for less slip
@@ -26,9 +26,9 @@ free-run test guards against fitting noise. The round accepts the option with th
 significant against the current model *and* against each of its own sub-options (so "stiction + dead time"
 is accepted only if both parts carry weight). Rounds repeat until no option is significant.
 
-With ``validation="twofold"`` (no nominal model, :mod:`~valve_emulator.diagnosis.data`) BIC is computed on
+With ``validation="twofold"`` (no nominal model, :mod:`~valve_emulator.diagnosis.fit.data`) BIC is computed on
 the whole record and the held-out fit is the pooled two-fold cross-validated fit
-(:mod:`~valve_emulator.diagnosis.crossval`); it is computed only for the models a significance test needs
+(:mod:`~valve_emulator.diagnosis.fit.crossval`); it is computed only for the models a significance test needs
 (options whose BIC already passes, their sub-options and the current model) and is NaN for the others.
 """
 
@@ -37,9 +37,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from valve_emulator.diagnosis.candidates.base import Candidate
-from valve_emulator.diagnosis.crossval import with_cv
-from valve_emulator.diagnosis.evaluate import Evaluator
-from valve_emulator.diagnosis.models import Model, Option, Surface
+from valve_emulator.diagnosis.fit.crossval import with_cv
+from valve_emulator.diagnosis.fit.fitter import Evaluator
+from valve_emulator.diagnosis.fit.records import Model, Option, Surface
 
 __all__ = ["DELTA_BIC", "DELTA_FIT", "Model", "Surface", "Option", "Round", "Search", "significant"]
 

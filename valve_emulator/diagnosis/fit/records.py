@@ -1,7 +1,7 @@
 r"""The records the search passes around: a fitted model, a cost surface, an option of a round.
 
-All are frozen; the fitting machines (:mod:`~valve_emulator.diagnosis.scoring`,
-:mod:`~valve_emulator.diagnosis.evaluate`, :mod:`~valve_emulator.diagnosis.search`) create them.
+All are frozen; the fitting machines (:mod:`~valve_emulator.diagnosis.fit.scorer`,
+:mod:`~valve_emulator.diagnosis.fit.fitter`, :mod:`~valve_emulator.diagnosis.explain.search`) create them.
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from valve_emulator.diagnosis.chain import Active
-from valve_emulator.diagnosis.linear import LinearFit
+from valve_emulator.diagnosis.fit.chain import Active
+from valve_emulator.diagnosis.fit.linear import LinearFit
 
 __all__ = ["Model", "Surface", "Option"]
 

@@ -17,7 +17,7 @@ parameter trades off against the poles (an actuator lag against the plant's time
 coarse cost is rough, so the coarse winner can be an artefact of grid placement.
 
 ``output`` candidates (after the plant) are fitted by backfitting instead (:meth:`Evaluator._output_option`,
-:mod:`~valve_emulator.diagnosis.output`): their coarse grid and refinement are scored with the poles held,
+:mod:`~valve_emulator.diagnosis.fit.backfit`): their coarse grid and refinement are scored with the poles held,
 then the best is polished. ``loop`` candidates are not searched.
 """
 
@@ -28,11 +28,11 @@ from dataclasses import replace
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate
-from valve_emulator.diagnosis.chain import Active
-from valve_emulator.diagnosis.linear import LinearStructure
-from valve_emulator.diagnosis.models import Model, Option, Surface
-from valve_emulator.diagnosis.output import backfit
-from valve_emulator.diagnosis.scoring import Scorer
+from valve_emulator.diagnosis.fit.chain import Active
+from valve_emulator.diagnosis.fit.linear import LinearStructure
+from valve_emulator.diagnosis.fit.records import Model, Option, Surface
+from valve_emulator.diagnosis.fit.backfit import backfit
+from valve_emulator.diagnosis.fit.scorer import Scorer
 
 __all__ = ["Evaluator"]
 
@@ -160,7 +160,7 @@ class Evaluator(Scorer):
         """The option that adds an ``output`` candidate: its grid by quick backfits with the model's linear
         structure, the :data:`_STARTS` + 1 best rows again from every pole hypothesis (dead time on the grid
         when free), the refinement at the best structure, then the best row polished (see
-        :mod:`~valve_emulator.diagnosis.output`)."""
+        :mod:`~valve_emulator.diagnosis.fit.backfit`)."""
         ctx = replace(self.ctx(model), residual=self.p.y - model.y_hat)
         if not cand.applicable(ctx):
             return []

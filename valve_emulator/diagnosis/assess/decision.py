@@ -5,9 +5,9 @@ run on each loop:
 
 1. **Uniform time** (:func:`~valve_emulator.recordings.resample.regularize`): a jittered recorder file is put
    on a grid, real gaps are refused.
-2. **Can the data tell?** (:func:`~valve_emulator.diagnosis.adequacy.adequacy`): too short, a flat PV, no
+2. **Can the data tell?** (:func:`~valve_emulator.diagnosis.assess.adequacy.adequacy`): too short, a flat PV, no
    oscillation and no excitation → ``cannot tell`` with the reason.
-3. **Diagnosis** (:func:`~valve_emulator.diagnosis.pipeline.diagnose`, no nominal model, two-fold
+3. **Diagnosis** (:func:`~valve_emulator.diagnosis.explain.pipeline.diagnose`, no nominal model, two-fold
    validation): the linear part (FOPDT or IPDT with its dead time) is identified together with every
    candidate — the valve's (``stiction``, ``deadband``, ``actuator_lag``, ``characteristic``), and those
    that imitate a sticky valve (``saturation``, ``quantization``, ``disturbance``) — in one ranking.
@@ -15,12 +15,12 @@ run on each loop:
 
    * ``stiction`` when the diagnosis accepts valve friction (``stiction``, or ``deadband``, its J = 0 case
      in the 2005 model) and its band S is at least :data:`NOISE_BANDS` noise σ of OP
-     (:func:`~valve_emulator.diagnosis.adequacy.op_noise`). A band inside OP's own jitter cannot make
+     (:func:`~valve_emulator.diagnosis.assess.adequacy.op_noise`). A band inside OP's own jitter cannot make
      a valve stick and slip — the noise moves it either way — so it is no diagnosis of stiction;
      3 σ is the package's convention for "beyond noise" (as for OP turning points in
-     :mod:`~valve_emulator.diagnosis.locate`). S and J are reported with 95 % intervals, and the call is
+     :mod:`~valve_emulator.diagnosis.explain.locate`). S and J are reported with 95 % intervals, and the call is
      qualified *strong* when the valve's evidence survives a drifting-load noise model
-     (:mod:`~valve_emulator.diagnosis.load_check`: ΔBIC ≥ :data:`~valve_emulator.diagnosis.search.DELTA_BIC`
+     (:mod:`~valve_emulator.diagnosis.fit.load_check`: ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`
      there too), *weak* when a linear valve with a compensated drifting load explains the record about as
      well. The qualifier does not change the answer (see ``docs/real-data.md`` for what requiring it would
      do on labelled plant data).
@@ -44,13 +44,13 @@ from typing import Callable
 
 import numpy as np
 
-from valve_emulator.diagnosis.adequacy import Adequacy, adequacy, op_noise
+from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_noise
 from valve_emulator.diagnosis.candidates import get
 from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
-from valve_emulator.diagnosis.pipeline import diagnose
+from valve_emulator.diagnosis.explain.pipeline import diagnose
 from valve_emulator.recordings.resample import regularize
-from valve_emulator.diagnosis.result import Diagnosis, Finding
-from valve_emulator.diagnosis.search import DELTA_BIC
+from valve_emulator.diagnosis.report.explanation import Diagnosis, Finding
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.recordings.recording import Recording, RecordingError
 
 __all__ = ["Assessment", "assess", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS"]
