@@ -74,7 +74,7 @@ def test_stiction_under_a_drifting_load_is_a_strong_call():
 
 def test_a_nominal_model_diagnosis_carries_no_load_qualifier():
     from valve_emulator.config import loop_from_mapping
-    from valve_emulator.diagnosis.explain.pipeline import diagnose
+    from valve_emulator.diagnosis.explain.pipeline import explain as diagnose
     rec = simulate([3.0], [10.0, 1.0], 10.0, 0.2, 10.0, S=5.0, J=2.0, duration=1000.0)
     nominal = loop_from_mapping({"name": "n", "valve": {"S": 0.0, "J": 0.0},
                                  "plant": {"num": [3.0], "den": [10.0, 1.0], "delay": 10.0},

@@ -17,7 +17,7 @@ One window
 ----------
 :func:`run_window` reads the file (:func:`~valve_emulator.recordings.read_recording`, format detected), puts it on
 a uniform grid (:func:`~valve_emulator.recordings.resample.regularize`), assesses it
-(:func:`~valve_emulator.diagnosis.assess.decision.assess`) and runs the comparison detectors
+(:func:`~valve_emulator.diagnosis.assess.decision.assess_uniform`) and runs the comparison detectors
 (:func:`~valve_emulator.detectors.run_detectors`) on the same samples; it returns a plain dict, so that it
 can run in a worker process.
 """
@@ -31,7 +31,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from valve_emulator.detectors import DETECTORS, run_detectors
-from valve_emulator.diagnosis.assess.decision import assess
+from valve_emulator.diagnosis.answers import Answer
+from valve_emulator.diagnosis.assess.decision import assess_uniform
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Item", "read_index", "run_window", "parse_label", "INTEGRATING_TYPES"]
@@ -149,9 +150,9 @@ def run_window(item: Item) -> dict:
         loaded = read_recording(item.path)
         out["tag"] = item.tag or loaded.tag or Path(item.path).stem
         rec, _ = regularize(loaded.recording)
-        a = assess(rec)
+        a = assess_uniform(rec)
     except (ValueError, OSError) as exc:
-        out.update(error=str(exc), decision="cannot tell", cause="", reason=f"unusable file: {exc}",
+        out.update(error=str(exc), decision=str(Answer.CANNOT_TELL), cause="", reason=f"unusable file: {exc}",
                    detectors={n: {"decision": "undetermined", "reason": "unusable file"} for n in DETECTORS},
                    seconds=time.perf_counter() - start)
         out["tag"] = out["tag"] or Path(item.path).stem

@@ -11,8 +11,8 @@ import os
 from dataclasses import dataclass
 
 from valve_emulator.benchmark.cases import CASES, Case, generate
-from valve_emulator.diagnosis.explain.pipeline import RULE, diagnose
-from valve_emulator.diagnosis.report.explanation import Diagnosis
+from valve_emulator.diagnosis.explain.pipeline import RULE, explain
+from valve_emulator.diagnosis.report.explanation import Explanation
 
 __all__ = ["CASES", "CaseResult", "run_case", "table_text", "table_markdown", "proof_markdown"]
 
@@ -22,7 +22,7 @@ class CaseResult:
     """One case: what was hidden, what the diagnosis found, and its figure (path relative to the report)."""
 
     case: Case
-    diagnosis: Diagnosis
+    diagnosis: Explanation
     figure: str | None = None
 
     @property
@@ -42,7 +42,7 @@ def run_case(case: Case, *, duration: float | None = None, figure_dir: str | os.
              seed: int | None = None) -> CaseResult:
     """Generate, diagnose and (optionally) plot one case."""
     rec, nominal, _ = generate(case, duration=duration, seed=seed)
-    result = diagnose(rec, nominal)
+    result = explain(rec, nominal)
     figure = None
     if figure_dir is not None:
         from valve_emulator.diagnosis.report.plot import plot_diagnosis
@@ -89,7 +89,7 @@ def table_markdown(results: list[CaseResult]) -> str:
 
 
 def proof_markdown(results: list[CaseResult], *, figure_prefix: str = "proof/", seconds: float = 0.0) -> str:
-    """``docs/proof.md``: how the data are concealed, the table, and one figure per case."""
+    """``proof.md``: how the data are concealed, the table, and one figure per case."""
     ok = sum(r.named_ok for r in results)
     out = [
         "# Proof: the diagnosis on concealed data",

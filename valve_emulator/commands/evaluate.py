@@ -72,17 +72,16 @@ def _run_all(items, jobs: int, say) -> list[dict]:
 
 
 def _figures(ev, folder: Path, report: Path | None, say) -> None:
-    from valve_emulator.diagnosis.assess.decision import assess
     from valve_emulator.benchmark.evaluation import misclassified
+    from valve_emulator.diagnosis.assess.decision import assess_uniform
     from valve_emulator.diagnosis.report.plot_loop import plot_loop
-    from valve_emulator.recordings.resample import regularize
-    from valve_emulator.recordings import read_recording
+    from valve_emulator.recordings import read_recording, regularize
 
     folder.mkdir(parents=True, exist_ok=True)
     for tag, v, r in misclassified(ev.results):
         say(f"figure for {tag}")
         rec, _ = regularize(read_recording(r["path"]).recording)
-        a = assess(rec)
+        a = assess_uniform(rec)
         name = "".join(c if c.isalnum() else "_" for c in tag) + ".png"
         label = "stiction" if v["label"] else "no stiction"
         plot_loop(rec, a, folder / name, title=f"{tag} — labelled {label}; window {r['name']}")

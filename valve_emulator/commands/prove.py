@@ -2,7 +2,8 @@
 
 Simulates every case of :data:`valve_emulator.benchmark.proof.CASES` (closed loop, only OP and PV kept, PV
 noise), diagnoses each against a nominal model lacking the effect, prints the table and writes
-``DIR/proof.md`` with one figure per case under ``DIR/proof/`` (default ``DIR = docs``).
+``DIR/proof.md`` with one figure per case under ``DIR/proof/`` (default ``DIR = ./proof``; the published copy in
+the documentation is made with ``--out docs``).
 """
 
 from __future__ import annotations
@@ -13,11 +14,11 @@ import time
 from pathlib import Path
 
 NAME = "prove"
-HELP = "run the diagnosis on concealed simulated recordings with a known truth and write docs/proof.md"
+HELP = "run the diagnosis on concealed simulated recordings with a known truth and write DIR/proof.md"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=Path("docs"), metavar="DIR",
+    p.add_argument("--out", type=Path, default=Path("proof"), metavar="DIR",
                    help="folder for proof.md and proof/*.png (default %(default)s)")
     p.add_argument("--case", action="append", metavar="NAME", help="run only cases whose name contains NAME (repeatable)")
     p.add_argument("--duration", type=float, metavar="S", help="simulate S seconds per case instead of each case's own")

@@ -16,7 +16,11 @@ Subpackages, in the order a diagnosis runs:
 ``report``
     the result records, JSON, Markdown and figures.
 
-The names below are imported on first use (``import valve_emulator.diagnosis`` stays light).
+The entry point is :func:`~valve_emulator.diagnosis.api.diagnose` (also ``valve_emulator.diagnose``), which
+returns a :class:`~valve_emulator.diagnosis.report.diagnosis.Diagnosis`;
+:func:`~valve_emulator.diagnosis.explain.pipeline.explain` and
+:func:`~valve_emulator.diagnosis.assess.decision.assess` are the two steps behind it. The names below are
+imported on first use (``import valve_emulator.diagnosis`` stays light).
 """
 
 from __future__ import annotations
@@ -24,20 +28,22 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS = {
-    "Assessment": "valve_emulator.diagnosis.assess.decision",
-    "assess": "valve_emulator.diagnosis.assess.decision",
+    "diagnose": "valve_emulator.diagnosis.api",
+    "Diagnosis": "valve_emulator.diagnosis.report.diagnosis",
+    "Answer": "valve_emulator.diagnosis.answers",
+    "Strength": "valve_emulator.diagnosis.answers",
+    "Explanation": "valve_emulator.diagnosis.report.explanation",
+    "Finding": "valve_emulator.diagnosis.report.explanation",
+    "Assessment": "valve_emulator.diagnosis.report.assessment",
+    "RULE": "valve_emulator.diagnosis.explain.pipeline",
+    "RULE_TWOFOLD": "valve_emulator.diagnosis.explain.pipeline",
+    "DELTA_BIC": "valve_emulator.diagnosis.explain.search",
+    "DELTA_FIT": "valve_emulator.diagnosis.explain.search",
     "Candidate": "valve_emulator.diagnosis.candidates",
     "ChainContext": "valve_emulator.diagnosis.candidates",
     "get": "valve_emulator.diagnosis.candidates",
     "register": "valve_emulator.diagnosis.candidates",
     "registry": "valve_emulator.diagnosis.candidates",
-    "RULE": "valve_emulator.diagnosis.explain.pipeline",
-    "RULE_TWOFOLD": "valve_emulator.diagnosis.explain.pipeline",
-    "diagnose": "valve_emulator.diagnosis.explain.pipeline",
-    "Diagnosis": "valve_emulator.diagnosis.report.explanation",
-    "Finding": "valve_emulator.diagnosis.report.explanation",
-    "DELTA_BIC": "valve_emulator.diagnosis.explain.search",
-    "DELTA_FIT": "valve_emulator.diagnosis.explain.search",
 }
 
 __all__ = sorted(_EXPORTS)

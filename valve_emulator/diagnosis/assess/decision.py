@@ -4,10 +4,10 @@ r"""Plant data without a plant model: stiction, no stiction (and why), or a poli
 run on each loop:
 
 1. **Uniform time** (:func:`~valve_emulator.recordings.resample.regularize`): a jittered recorder file is put
-   on a grid, real gaps are refused.
+   on a grid, real gaps are refused (:func:`assess`; :func:`assess_uniform` takes a recording already on one).
 2. **Can the data tell?** (:func:`~valve_emulator.diagnosis.assess.adequacy.adequacy`): too short, a flat PV, no
    oscillation and no excitation → ``cannot tell`` with the reason.
-3. **Diagnosis** (:func:`~valve_emulator.diagnosis.explain.pipeline.diagnose`, no nominal model, two-fold
+3. **Diagnosis** (:func:`~valve_emulator.diagnosis.explain.pipeline.explain`, no nominal model, two-fold
    validation): the linear part (FOPDT or IPDT with its dead time) is identified together with every
    candidate — the valve's (``stiction``, ``deadband``, ``actuator_lag``, ``characteristic``), and those
    that imitate a sticky valve (``saturation``, ``quantization``, ``disturbance``) — in one ranking.
@@ -39,127 +39,34 @@ run on each loop:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
+from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer
 from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_noise
 from valve_emulator.diagnosis.candidates import get
 from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
-from valve_emulator.diagnosis.explain.pipeline import diagnose
-from valve_emulator.recordings.resample import regularize
-from valve_emulator.diagnosis.report.explanation import Diagnosis, Finding
+from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
-from valve_emulator.recordings.recording import Recording, RecordingError
+from valve_emulator.diagnosis.fit.data import UninformativeData
+from valve_emulator.diagnosis.report.assessment import Assessment
+from valve_emulator.diagnosis.report.explanation import Explanation, Finding
+from valve_emulator.recordings.recording import Recording
+from valve_emulator.recordings.resample import regularize
 
-__all__ = ["Assessment", "assess", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS"]
+__all__ = ["Assessment", "assess", "assess_uniform", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS"]
 
-STICTION, NO_STICTION, CANNOT_TELL = "stiction", "no stiction", "cannot tell"
 #: The three answers.
-DECISIONS = (STICTION, NO_STICTION, CANNOT_TELL)
+DECISIONS = tuple(Answer)
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
 #: Least cross-validated fit (%) of the final model for a "no stiction" answer.
 MIN_FIT = 0.0
 #: Findings that are valve friction (the 2005 model's stiction, and its J = 0 case).
-VALVE_PHYSICS = ("stiction", "deadband")
+VALVE_PHYSICS = VALVE_FRICTION
 #: Order in which other findings name the cause of a "no stiction" answer.
 _CAUSES = ("disturbance", "quantization", "saturation", "characteristic", "actuator_lag", "dead_time")
-
-
-@dataclass(frozen=True, eq=False)
-class Assessment:
-    """The answer for one loop.
-
-    Attributes
-    ----------
-    source : the recording's name.
-    decision : one of :data:`DECISIONS`.
-    cause : the physics behind the answer (``stiction``, ``deadband``, ``disturbance``, ``tuning``,
-        ``linear``, ...; ``""`` for "cannot tell").
-    reason : one sentence saying why.
-    S, J : the valve band and slip jump (% travel) when the decision is stiction (J = 0 for a deadband).
-    intervals : 95 % intervals of ``S`` and ``J``.
-    diagnosis : the diagnosis (None when the data could not support one).
-    adequacy : the checks of step 2.
-    tuning : the loop's tuning judgement, when it was made.
-    notes : what was done to the data (resampling).
-    op_noise : OP noise σ (% travel).
-    band : S of the valve friction the diagnosis accepted, whether or not it was called stiction (None:
-        none accepted), for sensitivity studies of :data:`NOISE_BANDS`.
-    load_delta_bic : that valve friction's ΔBIC under a drifting-load noise model (None: none accepted).
-    seconds : wall time.
-    """
-
-    source: str
-    decision: str
-    cause: str
-    reason: str
-    S: float | None = None
-    J: float | None = None
-    intervals: dict = field(default_factory=dict)
-    diagnosis: Diagnosis | None = None
-    adequacy: Adequacy | None = None
-    tuning: TuningAssessment | None = None
-    notes: tuple[str, ...] = ()
-    op_noise: float = float("nan")
-    band: float | None = None
-    load_delta_bic: float | None = None
-    seconds: float = 0.0
-
-    @property
-    def answer(self) -> str:
-        """``"<decision>: <reason>"``."""
-        return f"{self.decision}: {self.reason}"
-
-    @property
-    def verdict(self) -> str:
-        """The diagnosis' verdict (what the identified model leaves out), then the answer."""
-        if self.diagnosis is None:
-            return self.answer
-        return f"{self.diagnosis.verdict} — answer: {self.answer}"
-
-    @property
-    def stiction(self) -> bool:
-        return self.decision == STICTION
-
-    @property
-    def strong(self) -> bool | None:
-        """For a stiction answer, whether its evidence survives a drifting-load noise model (None otherwise)."""
-        if not self.stiction or self.load_delta_bic is None:
-            return None
-        return self.load_delta_bic >= DELTA_BIC
-
-    def to_json(self) -> dict:
-        """The diagnosis JSON (``fit_before``, ``fit_after``, ``findings``, ``verdict``) with this verdict."""
-        if self.diagnosis is None:
-            return {"fit_before": None, "fit_after": None, "findings": [], "verdict": self.verdict}
-        data = self.diagnosis.to_json()
-        data["verdict"] = self.verdict
-        return data
-
-    def summary(self) -> dict:
-        """A flat record for tables: decision, cause, S, J and intervals, fits, time."""
-        d = self.diagnosis
-        iv = {f"{k}_95": [round(a, 4), round(b, 4)] for k, (a, b) in self.intervals.items()}
-        return {"decision": self.decision, "cause": self.cause, "reason": self.reason,
-                "S": None if self.S is None else round(self.S, 4), "J": None if self.J is None else round(self.J, 4),
-                **iv, "fit_before": None if d is None else round(d.fit_before, 2),
-                "fit_after": None if d is None else round(d.fit_after, 2), "band": self.band,
-                "load_delta_bic": None if self.load_delta_bic is None else round(self.load_delta_bic, 2),
-                "seconds": round(self.seconds, 2)}
-
-    def report(self, *, figure: str | None = None) -> str:
-        """Markdown: the verdict, then the diagnosis report (when there is one)."""
-        head = [f"# Assessment of `{self.source}`", "", f"**Answer — {self.decision}:** {self.reason}", ""]
-        head += [f"- note: {n}" for n in self.notes]
-        if self.tuning is not None:
-            head.append(f"- tuning: {self.tuning.reason}")
-        if self.diagnosis is None:
-            return "\n".join(head) + "\n"
-        body = self.diagnosis.report(figure=figure).split("\n", 1)[1]
-        return "\n".join(head) + "\n" + body
 
 
 def _valve(findings: tuple[Finding, ...]) -> Finding | None:
@@ -175,7 +82,7 @@ def _fmt_iv(iv: tuple[float, float]) -> str:
     return f"{iv[0]:.3g}–{iv[1]:.3g}"
 
 
-def _tuning(rec: Recording, d: Diagnosis, facts: dict) -> TuningAssessment | None:
+def _tuning(rec: Recording, d: Explanation, facts: dict) -> TuningAssessment | None:
     if not facts.get("oscillating") or not d.plant:
         return None
     p = d.plant
@@ -194,7 +101,7 @@ def _load_text(valve: Finding) -> str:
             f"explains the record about as well (ΔBIC {load:.1f} < {DELTA_BIC:g} under that noise model)")
 
 
-def _decide(rec: Recording, d: Diagnosis, ad: Adequacy, noise: float) -> dict:
+def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float) -> dict:
     valve = _valve(d.findings)
     fits = f"held-out fit {d.fit_before:.0f} % → {d.fit_after:.0f} %"
     small = ""
@@ -205,12 +112,12 @@ def _decide(rec: Recording, d: Diagnosis, ad: Adequacy, noise: float) -> dict:
         if S >= NOISE_BANDS * noise:
             iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
             kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
-            return dict(decision=STICTION, cause=valve.physics, S=S, J=J, intervals=ivs,
+            return dict(decision=Answer.STICTION, cause=valve.physics, S=S, J=J, intervals=ivs,
                         reason=f"{kind}, S ≈ {S:.3g} %, J ≈ {J:.3g} % ({iv}); {fits}{_load_text(valve)}")
         small = (f"a valve band S ≈ {S:.3g} % fits, but it is below {NOISE_BANDS:g} OP noise σ "
                  f"({NOISE_BANDS * noise:.3g} %), where the noise moves such a valve either way; ")
     if not d.fit_after >= MIN_FIT:
-        return dict(decision=CANNOT_TELL, cause="",
+        return dict(decision=Answer.CANNOT_TELL, cause="",
                     reason=f"{small}no valve friction that could matter improves the model, but the best model "
                            f"found predicts held-out PV worse than their mean (cross-validated fit "
                            f"{d.fit_after:.0f} % < {MIN_FIT:g} %): the loop is not explained, so neither is the "
@@ -220,25 +127,26 @@ def _decide(rec: Recording, d: Diagnosis, ad: Adequacy, noise: float) -> dict:
     cycle = ad.facts.get("period", float("nan")) if ad.facts.get("oscillating") else float("nan")
     dist = next((f for f in ranked if f.physics == "disturbance"), None)
     if dist is not None and (not np.isfinite(cycle) or _same_period(dist.parameters["period"], cycle)):
-        return dict(decision=NO_STICTION, cause="disturbance", tuning=tune,
+        return dict(decision=Answer.NO_STICTION, cause="disturbance", tuning=tune,
                     reason=f"{small}{dist.description}, not the valve; {fits}")
     if tune is not None and tune.aggressive:
         also = f"; also {ranked[0].description}" if ranked else ""
-        return dict(decision=NO_STICTION, cause="tuning", tuning=tune,
+        return dict(decision=Answer.NO_STICTION, cause="tuning", tuning=tune,
                     reason=f"{small}the loop cycles through its own controller (aggressive tuning): {tune.reason}; "
                            f"no valve nonlinearity explains it{also}; {fits}")
     if ranked:
-        return dict(decision=NO_STICTION, cause=ranked[0].physics, tuning=tune,
+        return dict(decision=Answer.NO_STICTION, cause=ranked[0].physics, tuning=tune,
                     reason=f"{small}{ranked[0].description}; no valve friction that could matter; {fits}")
     if small:
-        return dict(decision=NO_STICTION, cause="linear", tuning=tune, reason=f"{small}{fits}")
-    return dict(decision=NO_STICTION, cause="linear", tuning=tune,
+        return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune, reason=f"{small}{fits}")
+    return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune,
                 reason=f"a linear valve and plant explain the loop: no candidate physics improves the model "
                        f"significantly; {fits}")
 
 
 def assess(recording: Recording, *, progress: Callable[[str], None] | None = None) -> Assessment:
-    """Assess one loop's recording (see the module docstring).
+    """Assess one loop's recording (see the module docstring): put it on a uniform grid, then
+    :func:`assess_uniform`.
 
     Raises
     ------
@@ -247,27 +155,34 @@ def assess(recording: Recording, *, progress: Callable[[str], None] | None = Non
         which is a different thing from data that cannot decide).
     """
     start = time.perf_counter()
-    say = progress or (lambda msg: None)
     rec, note = regularize(recording)
-    notes = (note,) if note else ()
-    if note:
-        say(note)
+    if note and progress is not None:
+        progress(note)
+    return assess_uniform(rec, notes=(note,) if note else (), progress=progress, start=start)
+
+
+def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Callable[[str], None] | None = None,
+                   start: float | None = None) -> Assessment:
+    """Assess a recording already on a uniform grid (steps 2 to 4 of the module docstring).
+
+    ``notes`` say what was done to the data before (kept in the result); ``start`` is the
+    :func:`time.perf_counter` reading the wall time counts from (default: now).
+    """
+    start = time.perf_counter() if start is None else start
     src = rec.source or "recording"
     ad = adequacy(rec)
     if not ad.ok:
-        return Assessment(src, CANNOT_TELL, "", ad.reason, adequacy=ad, notes=notes,
-                          seconds=time.perf_counter() - start)
+        return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=ad.reason, adequacy=ad,
+                          notes=notes, seconds=time.perf_counter() - start)
     noise = op_noise(rec.op)
     try:
-        d = diagnose(rec, None, progress=progress)
-    except RecordingError as exc:  # e.g. PV constant over the fit part: the data cannot decide
-        if "constant" not in str(exc) and "data row(s)" not in str(exc):
-            raise
-        return Assessment(src, CANNOT_TELL, "", str(exc).removeprefix(f"{src}: "), adequacy=ad, notes=notes,
-                          op_noise=noise, seconds=time.perf_counter() - start)
+        d = explain(rec, None, progress=progress)
+    except UninformativeData as exc:  # e.g. PV constant over the fit part: the data cannot decide
+        return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=exc.reason, adequacy=ad,
+                          notes=notes, op_noise=noise, seconds=time.perf_counter() - start)
     out = _decide(rec, d, ad, noise)
     valve = _valve(d.findings)
     band = None if valve is None else float(valve.parameters["S"])
     load = None if valve is None else valve.load_delta_bic
-    return Assessment(src, diagnosis=d, adequacy=ad, notes=notes, op_noise=noise, band=band, load_delta_bic=load,
-                      seconds=time.perf_counter() - start, **out)
+    return Assessment(source=src, explanation=d, adequacy=ad, notes=notes, op_noise=noise, band=band,
+                      load_delta_bic=load, seconds=time.perf_counter() - start, **out)

@@ -13,12 +13,12 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainContext, DelayCandidate, register
 
 __all__ = ["DeadTime"]
 
 
-class DeadTime(Candidate):
+class DeadTime(DelayCandidate):
     name: ClassVar[str] = "dead_time"
     slot: ClassVar[str] = "delay"
     param_names: ClassVar[tuple[str, ...]] = ("theta",)
@@ -30,9 +30,6 @@ class DeadTime(Candidate):
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         return best[None, :]
 
-    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
-        x = np.asarray(x, dtype=float)
-        return np.repeat(x[:, None], params.shape[0], axis=1) if x.ndim == 1 else x
 
     def parameters(self, p: np.ndarray) -> dict:
         return {"theta": round(float(p[0]), 3)}

@@ -33,7 +33,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainContext, OutputCandidate, register
 
 __all__ = ["Quantization", "quantum", "on_few_levels", "MAX_LEVEL_SHARE", "MIN_HOLD_SHARE"]
 
@@ -59,7 +59,7 @@ def on_few_levels(pv: np.ndarray) -> bool:
     return np.unique(pv).size <= MAX_LEVEL_SHARE * pv.size or held >= MIN_HOLD_SHARE
 
 
-class Quantization(Candidate):
+class Quantization(OutputCandidate):
     name: ClassVar[str] = "quantization"
     slot: ClassVar[str] = "output"
     param_names: ClassVar[tuple[str, ...]] = ("q",)
@@ -74,8 +74,6 @@ class Quantization(Candidate):
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         return best[None, :]
 
-    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
-        raise NotImplementedError("quantization acts on the measured PV, not on the chain (see adjust)")
 
     def adjust(self, y: np.ndarray, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -85,6 +83,14 @@ class Quantization(Candidate):
     def predict(self, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
         y = (np.asarray(ctx.pv, dtype=float) - ctx.y_mean) / ctx.y_scale
         return self.adjust(y, y_lin, params, ctx)[0]
+
+    def simulate(self, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        """The prediction snapped to the nearest of the levels ``q · k`` in PV units (no record to snap to)."""
+        q = float(params[0])
+        if not q > 0.0:
+            return y_lin
+        pv = y_lin * ctx.y_scale + ctx.y_mean
+        return (q * np.round(pv / q) - ctx.y_mean) / ctx.y_scale
 
     def parameters(self, p: np.ndarray) -> dict:
         return {"q": float(f"{float(p[0]):.4g}")}

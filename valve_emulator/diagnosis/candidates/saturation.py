@@ -22,7 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
 
 __all__ = ["Saturation", "PERCENTILES"]
 
@@ -30,7 +30,7 @@ __all__ = ["Saturation", "PERCENTILES"]
 PERCENTILES = (2.0, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0)
 
 
-class Saturation(Candidate):
+class Saturation(ChainCandidate):
     name: ClassVar[str] = "saturation"
     slot: ClassVar[str] = "limit"
     param_names: ClassVar[tuple[str, ...]] = ("lo", "hi")

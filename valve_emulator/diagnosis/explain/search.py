@@ -35,10 +35,11 @@ the whole record and the held-out fit is the pooled two-fold cross-validated fit
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Callable
 
-from valve_emulator.diagnosis.candidates.base import Candidate
+from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.fit.crossval import with_cv
-from valve_emulator.diagnosis.fit.fitter import Evaluator
+from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
 
 __all__ = ["DELTA_BIC", "DELTA_FIT", "Model", "Surface", "Option", "Round", "Search", "significant"]
@@ -61,14 +62,24 @@ def significant(new: Model, old: Model) -> bool:
     return (old.bic - new.bic >= DELTA_BIC) and (new.heldout - old.heldout >= DELTA_FIT)
 
 
-class Search(Evaluator):
-    """Runs the rounds for one problem (a fitting machine; its results are :class:`Round` objects)."""
+class Search:
+    """Runs the rounds for one problem (a fitting machine; its results are :class:`Round` objects).
+
+    It *has* a :class:`~valve_emulator.diagnosis.fit.fitter.Fitter`, which has the
+    :class:`~valve_emulator.diagnosis.fit.scorer.Scorer` of the problem; ``progress`` is called with a short
+    message at each stage.
+    """
+
+    def __init__(self, fitter: Fitter, *, progress: Callable[[str], None] | None = None) -> None:
+        self.fitter = fitter
+        self.scorer = fitter.scorer
+        self.say = progress or (lambda msg: None)
 
     def _candidates(self, model: Model) -> list[Candidate]:
         used = set(model.by_slot())
         out = []
-        for cand in self.library.values():
-            if cand.slot in used or cand.category == "loop":
+        for cand in self.scorer.library.values():
+            if cand.slot in used or cand.kind is Kind.LOOP:
                 continue
             if cand.slot == "delay" and model.delay_free:
                 continue
@@ -77,15 +88,15 @@ class Search(Evaluator):
 
     def _validated(self, model: Model) -> Model:
         """``model`` with a held-out fit (two-fold validation computes it on demand)."""
-        return model if self.p.validation == "split" else with_cv(self, model)
+        return model if self.scorer.p.validation == "split" else with_cv(self.scorer, model)
 
     def round(self, model: Model, index: int) -> Round:
-        self.use(model)
+        """Every option that extends ``model`` by one candidate, and the one the rule accepts (if any)."""
         options: list[Option] = []
         cands = self._candidates(model)
         for c, cand in enumerate(cands):
             self.say(f"round {index}: {cand.name} ({c + 1}/{len(cands)})")
-            options += self.evaluate(model, cand)
+            options += self.fitter.evaluate(model, cand)
         options.sort(key=lambda o: o.model.bic)
         model = self._validated(model)
         chosen = None
@@ -104,7 +115,7 @@ class Search(Evaluator):
     def run(self) -> tuple[Model, list[Round]]:
         """Base model, then rounds while an option is significant. Returns (final model, rounds)."""
         self.say("fitting the linear part around the nominal chain")
-        model = self._validated(self.base())
+        model = self._validated(self.fitter.base())
         rounds = []
         while self._candidates(model):
             rnd = self.round(model, len(rounds) + 1)
@@ -118,17 +129,17 @@ class Search(Evaluator):
 
     def _rerefine(self, model: Model, just_added: tuple[str, ...]) -> Model:
         """Refine earlier-accepted grid physics again with the new one in place; keep it if BIC improves."""
-        self.use(model)
+        aim = self.scorer.aim(model)
         for a in model.active:
-            if a.name in just_added or a.slot == "delay" or a.candidate.category != "chain":
+            if a.name in just_added or a.slot == "delay" or a.candidate.kind is not Kind.CHAIN:
                 continue
             rest = Model(tuple(b for b in model.active if b is not a), model.fit, model.delay_free, model.k,
                          model.bic, model.heldout, model.y_hat, model.flow, model.target)
-            active, fit, flow, _ = self._refine(rest, a.candidate, a.params, model.fit.structure,
+            active, fit, flow, _ = self.fitter.refine(rest, a.candidate, a.params, model.fit.structure,
                                                 model.delay_free)
             if "delay" in model.by_slot():
                 active["delay"] = model.by_slot()["delay"]
-            new = self.model(active, fit, model.delay_free, flow)
+            new = self.scorer.model(active, fit, model.delay_free, flow, target=aim.y)
             if new.bic < model.bic:
                 model = new
         return model

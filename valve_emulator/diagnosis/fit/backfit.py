@@ -22,7 +22,7 @@ chain candidates' coarse stages do, so an output candidate is not stuck with a l
 without it (and so biased by it).
 
 While a model with an output candidate is extended further, the candidate's target is held fixed and the
-next candidate is fitted to it (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.use`); the refinement that
+next candidate is fitted to it (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.aim`); the refinement that
 follows each acceptance re-fits the earlier pieces with the new one in place.
 """
 

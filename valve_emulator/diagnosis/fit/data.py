@@ -28,7 +28,7 @@ import numpy as np
 from valve_emulator.recordings.recording import Recording, RecordingError
 
 __all__ = ["Problem", "prepare", "prefilter_for", "folds", "HELD_OUT", "MIN_SAMPLES", "VALIDATIONS",
-           "fit_percent"]
+           "fit_percent", "UninformativeData"]
 
 #: Fraction of the record, at its end, held out from fitting.
 HELD_OUT = 0.3
@@ -38,6 +38,25 @@ MIN_SAMPLES = 200
 VALIDATIONS = ("split", "twofold")
 #: Burn-in bounds, as fractions of the record.
 _BURN_MIN, _BURN_MAX = 0.05, 0.25
+
+
+class UninformativeData(RecordingError):
+    """A recording that is valid but cannot inform a diagnosis: too few rows, or a constant OP or PV.
+
+    Unlike a broken file, this is an answer about the data ("cannot tell"), so callers can tell it apart by
+    type. The message is ``"<source>: <reason>"``.
+
+    Attributes
+    ----------
+    source : the recording's name.
+    reason : what is missing, without the source (names the line or the column).
+    line : the file line the reason points at (None when it names a column).
+    column : the constant column (None when the record is too short).
+    """
+
+    def __init__(self, source: str, reason: str, *, line: int | None = None, column: str | None = None) -> None:
+        super().__init__(f"{source}: {reason}")
+        self.source, self.reason, self.line, self.column = source, reason, line, column
 
 
 def fit_percent(y: np.ndarray, y_hat: np.ndarray) -> float:
@@ -160,9 +179,9 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     delays = _delay_grid(dt, T, nominal_delay)
     need = max(MIN_SAMPLES, 10 * (int(delays.max()) + 1))
     if T < need:
-        raise RecordingError(f"{src}: line {T + 1}: {T} data row(s), the diagnosis needs at least {need} "
-                             f"(burn-in for a dead time of up to {int(delays.max())} samples, a fit part and "
-                             f"a held-out part)")
+        raise UninformativeData(src, f"line {T + 1}: {T} data row(s), the diagnosis needs at least {need} "
+                                     f"(burn-in for a dead time of up to {int(delays.max())} samples, a fit part "
+                                     "and a held-out part)", line=T + 1)
     for name, col in (("t", rec.t), ("op", rec.op), ("pv", rec.pv)):
         bad = np.flatnonzero(~np.isfinite(col))
         if bad.size:
@@ -178,8 +197,8 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     w0 = min(burn, int(_BURN_MAX * T))
     for name, col in (("op", rec.op), ("pv", rec.pv)):
         if np.ptp(col[w0:w1]) == 0.0:
-            raise RecordingError(f"{src}: column {name!r} is constant over lines {w0 + 2}-{w1 + 1}; nothing "
-                                 "to identify")
+            raise UninformativeData(src, f"column {name!r} is constant over lines {w0 + 2}-{w1 + 1}; nothing "
+                                         "to identify", column=name)
     y_mean = float(np.mean(rec.pv[w0:w1]))
     y_scale = float(np.std(rec.pv[w0:w1]))
     y = (np.asarray(rec.pv) - y_mean) / y_scale

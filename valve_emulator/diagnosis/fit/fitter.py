@@ -4,19 +4,19 @@ Stages, for every candidate and every dead-time variant (θ held at its current 
 ``dead_time`` while the nominal dead time is still trusted):
 
 1. **coarse**: the candidate's coarse grid through the chain at once, scored for every pole hypothesis of
-   :meth:`Evaluator._pole_set` and every dead time of the grid; the best row of each hypothesis is a start,
+   :meth:`Fitter.pole_set` and every dead time of the grid; the best row of each hypothesis is a start,
    ranked by ``N ln SSE`` plus the prior on the poles;
 2. **scan** (candidates that define one, e.g. stiction): a global grid fine along the rough directions,
    scored at the top :data:`_STARTS` starts' poles and nearby dead times;
 3. **refine**, twice: the candidate's fine local grid (dead time ±2 samples when free), then a Nelder–Mead
    polish of the poles (and of a free dead time, to a fraction of a sample);
-4. **centre** threshold parameters in their flat cost bottom (:meth:`Evaluator._centre`).
+4. **centre** threshold parameters in their flat cost bottom (:meth:`Fitter.centre`).
 
 The start that ends with the lowest BIC (plus prior) is the option. Why several starts: a continuous
 parameter trades off against the poles (an actuator lag against the plant's time constant) and stiction's
 coarse cost is rough, so the coarse winner can be an artefact of grid placement.
 
-``output`` candidates (after the plant) are fitted by backfitting instead (:meth:`Evaluator._output_option`,
+``output`` candidates (after the plant) are fitted by backfitting instead (:meth:`Fitter.output_options`,
 :mod:`~valve_emulator.diagnosis.fit.backfit`): their coarse grid and refinement are scored with the poles held,
 then the best is polished. ``loop`` candidates are not searched.
 """
@@ -27,14 +27,14 @@ from dataclasses import replace
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate
+from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
 from valve_emulator.diagnosis.fit.backfit import backfit
-from valve_emulator.diagnosis.fit.scorer import Scorer
+from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
 
-__all__ = ["Evaluator"]
+__all__ = ["Fitter"]
 
 #: Pole hypotheses whose best coarse start is scanned and refined.
 _STARTS = 2
@@ -42,10 +42,31 @@ _STARTS = 2
 _FLAT = 3.84
 
 
-class Evaluator(Scorer):
-    """Fits candidates into a model (see the module docstring); its results are :class:`Option` objects."""
+class Fitter:
+    """Fits candidates into a model (see the module docstring); its results are :class:`Option` objects.
 
-    def _pole_set(self, model: Model) -> list[LinearStructure]:
+    It *has* a :class:`~valve_emulator.diagnosis.fit.scorer.Scorer` (the problem, the nominal model, the
+    library and the grid scoring); what the linear part is fitted to comes from the model being extended
+    (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.aim`), never from state set beforehand.
+    """
+
+    def __init__(self, scorer: Scorer) -> None:
+        self.scorer = scorer
+
+    @property
+    def p(self):
+        """The problem (:class:`~valve_emulator.diagnosis.fit.data.Problem`) being fitted."""
+        return self.scorer.p
+
+    @property
+    def nominal(self):
+        return self.scorer.nominal
+
+    @property
+    def library(self):
+        return self.scorer.library
+
+    def pole_set(self, model: Model) -> list[LinearStructure]:
         """Linear dynamics tried by the coarse stage of every candidate search.
 
         A missing valve nonlinearity biases the poles re-fitted around the nominal chain (stiction in the
@@ -73,48 +94,49 @@ class Evaluator(Scorer):
         """Nominal chain with the linear part re-fitted (poles; the dead time too when there is no model).
 
         Without a nominal model the identified structure is only a start: the base also tries every pole
-        hypothesis of :meth:`_pole_set` (with the dead-time grid) and keeps the best after polishing, so
+        hypothesis of :meth:`pole_set` (with the dead-time grid) and keeps the best after polishing, so
         that no candidate earns its ΔBIC merely by giving the search a second chance at the linear part.
         """
-        ctx = self.ctx(None)
-        flow = self.chain({}, ctx)[:, 0]
+        ctx, aim = self.scorer.ctx(None), self.scorer.aim(None)
+        flow = self.scorer.chain({}, ctx)[:, 0]
         free = not self.nominal.given
-        fit = self._polish(flow, self.nominal.structure, free)
-        model = self.model({}, fit, free, flow)
+        fit = self.scorer.polish(flow, self.nominal.structure, free, aim)
+        model = self.scorer.model({}, fit, free, flow, target=aim.y)
         if self.nominal.given:
             return model
         best = None
-        for st in self._pole_set(model):
-            sse, delays = self._sse_flows(flow[:, None], st, self.p.delays)
+        for st in self.pole_set(model):
+            sse, delays = self.scorer.sse_flows(flow[:, None], st, self.p.delays, aim)
             j = int(np.argmin(sse[0]))
             if best is None or sse[0, j] < best[0]:
                 best = (float(sse[0, j]), replace(st, delay=float(delays[j]) * self.p.dt))
-        other = self.model({}, self._polish(flow, best[1], free), free, flow)
+        other = self.scorer.model({}, self.scorer.polish(flow, best[1], free, aim), free, flow, target=aim.y)
         return other if other.bic < model.bic else model
 
-    def _refine(self, model: Model, cand: Candidate, best: np.ndarray, st: LinearStructure, free: bool):
+    def refine(self, model: Model, cand: Candidate, best: np.ndarray, st: LinearStructure, free: bool):
         """Two passes of fine grid + polish around ``best``; returns (active, fit, flow, fine Surface)."""
         active = model.by_slot()
-        ctx = self.ctx(model)
+        ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
         for _ in range(2):
             g = cand.refine(ctx, best)
-            sse, delays = self._sse_grid(active, ctx, cand, g, st, self._near(st.delay, 2) if free else None)
+            delays = self.scorer.near(st.delay, 2) if free else None
+            sse, delays = self.scorer.sse_grid(active, ctx, cand, g, st, delays, aim)
             i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
             best = g[i]
             st0 = replace(st, delay=float(delays[j]) * self.p.dt) if free else st
-            flow = self.chain(active, ctx, cand, g[i:i + 1])[:, 0]
-            fit = self._polish(flow, st0, free)
+            flow = self.scorer.chain(active, ctx, cand, g[i:i + 1])[:, 0]
+            fit = self.scorer.polish(flow, st0, free, aim)
             st = fit.structure
         fine = Surface(cand.name, g, sse.min(axis=1), self.p.n_fit)
         if cand.threshold_axes:
-            best = self._centre(active, ctx, cand, best, st)
-            flow = self.chain(active, ctx, cand, best[None, :])[:, 0]
-            fit = self._polish(flow, st, free)
+            best = self.centre(active, ctx, cand, best, st, aim)
+            flow = self.scorer.chain(active, ctx, cand, best[None, :])[:, 0]
+            fit = self.scorer.polish(flow, st, free, aim)
         new_active = dict(active)
         new_active[cand.slot] = Active(cand, best)
         return new_active, fit, flow, fine
 
-    def _centre(self, active, ctx, cand, best, st) -> np.ndarray:
+    def centre(self, active, ctx, cand, best, st, aim: Aim) -> np.ndarray:
         """Move each threshold parameter to the middle of the flat bottom of its cost.
 
         With noisy OP the fit-part cost is piecewise constant in a threshold (each slip happens at the
@@ -125,7 +147,7 @@ class Evaluator(Scorer):
         """
         for axis in cand.threshold_axes:
             rows = cand.line(ctx, best, axis)
-            sse, _ = self._sse_grid(active, ctx, cand, rows, st, None)
+            sse, _ = self.scorer.sse_grid(active, ctx, cand, rows, st, None, aim)
             cost = self.p.n_fit * np.log(np.maximum(sse[:, 0], 1e-300) / max(sse[:, 0].min(), 1e-300))
             i = int(np.argmin(cost))
             lo = hi = i
@@ -137,78 +159,78 @@ class Evaluator(Scorer):
             best[axis] = 0.5 * (rows[lo, axis] + rows[hi, axis])
         return best
 
-    def _delay_option(self, model: Model, cand: Candidate) -> Option:
-        flow = model.flow
-        sse, delays = self._sse_flows(flow[:, None], model.fit.structure, self.p.delays)
+    def delay_option(self, model: Model, cand: Candidate) -> Option:
+        flow, aim = model.flow, self.scorer.aim(model)
+        sse, delays = self.scorer.sse_flows(flow[:, None], model.fit.structure, self.p.delays, aim)
         st = replace(model.fit.structure, delay=float(delays[int(np.argmin(sse[0]))]) * self.p.dt)
-        fit = self._polish(flow, st, True)
+        fit = self.scorer.polish(flow, st, True, aim)
         active = model.by_slot()
         active["delay"] = Active(cand, np.array([fit.structure.delay]))
         surf = Surface(cand.name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
-        return Option((cand.name,), self.model(active, fit, True, flow), surf, None, surf)
+        return Option((cand.name,), self.scorer.model(active, fit, True, flow, target=aim.y), surf, None, surf)
 
-    def _output_sse(self, model: Model, cand: Candidate, rows: np.ndarray, st: LinearStructure | None = None,
+    def output_sse(self, model: Model, cand: Candidate, rows: np.ndarray, st: LinearStructure | None = None,
                     delays: np.ndarray | None = None) -> np.ndarray:
         """Fit-part SSE of each output-candidate row by a quick backfit (structure ``st``, default the model's;
         the dead time re-chosen from ``delays`` when given)."""
-        ctx = replace(self.ctx(model), residual=self.p.y - model.y_hat)
+        ctx = replace(self.scorer.ctx(model), residual=self.p.y - model.y_hat)
         st = model.fit.structure if st is None else st
         return np.array([backfit(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, r, ctx,
-                                 prefilter=self.lam, iterations=2, delays=delays).fit.sse for r in rows])
+                                 prefilter=self.scorer.lam, iterations=2, delays=delays).fit.sse for r in rows])
 
-    def _output_option(self, model: Model, cand: Candidate) -> list[Option]:
+    def output_options(self, model: Model, cand: Candidate) -> list[Option]:
         """The option that adds an ``output`` candidate: its grid by quick backfits with the model's linear
         structure, the :data:`_STARTS` + 1 best rows again from every pole hypothesis (dead time on the grid
         when free), the refinement at the best structure, then the best row polished (see
         :mod:`~valve_emulator.diagnosis.fit.backfit`)."""
-        ctx = replace(self.ctx(model), residual=self.p.y - model.y_hat)
+        ctx = replace(self.scorer.ctx(model), residual=self.p.y - model.y_hat)
         if not cand.applicable(ctx):
             return []
         grid = cand.grid(ctx)
         if grid.shape[0] == 0:
             return []
         delays = self.p.delays if model.delay_free else None
-        sse = self._output_sse(model, cand, grid, None, delays)
+        sse = self.output_sse(model, cand, grid, None, delays)
         top = grid[np.argsort(sse)[:_STARTS + 1]]
         best = None
-        for st in self._pole_set(model):
-            s_top = self._output_sse(model, cand, top, st, delays)
-            score = self.p.n_fit * np.log(max(float(s_top.min()), 1e-300)) + self._prior_penalty(st)
+        for st in self.pole_set(model):
+            s_top = self.output_sse(model, cand, top, st, delays)
+            score = self.p.n_fit * np.log(max(float(s_top.min()), 1e-300)) + self.scorer.prior_penalty(st)
             if best is None or score < best[0]:
                 best = (score, st, top[int(np.argmin(s_top))])
         _, st, row0 = best
         fine = cand.refine(ctx, row0)
-        sse_fine = self._output_sse(model, cand, fine, st, delays)
+        sse_fine = self.output_sse(model, cand, fine, st, delays)
         row = fine[int(np.argmin(sse_fine))]
-        bf = backfit(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, row, ctx, prefilter=self.lam,
-                     polish_kw=self.polish_kw(model.delay_free), delays=delays)
+        bf = backfit(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, row, ctx, prefilter=self.scorer.lam,
+                     polish_kw=self.scorer.polish_kw(model.delay_free), delays=delays)
         active = model.by_slot()
         active[cand.slot] = Active(cand, bf.params)
-        m = self.model(active, bf.fit, model.delay_free, model.flow, target=bf.target)
+        m = self.scorer.model(active, bf.fit, model.delay_free, model.flow, target=bf.target)
         return [Option((cand.name,), m, Surface(cand.name, grid, sse, self.p.n_fit), None,
                        Surface(cand.name, fine, sse_fine, self.p.n_fit))]
 
     def evaluate(self, model: Model, cand: Candidate) -> list[Option]:
         """Options that add ``cand`` to ``model``: coarse grid × pole set, global scan, refinement."""
-        if cand.category == "loop":
+        if cand.kind is Kind.LOOP:
             return []
-        if cand.category == "output":
-            return self._output_option(model, cand)
+        if cand.kind is Kind.OUTPUT:
+            return self.output_options(model, cand)
         if cand.slot == "delay":
-            return [self._delay_option(model, cand)]
-        ctx = self.ctx(model)
+            return [self.delay_option(model, cand)]
+        ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
         active = model.by_slot()
         dead_time = self.library.get("dead_time")
         variants = [(model.delay_free, (cand.name,))]
         if not model.delay_free and dead_time is not None:
             variants.append((True, (cand.name, dead_time.name)))
         grid = cand.grid(ctx)
-        flows = self.chain(active, ctx, cand, grid)
+        flows = self.scorer.chain(active, ctx, cand, grid)
         starts: dict[bool, list[tuple]] = {free: [] for free, _ in variants}
-        for st in self._pole_set(model):
-            penalty = self._prior_penalty(st)
+        for st in self.pole_set(model):
+            penalty = self.scorer.prior_penalty(st)
             for free, _ in variants:
-                sse, delays = self._sse_flows(flows, st, self.p.delays if free else None)
+                sse, delays = self.scorer.sse_flows(flows, st, self.p.delays if free else None, aim)
                 flat = sse.min(axis=1)
                 i = int(np.argmin(flat))
                 score = self.p.n_fit * np.log(max(flat[i], 1e-300)) + penalty
@@ -220,7 +242,7 @@ class Evaluator(Scorer):
         # cost is rough — so the best start of each of the top pole hypotheses is scanned and refined, and
         # the choice is made afterwards.
         ranked = {free: sorted(starts[free], key=lambda r: r[0])[:_STARTS] for free, _ in variants}
-        scanned = self._scan(active, ctx, cand, scan, ranked) if scan is not None else {}
+        scanned = self.scan_surfaces(active, ctx, cand, scan, ranked, aim) if scan is not None else {}
         options = []
         for free, added in variants:
             results = []
@@ -228,16 +250,16 @@ class Evaluator(Scorer):
                 scan_surface = scanned.get((free, i))
                 if scan_surface is not None:
                     p0 = scan[int(np.argmin(scan_surface.sse))]
-                new_active, fit, flow, fine = self._refine(model, cand, p0, st_b, free)
+                new_active, fit, flow, fine = self.refine(model, cand, p0, st_b, free)
                 if free and not model.delay_free:
                     new_active["delay"] = Active(dead_time, np.array([fit.structure.delay]))
-                m = self.model(new_active, fit, free, flow)
-                results.append((m.bic + self._prior_penalty(m.fit.structure), m, scan_surface, fine))
+                m = self.scorer.model(new_active, fit, free, flow, target=aim.y)
+                results.append((m.bic + self.scorer.prior_penalty(m.fit.structure), m, scan_surface, fine))
             _, m, scan_surface, fine = min(results, key=lambda r: r[0])
             options.append(Option(added, m, ranked[free][0][3], scan_surface, fine))
         return options
 
-    def _scan(self, active, ctx, cand, scan, ranked) -> dict:
+    def scan_surfaces(self, active, ctx, cand, scan, ranked, aim: Aim) -> dict:
         """Scan surfaces for every (variant, start), merging starts that share their poles into one job.
 
         A θ-free start needs the integer delays near its coarse best; a θ-fixed start its own delay (its
@@ -250,7 +272,7 @@ class Evaluator(Scorer):
                 key = (st_b.taus, st_b.integrating, st_b.fixed_poles)
                 ds = st_b.delay / self.p.dt
                 if free:
-                    want = set(self._near(st_b.delay, 3).tolist())
+                    want = set(self.scorer.near(st_b.delay, 3).tolist())
                 elif abs(ds - round(ds)) < 1e-9:
                     want = {int(round(ds))}
                 else:
@@ -265,7 +287,7 @@ class Evaluator(Scorer):
         for key in keys:
             st = next(v[2] for v in need.values() if v[0] == key)
             job_list.append((st, None if jobs[key] is None else np.array(sorted(jobs[key]))))
-        results = dict(zip(keys, self._sse_jobs(active, ctx, cand, scan, job_list)))
+        results = dict(zip(keys, self.scorer.sse_jobs(active, ctx, cand, scan, job_list, aim)))
         out = {}
         for vi, (key, want, _) in need.items():
             sse, delays = results[key]
@@ -282,18 +304,18 @@ class Evaluator(Scorer):
         held.
         """
         a = next(x for x in model.active if x.name == name)
-        st = model.fit.structure
-        if a.candidate.category == "output":
+        st, aim = model.fit.structure, self.scorer.aim(model)
+        if a.candidate.kind is Kind.OUTPUT:
             rest = Model(tuple(x for x in model.active if x is not a), model.fit, model.delay_free, model.k,
                          model.bic, model.heldout, model.y_hat, model.flow)
-            g = a.candidate.refine(self.ctx(model), a.params)
-            return Surface(name, g, self._output_sse(rest, a.candidate, g), self.p.n_fit)
+            g = a.candidate.refine(self.scorer.ctx(model), a.params)
+            return Surface(name, g, self.output_sse(rest, a.candidate, g), self.p.n_fit)
         if a.slot == "delay":
-            sse, delays = self._sse_flows(model.flow[:, None], st, self._near(st.delay, 6))
+            sse, delays = self.scorer.sse_flows(model.flow[:, None], st, self.scorer.near(st.delay, 6), aim)
             return Surface(name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
         rest = {k: v for k, v in model.by_slot().items() if k != a.slot}
-        ctx = self.ctx(model)
+        ctx = self.scorer.ctx(model)
         g = a.candidate.profile_grid(ctx, a.params)
-        delays = self._near(st.delay, 3) if model.delay_free else None
-        sse, _ = self._sse_grid(rest, ctx, a.candidate, g, st, delays)
+        delays = self.scorer.near(st.delay, 3) if model.delay_free else None
+        sse, _ = self.scorer.sse_grid(rest, ctx, a.candidate, g, st, delays, aim)
         return Surface(name, g, sse.min(axis=1), self.p.n_fit)

@@ -120,22 +120,32 @@ class LinearFit:
         """Steady-state gain (PV units per % flow; per second for an integrating plant)."""
         return float(np.sum(self.taps))
 
-    def predict(self, u: np.ndarray, dt: float) -> np.ndarray:
-        """Free-run PV for the input ``u`` (T,) over the whole record (same conventions as the fit)."""
-        z = filter_inputs(u, self.structure, dt)
+    def predict(self, u: np.ndarray, dt: float, *, level: float | None = None,
+                record_length: int | None = None) -> np.ndarray:
+        """Free-run PV for the input ``u`` (T,) (same conventions as the fit).
+
+        The fit removed the input's mean and scaled the trend regressor by the record's length; on the record
+        itself both defaults hold. For another input pass the fitted record's ``level`` (its mean input) and
+        ``record_length`` so that the offset and trend keep their meaning.
+        """
+        z = filter_inputs(u, self.structure, dt, mean=level)
         x = _delayed_regressors(z, self.structure.delay / dt, self.structure.ntaps)
         T = u.shape[0]
-        return x @ self.taps + self.offset + self.trend * (np.arange(T) / T)
+        return x @ self.taps + self.offset + self.trend * (np.arange(T) / (record_length or T))
 
 
-def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float) -> np.ndarray:
-    """The regressor source :math:`z` (see the module docstring), time along axis 0: (T,) or (T, n)."""
+def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float, *, mean: float | None = None
+                  ) -> np.ndarray:
+    """The regressor source :math:`z` (see the module docstring), time along axis 0: (T,) or (T, n).
+
+    ``mean`` is the input level removed before filtering (default: each column's own mean).
+    """
     u = np.asarray(u, dtype=np.float64)
     u2 = u[:, None] if u.ndim == 1 else u
     u2 = np.ascontiguousarray(u2)
     # A constant per column changes z by a constant (or, integrating, by a ramp) that the offset and
     # trend regressors absorb; removing the mean keeps the cumulative sums of an integrator small.
-    mean = u2.mean(axis=0)
+    mean = u2.mean(axis=0) if mean is None else np.full(u2.shape[1], float(mean))
     alpha = structure.denominator(dt)
     out = np.empty_like(u2)
     filter_columns(u2, mean, alpha, float(np.sum(alpha)), bool(structure.integrating), float(dt), out)

@@ -1,9 +1,10 @@
-r"""The diagnosis result: findings, the JSON of issue 6, the verdict sentence and the Markdown report.
+r"""What the explain step found: findings, the JSON, the verdict sentence and the Markdown report.
 
-A :class:`Diagnosis` is a frozen record (the fitting machine is :class:`~valve_emulator.diagnosis.explain.search.
-Search`). :meth:`Diagnosis.to_json` returns exactly the keys ``fit_before``, ``fit_after``, ``findings``
-(each ``physics``, ``parameters``, ``windows``, ``evidence``) and ``verdict``; everything else (intervals,
-rankings, the linear part) goes to :meth:`Diagnosis.report`.
+An :class:`Explanation` is a frozen record (the fitting machine is
+:class:`~valve_emulator.diagnosis.explain.search.Search`) that keeps the fitted model
+(:class:`~valve_emulator.diagnosis.fit.predict.FittedLoop`). :meth:`Explanation.to_json` returns exactly the
+keys ``fit_before``, ``fit_after``, ``findings`` (each ``physics``, ``parameters``, ``windows``, ``evidence``)
+and ``verdict``; everything else (intervals, rankings, the linear part) goes to :meth:`Explanation.report`.
 """
 
 from __future__ import annotations
@@ -13,11 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from valve_emulator.diagnosis.explain.locate import Located
+from valve_emulator.diagnosis.fit.predict import FittedLoop
 
-__all__ = ["Finding", "RankRow", "Traces", "Diagnosis", "verdict"]
+__all__ = ["Finding", "RankRow", "Traces", "Explanation", "verdict"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Finding:
     """One piece of physics the nominal model leaves out, fitted.
 
@@ -25,7 +27,7 @@ class Finding:
     ----------
     physics : vocabulary word (``stiction``, ``deadband``, ``dead_time``, ``characteristic``,
         ``actuator_lag``).
-    parameters : the JSON parameters (keys fixed by the issue).
+    parameters : the JSON parameters (their keys are part of the JSON output).
     windows : ``(t_start, t_end)`` (s) where adding it reduces the residual most.
     evidence : one sentence: BIC, held-out fit, interval, where the improvement lies.
     description : phrase for the verdict.
@@ -51,7 +53,7 @@ class Finding:
                 "windows": [[round(a, 6), round(b, 6)] for a, b in self.windows], "evidence": self.evidence}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class RankRow:
     """One option of one round of the search, for the ranking table."""
 
@@ -63,7 +65,7 @@ class RankRow:
     chosen: bool
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Traces:
     """Signals for the figure (PV units, % travel, s)."""
 
@@ -95,9 +97,26 @@ def _fmt(x: float) -> str:
     return f"{x:.4g}"
 
 
-@dataclass(frozen=True, eq=False)
-class Diagnosis:
-    """Everything a diagnosis found (see the module docstring)."""
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Explanation:
+    """Everything the explain step found (see the module docstring).
+
+    Attributes
+    ----------
+    source : the recording's name.
+    given : whether a nominal model was given (else the linear part was identified from the data).
+    fit_before, fit_base, fit_after : held-out free-run fits (%) of the nominal model, of the nominal chain
+        with the linear part re-fitted, and of the final model.
+    findings : the accepted physics, in the order accepted.
+    located : where the nominal model's residual concentrates.
+    linear : the linear part's table for the report, nominal against re-fitted.
+    ranking : every option of every round.
+    traces : signals for the figure.
+    rule : the significance rule, in words.
+    seconds : wall time.
+    plant : the fitted linear part, numerically: gain (PV/%), taus, delay, integrating, validation.
+    fitted : the final model, replayable on any OP (:meth:`predict`).
+    """
 
     source: str
     given: bool
@@ -111,14 +130,22 @@ class Diagnosis:
     traces: Traces
     rule: str
     seconds: float = 0.0
-    plant: dict = field(default_factory=dict)  # the fitted linear part, numerically: gain (PV/%), taus, delay
+    plant: dict = field(default_factory=dict)
+    fitted: FittedLoop | None = None
 
     @property
     def verdict(self) -> str:
         return verdict(self.findings, self.fit_before, self.fit_after, given=self.given)
 
+    def predict(self, op) -> np.ndarray:
+        """Free-run PV of the fitted loop for ``op`` (see
+        :meth:`~valve_emulator.diagnosis.fit.predict.FittedLoop.predict`)."""
+        if self.fitted is None:
+            raise ValueError(f"{self.source}: this explanation keeps no fitted model")
+        return self.fitted.predict(op)
+
     def to_json(self) -> dict:
-        """The issue's JSON, exactly: ``fit_before``, ``fit_after``, ``findings``, ``verdict``."""
+        """The JSON, exactly: ``fit_before``, ``fit_after``, ``findings``, ``verdict``."""
         return {"fit_before": round(self.fit_before, 2), "fit_after": round(self.fit_after, 2),
                 "findings": [f.to_json() for f in self.findings], "verdict": self.verdict}
 

@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
-from valve_emulator.diagnosis.report.explanation import Diagnosis  # noqa: E402
+from valve_emulator.diagnosis.report.explanation import Explanation  # noqa: E402
 
 __all__ = ["plot_diagnosis"]
 
@@ -29,13 +29,13 @@ __all__ = ["plot_diagnosis"]
 _SHOW = 600
 
 
-def _stretch(d: Diagnosis) -> slice:
+def _stretch(d: Explanation) -> slice:
     tr = d.traces
     a = tr.test_start
     return slice(a, min(tr.t.size, a + _SHOW))
 
 
-def plot_diagnosis(d: Diagnosis, path: str | os.PathLike) -> None:
+def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
     """Write the four-panel figure of ``d`` to ``path`` (PNG)."""
     tr = d.traces
     fig, axes = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
