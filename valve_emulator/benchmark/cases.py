@@ -75,7 +75,7 @@ def _steps(levels, period, start=100.0) -> list[tuple[float, float]]:
 
 _CONC = ([3.0], [10.0, 1.0], 10.0)     # seed Table 1 concentration loop, Kc 0.2, Ti 10 s
 
-#: The proof table: every effect of issue 6, several plants, tunings and parameter values.
+#: The proof table: every effect the diagnosis names, several plants, tunings and parameter values.
 CASES: tuple[Case, ...] = (
     Case("stiction, undershoot", {"stiction": {"S": 5.0, "J": 2.0}},
          _loop(*_CONC, 0.2, 10.0, S=5.0, J=2.0, duration=10300.0), {"valve": {"S": 0.0, "J": 0.0}}),

@@ -18,7 +18,8 @@ import statistics
 from dataclasses import dataclass, field
 from typing import Callable
 
-from valve_emulator.detectors import DETECTORS
+from valve_emulator.diagnosis.answers import Answer
+from valve_emulator.detectors import DETECTORS, Decision
 from valve_emulator.diagnosis.assess.decision import NOISE_BANDS
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.benchmark.scorecard import (ABSTAIN, POSITIVE, Confusion, confusion, leave_one_valve_out,
@@ -30,7 +31,7 @@ __all__ = ["Evaluation", "METHOD", "NOISE_GRID", "decision_of", "misclassified"]
 METHOD = "diagnosis"
 #: Values of NOISE_BANDS tried by the threshold check.
 NOISE_GRID = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
-_LABEL = {True: "stiction", False: "no stiction"}
+_LABEL = {True: Answer.STICTION, False: Answer.NO_STICTION}
 
 
 def decision_of(method: str) -> Callable[[dict], str]:
@@ -44,17 +45,17 @@ def _with_bands(k: float) -> Callable[[dict], str]:
     """Our binary decision had NOISE_BANDS been ``k`` (only the valve band against OP noise changes)."""
     def decide(r: dict) -> str:
         if r.get("band") is None or r.get("op_noise") is None:
-            return r["decision"] if r["decision"] != "stiction" else "no stiction"
-        return "stiction" if r["band"] >= k * r["op_noise"] else (
-            r["decision"] if r["decision"] != "stiction" else "no stiction")
+            return r["decision"] if r["decision"] != Answer.STICTION else Answer.NO_STICTION
+        return Answer.STICTION if r["band"] >= k * r["op_noise"] else (
+            r["decision"] if r["decision"] != Answer.STICTION else Answer.NO_STICTION)
     return decide
 
 
 def _strong_only(r: dict) -> str:
     """Our decision had a weak stiction call (not surviving a drifting-load noise model) been "cannot tell"."""
     load = r.get("load_delta_bic")
-    if r["decision"] == "stiction" and load is not None and load < DELTA_BIC:
-        return "cannot tell"
+    if r["decision"] == Answer.STICTION and load is not None and load < DELTA_BIC:
+        return Answer.CANNOT_TELL
     return r["decision"]
 
 
@@ -71,9 +72,10 @@ def misclassified(results: list[dict], method: str = METHOD) -> list[tuple[str, 
             continue
         wins = [r for r in results if r["tag"] == tag]
         if v["label"]:
-            wrong = [r for r in wins if dec(r) == "no stiction"] or [r for r in wins if dec(r) != "stiction"]
+            wrong = ([r for r in wins if dec(r) == Answer.NO_STICTION]
+                     or [r for r in wins if dec(r) != Answer.STICTION])
         else:
-            wrong = [r for r in wins if dec(r) == "stiction"]
+            wrong = [r for r in wins if dec(r) == Answer.STICTION]
         out.append((tag, v, (wrong or wins)[0]))
     return out
 
@@ -159,7 +161,7 @@ class Evaluation:
     def _stiction_rows(self) -> list[tuple]:
         rows = []
         for r in self.results:
-            if r["decision"] != "stiction":
+            if r["decision"] != Answer.STICTION:
                 continue
             s95, j95 = r.get("S_95"), r.get("J_95")
             load = r.get("load_delta_bic")
@@ -230,7 +232,7 @@ class Evaluation:
 
 def _call(c: str, *, ours: bool = True) -> str:
     """A call in the method's own words (our abstention is "cannot tell", a detector's "undetermined")."""
-    return ("cannot tell" if ours else "undetermined") if c == ABSTAIN else c
+    return str(Answer.CANNOT_TELL if ours else Decision.UNDETERMINED) if c == ABSTAIN else str(c)
 
 
 def _pct(x: float) -> str:

@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from valve_emulator.detectors import DETECTORS, run_detectors
+from valve_emulator.detectors import DETECTORS, Decision, run_detectors
 from valve_emulator.diagnosis.answers import Answer
 from valve_emulator.diagnosis.assess.decision import assess_uniform
 from valve_emulator.recordings.resample import regularize
@@ -153,7 +153,8 @@ def run_window(item: Item) -> dict:
         a = assess_uniform(rec)
     except (ValueError, OSError) as exc:
         out.update(error=str(exc), decision=str(Answer.CANNOT_TELL), cause="", reason=f"unusable file: {exc}",
-                   detectors={n: {"decision": "undetermined", "reason": "unusable file"} for n in DETECTORS},
+                   detectors={n: {"decision": str(Decision.UNDETERMINED), "reason": "unusable file"}
+                              for n in DETECTORS},
                    seconds=time.perf_counter() - start)
         out["tag"] = out["tag"] or Path(item.path).stem
         return out
@@ -161,6 +162,6 @@ def run_window(item: Item) -> dict:
                **a.summary())
     integrating = item.loop_type.upper() in INTEGRATING_TYPES
     dets = run_detectors(rec.op, rec.pv, dt=rec.dt, sp=rec.sp if rec.has_sp else None, integrating=integrating)
-    out["detectors"] = {n: {"decision": r.decision, "reason": r.reason} for n, r in dets.items()}
+    out["detectors"] = {n: {"decision": str(r.decision), "reason": r.reason} for n, r in dets.items()}
     out["seconds"] = time.perf_counter() - start
     return out

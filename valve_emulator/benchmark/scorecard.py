@@ -30,20 +30,23 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Callable, Iterable, Sequence
 
+from valve_emulator.diagnosis.answers import Answer
+
 __all__ = ["VALVE_SHARE", "Confusion", "call", "confusion", "valve_calls", "window_calls", "leave_one_valve_out",
            "markdown_table", "text_table"]
 
 #: Share of a valve's non-abstaining windows that must call stiction for the valve to be called stiction.
 VALVE_SHARE = 0.5
 
-POSITIVE, NEGATIVE, ABSTAIN = "stiction", "no stiction", "abstain"
+#: The three calls: stiction, no stiction (the answers' words) and an abstention of any kind.
+POSITIVE, NEGATIVE, ABSTAIN = Answer.STICTION, Answer.NO_STICTION, "abstain"
 
 
 def call(decision: str) -> str:
     """Map a method's decision to a call: ``stiction``, ``no stiction`` or ``abstain``."""
-    if decision == "stiction":
+    if decision == POSITIVE:
         return POSITIVE
-    if decision == "no stiction":
+    if decision == NEGATIVE:
         return NEGATIVE
     return ABSTAIN
 
@@ -94,8 +97,8 @@ class Confusion:
 
     def rows(self) -> list[tuple[str, int, int, int]]:
         """The three-way matrix: (label, called stiction, called no stiction, abstained)."""
-        return [("stiction", self.pos_called, self.pos_denied, self.pos_abstained),
-                ("no stiction", self.neg_called, self.neg_denied, self.neg_abstained)]
+        return [(str(POSITIVE), self.pos_called, self.pos_denied, self.pos_abstained),
+                (str(NEGATIVE), self.neg_called, self.neg_denied, self.neg_abstained)]
 
 
 def confusion(pairs: Iterable[tuple[bool, str]]) -> Confusion:

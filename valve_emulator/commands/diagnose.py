@@ -1,4 +1,4 @@
-"""``valve-emulator diagnose FILE [--model NOMINAL.yaml] [reader flags] [--json OUT] [--report OUT.md] [--plot OUT.png]``.
+"""``valve-emulator diagnose FILE [--model NOMINAL.yaml] [reader flags] [--json OUT] [--report OUT.md] [--plot PNG]``.
 
 With ``--model``: replays the nominal model on the recorded OP, locates the mismatch, names the physics the
 model leaves out, fits it and shows the fit improve (see :mod:`valve_emulator.diagnosis`). Without it — plant

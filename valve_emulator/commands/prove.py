@@ -20,7 +20,8 @@ HELP = "run the diagnosis on concealed simulated recordings with a known truth a
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("proof"), metavar="DIR",
                    help="folder for proof.md and proof/*.png (default %(default)s)")
-    p.add_argument("--case", action="append", metavar="NAME", help="run only cases whose name contains NAME (repeatable)")
+    p.add_argument("--case", action="append", metavar="NAME",
+                   help="run only cases whose name contains NAME (repeatable)")
     p.add_argument("--duration", type=float, metavar="S", help="simulate S seconds per case instead of each case's own")
 
 

@@ -13,8 +13,8 @@ answer "is the valve sticky?" whatever the method, and saying so beats a wrong a
    is the regularity test of Thornhill, Huang & Zhang (J. Process Control 13 (2003) 91–100; ``r > 1``,
    :func:`~valve_emulator.detectors.base.oscillation`, the test the comparison detectors use) on the
    control error SP − PV (when there is a set point: set-point steps would mask a cycle in PV), PV or OP,
-   the most regular of them; excitation is a set-point change, or OP travelling over a robust range (0.5th–99.5th percentile) of
-   at least :data:`EXCITATION` times its noise σ. White noise alone spans about 5 σ between those
+   the most regular of them; excitation is a set-point change, or OP travelling over a robust range (0.5th–99.5th
+   percentile) of at least :data:`EXCITATION` times its noise σ. White noise alone spans about 5 σ between those
    percentiles, so twice that is movement the noise cannot make. The noise σ is
    :func:`op_noise`, the robust standard deviation of sample-to-sample changes divided by √2 (as for the
    OP turning points of :mod:`~valve_emulator.diagnosis.explain.locate`).

@@ -1,7 +1,7 @@
 r"""Candidate ``dead_time``: the plant's dead time θ differs from the nominal one.
 
 The dead time is part of the linear fit, which searches it on an integer-sample grid for every candidate
-(notes §5: a dead time wrong by one or two samples leaves S right but biases J 30–50 % low, so it must be
+(a dead time wrong by one or two samples leaves S right but biases J 30–50 % low, so it must be
 searched *with* the valve parameters). This candidate therefore transforms nothing; choosing it frees θ
 (one more parameter for BIC), and :func:`~valve_emulator.diagnosis.fit.linear.polish` refines it to a
 fraction of a sample.

@@ -3,7 +3,7 @@ r"""Candidate ``quantization``: PV is measured on few levels, a staircase that i
 A coarse transmitter or A/D resolution, a historian that stores few decimals, or an archive that keeps a
 value until it changes by more than a dead band (exception reporting, "compression") all turn a smooth
 PV into a staircase. In a flow loop a staircase PV is what a sticky valve produces too, so a quantised PV
-must be tested before stiction is called (notes §5). Unlike stiction, a quantiser has no memory: a PV near
+must be tested before stiction is called. Unlike stiction, a quantiser has no memory: a PV near
 a threshold chatters between two levels, while a stuck valve needs S to reverse.
 
 Model (after the plant, ``output`` kind): the measured PV is the true PV snapped to the recorded levels,

@@ -8,7 +8,7 @@ valve. The model clips the chain signal after the characteristic,
 .. math::  \text{flow} = \min(\max(x, \ell), h),
 
 with one active limit (``lo`` = ℓ or ``hi`` = h; the other one at the travel stop, 0 or 100 %), so one
-parameter for BIC. Its signature (notes §5): the residual of a model without it lives where OP sits beyond
+parameter for BIC. Its signature: the residual of a model without it lives where OP sits beyond
 the limit.
 
 Grid: each side at the 2nd … 40th percentiles of OP (``lo``) and the 60th … 98th (``hi``), so that at least

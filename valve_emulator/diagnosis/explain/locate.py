@@ -12,7 +12,7 @@ gives windows covering about :data:`SHARE` of the record, which the time share r
 
 What the windows line up with
 -----------------------------
-Each operating condition of the signature table (notes §5) is a mask over the samples:
+Each operating condition in which a missing piece of physics shows is a mask over the samples:
 
 * *after OP reversals*: within the response horizon after a turning point of OP (a turn counts when OP
   moves back by more than the hysteresis ``h`` from its running extreme; ``h`` is 3 noise standard

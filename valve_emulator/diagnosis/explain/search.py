@@ -9,7 +9,7 @@ fitted by least squares for every grid row *and every dead time* of the delay gr
 candidate's finer grid, each time followed by a Nelder–Mead polish of the poles (and of a free dead time).
 
 The dead time is searched jointly with every candidate's parameters (a wrong dead time passes for less slip
-jump, notes §5). While the nominal dead time is still trusted, each candidate yields two options: with θ
+jump). While the nominal dead time is still trusted, each candidate yields two options: with θ
 held at its nominal value, and together with ``dead_time`` (θ free). ``dead_time`` alone is a third kind of
 option.
 
@@ -21,7 +21,7 @@ An option is *significant* against a smaller model when both
   evidence on the Kass & Raftery (1995) scale, a Bayes factor above about 150), and
 * the free-run fit on the held-out part rises by at least :data:`DELTA_FIT` percentage points.
 
-Threshold parameters sit on boundaries, so likelihood-ratio tests do not apply (notes §5); the held-out
+Threshold parameters sit on boundaries, so likelihood-ratio tests do not apply; the held-out
 free-run test guards against fitting noise. The round accepts the option with the lowest BIC that is
 significant against the current model *and* against each of its own sub-options (so "stiction + dead time"
 is accepted only if both parts carry weight). Rounds repeat until no option is significant.
