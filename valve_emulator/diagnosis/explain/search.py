@@ -50,8 +50,10 @@ DELTA_BIC = 10.0
 DELTA_FIT = 0.5
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Round:
+    """One round of the search: the model it extended, every option (sorted by BIC) and the one accepted."""
+
     baseline: Model
     options: tuple[Option, ...]   # sorted by BIC
     chosen: Option | None
@@ -110,7 +112,7 @@ class Search:
             if significant(o.model, model) and all(significant(o.model, options[j].model) for j in subs):
                 chosen = o
                 break
-        return Round(model, tuple(options), chosen)
+        return Round(baseline=model, options=tuple(options), chosen=chosen)
 
     def run(self) -> tuple[Model, list[Round]]:
         """Base model, then rounds while an option is significant. Returns (final model, rounds)."""
@@ -133,8 +135,7 @@ class Search:
         for a in model.active:
             if a.name in just_added or a.slot == "delay" or a.candidate.kind is not Kind.CHAIN:
                 continue
-            rest = Model(tuple(b for b in model.active if b is not a), model.fit, model.delay_free, model.k,
-                         model.bic, model.heldout, model.y_hat, model.flow, model.target)
+            rest = replace(model, active=tuple(b for b in model.active if b is not a))
             active, fit, flow, _ = self.fitter.refine(rest, a.candidate, a.params, model.fit.structure,
                                                 model.delay_free)
             if "delay" in model.by_slot():

@@ -67,7 +67,7 @@ def fit_percent(y: np.ndarray, y_hat: np.ndarray) -> float:
     return float(100.0 * (1.0 - np.linalg.norm(y - y_hat) / dev))
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Problem:
     """The data of one diagnosis (arrays read-only).
 
@@ -206,5 +206,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     arrays = [np.array(a, dtype=float) for a in (rec.t, rec.op, rec.pv, y)]
     for a in arrays:
         a.setflags(write=False)
-    return Problem(*arrays[:3], arrays[3], y_mean, y_scale, float(dt), (w0, w1), delays,
-                   float(max(hi - lo, 1e-6)), prefilter, src, validation)
+    t, op, pv, y = arrays
+    return Problem(t=t, op=op, pv=pv, y=y, y_mean=y_mean, y_scale=y_scale, dt=float(dt), train=(w0, w1),
+                   delays=delays, op_span=float(max(hi - lo, 1e-6)), prefilter=prefilter, source=src,
+                   validation=validation)

@@ -53,6 +53,10 @@ class Fitter:
     def __init__(self, scorer: Scorer) -> None:
         self.scorer = scorer
 
+    def surface(self, name: str, params: np.ndarray, sse: np.ndarray) -> Surface:
+        """A cost surface of candidate ``name`` on the problem's fit part."""
+        return Surface(candidate=name, params=params, sse=sse, n=self.p.n_fit)
+
     @property
     def p(self):
         """The problem (:class:`~valve_emulator.diagnosis.fit.data.Problem`) being fitted."""
@@ -127,7 +131,7 @@ class Fitter:
             flow = self.scorer.chain(active, ctx, cand, g[i:i + 1])[:, 0]
             fit = self.scorer.polish(flow, st0, free, aim)
             st = fit.structure
-        fine = Surface(cand.name, g, sse.min(axis=1), self.p.n_fit)
+        fine = self.surface(cand.name, g, sse.min(axis=1))
         if cand.threshold_axes:
             best = self.centre(active, ctx, cand, best, st, aim)
             flow = self.scorer.chain(active, ctx, cand, best[None, :])[:, 0]
@@ -166,8 +170,9 @@ class Fitter:
         fit = self.scorer.polish(flow, st, True, aim)
         active = model.by_slot()
         active["delay"] = Active(cand, np.array([fit.structure.delay]))
-        surf = Surface(cand.name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
-        return Option((cand.name,), self.scorer.model(active, fit, True, flow, target=aim.y), surf, None, surf)
+        surf = self.surface(cand.name, delays[:, None] * self.p.dt, sse[0])
+        model = self.scorer.model(active, fit, True, flow, target=aim.y)
+        return Option(added=(cand.name,), model=model, coarse=surf, scan=None, fine=surf)
 
     def output_sse(self, model: Model, cand: Candidate, rows: np.ndarray, st: LinearStructure | None = None,
                     delays: np.ndarray | None = None) -> np.ndarray:
@@ -207,8 +212,8 @@ class Fitter:
         active = model.by_slot()
         active[cand.slot] = Active(cand, bf.params)
         m = self.scorer.model(active, bf.fit, model.delay_free, model.flow, target=bf.target)
-        return [Option((cand.name,), m, Surface(cand.name, grid, sse, self.p.n_fit), None,
-                       Surface(cand.name, fine, sse_fine, self.p.n_fit))]
+        return [Option(added=(cand.name,), model=m, coarse=self.surface(cand.name, grid, sse), scan=None,
+                       fine=self.surface(cand.name, fine, sse_fine))]
 
     def evaluate(self, model: Model, cand: Candidate) -> list[Option]:
         """Options that add ``cand`` to ``model``: coarse grid × pole set, global scan, refinement."""
@@ -235,7 +240,7 @@ class Fitter:
                 i = int(np.argmin(flat))
                 score = self.p.n_fit * np.log(max(flat[i], 1e-300)) + penalty
                 st_b = replace(st, delay=float(delays[int(np.argmin(sse[i]))]) * self.p.dt) if free else st
-                starts[free].append((score, grid[i], st_b, Surface(cand.name, grid, flat, self.p.n_fit)))
+                starts[free].append((score, grid[i], st_b, self.surface(cand.name, grid, flat)))
         scan = cand.scan(ctx)
         # The coarse winner can be an artefact of grid placement — a continuous parameter trades off
         # against the poles (an actuator lag against the plant's time constant), and stiction's coarse
@@ -256,7 +261,7 @@ class Fitter:
                 m = self.scorer.model(new_active, fit, free, flow, target=aim.y)
                 results.append((m.bic + self.scorer.prior_penalty(m.fit.structure), m, scan_surface, fine))
             _, m, scan_surface, fine = min(results, key=lambda r: r[0])
-            options.append(Option(added, m, ranked[free][0][3], scan_surface, fine))
+            options.append(Option(added=added, model=m, coarse=ranked[free][0][3], scan=scan_surface, fine=fine))
         return options
 
     def scan_surfaces(self, active, ctx, cand, scan, ranked, aim: Aim) -> dict:
@@ -292,7 +297,7 @@ class Fitter:
         for vi, (key, want, _) in need.items():
             sse, delays = results[key]
             cols = slice(None) if want is None else np.isin(delays, sorted(want))
-            out[vi] = Surface(cand.name, scan, sse[:, cols].min(axis=1), self.p.n_fit)
+            out[vi] = self.surface(cand.name, scan, sse[:, cols].min(axis=1))
         return out
 
     def profile(self, model: Model, name: str) -> Surface:
@@ -306,16 +311,15 @@ class Fitter:
         a = next(x for x in model.active if x.name == name)
         st, aim = model.fit.structure, self.scorer.aim(model)
         if a.candidate.kind is Kind.OUTPUT:
-            rest = Model(tuple(x for x in model.active if x is not a), model.fit, model.delay_free, model.k,
-                         model.bic, model.heldout, model.y_hat, model.flow)
+            rest = replace(model, active=tuple(x for x in model.active if x is not a), target=None)
             g = a.candidate.refine(self.scorer.ctx(model), a.params)
-            return Surface(name, g, self.output_sse(rest, a.candidate, g), self.p.n_fit)
+            return self.surface(name, g, self.output_sse(rest, a.candidate, g))
         if a.slot == "delay":
             sse, delays = self.scorer.sse_flows(model.flow[:, None], st, self.scorer.near(st.delay, 6), aim)
-            return Surface(name, delays[:, None] * self.p.dt, sse[0], self.p.n_fit)
+            return self.surface(name, delays[:, None] * self.p.dt, sse[0])
         rest = {k: v for k, v in model.by_slot().items() if k != a.slot}
         ctx = self.scorer.ctx(model)
         g = a.candidate.profile_grid(ctx, a.params)
         delays = self.scorer.near(st.delay, 3) if model.delay_free else None
         sse, _ = self.scorer.sse_grid(rest, ctx, a.candidate, g, st, delays, aim)
-        return Surface(name, g, sse.min(axis=1), self.p.n_fit)
+        return self.surface(name, g, sse.min(axis=1))

@@ -16,7 +16,7 @@ from valve_emulator.diagnosis.fit.linear import LinearFit
 __all__ = ["Model", "Surface", "Option"]
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Model:
     """A complete model: active physics, the fitted linear part and its scores."""
 
@@ -38,7 +38,7 @@ class Model:
         return tuple(a.name for a in self.active)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Surface:
     """Fit-part SSE over a candidate's parameter rows (minimised over the delays the option allowed)."""
 
@@ -48,7 +48,7 @@ class Surface:
     n: int
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Option:
     """One way to extend the current model, fully fitted."""
 

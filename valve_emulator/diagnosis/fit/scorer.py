@@ -140,8 +140,8 @@ class Scorer:
             score, heldout = bic(fit.sse, fit.n, k), self.p.heldout_fit(y_hat)
         else:
             score, heldout = self._ar1_bic(target - level.predict(flow, self.p.dt), k), float("nan")
-        return Model(tuple(acts), level, delay_free, k, score, heldout, y_hat, flow,
-                     target if out is not None else None)
+        return Model(active=tuple(acts), fit=level, delay_free=delay_free, k=k, bic=score, heldout=heldout,
+                     y_hat=y_hat, flow=flow, target=target if out is not None else None)
 
     def _ar1_bic(self, residual: np.ndarray, k: int) -> float:
         """BIC under an AR(1) error (see the module docstring), on the fit part, in the search's domain."""
