@@ -1,6 +1,6 @@
-"""Benchmark: wall time of the diagnosis with the full candidate library (issue 6 target: 10,000 samples ≤ 20 s).
+"""Benchmark: wall time of the diagnosis with the full candidate library (target: 10,000 samples ≤ 20 s).
 
-The recording is the seed's concentration loop with concealed stiction (S = 5, J = 2, closed loop, only OP
+The recording is the proof cases' concentration loop with concealed stiction (S = 5, J = 2, closed loop, only OP
 and PV, PV noise 5 % of the amplitude); the nominal model lacks the stiction. One untimed warm-up run
 loads the compiled kernels (numba caches them on disk; the first run after installation also compiles
 them, which is reported separately). Run::

@@ -1,8 +1,8 @@
-"""Benchmark: wall time of ``valve-emulator evaluate`` on a labelled set (issue 7 target: the 80 plant windows in
+"""Benchmark: wall time of ``valve-emulator evaluate`` on a labelled set (target: the 80 plant windows in
 ≤ 5 minutes on a 2-core machine, using both cores), and of the plant-data ``diagnose`` on long recordings.
 
 ``evaluate`` is run as the user runs it (a subprocess of the installed command, so worker start-up and
-imports are counted) with ``--jobs 1`` and ``--jobs N``; ``diagnose`` without a model on the seed's
+imports are counted) with ``--jobs 1`` and ``--jobs N``; ``diagnose`` without a model on the proof cases'
 concentration loop with concealed stiction (closed loop, only t/op/pv, PV noise), one untimed warm-up
 first. Run::
 
