@@ -1,6 +1,6 @@
-"""Benchmark: wall time of the diagnosis with the full candidate library (issue 6 target: 10,000 samples ≤ 20 s).
+"""Benchmark: wall time of the diagnosis with the full candidate library (target: 10,000 samples ≤ 20 s).
 
-The recording is the seed's concentration loop with concealed stiction (S = 5, J = 2, closed loop, only OP
+The recording is the proof cases' concentration loop with concealed stiction (S = 5, J = 2, closed loop, only OP
 and PV, PV noise 5 % of the amplitude); the nominal model lacks the stiction. One untimed warm-up run
 loads the compiled kernels (numba caches them on disk; the first run after installation also compiles
 them, which is reported separately). Run::
@@ -16,8 +16,8 @@ import statistics
 import sys
 import time
 
-from valve_emulator.diagnosis import diagnose
-from valve_emulator.diagnosis.cases import CASES, generate
+from valve_emulator.benchmark.cases import CASES, generate
+from valve_emulator.diagnosis.explain.pipeline import explain
 
 
 def main(argv=None) -> int:
@@ -30,14 +30,14 @@ def main(argv=None) -> int:
     print(f"{os.cpu_count()} CPU(s); case: {case.name}; {'no model' if args.no_model else 'nominal model given'}")
     t0 = time.perf_counter()
     rec, nominal, _ = generate(case, duration=1000 + case.cut)
-    diagnose(rec, None if args.no_model else nominal)
+    explain(rec, None if args.no_model else nominal)
     print(f"warm-up (kernel load / first-time compile): {time.perf_counter() - t0:.1f} s")
     for n in args.samples:
         rec, nominal, _ = generate(case, duration=n - 1 + case.cut)
         times, d = [], None
         for _ in range(args.repeat):
             t = time.perf_counter()
-            d = diagnose(rec, None if args.no_model else nominal)
+            d = explain(rec, None if args.no_model else nominal)
             times.append(time.perf_counter() - t)
         print(f"{len(rec):6d} samples: median {statistics.median(times):5.2f} s (min {min(times):.2f}, "
               f"max {max(times):.2f}) | {d.verdict}")

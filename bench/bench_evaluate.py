@@ -1,8 +1,8 @@
-"""Benchmark: wall time of ``valve-emulator evaluate`` on a labelled set (issue 7 target: the 80 plant windows in
+"""Benchmark: wall time of ``valve-emulator evaluate`` on a labelled set (target: the 80 plant windows in
 ≤ 5 minutes on a 2-core machine, using both cores), and of the plant-data ``diagnose`` on long recordings.
 
 ``evaluate`` is run as the user runs it (a subprocess of the installed command, so worker start-up and
-imports are counted) with ``--jobs 1`` and ``--jobs N``; ``diagnose`` without a model on the seed's
+imports are counted) with ``--jobs 1`` and ``--jobs N``; ``diagnose`` without a model on the proof cases'
 concentration loop with concealed stiction (closed loop, only t/op/pv, PV noise), one untimed warm-up
 first. Run::
 
@@ -37,7 +37,7 @@ def time_evaluate(path: Path, jobs: int) -> tuple[float, str]:
 
 def time_diagnose(samples: int) -> float:
     """Seconds for ``valve-emulator diagnose REC.csv`` (no model) on a concealed stiction recording."""
-    from valve_emulator.diagnosis.cases import CASES, generate
+    from valve_emulator.benchmark.cases import CASES, generate
     from valve_emulator.recordings.recording import write_csv
 
     case = CASES[0]

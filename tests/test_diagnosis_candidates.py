@@ -11,7 +11,7 @@ from valve_emulator.diagnosis.candidates import SLOTS, Candidate, ChainContext, 
 from valve_emulator.diagnosis.candidates.actuator_lag import first_order_lag
 from valve_emulator.diagnosis.candidates.stiction import stiction_kind
 from valve_emulator.diagnosis.candidates.valve_start import PRE_ROLL, STARTS, sync_burn_in, valve_output
-from valve_emulator.diagnosis.chain import Active, run_chain
+from valve_emulator.diagnosis.fit.chain import Active, run_chain
 from valve_emulator.physics.signal_chain import Characteristic
 from valve_emulator.physics.stiction import StictionBank
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from valve_emulator.diagnosis.linear import (
+from valve_emulator.diagnosis.fit.linear import (
     LinearStructure,
     delay_grid_sse,
     highpass,

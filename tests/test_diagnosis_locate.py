@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from valve_emulator.diagnosis.data import fit_percent, prepare
-from valve_emulator.diagnosis.locate import SHARE, condition_masks, energy_windows, locate
-from valve_emulator.diagnosis.uncertainty import intervals
+from valve_emulator.diagnosis.fit.data import fit_percent, prepare
+from valve_emulator.diagnosis.explain.locate import SHARE, condition_masks, energy_windows, locate
+from valve_emulator.diagnosis.fit.uncertainty import intervals
 from valve_emulator.recordings.recording import Recording, RecordingError
 
 DT = 1.0

@@ -9,10 +9,10 @@ from scipy.signal import lfilter
 
 from test_real_data_physics import STEPS_300, simulate
 
-from valve_emulator.diagnosis.assessment import assess
-from valve_emulator.diagnosis.linear import LinearStructure
-from valve_emulator.diagnosis.load_check import LAMBDAS, load_bic_of
-from valve_emulator.diagnosis.search import DELTA_BIC
+from valve_emulator.diagnosis.assess.decision import assess
+from valve_emulator.diagnosis.fit.linear import LinearStructure
+from valve_emulator.diagnosis.fit.load_check import LAMBDAS, load_bic_of
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
 
 
 def _open_loop(load_std: float, noise_std: float, seed: int = 0, T: int = 1500):
@@ -74,7 +74,7 @@ def test_stiction_under_a_drifting_load_is_a_strong_call():
 
 def test_a_nominal_model_diagnosis_carries_no_load_qualifier():
     from valve_emulator.config import loop_from_mapping
-    from valve_emulator.diagnosis.pipeline import diagnose
+    from valve_emulator.diagnosis.explain.pipeline import explain as diagnose
     rec = simulate([3.0], [10.0, 1.0], 10.0, 0.2, 10.0, S=5.0, J=2.0, duration=1000.0)
     nominal = loop_from_mapping({"name": "n", "valve": {"S": 0.0, "J": 0.0},
                                  "plant": {"num": [3.0], "den": [10.0, 1.0], "delay": 10.0},

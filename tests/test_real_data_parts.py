@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from valve_emulator.diagnosis.adequacy import EXCITATION, adequacy, longest_constant_run, op_noise
-from valve_emulator.diagnosis.assessment import assess
+from valve_emulator.diagnosis.assess.adequacy import EXCITATION, adequacy, longest_constant_run, op_noise
+from valve_emulator.diagnosis.assess.decision import assess
 from valve_emulator.diagnosis.candidates import KINDS, SLOTS, ChainContext, get, registry
 from valve_emulator.diagnosis.candidates.quantization import on_few_levels, quantum
 from valve_emulator.diagnosis.candidates.tuning import identify_pi, loop_response
-from valve_emulator.diagnosis.linear import LinearStructure
-from valve_emulator.diagnosis.output import backfit
+from valve_emulator.diagnosis.fit.linear import LinearStructure
+from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.recordings.resample import regularize
 from valve_emulator.recordings.recording import Recording, RecordingError
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from valve_emulator.config import loop_from_mapping
-from valve_emulator.diagnosis.assessment import assess
+from valve_emulator.diagnosis.assess.decision import assess
 from valve_emulator.simulation.loop import simulate_loop
 from valve_emulator.recordings.recording import Recording
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from valve_emulator.diagnosis.evaluation import Evaluation, misclassified
-from valve_emulator.diagnosis.labelled import read_index
-from valve_emulator.diagnosis.scorecard import (call, confusion, leave_one_valve_out, markdown_table, valve_calls,
+from valve_emulator.benchmark.evaluation import Evaluation, misclassified
+from valve_emulator.benchmark.labelled import read_index
+from valve_emulator.benchmark.scorecard import (call, confusion, leave_one_valve_out, markdown_table, valve_calls,
                                                 window_calls)
 
 

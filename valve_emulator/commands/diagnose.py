@@ -1,9 +1,10 @@
-"""``valve-emulator diagnose FILE [--model NOMINAL.yaml] [reader flags] [--json OUT] [--report OUT.md] [--plot OUT.png]``.
+"""``valve-emulator diagnose FILE [--model NOMINAL.yaml] [reader flags] [--json OUT] [--report OUT.md] [--plot PNG]``.
 
 With ``--model``: replays the nominal model on the recorded OP, locates the mismatch, names the physics the
 model leaves out, fits it and shows the fit improve (see :mod:`valve_emulator.diagnosis`). Without it — plant
 data — identifies the linear part from the data and answers *stiction*, *no stiction* (and why) or *cannot
-tell* (and why) (:mod:`valve_emulator.diagnosis.assessment`).
+tell* (and why) (:mod:`valve_emulator.diagnosis.assess.decision`). The work is
+:func:`valve_emulator.diagnose`; this module only maps flags to its arguments and writes its outputs.
 
 FILE is read by :func:`valve_emulator.recordings.read_recording`: the standard recording CSV, a generic CSV/TSV with
 a column mapping (``--op --pv --sp --time`` or ``--ts``, ``--skip``, ``--decimal``...), or the DCS text export.
@@ -83,63 +84,34 @@ def _format(args: argparse.Namespace) -> str:
     return "standard" if len(cells) > 1 and cells[0] == "t" else args.fmt
 
 
-def _read(args: argparse.Namespace):
-    from valve_emulator.recordings.resample import MAX_GAP, regularize
-    from valve_emulator.recordings import read_recording
-
-    loaded = read_recording(args.recording, fmt=_format(args), op=args.op, pv=args.pv, sp=args.sp, time=args.time,
-                            ts=args.ts, skip=args.skip, decimal=args.decimal, op_units=args.op_units,
-                            pv_units=args.pv_units, encoding=args.encoding, gap_factor=MAX_GAP)
-    rec, note = regularize(loaded.recording)
-    return rec, list(loaded.notes) + ([note] if note else [])
+def _reader_options(args: argparse.Namespace) -> dict:
+    return dict(fmt=_format(args), op=args.op, pv=args.pv, sp=args.sp, time=args.time, ts=args.ts, skip=args.skip,
+                decimal=args.decimal, op_units=args.op_units, pv_units=args.pv_units, encoding=args.encoding)
 
 
 def run(args: argparse.Namespace) -> int:
     from valve_emulator.config import load_loop
+    from valve_emulator.diagnosis.api import diagnose
 
     for flag, p in (("--json", args.json), ("--report", args.report), ("--plot", args.plot)):
         if p is not None and not p.parent.is_dir():
             raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
     nominal = load_loop(args.model) if args.model is not None else None
-    rec, notes = _read(args)
-    say = _progress(args.quiet)
-    if nominal is not None:
-        from valve_emulator.diagnosis import diagnose
-
-        result = diagnose(rec, nominal, progress=say)
-        verdict, data, diag = result.verdict, result.to_json(), result
-        report = result.report
-    else:
-        from valve_emulator.diagnosis.assessment import assess
-
-        a = assess(rec, progress=say)
-        verdict, data, diag = a.verdict, a.to_json(), a.diagnosis
-        notes += list(a.notes)
-        report = a.report
+    d = diagnose(args.recording, nominal, progress=_progress(args.quiet), **_reader_options(args))
     written = []
     if args.plot:
-        if diag is not None:
-            from valve_emulator.diagnosis.plot import plot_diagnosis
-
-            plot_diagnosis(diag, args.plot)
-        else:
-            from valve_emulator.diagnosis.plot_loop import plot_loop
-
-            plot_loop(rec, a, args.plot, title=str(args.recording))
+        d.plot(args.plot, title=str(args.recording))
         written.append(args.plot)
     if args.json:
-        args.json.write_text(json.dumps(data, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+        args.json.write_text(json.dumps(d.to_json(), indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
         written.append(args.json)
     if args.report:
         figure = os.path.relpath(args.plot, args.report.parent) if args.plot else None
-        text = report(figure=figure)
-        if notes:
-            text = text.replace("\n\n", "\n\n" + "".join(f"- note: {n}\n" for n in notes) + "\n", 1)
-        args.report.write_text(text, encoding="utf-8")
+        args.report.write_text(d.report(figure=figure), encoding="utf-8")
         written.append(args.report)
-    for n in dict.fromkeys(notes):
+    for n in dict.fromkeys(d.notes):
         print(f"note: {n}")
-    print(verdict)
+    print(d.verdict)
     if written:
         print("wrote " + ", ".join(str(p) for p in written))
     return 0

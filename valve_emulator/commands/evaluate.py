@@ -1,10 +1,10 @@
 """``valve-emulator evaluate DIR_OR_INDEX [--jobs N] [--report OUT.md] [--figures DIR] [--json OUT.json]``.
 
-Runs the plant-data assessment (:mod:`valve_emulator.diagnosis.assessment`) and the comparison detectors on
-every window of a labelled set (:mod:`valve_emulator.diagnosis.labelled`: an ``index.csv`` with ``file`` and
+Runs the plant-data assessment (:mod:`valve_emulator.diagnosis.assess.decision`) and the comparison detectors on
+every window of a labelled set (:mod:`valve_emulator.benchmark.labelled`: an ``index.csv`` with ``file`` and
 ``label`` columns, or a folder of labelled sub-folders) and prints, for this project's method and each
 detector side by side, the confusion matrices and balanced accuracy per valve and per window, and a per-loop
-table (:mod:`valve_emulator.diagnosis.evaluation`). Progress goes to stderr.
+table (:mod:`valve_emulator.benchmark.evaluation`). Progress goes to stderr.
 
 ``--jobs N`` runs N windows at a time in worker processes (each with single-threaded compiled kernels, so
 N workers use N cores without oversubscribing them). ``--report`` writes the results as Markdown: into an
@@ -50,7 +50,7 @@ def _init_worker() -> None:
 
 
 def _run_all(items, jobs: int, say) -> list[dict]:
-    from valve_emulator.diagnosis.labelled import run_window
+    from valve_emulator.benchmark.labelled import run_window
 
     results: list[dict | None] = [None] * len(items)
 
@@ -72,17 +72,16 @@ def _run_all(items, jobs: int, say) -> list[dict]:
 
 
 def _figures(ev, folder: Path, report: Path | None, say) -> None:
-    from valve_emulator.diagnosis.assessment import assess
-    from valve_emulator.diagnosis.evaluation import misclassified
-    from valve_emulator.diagnosis.plot_loop import plot_loop
-    from valve_emulator.recordings.resample import regularize
-    from valve_emulator.recordings import read_recording
+    from valve_emulator.benchmark.evaluation import misclassified
+    from valve_emulator.diagnosis.assess.decision import assess_uniform
+    from valve_emulator.diagnosis.report.plot_loop import plot_loop
+    from valve_emulator.recordings import read_recording, regularize
 
     folder.mkdir(parents=True, exist_ok=True)
     for tag, v, r in misclassified(ev.results):
         say(f"figure for {tag}")
         rec, _ = regularize(read_recording(r["path"]).recording)
-        a = assess(rec)
+        a = assess_uniform(rec)
         name = "".join(c if c.isalnum() else "_" for c in tag) + ".png"
         label = "stiction" if v["label"] else "no stiction"
         plot_loop(rec, a, folder / name, title=f"{tag} — labelled {label}; window {r['name']}")
@@ -103,8 +102,8 @@ def _write_report(path: Path, section: str, source: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from valve_emulator.diagnosis.evaluation import Evaluation
-    from valve_emulator.diagnosis.labelled import read_index
+    from valve_emulator.benchmark.evaluation import Evaluation
+    from valve_emulator.benchmark.labelled import read_index
 
     if args.jobs < 1:
         raise ValueError(f"--jobs must be a whole number >= 1, got {args.jobs}")

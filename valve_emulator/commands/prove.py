@@ -1,8 +1,9 @@
 """``valve-emulator prove [--out DIR]``: the diagnosis on concealed data with a known truth, as one command.
 
-Simulates every case of :data:`valve_emulator.diagnosis.proof.CASES` (closed loop, only OP and PV kept, PV
+Simulates every case of :data:`valve_emulator.benchmark.proof.CASES` (closed loop, only OP and PV kept, PV
 noise), diagnoses each against a nominal model lacking the effect, prints the table and writes
-``DIR/proof.md`` with one figure per case under ``DIR/proof/`` (default ``DIR = docs``).
+``DIR/proof.md`` with one figure per case under ``DIR/proof/`` (default ``DIR = ./proof``; the published copy in
+the documentation is made with ``--out docs``).
 """
 
 from __future__ import annotations
@@ -13,18 +14,19 @@ import time
 from pathlib import Path
 
 NAME = "prove"
-HELP = "run the diagnosis on concealed simulated recordings with a known truth and write docs/proof.md"
+HELP = "run the diagnosis on concealed simulated recordings with a known truth and write DIR/proof.md"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=Path("docs"), metavar="DIR",
+    p.add_argument("--out", type=Path, default=Path("proof"), metavar="DIR",
                    help="folder for proof.md and proof/*.png (default %(default)s)")
-    p.add_argument("--case", action="append", metavar="NAME", help="run only cases whose name contains NAME (repeatable)")
+    p.add_argument("--case", action="append", metavar="NAME",
+                   help="run only cases whose name contains NAME (repeatable)")
     p.add_argument("--duration", type=float, metavar="S", help="simulate S seconds per case instead of each case's own")
 
 
 def run(args: argparse.Namespace) -> int:
-    from valve_emulator.diagnosis.proof import CASES, proof_markdown, run_case, table_text
+    from valve_emulator.benchmark.proof import CASES, proof_markdown, run_case, table_text
 
     cases = [c for c in CASES if not args.case or any(s in c.name for s in args.case)]
     if not cases:

@@ -20,6 +20,7 @@ import math
 import types
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Final
 
 import numpy as np
@@ -27,6 +28,7 @@ from numpy.typing import ArrayLike
 from scipy import signal
 
 __all__ = [
+    "Decision",
     "DECISIONS",
     "STICTION",
     "NO_STICTION",
@@ -42,11 +44,21 @@ __all__ = [
     "oscillation",
 ]
 
-STICTION: Final = "stiction"
-NO_STICTION: Final = "no stiction"
-UNDETERMINED: Final = "undetermined"
-NOT_APPLICABLE: Final = "not applicable"
-DECISIONS: Final = (STICTION, NO_STICTION, UNDETERMINED, NOT_APPLICABLE)
+
+class Decision(StrEnum):
+    """A detector's call; the first two are the words of :class:`~valve_emulator.diagnosis.answers.Answer`."""
+
+    STICTION = "stiction"
+    NO_STICTION = "no stiction"
+    UNDETERMINED = "undetermined"       # the method ran but cannot decide (too short, flat, no oscillation)
+    NOT_APPLICABLE = "not applicable"   # the method does not apply to this loop (e.g. an integrating plant)
+
+
+STICTION: Final = Decision.STICTION
+NO_STICTION: Final = Decision.NO_STICTION
+UNDETERMINED: Final = Decision.UNDETERMINED
+NOT_APPLICABLE: Final = Decision.NOT_APPLICABLE
+DECISIONS: Final = tuple(Decision)
 #: Fewer samples than this and no detector decides (it answers "undetermined", saying why).
 MIN_SAMPLES: Final = 64
 #: Thornhill et al. (2003): an oscillation is regular when r > 1.
@@ -62,19 +74,20 @@ class DetectorResult:
     Attributes
     ----------
     method : the detector's registry name (``"horch"``, ``"he"``, ``"bicoherence"``).
-    decision : one of :data:`DECISIONS`.
+    decision : a :class:`Decision` (given as the enum or its word).
     indices : the method's numbers (its index, the oscillation period in s, ...), read-only.
     reason : one line saying why, with the deciding numbers and thresholds.
     """
 
     method: str
-    decision: str
+    decision: Decision
     indices: Mapping[str, float] = field(default_factory=dict)
     reason: str = ""
 
     def __post_init__(self) -> None:
         if self.decision not in DECISIONS:
-            raise ValueError(f"decision must be one of {DECISIONS}, got {self.decision!r}")
+            raise ValueError(f"decision must be one of {tuple(str(d) for d in DECISIONS)}, got {self.decision!r}")
+        object.__setattr__(self, "decision", Decision(self.decision))
         object.__setattr__(self, "indices", types.MappingProxyType({k: float(v) for k, v in
                                                                     dict(self.indices).items()}))
 

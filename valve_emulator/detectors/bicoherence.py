@@ -32,17 +32,17 @@ with a period above 32 samples it is low-pass filtered (ideal filter at the new 
 to about 16 samples per period (but to no fewer than 320 samples), so that the oscillation and its first
 harmonics fall inside the 64-point spectrum; this resampling rule is this project's, chosen once.
 Bifrequencies touching a bin without power (below 1e-10 of the largest) are left out of the domain, where the
-published estimator adds a small constant to the denominator for the same purpose. A nonlinear, regularly oscillating loop is called stiction and
-its apparent stiction is the OP-axis width of the ellipse fitted to OP and PV, both band-pass filtered to
-0.5–1.5 times the oscillation frequency (zero-phase, in the frequency domain). A nonlinear loop without a
-regular oscillation is "undetermined"; a Gaussian or linear one is "no stiction".
+published estimator adds a small constant to the denominator for the same purpose. A nonlinear, regularly
+oscillating loop is called stiction and its apparent stiction is the OP-axis width of the ellipse fitted to OP
+and PV, both band-pass filtered to 0.5–1.5 times the oscillation frequency (zero-phase, in the frequency
+domain). A nonlinear loop without a regular oscillation is "undetermined"; a Gaussian or linear one is "no stiction".
 
-Known behaviour: a clean, nearly symmetric limit cycle (the seed's concentration loop with S = 5, J = 2) has
-little quadratic phase coupling, and its NGI sits within a few hundredths of zero either way depending on the
+Known behaviour: a clean, nearly symmetric limit cycle (the proof cases' concentration loop with S = 5, J = 2)
+has little quadratic phase coupling, and its NGI sits within a few hundredths of zero either way depending on the
 noise realisation, so the verdict there is a coin toss; an asymmetric cycle (overshoot, J > S) is found every
 time. The NGI of a few-segment estimate (K = 22 for a 751-sample window) is coarse: coloured Gaussian noise
-exceeds the 0.001 margin in about one window in six to ten. These are properties of the test on short windows, not corrected
-here.
+exceeds the 0.001 margin in about one window in six to ten. These are properties of the test on short windows,
+not corrected here.
 """
 
 from __future__ import annotations

@@ -67,7 +67,6 @@ def width_along_x(conic: np.ndarray) -> float:
     det = 4 * a * c - b * b
     if det <= 0:
         return math.nan
-    xc = (b * e - 2 * c * d) / det
     yc = (b * d - 2 * a * e) / det
     # a x^2 + (b yc + d) x + (c yc^2 + e yc + f) = 0 on the line y = yc
     p, q = b * yc + d, c * yc * yc + e * yc + f

@@ -28,7 +28,7 @@ undetermined. (Equal thirds are this project's formalisation of "odd"/"even", no
 
 Known behaviour: an external disturbance much slower than the loop's integral action is tracked by the
 controller, which puts OP about 90° from the error, so such a loop reads "odd" and is called stiction (seen
-here for a sine disturbance of period 300 s on the seed's concentration loop); this is a property of the
+here for a sine disturbance of period 300 s on the proof cases' concentration loop); this is a property of the
 method, not corrected here.
 """
 

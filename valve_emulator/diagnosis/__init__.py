@@ -1,34 +1,57 @@
 """Diagnosis (layer 3): where a simulation and a recording differ, which physics the model leaves out.
 
-``diagnose(recording, nominal)`` replays the nominal model on the recorded OP, locates the residual, and
-searches a library of candidate physics (``stiction``, ``deadband``, ``dead_time``, ``characteristic``,
-``actuator_lag``, ``saturation``, ``quantization``, ``disturbance``, and ``tuning`` judged on the loop; one
-module each under :mod:`~valve_emulator.diagnosis.candidates`) by Hammerstein identification: a global grid over each candidate's parameters, vectorised over candidates, the linear part
-re-fitted by output error around every one, the dead time searched with them, ranked by BIC and by the
-free-run fit on a held-out part, added while significant. It returns a frozen
-:class:`~valve_emulator.diagnosis.result.Diagnosis` (JSON, verdict, Markdown report; figure in
-:mod:`~valve_emulator.diagnosis.plot`).
+Subpackages, in the order a diagnosis runs:
 
-Modules, bottom up: ``data`` (checks; burn-in, fit and held-out parts), ``linear`` and
-``linear_kernels`` (batched output-error fits), ``nominal`` (the starting model), ``chain`` and
-``candidates`` (the physics, one module each; ``candidates.valve_start`` for a valve's unknown initial
-state), ``models`` (result records), ``scoring`` (grids through the chain), ``evaluate`` (one candidate:
-coarse, scan, refine), ``search`` (the rounds and the significance rule), ``locate``, ``uncertainty``,
-``result`` (JSON, verdict, report), ``pipeline`` (the whole thing), ``plot``, ``cases`` and ``proof``
-(concealed recordings with a known truth, ``valve-emulator prove``).
+``fit``
+    one model against one recording: data preparation, the linear part (output-error identification), the
+    nominal model, the signal chain, grid scoring, fitting one candidate, cross-validation, intervals.
+``candidates``
+    the physics the search may add, one module each, by kind (valve chain, plant, after the plant, loop).
+``explain``
+    *what does my model leave out?* — locate the residual, search the candidates round by round under one
+    significance rule, write up the findings.
+``assess``
+    *is this valve sticky?* — for plant data without a model: can the data tell, and one rule from the
+    findings to an :class:`~valve_emulator.diagnosis.answers.Answer`.
+``report``
+    the result records, JSON, Markdown and figures.
 
-Plant data without a model (issue 7): ``output`` (candidates after the plant: backfitting and joint least
-squares), ``crossval`` (two-fold blocked validation), ``resample`` (jittered recordings onto a grid),
-``adequacy`` (when the data cannot tell), ``assessment`` (stiction / no stiction / cannot tell, with the
-reason: ``assess(recording)``), ``plot_loop``, and for ``valve-emulator evaluate`` on a labelled set
-``labelled`` (index, one window), ``scorecard`` (calls, confusion, balanced accuracy) and ``evaluation``.
+The entry point is :func:`~valve_emulator.diagnosis.api.diagnose` (also ``valve_emulator.diagnose``), which
+returns a :class:`~valve_emulator.diagnosis.report.diagnosis.Diagnosis`;
+:func:`~valve_emulator.diagnosis.explain.pipeline.explain` and
+:func:`~valve_emulator.diagnosis.assess.decision.assess` are the two steps behind it. The names below are
+imported on first use (``import valve_emulator.diagnosis`` stays light).
 """
 
-from valve_emulator.diagnosis.assessment import Assessment, assess
-from valve_emulator.diagnosis.candidates import Candidate, ChainContext, get, register, registry
-from valve_emulator.diagnosis.pipeline import RULE, RULE_TWOFOLD, diagnose
-from valve_emulator.diagnosis.result import Diagnosis, Finding
-from valve_emulator.diagnosis.search import DELTA_BIC, DELTA_FIT
+from __future__ import annotations
 
-__all__ = ["Assessment", "Candidate", "ChainContext", "DELTA_BIC", "DELTA_FIT", "Diagnosis", "Finding", "RULE",
-           "RULE_TWOFOLD", "assess", "diagnose", "get", "register", "registry"]
+import importlib
+
+_EXPORTS = {
+    "diagnose": "valve_emulator.diagnosis.api",
+    "Diagnosis": "valve_emulator.diagnosis.report.diagnosis",
+    "Answer": "valve_emulator.diagnosis.answers",
+    "Strength": "valve_emulator.diagnosis.answers",
+    "Explanation": "valve_emulator.diagnosis.report.explanation",
+    "Finding": "valve_emulator.diagnosis.report.explanation",
+    "Assessment": "valve_emulator.diagnosis.report.assessment",
+    "RULE": "valve_emulator.diagnosis.explain.pipeline",
+    "RULE_TWOFOLD": "valve_emulator.diagnosis.explain.pipeline",
+    "DELTA_BIC": "valve_emulator.diagnosis.explain.search",
+    "DELTA_FIT": "valve_emulator.diagnosis.explain.search",
+    "Candidate": "valve_emulator.diagnosis.candidates",
+    "ChainContext": "valve_emulator.diagnosis.candidates",
+    "get": "valve_emulator.diagnosis.candidates",
+    "register": "valve_emulator.diagnosis.candidates",
+    "registry": "valve_emulator.diagnosis.candidates",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

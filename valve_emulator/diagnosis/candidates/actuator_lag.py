@@ -20,7 +20,7 @@ from typing import ClassVar
 import numba
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
 
 __all__ = ["ActuatorLag", "first_order_lag"]
 
@@ -51,7 +51,7 @@ def first_order_lag(x: np.ndarray, tau: np.ndarray, dt: float) -> np.ndarray:
     return out
 
 
-class ActuatorLag(Candidate):
+class ActuatorLag(ChainCandidate):
     name: ClassVar[str] = "actuator_lag"
     slot: ClassVar[str] = "actuator"
     param_names: ClassVar[tuple[str, ...]] = ("tau",)

@@ -1,52 +1,64 @@
-r"""The tiny base every candidate physics implements, and the registry that finds them by name.
+r"""The small bases every candidate physics implements, one per kind, and the registry that finds them by name.
 
 A candidate is one piece of physics the nominal model may have left out. It sits in one *slot* of the
 signal chain
 
     OP --[actuator]--> --[valve]--> MV --[characteristic]--> --[limit]--> flow --[linear plant, θ]--> --[output]--> PV
 
-and knows three things: the grids of its parameters worth trying (from the data: coarse, optionally a
-denser global scan, and a local refinement), how to transform the
-signal at its slot for a whole batch of parameter vectors at once (the search is vectorised over
-candidates, never a Python loop over them), and how to say its parameters in the words of the issue.
-The dead time lives inside the linear fit (every fit searches it on a grid, see ``search.py``); its
-candidate declares ``slot = "delay"`` and the transform is the identity.
+and knows the grids of its parameters worth trying (from the data: coarse, optionally a denser global scan,
+and a local refinement) and how to say its parameters in the words of the JSON findings. What else it knows
+depends on its *kind* (:class:`Kind`), i.e. where it acts; each kind has its own small base:
 
-Candidates come in four *kinds* (:data:`KINDS`), by where they act:
-
-``chain``
-    transforms the signal at a chain slot (``actuator``, ``valve``, ``characteristic``, ``limit``) for a
-    batch of parameter rows at once: :meth:`Candidate.apply`.
-``delay``
-    the dead time, part of every linear fit.
-``output``
-    acts after the plant, on what is measured (``output`` slot: a quantised measurement, an external
-    oscillating disturbance added to PV). The chain ends at the flow, so these cannot be a transform of it;
-    instead :meth:`Candidate.adjust` says, for the linear part's current prediction, which PV the linear part
-    should be fitted to, and :meth:`Candidate.predict` what the whole model predicts (backfitting, see
-    :mod:`~valve_emulator.diagnosis.output`).
-``loop``
+:class:`ChainCandidate` (``actuator``, ``valve``, ``characteristic``, ``limit`` slots)
+    transforms the signal at its slot for a whole batch of parameter rows at once (:meth:`~ChainCandidate.apply`;
+    the search is vectorised over candidates, never a Python loop over them).
+:class:`DelayCandidate` (``delay`` slot)
+    the dead time, part of every linear fit (every fit searches it on a grid); nothing to transform.
+:class:`OutputCandidate` (``output`` slot)
+    acts after the plant, on what is measured (a quantised measurement, an external oscillating disturbance
+    added to PV). The chain ends at the flow, so these cannot be a transform of it; instead
+    :meth:`~OutputCandidate.adjust` says, for the linear part's current prediction, which PV the linear part
+    should be fitted to, :meth:`~OutputCandidate.predict` what the whole model predicts for the record and
+    :meth:`~OutputCandidate.simulate` what it predicts without one (backfitting, see
+    :mod:`~valve_emulator.diagnosis.fit.backfit`).
+:class:`LoopCandidate` (``loop`` slot)
     explains a cycle through the loop itself, not the OP → PV path (aggressive ``tuning``): it adds nothing
-    to the replayed model, so it is not searched; :meth:`Candidate.assess` judges it on the final model.
+    to the replayed model, so it is not searched; :meth:`~LoopCandidate.assess` judges it on the final model.
 
-New candidates subclass :class:`Candidate` in their own module and call :func:`register`.
+New candidates subclass the base of their kind in their own module and call :func:`register`.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import ClassVar, Final
 
 import numpy as np
 
-__all__ = ["SLOTS", "KINDS", "Candidate", "ChainContext", "register", "registry", "get"]
+__all__ = ["SLOTS", "KINDS", "Kind", "Candidate", "ChainCandidate", "DelayCandidate", "OutputCandidate",
+           "LoopCandidate", "ChainContext", "register", "registry", "get"]
 
 #: Positions, in signal order. At most one candidate per slot is active in a model.
 SLOTS: Final = ("actuator", "valve", "characteristic", "limit", "delay", "output", "loop")
-#: What a candidate acts on (see the module docstring), and the slots each kind may occupy.
-KINDS: Final = {"chain": ("actuator", "valve", "characteristic", "limit"), "delay": ("delay",),
-                "output": ("output",), "loop": ("loop",)}
+
+
+class Kind(StrEnum):
+    """Where a candidate acts (see the module docstring); its value is the word used in messages."""
+
+    CHAIN = "chain"
+    DELAY = "delay"
+    OUTPUT = "output"
+    LOOP = "loop"
+
+
+#: The slots each kind may occupy (keyed by the kind's word).
+KINDS: Final = {Kind.CHAIN.value: ("actuator", "valve", "characteristic", "limit"), Kind.DELAY.value: ("delay",),
+                Kind.OUTPUT.value: ("output",), Kind.LOOP.value: ("loop",)}
+#: What a candidate of each kind must implement besides the common methods.
+_REQUIRED: Final = {Kind.CHAIN: ("apply",), Kind.DELAY: (), Kind.OUTPUT: ("adjust", "predict", "simulate"),
+                    Kind.LOOP: ("assess",)}
 
 
 @dataclass(frozen=True)
@@ -85,12 +97,12 @@ class ChainContext:
 
 
 class Candidate(ABC):
-    """One piece of left-out physics: a parameter grid and a batched signal transform.
+    """What every candidate knows: its place, its parameters, their grids and how to say them.
 
     Class attributes
     ----------------
     name : the word used in findings (``"stiction"``, ...).
-    slot : one of :data:`SLOTS`.
+    slot : one of :data:`SLOTS`; it fixes the candidate's :attr:`kind`.
     param_names : names of the parameter vector's entries, in order.
     n_params : parameters counted by BIC (may differ from ``len(param_names)`` when a name is a label,
         e.g. the characteristic's type).
@@ -100,11 +112,6 @@ class Candidate(ABC):
     slot: ClassVar[str]
     param_names: ClassVar[tuple[str, ...]]
     n_params: ClassVar[int]
-    #: One of :data:`KINDS`; the default follows from the slot.
-    kind: ClassVar[str | None] = None
-    #: Indices of threshold parameters: their cost is flat-bottomed (piecewise constant at fine scale), so
-    #: the search takes the middle of the flat bottom along each of them (see :meth:`line`).
-    threshold_axes: ClassVar[tuple[int, ...]] = ()
 
     @abstractmethod
     def grid(self, ctx: ChainContext) -> np.ndarray:
@@ -137,9 +144,40 @@ class Candidate(ABC):
         """
         return 0
 
-    def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
-        """Rows varying parameter ``axis`` finely around ``best`` (for ``threshold_axes`` only)."""
-        raise NotImplementedError(f"{self.name} has no threshold axes")
+    def applicable(self, ctx: ChainContext) -> bool:
+        """Whether the data can show this physics at all (e.g. a quantiser needs a PV on few levels)."""
+        return True
+
+    def identity(self) -> np.ndarray | None:
+        """Parameter vector that leaves the signal unchanged (None when there is none)."""
+        return None
+
+    @abstractmethod
+    def parameters(self, p: np.ndarray) -> dict:
+        """The JSON ``parameters`` dict for one parameter vector (its keys are part of the JSON output)."""
+
+    @abstractmethod
+    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+        """A short phrase for the verdict, e.g. ``"valve stiction: S ≈ 4.8 %, J ≈ 2.1 % (undershoot)"``."""
+
+    @property
+    def kind(self) -> Kind:
+        """The candidate's kind, from its slot (:data:`KINDS`)."""
+        return next(Kind(k) for k, slots in KINDS.items() if self.slot in slots)
+
+    @property
+    def category(self) -> Kind:
+        """Another name for :attr:`kind`."""
+        return self.kind
+
+
+class ChainCandidate(Candidate):
+    """A candidate that transforms the chain signal at its slot (``actuator``, ``valve``, ``characteristic``,
+    ``limit``)."""
+
+    #: Indices of threshold parameters: their cost is flat-bottomed (piecewise constant at fine scale), so
+    #: the search takes the middle of the flat bottom along each of them (see :meth:`line`).
+    threshold_axes: ClassVar[tuple[int, ...]] = ()
 
     @abstractmethod
     def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
@@ -149,53 +187,49 @@ class Candidate(ABC):
         (n, len(param_names)). Returns (T, n).
         """
 
-    @abstractmethod
-    def parameters(self, p: np.ndarray) -> dict:
-        """The JSON ``parameters`` dict for one parameter vector (keys fixed by the issue)."""
+    def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
+        """Rows varying parameter ``axis`` finely around ``best`` (for :attr:`threshold_axes` only; a candidate
+        with threshold axes overrides it)."""
+        return best[None, :]
+
+
+class DelayCandidate(Candidate):
+    """The dead time: its parameter is the linear part's own, searched inside every linear fit."""
+
+
+class OutputCandidate(Candidate):
+    """A candidate acting after the plant, on the measured PV (see the module docstring)."""
 
     @abstractmethod
-    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
-        """A short phrase for the verdict, e.g. ``"valve stiction: S ≈ 4.8 %, J ≈ 2.1 % (undershoot)"``."""
-
-    # -- output and loop candidates --------------------------------------------------------------------------
-    def applicable(self, ctx: ChainContext) -> bool:
-        """Whether the data can show this physics at all (e.g. a quantiser needs a PV on few levels)."""
-        return True
-
     def adjust(self, y: np.ndarray, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext
                ) -> tuple[np.ndarray, np.ndarray]:
-        """``output`` kind: ``(target, params)`` for scaled PV ``y`` and the linear part's prediction ``y_lin``.
+        """``(target, params)`` for scaled PV ``y`` and the linear part's prediction ``y_lin``.
 
         ``target`` is what the linear part is fitted to next; ``params`` is the row with the entries this
         candidate fits internally (by least squares on ``ctx.window``) filled in.
         """
-        raise NotImplementedError(f"{self.name} is a {self.category} candidate, not an output one")
 
+    @abstractmethod
     def predict(self, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
-        """``output`` kind: what the whole model predicts for the recorded (scaled) PV."""
-        raise NotImplementedError(f"{self.name} is a {self.category} candidate, not an output one")
+        """What the whole model predicts for the recorded (scaled) PV, given the linear part's ``y_lin``."""
+
+    @abstractmethod
+    def simulate(self, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        """What the whole model predicts (scaled PV) without a recorded PV (a new OP, ``ctx.op``; ``ctx.pv`` is
+        None), given the linear part's ``y_lin``."""
 
     def regressors(self, params: np.ndarray, ctx: ChainContext) -> np.ndarray | None:
-        """``output`` kind, additive terms only: the (T, m) regressors the term is linear in, so the linear
-        part and the term can be fitted jointly by least squares instead of by backfitting (None: not
-        additive)."""
+        """Additive terms only: the (T, m) regressors the term is linear in, so the linear part and the term
+        can be fitted jointly by least squares instead of by backfitting (None: not additive)."""
         return None
 
+
+class LoopCandidate(Candidate):
+    """A candidate judged on the loop, not fitted into the OP → PV model (see the module docstring)."""
+
+    @abstractmethod
     def assess(self, **data):
-        """``loop`` kind: judge the candidate on a finished diagnosis (see the candidate's module)."""
-        raise NotImplementedError(f"{self.name} is a {self.category} candidate, not a loop one")
-
-    # -- conveniences shared by all candidates -------------------------------------------------------------
-    @property
-    def category(self) -> str:
-        """The candidate's kind (:data:`KINDS`), from :attr:`kind` or its slot."""
-        if self.kind is not None:
-            return self.kind
-        return next(k for k, slots in KINDS.items() if self.slot in slots)
-
-    def identity(self) -> np.ndarray | None:
-        """Parameter vector that leaves the signal unchanged (None when there is none)."""
-        return None
+        """Judge the candidate on a finished diagnosis (see the candidate's module)."""
 
 
 _REGISTRY: dict[str, Candidate] = {}
@@ -206,9 +240,10 @@ def register(candidate: Candidate) -> Candidate:
     if candidate.slot not in SLOTS:
         raise ValueError(f"candidate {candidate.name!r}: slot must be one of {', '.join(SLOTS)}, "
                          f"got {candidate.slot!r}")
-    if candidate.slot not in KINDS[candidate.category]:
-        raise ValueError(f"candidate {candidate.name!r}: a {candidate.category} candidate cannot sit in slot "
-                         f"{candidate.slot!r}")
+    missing = [m for m in _REQUIRED[candidate.kind] if not callable(getattr(candidate, m, None))]
+    if missing:
+        raise ValueError(f"candidate {candidate.name!r}: a {candidate.kind} candidate (slot {candidate.slot!r}) "
+                         f"must implement {', '.join(missing)}")
     _REGISTRY[candidate.name] = candidate
     return candidate
 

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, Characteristic
 
 __all__ = ["FlowCharacteristic", "R_GRID"]
@@ -30,7 +30,7 @@ def _curve(p: np.ndarray) -> Characteristic:
     return Characteristic(CHARACTERISTICS[int(p[0])], p[1] if p[1] > 1 else 50.0)
 
 
-class FlowCharacteristic(Candidate):
+class FlowCharacteristic(ChainCandidate):
     name: ClassVar[str] = "characteristic"
     slot: ClassVar[str] = "characteristic"
     param_names: ClassVar[tuple[str, ...]] = ("kind", "R")

@@ -1,9 +1,9 @@
 r"""Candidate ``dead_time``: the plant's dead time θ differs from the nominal one.
 
 The dead time is part of the linear fit, which searches it on an integer-sample grid for every candidate
-(notes §5: a dead time wrong by one or two samples leaves S right but biases J 30–50 % low, so it must be
+(a dead time wrong by one or two samples leaves S right but biases J 30–50 % low, so it must be
 searched *with* the valve parameters). This candidate therefore transforms nothing; choosing it frees θ
-(one more parameter for BIC), and :func:`~valve_emulator.diagnosis.linear.polish` refines it to a
+(one more parameter for BIC), and :func:`~valve_emulator.diagnosis.fit.linear.polish` refines it to a
 fraction of a sample.
 """
 
@@ -13,12 +13,12 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainContext, DelayCandidate, register
 
 __all__ = ["DeadTime"]
 
 
-class DeadTime(Candidate):
+class DeadTime(DelayCandidate):
     name: ClassVar[str] = "dead_time"
     slot: ClassVar[str] = "delay"
     param_names: ClassVar[tuple[str, ...]] = ("theta",)
@@ -30,9 +30,6 @@ class DeadTime(Candidate):
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         return best[None, :]
 
-    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
-        x = np.asarray(x, dtype=float)
-        return np.repeat(x[:, None], params.shape[0], axis=1) if x.ndim == 1 else x
 
     def parameters(self, p: np.ndarray) -> dict:
         return {"theta": round(float(p[0]), 3)}

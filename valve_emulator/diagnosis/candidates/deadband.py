@@ -12,7 +12,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
 from valve_emulator.diagnosis.candidates.valve_start import STARTS, sync_burn_in, valve_output
 
 __all__ = ["Deadband"]
@@ -22,7 +22,7 @@ def _step(span: float) -> float:
     return max(0.05, span / 40.0)
 
 
-class Deadband(Candidate):
+class Deadband(ChainCandidate):
     name: ClassVar[str] = "deadband"
     slot: ClassVar[str] = "valve"
     param_names: ClassVar[tuple[str, ...]] = ("S", "start")

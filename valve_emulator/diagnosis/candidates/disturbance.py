@@ -30,7 +30,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainContext, OutputCandidate, register
 
 __all__ = ["Disturbance", "N_PEAKS", "MIN_CYCLES"]
 
@@ -67,7 +67,7 @@ def _peaks(x: np.ndarray, dt: float) -> np.ndarray:
     return dt / f[idx[np.argsort(power[idx])[::-1][:N_PEAKS]]]
 
 
-class Disturbance(Candidate):
+class Disturbance(OutputCandidate):
     name: ClassVar[str] = "disturbance"
     slot: ClassVar[str] = "output"
     param_names: ClassVar[tuple[str, ...]] = ("period", "amplitude", "phase")
@@ -79,7 +79,6 @@ class Disturbance(Candidate):
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         w0, w1 = _window(ctx)
-        n = w1 - w0
         signals = [ctx.residual, ctx.pv, ctx.op]
         periods = np.unique(np.concatenate([_peaks(np.asarray(x[w0:w1], dtype=float), ctx.dt)
                                             for x in signals if x is not None]))
@@ -93,8 +92,6 @@ class Disturbance(Candidate):
         rows = np.column_stack([ctx.dt / f, np.zeros(f.size), np.zeros(f.size)])
         return np.vstack([best[None, :], rows])
 
-    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
-        raise NotImplementedError("an external disturbance adds to PV, not to the chain (see adjust)")
 
     def adjust(self, y: np.ndarray, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -113,6 +110,9 @@ class Disturbance(Candidate):
         s, c = _basis(float(params[0]), ctx)
         amp = float(params[1]) / ctx.y_scale
         return y_lin + amp * (np.cos(params[2]) * s + np.sin(params[2]) * c)
+
+    def simulate(self, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        return self.predict(y_lin, params, ctx)  # the sinusoid needs no measurement: it runs on from t = 0
 
     def parameters(self, p: np.ndarray) -> dict:
         return {"period": round(float(p[0]), 3), "amplitude": float(f"{float(p[1]):.4g}")}

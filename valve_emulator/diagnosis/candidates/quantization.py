@@ -3,7 +3,7 @@ r"""Candidate ``quantization``: PV is measured on few levels, a staircase that i
 A coarse transmitter or A/D resolution, a historian that stores few decimals, or an archive that keeps a
 value until it changes by more than a dead band (exception reporting, "compression") all turn a smooth
 PV into a staircase. In a flow loop a staircase PV is what a sticky valve produces too, so a quantised PV
-must be tested before stiction is called (notes §5). Unlike stiction, a quantiser has no memory: a PV near
+must be tested before stiction is called. Unlike stiction, a quantiser has no memory: a PV near
 a threshold chatters between two levels, while a stuck valve needs S to reverse.
 
 Model (after the plant, ``output`` kind): the measured PV is the true PV snapped to the recorded levels,
@@ -13,7 +13,7 @@ so the true PV lies within ±h of every reading, ``h`` half the typical step bet
 
 (``q/2`` for a uniform quantum q; about the dead band for an archive that holds values). The linear part
 is fitted to the *interval* readings: its target is the point of :math:`[y_k - h, y_k + h]` nearest to its
-own prediction, re-computed by backfitting (:mod:`~valve_emulator.diagnosis.output`), which minimises the
+own prediction, re-computed by backfitting (:mod:`~valve_emulator.diagnosis.fit.backfit`), which minimises the
 dead-zone loss :math:`\sum_k \max(0, |\hat y_k - y_k| - h)^2` (the ε-insensitive loss of support-vector
 regression; Vapnik, *The Nature of Statistical Learning Theory*, 1995). The same loss scores the held-out
 part: a reading only says that PV lay within ±h, so the model's prediction of a reading is the value inside
@@ -33,7 +33,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainContext, OutputCandidate, register
 
 __all__ = ["Quantization", "quantum", "on_few_levels", "MAX_LEVEL_SHARE", "MIN_HOLD_SHARE"]
 
@@ -59,7 +59,7 @@ def on_few_levels(pv: np.ndarray) -> bool:
     return np.unique(pv).size <= MAX_LEVEL_SHARE * pv.size or held >= MIN_HOLD_SHARE
 
 
-class Quantization(Candidate):
+class Quantization(OutputCandidate):
     name: ClassVar[str] = "quantization"
     slot: ClassVar[str] = "output"
     param_names: ClassVar[tuple[str, ...]] = ("q",)
@@ -74,8 +74,6 @@ class Quantization(Candidate):
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         return best[None, :]
 
-    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
-        raise NotImplementedError("quantization acts on the measured PV, not on the chain (see adjust)")
 
     def adjust(self, y: np.ndarray, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -85,6 +83,14 @@ class Quantization(Candidate):
     def predict(self, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
         y = (np.asarray(ctx.pv, dtype=float) - ctx.y_mean) / ctx.y_scale
         return self.adjust(y, y_lin, params, ctx)[0]
+
+    def simulate(self, y_lin: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        """The prediction snapped to the nearest of the levels ``q · k`` in PV units (no record to snap to)."""
+        q = float(params[0])
+        if not q > 0.0:
+            return y_lin
+        pv = y_lin * ctx.y_scale + ctx.y_mean
+        return (q * np.round(pv / q) - ctx.y_mean) / ctx.y_scale
 
     def parameters(self, p: np.ndarray) -> dict:
         return {"q": float(f"{float(p[0]):.4g}")}

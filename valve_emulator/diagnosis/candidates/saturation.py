@@ -8,7 +8,7 @@ valve. The model clips the chain signal after the characteristic,
 .. math::  \text{flow} = \min(\max(x, \ell), h),
 
 with one active limit (``lo`` = ℓ or ``hi`` = h; the other one at the travel stop, 0 or 100 %), so one
-parameter for BIC. Its signature (notes §5): the residual of a model without it lives where OP sits beyond
+parameter for BIC. Its signature: the residual of a model without it lives where OP sits beyond
 the limit.
 
 Grid: each side at the 2nd … 40th percentiles of OP (``lo``) and the 60th … 98th (``hi``), so that at least
@@ -22,7 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
 
 __all__ = ["Saturation", "PERCENTILES"]
 
@@ -30,7 +30,7 @@ __all__ = ["Saturation", "PERCENTILES"]
 PERCENTILES = (2.0, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0)
 
 
-class Saturation(Candidate):
+class Saturation(ChainCandidate):
     name: ClassVar[str] = "saturation"
     slot: ClassVar[str] = "limit"
     param_names: ClassVar[tuple[str, ...]] = ("lo", "hi")

@@ -21,7 +21,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
 from valve_emulator.diagnosis.candidates.valve_start import STARTS, sync_burn_in, valve_output
 
 __all__ = ["Stiction", "stiction_kind"]
@@ -50,7 +50,7 @@ def _grid(S_values: np.ndarray, hJ: float) -> np.ndarray:
     return np.array(rows)
 
 
-class Stiction(Candidate):
+class Stiction(ChainCandidate):
     name: ClassVar[str] = "stiction"
     slot: ClassVar[str] = "valve"
     param_names: ClassVar[tuple[str, ...]] = ("S", "J", "start")

@@ -33,7 +33,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainContext, LoopCandidate, register
 
 __all__ = ["Tuning", "TuningAssessment", "MS_AGGRESSIVE", "PERIOD_TOLERANCE", "MIN_R2"]
 
@@ -105,7 +105,7 @@ def loop_response(kc: float, ti: float, dt: float, gain: float, taus, delay: flo
     return c * g
 
 
-class Tuning(Candidate):
+class Tuning(LoopCandidate):
     name: ClassVar[str] = "tuning"
     slot: ClassVar[str] = "loop"
     param_names: ClassVar[tuple[str, ...]] = ("kc", "ti")
@@ -117,9 +117,6 @@ class Tuning(Candidate):
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         return best[None, :]
 
-    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
-        x = np.asarray(x, dtype=float)  # the valve path is linear: the chain signal passes unchanged
-        return np.repeat(x[:, None], params.shape[0], axis=1) if x.ndim == 1 else x
 
     def assess(self, *, op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, dt: float, gain: float,
                taus=(), delay: float = 0.0, integrating: bool = False,

@@ -1,6 +1,6 @@
 r"""The unknown state of a sticky valve at the first sample of a recording, and when it stops mattering.
 
-A recording starts mid-cycle (notes §5). A model valve started in the wrong state can stay wrong for long:
+A recording starts mid-cycle. A model valve started in the wrong state can stay wrong for long:
 with OP swinging only a little more than S — common, because the controller reverses as soon as the valve
 moves — a valve put at rest at OP(0) mid-swing may never reach S (to reverse) nor J (to go on), and its
 replay explains nothing. Which start synchronises soonest with the real valve depends on the data, so the

@@ -1,0 +1,239 @@
+r"""The result of ``valve-emulator evaluate``: every method scored per window and per valve, as text or Markdown.
+
+Built from the per-window dicts of :func:`~valve_emulator.benchmark.labelled.run_window`, scored by
+:mod:`~valve_emulator.benchmark.scorecard`. Methods: ``diagnosis`` (this project's assessment,
+:mod:`~valve_emulator.diagnosis.assess.decision`) and the comparison detectors side by side, on the same windows.
+
+The one threshold of the assessment that was not taken from the literature or from a convention used
+elsewhere in the package, :data:`~valve_emulator.diagnosis.assess.decision.NOISE_BANDS`, is also checked:
+the valve-level balanced accuracy for other values, and a leave-one-valve-out estimate in which each
+valve is called with the value that scores best on the other valves. So is the qualifier of a stiction call
+(:mod:`~valve_emulator.diagnosis.fit.load_check`): the figures had a *weak* call (one that a drifting-load noise
+model explains about as well) been answered "cannot tell".
+"""
+
+from __future__ import annotations
+
+import statistics
+from dataclasses import dataclass, field
+from typing import Callable
+
+from valve_emulator.diagnosis.answers import Answer
+from valve_emulator.detectors import DETECTORS, Decision
+from valve_emulator.diagnosis.assess.decision import NOISE_BANDS
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
+from valve_emulator.benchmark.scorecard import (ABSTAIN, POSITIVE, Confusion, confusion, leave_one_valve_out,
+                                                markdown_table, text_table, valve_calls, window_calls)
+
+__all__ = ["Evaluation", "METHOD", "NOISE_GRID", "decision_of", "misclassified"]
+
+#: Name of this project's method in the tables.
+METHOD = "diagnosis"
+#: Values of NOISE_BANDS tried by the threshold check.
+NOISE_GRID = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
+_LABEL = {True: Answer.STICTION, False: Answer.NO_STICTION}
+
+
+def decision_of(method: str) -> Callable[[dict], str]:
+    """Reads ``method``'s decision from a window result."""
+    if method == METHOD:
+        return lambda r: r["decision"]
+    return lambda r: r["detectors"][method]["decision"]
+
+
+def _with_bands(k: float) -> Callable[[dict], str]:
+    """Our binary decision had NOISE_BANDS been ``k`` (only the valve band against OP noise changes)."""
+    def decide(r: dict) -> str:
+        if r.get("band") is None or r.get("op_noise") is None:
+            return r["decision"] if r["decision"] != Answer.STICTION else Answer.NO_STICTION
+        return Answer.STICTION if r["band"] >= k * r["op_noise"] else (
+            r["decision"] if r["decision"] != Answer.STICTION else Answer.NO_STICTION)
+    return decide
+
+
+def _strong_only(r: dict) -> str:
+    """Our decision had a weak stiction call (not surviving a drifting-load noise model) been "cannot tell"."""
+    load = r.get("load_delta_bic")
+    if r["decision"] == Answer.STICTION and load is not None and load < DELTA_BIC:
+        return Answer.CANNOT_TELL
+    return r["decision"]
+
+
+def misclassified(results: list[dict], method: str = METHOD) -> list[tuple[str, dict, dict]]:
+    """``(tag, valve, representative window)`` for each valve whose call disagrees with its label.
+
+    The representative window is the first whose own call disagrees (a missed stiction valve: the first
+    window not called stiction, preferring a "no stiction" answer to an abstention, which says less).
+    """
+    dec = decision_of(method)
+    out = []
+    for tag, v in valve_calls(results, dec).items():
+        if (v["call"] == POSITIVE) == v["label"]:
+            continue
+        wins = [r for r in results if r["tag"] == tag]
+        if v["label"]:
+            wrong = ([r for r in wins if dec(r) == Answer.NO_STICTION]
+                     or [r for r in wins if dec(r) != Answer.STICTION])
+        else:
+            wrong = [r for r in wins if dec(r) == Answer.STICTION]
+        out.append((tag, v, (wrong or wins)[0]))
+    return out
+
+
+@dataclass
+class Evaluation:
+    """All scores of one evaluation run (see the module docstring)."""
+
+    results: list[dict]
+    seconds: float = 0.0
+    jobs: int = 1
+    source: str = ""
+    figures: dict = field(default_factory=dict)   # tag -> figure path (relative to the report)
+
+    @property
+    def methods(self) -> list[str]:
+        return [METHOD] + list(DETECTORS)
+
+    def windows(self, method: str) -> Confusion:
+        return confusion(window_calls(self.results, decision_of(method)))
+
+    def valves(self, method: str) -> Confusion:
+        return confusion((v["label"], v["call"]) for v in valve_calls(self.results, decision_of(method)).values())
+
+    def threshold_check(self) -> tuple[list[tuple], Confusion]:
+        rows = []
+        for k in NOISE_GRID:
+            c = confusion((v["label"], v["call"]) for v in valve_calls(self.results, _with_bands(k)).values())
+            rows.append((f"{k:g}" + (" (used)" if k == NOISE_BANDS else ""), c.sensitivity, c.specificity,
+                         c.balanced_accuracy))
+        lovo, _ = leave_one_valve_out(self.results, NOISE_GRID, lambda r, k: _with_bands(k)(r))
+        return rows, lovo
+
+    def load_check(self) -> list[tuple]:
+        """Per valve and per window: the answers as given, and had weak stiction calls been "cannot tell"."""
+        rows = []
+        for name, dec in (("as answered", decision_of(METHOD)), ("strong calls only", _strong_only)):
+            for unit, c in (("valve", confusion((v["label"], v["call"])
+                                                for v in valve_calls(self.results, dec).values())),
+                            ("window", confusion(window_calls(self.results, dec)))):
+                rows.append((name, unit, c.sensitivity, c.specificity, c.balanced_accuracy, c.tp, c.fn, c.fp, c.tn))
+        return rows
+
+    # -- tables ---------------------------------------------------------------------------------------------
+    def _summary_rows(self, unit: str) -> list[tuple]:
+        rows = []
+        for m in self.methods:
+            c = self.valves(m) if unit == "valve" else self.windows(m)
+            rows.append((m, c.sensitivity, c.specificity, c.balanced_accuracy, c.coverage, c.tp, c.fn, c.fp, c.tn))
+        return rows
+
+    _SUMMARY = ("method", "sensitivity", "specificity", "balanced accuracy", "coverage", "TP", "FN", "FP", "TN")
+
+    def _matrix_rows(self, unit: str) -> list[tuple]:
+        rows = []
+        for m in self.methods:
+            c = self.valves(m) if unit == "valve" else self.windows(m)
+            for label, called, denied, abstained in c.rows():
+                rows.append((m, label, called, denied, abstained))
+        return rows
+
+    _MATRIX = ("method", "label", "called stiction", "called no stiction", "abstained")
+
+    def _loop_rows(self) -> list[tuple]:
+        ours = valve_calls(self.results, decision_of(METHOD))
+        dets = {d: valve_calls(self.results, decision_of(d)) for d in DETECTORS}
+        rows = []
+        for tag, v in ours.items():
+            wins = [r for r in self.results if r["tag"] == tag]
+            c = v["counts"]
+            S = [r["S"] for r in wins if r.get("S") is not None]
+            s_text = f"{statistics.median(S):.3g}" if S else "—"
+            mark = "" if (v["call"] == POSITIVE) == v["label"] else " ✗"
+            rows.append((tag, wins[0].get("loop_type", ""), _LABEL[v["label"]], len(wins),
+                         f"{c[POSITIVE]}/{c['no stiction']}/{c[ABSTAIN]}", _call(v["call"]) + mark, s_text,
+                         *(_call(dets[d][tag]["call"], ours=False) for d in DETECTORS)))
+        return rows
+
+    def _loop_header(self) -> tuple:
+        return ("tag", "type", "label", "windows", "ours: stiction/no/cannot tell", "ours (valve)",
+                "median S %", *DETECTORS)
+
+    def _stiction_rows(self) -> list[tuple]:
+        rows = []
+        for r in self.results:
+            if r["decision"] != Answer.STICTION:
+                continue
+            s95, j95 = r.get("S_95"), r.get("J_95")
+            load = r.get("load_delta_bic")
+            rows.append((r["name"], r["tag"], _LABEL[r["label"]], r["cause"], f"{r['S']:.3g}",
+                         f"{s95[0]:.3g}–{s95[1]:.3g}" if s95 else "—", f"{r['J']:.3g}",
+                         f"{j95[0]:.3g}–{j95[1]:.3g}" if j95 else "—",
+                         "—" if load is None else f"{load:.1f} ({'strong' if load >= DELTA_BIC else 'weak'})"))
+        return rows
+
+    _STICTION = ("window", "tag", "label", "physics", "S %", "S 95 %", "J %", "J 95 %", "ΔBIC, drifting load")
+
+    def text(self) -> str:
+        """Plain-text tables for the terminal."""
+        parts = [f"{len(self.results)} windows, {len(valve_calls(self.results, decision_of(METHOD)))} valves, "
+                 f"{self.seconds:.0f} s with {self.jobs} job(s)", "",
+                 "Per valve (stiction vs not; an abstention counts as not called stiction):",
+                 text_table(self._SUMMARY, self._summary_rows("valve")), "",
+                 "Per window:", text_table(self._SUMMARY, self._summary_rows("window")), "",
+                 "Confusion per valve (label x answer):", text_table(self._MATRIX, self._matrix_rows("valve")), "",
+                 "Confusion per window:", text_table(self._MATRIX, self._matrix_rows("window")), "",
+                 "Per loop:", text_table(self._loop_header(), self._loop_rows())]
+        return "\n".join(parts)
+
+    def markdown(self) -> str:
+        """The results section of ``docs/real-data.md`` (generated; see ``valve-emulator evaluate``)."""
+        rows, lovo = self.threshold_check()
+        n_valves = len(valve_calls(self.results, decision_of(METHOD)))
+        out = [f"_Generated by `valve-emulator evaluate {self.source}`: {len(self.results)} windows, {n_valves} "
+               f"valves, {self.seconds:.0f} s with {self.jobs} job(s). Do not edit by hand._", "",
+               "### Per valve (the headline: windows of one valve are not independent)", "",
+               markdown_table(self._SUMMARY, self._summary_rows("valve")), "",
+               "### Per window", "", markdown_table(self._SUMMARY, self._summary_rows("window")), "",
+               "### Confusion matrices: label × answer", "",
+               "Per valve:", "", markdown_table(self._MATRIX, self._matrix_rows("valve")), "",
+               "Per window:", "", markdown_table(self._MATRIX, self._matrix_rows("window")), "",
+               "### Per loop", "",
+               "Our window answers (stiction / no stiction / cannot tell), the valve's call by the valve rule, the "
+               "median S of the windows called stiction, and each detector's valve call (undetermined: all its "
+               "windows were undetermined or not applicable; ✗: our call disagrees with the label).", "",
+               markdown_table(self._loop_header(), self._loop_rows()), "",
+               "### Windows called stiction: S and J with 95 % intervals", "",
+               markdown_table(self._STICTION, self._stiction_rows()), "",
+               "### Threshold check: the OP-noise bound on S", "",
+               f"Valve-level figures had `NOISE_BANDS` (S ≥ k · OP noise σ) been another k; leave-one-valve-out "
+               f"(each valve called with the k of {', '.join(f'{k:g}' for k in NOISE_GRID)} that scores best on the "
+               f"other valves): sensitivity {_pct(lovo.sensitivity)}, specificity {_pct(lovo.specificity)}, "
+               f"balanced accuracy **{_pct(lovo.balanced_accuracy)}**.", "",
+               markdown_table(("k", "sensitivity", "specificity", "balanced accuracy"), rows), "",
+               "### Qualifier check: stiction calls that a drifting load explains as well", "",
+               f"A stiction call is *strong* when the valve still lowers BIC by at least {DELTA_BIC:g} under a "
+               "random-walk load noise model (`valve_emulator.diagnosis.fit.load_check`), *weak* otherwise. The "
+               "answers count both; here is what answering \"cannot tell\" to the weak ones would give.", "",
+               markdown_table(("rule", "unit", "sensitivity", "specificity", "balanced accuracy", "TP", "FN", "FP",
+                               "TN"), self.load_check()), "",
+               "### Misclassified valves", ""]
+        wrong = misclassified(self.results)
+        if not wrong:
+            out.append("None.")
+        for tag, v, r in wrong:
+            c = v["counts"]
+            out += [f"#### {tag} — labelled {_LABEL[v['label']]}, called {_call(v['call'])}", "",
+                    f"{len(v['windows'])} window(s): {c[POSITIVE]} called stiction, {c['no stiction']} no stiction, "
+                    f"{c[ABSTAIN]} cannot tell. Window shown: `{r['name']}` — **{r['decision']}**: {r['reason']}", ""]
+            if tag in self.figures:
+                out += [f"![{tag}]({self.figures[tag]})", ""]
+        return "\n".join(out)
+
+
+def _call(c: str, *, ours: bool = True) -> str:
+    """A call in the method's own words (our abstention is "cannot tell", a detector's "undetermined")."""
+    return str(Answer.CANNOT_TELL if ours else Decision.UNDETERMINED) if c == ABSTAIN else str(c)
+
+
+def _pct(x: float) -> str:
+    return "—" if x != x else f"{100 * x:.0f} %"

@@ -1,0 +1,100 @@
+r"""``diagnose(recording, model=None, **options) -> Diagnosis``: the one call behind ``valve-emulator diagnose``.
+
+>>> import valve_emulator as ve                                                     # doctest: +SKIP
+>>> d = ve.diagnose("FIC101.csv", model="loop.yaml")     # what does my model leave out?
+>>> d.answer, [f.physics for f in d.findings], d.fit_before, d.fit_after
+>>> pv = d.predict(op)                                    # the fitted loop, replayed on another OP
+>>> d = ve.diagnose("FIC101.txt", op="OUT", pv="FLOW")    # plant data: is this valve sticky?
+
+The recording is read (a path, with the reader's options passed through), put on a uniform time grid once
+(:func:`~valve_emulator.recordings.resample.regularize`), then either explained against the model
+(:func:`~valve_emulator.diagnosis.explain.pipeline.explain`) or, without one, assessed
+(:func:`~valve_emulator.diagnosis.assess.decision.assess_uniform`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Callable, Sequence
+
+from valve_emulator.config import LoopConfig, load_loop
+from valve_emulator.diagnosis.assess.decision import assess_uniform
+from valve_emulator.diagnosis.explain.pipeline import explain
+from valve_emulator.diagnosis.report.diagnosis import Diagnosis
+from valve_emulator.recordings import MAX_GAP, Recording, RecordingError, read_recording, regularize
+
+__all__ = ["diagnose", "ARRAYS"]
+
+#: The arrays a mapping may hold: required first, then optional.
+ARRAYS = {"t": True, "op": True, "pv": True, "sp": False, "mv": False}
+
+
+def _from_mapping(data: Mapping) -> Recording:
+    missing = [k for k, required in ARRAYS.items() if required and k not in data]
+    if missing:
+        raise RecordingError(f"recording mapping: no {', '.join(repr(k) for k in missing)} array; it needs "
+                             "'t', 'op' and 'pv' ('sp' and 'mv' are optional)")
+    unknown = [k for k in data if k not in ARRAYS]
+    if unknown:
+        raise RecordingError(f"recording mapping: unknown key(s) {', '.join(repr(str(k)) for k in unknown)}; "
+                             f"known: {', '.join(ARRAYS)}")
+    try:
+        return Recording(t=data["t"], sp=data.get("sp"), op=data["op"], mv=data.get("mv"), pv=data["pv"],
+                         source="recording")
+    except RecordingError:
+        raise
+    except ValueError as exc:  # names the array (e.g. "op has 10 samples but t has 12")
+        raise RecordingError(f"recording mapping: {exc}") from exc
+
+
+def _recording(recording, reader_options: dict) -> tuple[Recording, tuple[str, ...]]:
+    if isinstance(recording, (str, os.PathLike)):
+        loaded = read_recording(recording, **{"gap_factor": MAX_GAP, **reader_options})
+        return loaded.recording, tuple(loaded.notes)
+    if reader_options:
+        raise TypeError(f"reader options ({', '.join(sorted(reader_options))}) apply only to a recording given "
+                        "as a path")
+    if isinstance(recording, Recording):
+        return recording, ()
+    if isinstance(recording, Mapping):
+        return _from_mapping(recording), ()
+    raise TypeError(f"recording must be a path, a Recording or a mapping of arrays, got {type(recording).__name__}")
+
+
+def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
+             candidates: Sequence[str] | None = None, validation: str | None = None,
+             progress: Callable[[str], None] | None = None, **reader_options) -> Diagnosis:
+    """Diagnose one loop's recording (see the module docstring).
+
+    Parameters
+    ----------
+    recording : a path (read by :func:`~valve_emulator.recordings.read_recording`; ``reader_options`` such as
+        ``fmt``, ``op``, ``pv``, ``ts``, ``decimal`` are passed to it), a
+        :class:`~valve_emulator.recordings.Recording`, or a mapping of arrays ``t``, ``op``, ``pv`` and
+        optionally ``sp``, ``mv``.
+    model : the loop the user believes in (a loop config: a YAML path or a
+        :class:`~valve_emulator.config.LoopConfig`); None for plant data (the linear part is identified and the
+        answer is stiction / no stiction / cannot tell).
+    candidates : candidate physics to search (default: all); only with a model.
+    validation : ``"split"`` or ``"twofold"`` (default: split with a model); only with a model.
+    progress : called with a short message at each stage.
+
+    Raises
+    ------
+    RecordingError
+        An unreadable file, a missing array or key (named), a gap in time, too few samples with a model.
+    ConfigError
+        A model file that is not a valid loop config.
+    """
+    if model is None and (candidates is not None or validation is not None):
+        raise TypeError("candidates and validation apply only with a model (plant data use the fixed rule)")
+    cfg = load_loop(model) if isinstance(model, (str, os.PathLike)) else model
+    rec, notes = _recording(recording, reader_options)
+    rec, note = regularize(rec)
+    notes += (note,) if note else ()
+    if cfg is not None:
+        return Diagnosis(recording=rec, explanation=explain(rec, cfg, candidates=candidates, validation=validation,
+                                                            progress=progress), notes=notes)
+    a = assess_uniform(rec, progress=progress)
+    return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes)

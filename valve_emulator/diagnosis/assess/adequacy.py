@@ -1,0 +1,119 @@
+r"""Can these data support a conclusion at all? The checks behind a polite "cannot tell".
+
+A diagnosis without a plant model must identify the plant from the data themselves, so some records cannot
+answer "is the valve sticky?" whatever the method, and saying so beats a wrong answer. In order:
+
+1. **Too short**: fewer than :data:`~valve_emulator.diagnosis.fit.data.MIN_SAMPLES` samples (room for a burn-in,
+   a dead time and two cross-validation blocks).
+2. **Flat PV**: PV holds one value over at least :data:`FLAT_SHARE` of the record (the longest constant run).
+   Half the record then carries no information about the valve, and a PV that does not move while OP
+   does is what a seized valve, a closed block valve, a dead transmitter and a frozen archive all produce.
+   A constant OP is refused the same way (the valve was never asked to move).
+3. **No oscillation and no excitation**: nothing moved the loop that the data could learn from. Oscillation
+   is the regularity test of Thornhill, Huang & Zhang (J. Process Control 13 (2003) 91–100; ``r > 1``,
+   :func:`~valve_emulator.detectors.base.oscillation`, the test the comparison detectors use) on the
+   control error SP − PV (when there is a set point: set-point steps would mask a cycle in PV), PV or OP,
+   the most regular of them; excitation is a set-point change, or OP travelling over a robust range (0.5th–99.5th
+   percentile) of at least :data:`EXCITATION` times its noise σ. White noise alone spans about 5 σ between those
+   percentiles, so twice that is movement the noise cannot make. The noise σ is
+   :func:`op_noise`, the robust standard deviation of sample-to-sample changes divided by √2 (as for the
+   OP turning points of :mod:`~valve_emulator.diagnosis.explain.locate`).
+
+Thresholds are constants, chosen once for every loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from valve_emulator.detectors.base import oscillation
+from valve_emulator.diagnosis.fit.data import MIN_SAMPLES
+from valve_emulator.recordings.recording import Recording
+
+__all__ = ["Adequacy", "adequacy", "op_noise", "longest_constant_run", "FLAT_SHARE", "EXCITATION"]
+
+#: PV (or OP) constant over at least this share of the record is "flat".
+FLAT_SHARE = 0.5
+#: OP's robust range must reach this many noise σ to count as excitation.
+EXCITATION = 10.0
+
+
+def op_noise(op: np.ndarray) -> float:
+    """Robust noise σ of a signal: 1.4826 · MAD of its first differences, divided by √2."""
+    d = np.diff(np.asarray(op, dtype=float))
+    if d.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+def longest_constant_run(x: np.ndarray) -> int:
+    """Length of the longest run of exactly repeated values (1 for a signal that never repeats)."""
+    x = np.asarray(x, dtype=float)
+    if x.size == 0:
+        return 0
+    change = np.flatnonzero(np.diff(x) != 0.0)
+    edges = np.concatenate([[-1], change, [x.size - 1]])
+    return int(np.max(np.diff(edges)))
+
+
+@dataclass(frozen=True)
+class Adequacy:
+    """Whether a record can be diagnosed, why not, and the facts checked.
+
+    Attributes
+    ----------
+    ok : the record supports a conclusion.
+    reason : for a refusal, the sentence after "cannot tell: "; "" otherwise.
+    facts : the numbers checked (samples, flat shares, oscillation regularity and period, OP range in noise
+        σ, set-point changes).
+    """
+
+    ok: bool
+    reason: str = ""
+    facts: dict = field(default_factory=dict)
+
+
+def adequacy(rec: Recording) -> Adequacy:
+    """Run the checks of the module docstring on ``rec`` (``t``, ``op``, ``pv``, and ``sp`` if present)."""
+    T = len(rec)
+    facts: dict = {"samples": T}
+    if T < MIN_SAMPLES:
+        span = f" ({T * rec.dt:g} s at {rec.dt:g} s)" if T >= 2 else ""
+        return Adequacy(False, f"the record has {T} samples{span}; a diagnosis without a plant model needs at "
+                               f"least {MIN_SAMPLES} (a burn-in, a dead time and two cross-validation blocks)",
+                        facts)
+    op, pv = np.asarray(rec.op, dtype=float), np.asarray(rec.pv, dtype=float)
+    lo, hi = np.percentile(op, [0.5, 99.5])
+    facts["op_range"] = float(hi - lo)
+    for name, x in (("PV", pv), ("OP", op)):
+        share = longest_constant_run(x) / T
+        facts[f"{name.lower()}_flat_share"] = share
+        if share >= FLAT_SHARE:
+            other = (f" while OP moved over {facts['op_range']:.3g} %" if name == "PV" else "")
+            what = ("a seized valve, a closed block valve, a dead transmitter or a frozen archive look the same"
+                    if name == "PV" else "the valve was never asked to move")
+            return Adequacy(False, f"{name} is flat: it holds one value over {100 * share:.0f} % of the record"
+                                   f"{other}; {what}", facts)
+    noise = op_noise(op)
+    facts["op_noise"] = noise
+    facts["op_range_in_noise"] = float((hi - lo) / noise) if noise > 0 else float("inf")
+    signals = [pv, op]
+    sp_changes = 0
+    if rec.has_sp and np.all(np.isfinite(rec.sp)):
+        sp = np.asarray(rec.sp, dtype=float)
+        sp_changes = int(np.count_nonzero(np.diff(sp) != 0.0))
+        signals.insert(0, sp - pv)
+    osc = max((oscillation(x) for x in signals), key=lambda o: o.regularity if o.regular else -1.0)
+    facts["regularity"], facts["period"] = osc.regularity, osc.period * rec.dt
+    facts["oscillating"] = bool(osc.regular)
+    facts["sp_changes"] = sp_changes
+    excited = sp_changes > 0 or facts["op_range_in_noise"] >= EXCITATION
+    facts["excited"] = excited
+    if not (excited or osc.regular):
+        return Adequacy(False, f"no oscillation (regularity r = {osc.regularity:.2f} ≤ 1) and no excitation (no "
+                               f"set-point change; OP's range is {facts['op_range_in_noise']:.1f} noise σ, "
+                               f"less than {EXCITATION:g}): nothing moved the loop that the data could learn "
+                               "from", facts)
+    return Adequacy(True, "", facts)

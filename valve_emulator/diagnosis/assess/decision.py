@@ -1,0 +1,188 @@
+r"""Plant data without a plant model: stiction, no stiction (and why), or a polite "cannot tell".
+
+:func:`assess` is what ``valve-emulator diagnose FILE`` (no ``--model``) and ``valve-emulator evaluate``
+run on each loop:
+
+1. **Uniform time** (:func:`~valve_emulator.recordings.resample.regularize`): a jittered recorder file is put
+   on a grid, real gaps are refused (:func:`assess`; :func:`assess_uniform` takes a recording already on one).
+2. **Can the data tell?** (:func:`~valve_emulator.diagnosis.assess.adequacy.adequacy`): too short, a flat PV, no
+   oscillation and no excitation → ``cannot tell`` with the reason.
+3. **Diagnosis** (:func:`~valve_emulator.diagnosis.explain.pipeline.explain`, no nominal model, two-fold
+   validation): the linear part (FOPDT or IPDT with its dead time) is identified together with every
+   candidate — the valve's (``stiction``, ``deadband``, ``actuator_lag``, ``characteristic``), and those
+   that imitate a sticky valve (``saturation``, ``quantization``, ``disturbance``) — in one ranking.
+4. **Decision**, one rule for every loop:
+
+   * ``stiction`` when the diagnosis accepts valve friction (``stiction``, or ``deadband``, its J = 0 case
+     in the 2005 model) and its band S is at least :data:`NOISE_BANDS` noise σ of OP
+     (:func:`~valve_emulator.diagnosis.assess.adequacy.op_noise`). A band inside OP's own jitter cannot make
+     a valve stick and slip — the noise moves it either way — so it is no diagnosis of stiction;
+     3 σ is the package's convention for "beyond noise" (as for OP turning points in
+     :mod:`~valve_emulator.diagnosis.explain.locate`). S and J are reported with 95 % intervals, and the call is
+     qualified *strong* when the valve's evidence survives a drifting-load noise model
+     (:mod:`~valve_emulator.diagnosis.fit.load_check`: ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`
+     there too), *weak* when a linear valve with a compensated drifting load explains the record about as
+     well. The qualifier does not change the answer (see ``docs/real-data.md`` for what requiring it would
+     do on labelled plant data).
+   * ``cannot tell`` when no valve friction is accepted and the final model's cross-validated fit is below
+     :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their mean). Absence of evidence counts only
+     where a model explains the loop well enough for stiction to have shown; a stiction call needs no such
+     bound, its evidence being the improvement over the linear valve.
+   * otherwise ``no stiction``, with the cause: the first accepted non-valve candidate (an external
+     disturbance, a quantised PV, saturation, a flow characteristic, an actuator lag), or, for a loop that
+     cycles regularly, aggressive ``tuning`` when :meth:`~valve_emulator.diagnosis.candidates.tuning.Tuning.
+     assess` finds it, or "the linear model explains the loop". An accepted disturbance is the cause of a
+     regular cycle only when it has the cycle's period (within the tuning test's tolerance); one at another
+     period (a harmonic, a second small cycle) leaves the cycle to the tuning test.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+
+from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer
+from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_noise
+from valve_emulator.diagnosis.candidates import get
+from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
+from valve_emulator.diagnosis.explain.pipeline import explain
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
+from valve_emulator.diagnosis.fit.data import UninformativeData
+from valve_emulator.diagnosis.report.assessment import Assessment
+from valve_emulator.diagnosis.report.explanation import Explanation, Finding
+from valve_emulator.recordings.recording import Recording
+from valve_emulator.recordings.resample import regularize
+
+__all__ = ["Assessment", "assess", "assess_uniform", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS"]
+
+#: The three answers.
+DECISIONS = tuple(Answer)
+#: A valve band S must reach this many OP noise σ to be called stiction.
+NOISE_BANDS = 3.0
+#: Least cross-validated fit (%) of the final model for a "no stiction" answer.
+MIN_FIT = 0.0
+#: Findings that are valve friction (the 2005 model's stiction, and its J = 0 case).
+VALVE_PHYSICS = VALVE_FRICTION
+#: Order in which other findings name the cause of a "no stiction" answer.
+_CAUSES = ("disturbance", "quantization", "saturation", "characteristic", "actuator_lag", "dead_time")
+
+
+def _valve(findings: tuple[Finding, ...]) -> Finding | None:
+    return next((f for f in findings if f.physics in VALVE_PHYSICS), None)
+
+
+def _same_period(a: float, b: float) -> bool:
+    """Periods equal within the tuning test's tolerance (the same cycle)."""
+    return abs(a / b - 1.0) <= PERIOD_TOLERANCE
+
+
+def _fmt_iv(iv: tuple[float, float]) -> str:
+    return f"{iv[0]:.3g}–{iv[1]:.3g}"
+
+
+def _tuning(rec: Recording, d: Explanation, facts: dict) -> TuningAssessment | None:
+    if not facts.get("oscillating") or not d.plant:
+        return None
+    p = d.plant
+    return get("tuning").assess(op=rec.op, pv=rec.pv, sp=rec.sp if rec.has_sp else None, dt=rec.dt, gain=p["gain"],
+                                taus=p["taus"], delay=p["delay"], integrating=p["integrating"],
+                                observed_period=facts.get("period", float("nan")))
+
+
+def _load_text(valve: Finding) -> str:
+    load = valve.load_delta_bic
+    if load is None:
+        return ""
+    if load >= DELTA_BIC:
+        return f"; strong evidence: it survives a drifting-load noise model (ΔBIC {load:.1f})"
+    return (f"; weak evidence: a linear valve with a slowly drifting load that the controller compensates "
+            f"explains the record about as well (ΔBIC {load:.1f} < {DELTA_BIC:g} under that noise model)")
+
+
+def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float) -> dict:
+    valve = _valve(d.findings)
+    fits = f"held-out fit {d.fit_before:.0f} % → {d.fit_after:.0f} %"
+    small = ""
+    if valve is not None:
+        S = float(valve.parameters["S"])
+        J = float(valve.parameters.get("J", 0.0))
+        ivs = {k: v for k, v in valve.intervals.items() if k in ("S", "J")}
+        if S >= NOISE_BANDS * noise:
+            iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
+            kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
+            return dict(decision=Answer.STICTION, cause=valve.physics, S=S, J=J, intervals=ivs,
+                        reason=f"{kind}, S ≈ {S:.3g} %, J ≈ {J:.3g} % ({iv}); {fits}{_load_text(valve)}")
+        small = (f"a valve band S ≈ {S:.3g} % fits, but it is below {NOISE_BANDS:g} OP noise σ "
+                 f"({NOISE_BANDS * noise:.3g} %), where the noise moves such a valve either way; ")
+    if not d.fit_after >= MIN_FIT:
+        return dict(decision=Answer.CANNOT_TELL, cause="",
+                    reason=f"{small}no valve friction that could matter improves the model, but the best model "
+                           f"found predicts held-out PV worse than their mean (cross-validated fit "
+                           f"{d.fit_after:.0f} % < {MIN_FIT:g} %): the loop is not explained, so neither is the "
+                           "absence of stiction shown")
+    tune = _tuning(rec, d, ad.facts)
+    ranked = sorted((f for f in d.findings if f.physics in _CAUSES), key=lambda f: _CAUSES.index(f.physics))
+    cycle = ad.facts.get("period", float("nan")) if ad.facts.get("oscillating") else float("nan")
+    dist = next((f for f in ranked if f.physics == "disturbance"), None)
+    if dist is not None and (not np.isfinite(cycle) or _same_period(dist.parameters["period"], cycle)):
+        return dict(decision=Answer.NO_STICTION, cause="disturbance", tuning=tune,
+                    reason=f"{small}{dist.description}, not the valve; {fits}")
+    if tune is not None and tune.aggressive:
+        also = f"; also {ranked[0].description}" if ranked else ""
+        return dict(decision=Answer.NO_STICTION, cause="tuning", tuning=tune,
+                    reason=f"{small}the loop cycles through its own controller (aggressive tuning): {tune.reason}; "
+                           f"no valve nonlinearity explains it{also}; {fits}")
+    if ranked:
+        return dict(decision=Answer.NO_STICTION, cause=ranked[0].physics, tuning=tune,
+                    reason=f"{small}{ranked[0].description}; no valve friction that could matter; {fits}")
+    if small:
+        return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune, reason=f"{small}{fits}")
+    return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune,
+                reason=f"a linear valve and plant explain the loop: no candidate physics improves the model "
+                       f"significantly; {fits}")
+
+
+def assess(recording: Recording, *, progress: Callable[[str], None] | None = None) -> Assessment:
+    """Assess one loop's recording (see the module docstring): put it on a uniform grid, then
+    :func:`assess_uniform`.
+
+    Raises
+    ------
+    RecordingError
+        A gap in time longer than a few samples, or a non-finite value (the data are unusable as they are,
+        which is a different thing from data that cannot decide).
+    """
+    start = time.perf_counter()
+    rec, note = regularize(recording)
+    if note and progress is not None:
+        progress(note)
+    return assess_uniform(rec, notes=(note,) if note else (), progress=progress, start=start)
+
+
+def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Callable[[str], None] | None = None,
+                   start: float | None = None) -> Assessment:
+    """Assess a recording already on a uniform grid (steps 2 to 4 of the module docstring).
+
+    ``notes`` say what was done to the data before (kept in the result); ``start`` is the
+    :func:`time.perf_counter` reading the wall time counts from (default: now).
+    """
+    start = time.perf_counter() if start is None else start
+    src = rec.source or "recording"
+    ad = adequacy(rec)
+    if not ad.ok:
+        return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=ad.reason, adequacy=ad,
+                          notes=notes, seconds=time.perf_counter() - start)
+    noise = op_noise(rec.op)
+    try:
+        d = explain(rec, None, progress=progress)
+    except UninformativeData as exc:  # e.g. PV constant over the fit part: the data cannot decide
+        return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=exc.reason, adequacy=ad,
+                          notes=notes, op_noise=noise, seconds=time.perf_counter() - start)
+    out = _decide(rec, d, ad, noise)
+    valve = _valve(d.findings)
+    band = None if valve is None else float(valve.parameters["S"])
+    load = None if valve is None else valve.load_delta_bic
+    return Assessment(source=src, explanation=d, adequacy=ad, notes=notes, op_noise=noise, band=band,
+                      load_delta_bic=load, seconds=time.perf_counter() - start, **out)

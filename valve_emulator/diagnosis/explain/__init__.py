@@ -1,0 +1,6 @@
+"""The explain step: *what does my model leave out?*
+
+:func:`~valve_emulator.diagnosis.explain.pipeline.explain` replays the nominal model, locates the residual
+(:mod:`.locate`), searches the candidate library round after round under one significance rule
+(:mod:`.search`) and writes up each accepted piece of physics as a finding (:mod:`.findings`).
+"""

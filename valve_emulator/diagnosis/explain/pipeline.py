@@ -1,0 +1,176 @@
+r"""``explain(recording, nominal)``: replay, locate, search the candidate library, report.
+
+1. **Replay** the nominal model on the recorded OP (:mod:`~valve_emulator.diagnosis.fit.nominal`); its
+   held-out free-run fit is ``fit_before``. Without a nominal model the linear part is identified from the
+   data first and *that* is the nominal model.
+2. **Locate** the residual in time and operating conditions (:mod:`~valve_emulator.diagnosis.explain.locate`).
+3. **Search** (:mod:`~valve_emulator.diagnosis.explain.search`): add the most significant candidate physics,
+   round after round, the linear part re-fitted around each.
+4. **Report** each accepted piece with its parameters, 95 % intervals from the cost surface, where it
+   reduces the residual (windows) and why it was accepted (evidence; :mod:`~valve_emulator.diagnosis.explain.
+   findings`); ``fit_after`` is the final model's held-out fit, and the final model is kept
+   (:class:`~valve_emulator.diagnosis.fit.predict.FittedLoop`).
+
+Validation: with a nominal model the last 30 % of the record is held out (``validation="split"``); without
+one — plant data, where the plant is unknown and the evidence may sit anywhere in the record — the search
+fits the whole record and cross-validates on two blocks (``"twofold"``, see
+:mod:`~valve_emulator.diagnosis.fit.crossval`). Either can be asked for explicitly.
+
+Which cost: PV itself, or a high-pass prefiltered PV for an integrating plant (see
+:func:`~valve_emulator.diagnosis.fit.linear.highpass`): the prefilter makes an integrator's cost smooth in the
+valve parameters, but would only throw away a self-regulating plant's slow response. With a nominal model
+its plant decides; without one the search runs on PV (its pole set spans both families) and, if the result
+integrates, once more prefiltered, whose result is kept.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+
+from dataclasses import replace
+
+from valve_emulator.config import LoopConfig
+from valve_emulator.diagnosis.candidates import get, registry
+from valve_emulator.diagnosis.explain.findings import findings, param_text, stiction_surface
+from valve_emulator.diagnosis.explain.locate import condition_masks, locate
+from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Search
+from valve_emulator.diagnosis.fit.chain import run_chain
+from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
+from valve_emulator.diagnosis.fit.fitter import Fitter
+from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
+from valve_emulator.diagnosis.fit.predict import FittedLoop
+from valve_emulator.diagnosis.fit.scorer import Scorer
+from valve_emulator.diagnosis.report.explanation import Explanation, RankRow, Traces
+from valve_emulator.recordings.recording import Recording
+
+__all__ = ["explain", "RULE", "RULE_TWOFOLD"]
+
+RULE = (f"An addition counts when BIC (N ln σ̂² + k ln N on the fit part) falls by at least {DELTA_BIC:g} and the "
+        f"free-run fit on the held-out last 30 % rises by at least {DELTA_FIT:g} points, against the current "
+        "model and against each of its own sub-options; the lowest-BIC option that counts is added.")
+#: The rule without a nominal model (``validation="twofold"``).
+RULE_TWOFOLD = (f"An addition counts when BIC with an AR(1) error model (N ln σ̂²_w + (k + 1) ln N on the whole "
+                f"record after the burn-in, σ̂_w the prewhitened residual) falls by at least {DELTA_BIC:g} and the "
+                f"free-run fit cross-validated on two blocks (first and last 30 %) rises by at least "
+                f"{DELTA_FIT:g} points, against the current model and against each of its own sub-options; the "
+                "lowest-BIC option that counts is added.")
+
+
+def _replay_nominal(problem: Problem, nominal: Nominal, scorer: Scorer) -> np.ndarray:
+    """Nominal chain + exact nominal plant on the recorded OP; only the operating point is fitted."""
+    flow = scorer.chain({}, scorer.ctx(None))[:, 0]
+    y0 = replay_plant(nominal, flow, problem.dt)
+    T = problem.T
+    cols = [np.ones(T)] + ([np.arange(T) / T] if nominal.structure.integrating else [])
+    X = np.column_stack(cols)
+    w0, w1 = problem.train
+    coef, *_ = np.linalg.lstsq(X[w0:w1], (problem.pv - y0)[w0:w1], rcond=None)
+    return y0 + X @ coef
+
+
+def _gain(num: Sequence[float], den: Sequence[float]) -> float:
+    den = np.trim_zeros(np.asarray(den, dtype=float), "b")  # an integrator's s drops out: gain per second
+    return float(num[-1] / den[-1])
+
+
+def _linear_table(nominal: Nominal, model: Model, problem: Problem) -> dict:
+    st, fit = model.fit.structure, model.fit
+    k = fit.gain * problem.y_scale
+    unit = " (per s)" if st.integrating else ""
+    nom_k = f"{_gain(nominal.num, nominal.den):.4g}" if nominal.given else "—"
+    taus = lambda s: ", ".join(f"{t:.4g}" for t in s.taus) or "—"  # noqa: E731
+    return {f"gain, PV per % flow{unit}": (nom_k, f"{k:.4g}"),
+            "time constants (s)": (taus(nominal.structure) if nominal.given else "—", taus(st)),
+            "dead time (s)": (f"{nominal.delay:.4g}" if nominal.given else "—", f"{st.delay:.4g}"),
+            "integrating": ("yes" if nominal.structure.integrating else "no",) * 2}
+
+
+def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib: dict, say, validation: str):
+    """Prepare, (identify,) search: one pass in one cost domain."""
+    problem = prepare(recording, nominal_delay=nom.delay if nom else None,
+                      settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter, validation=validation)
+    if nom is None:
+        say("identifying the linear part from the data (FOPDT or IPDT)")
+        nom = identify(problem)
+    fitter = Fitter(Scorer(problem, nom, lib))
+    model, rounds = Search(fitter, progress=say).run()
+    return fitter.p, nom, fitter, model, rounds  # the scorer may have lengthened the burn-in
+
+
+def explain(recording: Recording, nominal: LoopConfig | None = None, *,
+            candidates: Sequence[str] | None = None,
+            progress: Callable[[str], None] | None = None, validation: str | None = None) -> Explanation:
+    """Explain what the nominal model leaves out (see the module docstring).
+
+    Parameters
+    ----------
+    recording : ``t``, ``op``, ``pv`` are used (``sp`` and ``mv`` may be absent).
+    nominal : the loop the user believes in; None identifies a linear model (FOPDT or IPDT) from the data.
+    candidates : names from the candidate registry (default: all); ``dead_time`` needs a nominal model.
+    progress : called with a short message at each stage (the CLI prints them on stderr).
+    validation : ``"split"`` or ``"twofold"`` (default: split with a nominal model, two-fold without).
+
+    Raises
+    ------
+    RecordingError
+        Too few samples, constant OP or PV, non-uniform sampling (naming the file and line).
+    ValueError
+        A nominal plant the linear part cannot represent; an unknown candidate name.
+    """
+    start = time.perf_counter()
+    say = progress or (lambda msg: None)
+    lib = registry() if candidates is None else {n: get(n) for n in candidates}
+    validation = validation or ("split" if nominal is not None else "twofold")
+    dt = recording.dt if len(recording) >= 2 else 1.0
+    nom = nominal_from_config(nominal, dt) if nominal is not None else None
+    if nom is None:
+        lib.pop("dead_time", None)  # without a nominal model the dead time is simply identified
+        problem, nom, fitter, model, rounds = _run(recording, None, None, lib, say, validation)
+        st = model.fit.structure
+        if st.integrating:
+            say("the plant integrates: searching again on prefiltered PV")
+            lam = prefilter_for(st.delay + sum(st.taus), dt)
+            problem, nom, fitter, model, rounds = _run(recording, None, lam, lib, say, validation)
+    else:
+        st = nom.structure
+        lam = prefilter_for(st.delay + sum(st.taus), dt) if st.integrating else None
+        problem, nom, fitter, model, rounds = _run(recording, nom, lam, lib, say, validation)
+    base = rounds[0].baseline if rounds else model
+    test_start = problem.test[0] if validation == "split" else int(round((1.0 - HELD_OUT) * problem.T))
+    if nom.given:
+        pv_before = _replay_nominal(problem, nom, fitter.scorer)
+        fit_before = fit_percent(problem.pv[test_start:], pv_before[test_start:])
+    else:
+        pv_before = problem.to_pv(base.y_hat)
+        fit_before = base.heldout
+    st = model.fit.structure
+    horizon = max(st.delay + 2.0 * sum(st.taus), 10.0 * problem.dt)
+    w = max(3, int(round(horizon / problem.dt / 2)))
+    masks = condition_masks(problem.op, w=w, horizon=max(2, int(round(horizon / problem.dt))))
+    located = locate(problem.t, problem.op, (problem.pv - pv_before) ** 2, dt=problem.dt,
+                     response_time=horizon, masks=masks)
+    say("estimating parameter intervals")
+    found = findings(fitter, problem, model, rounds, masks, horizon, nom)
+    ranking = tuple(RankRow(round=i + 1, option=o.label, parameters=param_text(o.model, o.added),
+                            delta_bic=rnd.baseline.bic - o.model.bic, heldout=o.model.heldout, chosen=o is rnd.chosen)
+                    for i, rnd in enumerate(rounds) for o in rnd.options)
+    ctx = fitter.scorer.ctx(model)
+    valve_only = {k: v for k, v in model.by_slot().items() if k in ("actuator", "valve")}
+    mv = run_chain(problem.op, valve_only, replace(ctx, characteristic=("linear", 50.0)),
+                   nominal_valve=(nom.S, nom.J))[:, 0]
+    surface, surface_best = stiction_surface(rounds, problem.n_fit)
+    traces = Traces(t=problem.t, op=problem.op, pv=problem.pv, pv_before=pv_before, pv_base=problem.to_pv(base.y_hat),
+                    pv_after=problem.to_pv(model.y_hat), mv_after=mv, flow_after=model.flow, test_start=test_start,
+                    surface=surface, surface_best=surface_best)
+    plant = {"gain": model.fit.gain * problem.y_scale, "taus": tuple(st.taus), "delay": st.delay,
+             "integrating": st.integrating, "validation": problem.validation}
+    fitted = FittedLoop(active=model.by_slot(), nominal_valve=(nom.S, nom.J), ctx=fitter.scorer.ctx(None),
+                        linear=model.fit, level=float(np.mean(model.flow)), record_length=problem.T, op=problem.op)
+    return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=base.heldout,
+                       fit_after=model.heldout, findings=found, located=located,
+                       linear=_linear_table(nom, model, problem), ranking=ranking, traces=traces,
+                       rule=RULE if validation == "split" else RULE_TWOFOLD, seconds=time.perf_counter() - start,
+                       plant=plant, fitted=fitted)

@@ -1,0 +1,146 @@
+r"""Forward selection of left-out physics: Hammerstein fits on a global grid, ranked by BIC and held-out fit.
+
+One round
+---------
+For every candidate not yet in the model (one per chain slot), the whole coarse parameter grid is pushed
+through the chain at once (``(T, n)`` signals), filtered once per linear structure, and the linear part is
+fitted by least squares for every grid row *and every dead time* of the delay grid in one compiled call
+(:func:`~valve_emulator.diagnosis.fit.linear.delay_grid_sse`). The best row is then refined twice on the
+candidate's finer grid, each time followed by a Nelder–Mead polish of the poles (and of a free dead time).
+
+The dead time is searched jointly with every candidate's parameters (a wrong dead time passes for less slip
+jump). While the nominal dead time is still trusted, each candidate yields two options: with θ
+held at its nominal value, and together with ``dead_time`` (θ free). ``dead_time`` alone is a third kind of
+option.
+
+Significance (defined once, here, for every recording)
+------------------------------------------------------
+An option is *significant* against a smaller model when both
+
+* BIC falls by at least :data:`DELTA_BIC` (BIC = N ln σ̂² + k ln N on the fit part; 10 is "very strong"
+  evidence on the Kass & Raftery (1995) scale, a Bayes factor above about 150), and
+* the free-run fit on the held-out part rises by at least :data:`DELTA_FIT` percentage points.
+
+Threshold parameters sit on boundaries, so likelihood-ratio tests do not apply; the held-out
+free-run test guards against fitting noise. The round accepts the option with the lowest BIC that is
+significant against the current model *and* against each of its own sub-options (so "stiction + dead time"
+is accepted only if both parts carry weight). Rounds repeat until no option is significant.
+
+With ``validation="twofold"`` (no nominal model, :mod:`~valve_emulator.diagnosis.fit.data`) BIC is computed on
+the whole record and the held-out fit is the pooled two-fold cross-validated fit
+(:mod:`~valve_emulator.diagnosis.fit.crossval`); it is computed only for the models a significance test needs
+(options whose BIC already passes, their sub-options and the current model) and is NaN for the others.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Callable
+
+from valve_emulator.diagnosis.candidates.base import Candidate, Kind
+from valve_emulator.diagnosis.fit.crossval import with_cv
+from valve_emulator.diagnosis.fit.fitter import Fitter
+from valve_emulator.diagnosis.fit.records import Model, Option, Surface
+
+__all__ = ["DELTA_BIC", "DELTA_FIT", "Model", "Surface", "Option", "Round", "Search", "significant"]
+
+#: Least BIC decrease for an addition to count (see the module docstring).
+DELTA_BIC = 10.0
+#: Least held-out free-run fit gain, percentage points, for an addition to count.
+DELTA_FIT = 0.5
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Round:
+    """One round of the search: the model it extended, every option (sorted by BIC) and the one accepted."""
+
+    baseline: Model
+    options: tuple[Option, ...]   # sorted by BIC
+    chosen: Option | None
+
+
+def significant(new: Model, old: Model) -> bool:
+    """The significance rule of the module docstring."""
+    return (old.bic - new.bic >= DELTA_BIC) and (new.heldout - old.heldout >= DELTA_FIT)
+
+
+class Search:
+    """Runs the rounds for one problem (a fitting machine; its results are :class:`Round` objects).
+
+    It *has* a :class:`~valve_emulator.diagnosis.fit.fitter.Fitter`, which has the
+    :class:`~valve_emulator.diagnosis.fit.scorer.Scorer` of the problem; ``progress`` is called with a short
+    message at each stage.
+    """
+
+    def __init__(self, fitter: Fitter, *, progress: Callable[[str], None] | None = None) -> None:
+        self.fitter = fitter
+        self.scorer = fitter.scorer
+        self.say = progress or (lambda msg: None)
+
+    def _candidates(self, model: Model) -> list[Candidate]:
+        used = set(model.by_slot())
+        out = []
+        for cand in self.scorer.library.values():
+            if cand.slot in used or cand.kind is Kind.LOOP:
+                continue
+            if cand.slot == "delay" and model.delay_free:
+                continue
+            out.append(cand)
+        return out
+
+    def _validated(self, model: Model) -> Model:
+        """``model`` with a held-out fit (two-fold validation computes it on demand)."""
+        return model if self.scorer.p.validation == "split" else with_cv(self.scorer, model)
+
+    def round(self, model: Model, index: int) -> Round:
+        """Every option that extends ``model`` by one candidate, and the one the rule accepts (if any)."""
+        options: list[Option] = []
+        cands = self._candidates(model)
+        for c, cand in enumerate(cands):
+            self.say(f"round {index}: {cand.name} ({c + 1}/{len(cands)})")
+            options += self.fitter.evaluate(model, cand)
+        options.sort(key=lambda o: o.model.bic)
+        model = self._validated(model)
+        chosen = None
+        for i, o in enumerate(options):
+            if model.bic - o.model.bic < DELTA_BIC:
+                continue  # cannot count whatever its held-out fit (and needs no cross-validation)
+            subs = [j for j, s in enumerate(options) if set(s.added) < set(o.added)]
+            for j in [i, *subs]:
+                options[j] = replace(options[j], model=self._validated(options[j].model))
+            o = options[i]
+            if significant(o.model, model) and all(significant(o.model, options[j].model) for j in subs):
+                chosen = o
+                break
+        return Round(baseline=model, options=tuple(options), chosen=chosen)
+
+    def run(self) -> tuple[Model, list[Round]]:
+        """Base model, then rounds while an option is significant. Returns (final model, rounds)."""
+        self.say("fitting the linear part around the nominal chain")
+        model = self._validated(self.fitter.base())
+        rounds = []
+        while self._candidates(model):
+            rnd = self.round(model, len(rounds) + 1)
+            rounds.append(rnd)
+            if rnd.chosen is None:
+                break
+            self.say(f"round {len(rounds)}: added {rnd.chosen.label} (BIC {model.bic - rnd.chosen.model.bic:.0f} "
+                     f"lower, held-out fit {model.heldout:.1f} -> {rnd.chosen.model.heldout:.1f} %)")
+            model = self._validated(self._rerefine(rnd.chosen.model, rnd.chosen.added))
+        return model, rounds
+
+    def _rerefine(self, model: Model, just_added: tuple[str, ...]) -> Model:
+        """Refine earlier-accepted grid physics again with the new one in place; keep it if BIC improves."""
+        aim = self.scorer.aim(model)
+        for a in model.active:
+            if a.name in just_added or a.slot == "delay" or a.candidate.kind is not Kind.CHAIN:
+                continue
+            rest = replace(model, active=tuple(b for b in model.active if b is not a))
+            active, fit, flow, _ = self.fitter.refine(rest, a.candidate, a.params, model.fit.structure,
+                                                model.delay_free)
+            if "delay" in model.by_slot():
+                active["delay"] = model.by_slot()["delay"]
+            new = self.scorer.model(active, fit, model.delay_free, flow, target=aim.y)
+            if new.bic < model.bic:
+                model = new
+        return model

@@ -1,0 +1,77 @@
+r"""The model's signal chain: OP → actuator → valve → characteristic → limit → flow, slot by slot.
+
+A slot holds either an *active* candidate with fixed parameters, the nominal model's element (the
+nominal valve's S and J, the nominal characteristic; no actuator dynamics), or — for the candidate under
+search — a whole grid of parameter vectors, which turns the signal from one column into ``n``. Slots
+before the gridded one are computed once and shared by every column.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
+from valve_emulator.diagnosis.candidates.valve_start import PRE_ROLL, valve_output
+from valve_emulator.physics.signal_chain import Characteristic
+
+__all__ = ["Active", "CHAIN_SLOTS", "run_chain"]
+
+#: Slots that transform the signal, in order (the dead time is part of the linear fit; ``output`` candidates
+#: act after the plant, see :mod:`~valve_emulator.diagnosis.fit.backfit`). The nominal model has no limit.
+CHAIN_SLOTS = ("actuator", "valve", "characteristic", "limit")
+
+
+@dataclass(frozen=True, eq=False)
+class Active:
+    """A candidate in the model with its parameter vector."""
+
+    candidate: Candidate
+    params: np.ndarray
+
+    @property
+    def name(self) -> str:
+        return self.candidate.name
+
+    @property
+    def slot(self) -> str:
+        return self.candidate.slot
+
+
+def _nominal(slot: str, x: np.ndarray, ctx: ChainContext, S: float, J: float) -> np.ndarray:
+    if slot == "valve" and S > 0.0:
+        n = 1 if x.ndim == 1 else x.shape[1]
+        mv = valve_output(x, np.full(n, S), np.full(n, J), np.full(n, PRE_ROLL), ctx)
+        return mv[:, 0] if x.ndim == 1 else mv
+    if slot == "characteristic" and ctx.characteristic[0] != "linear":
+        return Characteristic(*ctx.characteristic).flow(x)
+    if slot == "characteristic" and (x.min() < 0.0 or x.max() > 100.0):
+        return np.clip(x, 0.0, 100.0)  # the linear curve: travel stops at 0/100 (valve outputs never
+    return x                           # leave them, so most calls skip the copy)
+
+
+def run_chain(op: np.ndarray, active: dict[str, Active], ctx: ChainContext, *, nominal_valve=(0.0, 0.0),
+              grid_candidate: Candidate | None = None, grid: np.ndarray | None = None) -> np.ndarray:
+    """Flow (T, n) for ``n`` grid rows (n = 1 without a grid).
+
+    Parameters
+    ----------
+    op : recorded OP (T,).
+    active : active candidates by slot.
+    ctx : chain context (dt, valve model, nominal characteristic ...).
+    nominal_valve : ``(S, J)`` of the nominal valve, used when no valve candidate is active.
+    grid_candidate, grid : the candidate under search and its parameter rows (n, p).
+    """
+    x = np.asarray(op, dtype=float)
+    for slot in CHAIN_SLOTS:
+        if grid_candidate is not None and slot == grid_candidate.slot:
+            x = grid_candidate.apply(x, grid, ctx)
+        elif slot in active:
+            a = active[slot]
+            n = 1 if x.ndim == 1 else x.shape[1]
+            y = a.candidate.apply(x, np.repeat(a.params[None, :], n, axis=0), ctx)
+            x = y[:, 0] if x.ndim == 1 else y
+        else:
+            x = _nominal(slot, x, ctx, *nominal_valve)
+    return x[:, None] if x.ndim == 1 else x

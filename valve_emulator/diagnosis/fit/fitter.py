@@ -1,0 +1,325 @@
+r"""Fitting one candidate: coarse grid × pole hypotheses, a global scan, refinement, a polish of the poles.
+
+Stages, for every candidate and every dead-time variant (θ held at its current value, or freed together with
+``dead_time`` while the nominal dead time is still trusted):
+
+1. **coarse**: the candidate's coarse grid through the chain at once, scored for every pole hypothesis of
+   :meth:`Fitter.pole_set` and every dead time of the grid; the best row of each hypothesis is a start,
+   ranked by ``N ln SSE`` plus the prior on the poles;
+2. **scan** (candidates that define one, e.g. stiction): a global grid fine along the rough directions,
+   scored at the top :data:`_STARTS` starts' poles and nearby dead times;
+3. **refine**, twice: the candidate's fine local grid (dead time ±2 samples when free), then a Nelder–Mead
+   polish of the poles (and of a free dead time, to a fraction of a sample);
+4. **centre** threshold parameters in their flat cost bottom (:meth:`Fitter.centre`).
+
+The start that ends with the lowest BIC (plus prior) is the option. Why several starts: a continuous
+parameter trades off against the poles (an actuator lag against the plant's time constant) and stiction's
+coarse cost is rough, so the coarse winner can be an artefact of grid placement.
+
+``output`` candidates (after the plant) are fitted by backfitting instead (:meth:`Fitter.output_options`,
+:mod:`~valve_emulator.diagnosis.fit.backfit`): their coarse grid and refinement are scored with the poles held,
+then the best is polished. ``loop`` candidates are not searched.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import Candidate, Kind
+from valve_emulator.diagnosis.fit.chain import Active
+from valve_emulator.diagnosis.fit.linear import LinearStructure
+from valve_emulator.diagnosis.fit.records import Model, Option, Surface
+from valve_emulator.diagnosis.fit.backfit import backfit
+from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
+
+__all__ = ["Fitter"]
+
+#: Pole hypotheses whose best coarse start is scanned and refined.
+_STARTS = 2
+#: Width of a "flat" cost bottom, in units of -2 log-likelihood (the 95 % point of chi-square, 1 dof).
+_FLAT = 3.84
+
+
+class Fitter:
+    """Fits candidates into a model (see the module docstring); its results are :class:`Option` objects.
+
+    It *has* a :class:`~valve_emulator.diagnosis.fit.scorer.Scorer` (the problem, the nominal model, the
+    library and the grid scoring); what the linear part is fitted to comes from the model being extended
+    (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.aim`), never from state set beforehand.
+    """
+
+    def __init__(self, scorer: Scorer) -> None:
+        self.scorer = scorer
+
+    def surface(self, name: str, params: np.ndarray, sse: np.ndarray) -> Surface:
+        """A cost surface of candidate ``name`` on the problem's fit part."""
+        return Surface(candidate=name, params=params, sse=sse, n=self.p.n_fit)
+
+    @property
+    def p(self):
+        """The problem (:class:`~valve_emulator.diagnosis.fit.data.Problem`) being fitted."""
+        return self.scorer.p
+
+    @property
+    def nominal(self):
+        return self.scorer.nominal
+
+    @property
+    def library(self):
+        return self.scorer.library
+
+    def pole_set(self, model: Model) -> list[LinearStructure]:
+        """Linear dynamics tried by the coarse stage of every candidate search.
+
+        A missing valve nonlinearity biases the poles re-fitted around the nominal chain (stiction in the
+        concentration loop drags the fitted time constant from 10 s to about 80 s), and with wrong poles
+        the valve's cost basin disappears. So the coarse stage also tries the nominal poles scaled by
+        2^(±1/2), 2^(±1) — or, without a model, first order with time constants from Δt to a tenth of the
+        record and an integrator — and later stages use the best.
+        """
+        st = model.fit.structure
+        out = [st]
+        if self.nominal.given:
+            nom = replace(self.nominal.structure, delay=st.delay)
+            for f in (1.0, 0.5, 2 ** -0.5, 2 ** 0.5, 2.0):
+                if nom.taus or f == 1.0:
+                    out.append(replace(nom, taus=tuple(t * f for t in nom.taus)))
+        else:
+            dt = self.p.dt
+            out += [replace(a, delay=st.delay) for a in self.nominal.alternates]
+            out += [LinearStructure(taus=(float(t),), delay=st.delay)
+                    for t in np.geomspace(dt, max(2 * dt, self.p.T * dt / 10.0), 8)]
+            out.append(LinearStructure(integrating=True, delay=st.delay))
+        return out
+
+    def base(self) -> Model:
+        """Nominal chain with the linear part re-fitted (poles; the dead time too when there is no model).
+
+        Without a nominal model the identified structure is only a start: the base also tries every pole
+        hypothesis of :meth:`pole_set` (with the dead-time grid) and keeps the best after polishing, so
+        that no candidate earns its ΔBIC merely by giving the search a second chance at the linear part.
+        """
+        ctx, aim = self.scorer.ctx(None), self.scorer.aim(None)
+        flow = self.scorer.chain({}, ctx)[:, 0]
+        free = not self.nominal.given
+        fit = self.scorer.polish(flow, self.nominal.structure, free, aim)
+        model = self.scorer.model({}, fit, free, flow, target=aim.y)
+        if self.nominal.given:
+            return model
+        best = None
+        for st in self.pole_set(model):
+            sse, delays = self.scorer.sse_flows(flow[:, None], st, self.p.delays, aim)
+            j = int(np.argmin(sse[0]))
+            if best is None or sse[0, j] < best[0]:
+                best = (float(sse[0, j]), replace(st, delay=float(delays[j]) * self.p.dt))
+        other = self.scorer.model({}, self.scorer.polish(flow, best[1], free, aim), free, flow, target=aim.y)
+        return other if other.bic < model.bic else model
+
+    def refine(self, model: Model, cand: Candidate, best: np.ndarray, st: LinearStructure, free: bool):
+        """Two passes of fine grid + polish around ``best``; returns (active, fit, flow, fine Surface)."""
+        active = model.by_slot()
+        ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
+        for _ in range(2):
+            g = cand.refine(ctx, best)
+            delays = self.scorer.near(st.delay, 2) if free else None
+            sse, delays = self.scorer.sse_grid(active, ctx, cand, g, st, delays, aim)
+            i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
+            best = g[i]
+            st0 = replace(st, delay=float(delays[j]) * self.p.dt) if free else st
+            flow = self.scorer.chain(active, ctx, cand, g[i:i + 1])[:, 0]
+            fit = self.scorer.polish(flow, st0, free, aim)
+            st = fit.structure
+        fine = self.surface(cand.name, g, sse.min(axis=1))
+        if cand.threshold_axes:
+            best = self.centre(active, ctx, cand, best, st, aim)
+            flow = self.scorer.chain(active, ctx, cand, best[None, :])[:, 0]
+            fit = self.scorer.polish(flow, st, free, aim)
+        new_active = dict(active)
+        new_active[cand.slot] = Active(cand, best)
+        return new_active, fit, flow, fine
+
+    def centre(self, active, ctx, cand, best, st, aim: Aim) -> np.ndarray:
+        """Move each threshold parameter to the middle of the flat bottom of its cost.
+
+        With noisy OP the fit-part cost is piecewise constant in a threshold (each slip happens at the
+        first sample past it), so every value inside the cell that contains the argmin replays the fit
+        part equally well, and the argmin may sit at the cell's edge. Events in the held-out part cut the
+        cell at uniformly distributed places; its middle is the value least likely to miss one. The
+        flat bottom is the contiguous run around the argmin with N·ln(SSE/SSE_min) ≤ :data:`_FLAT`.
+        """
+        for axis in cand.threshold_axes:
+            rows = cand.line(ctx, best, axis)
+            sse, _ = self.scorer.sse_grid(active, ctx, cand, rows, st, None, aim)
+            cost = self.p.n_fit * np.log(np.maximum(sse[:, 0], 1e-300) / max(sse[:, 0].min(), 1e-300))
+            i = int(np.argmin(cost))
+            lo = hi = i
+            while lo > 0 and cost[lo - 1] <= _FLAT:
+                lo -= 1
+            while hi < cost.size - 1 and cost[hi + 1] <= _FLAT:
+                hi += 1
+            best = rows[i].copy()
+            best[axis] = 0.5 * (rows[lo, axis] + rows[hi, axis])
+        return best
+
+    def delay_option(self, model: Model, cand: Candidate) -> Option:
+        flow, aim = model.flow, self.scorer.aim(model)
+        sse, delays = self.scorer.sse_flows(flow[:, None], model.fit.structure, self.p.delays, aim)
+        st = replace(model.fit.structure, delay=float(delays[int(np.argmin(sse[0]))]) * self.p.dt)
+        fit = self.scorer.polish(flow, st, True, aim)
+        active = model.by_slot()
+        active["delay"] = Active(cand, np.array([fit.structure.delay]))
+        surf = self.surface(cand.name, delays[:, None] * self.p.dt, sse[0])
+        model = self.scorer.model(active, fit, True, flow, target=aim.y)
+        return Option(added=(cand.name,), model=model, coarse=surf, scan=None, fine=surf)
+
+    def output_sse(self, model: Model, cand: Candidate, rows: np.ndarray, st: LinearStructure | None = None,
+                    delays: np.ndarray | None = None) -> np.ndarray:
+        """Fit-part SSE of each output-candidate row by a quick backfit (structure ``st``, default the model's;
+        the dead time re-chosen from ``delays`` when given)."""
+        ctx = replace(self.scorer.ctx(model), residual=self.p.y - model.y_hat)
+        st = model.fit.structure if st is None else st
+        return np.array([backfit(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, r, ctx,
+                                 prefilter=self.scorer.lam, iterations=2, delays=delays).fit.sse for r in rows])
+
+    def output_options(self, model: Model, cand: Candidate) -> list[Option]:
+        """The option that adds an ``output`` candidate: its grid by quick backfits with the model's linear
+        structure, the :data:`_STARTS` + 1 best rows again from every pole hypothesis (dead time on the grid
+        when free), the refinement at the best structure, then the best row polished (see
+        :mod:`~valve_emulator.diagnosis.fit.backfit`)."""
+        ctx = replace(self.scorer.ctx(model), residual=self.p.y - model.y_hat)
+        if not cand.applicable(ctx):
+            return []
+        grid = cand.grid(ctx)
+        if grid.shape[0] == 0:
+            return []
+        delays = self.p.delays if model.delay_free else None
+        sse = self.output_sse(model, cand, grid, None, delays)
+        top = grid[np.argsort(sse)[:_STARTS + 1]]
+        best = None
+        for st in self.pole_set(model):
+            s_top = self.output_sse(model, cand, top, st, delays)
+            score = self.p.n_fit * np.log(max(float(s_top.min()), 1e-300)) + self.scorer.prior_penalty(st)
+            if best is None or score < best[0]:
+                best = (score, st, top[int(np.argmin(s_top))])
+        _, st, row0 = best
+        fine = cand.refine(ctx, row0)
+        sse_fine = self.output_sse(model, cand, fine, st, delays)
+        row = fine[int(np.argmin(sse_fine))]
+        bf = backfit(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, row, ctx, prefilter=self.scorer.lam,
+                     polish_kw=self.scorer.polish_kw(model.delay_free), delays=delays)
+        active = model.by_slot()
+        active[cand.slot] = Active(cand, bf.params)
+        m = self.scorer.model(active, bf.fit, model.delay_free, model.flow, target=bf.target)
+        return [Option(added=(cand.name,), model=m, coarse=self.surface(cand.name, grid, sse), scan=None,
+                       fine=self.surface(cand.name, fine, sse_fine))]
+
+    def evaluate(self, model: Model, cand: Candidate) -> list[Option]:
+        """Options that add ``cand`` to ``model``: coarse grid × pole set, global scan, refinement."""
+        if cand.kind is Kind.LOOP:
+            return []
+        if cand.kind is Kind.OUTPUT:
+            return self.output_options(model, cand)
+        if cand.slot == "delay":
+            return [self.delay_option(model, cand)]
+        ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
+        active = model.by_slot()
+        dead_time = self.library.get("dead_time")
+        variants = [(model.delay_free, (cand.name,))]
+        if not model.delay_free and dead_time is not None:
+            variants.append((True, (cand.name, dead_time.name)))
+        grid = cand.grid(ctx)
+        flows = self.scorer.chain(active, ctx, cand, grid)
+        starts: dict[bool, list[tuple]] = {free: [] for free, _ in variants}
+        for st in self.pole_set(model):
+            penalty = self.scorer.prior_penalty(st)
+            for free, _ in variants:
+                sse, delays = self.scorer.sse_flows(flows, st, self.p.delays if free else None, aim)
+                flat = sse.min(axis=1)
+                i = int(np.argmin(flat))
+                score = self.p.n_fit * np.log(max(flat[i], 1e-300)) + penalty
+                st_b = replace(st, delay=float(delays[int(np.argmin(sse[i]))]) * self.p.dt) if free else st
+                starts[free].append((score, grid[i], st_b, self.surface(cand.name, grid, flat)))
+        scan = cand.scan(ctx)
+        # The coarse winner can be an artefact of grid placement — a continuous parameter trades off
+        # against the poles (an actuator lag against the plant's time constant), and stiction's coarse
+        # cost is rough — so the best start of each of the top pole hypotheses is scanned and refined, and
+        # the choice is made afterwards.
+        ranked = {free: sorted(starts[free], key=lambda r: r[0])[:_STARTS] for free, _ in variants}
+        scanned = self.scan_surfaces(active, ctx, cand, scan, ranked, aim) if scan is not None else {}
+        options = []
+        for free, added in variants:
+            results = []
+            for i, (_, p0, st_b, _) in enumerate(ranked[free]):
+                scan_surface = scanned.get((free, i))
+                if scan_surface is not None:
+                    p0 = scan[int(np.argmin(scan_surface.sse))]
+                new_active, fit, flow, fine = self.refine(model, cand, p0, st_b, free)
+                if free and not model.delay_free:
+                    new_active["delay"] = Active(dead_time, np.array([fit.structure.delay]))
+                m = self.scorer.model(new_active, fit, free, flow, target=aim.y)
+                results.append((m.bic + self.scorer.prior_penalty(m.fit.structure), m, scan_surface, fine))
+            _, m, scan_surface, fine = min(results, key=lambda r: r[0])
+            options.append(Option(added=added, model=m, coarse=ranked[free][0][3], scan=scan_surface, fine=fine))
+        return options
+
+    def scan_surfaces(self, active, ctx, cand, scan, ranked, aim: Aim) -> dict:
+        """Scan surfaces for every (variant, start), merging starts that share their poles into one job.
+
+        A θ-free start needs the integer delays near its coarse best; a θ-fixed start its own delay (its
+        column, when that delay is a whole number of samples; a separate job otherwise).
+        """
+        jobs: dict[tuple, set] = {}
+        need = {}
+        for free, starts in ranked.items():
+            for i, (_, _, st_b, _) in enumerate(starts):
+                key = (st_b.taus, st_b.integrating, st_b.fixed_poles)
+                ds = st_b.delay / self.p.dt
+                if free:
+                    want = set(self.scorer.near(st_b.delay, 3).tolist())
+                elif abs(ds - round(ds)) < 1e-9:
+                    want = {int(round(ds))}
+                else:
+                    key, want = key + (ds,), None  # fractional: its own job
+                if want is None:
+                    jobs[key] = None
+                else:
+                    jobs.setdefault(key, set()).update(want)
+                need[(free, i)] = (key, want, st_b)
+        keys = list(jobs)
+        job_list = []
+        for key in keys:
+            st = next(v[2] for v in need.values() if v[0] == key)
+            job_list.append((st, None if jobs[key] is None else np.array(sorted(jobs[key]))))
+        results = dict(zip(keys, self.scorer.sse_jobs(active, ctx, cand, scan, job_list, aim)))
+        out = {}
+        for vi, (key, want, _) in need.items():
+            sse, delays = results[key]
+            cols = slice(None) if want is None else np.isin(delays, sorted(want))
+            out[vi] = self.surface(cand.name, scan, sse[:, cols].min(axis=1))
+        return out
+
+    def profile(self, model: Model, name: str) -> Surface:
+        """Cost surface of one active candidate around its final value, the others held (for intervals).
+
+        The dead time is profiled over integer samples around its value; other candidates over their
+        :meth:`~valve_emulator.diagnosis.candidates.base.Candidate.profile_grid`, with a free dead time
+        re-chosen within ±3 samples at every row (a profile, not a slice, of the likelihood) and a held one
+        held.
+        """
+        a = next(x for x in model.active if x.name == name)
+        st, aim = model.fit.structure, self.scorer.aim(model)
+        if a.candidate.kind is Kind.OUTPUT:
+            rest = replace(model, active=tuple(x for x in model.active if x is not a), target=None)
+            g = a.candidate.refine(self.scorer.ctx(model), a.params)
+            return self.surface(name, g, self.output_sse(rest, a.candidate, g))
+        if a.slot == "delay":
+            sse, delays = self.scorer.sse_flows(model.flow[:, None], st, self.scorer.near(st.delay, 6), aim)
+            return self.surface(name, delays[:, None] * self.p.dt, sse[0])
+        rest = {k: v for k, v in model.by_slot().items() if k != a.slot}
+        ctx = self.scorer.ctx(model)
+        g = a.candidate.profile_grid(ctx, a.params)
+        delays = self.scorer.near(st.delay, 3) if model.delay_free else None
+        sse, _ = self.scorer.sse_grid(rest, ctx, a.candidate, g, st, delays, aim)
+        return self.surface(name, g, sse.min(axis=1))

@@ -1,0 +1,205 @@
+r"""Scoring parameter grids: the chain, the batched linear fit and the bookkeeping every candidate search uses.
+
+:class:`Scorer` holds one problem (data, nominal model, candidate library) and answers "what is the fit-part
+SSE of every row of this parameter grid, for these linear structures and dead times?" — pushing the grid
+through the chain in chunks of :data:`_CHUNK` rows (the valve simulation is the costly part, so each chunk is
+scored for every requested structure before the next is simulated), filtering each chunk once per structure
+and solving the least-squares problems of all rows and all dead times in one compiled call.
+
+It also owns the choices that must be the same for every model of a problem:
+
+* the scored samples: the fit part starts after the largest burn-in the candidates claim (a valve's unknown
+  initial state must be forgotten before it is scored; capped at :data:`_BURN_CAP` of the record);
+* the cost domain: PV, or high-pass prefiltered PV for an integrating plant
+  (:func:`~valve_emulator.diagnosis.fit.linear.highpass`);
+* the weak prior that ties re-fitted time constants to the nominal ones
+  (:data:`~valve_emulator.diagnosis.fit.linear.PRIOR_WIDTH`);
+* the target of the linear fits: the scaled PV, or — once a model holds an ``output`` candidate — the
+  target that candidate made of it, held while the model is extended (:meth:`Scorer.aim`: an :class:`Aim`
+  passed to every call that fits, never state set from outside);
+* the error model BIC assumes. With a nominal model (``validation="split"``) it is white noise,
+  ``BIC = N ln(SSE/N) + k ln N``. Without one (``"twofold"``, plant data) the residual of even the best
+  model is strongly autocorrelated (unmeasured load disturbances are slow), and white-noise BIC would count
+  every one of N correlated samples as independent evidence; there BIC is that of an AR(1) error,
+  :math:`e_k = \rho e_{k-1} + w_k`, with ρ fitted per model (one more parameter):
+  ``BIC = N ln(SSE_w/N) + (k+1) ln N`` with ``SSE_w = Σ (r_k − ρ r_{k−1})²`` the prewhitened residual
+  (the Cochrane–Orcutt transformation; Box, Jenkins & Reinsel, *Time Series Analysis*, §9: a regression
+  with autocorrelated errors scored by its innovations). A slow mismatch the error model already
+  predicts from its own past then counts little; a mismatch at the instants a valve slips counts fully.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+import numpy as np
+
+from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
+from valve_emulator.diagnosis.fit.chain import Active, run_chain
+from valve_emulator.diagnosis.fit.data import Problem
+from valve_emulator.diagnosis.fit.linear import (
+    PRIOR_WIDTH,
+    LinearFit,
+    LinearStructure,
+    delay_grid_sse,
+    filter_inputs,
+    fit_one,
+    highpass,
+    polish,
+)
+from valve_emulator.diagnosis.fit.records import Model
+from valve_emulator.diagnosis.fit.nominal import Nominal, bic
+
+__all__ = ["Aim", "Scorer"]
+
+#: Longest burn-in (fraction of the record) that candidates' initial states may claim.
+_BURN_CAP = 0.35
+#: Grid rows pushed through the chain at once (bounds memory to a few hundred MB at 10^4 samples).
+_CHUNK = 512
+
+
+def _frac_shift(z: np.ndarray, f: float) -> np.ndarray:
+    """Columns of ``z`` (T, n) delayed by a fraction ``f`` of a sample (linear interpolation)."""
+    if f <= 0.0:
+        return z
+    out = z.copy()
+    out[1:] = (1.0 - f) * z[1:] + f * z[:-1]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Aim:
+    """What the linear part is fitted to while one model is extended or profiled.
+
+    ``y`` is in scaled PV units: the scaled PV, or the target an ``output`` candidate of the model made of it
+    (:mod:`~valve_emulator.diagnosis.fit.backfit`); ``cost`` is the same in the search's cost domain (``y``
+    itself, or high-pass prefiltered for an integrating plant).
+    """
+
+    y: np.ndarray
+    cost: np.ndarray
+
+
+class Scorer:
+    """Grid scoring for one problem (see the module docstring)."""
+
+    def __init__(self, problem: Problem, nominal: Nominal, library: dict[str, Candidate]) -> None:
+        self.p = problem
+        self.nominal = nominal
+        burn = max((c.burn_in(self.ctx(None)) for c in library.values()), default=0)
+        w0, w1 = problem.train
+        if burn > w0:  # start scoring once every candidate's unknown initial state is forgotten
+            self.p = replace(problem, train=(min(burn, int(_BURN_CAP * problem.T)), w1))
+        self.library = library
+        self.dmax = float(problem.delays.max()) * problem.dt
+        self.lam = problem.prefilter
+        self.prior = nominal.structure.taus if nominal.given else None
+
+    def aim(self, model: Model | None) -> Aim:
+        """What the linear part is fitted to while ``model`` is extended or profiled (the scaled PV unless the
+        model holds an output candidate, see :mod:`~valve_emulator.diagnosis.fit.backfit`)."""
+        y = self.p.y if model is None or model.target is None else model.target
+        return Aim(y, y if self.lam is None else highpass(y, self.lam))
+
+    def ctx(self, model: Model | None) -> ChainContext:
+        """The chain context of ``model`` (its linear part; the nominal one for None)."""
+        st = model.fit.structure if model else self.nominal.structure
+        return ChainContext(dt=self.p.dt, op=self.p.op, op_span=self.p.op_span,
+                            valve_model=self.nominal.valve_model, rest_samples=self.nominal.rest_samples,
+                            characteristic=self.nominal.characteristic,
+                            tau_plant=max(st.taus, default=10.0 * self.p.dt), delay=st.delay,
+                            pv=self.p.pv, y_scale=self.p.y_scale, y_mean=self.p.y_mean, window=self.p.train)
+
+    def chain(self, active: dict[str, Active], ctx: ChainContext, cand: Candidate | None = None,
+              grid: np.ndarray | None = None) -> np.ndarray:
+        """Flow (T, n) of the chain with ``active`` in place and ``cand`` over ``grid`` (see :func:`run_chain`)."""
+        return run_chain(self.p.op, active, ctx, nominal_valve=(self.nominal.S, self.nominal.J),
+                         grid_candidate=cand, grid=grid)
+
+    def model(self, active: dict[str, Active], fit: LinearFit, delay_free: bool, flow: np.ndarray, *,
+              target: np.ndarray) -> Model:
+        """Score a fitted model: BIC from the fit-part SSE of ``fit`` (the search domain: prefiltered PV
+        when the problem says so), the held-out fit from a PV-domain fit at the same structure.
+
+        ``target`` is what ``fit`` was fitted to (scaled PV units, e.g. ``aim.y``); with an ``output``
+        candidate in ``active`` the prediction is the candidate's of the linear part's. Without a held-out
+        part (two-fold validation) ``heldout`` is NaN until :mod:`~valve_emulator.diagnosis.fit.crossval` fills it.
+        """
+        acts = []
+        for a in active.values():
+            if a.slot == "delay":  # the dead-time candidate's parameter is the fitted dead time
+                a = Active(a.candidate, np.array([fit.structure.delay]))
+            acts.append(a)
+        k = fit.structure.n_params() + int(delay_free) + sum(
+            a.candidate.n_params for a in acts if a.slot != "delay")
+        level = fit if self.lam is None else fit_one(flow, target, self.p.train, fit.structure, self.p.dt)
+        y_hat = level.predict(flow, self.p.dt)
+        out = active.get("output")
+        if out is not None:
+            y_hat = out.candidate.predict(y_hat, out.params, self.ctx(None))
+        if self.p.validation == "split":
+            score, heldout = bic(fit.sse, fit.n, k), self.p.heldout_fit(y_hat)
+        else:
+            score, heldout = self._ar1_bic(target - level.predict(flow, self.p.dt), k), float("nan")
+        return Model(active=tuple(acts), fit=level, delay_free=delay_free, k=k, bic=score, heldout=heldout,
+                     y_hat=y_hat, flow=flow, target=target if out is not None else None)
+
+    def _ar1_bic(self, residual: np.ndarray, k: int) -> float:
+        """BIC under an AR(1) error (see the module docstring), on the fit part, in the search's domain."""
+        r = residual if self.lam is None else highpass(residual, self.lam)
+        w0, w1 = self.p.train
+        r = r[w0:w1]
+        den = float(r[:-1] @ r[:-1])
+        rho = float(np.clip(r[1:] @ r[:-1] / den, -0.999, 0.999)) if den > 0 else 0.0
+        w = r[1:] - rho * r[:-1]
+        return bic(float(w @ w), w.size, k + 1)
+
+    def prior_penalty(self, st: LinearStructure) -> float:
+        """The weak prior of :func:`~valve_emulator.diagnosis.fit.linear.polish`, for comparing pole sets."""
+        if self.prior is None or len(self.prior) != len(st.taus) or not st.taus:
+            return 0.0
+        d = np.sort(np.log(st.taus)) - np.sort(np.log(self.prior))
+        return float(np.sum((d / PRIOR_WIDTH) ** 2))
+
+    def polish(self, flow: np.ndarray, st: LinearStructure, free: bool, aim: Aim) -> LinearFit:
+        """The linear part driven by ``flow`` polished from ``st`` (a free dead time too when ``free``)."""
+        return polish(flow, aim.y, self.p.train, st, self.p.dt, **self.polish_kw(free))
+
+    def polish_kw(self, free: bool) -> dict:
+        """The keyword arguments of every polish of this problem (dead-time bounds, prefilter, prior)."""
+        return dict(free_delay=free, delay_bounds=(0.0, self.dmax), prefilter=self.lam, prior=self.prior)
+
+    def sse_flows(self, flows: np.ndarray, st: LinearStructure, delays: np.ndarray | None, aim: Aim) -> tuple:
+        """SSE (n, nd) for chain outputs ``flows`` (T, n) and the delays searched (samples).
+
+        ``delays=None`` holds the structure's own (possibly fractional) dead time.
+        """
+        z = filter_inputs(flows, st, self.p.dt)
+        if self.lam is not None:
+            z = highpass(z, self.lam)
+        if delays is None:
+            ds = st.delay / self.p.dt
+            m = int(np.floor(ds + 1e-9))
+            z, delays = _frac_shift(z, ds - m), np.array([m])
+        return delay_grid_sse(z, aim.cost, self.p.train, delays, st, prefiltered=self.lam is not None), delays
+
+    def sse_grid(self, active, ctx, cand, grid, st, delays, aim: Aim) -> tuple:
+        """:meth:`sse_flows` for a parameter grid, in chunks of :data:`_CHUNK` rows (bounded memory)."""
+        return self.sse_jobs(active, ctx, cand, grid, [(st, delays)], aim)[0]
+
+    def sse_jobs(self, active, ctx, cand, grid, jobs, aim: Aim) -> list[tuple]:
+        """Several ``(structure, delays)`` evaluations of one grid in one pass: each chunk of rows is pushed
+        through the chain once (the valve simulation is the costly part) and scored for every job."""
+        parts: list[list] = [[] for _ in jobs]
+        used: list = [None] * len(jobs)
+        for a in range(0, grid.shape[0], _CHUNK):
+            flows = self.chain(active, ctx, cand, grid[a:a + _CHUNK])
+            for i, (st, delays) in enumerate(jobs):
+                sse, used[i] = self.sse_flows(flows, st, delays, aim)
+                parts[i].append(sse)
+        return [(np.vstack(p), u) for p, u in zip(parts, used)]
+
+    def near(self, d: float, r: int) -> np.ndarray:
+        """Whole-sample dead times of the problem's grid within ``r`` samples of ``d`` (s)."""
+        d0 = int(round(d / self.p.dt))
+        lo, hi = int(self.p.delays.min()), int(self.p.delays.max())
+        return np.arange(max(lo, d0 - r), min(hi, d0 + r) + 1)

@@ -1,0 +1,115 @@
+r"""The public result of :func:`valve_emulator.diagnose`: the answer, the findings and the fitted model.
+
+One type for both questions. With a model, a :class:`Diagnosis` wraps the explain step's
+:class:`~valve_emulator.diagnosis.report.explanation.Explanation` (*what does my model leave out?*); on plant
+data without one it also holds the :class:`~valve_emulator.diagnosis.report.assessment.Assessment` (*is this
+valve sticky?*), whose explanation is the same object. Everything else is read through: the
+:class:`~valve_emulator.diagnosis.answers.Answer`, the findings, the held-out fits, the JSON, the Markdown
+report, the figure and :meth:`Diagnosis.predict`, a free run of the fitted loop on any OP.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Strength
+from valve_emulator.diagnosis.report.assessment import Assessment
+from valve_emulator.diagnosis.report.explanation import Explanation, Finding
+from valve_emulator.recordings.recording import Recording
+
+__all__ = ["Diagnosis"]
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Diagnosis:
+    """What :func:`valve_emulator.diagnose` found (see the module docstring).
+
+    Attributes
+    ----------
+    recording : the recording diagnosed (on a uniform grid).
+    explanation : the explain step's record (None when plant data could not support a model at all).
+    assessment : the plant-data answer (None when a model was given).
+    notes : what was done to the data on the way in (reader notes, resampling).
+    """
+
+    recording: Recording
+    explanation: Explanation | None
+    assessment: Assessment | None = None
+    notes: tuple[str, ...] = ()
+
+    # -- the answer ---------------------------------------------------------------------------------------
+    @property
+    def source(self) -> str:
+        return self.recording.source or "recording"
+
+    @property
+    def answer(self) -> Answer:
+        """Stiction, no stiction or cannot tell. Without a model: the plant-data rule's answer. With one: stiction
+        when a valve-friction finding (:data:`VALVE_FRICTION`) was accepted, else no stiction."""
+        if self.assessment is not None:
+            return self.assessment.decision
+        return Answer.STICTION if any(f.physics in VALVE_FRICTION for f in self.findings) else Answer.NO_STICTION
+
+    @property
+    def strength(self) -> Strength | None:
+        """For a stiction answer on plant data, whether it survives a drifting-load noise model."""
+        return None if self.assessment is None else self.assessment.strength
+
+    @property
+    def findings(self) -> tuple[Finding, ...]:
+        return () if self.explanation is None else self.explanation.findings
+
+    @property
+    def fit_before(self) -> float | None:
+        """Held-out free-run fit (%) of the nominal (or identified linear) model; None without an explanation."""
+        return None if self.explanation is None else self.explanation.fit_before
+
+    @property
+    def fit_after(self) -> float | None:
+        """Held-out free-run fit (%) of the final model; None without an explanation."""
+        return None if self.explanation is None else self.explanation.fit_after
+
+    @property
+    def verdict(self) -> str:
+        """The sentence the command line prints."""
+        return self.assessment.verdict if self.assessment is not None else self.explanation.verdict
+
+    # -- the fitted model -----------------------------------------------------------------------------------
+    def predict(self, op) -> np.ndarray:
+        """Free-run PV (engineering units) of the fitted loop — linear part plus the found physics — for the
+        controller output ``op`` (% travel, sampled at the recording's step).
+
+        On the recorded OP it is the prediction whose held-out fit is :attr:`fit_after`.
+        """
+        if self.explanation is None:
+            reason = "" if self.assessment is None else f" ({self.assessment.reason})"
+            raise ValueError(f"{self.source}: no model was fitted: the data could not support one{reason}")
+        return self.explanation.predict(op)
+
+    # -- output ---------------------------------------------------------------------------------------------
+    def to_json(self) -> dict:
+        """``fit_before``, ``fit_after``, ``findings`` and ``verdict`` (the ``diagnose --json`` file)."""
+        return self.assessment.to_json() if self.assessment is not None else self.explanation.to_json()
+
+    def report(self, *, figure: str | None = None) -> str:
+        """A Markdown report (``figure``: a path to link, relative to the report), with the notes on the data."""
+        text = (self.assessment or self.explanation).report(figure=figure)
+        if self.notes:
+            lines = "".join(f"- note: {n}\n" for n in self.notes)
+            text = text.replace("\n\n", "\n\n" + lines + "\n", 1)
+        return text
+
+    def plot(self, path: str | os.PathLike, *, title: str | None = None) -> None:
+        """Write the figure (PNG): the diagnosis' four panels, or, when the data could not support a model,
+        the loop's data and the reason."""
+        if self.explanation is not None:
+            from valve_emulator.diagnosis.report.plot import plot_diagnosis
+
+            plot_diagnosis(self.explanation, path)
+        else:
+            from valve_emulator.diagnosis.report.plot_loop import plot_loop
+
+            plot_loop(self.recording, self.assessment, path, title=self.source if title is None else title)

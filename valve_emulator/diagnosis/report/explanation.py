@@ -1,0 +1,190 @@
+r"""What the explain step found: findings, the JSON, the verdict sentence and the Markdown report.
+
+An :class:`Explanation` is a frozen record (the fitting machine is
+:class:`~valve_emulator.diagnosis.explain.search.Search`) that keeps the fitted model
+(:class:`~valve_emulator.diagnosis.fit.predict.FittedLoop`). :meth:`Explanation.to_json` returns exactly the
+keys ``fit_before``, ``fit_after``, ``findings`` (each ``physics``, ``parameters``, ``windows``, ``evidence``)
+and ``verdict``; everything else (intervals, rankings, the linear part) goes to :meth:`Explanation.report`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from valve_emulator.diagnosis.explain.locate import Located
+from valve_emulator.diagnosis.fit.predict import FittedLoop
+
+__all__ = ["Finding", "RankRow", "Traces", "Explanation", "verdict"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Finding:
+    """One piece of physics the nominal model leaves out, fitted.
+
+    Attributes
+    ----------
+    physics : vocabulary word (``stiction``, ``deadband``, ``dead_time``, ``characteristic``,
+        ``actuator_lag``).
+    parameters : the JSON parameters (their keys are part of the JSON output).
+    windows : ``(t_start, t_end)`` (s) where adding it reduces the residual most.
+    evidence : one sentence: BIC, held-out fit, interval, where the improvement lies.
+    description : phrase for the verdict.
+    intervals : 95 % profile intervals per parameter name.
+    delta_bic, fit_without, fit_with : the test it passed.
+    load_delta_bic : for a valve finding on plant data (no nominal model), ΔBIC again under a drifting-load
+        noise model (:mod:`~valve_emulator.diagnosis.fit.load_check`); None otherwise.
+    """
+
+    physics: str
+    parameters: dict
+    windows: tuple[tuple[float, float], ...]
+    evidence: str
+    description: str
+    intervals: dict = field(default_factory=dict)
+    delta_bic: float = 0.0
+    fit_without: float = 0.0
+    fit_with: float = 0.0
+    load_delta_bic: float | None = None
+
+    def to_json(self) -> dict:
+        return {"physics": self.physics, "parameters": dict(self.parameters),
+                "windows": [[round(a, 6), round(b, 6)] for a, b in self.windows], "evidence": self.evidence}
+
+
+@dataclass(frozen=True, kw_only=True)
+class RankRow:
+    """One option of one round of the search, for the ranking table."""
+
+    round: int
+    option: str
+    parameters: str
+    delta_bic: float
+    heldout: float
+    chosen: bool
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Traces:
+    """Signals for the figure (PV units, % travel, s)."""
+
+    t: np.ndarray
+    op: np.ndarray
+    pv: np.ndarray
+    pv_before: np.ndarray
+    pv_base: np.ndarray
+    pv_after: np.ndarray
+    mv_after: np.ndarray
+    flow_after: np.ndarray
+    test_start: int
+    surface: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # S, J, ΔBIC over (S, J)
+    surface_best: tuple[float, float] | None = None
+
+
+def verdict(findings: tuple[Finding, ...], fit_before: float, fit_after: float, *, given: bool) -> str:
+    """The plain-language verdict (see the module docstring of :mod:`valve_emulator.diagnosis`)."""
+    subject = "the model" if given else "the linear model identified from the data"
+    if not findings:
+        return (f"no significant mismatch: no candidate physics improves {subject} significantly "
+                f"(held-out fit {fit_after:.0f} %)")
+    parts = [f.description for f in findings]
+    what = parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
+    return f"{subject} leaves out {what}; fit {fit_before:.0f} % → {fit_after:.0f} %"
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.4g}"
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Explanation:
+    """Everything the explain step found (see the module docstring).
+
+    Attributes
+    ----------
+    source : the recording's name.
+    given : whether a nominal model was given (else the linear part was identified from the data).
+    fit_before, fit_base, fit_after : held-out free-run fits (%) of the nominal model, of the nominal chain
+        with the linear part re-fitted, and of the final model.
+    findings : the accepted physics, in the order accepted.
+    located : where the nominal model's residual concentrates.
+    linear : the linear part's table for the report, nominal against re-fitted.
+    ranking : every option of every round.
+    traces : signals for the figure.
+    rule : the significance rule, in words.
+    seconds : wall time.
+    plant : the fitted linear part, numerically: gain (PV/%), taus, delay, integrating, validation.
+    fitted : the final model, replayable on any OP (:meth:`predict`).
+    """
+
+    source: str
+    given: bool
+    fit_before: float
+    fit_base: float
+    fit_after: float
+    findings: tuple[Finding, ...]
+    located: Located
+    linear: dict
+    ranking: tuple[RankRow, ...]
+    traces: Traces
+    rule: str
+    seconds: float = 0.0
+    plant: dict = field(default_factory=dict)
+    fitted: FittedLoop | None = None
+
+    @property
+    def verdict(self) -> str:
+        return verdict(self.findings, self.fit_before, self.fit_after, given=self.given)
+
+    def predict(self, op) -> np.ndarray:
+        """Free-run PV of the fitted loop for ``op`` (see
+        :meth:`~valve_emulator.diagnosis.fit.predict.FittedLoop.predict`)."""
+        if self.fitted is None:
+            raise ValueError(f"{self.source}: this explanation keeps no fitted model")
+        return self.fitted.predict(op)
+
+    def to_json(self) -> dict:
+        """The JSON, exactly: ``fit_before``, ``fit_after``, ``findings``, ``verdict``."""
+        return {"fit_before": round(self.fit_before, 2), "fit_after": round(self.fit_after, 2),
+                "findings": [f.to_json() for f in self.findings], "verdict": self.verdict}
+
+    def report(self, *, figure: str | None = None) -> str:
+        """A Markdown report; ``figure`` is a path to link (relative to the report)."""
+        out = [f"# Diagnosis of `{self.source}`", "", f"**Verdict:** {self.verdict}.", ""]
+        nominal = "nominal model as given (operating point fitted)" if self.given else \
+            "linear model identified from the data (linear valve)"
+        out += ["| model | free-run fit on the held-out part |", "|---|---|",
+                f"| {nominal} | {self.fit_before:.1f} % |",
+                f"| nominal chain, linear part re-fitted | {self.fit_base:.1f} % |",
+                f"| with the findings | {self.fit_after:.1f} % |", ""]
+        out += ["## Findings", ""]
+        if not self.findings:
+            out += ["None: no candidate passed the significance rule below.", ""]
+        for i, f in enumerate(self.findings, 1):
+            params = ", ".join(f"{k} = {v}" for k, v in f.parameters.items())
+            ivs = "; ".join(f"{k} {_fmt(a)} – {_fmt(b)}" for k, (a, b) in f.intervals.items())
+            shown = ", ".join(f"[{a:.5g}, {b:.5g}]" for a, b in f.windows[:6])
+            more = f" and {len(f.windows) - 6} more" if len(f.windows) > 6 else ""
+            out += [f"### {i}. `{f.physics}`", "", f"- parameters: {params}"]
+            if ivs:
+                out.append(f"- 95 % intervals (profile of the cost surface): {ivs}")
+            out += [f"- evidence: {f.evidence}", f"- windows (s): {shown or 'none'}{more}", ""]
+        loc = self.located
+        out += ["## Where the nominal model's residual concentrates", "",
+                f"The {len(loc.windows)} strongest window(s) hold {100 * loc.energy_share:.0f} % of the residual "
+                f"energy in {100 * loc.time_share:.0f} % of the time: "
+                + ", ".join(f"[{a:.5g}, {b:.5g}]" for a, b in loc.windows) + " s.", "",
+                "| condition | share of residual energy | share of time | lift |", "|---|---|---|---|"]
+        out += [f"| {a.condition} | {100 * a.energy_share:.0f} % | {100 * a.time_share:.0f} % | {a.lift:.2f} |"
+                for a in loc.alignments]
+        out += ["", "## Linear part", "", "| | nominal | re-fitted |", "|---|---|---|"]
+        out += [f"| {k} | {v[0]} | {v[1]} |" for k, v in self.linear.items()]
+        out += ["", "## Candidate ranking", "", self.rule, "",
+                "| round | option | parameters | ΔBIC | held-out fit | chosen |", "|---|---|---|---|---|---|"]
+        out += [f"| {r.round} | {r.option} | {r.parameters} | {r.delta_bic:.0f} | {r.heldout:.1f} % | "
+                f"{'yes' if r.chosen else ''} |" for r in self.ranking]
+        if figure:
+            out += ["", f"![diagnosis figure]({figure})"]
+        out += ["", f"_Computed in {self.seconds:.1f} s._", ""]
+        return "\n".join(out)

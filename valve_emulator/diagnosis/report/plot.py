@@ -1,0 +1,96 @@
+r"""The diagnosis figure (PNG, matplotlib's Agg backend; nothing is shown on screen).
+
+Four panels:
+
+1. the nominal model's residual over the whole record, the located windows shaded, the held-out part marked;
+2. recorded PV against the nominal replay and the final model on a stretch of the held-out part;
+3. MV against OP of the fitted valve (the model's valve position; the recording has none), or flow against
+   OP when the finding is a flow characteristic;
+4. the cost surface over (S, J) of the stiction search, as ΔBIC against its best point, with the estimate.
+"""
+
+from __future__ import annotations
+
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")  # a file-only backend: works without a display, in tests and on servers
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import LogNorm  # noqa: E402
+
+from valve_emulator.diagnosis.report.explanation import Explanation  # noqa: E402
+
+__all__ = ["plot_diagnosis"]
+
+# How much of the held-out part the PV panel shows: enough for a few cycles, few enough to see them.
+_SHOW = 600
+
+
+def _stretch(d: Explanation) -> slice:
+    tr = d.traces
+    a = tr.test_start
+    return slice(a, min(tr.t.size, a + _SHOW))
+
+
+def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
+    """Write the four-panel figure of ``d`` to ``path`` (PNG)."""
+    tr = d.traces
+    fig, axes = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
+    fig.suptitle(d.verdict, fontsize=10)
+
+    ax = axes[0, 0]
+    ax.plot(tr.t, tr.pv - tr.pv_before, lw=0.6, color="tab:red")
+    for a, b in d.located.windows:
+        ax.axvspan(a, b, color="tab:orange", alpha=0.3, lw=0)
+    ax.axvline(tr.t[tr.test_start], color="k", ls="--", lw=0.8)
+    ax.text(tr.t[tr.test_start], ax.get_ylim()[1], " held out →", va="top", fontsize=8)
+    ax.set(title="Residual of the nominal model (windows shaded)", xlabel="t (s)", ylabel="PV − simulated PV")
+
+    ax = axes[0, 1]
+    s = _stretch(d)
+    ax.plot(tr.t[s], tr.pv[s], color="0.55", lw=0.8, label="recorded PV")
+    ax.plot(tr.t[s], tr.pv_before[s], color="tab:red", ls="--", lw=1.0,
+            label=f"nominal model, fit {d.fit_before:.0f} %")
+    ax.plot(tr.t[s], tr.pv_after[s], color="tab:blue", lw=1.2, label=f"with the findings, fit {d.fit_after:.0f} %")
+    ax.set(title="Held-out part: recorded vs simulated PV", xlabel="t (s)", ylabel="PV")
+    ax.legend(fontsize=8, loc="best")
+
+    ax = axes[1, 0]
+    k = slice(max(0, tr.t.size - 2 * _SHOW), tr.t.size)
+    found = {f.physics for f in d.findings}
+    if "characteristic" in found:  # the finding lives on the flow axis: show the fitted curve
+        order = np.argsort(tr.op)
+        ax.plot(tr.op[order], tr.flow_after[order], color="tab:blue", lw=1.2, label="fitted valve")
+        ax.set(title="Fitted valve: flow against OP", xlabel="OP (%)", ylabel="flow (% of maximum)")
+    else:
+        ax.plot(tr.op[k], tr.mv_after[k], color="tab:blue", lw=0.8, label="fitted valve")
+        ax.set(title="Fitted valve: MV against OP (last part of the record)", xlabel="OP (%)",
+               ylabel="MV (%)")
+    lo, hi = float(np.min(tr.op[k])), float(np.max(tr.op[k]))
+    ax.plot([lo, hi], [lo, hi], color="0.6", ls=":", lw=1.0, label="nominal (linear, MV = OP)")
+    ax.legend(fontsize=8, loc="best")
+
+    ax = axes[1, 1]
+    if tr.surface is None:
+        ax.text(0.5, 0.5, "stiction not searched", ha="center", va="center", transform=ax.transAxes)
+        ax.set_axis_off()
+    else:
+        S, J, cost = tr.surface
+        shown = np.ma.masked_invalid(cost + 1.0)  # +1: a log colour scale that starts at the best point
+        mesh = ax.pcolormesh(S, J, shown, shading="nearest", cmap="viridis_r",
+                             norm=LogNorm(vmin=1.0, vmax=max(10.0, float(np.nanmax(cost)) + 1.0)))
+        fig.colorbar(mesh, ax=ax, label="ΔBIC + 1 (log scale)")
+        ax.plot(S, S, color="w", lw=0.8, ls=":")
+        ax.text(S[-1], S[-1], " J = S", color="w", fontsize=8, va="bottom", ha="right")
+        accepted = "stiction" in {f.physics for f in d.findings}
+        if tr.surface_best is not None:
+            ax.plot(*tr.surface_best, marker="x", color="r", ms=10, mew=2,
+                    label="estimate" if accepted else "best of the search (not accepted)")
+            ax.legend(fontsize=8, loc="upper left")
+        ax.set(title="Stiction cost surface over (S, J)" + ("" if accepted else " — stiction not accepted"),
+               xlabel="S (% travel)", ylabel="J (% travel)", ylim=(J[0], J[-1]))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,76 @@
+r"""One loop's assessment as a figure (PNG, matplotlib's Agg backend): the data, and why the answer is what it is.
+
+Three panels:
+
+1. OP (left axis) and PV with its set point (right axis) over time — where a stuck valve, a cycle or a
+   flat PV shows;
+2. PV against OP, coloured by time — a sticky valve draws a parallelogram, a linear valve a line;
+3. the recorded PV against the final model's replay (and the linear model's) when there is a diagnosis,
+   otherwise the refusal's reason.
+
+The title holds the label (when given), the answer and its reason.
+"""
+
+from __future__ import annotations
+
+import os
+import textwrap
+
+import matplotlib
+
+matplotlib.use("Agg")  # a file-only backend: works without a display, in tests and on servers
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from valve_emulator.diagnosis.report.assessment import Assessment  # noqa: E402
+from valve_emulator.recordings.recording import Recording  # noqa: E402
+
+__all__ = ["plot_loop"]
+
+
+def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: str = "") -> None:
+    """Write the three-panel figure of ``a`` (on recording ``rec``) to ``path``."""
+    fig = plt.figure(figsize=(13, 8.5), constrained_layout=True)
+    grid = fig.add_gridspec(2, 2, height_ratios=(1.0, 1.1))
+    head = (title + "\n" if title else "") + "\n".join(textwrap.wrap(f"{a.decision}: {a.reason}", 150))
+    fig.suptitle(head, fontsize=9)
+
+    ax = fig.add_subplot(grid[0, :])
+    ax.plot(rec.t, rec.op, color="tab:blue", lw=0.8, label="OP (%)")
+    ax.set(xlabel="t (s)", ylabel="OP (%)")
+    ax2 = ax.twinx()
+    ax2.plot(rec.t, rec.pv, color="tab:red", lw=0.8, label="PV")
+    if rec.has_sp:
+        ax2.plot(rec.t, rec.sp, color="k", ls="--", lw=0.7, label="SP")
+    ax2.set_ylabel("PV")
+    lines = ax.get_lines() + ax2.get_lines()
+    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="upper left")
+    ax.set_title("The recording", fontsize=10)
+
+    ax = fig.add_subplot(grid[1, 0])
+    sc = ax.scatter(rec.op, rec.pv, c=rec.t, s=4, cmap="viridis")
+    fig.colorbar(sc, ax=ax, label="t (s)")
+    ax.set(xlabel="OP (%)", ylabel="PV", title="PV against OP")
+
+    ax = fig.add_subplot(grid[1, 1])
+    d = a.diagnosis
+    if d is None:
+        ax.text(0.5, 0.5, "\n".join(textwrap.wrap(f"no model: {a.reason}", 60)), ha="center", va="center",
+                transform=ax.transAxes, fontsize=9)
+        ax.set_axis_off()
+    else:
+        tr = d.traces
+        ax.plot(tr.t, tr.pv, color="0.55", lw=0.8, label="recorded PV")
+        ax.plot(tr.t, tr.pv_base, color="tab:red", ls="--", lw=1.0,
+                label=f"linear valve and plant, fit {d.fit_base:.0f} %")
+        if d.findings:
+            names = ", ".join(f.physics for f in d.findings)
+            ax.plot(tr.t, tr.pv_after, color="tab:blue", lw=1.1, label=f"with {names}, fit {d.fit_after:.0f} %")
+        lo, hi = np.percentile(tr.pv, [0.5, 99.5])
+        pad = 0.5 * max(hi - lo, 1e-9)
+        ax.set_ylim(lo - pad, hi + pad)
+        ax.set(xlabel="t (s)", ylabel="PV", title="Replay of the recorded OP (fits cross-validated)")
+        ax.legend(fontsize=8, loc="best")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
