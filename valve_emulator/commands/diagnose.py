@@ -65,27 +65,8 @@ def _progress(quiet: bool):
     return say
 
 
-def _mapped(args: argparse.Namespace) -> bool:
-    return (any(getattr(args, k) is not None for k in ("op", "pv", "sp", "time", "ts")) or args.skip
-            or args.decimal != "." or args.op_units != "%" or args.encoding.lower().replace("-", "") != "utf8")
-
-
-def _format(args: argparse.Namespace) -> str:
-    """The reader format: as given, except that a comma-separated header starting with ``t`` is the project's
-    standard recording when no mapping is asked for (so a missing standard column is reported as such)."""
-    if args.fmt != "auto" or _mapped(args):
-        return args.fmt
-    try:
-        with open(args.recording, encoding="utf-8", errors="replace") as fh:
-            first = fh.readline()
-    except OSError:
-        return args.fmt  # the reader reports it
-    cells = [c.strip() for c in first.removeprefix("\ufeff").split(",")]
-    return "standard" if len(cells) > 1 and cells[0] == "t" else args.fmt
-
-
 def _reader_options(args: argparse.Namespace) -> dict:
-    return dict(fmt=_format(args), op=args.op, pv=args.pv, sp=args.sp, time=args.time, ts=args.ts, skip=args.skip,
+    return dict(fmt=args.fmt, op=args.op, pv=args.pv, sp=args.sp, time=args.time, ts=args.ts, skip=args.skip,
                 decimal=args.decimal, op_units=args.op_units, pv_units=args.pv_units, encoding=args.encoding)
 
 
