@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from valve_emulator.benchmark.cases import CASES, Case, generate
 from valve_emulator.diagnosis.explain.pipeline import RULE, explain
-from valve_emulator.diagnosis.report.explanation import Explanation
+from valve_emulator.diagnosis.explain.result import Explanation
 
 __all__ = ["CASES", "CaseResult", "run_case", "table_text", "table_markdown", "proof_markdown"]
 

@@ -50,8 +50,8 @@ from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningA
 from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.data import UninformativeData
-from valve_emulator.diagnosis.report.assessment import Assessment
-from valve_emulator.diagnosis.report.explanation import Explanation, Finding
+from valve_emulator.diagnosis.assess.result import Assessment
+from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 

@@ -22,7 +22,7 @@ from valve_emulator.diagnosis.fit.load_check import load_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.scorer import Scorer
 from valve_emulator.diagnosis.fit.uncertainty import intervals
-from valve_emulator.diagnosis.report.explanation import Finding
+from valve_emulator.diagnosis.explain.result import Finding
 
 __all__ = ["findings", "param_text", "stiction_surface"]
 

@@ -43,7 +43,7 @@ from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.diagnosis.fit.scorer import Scorer
-from valve_emulator.diagnosis.report.explanation import Explanation, RankRow, Traces
+from valve_emulator.diagnosis.explain.result import Explanation, RankRow, Traces
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["explain", "RULE", "RULE_TWOFOLD"]

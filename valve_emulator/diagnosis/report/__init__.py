@@ -1,6 +1,7 @@
-"""What a diagnosis hands back: frozen result records, their JSON and Markdown, and the figures.
+"""What a diagnosis hands back: the public result, its JSON and Markdown, and the figures.
 
-:mod:`.explanation` (findings, the explain step's record, the verdict sentence), :mod:`.assessment` (the
-answer for a plant loop), :mod:`.diagnosis` (the public result of :func:`valve_emulator.diagnose`, with the
-fitted model), :mod:`.plot` and :mod:`.plot_loop` (figures).
+:mod:`.diagnosis` (the public result of :func:`valve_emulator.diagnose`, with the fitted model), built
+from the explain step's record (:mod:`valve_emulator.diagnosis.explain.result`: findings, verdict) and the
+assess step's (:mod:`valve_emulator.diagnosis.assess.result`: the answer for a plant loop); :mod:`.plot`
+and :mod:`.plot_loop` (figures).
 """

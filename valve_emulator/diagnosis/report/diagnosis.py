@@ -1,8 +1,8 @@
 r"""The public result of :func:`valve_emulator.diagnose`: the answer, the findings and the fitted model.
 
 One type for both questions. With a model, a :class:`Diagnosis` wraps the explain step's
-:class:`~valve_emulator.diagnosis.report.explanation.Explanation` (*what does my model leave out?*); on plant
-data without one it also holds the :class:`~valve_emulator.diagnosis.report.assessment.Assessment` (*is this
+:class:`~valve_emulator.diagnosis.explain.result.Explanation` (*what does my model leave out?*); on plant
+data without one it also holds the :class:`~valve_emulator.diagnosis.assess.result.Assessment` (*is this
 valve sticky?*), whose explanation is the same object. Everything else is read through: the
 :class:`~valve_emulator.diagnosis.answers.Answer`, the findings, the held-out fits, the JSON, the Markdown
 report, the figure and :meth:`Diagnosis.predict`, a free run of the fitted loop on any OP.
@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Strength
-from valve_emulator.diagnosis.report.assessment import Assessment
-from valve_emulator.diagnosis.report.explanation import Explanation, Finding
+from valve_emulator.diagnosis.assess.result import Assessment
+from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["Diagnosis"]

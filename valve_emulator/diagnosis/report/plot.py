@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
-from valve_emulator.diagnosis.report.explanation import Explanation  # noqa: E402
+from valve_emulator.diagnosis.explain.result import Explanation  # noqa: E402
 
 __all__ = ["plot_diagnosis"]
 

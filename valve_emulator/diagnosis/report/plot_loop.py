@@ -23,7 +23,7 @@ matplotlib.use("Agg")  # a file-only backend: works without a display, in tests 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from valve_emulator.diagnosis.report.assessment import Assessment  # noqa: E402
+from valve_emulator.diagnosis.assess.result import Assessment  # noqa: E402
 from valve_emulator.recordings.recording import Recording  # noqa: E402
 
 __all__ = ["plot_loop"]

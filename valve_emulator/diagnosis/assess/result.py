@@ -1,7 +1,7 @@
 r"""The answer for one plant loop: stiction, no stiction (and why) or cannot tell (and why).
 
 An :class:`Assessment` is the frozen record :func:`~valve_emulator.diagnosis.assess.decision.assess` returns;
-it composes the explain step's :class:`~valve_emulator.diagnosis.report.explanation.Explanation` (when the data
+it composes the explain step's :class:`~valve_emulator.diagnosis.explain.result.Explanation` (when the data
 could support one) with the answer, its cause and reason, and the checks behind it.
 """
 
@@ -13,7 +13,7 @@ from valve_emulator.diagnosis.answers import Answer, Strength
 from valve_emulator.diagnosis.assess.adequacy import Adequacy
 from valve_emulator.diagnosis.candidates.tuning import TuningAssessment
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
-from valve_emulator.diagnosis.report.explanation import Explanation
+from valve_emulator.diagnosis.explain.result import Explanation
 
 __all__ = ["Assessment"]
 
