@@ -85,7 +85,8 @@ BASH = [(p, ln, src) for p in DOCUMENTS for ln, src in blocks(p, "bash")]
 def test_shell_snippets_run(path, line, src, tmp_path):
     """A ``bash`` block runs as written (``sh`` blocks are for other machines: systemd, another host), in a
     scratch folder, on a free port instead of 5020; servers it starts in the background are stopped after."""
-    script = "set -euo pipefail\n" + src.replace("5020", str(_free_port())) + "\nkill $(jobs -p) 2>/dev/null || true\n"
+    script = ("set -euo pipefail\ntrap 'kill $(jobs -p) 2>/dev/null || true' EXIT\n"
+              + src.replace("5020", str(_free_port())))
     proc = subprocess.Popen(["bash", "-c", script], cwd=_workdir(tmp_path), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True,
                             env={**os.environ, "MPLBACKEND": "Agg"})
