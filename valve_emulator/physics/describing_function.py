@@ -22,7 +22,7 @@ back by ``S``. Its first harmonic divided by the input's, ``N(A)``, does not dep
 The valve sticks at each peak of OP and slips when OP has come back by ``S``, to ``+-(A - S)``: at phase
 ``phi`` before OP's next crossing of its mean. The formula holds on the whole range ``A > S/2``, including
 ``S/2 < A < S`` where ``phi`` is negative (the valve slips only after OP has crossed its mean); this was
-checked against the ``"kano"`` state machine to about 1e-5 relative (``tests/test_describing_function.py``).
+checked against the ``"kano"`` state machine to about 1e-5 relative (``tests/physics/test_describing_function.py``).
 
 Limits worth knowing: ``J = 0`` gives the classical backlash describing function (``N -> 0`` as
 ``A -> S/2``); for ``J > 0``, ``N(S/2^+) = -2jJ/(\pi A)``, the square wave of height ``J`` that a valve

@@ -23,7 +23,7 @@ from valve_emulator.recordings.recording import read_csv
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "table1" / "concentration_undershoot.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "table1" / "concentration_undershoot.yaml"
 SCALE, DURATION, STEP = 40.0, 640.0, 1.0
 
 

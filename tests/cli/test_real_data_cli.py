@@ -11,7 +11,7 @@ from datetime import datetime, timedelta
 
 import numpy as np
 import pytest
-from test_real_data_physics import STEPS_300, simulate
+from historian import STEPS_300, simulate
 
 from valve_emulator.cli import main
 from valve_emulator.recordings.recording import Recording, write_csv
@@ -99,7 +99,7 @@ BAD_INPUT = {
     "column that does not exist": (b"t,op,pv\n" + b"".join(f"{k},50,{k % 7}\n".encode() for k in range(300)),
                                    ["--format", "csv", "--op", "VALVE"],
                                    r"op='VALVE': no such column; the columns are 1: 't', 2: 'op', 3: 'pv'"),
-    "mixed encodings": ("t;op;pv;备注\n".encode("utf-8") + b"0;50;1;ok\n1;50;1;caf\xe9\n", ["--ts", "1"],
+    "mixed encodings": ("t;op;pv;备注\n".encode() + b"0;50;1;ok\n1;50;1;caf\xe9\n", ["--ts", "1"],
                         r"line 3: not UTF-8 text at byte offset .*mixes encodings"),
 }
 

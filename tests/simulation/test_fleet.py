@@ -14,7 +14,7 @@ from valve_emulator.config.schema import MAX_BLOCKS
 from valve_emulator.device.registers import MAX_BLOCKS as MAP_MAX_BLOCKS
 from valve_emulator.simulation.loop import LoopBank
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "config.md"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "config.md"
 BASE = {"valve": {"S": 4.0, "J": 1.0}, "plant": {"fopdt": {"gain": 1.0, "tau": 15.0, "delay": 2.0}},
         "controller": {"kc": 0.5, "ti": 15.0}}
 VARY = {"S": [2.0, 6.0], "J": [0.0, 3.0], "gain": [0.5, 2.0], "delay": [0.0, 5.0]}

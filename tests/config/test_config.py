@@ -16,7 +16,7 @@ from valve_emulator.config import (
 )
 from valve_emulator.config.schema import KEYS
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "config.md"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "config.md"
 
 FULL = """\
 name: concentration_undershoot

@@ -22,7 +22,7 @@ from valve_emulator.simulation.loop import LoopBank, simulate_loop
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 
-TABLE1 = Path(__file__).resolve().parents[1] / "configs" / "table1"
+TABLE1 = Path(__file__).resolve().parents[2] / "configs" / "table1"
 F32 = AsyncModbusTcpClient.DATATYPE.FLOAT32
 
 

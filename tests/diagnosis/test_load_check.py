@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from historian import STEPS_300, simulate
 from scipy.signal import lfilter
 
-from test_real_data_physics import STEPS_300, simulate
-
 from valve_emulator.diagnosis.assess.decision import assess
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.diagnosis.fit.load_check import LAMBDAS, load_bic_of
-from valve_emulator.diagnosis.explain.search import DELTA_BIC
 
 
 def _open_loop(load_std: float, noise_std: float, seed: int = 0, T: int = 1500):
@@ -68,7 +67,7 @@ def test_stiction_under_a_drifting_load_is_a_strong_call():
     assert a.decision == "stiction", a.verdict
     assert a.strong is True and a.load_delta_bic >= 10 * DELTA_BIC
     assert "strong evidence" in a.reason
-    assert a.S == pytest.approx(2.0, rel=0.15)
+    assert pytest.approx(2.0, rel=0.15) == a.S
     assert a.summary()["load_delta_bic"] == pytest.approx(a.load_delta_bic, abs=0.01)
 
 

@@ -11,7 +11,7 @@ from valve_emulator.config import DisturbanceConfig, load_loop
 from valve_emulator.simulation.limit_cycle import measure_limit_cycle, predict_limit_cycle
 from valve_emulator.simulation.loop import LoopBank, simulate_loop
 
-TABLE1 = Path(__file__).resolve().parents[1] / "configs" / "table1"
+TABLE1 = Path(__file__).resolve().parents[2] / "configs" / "table1"
 CASES = ("no_stiction", "deadband", "undershoot", "no_offset", "overshoot")
 
 

@@ -13,7 +13,7 @@ import pytest
 
 from valve_emulator import _cache
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 # One process: run the stiction kernels and report numba's cache statistics for the module's compiled functions.
 PROBE = """
