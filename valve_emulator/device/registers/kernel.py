@@ -32,6 +32,8 @@ __all__ = ["encode", "encode_image", "encode_words"]
 _ROW_BYTES: Final = 2 * N_REGISTERS
 #: The image is written through a native-order uint16 view: swap bytes on little-endian machines.
 _SWAP = sys.byteorder == "little"
+#: The word order of 32-bit values: the codec's own function, compiled.
+_split32 = numba.njit(cache=True, inline="always")(split32)
 
 
 class _Cell(NamedTuple):
@@ -205,7 +207,7 @@ def _put(img, at, value):  # pragma: no cover - compiled
 def _put_f32(img, at, x, f32, bits, cdab):  # pragma: no cover - compiled
     """Store ``x`` as an IEEE float32 in two registers, in the word order."""
     f32[0] = x
-    first, second = split32(np.int64(bits[0]), cdab)   # unsigned and signed ints would mix into a float
+    first, second = _split32(np.int64(bits[0]), cdab)   # unsigned and signed ints would mix into a float
     _put(img, at, first)
     _put(img, at + 1, second)
 

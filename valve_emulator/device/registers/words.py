@@ -1,13 +1,13 @@
 """Register words: the data types a register can hold and the word order of 32-bit values.
 
-Pure (numpy and numba, no pymodbus). Every 16-bit word travels big-endian (Modbus); a 32-bit value
+Pure (numpy only, no pymodbus). Every 16-bit word travels big-endian (Modbus); a 32-bit value
 (``uint32``, ``int32``, ``float32``) takes two consecutive registers, in the device's :class:`WordOrder`::
 
     value 0x12345678   ABCD: [0x1234, 0x5678]   (high word at the lower address, mbpoll -B)
                        CDAB: [0x5678, 0x1234]   (low word first, mbpoll's default)
 
-:func:`split32` is the one place that orders the two words; the compiled image encoder calls it as well as
-the Python codec and the clients, so they cannot disagree.
+:func:`split32` is the one place that orders the two words: the compiled image encoder compiles this same
+function, and the Python codec and the clients call it, so they cannot disagree.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ import struct
 from enum import StrEnum
 from typing import Final, Sequence
 
-import numba
 import numpy as np
 
 from valve_emulator.config.schema import WordOrder
@@ -69,8 +68,7 @@ def as_word_order(value: str) -> WordOrder:
         raise ValueError(f"word_order must be ABCD or CDAB, got {value!r}") from None
 
 
-@numba.njit(cache=True, inline="always")
-def split32(bits, cdab):  # pragma: no cover - compiled (also callable from Python)
+def split32(bits: int, cdab: bool) -> tuple[int, int]:
     """The two register words ``(first, second)`` of the 32-bit pattern ``bits`` (0 .. 2³²−1).
 
     ``cdab`` false: ABCD, the high word first; true: CDAB, the low word first.
