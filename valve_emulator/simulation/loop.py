@@ -248,17 +248,16 @@ class LoopBank:
 
     @property
     def kc(self) -> np.ndarray:
-        return self._pid._kc.copy()
+        return self._pid.kc
 
     @property
     def ti(self) -> np.ndarray:
         """Integral time (s); inf where there is no integral action."""
-        with np.errstate(divide="ignore"):
-            return 1.0 / self._pid._ti_inv
+        return self._pid.ti
 
     @property
     def td(self) -> np.ndarray:
-        return self._pid._td.copy()
+        return self._pid.td
 
     # -- commands (the device's instructor and operator writes) -----------------------------------------------
     def set_valve(self, i: int, *, S: float | None = None, J: float | None = None) -> None:
@@ -338,7 +337,8 @@ class LoopBank:
 
     def _kernel_args(self) -> tuple:
         pid, plant = self._pid.kernel_args(), self._plant.kernel_args()
-        return (pid, self._pid._op, self._valve_args, self._char_kind, self._char_r, plant, self._plant._pv)
+        return (pid, self._pid.kernel_output(), self._valve_args, self._char_kind, self._char_r, plant,
+                self._plant.kernel_output())
 
     def step(self) -> None:
         """Advance every loop one sample ``dt``; afterwards ``pv``, ``op``, ``mv`` … describe sample k."""
