@@ -7,9 +7,8 @@ IEEE float32, word order, big-endian bytes): about 30 ns per loop on the benchma
 numpy temporary per register column.
 
 The kernel states no address, scale or range itself: it receives them from the register table
-(:mod:`~valve_emulator.device.registers.table`) as plain ints and floats, computed once at import and
-passed as an argument rather than read as globals -- numba freezes globals into its on-disk cache, which is
-keyed on this file only, so a changed table could otherwise meet a stale kernel. The rules are those of
+(:mod:`~valve_emulator.device.registers.table`) as plain ints and floats, computed once at import, which
+numba compiles in as literals (see :func:`_compile`). The rules are those of
 the plain-Python codec (:func:`~valve_emulator.device.registers.codec.encode_loop`); a test checks that
 both give the same words.
 """
@@ -83,6 +82,7 @@ class _Constants(NamedTuple):
     """Numbers of the map that are not a register's cell: PV range factor, status and fault bits."""
 
     pv_full: float   # raw units per whole PV range: 100 · scale of the PV registers
+    common: int      # words of the tick, overruns and time registers
     map_version: int
     stuck: int
     moving: int
@@ -95,14 +95,15 @@ class _Constants(NamedTuple):
 
 
 _MAP: Final = _Map(*(_cell(name) for name in _Map._fields))
-_PV_SCALES: Final = {register(n).scale for n in ("pv", "sp", "noise")}
-assert len(_PV_SCALES) == 1, "pv, sp and noise share one range factor"
-_CONSTANTS: Final = _Constants(
-    100.0 * _PV_SCALES.pop(), MAP_VERSION, int(Status.STUCK), int(Status.MOVING), int(Status.SAT_LOW),
-    int(Status.SAT_HIGH), int(Status.CONTROLLER), int(Status.AUTO), int(Status.SEIZED), int(Fault.SEIZED))
 #: The tick, overruns and time registers: the same words on every loop, written as one run.
 _COMMON: Final = tuple(register(n) for n in ("tick", "overruns", "time"))
 assert [r.address for r in _COMMON] == [_MAP.tick.at, _MAP.tick.at + 2, _MAP.tick.at + 4]
+_PV_SCALES: Final = {register(n).scale for n in ("pv", "sp", "noise")}
+assert len(_PV_SCALES) == 1, "pv, sp and noise share one range factor"
+_CONSTANTS: Final = _Constants(
+    100.0 * _PV_SCALES.pop(), sum(r.width for r in _COMMON), MAP_VERSION, int(Status.STUCK), int(Status.MOVING),
+    int(Status.SAT_LOW), int(Status.SAT_HIGH), int(Status.CONTROLLER), int(Status.AUTO), int(Status.SEIZED),
+    int(Fault.SEIZED))
 
 
 def _common_words(scaling: Scaling, *, tick: int, overruns: int, time: float) -> np.ndarray:
@@ -148,7 +149,7 @@ def encode_image(state: Any, scaling: Scaling, image: bytearray | np.ndarray, of
                    _bools(state, "sat_low", n), _bools(state, "sat_high", n), _bools(state, "has_controller", n),
                    _bools(state, "auto", n), _bools(state, "frozen", n, True), scaling.pv_lo, scaling.pv_hi,
                    _common_words(scaling, tick=tick, overruns=overruns, time=time),
-                   scaling.word_order is CDAB, offsets // 2, words16, _MAP, _CONSTANTS)
+                   scaling.word_order is CDAB, offsets // 2, words16)
 
 
 def encode_words(state: Any, scaling: Scaling, *, tick: int, overruns: int, time: float) -> np.ndarray:
@@ -191,10 +192,10 @@ def _word(x, cell):  # pragma: no cover - compiled
     """round(x·scale) half to even, clipped to the cell's range, as a 16-bit word; NaN reads as the bottom."""
     y = np.rint(x * cell.scale)
     if not y >= cell.lo:
-        y = cell.lo
-    elif y > cell.hi:
-        y = cell.hi
-    return int(y) & 0xFFFF
+        return cell.lo & 0xFFFF
+    if y > cell.hi:
+        return cell.hi & 0xFFFF
+    return int(y) & 0xFFFF if cell.lo < 0 else int(y)   # two's complement for a signed range
 
 
 @numba.njit(cache=True, inline="always")
@@ -204,49 +205,61 @@ def _put(img, at, value):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _put_f32(img, at, x, f32, bits, cdab):  # pragma: no cover - compiled
-    """Store ``x`` as an IEEE float32 in two registers, in the word order."""
-    f32[0] = x
-    first, second = _split32(np.int64(bits[0]), cdab)   # unsigned and signed ints would mix into a float
+def _put_f32(img, at, bits, cdab):  # pragma: no cover - compiled
+    """Store the IEEE float32 pattern ``bits`` in two registers, in the word order."""
+    first, second = _split32(np.int64(bits), cdab)   # unsigned and signed ints would mix into a float
     _put(img, at, first)
     _put(img, at + 1, second)
 
 
-@numba.njit(cache=True)
-def _encode_kernel(op, ma, mv, flow, pv, sp, kc, ti, td, S, J, load, noise, stuck, sat_low, sat_high, ctl,
-                   auto, frozen, pv_lo, pv_hi, common, cdab, word0, img, m, k):  # pragma: no cover - compiled
-    f32 = np.empty(1, np.float32)
-    bits = f32.view(np.uint32)
-    for i in range(op.shape[0]):
-        b = word0[i]
-        c = ctl[i]
-        a = auto[i] and c
-        per_pv = k.pv_full / (pv_hi[i] - pv_lo[i])
-        _put(img, b + m.op_pct.at, _word(op[i], m.op_pct))
-        _put(img, b + m.op_ma.at, _word(ma[i], m.op_ma))
-        _put(img, b + m.mv_pct.at, _word(mv[i], m.mv_pct))
-        _put(img, b + m.flow_pct.at, _word(flow[i], m.flow_pct))
-        _put(img, b + m.pv.at, _word((pv[i] - pv_lo[i]) * per_pv, m.pv))
-        # the controller's registers read 0 on a loop without one
-        _put(img, b + m.sp.at, _word((sp[i] - pv_lo[i]) * per_pv, m.sp) if c else 0)
-        _put(img, b + m.mode.at, 1 if a else 0)
-        _put(img, b + m.kc.at, _word(kc[i], m.kc) if c else 0)
-        t = ti[i]
-        _put(img, b + m.ti.at, _word(t, m.ti) if (c and np.isfinite(t) and t > 0) else 0)   # 0: no integral
-        _put(img, b + m.td.at, _word(td[i], m.td) if c else 0)
-        _put(img, b + m.S.at, _word(S[i], m.S))
-        _put(img, b + m.J.at, _word(J[i], m.J))
-        _put(img, b + m.status.at, (k.stuck if stuck[i] else k.moving) + (k.sat_low if sat_low[i] else 0)
-             + (k.sat_high if sat_high[i] else 0) + (k.controller if c else 0) + (k.auto if a else 0)
-             + (k.seized if frozen[i] else 0))
-        _put(img, b + m.map_version.at, k.map_version)
-        for r in range(common.shape[0]):
-            _put(img, b + m.tick.at + r, common[r])
-        _put_f32(img, b + m.op_f32.at, op[i], f32, bits, cdab)
-        _put_f32(img, b + m.mv_f32.at, mv[i], f32, bits, cdab)
-        _put_f32(img, b + m.pv_f32.at, pv[i], f32, bits, cdab)
-        _put_f32(img, b + m.sp_f32.at, sp[i] if c else 0.0, f32, bits, cdab)
-        _put(img, b + m.load.at, _word(load[i], m.load))
-        # a width w in PV units reads like the PV lo + w (the codec's rule, kept float for float)
-        _put(img, b + m.noise.at, _word(((pv_lo[i] + noise[i]) - pv_lo[i]) * per_pv, m.noise))
-        _put(img, b + m.fault.at, k.fault_seized if frozen[i] else 0)
+def _compile(m: _Map, k: _Constants):
+    """The kernel for the table's cells ``m`` and constants ``k``, which numba freezes as literals.
+
+    They reach the kernel as closure variables: numba keys its on-disk cache on their values (as well as
+    on this file), so a changed table compiles a new kernel instead of loading a stale one.
+    """
+
+    @numba.njit(cache=True)
+    def encode_kernel(op, ma, mv, flow, pv, sp, kc, ti, td, S, J, load, noise, stuck, sat_low, sat_high, ctl,
+                      auto, frozen, pv_lo, pv_hi, common, cdab, word0, img):  # pragma: no cover - compiled
+        f32 = np.empty(4, np.float32)
+        bits = f32.view(np.uint32)
+        for i in range(op.shape[0]):
+            b = word0[i]
+            c = ctl[i]
+            a = auto[i] and c
+            per_pv = k.pv_full / (pv_hi[i] - pv_lo[i])
+            _put(img, b + m.op_pct.at, _word(op[i], m.op_pct))
+            _put(img, b + m.op_ma.at, _word(ma[i], m.op_ma))
+            _put(img, b + m.mv_pct.at, _word(mv[i], m.mv_pct))
+            _put(img, b + m.flow_pct.at, _word(flow[i], m.flow_pct))
+            _put(img, b + m.pv.at, _word((pv[i] - pv_lo[i]) * per_pv, m.pv))
+            # the controller's registers read 0 on a loop without one
+            _put(img, b + m.sp.at, _word((sp[i] - pv_lo[i]) * per_pv, m.sp) if c else 0)
+            _put(img, b + m.mode.at, 1 if a else 0)
+            _put(img, b + m.kc.at, _word(kc[i], m.kc) if c else 0)
+            t = ti[i]
+            _put(img, b + m.ti.at, _word(t, m.ti) if (c and np.isfinite(t) and t > 0) else 0)   # 0: no integral
+            _put(img, b + m.td.at, _word(td[i], m.td) if c else 0)
+            _put(img, b + m.S.at, _word(S[i], m.S))
+            _put(img, b + m.J.at, _word(J[i], m.J))
+            _put(img, b + m.status.at, (k.stuck if stuck[i] else k.moving) + (k.sat_low if sat_low[i] else 0)
+                 + (k.sat_high if sat_high[i] else 0) + (k.controller if c else 0) + (k.auto if a else 0)
+                 + (k.seized if frozen[i] else 0))
+            _put(img, b + m.map_version.at, k.map_version)
+            for r in range(k.common):
+                _put(img, b + m.tick.at + r, common[r])
+            f32[0], f32[1], f32[2], f32[3] = op[i], mv[i], pv[i], (sp[i] if c else 0.0)
+            _put_f32(img, b + m.op_f32.at, bits[0], cdab)
+            _put_f32(img, b + m.mv_f32.at, bits[1], cdab)
+            _put_f32(img, b + m.pv_f32.at, bits[2], cdab)
+            _put_f32(img, b + m.sp_f32.at, bits[3], cdab)
+            _put(img, b + m.load.at, _word(load[i], m.load))
+            # a width w in PV units reads like the PV lo + w (the codec's rule, kept float for float)
+            _put(img, b + m.noise.at, _word(((pv_lo[i] + noise[i]) - pv_lo[i]) * per_pv, m.noise))
+            _put(img, b + m.fault.at, k.fault_seized if frozen[i] else 0)
+
+    return encode_kernel
+
+
+_encode_kernel = _compile(_MAP, _CONSTANTS)

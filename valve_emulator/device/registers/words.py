@@ -1,6 +1,6 @@
 """Register words: the data types a register can hold and the word order of 32-bit values.
 
-Pure (numpy only, no pymodbus). Every 16-bit word travels big-endian (Modbus); a 32-bit value
+Pure (standard library only, no pymodbus). Every 16-bit word travels big-endian (Modbus); a 32-bit value
 (``uint32``, ``int32``, ``float32``) takes two consecutive registers, in the device's :class:`WordOrder`::
 
     value 0x12345678   ABCD: [0x1234, 0x5678]   (high word at the lower address, mbpoll -B)
@@ -16,11 +16,10 @@ import struct
 from enum import StrEnum
 from typing import Final, Sequence
 
-import numpy as np
-
 from valve_emulator.config.schema import WordOrder
 
-__all__ = ["ABCD", "CDAB", "DataType", "WordOrder", "as_word_order", "float32_bits", "from_words", "split32", "to_words"]
+__all__ = ["ABCD", "CDAB", "DataType", "WordOrder", "as_word_order", "float32_bits", "from_words", "split32",
+           "to_words"]
 
 ABCD: Final = WordOrder.ABCD
 CDAB: Final = WordOrder.CDAB
@@ -98,6 +97,9 @@ def from_words(words: Sequence[int], type_: DataType | str, order: WordOrder | s
 
 
 def float32_bits(value: float) -> int:
-    """IEEE 754 single-precision bit pattern of ``value`` (rounded to nearest; overflow gives ±inf)."""
-    with np.errstate(over="ignore"):
-        return int(np.float32(value).view(np.uint32))
+    """IEEE 754 single-precision bit pattern of ``value`` (rounded to nearest, as a C cast; overflow gives
+    ±inf, NaN stays NaN)."""
+    try:
+        return struct.unpack(">I", struct.pack(">f", value))[0]
+    except OverflowError:   # rounds beyond the largest float32
+        return 0xFF800000 if value < 0 else 0x7F800000
