@@ -412,7 +412,8 @@ class DeviceConfig:
                                   key=f"instructor_hosts[{i}]") from None
         _set(self, unit=None if self.unit is None else integer(self.unit, "unit", ge=1, le=MAX_UNIT),
              block=integer(self.block, "block", ge=0, le=MAX_BLOCKS - 1),
-             tick=real(self.tick, "tick", gt=0), word_order=WordOrder(choice(self.word_order, "word_order", WORD_ORDERS)),
+             tick=real(self.tick, "tick", gt=0),
+             word_order=WordOrder(choice(self.word_order, "word_order", WORD_ORDERS)),
              instructor_writes=boolean(self.instructor_writes, "instructor_writes"),
              instructor_hosts=tuple(hosts), read_only=boolean(self.read_only, "read_only"),
              max_connections=integer(self.max_connections, "max_connections", ge=1, le=65535),

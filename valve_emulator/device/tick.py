@@ -16,7 +16,8 @@ accumulates. Each tick
 1. applies the writes received since the previous tick, in arrival order (the last write to a quantity
    wins; OP is then held until the next write),
 2. steps every loop one ``dt`` (``bank.step()``: one compiled call for all loops),
-3. re-encodes the register image of every loop (one compiled pass, :func:`~valve_emulator.device.registers.encode_image`).
+3. re-encodes the register image of every loop (one compiled pass,
+   :func:`~valve_emulator.device.registers.encode_image`).
 
 At plant scale the tick's own compute time matters as much as its lateness: while it runs, no request is
 answered. :attr:`Device.tick_time` keeps the duration of each tick (steps 1–3) next to the lateness.

@@ -64,9 +64,10 @@ def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, val
     """Advance every loop one sample in place (see the module docstring for the order).
 
     ``pid`` and ``plant`` are the argument tuples of ``pid_step_kernel`` and ``plant_step_kernel`` after
-    their inputs, ``pid_op`` and ``plant_pv`` the output arrays inside them; ``valve`` is ``(S, J, R, codes, state)`` of ``stiction_step_kernel``. Outputs:
-    ``pv_meas`` (PV measured at t_k), ``op``, ``flow``; ``u_in`` is scratch. Returns 0, or a nonzero
-    code when an input was not finite (the controller or plant kernel refused it).
+    their inputs, ``pid_op`` and ``plant_pv`` the output arrays inside them (their banks' ``kernel_output``);
+    ``valve`` is ``(S, J, R, codes, state)`` of ``stiction_step_kernel``. Outputs: ``pv_meas`` (PV measured
+    at t_k), ``op``, ``flow``; ``u_in`` is scratch. Returns 0, or a nonzero code when an input was not
+    finite (the controller or plant kernel refused it).
     """
     n = sp.shape[0]
     for i in range(n):
@@ -373,8 +374,9 @@ class LoopBank:
         out = {name: np.empty((steps, self.n)) for name in ("pv", "op", "mv", "flow")}
         stuck = np.empty((steps, self.n), dtype=np.bool_)
         pv_meas = np.empty(self.n)
-        bad = _run_kernel(sp, noise, dist, op_ext, self.has_controller, self.frozen, *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in, out["pv"], out["op"], out["mv"],
-                          out["flow"], stuck)
+        bad = _run_kernel(sp, noise, dist, op_ext, self.has_controller, self.frozen, *self._kernel_args(),
+                          pv_meas, self.op, self.flow, self._u_in, out["pv"], out["op"], out["mv"], out["flow"],
+                          stuck)
         if bad >= 0:
             raise ValueError(f"non-finite value in loop step at t = {times[bad]} s")
         self.k += steps

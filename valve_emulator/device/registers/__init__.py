@@ -77,12 +77,13 @@ Encoding (``raw = physical × scale``, rounded to the nearest integer, clipped t
 Access:
 
 - ``R``: read only. ``RW``: writable; on a loop with an internal controller OP is writable only while the
-  controller is in manual (it then sets the manual OP) and only within the controller's ``op_limits``. ``RW-controller``: writable only on loops with an
-  internal controller, reads 0 on the others. ``RW-instructor``: writable only when the server allows
-  instructor writes for the requesting client.
+  controller is in manual (it then sets the manual OP) and only within the controller's ``op_limits``.
+  ``RW-controller``: writable only on loops with an internal controller, reads 0 on the others.
+  ``RW-instructor``: writable only when the server allows instructor writes for the requesting client.
 
-Errors are :class:`RegisterError` (a ``ValueError``) subclasses that name the register; the Modbus
-adapter alone translates them into exception codes. A rejected multi-register write changes nothing.
+Errors are :class:`RegisterError` (a ``ValueError``) subclasses that name the register and carry the
+refused request as attributes; the Modbus adapter alone translates them into exception codes. A rejected
+multi-register write changes nothing.
 
 Many loops per unit id (blocks)
 -------------------------------

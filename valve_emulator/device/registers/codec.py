@@ -1,6 +1,6 @@
 """The register codec in plain Python: one register, one loop at a time, straight from the table's rules.
 
-Pure (numpy only for the float32 rounding and the mA tables). The device encodes every loop each tick with
+Pure (numpy only for the mA tables). The device encodes every loop each tick with
 a compiled pass (:mod:`~valve_emulator.device.registers.kernel`); this module is what the rest uses:
 
 - :func:`encode_value` -- the words a register shows for a physical value;
@@ -36,13 +36,13 @@ from valve_emulator.device.registers.table import (
     MAP_VERSION,
     N_REGISTERS,
     REGISTERS,
+    RW_CONTROLLER,
+    RW_INSTRUCTOR,
     WRITABLE_QUANTITIES,
     Conversion,
     Fault,
     R,
     Register,
-    RW_CONTROLLER,
-    RW_INSTRUCTOR,
     Status,
     address_of,
     holding_at,

@@ -107,7 +107,7 @@ class Scaling:
                    tables, config.device.word_order, tuple(lp.plant.units for lp in loops),
                    np.array(limits, dtype=float).reshape(len(loops), 2))
 
-    # --- scalar/array conversions shared by encode, patch and decode ---------------------------------
+    # --- the loop current, shared by the compiled encoder and the codec -------------------------------
 
     def op_to_ma(self, op: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
         """OP (% travel) of units ``index`` (default all) -> loop current in mA."""
@@ -119,8 +119,3 @@ class Scaling:
             if np.any(sel):
                 ma = np.where(sel, self.tables[i].to_ma(op), ma)
         return ma
-
-    def eng_to_raw(self, x: np.ndarray, index: Any = slice(None)) -> np.ndarray:
-        """Engineering units -> % of pv_range × 100 (unclipped float)."""
-        lo, hi = self.pv_lo[index], self.pv_hi[index]
-        return (np.asarray(x, dtype=float) - lo) * (10000.0 / (hi - lo))
