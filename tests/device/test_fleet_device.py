@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from valve_emulator.config import server_from_mapping
-from valve_emulator.device.image import ImageLayout, encode_image
+from valve_emulator.device.image import ImageLayout
 from valve_emulator.device.record import TickRecorder
-from valve_emulator.device.registers import BLOCK_STRIDE, N_REGISTERS, Scaling, address_of, encode
+from valve_emulator.device.registers import BLOCK_STRIDE, N_REGISTERS, Scaling, address_of, encode, encode_image
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.tick import Device
 from valve_emulator.simulation.loop import LoopBank

@@ -179,3 +179,15 @@ def test_instructor_faults_frozen_valve_load_and_noise():
     with pytest.raises(ValueError, match="noise"):
         bank.set_noise(0, -1.0)
     assert bank.noise_std[0] == 0.2
+
+
+def test_bank_shows_the_controller_tuning_as_read_only_copies():
+    cfg = table1("concentration", "undershoot")
+    bank = LoopBank([cfg, cfg])
+    kc0, ti0 = cfg.controller.kc, cfg.controller.ti
+    assert list(bank.kc) == [kc0, kc0] and list(bank.ti) == pytest.approx([ti0, ti0])
+    bank.run(50)
+    bank.set_tuning(1, kc=2 * kc0, ti=float("inf"), td=3.0)
+    assert list(bank.kc) == [kc0, 2 * kc0] and bank.ti[1] == float("inf") and list(bank.td) == [0.0, 3.0]
+    bank.kc[0] = 99.0                      # a copy: the bank's controller is untouched
+    assert bank.kc[0] == kc0

@@ -14,7 +14,9 @@ A *point* says where one value lives on a device and how its raw words become a 
 table), ``holding:1:uint16:160:4000`` (OP in % written as a 4-20 mA loop current in µA: ``1000·(4 + 0.16·OP)``).
 
 32-bit values use one word order for the whole device: ``ABCD`` (high word first, the emulator's default,
-mbpoll ``-B``) or ``CDAB`` (low word first, mbpoll's default).
+mbpoll ``-B``) or ``CDAB`` (low word first, mbpoll's default). Types, word order and the emulator's named
+registers all come from the register map (:mod:`valve_emulator.device.registers`), so a client reads a
+register exactly as the device encodes it.
 
 :class:`Reader` reads a set of points with as few requests as possible: points of one table closer than
 ``max_gap`` registers share one request, so values that come from the same request are one consistent
@@ -27,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import struct
 from dataclasses import dataclass
 from typing import Final, Mapping, Sequence
 
@@ -35,7 +36,18 @@ import numpy as np
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from valve_emulator.device.registers import DEFAULT_PORT, REGISTERS
+from valve_emulator.device.pdu import MAX_READ
+from valve_emulator.device.registers import (
+    ABCD,
+    CDAB,
+    DEFAULT_PORT,
+    REGISTERS,
+    DataType,
+    Register,
+    WordOrder,
+    from_words,
+    to_words,
+)
 
 __all__ = [
     "ABCD",
@@ -51,15 +63,12 @@ __all__ = [
     "check_connection_arguments",
 ]
 
-ABCD: Final = "ABCD"
-CDAB: Final = "CDAB"
-TYPES: Final = {"uint16": (1, ">H"), "int16": (1, ">h"), "uint32": (2, ">I"), "int32": (2, ">i"),
-                "float32": (2, ">f")}
+#: type name -> (registers, struct format), from the register map's data types
+TYPES: Final = {t.value: (t.width, t.struct_format) for t in DataType}
 _TABLES: Final = {"holding": "holding", "hr": "holding", "input": "input", "ir": "input"}
 _EXCEPTIONS: Final = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                       4: "server device failure", 6: "server busy", 10: "gateway path unavailable",
                       11: "gateway target device failed to respond"}
-_MAX_READ: Final = 125              # registers per read request (Modbus spec)
 
 
 class DeviceError(OSError):
@@ -82,6 +91,11 @@ class Point:
     bit: int | None = None
     text: str = ""
 
+    @classmethod
+    def from_register(cls, reg: Register, *, table: str = "holding") -> "Point":
+        """The point of one of the emulator's registers: its address, type and scale (raw / scale)."""
+        return cls(table, reg.address, reg.type.value, float(reg.scale), 0.0, None, reg.name)
+
     @property
     def width(self) -> int:
         return TYPES[self.type][0]
@@ -90,10 +104,7 @@ class Point:
         """Value from this point's ``width`` raw words."""
         if self.bit is not None:
             return float((int(words[0]) >> self.bit) & 1)
-        ws = list(words[: self.width])
-        if word_order == CDAB:
-            ws.reverse()
-        raw = struct.unpack(TYPES[self.type][1], struct.pack(f">{len(ws)}H", *ws))[0]
+        raw = from_words(words[: self.width], self.type, word_order)
         if self.type == "float32" and math.isfinite(raw):
             # the decimal the float32 stands for (12.3, not 12.300000190734863): shortest round trip
             raw = float(str(np.float32(raw)))
@@ -104,17 +115,13 @@ class Point:
         if self.bit is not None or self.table != "holding":
             raise ValueError(f"{self.text or self}: only holding registers (not bits) can be written")
         raw: float = value * self.scale + self.offset
-        if self.type != "float32":
+        limits = DataType(self.type).raw_range
+        if limits is not None:
             raw = int(round(raw))
-            fmt = TYPES[self.type][1]
-            lo, hi = {"uint16": (0, 0xFFFF), "int16": (-0x8000, 0x7FFF), "uint32": (0, 0xFFFFFFFF),
-                      "int32": (-0x80000000, 0x7FFFFFFF)}[self.type]
+            lo, hi = limits
             if not lo <= raw <= hi:
                 raise ValueError(f"{self.text}: {value!r} gives raw {raw}, outside {self.type} {lo}..{hi}")
-        else:
-            fmt = ">f"
-        words = list(struct.unpack(f">{self.width}H", struct.pack(fmt, raw)))
-        return words[::-1] if word_order == CDAB else words
+        return to_words(raw, self.type, word_order)
 
 
 def parse_point(text: str, *, what: str = "register") -> Point:
@@ -122,8 +129,7 @@ def parse_point(text: str, *, what: str = "register") -> Point:
     spec = text.strip()
     named = {r.name: r for r in REGISTERS}
     if spec in named:
-        r = named[spec]
-        return Point("holding", r.address, r.type, float(r.scale), 0.0, None, spec)
+        return Point.from_register(named[spec])
     parts = spec.split(":")
     bad = (f"{what}: {text!r} is neither a register of the emulator's map ({', '.join(named)}) nor "
            "TABLE:ADDRESS[:TYPE[:SCALE[:OFFSET]]] / TABLE:ADDRESS:bitN with TABLE holding|hr|input|ir")
@@ -178,7 +184,7 @@ def _plan(points: Mapping[str, Point], max_gap: int) -> list[_Request]:
         start = end = 0
         for name, p in items:
             p_end = p.address + p.width
-            if group and p.address - end <= max_gap and max(end, p_end) - start <= _MAX_READ:
+            if group and p.address - end <= max_gap and max(end, p_end) - start <= MAX_READ:
                 group.append((name, p))
                 end = max(end, p_end)
                 continue
@@ -252,12 +258,14 @@ class Reader:
     """Reads a named set of points from a :class:`Link` with few requests (see the module docstring)."""
 
     def __init__(self, points: Mapping[str, Point], *, word_order: str = ABCD, max_gap: int = 8) -> None:
-        if word_order not in (ABCD, CDAB):
-            raise ValueError(f"word order must be ABCD or CDAB, got {word_order!r}")
+        try:
+            order = WordOrder(word_order)
+        except ValueError:
+            raise ValueError(f"word order must be ABCD or CDAB, got {word_order!r}") from None
         if max_gap < 0:
             raise ValueError(f"max_gap must be >= 0, got {max_gap}")
         self.points = dict(points)
-        self.word_order = word_order
+        self.word_order = order
         self.max_gap = max_gap
         self.requests = _plan(self.points, max_gap)
 
@@ -293,7 +301,7 @@ def add_connection_arguments(p: argparse.ArgumentParser, *, defaults: bool = Tru
     g.add_argument("--port", type=int, default=d["port"], help=f"TCP port (default {DEFAULT_PORT})")
     g.add_argument("--unit", type=int, default=d["unit"], help="unit (slave) id (default 1)")
     g.add_argument("--timeout", type=float, default=d["timeout"], metavar="S", help="per request, s (default 1)")
-    g.add_argument("--word-order", choices=(ABCD, CDAB), default=d["word_order"],
+    g.add_argument("--word-order", choices=tuple(WordOrder), default=d["word_order"],
                    help="32-bit values: ABCD high word first (default; the emulator's default, mbpoll -B) or "
                         "CDAB low word first (mbpoll's default)")
 

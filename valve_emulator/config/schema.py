@@ -20,14 +20,15 @@ import ipaddress
 import math
 import numbers
 from dataclasses import KW_ONLY, dataclass
+from enum import StrEnum
 from typing import Any
 
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_MA_TABLE
 from valve_emulator.physics.stiction import MODELS, seed_to_2005
 
 __all__ = [
-    "ACTIONS", "CHARACTERISTICS", "DISTURBANCES", "KEYS", "MAX_BLOCKS", "MAX_UNIT", "MODELS", "MODES",
-    "WORD_ORDERS",
+    "ACTIONS", "BLOCK_STRIDE", "CHARACTERISTICS", "DISTURBANCES", "KEYS", "MAX_BLOCKS", "MAX_UNIT", "MODELS",
+    "MODES", "WORD_ORDERS", "WordOrder",
     "ConfigError", "ControllerConfig", "DeviceConfig", "DisturbanceConfig", "LoopConfig", "PlantConfig",
     "ServerConfig", "SimulationConfig", "ValveConfig",
 ]
@@ -35,11 +36,26 @@ __all__ = [
 DISTURBANCES = ("none", "step", "sine", "random_walk")
 ACTIONS = ("reverse", "direct")
 MODES = ("auto", "manual")
-WORD_ORDERS = ("ABCD", "CDAB")
+
+
+class WordOrder(StrEnum):
+    """Order of the two 16-bit words of a 32-bit register value (``uint32``, ``float32``) on the wire.
+
+    Defined here, below the device, because a configuration names it (``device.word_order``); the register
+    map (:mod:`valve_emulator.device.registers`) and the clients use this one definition.
+    """
+
+    ABCD = "ABCD"   # high word at the lower address (mbpoll -B); the emulator's default
+    CDAB = "CDAB"   # low word first (mbpoll's default)
+
+
+WORD_ORDERS = tuple(WordOrder)
 MAX_UNIT = 247  # highest Modbus unit (slave) id a server may answer as
-# Most loops behind one unit id: blocks of 32 registers fill the 16-bit address space (the register map,
-# valve_emulator.device.registers.MAX_BLOCKS, says the same; a test keeps them equal).
-MAX_BLOCKS = 2048
+# Address space of one unit id: every loop behind it owns a block of BLOCK_STRIDE registers (the register
+# map plus a pad), and the blocks fill the 16-bit address space. The register map takes both from here,
+# because a configuration is validated against them (fleet.loops_per_unit, device.block).
+BLOCK_STRIDE = 32
+MAX_BLOCKS = 0x10000 // BLOCK_STRIDE
 
 _LOOP_SECTIONS = ("name", "description", "valve", "plant", "controller", "simulation")
 _DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts", "read_only",
@@ -370,10 +386,10 @@ class DeviceConfig:
     """
 
     unit: int | None = 1            # Modbus unit id 1..247
-    block: int = 0                  # 0..MAX_BLOCKS-1, the loop's block of 32 registers within its unit
-                                    # (fleet.loops_per_unit > 1; set by the fleet, not a YAML key)
+    block: int = 0                  # 0..MAX_BLOCKS-1, the loop's block of BLOCK_STRIDE registers within its
+                                    # unit (fleet.loops_per_unit > 1; set by the fleet, not a YAML key)
     tick: float = 0.1               # s > 0, simulated time per tick (= real-time period at time-scale 1)
-    word_order: str = "ABCD"        # ABCD | CDAB, register order of float32 / uint32 values
+    word_order: WordOrder = WordOrder.ABCD  # ABCD | CDAB, register order of float32 / uint32 values
     instructor_writes: bool = False  # allow writes to S, J and fault-injection registers
     instructor_hosts: tuple[str, ...] = ()  # client IPs allowed instructor writes (empty = any), normalised
     read_only: bool = False         # refuse every write
@@ -396,7 +412,8 @@ class DeviceConfig:
                                   key=f"instructor_hosts[{i}]") from None
         _set(self, unit=None if self.unit is None else integer(self.unit, "unit", ge=1, le=MAX_UNIT),
              block=integer(self.block, "block", ge=0, le=MAX_BLOCKS - 1),
-             tick=real(self.tick, "tick", gt=0), word_order=choice(self.word_order, "word_order", WORD_ORDERS),
+             tick=real(self.tick, "tick", gt=0),
+             word_order=WordOrder(choice(self.word_order, "word_order", WORD_ORDERS)),
              instructor_writes=boolean(self.instructor_writes, "instructor_writes"),
              instructor_hosts=tuple(hosts), read_only=boolean(self.read_only, "read_only"),
              max_connections=integer(self.max_connections, "max_connections", ge=1, le=65535),

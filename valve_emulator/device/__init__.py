@@ -1,8 +1,8 @@
 """Layer 4: the emulator as a Modbus TCP device.
 
-- :mod:`~valve_emulator.device.registers`: the register map (every address and scaling), pure.
-- :mod:`~valve_emulator.device.image`: where each loop's registers live (units, 32-register blocks) and the
-  compiled pass that encodes all of them every tick, pure.
+- :mod:`~valve_emulator.device.registers`: the register map (every address and scaling) and the codec
+  derived from it, including the compiled pass that encodes every loop each tick, pure.
+- :mod:`~valve_emulator.device.image`: where each loop's registers live (units, 32-register blocks), pure.
 - :mod:`~valve_emulator.device.tick`: :class:`Device`, the drift-free tick over a ``LoopBank``, pure asyncio.
 - :mod:`~valve_emulator.device.server`: :class:`EmulatorServer`, the only module that imports pymodbus
   server-side code; imported lazily here so that ``registers`` and ``tick`` stay usable without it.

@@ -16,7 +16,8 @@ accumulates. Each tick
 1. applies the writes received since the previous tick, in arrival order (the last write to a quantity
    wins; OP is then held until the next write),
 2. steps every loop one ``dt`` (``bank.step()``: one compiled call for all loops),
-3. re-encodes the register image of every loop (one compiled pass, :func:`~valve_emulator.device.image.encode_image`).
+3. re-encodes the register image of every loop (one compiled pass,
+   :func:`~valve_emulator.device.registers.encode_image`).
 
 At plant scale the tick's own compute time matters as much as its lateness: while it runs, no request is
 answered. :attr:`Device.tick_time` keeps the duration of each tick (steps 1–3) next to the lateness.
@@ -50,8 +51,8 @@ from typing import Any, Awaitable, Callable, Sequence
 import numpy as np
 
 from valve_emulator.device._tasks import cancel_and_wait
-from valve_emulator.device.image import ImageLayout, encode_image
-from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, patch
+from valve_emulator.device.image import ImageLayout
+from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, encode_image, patch
 
 __all__ = ["JitterBuffer", "Device", "TICK_TASK_NAME"]
 

@@ -209,6 +209,22 @@ class PIDBank:
         """Integral state I (error units), read-only copy."""
         return self._integral.copy()
 
+    @property
+    def kc(self) -> np.ndarray:
+        """Proportional gain, read-only copy."""
+        return self._kc.copy()
+
+    @property
+    def ti(self) -> np.ndarray:
+        """Integral time (s), ``inf`` where there is no integral action; new array."""
+        with np.errstate(divide="ignore"):
+            return 1.0 / self._ti_inv
+
+    @property
+    def td(self) -> np.ndarray:
+        """Derivative time (s), read-only copy."""
+        return self._td.copy()
+
     # -- commands --------------------------------------------------------------------------------
     def reset(self, pv0: ArrayLike, sp0: ArrayLike, op0: ArrayLike | None = None) -> None:
         """Start every controller in auto as if it had output ``op0`` (default ``bias``, clipped to the
@@ -321,6 +337,11 @@ class PIDBank:
         return (self._kc, self._ti_inv, self._td, self._bias, self._sign, self._op_min, self._op_max,
                 self._dt, DERIVATIVE_FILTER, self._integral, self._deriv, self._pv_last, self._e_last,
                 self._u_last, self._op, self._auto, self._man_op, self._init)
+
+    def kernel_output(self) -> np.ndarray:
+        """The output array :func:`pid_step_kernel` writes, the one inside :meth:`kernel_args` (live state:
+        for a caller that composes the kernel into its own compiled loop, not for reading -- use ``op``)."""
+        return self._op
 
 
 class PID:

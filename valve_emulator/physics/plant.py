@@ -452,3 +452,8 @@ class PlantBank:
         """Arguments of :func:`plant_step_kernel` after ``u``; the arrays are the bank's live state."""
         return (self._u0, self._pv0, self._A, self._B0, self._B1, self._C, self._D, self._m,
                 self._buf, self._head, self._x, self._ud, self._pv, self._work)
+
+    def kernel_output(self) -> np.ndarray:
+        """The PV array :func:`plant_step_kernel` writes, the one inside :meth:`kernel_args` (live state:
+        for a caller that composes the kernel into its own compiled loop, not for reading -- use ``pv``)."""
+        return self._pv

@@ -64,9 +64,10 @@ def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, val
     """Advance every loop one sample in place (see the module docstring for the order).
 
     ``pid`` and ``plant`` are the argument tuples of ``pid_step_kernel`` and ``plant_step_kernel`` after
-    their inputs, ``pid_op`` and ``plant_pv`` the output arrays inside them; ``valve`` is ``(S, J, R, codes, state)`` of ``stiction_step_kernel``. Outputs:
-    ``pv_meas`` (PV measured at t_k), ``op``, ``flow``; ``u_in`` is scratch. Returns 0, or a nonzero
-    code when an input was not finite (the controller or plant kernel refused it).
+    their inputs, ``pid_op`` and ``plant_pv`` the output arrays inside them (their banks' ``kernel_output``);
+    ``valve`` is ``(S, J, R, codes, state)`` of ``stiction_step_kernel``. Outputs: ``pv_meas`` (PV measured
+    at t_k), ``op``, ``flow``; ``u_in`` is scratch. Returns 0, or a nonzero code when an input was not
+    finite (the controller or plant kernel refused it).
     """
     n = sp.shape[0]
     for i in range(n):
@@ -248,17 +249,16 @@ class LoopBank:
 
     @property
     def kc(self) -> np.ndarray:
-        return self._pid._kc.copy()
+        return self._pid.kc
 
     @property
     def ti(self) -> np.ndarray:
         """Integral time (s); inf where there is no integral action."""
-        with np.errstate(divide="ignore"):
-            return 1.0 / self._pid._ti_inv
+        return self._pid.ti
 
     @property
     def td(self) -> np.ndarray:
-        return self._pid._td.copy()
+        return self._pid.td
 
     # -- commands (the device's instructor and operator writes) -----------------------------------------------
     def set_valve(self, i: int, *, S: float | None = None, J: float | None = None) -> None:
@@ -338,7 +338,8 @@ class LoopBank:
 
     def _kernel_args(self) -> tuple:
         pid, plant = self._pid.kernel_args(), self._plant.kernel_args()
-        return (pid, self._pid._op, self._valve_args, self._char_kind, self._char_r, plant, self._plant._pv)
+        return (pid, self._pid.kernel_output(), self._valve_args, self._char_kind, self._char_r, plant,
+                self._plant.kernel_output())
 
     def step(self) -> None:
         """Advance every loop one sample ``dt``; afterwards ``pv``, ``op``, ``mv`` … describe sample k."""
@@ -373,8 +374,9 @@ class LoopBank:
         out = {name: np.empty((steps, self.n)) for name in ("pv", "op", "mv", "flow")}
         stuck = np.empty((steps, self.n), dtype=np.bool_)
         pv_meas = np.empty(self.n)
-        bad = _run_kernel(sp, noise, dist, op_ext, self.has_controller, self.frozen, *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in, out["pv"], out["op"], out["mv"],
-                          out["flow"], stuck)
+        bad = _run_kernel(sp, noise, dist, op_ext, self.has_controller, self.frozen, *self._kernel_args(),
+                          pv_meas, self.op, self.flow, self._u_in, out["pv"], out["op"], out["mv"], out["flow"],
+                          stuck)
         if bad >= 0:
             raise ValueError(f"non-finite value in loop step at t = {times[bad]} s")
         self.k += steps

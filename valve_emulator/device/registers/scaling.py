@@ -1,7 +1,8 @@
 """Per-loop register scalings: PV range, mA table, OP limits and word order of each emulated unit.
 
 Pure (numpy and the physics signal chain). :class:`Scaling` holds, for ``n`` units at once, the constants
-that :mod:`valve_emulator.device.registers` needs to turn model values into register words and back.
+that the register codec (:mod:`valve_emulator.device.registers`) needs to turn model values into register
+words and back; the scales themselves come from the register table.
 """
 
 from __future__ import annotations
@@ -11,12 +12,19 @@ from typing import Any, Final, Sequence
 
 import numpy as np
 
+from valve_emulator.device.registers.table import register
+from valve_emulator.device.registers.words import ABCD, WordOrder, as_word_order
 from valve_emulator.physics.signal_chain import DEFAULT_MA_TABLE, LookupTable
 
-__all__ = ["ABCD", "CDAB", "Scaling"]
+__all__ = ["Scaling"]
 
-ABCD: Final = "ABCD"   # 32-bit values: high word at the lower address (mbpoll -B)
-CDAB: Final = "CDAB"   # low word first (mbpoll's default)
+_OP_SCALE: Final = register("op_pct").scale    # raw per % travel
+_MA_SCALE: Final = register("op_ma").scale     # raw per mA
+
+
+def _raw_range(lo: np.ndarray, hi: np.ndarray, scale: int) -> np.ndarray:
+    """(n, 2) raw range whose every value decodes inside ``lo..hi`` (the float fuzz keeps exact ends)."""
+    return np.column_stack([np.ceil(lo * scale - 1e-9), np.floor(hi * scale + 1e-9)])
 
 
 @dataclass(frozen=True, eq=False)
@@ -28,7 +36,8 @@ class Scaling:
     pv_lo, pv_hi : arrays (n,), the engineering range mapped onto 0..10000 of ``pv`` and ``sp``.
     has_controller : bool array (n,), loops with an internal controller.
     tables : one :class:`~valve_emulator.physics.signal_chain.LookupTable` (mA <-> %) per unit.
-    word_order : ``"ABCD"`` or ``"CDAB"`` for every 32-bit value.
+    word_order : :class:`~valve_emulator.device.registers.words.WordOrder` (or its name) of every 32-bit
+        value.
     pv_units : engineering-unit strings per unit (documentation only).
     op_limits : array (n, 2) of the OP a client may write (% travel), default 0..100; a loop with a
         controller takes its ``op_limits`` (the controller refuses a manual OP outside them).
@@ -41,7 +50,7 @@ class Scaling:
     pv_hi: np.ndarray
     has_controller: np.ndarray
     tables: tuple[LookupTable, ...]
-    word_order: str = ABCD
+    word_order: WordOrder = ABCD
     pv_units: tuple[str, ...] = ()
     op_limits: np.ndarray | None = None
 
@@ -59,18 +68,17 @@ class Scaling:
         lim = np.clip(lim, 0.0, 100.0)
         if not np.all(lim[:, 1] > lim[:, 0]):
             raise ValueError(f"Scaling: op_limits must have lo < hi within 0..100, got {lim.tolist()}")
-        if self.word_order not in (ABCD, CDAB):
-            raise ValueError(f"word_order must be ABCD or CDAB, got {self.word_order!r}")
+        object.__setattr__(self, "word_order", as_word_order(self.word_order))
         for name, value in (("pv_lo", lo), ("pv_hi", hi), ("has_controller", ctl), ("op_limits", lim)):
             object.__setattr__(self, name, value)
         object.__setattr__(self, "pv_units", tuple(self.pv_units) or ("",) * n)
         default = LookupTable(DEFAULT_MA_TABLE)
         # The default table is linear: convert those units in one vectorised expression each tick.
         object.__setattr__(self, "_custom", tuple(i for i, t in enumerate(self.tables) if t != default))
-        op_raw = np.column_stack([np.ceil(lim[:, 0] * 100 - 1e-9), np.floor(lim[:, 1] * 100 + 1e-9)])
+        op_raw = _raw_range(lim[:, 0], lim[:, 1], _OP_SCALE)
         object.__setattr__(self, "op_raw_range", op_raw.astype(np.int64))
         ma = np.sort(np.array([t.to_ma(row) for t, row in zip(self.tables, lim)]).reshape(n, 2), axis=1)
-        ma_raw = np.column_stack([np.ceil(ma[:, 0] * 1000 - 1e-9), np.floor(ma[:, 1] * 1000 + 1e-9)])
+        ma_raw = _raw_range(ma[:, 0], ma[:, 1], _MA_SCALE)
         object.__setattr__(self, "ma_raw_range", np.clip(ma_raw, 0, 65535).astype(np.int64))
 
     @property
@@ -79,7 +87,7 @@ class Scaling:
 
     @classmethod
     def build(cls, n: int, *, pv_range: Sequence[float] | Sequence[Sequence[float]] = (0.0, 100.0),
-              has_controller: Any = False, ma_table: Any = None, word_order: str = ABCD,
+              has_controller: Any = False, ma_table: Any = None, word_order: WordOrder | str = ABCD,
               pv_units: str | Sequence[str] = "", op_limits: Sequence[float] = (0.0, 100.0)) -> "Scaling":
         """Convenience constructor broadcasting one setting to ``n`` units (``ma_table=None``: 4–20 mA)."""
         rng = np.broadcast_to(np.asarray(pv_range, dtype=float), (n, 2))
@@ -99,7 +107,7 @@ class Scaling:
                    tables, config.device.word_order, tuple(lp.plant.units for lp in loops),
                    np.array(limits, dtype=float).reshape(len(loops), 2))
 
-    # --- scalar/array conversions shared by encode, patch and decode ---------------------------------
+    # --- the loop current, shared by the compiled encoder and the codec -------------------------------
 
     def op_to_ma(self, op: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
         """OP (% travel) of units ``index`` (default all) -> loop current in mA."""
@@ -111,8 +119,3 @@ class Scaling:
             if np.any(sel):
                 ma = np.where(sel, self.tables[i].to_ma(op), ma)
         return ma
-
-    def eng_to_raw(self, x: np.ndarray, index: Any = slice(None)) -> np.ndarray:
-        """Engineering units -> % of pv_range × 100 (unclipped float)."""
-        lo, hi = self.pv_lo[index], self.pv_hi[index]
-        return (np.asarray(x, dtype=float) - lo) * (10000.0 / (hi - lo))

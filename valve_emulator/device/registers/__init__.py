@@ -1,0 +1,210 @@
+"""The Modbus register map: every address, type and scaling of the emulated device, in one table.
+
+Pure code (numpy and numba, no pymodbus, no I/O). Addresses are zero-based PDU addresses (mbpoll ``-0``).
+Every unit id carries the same layout; only the per-loop scalings (PV range, mA table) differ.
+:data:`REGISTERS` (in :mod:`~valve_emulator.device.registers.table`) is the single source of truth: every
+encoder, decoder and check below is derived from its rows. :func:`registers_table` and
+:func:`format_registers` render it as Markdown, CSV or JSON, and the table below is that rendering (a test
+keeps them equal).
+
+Where things are:
+
+- :mod:`~valve_emulator.device.registers.table` -- the rows (:class:`Register`), :class:`Status`,
+  :class:`Fault`, the address space (:data:`BLOCK_STRIDE`, :data:`MAX_BLOCKS`) and the read checks;
+- :mod:`~valve_emulator.device.registers.words` -- data types and the word order of 32-bit values;
+- :mod:`~valve_emulator.device.registers.scaling` -- :class:`Scaling`, the per-loop constants;
+- :mod:`~valve_emulator.device.registers.codec` -- one register at a time in plain Python:
+  :func:`encode_value`, :func:`patch`, :func:`decode_write`;
+- :mod:`~valve_emulator.device.registers.kernel` -- the compiled pass that encodes every loop each tick
+  (:func:`encode_image`, :func:`encode`);
+- :mod:`~valve_emulator.device.registers.render` -- the documentation tables.
+
+Holding registers (function codes 3, 6, 16, 23)::
+
+    | name        | table   | address | type    | scale | units               | access        |
+    |-------------|---------|---------|---------|-------|---------------------|---------------|
+    | op_pct      | holding | 0       | uint16  | 100   | % travel            | RW            |
+    | op_ma       | holding | 1       | uint16  | 1000  | mA                  | RW            |
+    | mv_pct      | holding | 2       | uint16  | 100   | % travel            | R             |
+    | flow_pct    | holding | 3       | uint16  | 100   | % flow              | R             |
+    | pv          | holding | 4       | int16   | 100   | % of pv_range       | R             |
+    | sp          | holding | 5       | int16   | 100   | % of pv_range       | RW-controller |
+    | mode        | holding | 6       | uint16  | 1     | 0 manual, 1 auto    | RW-controller |
+    | kc          | holding | 7       | uint16  | 1000  | % per PV unit       | RW-controller |
+    | ti          | holding | 8       | uint16  | 10    | s (0 = no integral) | RW-controller |
+    | td          | holding | 9       | uint16  | 10    | s                   | RW-controller |
+    | S           | holding | 10      | uint16  | 100   | % travel            | RW-instructor |
+    | J           | holding | 11      | uint16  | 100   | % travel            | RW-instructor |
+    | status      | holding | 12      | uint16  | 1     | bits                | R             |
+    | map_version | holding | 13      | uint16  | 1     |                     | R             |
+    | tick        | holding | 14      | uint32  | 1     | ticks               | R             |
+    | overruns    | holding | 16      | uint32  | 1     | ticks               | R             |
+    | time        | holding | 18      | float32 | 1     | s                   | R             |
+    | op_f32      | holding | 20      | float32 | 1     | % travel            | R             |
+    | mv_f32      | holding | 22      | float32 | 1     | % travel            | R             |
+    | pv_f32      | holding | 24      | float32 | 1     | PV units            | R             |
+    | sp_f32      | holding | 26      | float32 | 1     | PV units            | R             |
+    | load        | holding | 28      | int16   | 100   | % flow              | RW-instructor |
+    | noise       | holding | 29      | uint16  | 100   | % of pv_range       | RW-instructor |
+    | fault       | holding | 30      | uint16  | 1     | bits                | RW-instructor |
+
+The rows a controller cannot write -- read-only (``R``) and instructor (``RW-instructor``) -- also appear
+as input registers (function code 4) at the same addresses, so a read-only client sees injected faults
+too; the input table has holes where the holding table has registers a controller writes (``op_pct`` ..
+``td``), and reading a hole is an illegal address, as is reading past address 30.
+
+Encoding (``raw = physical × scale``, rounded to the nearest integer, clipped to the type's range):
+
+- ``op_pct``/``mv_pct``/``flow_pct``: % × 100, 0..10000. ``op_ma``: the OP as loop current through the
+  loop's ``valve.ma_table`` (default linear 4–20 mA), mA × 1000. Writing either one sets OP; both read
+  back consistently. The writable ``op_ma`` range is the current that maps onto 0..100 % travel
+  (4000..20000 for the default table).
+- ``pv``/``sp``: int16, ``10000·(x − lo)/(hi − lo)`` over the loop's ``plant.pv_range`` = (lo, hi), so
+  0..10000 spans the range and values outside it stay readable down to −327.68 % / up to 327.67 %.
+  ``sp`` writes must lie in 0..10000. The float32 copies carry engineering units.
+- ``ti`` = 0 means no integral action (P only; the bank gets ``ti = inf``). ``kc`` must be ≥ 0.001.
+- ``status`` bits: see :class:`Status`.
+- Instructor faults: ``load`` adds a load disturbance of ``load/100`` % flow to the plant input
+  (int16, -10000..10000); ``noise`` sets the standard deviation of the PV measurement noise in % of the
+  loop's ``pv_range`` × 100 (0..10000; % of span, like ``pv``, so one number means the same on every
+  loop); ``fault`` bit 0 (:class:`Fault`) seizes the valve: it holds its position whatever OP does until
+  the bit is cleared (other bits are refused). ``status`` bit ``SEIZED`` mirrors it.
+- ``time`` (simulated s) is a float32: 0.1 s resolution holds for about six days of simulated time; for
+  exact time use ``tick × dt``. ``tick`` and ``overruns`` wrap at 2³².
+- 32-bit values (``uint32`` and ``float32``) use the configured word order (:class:`WordOrder`): ``ABCD``
+  puts the high word at the lower address (mbpoll ``-B``), ``CDAB`` the low word first (mbpoll's default).
+
+Access:
+
+- ``R``: read only. ``RW``: writable; on a loop with an internal controller OP is writable only while the
+  controller is in manual (it then sets the manual OP) and only within the controller's ``op_limits``.
+  ``RW-controller``: writable only on loops with an internal controller, reads 0 on the others.
+  ``RW-instructor``: writable only when the server allows instructor writes for the requesting client.
+
+Errors are :class:`RegisterError` (a ``ValueError``) subclasses that name the register and carry the
+refused request as attributes; the Modbus adapter alone translates them into exception codes. A rejected
+multi-register write changes nothing.
+
+Many loops per unit id (blocks)
+-------------------------------
+A plant-size fleet (``fleet.loops_per_unit`` > 1, see ``docs/config.md``) puts several loops behind one
+unit id, each in its own *block* of :data:`BLOCK_STRIDE` = 32 registers: loop ``k`` of the unit answers
+at addresses ``32k .. 32k + 30`` with exactly the map above shifted by ``32k``, so loop 3's ``pv`` is
+holding register ``3·32 + 4 = 100``. Address ``32k + 31`` is a pad. A unit of ``B`` blocks spans
+``0 .. 32(B−1) + 30``: at most :data:`MAX_BLOCKS` = 2048 blocks (the 16-bit address space), so one port
+serves up to 247 × 2048 loops.
+
+- Holding reads (FC3 and the read half of FC23) may span blocks: one read of 125 registers polls about
+  four loops, which is how a SCADA driver polls many loops cheaply. Pads read 0.
+- Input reads (FC4) stay inside one block (the input table has holes in every block anyway).
+- Writes stay inside one block; a write that reaches a pad or the next block is an illegal address.
+
+With one block per unit (the default) nothing changes: the unit's map is 0..30 and address 31 is outside it.
+"""
+
+from valve_emulator.device.registers.codec import (
+    decode_value,
+    decode_write,
+    encode_loop,
+    encode_value,
+    patch,
+    status_word,
+    write_range,
+)
+from valve_emulator.device.registers.errors import (
+    RegisterAccessError,
+    RegisterAddressError,
+    RegisterError,
+    RegisterValueError,
+)
+from valve_emulator.device.registers.kernel import encode, encode_image, encode_words
+from valve_emulator.device.registers.render import format_registers, registers_table
+from valve_emulator.device.registers.scaling import Scaling
+from valve_emulator.device.registers.table import (
+    ACCESS_VALUES,
+    BLOCK_STRIDE,
+    CONTROLLER_QUANTITIES,
+    DEFAULT_PORT,
+    INPUT_REGISTERS,
+    MAP_VERSION,
+    MAX_BLOCKS,
+    N_REGISTERS,
+    REGISTERS,
+    RW,
+    RW_CONTROLLER,
+    RW_INSTRUCTOR,
+    WRITABLE_QUANTITIES,
+    Access,
+    Conversion,
+    Fault,
+    R,
+    Register,
+    Status,
+    address_of,
+    check_read,
+    holding_at,
+    register,
+    showing,
+)
+from valve_emulator.device.registers.words import (
+    ABCD,
+    CDAB,
+    DataType,
+    WordOrder,
+    as_word_order,
+    from_words,
+    split32,
+    to_words,
+)
+
+__all__ = [
+    "ABCD",
+    "ACCESS_VALUES",
+    "BLOCK_STRIDE",
+    "CDAB",
+    "CONTROLLER_QUANTITIES",
+    "DEFAULT_PORT",
+    "INPUT_REGISTERS",
+    "MAP_VERSION",
+    "MAX_BLOCKS",
+    "N_REGISTERS",
+    "R",
+    "REGISTERS",
+    "RW",
+    "RW_CONTROLLER",
+    "RW_INSTRUCTOR",
+    "WRITABLE_QUANTITIES",
+    "Access",
+    "Conversion",
+    "DataType",
+    "Fault",
+    "Register",
+    "RegisterAccessError",
+    "RegisterAddressError",
+    "RegisterError",
+    "RegisterValueError",
+    "Scaling",
+    "Status",
+    "WordOrder",
+    "address_of",
+    "as_word_order",
+    "check_read",
+    "decode_value",
+    "decode_write",
+    "encode",
+    "encode_image",
+    "encode_loop",
+    "encode_value",
+    "encode_words",
+    "format_registers",
+    "from_words",
+    "holding_at",
+    "patch",
+    "register",
+    "registers_table",
+    "showing",
+    "split32",
+    "status_word",
+    "to_words",
+    "write_range",
+]
