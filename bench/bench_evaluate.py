@@ -24,7 +24,6 @@ from pathlib import Path
 from common import table
 
 
-
 def time_evaluate(path: Path, jobs: int) -> tuple[float, str]:
     """Seconds for ``valve-emulator evaluate PATH --jobs N`` and its per-valve summary line for our method."""
     t = time.perf_counter()

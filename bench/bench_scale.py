@@ -42,8 +42,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
-from common import (  # noqa: E402
-    LIBMODBUS_EXAMPLES, build_c, c_load, c_result, machine, median_time, start_serve, stop, table)
+from common import LIBMODBUS_EXAMPLES, build_c, c_load, c_result, machine, median_time, start_serve, stop, table  # noqa: E402
 
 _PLANT = {"fopdt": {"gain": 1.0, "tau": 15.0, "delay": 2.0}}
 _BASE = {"valve": {"S": 4.0, "J": 1.0}, "plant": _PLANT, "controller": {"kc": 0.5, "ti": 15.0}}
@@ -337,8 +336,8 @@ def diagnose_rows(tmp: Path, lengths: list[int]) -> list[tuple]:
     import dataclasses
 
     from valve_emulator.config import load_loop
-    from valve_emulator.simulation.loop import simulate_loop
     from valve_emulator.recordings.recording import write_csv
+    from valve_emulator.simulation.loop import simulate_loop
 
     cfg = load_loop(ROOT / "configs" / "table1" / "concentration_undershoot.yaml")
     cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, dt=1.0),

@@ -11,8 +11,8 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 
 def median_time(fn: Callable[[], object], *, repeats: int = 7, warmup: int = 1) -> float:

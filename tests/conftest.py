@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import os
 import shutil
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -88,7 +88,7 @@ class FakeLoopBank:
         return max(self.k - 1, 0) * self.dt
 
     @classmethod
-    def for_config(cls, config, **kwargs) -> "FakeLoopBank":
+    def for_config(cls, config, **kwargs) -> FakeLoopBank:
         ctl = [lp.controller is not None for lp in config.loops]
         return cls(len(config.loops), dt=config.device.tick, has_controller=ctl, **kwargs)
 

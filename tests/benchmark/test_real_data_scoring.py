@@ -6,8 +6,14 @@ import pytest
 
 from valve_emulator.benchmark.evaluation import Evaluation, misclassified
 from valve_emulator.benchmark.labelled import read_index
-from valve_emulator.benchmark.scorecard import (call, confusion, leave_one_valve_out, markdown_table, valve_calls,
-                                                window_calls)
+from valve_emulator.benchmark.scorecard import (
+    call,
+    confusion,
+    leave_one_valve_out,
+    markdown_table,
+    valve_calls,
+    window_calls,
+)
 
 
 def _w(tag, label, decision, name=None, **kw):

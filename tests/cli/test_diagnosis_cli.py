@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import yaml
 
-from valve_emulator.cli import main
 from valve_emulator.benchmark.cases import CASES, generate
+from valve_emulator.cli import main
 from valve_emulator.recordings.recording import write_csv
 
 CASE = next(c for c in CASES if c.name == "stiction, overshoot")

@@ -9,7 +9,13 @@ import pytest
 
 from valve_emulator.clients._modbus import Link
 from valve_emulator.clients.monitor import (
-    Sample, build_parser, main, monitor, options_from_args, render_row, valve_state,
+    Sample,
+    build_parser,
+    main,
+    monitor,
+    options_from_args,
+    render_row,
+    valve_state,
 )
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import Status, address_of

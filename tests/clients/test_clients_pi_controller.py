@@ -9,7 +9,13 @@ import sys
 
 import pytest
 
-from valve_emulator.clients.pi_controller import ControllerSettings, build_parser, main, run_controller, settings_from_args
+from valve_emulator.clients.pi_controller import (
+    ControllerSettings,
+    build_parser,
+    main,
+    run_controller,
+    settings_from_args,
+)
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import address_of
 from valve_emulator.device.server import EmulatorServer

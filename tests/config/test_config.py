@@ -11,8 +11,19 @@ from pathlib import Path
 import pytest
 
 from valve_emulator.config import (
-    ConfigError, ControllerConfig, DeviceConfig, DisturbanceConfig, LoopConfig, PlantConfig, ServerConfig,
-    SimulationConfig, ValveConfig, load_loop, load_server, loop_from_mapping, server_from_mapping,
+    ConfigError,
+    ControllerConfig,
+    DeviceConfig,
+    DisturbanceConfig,
+    LoopConfig,
+    PlantConfig,
+    ServerConfig,
+    SimulationConfig,
+    ValveConfig,
+    load_loop,
+    load_server,
+    loop_from_mapping,
+    server_from_mapping,
 )
 from valve_emulator.config.schema import KEYS
 

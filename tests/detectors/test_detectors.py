@@ -13,8 +13,16 @@ import pytest
 from scipy import signal
 
 from valve_emulator.config import loop_from_mapping
-from valve_emulator.detectors import (DECISIONS, DETECTORS, DetectorResult, bicoherence, he_curve_fit, horch,
-                                      oscillation, run_detectors)
+from valve_emulator.detectors import (
+    DECISIONS,
+    DETECTORS,
+    DetectorResult,
+    bicoherence,
+    he_curve_fit,
+    horch,
+    oscillation,
+    run_detectors,
+)
 from valve_emulator.detectors.bicoherence import gaussianity_indices, squared_bicoherence
 from valve_emulator.detectors.ellipse import fit_ellipse, width_along_x
 from valve_emulator.simulation.loop import simulate_loop
@@ -149,13 +157,13 @@ def test_bicoherence_detects_an_overshooting_sticky_valve():
 
 
 def test_linear_loop_with_sinusoidal_disturbance_is_not_called_stiction(disturbed):
-    for name, res in run(disturbed).items():
+    for _name, res in run(disturbed).items():
         assert res.decision != "stiction", res.report()
     assert run(disturbed)["he"].decision == "no stiction"
 
 
 def test_noise_only_is_not_called_stiction(noisy):
-    for name, res in run(noisy).items():
+    for _name, res in run(noisy).items():
         assert res.decision in ("no stiction", "undetermined"), res.report()
 
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import pytest
 
-from valve_emulator.diagnosis import diagnose
 from valve_emulator.benchmark.cases import CASES, generate
+from valve_emulator.diagnosis import diagnose
 
 BY_NAME = {c.name: c for c in CASES}
 

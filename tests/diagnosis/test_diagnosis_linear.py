@@ -8,9 +8,9 @@ import pytest
 from valve_emulator.diagnosis.fit.linear import (
     LinearStructure,
     delay_grid_sse,
-    highpass,
     filter_inputs,
     fit_one,
+    highpass,
     polish,
 )
 from valve_emulator.physics.plant import PlantBank, transfer_function_to_zoh

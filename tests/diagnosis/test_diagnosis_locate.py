@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from valve_emulator.diagnosis.fit.data import fit_percent, prepare
 from valve_emulator.diagnosis.explain.locate import SHARE, condition_masks, energy_windows, locate
+from valve_emulator.diagnosis.fit.data import fit_percent, prepare
 from valve_emulator.diagnosis.fit.uncertainty import intervals
 from valve_emulator.recordings.recording import Recording, RecordingError
 

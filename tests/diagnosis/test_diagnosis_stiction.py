@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import pytest
 
-from valve_emulator.diagnosis import diagnose
 from valve_emulator.benchmark.cases import CASES, generate
+from valve_emulator.diagnosis import diagnose
 
 SECONDS = 3300.0  # 3000 samples after the cut: ~20 limit cycles of the concentration loop
 BY_NAME = {c.name: c for c in CASES}

@@ -10,10 +10,10 @@ from valve_emulator.diagnosis.assess.decision import assess
 from valve_emulator.diagnosis.candidates import KINDS, SLOTS, ChainContext, get, registry
 from valve_emulator.diagnosis.candidates.quantization import on_few_levels, quantum
 from valve_emulator.diagnosis.candidates.tuning import identify_pi, loop_response
-from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.diagnosis.fit.backfit import backfit
-from valve_emulator.recordings.resample import regularize
+from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.recordings.recording import Recording, RecordingError
+from valve_emulator.recordings.resample import regularize
 
 RNG = np.random.default_rng(7)
 

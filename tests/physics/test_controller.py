@@ -64,7 +64,8 @@ def windup_prone_pi(kc, ti, bias, sp, plant, steps):
 
 def test_anti_windup_leaves_limit_within_a_few_samples_of_sign_change():
     kc, ti, switch = 0.8, 4.0, 300
-    sp = lambda k: 150.0 if k < switch else 0.0  # unreachable (pv <= 100), then far below pv
+    def sp(k):
+        return 150.0 if k < switch else 0.0  # unreachable (pv <= 100), then far below pv
     pid = PIDBank(1, kc=kc, ti=ti, dt=DT)
     ops, pvs = closed_loop(pid, first_order(), sp, switch + 40)
     assert np.all(ops[switch - 100 : switch] == 100.0)  # long saturation

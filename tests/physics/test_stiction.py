@@ -145,7 +145,7 @@ def test_noisy_input_still_moves_default_valve():
 def test_seed_table1_values_in_seed_form(seed_j, case):
     """Seed Table 1, concentration loop, s = 5: j < s/2 undershoot, j = s/2 no offset, j > s/2 overshoot."""
     S, J = seed_to_2005(5.0, seed_j)
-    assert S == 5.0 and J == 2 * seed_j
+    assert S == 5.0 and 2 * seed_j == J
     n = 4000
     op = 50 + 10 * np.sin(2 * np.pi * np.arange(n) / 1000 + 0.1)
     mv = simulate(op, S=S, J=J)

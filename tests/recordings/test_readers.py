@@ -248,7 +248,7 @@ def test_missing_column_lists_the_available_ones(tmp_path, loop_data):
 
 def test_mixed_encodings_name_the_byte_offset(tmp_path):
     path = tmp_path / "mixed.txt"
-    good = "t,op,pv\n0,1,2\n# 注释\n".encode("utf-8")
+    good = "t,op,pv\n0,1,2\n# 注释\n".encode()
     path.write_bytes(good + "1,2,3 °C\n".encode("latin-1"))
     with pytest.raises(ReaderError) as exc:
         read_recording(path)

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from valve_emulator.cli import main as cli_main
-from valve_emulator.device.registers import address_of, decode_write, Scaling
+from valve_emulator.device.registers import Scaling, address_of, decode_write
 from valve_emulator.scenario import EVENT_TYPES, ScenarioError, load_scenario, parse_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "configs" / "scenarios"

@@ -129,7 +129,7 @@ def main() -> None:
         t.start()
     time.sleep(args.warmup)
     slows, floods = [], []
-    for wave in range(args.waves):
+    for _wave in range(args.waves):
         start = time.monotonic()
         wave_slows = [{} for _ in range(args.slow)]
         connected = [threading.Event() for _ in wave_slows]

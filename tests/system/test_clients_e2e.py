@@ -17,9 +17,9 @@ from valve_emulator.clients.recorder import RecorderOptions, record
 from valve_emulator.config import ServerConfig, load_loop
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.physics.controller import PID
+from valve_emulator.recordings.recording import read_csv
 from valve_emulator.simulation.limit_cycle import measure_limit_cycle
 from valve_emulator.simulation.loop import simulate_loop
-from valve_emulator.recordings.recording import read_csv
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 

@@ -258,7 +258,7 @@ async def test_a_pipelining_client_does_not_hold_up_another(fake_bank_cls):
         n = 20_000
         heavy_w.write(_frames(n, struct.pack(">BHH", 3, 0, 10)))    # about 0.2 s of work for the server
         heavy = asyncio.ensure_future(heavy_r.readexactly(n * 29))
-        for t in range(20):                                          # one request at a time, like a SCADA
+        for _t in range(20):                                          # one request at a time, like a SCADA
             light_w.write(_frames(1, struct.pack(">BHH", 3, 0, 1)))
             await asyncio.wait_for(light_r.readexactly(11), 2)
         assert not heavy.done(), "the light client waited for the heavy one's backlog"

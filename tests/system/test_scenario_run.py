@@ -15,9 +15,9 @@ from valve_emulator.clients.scenario import run_scenario
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import N_REGISTERS, Status, address_of
 from valve_emulator.device.server import EmulatorServer
+from valve_emulator.recordings.recording import read_csv
 from valve_emulator.scenario import parse_scenario
 from valve_emulator.simulation.limit_cycle import measure_limit_cycle
-from valve_emulator.recordings.recording import read_csv
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 

@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from valve_emulator.config import LoopConfig, loop_from_mapping
-from valve_emulator.simulation.loop import simulate_loop
 from valve_emulator.recordings.recording import Recording
+from valve_emulator.simulation.loop import simulate_loop
 
 __all__ = ["Case", "CASES", "generate"]
 

@@ -15,15 +15,24 @@ model explains about as well) been answered "cannot tell".
 from __future__ import annotations
 
 import statistics
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
-from valve_emulator.diagnosis.answers import Answer
+from valve_emulator.benchmark.scorecard import (
+    ABSTAIN,
+    POSITIVE,
+    Confusion,
+    confusion,
+    leave_one_valve_out,
+    markdown_table,
+    text_table,
+    valve_calls,
+    window_calls,
+)
 from valve_emulator.detectors import DETECTORS, Decision
+from valve_emulator.diagnosis.answers import Answer
 from valve_emulator.diagnosis.assess.decision import NOISE_BANDS
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
-from valve_emulator.benchmark.scorecard import (ABSTAIN, POSITIVE, Confusion, confusion, leave_one_valve_out,
-                                                markdown_table, text_table, valve_calls, window_calls)
 
 __all__ = ["Evaluation", "METHOD", "NOISE_GRID", "decision_of", "misclassified"]
 

@@ -27,8 +27,8 @@ no stiction / abstained) and the coverage (share of answers that are not abstent
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Iterable, Sequence
 
 from valve_emulator.diagnosis.answers import Answer
 
@@ -115,7 +115,7 @@ def window_calls(results: Sequence[dict], decision: Callable[[dict], str]) -> li
     return [(r["label"], call(decision(r))) for r in results]
 
 
-def valve_calls(results: Sequence[dict], decision: Callable[[dict], str]) -> "OrderedDict[str, dict]":
+def valve_calls(results: Sequence[dict], decision: Callable[[dict], str]) -> OrderedDict[str, dict]:
     """Per tag: ``label``, ``call`` (the valve rule of the module docstring), ``windows`` and ``counts``.
 
     Raises

@@ -29,8 +29,9 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Final, Mapping, Sequence
+from typing import Final
 
 import numpy as np
 from pymodbus.client import AsyncModbusTcpClient
@@ -92,7 +93,7 @@ class Point:
     text: str = ""
 
     @classmethod
-    def from_register(cls, reg: Register, *, table: str = "holding") -> "Point":
+    def from_register(cls, reg: Register, *, table: str = "holding") -> Point:
         """The point of one of the emulator's registers: its address, type and scale (raw / scale)."""
         return cls(table, reg.address, reg.type.value, float(reg.scale), 0.0, None, reg.name)
 

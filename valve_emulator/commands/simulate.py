@@ -18,8 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from valve_emulator.config import load_loop
-    from valve_emulator.simulation.loop import simulate_loop
     from valve_emulator.recordings.recording import write_csv
+    from valve_emulator.simulation.loop import simulate_loop
 
     cfg = load_loop(args.config)
     if args.duration is not None and not args.duration > 0:

@@ -15,7 +15,7 @@ split evenly, and no slice is empty.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 from valve_emulator.config.schema import ServerConfig
 

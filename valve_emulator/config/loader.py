@@ -18,15 +18,30 @@ from __future__ import annotations
 import dataclasses
 import os
 import random
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, Callable, NoReturn
+from typing import Any, NoReturn
 
 import yaml
 
 from valve_emulator.config.schema import (
-    DISTURBANCES, KEYS, MAX_BLOCKS, MAX_UNIT, ConfigError, ControllerConfig, DeviceConfig, DisturbanceConfig,
-    LoopConfig, PlantConfig, ServerConfig, SimulationConfig, ValveConfig, choice, integer, real, sequence,
+    DISTURBANCES,
+    KEYS,
+    MAX_BLOCKS,
+    MAX_UNIT,
+    ConfigError,
+    ControllerConfig,
+    DeviceConfig,
+    DisturbanceConfig,
+    LoopConfig,
+    PlantConfig,
+    ServerConfig,
+    SimulationConfig,
+    ValveConfig,
+    choice,
+    integer,
+    real,
+    sequence,
 )
 from valve_emulator.physics.plant import check_transfer_function, fopdt, integrator
 from valve_emulator.physics.stiction import seed_to_2005

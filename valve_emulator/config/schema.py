@@ -243,7 +243,7 @@ class ValveConfig:
         if self.seed_form is not None:
             s, j = sequence(self.seed_form, "seed_form", length=2)
             s, j = real(s, "seed_s", ge=0), real(j, "seed_j", ge=0)
-            if (self.S, self.J) != seed_to_2005(s, j):  # a stale seed_form would misreport the valve
+            if seed_to_2005(s, j) != (self.S, self.J):  # a stale seed_form would misreport the valve
                 raise ConfigError(f"{{key}} ({s:g}, {j:g}) does not match S={self.S:g}, J={self.J:g} "
                                   "(S = seed_s, J = 2*seed_j); set seed_form=None when changing S or J",
                                   key="seed_form")

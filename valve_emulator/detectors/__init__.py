@@ -23,8 +23,17 @@ from collections.abc import Callable, Iterable, Mapping
 
 from numpy.typing import ArrayLike
 
-from valve_emulator.detectors.base import (DECISIONS, NO_STICTION, NOT_APPLICABLE, STICTION, UNDETERMINED,
-                                           Decision, DetectorResult, Oscillation, oscillation)
+from valve_emulator.detectors.base import (
+    DECISIONS,
+    NO_STICTION,
+    NOT_APPLICABLE,
+    STICTION,
+    UNDETERMINED,
+    Decision,
+    DetectorResult,
+    Oscillation,
+    oscillation,
+)
 from valve_emulator.detectors.bicoherence import bicoherence
 from valve_emulator.detectors.he_curve_fit import he_curve_fit
 from valve_emulator.detectors.horch import horch

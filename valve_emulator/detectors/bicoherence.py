@@ -53,8 +53,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import signal, stats
 
-from valve_emulator.detectors.base import (MIN_SAMPLES, NO_STICTION, STICTION, UNDETERMINED, DetectorResult,
-                                           oscillation, prepare)
+from valve_emulator.detectors.base import (
+    MIN_SAMPLES,
+    NO_STICTION,
+    STICTION,
+    UNDETERMINED,
+    DetectorResult,
+    oscillation,
+    prepare,
+)
 from valve_emulator.detectors.ellipse import fit_ellipse, width_along_x
 
 __all__ = ["bicoherence", "squared_bicoherence", "gaussianity_indices", "NGI_THRESHOLD", "NLI_THRESHOLD", "NFFT"]

@@ -35,8 +35,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import ndimage, signal
 
-from valve_emulator.detectors.base import (MIN_SAMPLES, NO_STICTION, STICTION, UNDETERMINED, DetectorResult,
-                                           oscillation, prepare)
+from valve_emulator.detectors.base import (
+    MIN_SAMPLES,
+    NO_STICTION,
+    STICTION,
+    UNDETERMINED,
+    DetectorResult,
+    oscillation,
+    prepare,
+)
 
 __all__ = ["he_curve_fit", "STICTION_THRESHOLD", "NO_STICTION_THRESHOLD"]
 

@@ -39,8 +39,17 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike
 
-from valve_emulator.detectors.base import (MIN_SAMPLES, NO_STICTION, NOT_APPLICABLE, STICTION, UNDETERMINED,
-                                           DetectorResult, oscillation, prepare, zero_crossings)
+from valve_emulator.detectors.base import (
+    MIN_SAMPLES,
+    NO_STICTION,
+    NOT_APPLICABLE,
+    STICTION,
+    UNDETERMINED,
+    DetectorResult,
+    oscillation,
+    prepare,
+    zero_crossings,
+)
 
 __all__ = ["horch", "ODD_THRESHOLD", "EVEN_THRESHOLD"]
 

@@ -73,7 +73,7 @@ class TurnBudget:
         self.left -= n
         self._arm()
 
-    def wait(self, conn: "ModbusConnection") -> None:
+    def wait(self, conn: ModbusConnection) -> None:
         self.waiting.append(conn)
         self._arm()
 

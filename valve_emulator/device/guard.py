@@ -31,7 +31,8 @@ import ipaddress
 import logging
 import math
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 __all__ = ["ConnectionGuard", "LogLimiter", "RefusalLog", "Slot", "binds_all_interfaces"]
 

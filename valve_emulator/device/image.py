@@ -20,7 +20,8 @@ loops' 31-word rows back to back, in loop order.
 
 from __future__ import annotations
 
-from typing import Final, Sequence
+from collections.abc import Sequence
+from typing import Final
 
 import numpy as np
 

@@ -26,8 +26,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from valve_emulator.device._tasks import cancel_and_wait
 from valve_emulator.recordings.recording import CsvRecordingWriter
@@ -110,7 +111,7 @@ class TickRecorder:
                 self._fail(unit, writer, exc)
         self._writers.clear()
 
-    async def __aenter__(self) -> "TickRecorder":
+    async def __aenter__(self) -> TickRecorder:
         await self.start()
         return self
 

@@ -58,7 +58,8 @@ import logging
 import re
 import socket
 import time
-from typing import Any, Awaitable, Callable
+from collections.abc import Awaitable, Callable
+from typing import Any
 
 from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerSocket
@@ -227,7 +228,7 @@ class EmulatorServer:
             await server.wait_closed()
         await self.device.stop()
 
-    async def __aenter__(self) -> "EmulatorServer":
+    async def __aenter__(self) -> EmulatorServer:
         await self.start()
         return self
 

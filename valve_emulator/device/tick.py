@@ -46,7 +46,8 @@ import itertools
 import logging
 import math
 import time
-from typing import Any, Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -160,7 +161,7 @@ class Device:
     @classmethod
     def from_config(cls, config: Any, *, bank: Any = None, time_scale: float = 1.0,
                     clock: Callable[[], float] = time.monotonic,
-                    sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> "Device":
+                    sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> Device:
         """Device for a ``ServerConfig`` (each loop at its ``device.unit`` and ``device.block``); ``bank``
         defaults to a new ``LoopBank``."""
         if bank is None:
@@ -311,7 +312,7 @@ class Device:
             fut.cancel()
         self._waiters.clear()
 
-    async def __aenter__(self) -> "Device":
+    async def __aenter__(self) -> Device:
         await self.start()
         return self
 

@@ -15,8 +15,7 @@ The recording is read (a path, with the reader's options passed through), put on
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
-from typing import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 from valve_emulator.config import LoopConfig, load_loop
 from valve_emulator.diagnosis.assess.decision import assess_uniform

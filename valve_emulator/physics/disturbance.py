@@ -23,7 +23,7 @@ loops that cannot be random (not ``random_walk``, or zero noise) draw nothing.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike

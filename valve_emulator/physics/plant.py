@@ -61,15 +61,15 @@ It returns ``-1``, or the index of the first non-finite ``u`` — in which case 
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numba
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.linalg import expm
 
 from valve_emulator.physics._arrays import vector
-from scipy.linalg import expm
 
 __all__ = [
     "DiscretePlant",

@@ -15,8 +15,9 @@ quick opening f = sqrt(x). Flow is returned in % (100 f).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Final, Sequence
+from typing import Final
 
 import numpy as np
 from numpy.typing import ArrayLike

@@ -54,7 +54,7 @@ def detect_format(lines: Sequence[str], *, skip: int = 0, mapped: bool = False, 
         return Format.DCS
     if body and skip == 0 and not mapped:
         cells = split_cells(body[0], ",")
-        if _STANDARD_NAMES <= set(cells):
+        if set(cells) >= _STANDARD_NAMES:
             return Format.STANDARD
         if len(cells) > 1 and cells[0] == "t" and op_units == "%" and is_utf8(encoding):
             return Format.STANDARD

@@ -220,7 +220,8 @@ def _raw(reg: Register, value: float, key: str, where: _Where) -> int:
 
 def _writes(kind: str, p: dict[str, Any], key: str, loop: LoopConfig, where: _Where) -> list[tuple[str, int]]:
     lo, hi = loop.plant.pv_range
-    pct = lambda x: 100.0 * (x - lo) / (hi - lo)
+    def pct(x):
+        return 100.0 * (x - lo) / (hi - lo)
     if kind == "stiction":
         return [(n, _raw(_BY_NAME[n], p[n], f"{key}.{n}", where)) for n in ("S", "J") if n in p]
     if kind == "load":

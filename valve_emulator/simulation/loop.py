@@ -20,7 +20,7 @@ config sets it, so PV starts at ``pv0`` and nothing moves until something is cha
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numba
 import numpy as np

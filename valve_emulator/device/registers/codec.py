@@ -21,7 +21,8 @@ A 32-bit register holds the float32 (or the counter modulo 2³²) in two words i
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Final, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, Final
 
 import numpy as np
 

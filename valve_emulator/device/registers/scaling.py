@@ -7,8 +7,9 @@ words and back; the scales themselves come from the register table.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Final, Sequence
+from typing import Any, Final
 
 import numpy as np
 
@@ -88,7 +89,7 @@ class Scaling:
     @classmethod
     def build(cls, n: int, *, pv_range: Sequence[float] | Sequence[Sequence[float]] = (0.0, 100.0),
               has_controller: Any = False, ma_table: Any = None, word_order: WordOrder | str = ABCD,
-              pv_units: str | Sequence[str] = "", op_limits: Sequence[float] = (0.0, 100.0)) -> "Scaling":
+              pv_units: str | Sequence[str] = "", op_limits: Sequence[float] = (0.0, 100.0)) -> Scaling:
         """Convenience constructor broadcasting one setting to ``n`` units (``ma_table=None``: 4–20 mA)."""
         rng = np.broadcast_to(np.asarray(pv_range, dtype=float), (n, 2))
         table = LookupTable(tuple(map(tuple, ma_table))) if ma_table is not None else LookupTable()
@@ -97,7 +98,7 @@ class Scaling:
                    (table,) * n, word_order, units, np.broadcast_to(np.asarray(op_limits, float), (n, 2)))
 
     @classmethod
-    def from_config(cls, config: Any) -> "Scaling":
+    def from_config(cls, config: Any) -> Scaling:
         """Scalings of a ``ServerConfig`` (one unit per loop, in ``config.loops`` order)."""
         loops = config.loops
         rng = np.array([lp.plant.pv_range for lp in loops], dtype=float).reshape(len(loops), 2)

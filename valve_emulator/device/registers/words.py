@@ -13,8 +13,9 @@ function, and the Python codec and the clients call it, so they cannot disagree.
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from enum import StrEnum
-from typing import Final, Sequence
+from typing import Final
 
 from valve_emulator.config.schema import WordOrder
 

@@ -39,19 +39,19 @@ run on each loop:
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer
 from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_noise
+from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.candidates import get
 from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
 from valve_emulator.diagnosis.explain.pipeline import explain
+from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.data import UninformativeData
-from valve_emulator.diagnosis.assess.result import Assessment
-from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
@@ -109,7 +109,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float) -> dict:
         S = float(valve.parameters["S"])
         J = float(valve.parameters.get("J", 0.0))
         ivs = {k: v for k, v in valve.intervals.items() if k in ("S", "J")}
-        if S >= NOISE_BANDS * noise:
+        if NOISE_BANDS * noise <= S:
             iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
             kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
             return dict(decision=Answer.STICTION, cause=valve.physics, S=S, J=J, intervals=ivs,

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 from valve_emulator.diagnosis.answers import Answer, Strength
 from valve_emulator.diagnosis.assess.adequacy import Adequacy
 from valve_emulator.diagnosis.candidates.tuning import TuningAssessment
-from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.explain.result import Explanation
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
 
 __all__ = ["Assessment"]
 

@@ -17,9 +17,20 @@ from valve_emulator.diagnosis.candidates import (  # noqa: F401  (imported for r
     stiction,
     tuning,
 )
-from valve_emulator.diagnosis.candidates.base import (KINDS, SLOTS, Candidate, ChainCandidate, ChainContext,
-                                                      DelayCandidate, Kind, LoopCandidate, OutputCandidate, get,
-                                                      register, registry)
+from valve_emulator.diagnosis.candidates.base import (
+    KINDS,
+    SLOTS,
+    Candidate,
+    ChainCandidate,
+    ChainContext,
+    DelayCandidate,
+    Kind,
+    LoopCandidate,
+    OutputCandidate,
+    get,
+    register,
+    registry,
+)
 
 __all__ = ["KINDS", "SLOTS", "Candidate", "ChainCandidate", "ChainContext", "DelayCandidate", "Kind",
            "LoopCandidate", "OutputCandidate", "get", "register", "registry"]

@@ -15,6 +15,7 @@ import numpy as np
 
 from valve_emulator.diagnosis.candidates import get
 from valve_emulator.diagnosis.explain.locate import Located, locate
+from valve_emulator.diagnosis.explain.result import Finding
 from valve_emulator.diagnosis.explain.search import Model, Round
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.fitter import Fitter
@@ -22,7 +23,6 @@ from valve_emulator.diagnosis.fit.load_check import load_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.scorer import Scorer
 from valve_emulator.diagnosis.fit.uncertainty import intervals
-from valve_emulator.diagnosis.explain.result import Finding
 
 __all__ = ["findings", "param_text", "stiction_surface"]
 

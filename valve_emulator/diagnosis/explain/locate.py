@@ -102,7 +102,7 @@ def energy_windows(t: np.ndarray, energy: np.ndarray, w: int) -> tuple[list[tupl
         if seed[a:b].any():
             mask[a:b] = True
     for a, b in _runs(~mask):  # close short gaps
-        if 0 < a and b < mask.size and b - a < w:
+        if a > 0 and b < mask.size and b - a < w:
             mask[a:b] = True
     runs = [(a, b) for a, b in _runs(mask) if b - a >= max(1, w // 2)]
     runs = sorted(runs, key=lambda r: -e[r[0]:r[1]].sum())[:MAX_WINDOWS]

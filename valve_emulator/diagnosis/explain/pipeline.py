@@ -26,16 +26,16 @@ integrates, once more prefiltered, whose result is kept.
 from __future__ import annotations
 
 import time
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import numpy as np
-
-from dataclasses import replace
 
 from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.explain.findings import findings, param_text, stiction_surface
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
+from valve_emulator.diagnosis.explain.result import Explanation, RankRow, Traces
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Search
 from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
@@ -43,7 +43,6 @@ from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.diagnosis.fit.scorer import Scorer
-from valve_emulator.diagnosis.explain.result import Explanation, RankRow, Traces
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["explain", "RULE", "RULE_TWOFOLD"]

@@ -34,8 +34,8 @@ the whole record and the held-out fit is the pooled two-fold cross-validated fit
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
 
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.fit.crossval import with_cv

@@ -33,8 +33,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
-from valve_emulator.diagnosis.fit.linear import (LinearFit, LinearStructure, delay_grid_sse, filter_inputs, fit_one,
-                                             highpass, polish)
+from valve_emulator.diagnosis.fit.linear import (
+    LinearFit,
+    LinearStructure,
+    delay_grid_sse,
+    filter_inputs,
+    fit_one,
+    highpass,
+    polish,
+)
 
 __all__ = ["ITERATIONS", "Backfit", "backfit"]
 

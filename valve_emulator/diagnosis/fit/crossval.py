@@ -20,10 +20,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.diagnosis.fit.data import folds
 from valve_emulator.diagnosis.fit.linear import fit_one, polish
 from valve_emulator.diagnosis.fit.records import Model
-from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.diagnosis.fit.scorer import Scorer
 
 __all__ = ["cross_validated_fit", "with_cv"]

@@ -178,7 +178,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     dt = rec.dt if T >= 2 else 1.0
     delays = _delay_grid(dt, T, nominal_delay)
     need = max(MIN_SAMPLES, 10 * (int(delays.max()) + 1))
-    if T < need:
+    if need > T:
         raise UninformativeData(src, f"line {T + 1}: {T} data row(s), the diagnosis needs at least {need} "
                                      f"(burn-in for a dead time of up to {int(delays.max())} samples, a fit part "
                                      "and a held-out part)", line=T + 1)

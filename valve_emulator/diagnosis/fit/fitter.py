@@ -28,10 +28,10 @@ from dataclasses import replace
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
+from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
-from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
 
 __all__ = ["Fitter"]

@@ -38,8 +38,8 @@ from __future__ import annotations
 import numpy as np
 
 from valve_emulator.diagnosis.fit.linear import LinearStructure, polish
-from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.nominal import bic
+from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.scorer import Scorer
 
 __all__ = ["LAMBDAS", "load_bic", "load_bic_of", "load_delta_bic"]

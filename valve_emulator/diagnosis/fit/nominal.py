@@ -29,8 +29,8 @@ from valve_emulator.diagnosis.fit.linear import (
     LinearFit,
     LinearStructure,
     delay_grid_sse,
-    highpass,
     filter_inputs,
+    highpass,
     polish,
 )
 from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_function_to_zoh

@@ -31,6 +31,7 @@ It also owns the choices that must be the same for every model of a problem:
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
@@ -46,8 +47,8 @@ from valve_emulator.diagnosis.fit.linear import (
     highpass,
     polish,
 )
-from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.nominal import Nominal, bic
+from valve_emulator.diagnosis.fit.records import Model
 
 __all__ = ["Aim", "Scorer"]
 
