@@ -49,7 +49,7 @@ def _serve(kind: str, port_q, stop_ev, stats_q=None, servers: int = 1, loops: in
         from valve_emulator.device.server import EmulatorServer
 
         srvs = []
-        for s in range(servers):
+        for _ in range(servers):
             cfg = server_from_mapping({"device": {"tick": 0.1}, "loops": _plant_loops(loops)})
             srv = EmulatorServer(cfg, time_scale=1.0)
             await srv.start()

@@ -73,9 +73,11 @@ def main() -> None:
                 bank.step(ops[k])
 
         t = median_time(tick_loop, repeats=5)
-        rows.append((f"StictionBank.step per sample, {nv:,} valves", f"{nv * steps / t:,.0f}", f"{base * nv * steps / n / t:,.0f}×"))
+        rows.append((f"StictionBank.step per sample, {nv:,} valves", f"{nv * steps / t:,.0f}",
+                     f"{base * nv * steps / n / t:,.0f}×"))
         t = median_time(lambda: simulate_many(ops, np.full(nv, 5.0), np.full(nv, 2.0)), repeats=5)
-        rows.append((f"simulate_many over the array, {nv:,} valves", f"{nv * steps / t:,.0f}", f"{base * nv * steps / n / t:,.0f}×"))
+        rows.append((f"simulate_many over the array, {nv:,} valves", f"{nv * steps / t:,.0f}",
+                     f"{base * nv * steps / n / t:,.0f}×"))
     print("## Stiction kernel (valve-samples/s, median)\n")
     print(table(rows, ("case", "valve-samples/s", "vs plain Python")))
 

@@ -62,7 +62,8 @@ def test_sub_commands_run_from_the_entry_point_and_the_others_do_not_load_the_cl
         done = subprocess.run([sys.executable, "-m", "valve_emulator", command, "--help"], capture_output=True,
                               text=True, timeout=120, check=False)
         assert done.returncode == 0 and f"usage: valve-emulator {command}" in done.stdout, done.stderr
-    probe = ("import sys\nfrom valve_emulator.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+    probe = ("import sys\nfrom valve_emulator.cli import main\n"
+             "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
              "print(sorted(m for m in sys.modules if m.startswith(('valve_emulator.clients', 'pymodbus'))))")
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0 and done.stdout.splitlines()[-1] == "[]", done.stdout + done.stderr
@@ -70,7 +71,8 @@ def test_sub_commands_run_from_the_entry_point_and_the_others_do_not_load_the_cl
 
 def test_sub_commands_report_errors_under_their_own_name(tmp_path, capsys):
     port = free_port()
-    assert cli_main(["record", "--out", str(tmp_path / "never.csv"), "--port", str(port), "--timeout", "0.5", "--quiet"]) == 1
+    argv = ["record", "--out", str(tmp_path / "never.csv"), "--port", str(port), "--timeout", "0.5", "--quiet"]
+    assert cli_main(argv) == 1
     assert f"valve-emulator record: error: no Modbus TCP server at 127.0.0.1:{port}" in capsys.readouterr().err
     assert not (tmp_path / "never.csv").exists()
     assert cli_main(["plc", "--kc", "-1"]) == 2

@@ -70,7 +70,8 @@ def _rows(n: int, start: int = 0) -> list[str]:
 
 
 BAD = {
-    "missing column": (["t,sp,mv,pv"] + [f"{k}.0,,,1.0" for k in range(300)], r"line 1, column 'op': missing required column"),
+    "missing column": (["t,sp,mv,pv"] + [f"{k}.0,,,1.0" for k in range(300)],
+                       r"line 1, column 'op': missing required column"),
     "non-numeric cell": (["t,sp,op,mv,pv"] + _rows(3) + ["3.0,,abc,,0.5"] + _rows(300, 4),
                          r"line 5, column 'op' \(3\): not a number: 'abc'"),
     "time goes back": (["t,sp,op,mv,pv"] + _rows(5) + ["2.0,,50.0,,0.1"] + _rows(300, 6),

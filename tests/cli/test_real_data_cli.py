@@ -36,7 +36,8 @@ def _dcs(path, rec: Recording, tag: str = "FIC101") -> None:
     """The DCS text export of the shared plant data (5 header lines, tab separated, .MV is OP)."""
     start = datetime(2024, 6, 27, 21, 55)
     lines = [f"PROCESSDATA\t{tag} Data\tyyyy-MM-dd HH:mm:ss", f"8\t{rec.dt:g}\t{start:%Y-%m-%d %H:%M:%S}\t{len(rec)}",
-             "tagname\t" + "\t".join(f"{tag}.{c}" for c in ("MV", "PV", "SV", "MODE")) + "\tbOpOFL\tbPvOFL\tbSpOFL\tbAutOFL",
+             "tagname\t" + "\t".join(f"{tag}.{c}" for c in ("MV", "PV", "SV", "MODE"))
+             + "\tbOpOFL\tbPvOFL\tbSpOFL\tbAutOFL",
              "desc\t阀位输出\t流量\t设定\tAut\t\t\t\t", "fsMax=1\tfsMin=0\tL=24"]
     for k in range(len(rec)):
         stamp = start + timedelta(seconds=float(rec.t[k]))

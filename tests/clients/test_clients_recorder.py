@@ -40,7 +40,8 @@ async def test_sigkill_leaves_a_csv_whose_every_complete_line_parses(tmp_path):
     out = tmp_path / "killed.csv"
     async with EmulatorServer(config(), time_scale=20.0) as srv:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "valve_emulator.clients.recorder", "--port", str(srv.port), "--step", "0.5", "--period", "0.025",
+            sys.executable, "-m", "valve_emulator.clients.recorder", "--port", str(srv.port),
+            "--step", "0.5", "--period", "0.025",
             "--out", str(out), "--quiet", stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
         try:
             for _ in range(3000):       # bounded wait for rows, paced by the device (no wall-clock sleep)

@@ -84,7 +84,8 @@ def _rec(n: int, **over) -> Recording:
 
 
 def test_prepare_needs_enough_samples_and_names_the_line():
-    with pytest.raises(RecordingError, match=r"mem\.csv: line 151: 150 data row\(s\), the diagnosis needs at least 200"):
+    too_short = r"mem\.csv: line 151: 150 data row\(s\), the diagnosis needs at least 200"
+    with pytest.raises(RecordingError, match=too_short):
         prepare(_rec(150))
     with pytest.raises(RecordingError, match="needs at least 610"):  # dead times up to 30 + 30 samples
         prepare(_rec(400), nominal_delay=30.0)

@@ -76,7 +76,8 @@ def test_a_jittered_series_is_put_on_the_grid_op_held_pv_interpolated():
     last = np.searchsorted(t, rec.t, side="right") - 1             # ZOH: the last row at or before each time
     np.testing.assert_array_equal(rec.op, op[last])
     assert rec.op[50] == 4.0 and op[50] == 5.0   # the row of t = 50 came at 50.2 s: at 50 s OP was still 4
-    assert note.startswith("resampled onto a uniform 1 s grid") and "114 of 399 steps" in note   # each late row: 1.2 s then 0.8 s
+    # each late row: 1.2 s then 0.8 s
+    assert note.startswith("resampled onto a uniform 1 s grid") and "114 of 399 steps" in note
 
 
 def test_a_uniform_series_is_left_alone_and_a_real_gap_is_refused_with_its_line():
@@ -130,7 +131,8 @@ def test_quantization_targets_the_nearest_point_of_each_readings_interval():
 
 
 def test_disturbance_is_fitted_jointly_with_the_linear_part_known_truth():
-    # PV = 2 u(k-4) (a static gain; the model is q^-1 plus a dead time of 3 samples) + 0.7 sin(2πk/40 + 0.4): u correlated with the cycle.
+    # PV = 2 u(k-4) (a static gain; the model is q^-1 plus a dead time of 3 samples) + 0.7 sin(2πk/40 + 0.4):
+    # u correlated with the cycle.
     T = 1200
     k = np.arange(T)
     u = 50 + 3 * np.sin(2 * np.pi * k / 40 + 1.0) + np.cumsum(RNG.normal(scale=0.3, size=T))

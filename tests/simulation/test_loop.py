@@ -149,7 +149,7 @@ def test_cli_simulate_writes_the_standard_recording_and_plot(tmp_path, capsys):
 
 def test_cli_limit_cycle_prints_prediction_and_simulation(capsys):
     assert main(["limit-cycle", str(TABLE1 / "level_undershoot.yaml")]) == 0
-    line = [l for l in capsys.readouterr().out.splitlines() if l.startswith("level_undershoot")][0]
+    line = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("level_undershoot")][0]
     cells = line.split("|")
     df_period, sim_period = float(cells[1].split()[1]), float(cells[2].split()[1])
     assert abs(df_period - sim_period) / sim_period < 0.15

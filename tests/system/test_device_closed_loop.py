@@ -67,7 +67,7 @@ def mbpoll_cmd(mbpoll, port, *args):
 
 def mbpoll_read(mbpoll, port, name) -> int:
     text = mbpoll_cmd(mbpoll, port, "-r", str(address_of(name)), "-c", "1", "-t", "4", "-1", "127.0.0.1")
-    line = [l for l in text.splitlines() if l.startswith(f"[{address_of(name)}]:")][0]
+    line = [ln for ln in text.splitlines() if ln.startswith(f"[{address_of(name)}]:")][0]
     return int(line.split(":")[1].split()[0])
 
 

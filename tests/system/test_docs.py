@@ -120,4 +120,5 @@ def test_device_md_register_table_is_the_commands_output(capsys):
     m = re.search(r"<!-- valve-emulator registers: begin -->\n(.*?)\n<!-- valve-emulator registers: end -->",
                   text, re.S)
     assert m, "docs/device.md has lost its register-table markers"
-    assert m.group(1).strip() == printed, "docs/device.md: regenerate the table with `valve-emulator registers --format md`"
+    assert m.group(1).strip() == printed, \
+        "docs/device.md: regenerate the table with `valve-emulator registers --format md`"

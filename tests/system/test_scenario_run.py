@@ -82,7 +82,8 @@ async def test_fault_registers_reach_the_loop_and_read_back():
 async def test_scenario_changes_stiction_on_time_and_the_loop_goes_from_settled_to_cycling(tmp_path):
     """Level loop (1/s, PI kc 0.4, ti 2 s): a healthy valve settles after a set-point step; stiction
     scripted at 60.3 s changes S and J at tick 603 exactly (the player waits on the device's tick), and
-    after the next set-point change the loop cycles (the level loop of Choudhury, Thornhill & Shah (2005): period ~15 s)."""
+    after the next set-point change the loop cycles (the level loop of Choudhury, Thornhill & Shah (2005):
+    period ~15 s)."""
     sc = level_scenario("""\
         - {at: 10, event: sp, value: 1.0}
         - {at: 60.3, event: stiction, S: 3.0, J: 1.5, say: sticky now}

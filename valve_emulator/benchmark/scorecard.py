@@ -151,7 +151,7 @@ def leave_one_valve_out(results: Sequence[dict], grid: Sequence[float],
     per = {k: valve_calls(results, lambda r, k=k: decide(r, k)) for k in grid}
     pairs, chosen = [], {}
     for tag in tags:
-        def ba(k: float) -> float:
+        def ba(k: float, tag: str = tag) -> float:
             c = confusion((v["label"], v["call"]) for t, v in per[k].items() if t != tag)
             b = c.balanced_accuracy
             return -1.0 if b != b else b

@@ -94,7 +94,8 @@ def add_channel_arguments(p: argparse.ArgumentParser) -> None:
                    help="device time, s (default %(default)s; none = wall time since start)")
     g.add_argument("--sp", metavar="SPEC|VALUE", default=CORE_DEFAULTS["sp"],
                    help="set point: a register or a constant number (default %(default)s)")
-    g.add_argument("--op", metavar="SPEC", default=CORE_DEFAULTS["op"], help="controller output, %% (default %(default)s)")
+    g.add_argument("--op", metavar="SPEC", default=CORE_DEFAULTS["op"],
+                   help="controller output, %% (default %(default)s)")
     g.add_argument("--mv", metavar="SPEC", default=CORE_DEFAULTS["mv"], help="valve position, %% (default %(default)s)")
     g.add_argument("--pv", metavar="SPEC", default=CORE_DEFAULTS["pv"], help="process value (default %(default)s)")
     g.add_argument("--extra", metavar="NAME=SPEC", action="append", default=[],

@@ -8,7 +8,8 @@ so.
 :class:`GridSchedule` samples the device's time axis itself: row ``n`` is the first reading with device
 time ``t >= t0 + n·step``. It predicts from the measured rate (device seconds per wall second) when the
 device reaches the next grid time and closes in (half the predicted time to go, then again), then polls
-four times per device tick from a tick before until it is there. The reading then normally has exactly the grid time (the device holds a value for a
+four times per device tick from a tick before until it is there. The reading then normally has exactly the
+grid time (the device holds a value for a
 whole tick), so rows come exactly ``step`` apart: the uniform sampling that identification wants. A
 reading already past the grid time (the process was too slow to catch the tick) is used as it is and
 counted as ``off_grid``; the grid continues from the next grid time after it.

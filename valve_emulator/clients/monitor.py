@@ -1,4 +1,5 @@
-"""``valve-emulator monitor`` (or ``python -m valve_emulator.clients.monitor``): the instructor's live view of a loop in a terminal.
+"""``valve-emulator monitor`` (or ``python -m valve_emulator.clients.monitor``): the instructor's live view of a
+loop in a terminal.
 
 Shows the latest SP, PV, OP and MV, whether the valve is moving, stuck or seized, the instructor's fault
 settings (emulator only) and a scrolling trend, one row per sample, newest at the bottom::
@@ -12,7 +13,8 @@ from the samples: MV unchanged since the previous sample = stuck.
 
 Modes: on a terminal the screen is redrawn in place (ANSI escapes); ``--plain`` (the default when the
 output is not a terminal) prints one trend row per sample, which scrolls by itself, and the column heading
-again whenever the PV axis has grown. ``--once`` prints one sample and exits; ``--duration S`` stops after S wall seconds. Reads the
+again whenever the PV axis has grown. ``--once`` prints one sample and exits; ``--duration S`` stops after S
+wall seconds. Reads the
 same channels as the recorder (see :mod:`valve_emulator.clients._channels`), so it works on any device.
 """
 
@@ -223,10 +225,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The monitor's flags (``python -m valve_emulator.clients.monitor`` and ``valve-emulator monitor``)."""
     add_connection_arguments(p)
     g = p.add_argument_group("display")
-    g.add_argument("--period", type=float, default=0.5, metavar="S", help="wall seconds per sample (default %(default)s)")
+    g.add_argument("--period", type=float, default=0.5, metavar="S",
+                   help="wall seconds per sample (default %(default)s)")
     g.add_argument("--once", action="store_true", help="show one sample and exit")
     g.add_argument("--duration", type=float, metavar="S", help="stop after S wall seconds (default: Ctrl-C)")
-    g.add_argument("--plain", action="store_true", help="no screen redraw: one line per sample (default off a terminal)")
+    g.add_argument("--plain", action="store_true",
+                   help="no screen redraw: one line per sample (default off a terminal)")
     g.add_argument("--width", type=int, default=60, help="trend columns (default %(default)s)")
     g.add_argument("--rows", type=int, default=20, help="trend rows on screen (default %(default)s)")
     g.add_argument("--pv-range", type=float, nargs=2, metavar=("LO", "HI"), help="PV/SP axis (default: as seen)")

@@ -1,4 +1,5 @@
-"""``valve-emulator plc`` (or ``python -m valve_emulator.clients.pi_controller``): a soft PLC -- PI(D) over Modbus TCP at a fixed scan time.
+"""``valve-emulator plc`` (or ``python -m valve_emulator.clients.pi_controller``): a soft PLC -- PI(D) over
+Modbus TCP at a fixed scan time.
 
 Every scan it reads PV (and the set point, when ``--sp-register`` names one), runs one step of
 :class:`valve_emulator.physics.controller.PID` (position form, anti-windup, derivative on PV) and writes

@@ -1,8 +1,10 @@
-"""``valve-emulator record --out REC.csv`` (or ``python -m valve_emulator.clients.recorder``): poll a Modbus device and write the standard recording CSV.
+"""``valve-emulator record --out REC.csv`` (or ``python -m valve_emulator.clients.recorder``): poll a Modbus
+device and write the standard recording CSV.
 
 The file is the project's recording format (:mod:`valve_emulator.recordings.recording`): header
 ``t,sp,op,mv,pv`` then the extra columns (by default the emulator's ``flow, op_ma, stuck, S, J, load,
-noise, fault, tick``; see :mod:`valve_emulator.clients._channels` for pointing the columns at any device). Each sample is
+noise, fault, tick``; see :mod:`valve_emulator.clients._channels` for pointing the columns at any device).
+Each sample is
 one line, written and flushed at once (``--fsync`` also forces it to disk), so a recorder that is killed
 loses at most the line it was writing; :func:`~valve_emulator.recordings.recording.read_csv` drops such a partial
 last line with a warning.
@@ -198,7 +200,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_connection_arguments(p)
     g = p.add_argument_group("recording")
     g.add_argument("--out", required=True, type=Path, metavar="REC.csv", help="file to write (overwritten)")
-    g.add_argument("--period", type=float, default=0.1, metavar="S", help="wall seconds between polls (default %(default)s)")
+    g.add_argument("--period", type=float, default=0.1, metavar="S",
+                   help="wall seconds between polls (default %(default)s)")
     g.add_argument("--step", type=float, metavar="S",
                    help="instead: one row every S seconds of device time, on the device's own time grid "
                         "(uniform sampling; S a multiple of the device tick)")

@@ -45,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
         p, m = r["predicted"], r["measured"]
         err = (p.period - m.period) / m.period * 100 if p.found and m.sustained else math.nan
         print(f"{r['name']:28s} {r['S']:5.2f} {r['J']:5.2f} | {_fmt(p.amplitude):>7s} {_fmt(p.period, '.1f'):>9s} | "
-              f"{_fmt(m.amplitude if m.sustained else 0.0):>7s} {_fmt(m.period if m.sustained else math.nan, '.1f'):>10s} "
+              f"{_fmt(m.amplitude if m.sustained else 0.0):>7s} "
+              f"{_fmt(m.period if m.sustained else math.nan, '.1f'):>10s} "
               f"{'yes' if m.sustained else 'no':>9s} | {_fmt(err, '+.1f') + (' %' if math.isfinite(err) else ''):>10s}")
     return 0

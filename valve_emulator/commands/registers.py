@@ -11,7 +11,8 @@ HELP = "print the Modbus register map (name, table, address, type, scale, units,
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", type=Path, nargs="?", metavar="CONFIG", help="server or loop config (default: the embedded default)")
+    p.add_argument("config", type=Path, nargs="?", metavar="CONFIG",
+                   help="server or loop config (default: the embedded default)")
     p.add_argument("--format", choices=("md", "csv", "json"), default="md", help="output format (default %(default)s)")
 
 

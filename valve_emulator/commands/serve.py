@@ -39,8 +39,10 @@ _log = logging.getLogger("valve_emulator.serve")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", type=Path, nargs="?", metavar="CONFIG",
-                   help="server or loop config (default: the seed's concentration loop, sticky valve, external controller)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default %(default)s; 0.0.0.0 = all interfaces)")
+                   help="server or loop config (default: the concentration loop of Choudhury, Thornhill & Shah, "
+                        "sticky valve, external controller)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default %(default)s; 0.0.0.0 = all interfaces)")
     from valve_emulator.device.registers import DEFAULT_PORT
 
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port (default %(default)s; 0 picks a free port)")

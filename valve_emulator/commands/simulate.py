@@ -13,7 +13,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", type=Path, metavar="CONFIG", help="loop config (YAML, see docs/config.md)")
     p.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default: simulation.duration)")
     p.add_argument("--out", required=True, type=Path, metavar="REC.csv", help="recording to write (t,sp,op,mv,pv,...)")
-    p.add_argument("--plot", type=Path, metavar="FIG.png", help="also plot trends and MV-OP / PV-OP like the seed's Figures 6-8")
+    p.add_argument("--plot", type=Path, metavar="FIG.png",
+                   help="also plot trends and MV-OP / PV-OP like Figures 6-8 of Choudhury, Thornhill & Shah (2003)")
 
 
 def run(args: argparse.Namespace) -> int:

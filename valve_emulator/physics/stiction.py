@@ -94,11 +94,10 @@ def _kano_valve(i, u_raw, S, J, R, st):  # pragma: no cover - compiled
     else:
         st[i, STILL] = 0.0
     half = 0.5 * (S - J)
-    if st[i, FLAG] == 0.0:
-        # Moving: it stops on a reversal of OP, or when OP has been still for R samples.
-        if du * st[i, DIR] < 0.0 or st[i, STILL] >= R:
-            st[i, REF] = st[i, U_PREV]
-            st[i, FLAG] = 1.0
+    # Moving: it stops on a reversal of OP, or when OP has been still for R samples.
+    if st[i, FLAG] == 0.0 and (du * st[i, DIR] < 0.0 or st[i, STILL] >= R):
+        st[i, REF] = st[i, U_PREV]
+        st[i, FLAG] = 1.0
     if st[i, FLAG] == 0.0:
         st[i, MV] = _clip(u - st[i, DIR] * half)
         st[i, STUCK] = 0.0

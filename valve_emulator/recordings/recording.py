@@ -260,7 +260,7 @@ class CsvRecordingWriter:
         """Create the file and write the header; returns ``self``."""
         if self._fh is not None:
             raise ValueError(f"{self.path} is already open")
-        self._fh = open(self.path, "w", encoding="utf-8", newline="")
+        self._fh = open(self.path, "w", encoding="utf-8", newline="")  # noqa: SIM115 - held open row by row until close()
         self.rows_written = 0
         self._last_t = -math.inf
         self._emit(",".join(CORE_COLUMNS + self.extra_columns) + "\n")

@@ -28,7 +28,8 @@ changes fastest) resolvable. The controller's derivative is filtered as in
 Stability (Loeb's criterion, see e.g. Atherton, *Nonlinear Control Engineering*, 1975; derived here): with
 ``F(A, s) = 1 + N(A) L(s)``, perturb the amplitude by ``dA``; the root ``s = alpha + j w`` moves by
 ``ds = -(F_A / F_s) dA`` with ``F_s = -j F_w`` (``F`` is analytic in ``s``). The cycle is stable when a
-larger amplitude decays (``Re ds < 0``), i.e. when ``U_A V_w - U_w V_A > 0`` for ``F = U + jV``. The same sign follows from ``r`` (``r = log(1 - F)``) and the log variables (positive
+larger amplitude decays (``Re ds < 0``), i.e. when ``U_A V_w - U_w V_A > 0`` for ``F = U + jV``. The same
+sign follows from ``r`` (``r = log(1 - F)``) and the log variables (positive
 factors), so a solution is stable when ``det(dr/d(u, v)) > 0``.
 
 When several stable solutions exist the one with the smallest amplitude is returned: a loop that starts

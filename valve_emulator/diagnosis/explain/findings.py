@@ -41,9 +41,9 @@ def stiction_surface(rounds: list[Round], n: int):
     pick = None
     for rnd in rounds:
         for o in rnd.options:
-            if o.added == ("stiction",) and o.scan is not None:
-                if pick is None or (rnd.chosen is not None and "stiction" in rnd.chosen.added):
-                    pick = o
+            accepted = rnd.chosen is not None and "stiction" in rnd.chosen.added
+            if o.added == ("stiction",) and o.scan is not None and (pick is None or accepted):
+                pick = o
     if pick is None:
         return None, None
     P, sse = pick.scan.params, pick.scan.sse

@@ -113,8 +113,8 @@ def _grid_block(c0, c1, z, y, w0, w1, delays, ntaps, trend, sums, sse, coef):  #
             zm = z[m, c0 + j]
             P1[m + 1, j] = P1[m, j] + zm
             PK[m + 1, j] = PK[m, j] + m * zm
-            for l in range(ntaps):
-                P[l, m + 1, j] = P[l, m, j] + (zm * z[m - l, c0 + j] if m >= l else 0.0)
+            for tap in range(ntaps):
+                P[tap, m + 1, j] = P[tap, m, j] + (zm * z[m - tap, c0 + j] if m >= tap else 0.0)
     X = np.zeros((nlag, nb))              # X[i, j] = sum_k z[k - (dmin + i), j] y[k]
     for k in range(w0, w1):               # time outermost: the nlag rows in use stay in cache
         yk = y[k]
