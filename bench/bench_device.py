@@ -1,4 +1,4 @@
-"""Speed of the Modbus device (issue 4). Run: ``python bench/bench_device.py [--seconds 5]``.
+"""Speed of the Modbus device. Run: ``python bench/bench_device.py [--seconds 5]``.
 
 1. Requests/s of the emulator against a plain pymodbus 3.16 ``SimDevice`` server, measured in the same run
    with the same clients: the pymodbus async client and a lean raw-socket client, one outstanding

@@ -1,4 +1,4 @@
-"""Normal clients' throughput while hostile connections send garbage (issue 9).
+"""Normal clients' throughput while hostile connections send garbage.
 
 Run: ``python bench/bench_hostile.py [--seconds 3] [--rounds 5] [--normal 4] [--hostile 50]``.
 

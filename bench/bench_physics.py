@@ -1,4 +1,4 @@
-"""Speed of the physics core (issues 2 and 3). Run: ``python bench/bench_physics.py``.
+"""Speed of the physics core. Run: ``python bench/bench_physics.py``.
 
 Prints medians of several runs:
 - ``simulate`` samples/s for one valve over 10^6 samples, per model, against a plain per-sample Python loop

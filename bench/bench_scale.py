@@ -1,4 +1,4 @@
-"""Plant scale (issue 8), measured: one command runs every benchmark and writes ``docs/benchmarks.md``.
+"""Plant scale, measured: one command runs every benchmark and writes ``docs/benchmarks.md``.
 
     python bench/bench_scale.py [--plant-data PATH] [--seconds 3] [--rounds 3] [--jitter-seconds 10]
                                 [--jitter-windows 3] [--sizes 100 1000 10000 100000]
@@ -433,7 +433,7 @@ def main(argv=None) -> int:
 
     with tempfile.TemporaryDirectory() as tmpdir:
         if args.diagnose:
-            section("## 4. `diagnose` wall time against recording length\n\nClosed-loop recordings of the seed's "
+            section("## 4. `diagnose` wall time against recording length\n\nClosed-loop recordings of the 2003 paper's "
                     "concentration loop with stiction (S = 5, J = 2, dt = 1 s, PV noise 0.02), no model given "
                     "(the linear part is identified from the data). *inside* is the time the command reports "
                     "for the diagnosis itself (from its progress stamps), *wall* adds start-up and reading the "
@@ -454,7 +454,7 @@ def main(argv=None) -> int:
 
 
 def _throughput_targets(res: dict) -> str:
-    lines = ["Targets (issue 8):\n"]
+    lines = ["Targets:\n"]
     for client in ("pymodbus client", "C client (libmodbus)"):
         for conns in (1, 10):
             ours, plain = res.get((client, conns, "emulator, asyncio")), res.get((client, conns, "plain pymodbus 3.16"))
@@ -497,7 +497,7 @@ def _jitter_section(results: list[dict], seconds: float, windows: int) -> str:
     target = [r for r in results if r["loops"] == 10_000 and r["processes"] == 1]
     if target:
         r = target[0]
-        text += (f"\nTarget (issue 8): 10,000 loops at 10 Hz, p99 lateness ≤ 5 ms while 10 clients poll: "
+        text += (f"\nTarget: 10,000 loops at 10 Hz, p99 lateness ≤ 5 ms while 10 clients poll: "
                  f"{r['late_p99']:.2f} ms (median of the windows; worst window {r['worst_late_p99']:.2f} ms) — "
                  f"{'met' if r['late_p99'] <= 5 else 'NOT met'} (tick compute p99 {r['tick_p99']:.2f} ms).\n")
     return text

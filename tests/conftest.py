@@ -1,4 +1,8 @@
-"""Shared fixtures: async hygiene, a loop-bank test double, the mbpoll client, fake time."""
+"""Shared fixtures: async hygiene, a loop-bank test double, the mbpoll client, fake time.
+
+Tests mirror the package (``tests/physics`` for ``valve_emulator/physics`` ...); ``tests/system`` holds the
+end-to-end, robustness and scale tests, which are all marked ``slow``: ``pytest -m "not slow"`` is the quick
+run while developing, the whole suite is what CI runs."""
 
 from __future__ import annotations
 
@@ -9,6 +13,14 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+
+_HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if os.path.relpath(str(item.path), _HERE).split(os.sep)[0] == "system":
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture

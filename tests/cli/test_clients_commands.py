@@ -57,6 +57,7 @@ def test_sub_command_help_names_the_clients_own_flags(command, capsys):
     assert long_flags(out) == long_flags(module.build_parser().format_help())   # one set of flags, not a copy
 
 
+@pytest.mark.slow
 def test_sub_commands_run_from_the_entry_point_and_the_others_do_not_load_the_clients():
     for command in COMMANDS:
         done = subprocess.run([sys.executable, "-m", "valve_emulator", command, "--help"], capture_output=True,

@@ -29,6 +29,7 @@ def files(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_diagnose_writes_verdict_json_report_and_figure(files, tmp_path, capsys):
     out = {k: tmp_path / f"out.{k}" for k in ("json", "md", "png")}
     code = main(["diagnose", str(files / "rec.csv"), "--model", str(files / "nominal.yaml"),
@@ -50,6 +51,7 @@ def test_diagnose_writes_verdict_json_report_and_figure(files, tmp_path, capsys)
     assert out["png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out["png"].stat().st_size > 20_000
 
 
+@pytest.mark.slow
 def test_diagnose_without_a_model_identifies_the_linear_part(files, tmp_path, capsys):
     out = tmp_path / "out.json"
     assert main(["diagnose", str(files / "rec.csv"), "--json", str(out), "--quiet"]) == 0
@@ -104,6 +106,7 @@ def test_bad_nominal_model_is_named(files, tmp_path, capsys):
     assert "2 poles at s = 0" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_prove_runs_a_reduced_set_and_writes_the_table(tmp_path, capsys):
     code = main(["prove", "--out", str(tmp_path), "--case", "control", "--duration", "1500"])
     assert code == 0

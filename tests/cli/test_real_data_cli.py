@@ -47,6 +47,7 @@ def _dcs(path, rec: Recording, tag: str = "FIC101") -> None:
 
 # ------------------------------------------------------------------------------------------------- diagnose
 
+@pytest.mark.slow
 def test_diagnose_a_jittered_recorder_file_resamples_says_so_and_finds_stiction(tmp_path, capsys):
     path = tmp_path / "rec.csv"
     write_csv(_jittered(_sticky()), path)
@@ -68,6 +69,7 @@ def test_diagnose_refuses_a_real_gap_naming_the_line(tmp_path, capsys):
     assert len(err) == 1 and "gap.csv: line 302" in err[0] and "gap" in err[0]
 
 
+@pytest.mark.slow
 def test_diagnose_reads_a_generic_export_with_the_reader_flags(tmp_path, capsys):
     rec = _sticky(duration=800.0)
     rows = ["Export from historian", "unit;%;m3/h;m3/h"]
@@ -137,6 +139,7 @@ def labelled_set(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_evaluate_scores_per_valve_and_window_with_the_detectors_and_writes_the_report(labelled_set, tmp_path,
                                                                                          capsys):
     report = tmp_path / "real.md"

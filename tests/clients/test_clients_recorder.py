@@ -36,6 +36,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 async def test_sigkill_leaves_a_csv_whose_every_complete_line_parses(tmp_path):
     out = tmp_path / "killed.csv"
     async with EmulatorServer(config(), time_scale=20.0) as srv:
@@ -120,6 +121,7 @@ def test_main_help(module, capsys):
     assert exc.value.code == 0 and "usage: python -m valve_emulator.clients." in capsys.readouterr().out
 
 
+@pytest.mark.slow
 async def test_every_client_runs_as_a_module():
     names = ("recorder", "pi_controller", "monitor", "scenario")
     procs = [await asyncio.create_subprocess_exec(sys.executable, "-m", f"valve_emulator.clients.{n}", "--help",

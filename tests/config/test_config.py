@@ -31,7 +31,7 @@ DOCS = Path(__file__).resolve().parents[2] / "docs" / "config.md"
 
 FULL = """\
 name: concentration_undershoot
-description: "seed paper"
+description: "the 2003 paper"
 valve:
   model: kano
   seed_s: 5.0
@@ -96,7 +96,7 @@ def test_full_example_loads_into_expected_objects(tmp_path):
     path = write(tmp_path, FULL)
     loop = load_loop(path)
     assert loop == LoopConfig(
-        "concentration_undershoot", description="seed paper", source=str(path),
+        "concentration_undershoot", description="the 2003 paper", source=str(path),
         valve=ValveConfig(model="kano", S=5.0, J=2.0, rest_time=0.25, initial_direction=-1, op0=40.0,
                           characteristic="equal_percentage", rangeability=30.0,
                           ma_table=((4.0, 0.0), (12.0, 40.0), (20.0, 100.0)), seed_form=(5.0, 1.0)),
@@ -387,7 +387,7 @@ def test_objects_are_frozen_and_replace_revalidates(tmp_path):
     with pytest.raises(ConfigError, match=r"S must be >= 0"):
         dataclasses.replace(loop.valve, S=-1.0)
     with pytest.raises(ConfigError, match=r"seed_form \(5, 1\) does not match S=4, J=2"):
-        dataclasses.replace(loop.valve, S=4.0)  # the typed seed form would no longer describe the valve
+        dataclasses.replace(loop.valve, S=4.0)  # the typed 2003-paper form would no longer describe the valve
     assert dataclasses.replace(loop.valve, S=4.0, seed_form=None).S == 4.0
     hash(loop)  # fully immutable, hence hashable
 
@@ -437,7 +437,7 @@ def test_docs_document_every_key():
     assert every - documented == set()
 
 
-# --- connection hygiene keys (issue 9) ----------------------------------------------------------------
+# --- connection hygiene keys ----------------------------------------------------------------
 
 def test_connection_keys_default_and_load(tmp_path):
     d = DeviceConfig()

@@ -1,6 +1,6 @@
 """Comparison stiction detectors (valve_emulator.detectors): known-truth numerics and simulated loops.
 
-The loops are the seed paper's concentration loop (plant 3 e^(-10 s)/(10 s + 1), PI kc 0.2, ti 10 s) run by the
+The loops are the 2003 paper's concentration loop (plant 3 e^(-10 s)/(10 s + 1), PI kc 0.2, ti 10 s) run by the
 project's own simulator at dt = 1 s and kept every 5 s, as a plant historian would store them.
 """
 

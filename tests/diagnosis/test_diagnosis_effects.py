@@ -11,6 +11,8 @@ import pytest
 from valve_emulator.benchmark.cases import CASES, generate
 from valve_emulator.diagnosis import diagnose
 
+pytestmark = pytest.mark.slow  # each test fits a whole concealed recording (seconds)
+
 BY_NAME = {c.name: c for c in CASES}
 
 

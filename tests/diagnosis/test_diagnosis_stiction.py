@@ -12,6 +12,8 @@ import pytest
 from valve_emulator.benchmark.cases import CASES, generate
 from valve_emulator.diagnosis import diagnose
 
+pytestmark = pytest.mark.slow  # each test fits a whole concealed recording (seconds)
+
 SECONDS = 3300.0  # 3000 samples after the cut: ~20 limit cycles of the concentration loop
 BY_NAME = {c.name: c for c in CASES}
 STICTION = ["stiction, undershoot", "stiction, no offset", "stiction, overshoot"]

@@ -13,6 +13,8 @@ from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.diagnosis.fit.load_check import LAMBDAS, load_bic_of
 
+pytestmark = pytest.mark.slow  # each test fits several simulated plant records
+
 
 def _open_loop(load_std: float, noise_std: float, seed: int = 0, T: int = 1500):
     """PV of 2/(8s+1), dead time 3 s, driven by a random staircase, plus a random-walk load and white noise."""

@@ -13,6 +13,8 @@ from historian import STEPS_150, STEPS_300, simulate
 
 from valve_emulator.diagnosis.assess.decision import assess
 
+pytestmark = pytest.mark.slow  # each test fits a whole concealed recording (seconds)
+
 
 def test_quantised_pv_is_not_called_stiction_and_is_named():
     # A flow loop under a drifting load; PV stored in steps of 0.5 (a few levels over its range): a
@@ -51,7 +53,7 @@ def test_a_pure_sinusoidal_disturbance_is_not_stiction_either():
 
 
 def test_stiction_in_an_integrating_loop_is_found_with_s_and_j():
-    # The seed's level loop (1/s, PI Kc 0.4, Ti 2 s) with S = 3 %, J = 1.5 %, sampled at 0.2 s.
+    # The 2003 paper's level loop (1/s, PI Kc 0.4, Ti 2 s) with S = 3 %, J = 1.5 %, sampled at 0.2 s.
     rec = simulate([1.0], [1.0, 0.0], 0.0, 0.4, 2.0, S=3.0, J=1.5, dt=0.2, duration=200.0, noise=0.02, cut=60.0)
     a = assess(rec)
     assert a.decision == "stiction", a.verdict

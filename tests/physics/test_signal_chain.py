@@ -12,7 +12,7 @@ def test_default_table_is_4_20_ma_with_linear_extension():
     t = LookupTable()
     np.testing.assert_allclose(t.to_pct([4, 12, 20, 3.8, 20.8]), [0, 50, 100, -1.25, 105])
     np.testing.assert_allclose(t.to_ma([0, 50, 100]), [4, 12, 20])
-    # the seed: with 4-20 mA, 2 % stiction is 0.32 mA
+    # The 2003 paper: with 4-20 mA, 2 % stiction is 0.32 mA
     assert t.to_ma(2.0) - t.to_ma(0.0) == pytest.approx(0.32)
 
 

@@ -143,7 +143,8 @@ def test_noisy_input_still_moves_default_valve():
 
 @pytest.mark.parametrize("seed_j, case", [(1.0, "undershoot"), (2.5, "no_offset"), (3.5, "overshoot")])
 def test_seed_table1_values_in_seed_form(seed_j, case):
-    """Seed Table 1, concentration loop, s = 5: j < s/2 undershoot, j = s/2 no offset, j > s/2 overshoot."""
+    """Table 1 of Choudhury, Thornhill & Shah (2003), concentration loop, s = 5: j < s/2 undershoot,
+    j = s/2 no offset, j > s/2 overshoot."""
     S, J = seed_to_2005(5.0, seed_j)
     assert S == 5.0 and 2 * seed_j == J
     n = 4000

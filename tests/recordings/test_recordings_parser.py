@@ -128,6 +128,7 @@ def test_decimal_comma_and_semicolon_read_the_same_numbers_as_point_and_comma(tm
 @given(cells=st.lists(st.one_of(st.text(alphabet="0123456789eE+-. ", max_size=8),
                                 st.from_regex(_PLAIN, fullmatch=True)), min_size=1, max_size=6),
        decimal=st.sampled_from([".", ","]))
+@pytest.mark.slow
 def test_decimal_syntax_reads_a_column_as_each_cell_alone(cells, decimal):
     """The whole-column fast path accepts exactly the plain decimal numbers, with ``float``'s value."""
     text = [c.replace(".", decimal) for c in cells]

@@ -1,4 +1,4 @@
-"""Plant-size fleets (issue 8): addressing beyond 247 loops, and one array-stepped bank == every loop alone."""
+"""Plant-size fleets: addressing beyond 247 loops, and one array-stepped bank == every loop alone."""
 
 from __future__ import annotations
 

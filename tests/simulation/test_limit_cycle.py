@@ -127,7 +127,7 @@ def test_delay_loop_matches_dense_grid_minimum():
 
 
 def test_no_cycle_for_deadband_in_self_regulating_loop():
-    # The seed paper: pure deadband in the concentration loop only adds dead time, no limit cycle.
+    # The 2003 paper: pure deadband in the concentration loop only adds dead time, no limit cycle.
     assert not predict_limit_cycle(5.0, 0.0, CONC_PI, CONC_PLANT).found
     assert not predict_limit_cycle(0.0, 0.0, LEVEL_PI, LEVEL_PLANT).found  # no friction at all
 
@@ -171,7 +171,7 @@ def test_predict_rejects_bad_loops(controller, plant, message):
 # --------------------------------------------------------------------------- prediction vs simulation
 
 def simulate_level_loop(S: float, J: float, *, dt: float = 0.01, duration: float = 400.0):
-    """Level loop of the seed paper, stepped per sample in the design's loop order: PV_k measured, OP_k from
+    """Level loop of the 2003 paper, stepped per sample in the design's loop order: PV_k measured, OP_k from
     a PI (e = sp - pv, Euler integral), MV_k from the stiction bank, PV integrates MV - u0 over [t_k, t_k+dt).
     Starts 1 unit below the set point with the valve at rest at the bias."""
     kc, ti, bias = 0.4, 2.0, 50.0
@@ -190,7 +190,7 @@ def simulate_level_loop(S: float, J: float, *, dt: float = 0.01, duration: float
     return dt * np.arange(n), op
 
 
-@pytest.mark.parametrize("J", [0.0, 1.5])  # pure deadband; the seed's undershoot case S=3, J=1.5
+@pytest.mark.parametrize("J", [0.0, 1.5])  # pure deadband; the 2003 paper's undershoot case S=3, J=1.5
 def test_level_loop_prediction_agrees_with_simulation(J):
     S = 3.0
     p = predict_limit_cycle(S, J, LEVEL_PI, LEVEL_PLANT)

@@ -1,4 +1,4 @@
-"""Closed loop: the seed's Table 1 statements, describing function vs simulation, determinism, banks."""
+"""Closed loop: the 2003 paper's Table 1 statements, describing function vs simulation, determinism, banks."""
 
 from dataclasses import replace
 from pathlib import Path

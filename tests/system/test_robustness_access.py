@@ -1,4 +1,4 @@
-"""Access control (issue 9): read-only mode refuses with 0x01, instructor gating with 0x02, nothing changes,
+"""Access control: read-only mode refuses with 0x01, instructor gating with 0x02, nothing changes,
 every refused write is logged once per client and register, live reconfiguration, the bind warning."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Faults (issue 9): signals stop cleanly and keep the recording whole, SIGKILL loses no complete line, a
+"""Faults: signals stop cleanly and keep the recording whole, SIGKILL loses no complete line, a
 failing disk is reported without stopping the device, a bad config reload keeps the running config."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Floods and slow clients (issue 9): connection limit, idle / slow / half-open timeouts, the tick on time.
+"""Floods and slow clients: connection limit, idle / slow / half-open timeouts, the tick on time.
 
 The server and its tick run here (real physics, time-scale 1, 100 ms tick); the hostile and normal clients
 run in a separate process (``_flood_client.py``) so that their work does not share this event loop or GIL.

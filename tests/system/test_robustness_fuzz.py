@@ -1,4 +1,4 @@
-"""Hostile protocol input over real sockets (issue 9): 10^5 malformed frames, then the device is unharmed.
+"""Hostile protocol input over real sockets: 10^5 malformed frames, then the device is unharmed.
 
 A seeded generator builds batches of malformed requests whose specified answer is known (an oracle), sends
 each batch in one ``sendall`` (sometimes cut into many small segments) and checks every answer; a batch may

@@ -73,7 +73,7 @@ def _steps(levels, period, start=100.0) -> list[tuple[float, float]]:
     return [(start + i * period, float(v)) for i, v in enumerate(levels)]
 
 
-_CONC = ([3.0], [10.0, 1.0], 10.0)     # seed Table 1 concentration loop, Kc 0.2, Ti 10 s
+_CONC = ([3.0], [10.0, 1.0], 10.0)     # Table 1 concentration loop of the 2003 paper, Kc 0.2, Ti 10 s
 
 #: The proof table: every effect the diagnosis names, several plants, tunings and parameter values.
 CASES: tuple[Case, ...] = (

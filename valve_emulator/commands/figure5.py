@@ -1,4 +1,4 @@
-"""``valve-emulator figure5 --out DIR``: reproduce the seed paper's Figure 5 (PNG + CSV)."""
+"""``valve-emulator figure5 --out DIR``: reproduce the 2003 paper's Figure 5 (PNG + CSV)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 from valve_emulator.physics.stiction import DEFAULT_MODEL, MODELS
 
 NAME = "figure5"
-HELP = "reproduce Figure 5 of the seed paper (open-loop stiction cases) as PNG and CSV"
+HELP = "reproduce Figure 5 of Choudhury, Thornhill & Shah (2003) (open-loop stiction cases) as PNG and CSV"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,7 +27,8 @@ def run(args: argparse.Namespace) -> int:
         data.t, data.op, [(f"{label}   (S = {S:g}, J = {J:g} in the 2005 convention)", mv)
                           for label, S, J, mv in data.rows],
         args.out / "figure5.png",
-        title=f"Seed Figure 5: open-loop response of the data-driven stiction model ({args.model})")
+        title=f"Figure 5 of Choudhury, Thornhill & Shah (2003): open-loop response of the data-driven stiction "
+              f"model ({args.model})")
     csv_path = args.out / "figure5.csv"
     names = ["no_stiction", "deadband", "undershoot", "no_offset", "overshoot"]
     with open(csv_path, "w", newline="") as fh:

@@ -314,7 +314,7 @@ def _fleet(ctx: _Context, value: Any, device: DeviceConfig, used: set[int]) -> l
         unit, block = free[k // per_unit], k % per_unit
         draw = {q: streams[q].uniform(*ranges[q]) for q in KEYS["fleet.vary"] if q in ranges}
         valve, plant = base.valve, base.plant
-        if "S" in draw or "J" in draw:  # the typed seed-paper form no longer describes this valve
+        if "S" in draw or "J" in draw:  # the typed 2003-paper form no longer describes this valve
             valve = dataclasses.replace(valve, S=draw.get("S", valve.S), J=draw.get("J", valve.J),
                                         seed_form=None)
         if "gain" in draw or "delay" in draw:

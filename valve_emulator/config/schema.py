@@ -10,7 +10,8 @@ line number to that message.
 Conventions (see ``docs/design.md``): OP, MV and flow are in % of valve travel; PV in engineering units;
 times in seconds; the stiction parameters ``S`` (deadband + stickband, OP axis) and ``J`` (slip jump, MV
 axis) use the 2005 convention of Choudhury, Thornhill & Shah, *Control Engineering Practice* 13 (2005)
-641–658. The seed paper (ADCHEM 2003) prints ``s, j`` with ``S = s`` and ``J = 2 j``; the loader accepts
+641–658. The 2003 paper (Choudhury, Thornhill & Shah, ADCHEM 2003) prints ``s, j`` with ``S = s`` and
+``J = 2 j``; the loader accepts
 that form as ``seed_s``/``seed_j`` and keeps what was typed in :attr:`ValveConfig.seed_form`.
 """
 
@@ -393,7 +394,7 @@ class DeviceConfig:
     instructor_writes: bool = False  # allow writes to S, J and fault-injection registers
     instructor_hosts: tuple[str, ...] = ()  # client IPs allowed instructor writes (empty = any), normalised
     read_only: bool = False         # refuse every write
-    # Connection hygiene (issue 9): a Modbus TCP server facing unknown clients must not let floods, idle
+    # Connection hygiene: a Modbus TCP server facing unknown clients must not let floods, idle
     # or half-open sockets, or a client trickling one byte a second use up its connections.
     max_connections: int = 64       # 1..65535, simultaneous client connections; more are refused and logged
     idle_timeout: float = 60.0      # s > 0, close a connection that has sent no complete request this long

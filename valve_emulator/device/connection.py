@@ -4,7 +4,7 @@
 MBAP frames (7-byte header: transaction id, protocol id 0, length 2..254, unit id) and hands every complete
 frame to ``server.handle``, answering in order; pipelined requests are answered together in one write.
 
-Defences (issue 9), all driven by callbacks and timer handles, never by tasks:
+Defences, all driven by callbacks and timer handles, never by tasks:
 
 - *Fairness.* At most :data:`FRAMES_PER_TURN` frames of one connection, and :data:`FRAMES_PER_ITERATION`
   of all connections together, are answered per event-loop iteration; the rest wait, with reading

@@ -20,7 +20,7 @@ connection; a frame that is not Modbus TCP ends the connection after a short tar
 :mod:`~valve_emulator.device.guard` (connection limit, idle / half-open / slow-client deadlines,
 rate-limited logs). This module answers one complete frame at a time (:meth:`EmulatorServer.handle`).
 
-Hostile input (issue 9)
+Hostile input
 -----------------------
 Every request PDU is checked against the structure the specification prescribes for its function code
 (:func:`~valve_emulator.device.pdu.malformed`: exact length, quantities 1..125 read, 1..123 written by

@@ -3,7 +3,7 @@
 controller output (mA) --look-up table--> OP (% travel) --saturate 0..100--> stiction --> MV (% travel)
 --inherent flow characteristic--> flow (% of maximum) ; and MV --position transmitter--> mA.
 
-The look-up table is the seed paper's: "the control signal has been translated to the percentage of valve
+The look-up table is the 2003 paper's: "the control signal has been translated to the percentage of valve
 travel with the help of a linear look-up table" (4-20 mA by default; any strictly monotone table). Outside the
 table the last segment is extended linearly, so 3.8 mA reads as -1.25 % and saturation (not the table) decides
 what the valve does with it.

@@ -8,7 +8,7 @@ All quantities are in % of valve travel and follow the 2005 convention of Choudh
 
 While the valve moves in direction ``d`` (+1 opening, -1 closing) its position lags the input by a constant
 offset, ``MV = OP - d*(S - J)/2``: ``J = 0`` is a pure deadband, ``0 < J < S`` undershoot, ``J = S`` no offset
-and ``J > S`` overshoot. The seed paper (Choudhury, Thornhill & Shah, ADCHEM 2003) prints a slip jump ``j``
+and ``J > S`` overshoot. The 2003 paper (Choudhury, Thornhill & Shah, ADCHEM 2003) prints a slip jump ``j``
 that is half of this ``J``; :func:`seed_to_2005` converts.
 
 Models
@@ -190,9 +190,9 @@ def stiction_step_kernel(u, S, J, R, codes, st):  # pragma: no cover - compiled
 
 
 def seed_to_2005(s: float, j: float) -> tuple[float, float]:
-    """Convert the seed paper's ``(s, j)`` to the 2005 convention ``(S, J)``.
+    """Convert the 2003 paper's ``(s, j)`` to the 2005 convention ``(S, J)``.
 
-    The seed (ADCHEM 2003) states that there is no offset at ``j = s/2``, undershoot below and overshoot above.
+    The 2003 paper (ADCHEM 2003) states that there is no offset at ``j = s/2``, undershoot below and overshoot above.
     With ``MV = OP - d*(S - J)/2`` no offset means ``J = S``; hence ``S = s`` and ``J = 2*j``.
     """
     return float(s), 2.0 * float(j)

@@ -1,8 +1,8 @@
-"""The seed paper's Figure 5: the stiction model in open loop under a sinusoidal input.
+"""The 2003 paper's Figure 5: the stiction model in open loop under a sinusoidal input.
 
 Five rows (Choudhury, Thornhill & Shah, ADCHEM 2003, Section 4.2): no stiction, pure deadband (j = 0),
-undershoot (j < s/2), no offset (j = s/2), overshoot (j > s/2). The seed does not print the values it used for
-Figure 5; we use s = 5 % with the j of its Table 1 concentration loop, typed in the seed's form and converted
+undershoot (j < s/2), no offset (j = s/2), overshoot (j > s/2). The paper does not print the values it used for
+Figure 5; we use s = 5 % with the j of its Table 1 concentration loop, typed in the 2003 paper's form and converted
 with J = 2 j, and an input of amplitude 10 % around 50 % with a 100 s period.
 """
 
@@ -16,7 +16,7 @@ from valve_emulator.physics.stiction import DEFAULT_MODEL, seed_to_2005, simulat
 
 __all__ = ["FIGURE5_CASES", "Figure5Data", "figure5_data"]
 
-#: (label, seed s, seed j)
+#: (label, s, j as the 2003 paper prints them)
 FIGURE5_CASES = (
     ("no stiction", 0.0, 0.0),
     ("pure deadband: s = 5, j = 0", 5.0, 0.0),

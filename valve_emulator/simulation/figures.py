@@ -1,4 +1,4 @@
-"""Figures in the style of the seed paper: time trends beside MV-OP (and PV-OP) phase plots.
+"""Figures in the style of the 2003 paper: time trends beside MV-OP (and PV-OP) phase plots.
 
 Only this module (and the diagnosis plots) import matplotlib; the Agg backend is used so figures can be made
 on a machine without a screen.
@@ -26,7 +26,8 @@ _PV_STYLE = dict(color="C3", lw=1.4, label="pv")
 
 def plot_open_loop_rows(t: np.ndarray, op: np.ndarray, rows: Sequence[tuple[str, np.ndarray]],
                         path: str | Path, *, title: str = "") -> Path:
-    """One row per case: OP and MV against time (left), MV against OP (right). Seed Figure 5 layout."""
+    """One row per case: OP and MV against time (left), MV against OP (right): the layout of
+    Figure 5 of Choudhury, Thornhill & Shah (2003)."""
     fig, axes = plt.subplots(len(rows), 2, figsize=(10, 2.1 * len(rows)), gridspec_kw={"width_ratios": [2.2, 1]},
                              squeeze=False)
     for (label, mv), (ax_t, ax_xy) in zip(rows, axes):
@@ -52,7 +53,7 @@ def plot_open_loop_rows(t: np.ndarray, op: np.ndarray, rows: Sequence[tuple[str,
 
 
 def plot_closed_loop(rec: Recording, path: str | Path, *, title: str = "", last: float | None = None) -> Path:
-    """Closed-loop recording like the seed's Figures 6-8.
+    """Closed-loop recording like the 2003 paper's Figures 6-8.
 
     Rows: OP and MV against time; PV and SP against time. Right column: MV-OP and PV-OP plots. ``last``
     restricts the plots to the final ``last`` seconds (the steady limit cycle); default the last third.
