@@ -36,9 +36,9 @@ TOLERANCE = 1e-6
 # ------------------------------------------------------------------------------------------ run
 
 def _cases_module():
-    try:  # after the restructure the proof cases live with the benchmark machinery
+    try:  # the proof cases live with the benchmark machinery
         from valve_emulator.benchmark import cases
-    except ImportError:
+    except ImportError:  # a checkout from before the restructure, for the "before" run
         from valve_emulator.diagnosis import cases
     return cases
 
@@ -102,11 +102,8 @@ def _fleet_image() -> dict:
     device = Device.from_config(cfg, time_scale=0)
     chain = hashlib.sha256()
     # Writes on the way (register addresses from the map, values raw): OP of open-loop loops, SP and mode
-    # of the controlled loop, instructor S/J and load. Resolved by name so the script survives a move.
-    try:
-        from valve_emulator.device.registers import address_of
-    except ImportError:  # pragma: no cover - a later map module
-        from valve_emulator.device.map import address_of
+    # of the controlled loop, instructor S/J and load.
+    from valve_emulator.device.registers import address_of
     writes = {
         100: [(2, "op_pct", [6000]), (0, "sp", [1500])],
         300: [(5, "S", [150]), (0, "mode", [0]), (0, "op_pct", [4500])],
