@@ -1,0 +1,1 @@
+"""A scenario played by the station (placeholder replaced below)."""
