@@ -10,7 +10,8 @@ The instructor page ``/instructor`` and every instructor call need the station t
 (``--web-token``): header ``Authorization: Bearer TOKEN``, or the ``station_token`` cookie that
 ``/instructor?token=TOKEN`` sets (HttpOnly, SameSite=Strict). Without a token the instructor API is open, and
 :func:`start_station` allows that only on a loopback address. The trainee's view of ``/api/state`` leaves out
-the instructor's information (S, J, malfunctions, notes, score; MV unless revealed).
+the instructor's information (S, J, malfunctions, notes, score; MV unless revealed), and so does
+``?view=trainee``, which the trainee page always asks for.
 
 Every ``POST``/``DELETE`` must carry ``Content-Type: application/json`` (a page of another site cannot send
 that without a CORS preflight, which this server never grants) and a JSON object body (``{}`` when there is
@@ -116,6 +117,12 @@ async def _body(request: web.Request) -> dict[str, Any]:
     return body
 
 
+def _view_instructor(request: web.Request) -> bool:
+    """The instructor's view: with instructor rights, unless the query asks for ``view=trainee`` (the
+    trainee page always does, so a trainee on a loopback-only station sees no more than elsewhere)."""
+    return request.query.get("view") != "trainee" and _instructor(request)
+
+
 def _units(request: web.Request) -> list[int] | None:
     text = request.query.get("units")
     if not text:
@@ -182,7 +189,7 @@ def make_app(station: Station, *, token: str | None = None) -> web.Application:
 
     @_api()
     async def state(request: web.Request) -> web.Response:
-        return _json(_clean(st.state(instructor=_instructor(request), units=_units(request))))
+        return _json(_clean(st.state(instructor=_view_instructor(request), units=_units(request))))
 
     @_api()
     async def loops(request: web.Request) -> web.Response:
@@ -201,7 +208,7 @@ def make_app(station: Station, *, token: str | None = None) -> web.Application:
             raise StationError("query 'rate' must be a number of events per second", field="rate") from None
         if not 1 <= rate <= 50:
             raise StationError(f"query 'rate' must be 1..50 events per second, got {rate:g}", field="rate")
-        instructor = _instructor(request)
+        instructor = _view_instructor(request)
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-cache"})
         await resp.prepare(request)
         task = asyncio.current_task()

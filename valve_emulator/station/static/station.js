@@ -17,7 +17,10 @@ async function api(method, path, body) {
 
 function say(text, ok) { const m = $("msg"); m.textContent = text; m.style.color = ok ? "#264" : "#a00"; }
 
-async function act(fn) { try { await fn(); say("", true); } catch (e) { say(e.message, false); } }
+// run an action; a string it returns is shown as confirmation, an error's message as a refusal
+async function act(fn) {
+  try { const note = await fn(); say(typeof note === "string" ? note : "", true); } catch (e) { say(e.message, false); }
+}
 
 // --- loop list and stream -------------------------------------------------------------------------------
 async function loadLoops() {
@@ -36,7 +39,7 @@ function select(unit) {
   S.unit = unit; S.buf = [];
   for (const li of $("loops").children) li.classList.toggle("selected", Number(li.dataset.unit) === unit);
   if (S.source) S.source.close();
-  S.source = new EventSource(`/api/stream?units=${unit}&rate=10`);
+  S.source = new EventSource(`/api/stream?units=${unit}&rate=10${INSTRUCTOR ? "" : "&view=trainee"}`);
   S.source.onmessage = (ev) => update(JSON.parse(ev.data));
 }
 
@@ -48,6 +51,7 @@ function update(state) {
   S.last = state;
   $("clock").textContent = `t = ${state.time.toFixed(1)} s`;
   $("run-state").textContent = state.running ? `RUN ×${state.time_scale ?? "max"}` : "FROZEN";
+  if (INSTRUCTOR && document.activeElement !== $("speed") && state.time_scale) $("speed").value = state.time_scale;
   const lp = state.loops.find((l) => l.unit === S.unit);
   if (!lp) return;
   const [lo, hi] = lp.pv_range, u = lp.pv_units ? ` ${lp.pv_units}` : "";
@@ -107,6 +111,7 @@ function drawTrend(lo, hi, showMv) {
   ctx.fillStyle = "#333";
   ctx.fillText(`${t0.toFixed(0)}`, m, h - m + 14); ctx.fillText(`${t1.toFixed(0)}`, w - 40, h - m + 14);
   ctx.fillText(`${hi}`, 2, 16); ctx.fillText(`${lo}`, 2, h - m);
+  ctx.fillStyle = "#d0722e"; ctx.fillText("100 %", w - 44, 20); ctx.fillText("0 %", w - 34, h - m - 4);
   line(ctx, b.map((p) => [X(p.t), Yop(p.op)]), "#d0722e");
   if (showMv) line(ctx, b.filter((p) => p.mv !== null).map((p) => [X(p.t), Yop(p.mv)]), "#7a4bb0");
   line(ctx, b.map((p) => [X(p.t), Ypv(p.sp)]), "#3b9c4a");
@@ -170,7 +175,8 @@ if (INSTRUCTOR) {
     const kind = $("mf-kind").value, body = { unit: S.unit, kind };
     for (const p of MF_PARAMS[kind] || []) { const v = $("mf-" + p).value; if (v !== "") body[p] = Number(v); }
     const ramp = Number($("mf-ramp").value); if (ramp > 0) body.ramp = ramp;
-    await api("POST", "/api/malfunctions", body); say(`injected ${kind}`, true);
+    await api("POST", "/api/malfunctions", body);
+    return `injected ${kind}`;
   });
   $("snap-save").onclick = () => act(async () => { await api("POST", "/api/snapshots", { name: $("snap-name").value }); refreshSnapshots(); });
   $("sc-load").onclick = () => act(() => api("POST", "/api/scenario", { yaml: $("sc-yaml").value }));
