@@ -1,5 +1,10 @@
 """``valve-emulator serve [CONFIG] [--host 127.0.0.1] [--port 5020] [--time-scale X]``: run the device.
 
+``--web PORT`` also serves the instructor station (browser HMI at ``/``, instructor page at ``/instructor``,
+HTTP API under ``/api``; ``docs/station.md``) in the same event loop, on the same host; ``--web 0`` picks a
+free port. Bound to another address than loopback it needs ``--web-token``. ``--snapshots DIR`` keeps the
+station's named snapshots as files there, so they survive a restart.
+
 SIGINT/SIGTERM stop it (a recording is complete up to the last tick: every row is flushed as written).
 SIGHUP re-reads CONFIG and applies its connection and access settings (``device.read_only``,
 ``instructor_*``, ``max_connections``, ``idle_timeout``, ``frame_timeout``, ``error_rate``) at once; other
@@ -59,6 +64,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "each unit U goes to FILE_uUUU.csv")
     p.add_argument("--record-unit", type=int, action="append", metavar="U",
                    help="record only this unit (repeatable; one unit records to FILE.csv itself)")
+    p.add_argument("--web", type=int, metavar="PORT",
+                   help="also serve the instructor station over HTTP on this port of the same host (0: a free "
+                        "port); see docs/station.md")
+    p.add_argument("--web-token", metavar="TOKEN",
+                   help="token the instructor page and API require (needed when --host is not loopback)")
+    p.add_argument("--snapshots", type=Path, metavar="DIR",
+                   help="directory of the station's named snapshots (created if missing; default: in memory)")
+    p.add_argument("--backtrack", type=float, default=60.0, metavar="S",
+                   help="station backtrack: a snapshot every S simulated seconds, the last 30 kept "
+                        "(default %(default)s; 0 turns it off)")
     p.add_argument("--processes", type=int, default=1, metavar="N",
                    help="split the loops over N server processes on ports PORT..PORT+N-1, each owning whole "
                         "units (default 1; one per core)")
@@ -83,6 +98,20 @@ def _check(args: argparse.Namespace) -> None:
                          f"got {args.process_index}")
     if args.processes > 1 and args.process_index is None and args.record is not None:
         raise ValueError("--record with --processes: record in each process (--process-index) instead")
+    if args.web is not None and not 0 <= args.web <= 65535:
+        raise ValueError(f"--web must be a port 0..65535, got {args.web}")
+    if args.web is None and (args.web_token or args.snapshots):
+        raise ValueError("--web-token and --snapshots need --web PORT")
+    if args.web is not None and args.processes > 1:
+        raise ValueError("--web with --processes: the station serves one process's device; use --processes 1")
+    if args.backtrack < 0 or not math.isfinite(args.backtrack):
+        raise ValueError(f"--backtrack must be >= 0 s, got {args.backtrack}")
+    if args.web is not None and args.web_token is None:
+        from valve_emulator.station.app import is_loopback
+
+        if not is_loopback(args.host):
+            raise ValueError(f"--web on --host {args.host} needs --web-token: bound beyond loopback the instructor "
+                             f"page and API must ask for a token")
     if args.port and args.port + args.processes - 1 > 65535:
         raise ValueError(f"--port {args.port} + --processes {args.processes} runs past port 65535")
 
@@ -137,8 +166,12 @@ def describe_units(config) -> str:
 
 async def serve(config, *, host: str, port: int, time_scale: float, ready=None, config_path: Path | None = None,
                 record: Path | None = None, record_units=None, read_only: bool = False,
-                max_connections: int | None = None, process: tuple[int, int] | None = None) -> None:
+                max_connections: int | None = None, process: tuple[int, int] | None = None,
+                web: int | None = None, web_token: str | None = None, snapshots: Path | None = None,
+                backtrack: float = 60.0) -> None:
     """Serve until SIGINT/SIGTERM (or cancellation); ``ready(server)`` is called once listening.
+
+    ``web``: also serve the instructor station on that port (:func:`start_web`).
 
     SIGHUP reloads ``config_path`` (:func:`reload_config`); ``record`` records ``record_units`` (default
     all) with :class:`~valve_emulator.device.record.TickRecorder`. ``process = (index, count)`` names the
@@ -173,6 +206,10 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                 print("valve-emulator: WARNING: bound to all interfaces. Modbus TCP has no authentication: "
                       "anyone who can reach this port can move the valve. Use an isolated network.",
                       file=sys.stderr, flush=True)
+            station_runner = None
+            if web is not None:
+                station_runner = await start_web(srv, host=host, port=web, token=web_token, snapshots=snapshots,
+                                                 backtrack=backtrack)
             recorder = TickRecorder(srv.device, record, units=record_units) if record is not None else None
             if recorder is not None:
                 await recorder.start()
@@ -188,12 +225,29 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
             finally:
                 if recorder is not None:
                     await recorder.stop()
+                if station_runner is not None:
+                    await station_runner.cleanup()
     finally:
         for sig in handlers:
             try:
                 loop.remove_signal_handler(sig)
             except (NotImplementedError, RuntimeError):
                 pass
+
+
+async def start_web(srv, *, host: str, port: int, token: str | None, snapshots: Path | None, backtrack: float):
+    """Start the instructor station of ``srv``'s device on ``host:port``; print its URL; return its runner."""
+    from valve_emulator.device.snapshots import BacktrackRing, SnapshotStore
+    from valve_emulator.station.app import start_station
+    from valve_emulator.station.core import Station
+
+    station = Station(srv.device, snapshots=SnapshotStore(snapshots),
+                      backtrack=BacktrackRing(backtrack, 30) if backtrack > 0 else None)
+    runner, bound = await start_station(station, host=host, port=port, token=token)
+    where = f"[{host}]" if ":" in host else host
+    print(f"valve-emulator: instructor station at http://{where}:{bound}/ (trainee) and "
+          f"http://{where}:{bound}/instructor", flush=True)
+    return runner
 
 
 def run(args: argparse.Namespace) -> int:
@@ -230,7 +284,8 @@ def run(args: argparse.Namespace) -> int:
     port = args.port + args.process_index if args.port and process is not None else args.port
     runner(serve(cfg, host=args.host, port=port, time_scale=args.time_scale, config_path=args.config,
                  record=args.record, record_units=args.record_unit, read_only=args.read_only,
-                 max_connections=args.max_connections, process=process))
+                 max_connections=args.max_connections, process=process, web=args.web,
+                 web_token=args.web_token, snapshots=args.snapshots, backtrack=args.backtrack))
     print("valve-emulator: stopped", flush=True)
     return 0
 

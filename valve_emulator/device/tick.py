@@ -33,6 +33,16 @@ as possible (yielding to the event loop between ticks; no jitter is recorded). `
 task runs and only :meth:`Device.advance` steps the bank. Tests synchronise on :meth:`Device.wait_for_tick`
 instead of sleeping. The clock and the sleep function are injectable for tests.
 
+Run/freeze and speed at runtime: :meth:`Device.freeze` stops the tick task (simulated time and the ``tick``
+register stand still, writes are still accepted and queue for the next tick), :meth:`Device.resume` starts
+it again, and :meth:`Device.set_time_scale` changes the period; each re-anchors the schedule at the clock's
+now, so no burst of catch-up ticks follows a freeze or a change of speed.
+
+Snapshots and malfunctions (the instructor station, ``docs/station.md``): :meth:`Device.snapshot` captures the
+complete state (:mod:`~valve_emulator.device.snapshots`) and :meth:`Device.restore` puts it back between two
+ticks; :attr:`Device.malfunctions` holds the ramped faults, advanced at each tick before the loops step.
+Callbacks in :attr:`Device.on_tick` run after every tick (the station's trends, scoring and backtrack).
+
 Writes arrive through :meth:`Device.write` (validated by the register map; a refused write raises a
 :class:`~valve_emulator.device.registers.RegisterError` and changes nothing). An accepted write shows in
 the register image at once, so a client reads back what it wrote; the physics sees it at the next tick.
@@ -53,7 +63,9 @@ import numpy as np
 
 from valve_emulator.device._tasks import cancel_and_wait
 from valve_emulator.device.image import ImageLayout
+from valve_emulator.device.malfunctions import Malfunction, MalfunctionBank
 from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, encode_image, patch
+from valve_emulator.device.snapshots import Snapshot, SnapshotError
 
 __all__ = ["JitterBuffer", "Device", "TICK_TASK_NAME"]
 
@@ -154,6 +166,12 @@ class Device:
         self._waiters: list[tuple[int, int, asyncio.Future]] = []
         self._seq = itertools.count()
         self._task: asyncio.Task | None = None
+        self._frozen = False
+        self._started = False
+        #: ramped instructor faults (only with a bank that has the sensor and fault setters)
+        self.malfunctions = MalfunctionBank(bank) if hasattr(bank, "set_sensor") else None
+        #: callables run after every tick with the device (keep them short: the tick waits for them)
+        self.on_tick: list[Callable[[Device], None]] = []
         self.offsets = self.layout.offsets
         self.image = bytearray(self.layout.size)
         self._refresh()
@@ -236,9 +254,13 @@ class Device:
         """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""
         start = self._clock()
         self._apply_pending()
+        if self.malfunctions is not None:
+            self.malfunctions.apply(self.bank.t)
         self.bank.step()
         self.ticks += 1
         self._refresh()
+        for callback in self.on_tick:
+            callback(self)
         self.tick_time.add(self._clock() - start)
         waiters = self._waiters
         while waiters and waiters[0][0] <= self.ticks:
@@ -247,9 +269,10 @@ class Device:
                 fut.set_result(self.ticks)
 
     def advance(self, k: int = 1) -> int:
-        """Run ``k`` ticks immediately (only with ``time_scale == 0``); returns the tick count."""
-        if self.time_scale != 0:
-            raise RuntimeError(f"Device.advance needs time_scale=0 (frozen time), not {self.time_scale}")
+        """Run ``k`` ticks immediately (only with ``time_scale == 0`` or frozen); returns the tick count."""
+        if self.time_scale != 0 and not self._frozen:
+            raise RuntimeError(f"Device.advance needs frozen time (time_scale=0 or freeze()), "
+                               f"not time_scale={self.time_scale}")
         for _ in range(int(k)):
             self.tick()
         return self.ticks
@@ -263,6 +286,75 @@ class Device:
         fut = asyncio.get_running_loop().create_future()
         heapq.heappush(self._waiters, (k, next(self._seq), fut))
         return await fut
+
+    # --- instructor: run/freeze, speed, snapshots, malfunctions --------------------------------------
+
+    @property
+    def frozen(self) -> bool:
+        """``True`` while frozen by :meth:`freeze` (or with ``time_scale == 0``): no tick runs by itself."""
+        return self._frozen or self.time_scale == 0
+
+    async def _reschedule(self) -> None:
+        task, self._task = self._task, None
+        await cancel_and_wait(task)
+        if self._started and not self.frozen:
+            self._task = asyncio.get_running_loop().create_task(self._run(), name=TICK_TASK_NAME)
+
+    async def freeze(self) -> None:
+        """Stop simulated time: no tick runs until :meth:`resume` (writes still queue)."""
+        self._frozen = True
+        await self._reschedule()
+
+    async def resume(self) -> None:
+        """Run again after :meth:`freeze`, on a schedule anchored at now."""
+        self._frozen = False
+        await self._reschedule()
+
+    async def set_time_scale(self, time_scale: float) -> None:
+        """Change the speed while running (``> 0``, finite or ``inf``); re-anchors the schedule at now."""
+        if not (time_scale > 0):
+            raise ValueError(f"time_scale must be > 0 (freeze() stops time), got {time_scale!r}")
+        self.time_scale = float(time_scale)
+        self.period = float(self.bank.dt) / self.time_scale if self.time_scale < math.inf else math.nan
+        await self._reschedule()
+
+    def _fingerprint(self) -> dict[str, Any]:
+        return {"units": list(self.units), "blocks": [int(b) for b in self.layout.blocks], "n": int(self.bank.n),
+                "dt": float(self.bank.dt)}
+
+    def snapshot(self, name: str) -> Snapshot:
+        """The complete state now, between two ticks (see :mod:`~valve_emulator.device.snapshots`)."""
+        if not hasattr(self.bank, "state"):
+            raise SnapshotError("this loop bank cannot be captured", field="bank")
+        ramps = self.malfunctions.state() if self.malfunctions is not None else []
+        return Snapshot(name=name, time=float(self.bank.sample_time), ticks=self.ticks, bank=self.bank.state(),
+                        device={"ticks": self.ticks, "ramps": ramps, "config": self._fingerprint()})
+
+    def restore(self, snap: Snapshot) -> None:
+        """Put ``snap`` back: the device continues as after the save; pending writes are dropped.
+
+        Raises :class:`~valve_emulator.device.snapshots.SnapshotError` (nothing changed) for a snapshot of
+        another configuration."""
+        if snap.device.get("config") != self._fingerprint():
+            raise SnapshotError(f"snapshot {snap.name!r} was taken on another configuration "
+                                f"({snap.device.get('config')}); this device is {self._fingerprint()}",
+                                field="name")
+        try:
+            self.bank.set_state(snap.bank)
+        except ValueError as exc:   # StateMismatch: checked before anything was written
+            raise SnapshotError(f"snapshot {snap.name!r} does not fit this device: {exc}", field="name") from exc
+        if self.malfunctions is not None:
+            self.malfunctions.set_state(snap.device.get("ramps", []))
+        self._pending.clear()
+        self.ticks = int(snap.device["ticks"])
+        self._refresh()
+
+    def inject(self, malfunction: Malfunction) -> None:
+        """Apply a checked malfunction (:func:`~valve_emulator.device.malfunctions.parse_malfunction`) now."""
+        if self.malfunctions is None:
+            raise RuntimeError("this loop bank takes no malfunctions")
+        self.malfunctions.inject(malfunction, float(self.bank.t))
+        self._refresh()
 
     # --- schedule and lifecycle ---------------------------------------------------------------------
 
@@ -300,12 +392,14 @@ class Device:
         return self._task is not None and not self._task.done()
 
     async def start(self) -> None:
-        """Start the tick task (nothing to start with ``time_scale == 0``)."""
-        if self._task is None and self.time_scale != 0:
+        """Start the tick task (nothing to start with ``time_scale == 0`` or while frozen)."""
+        self._started = True
+        if self._task is None and not self.frozen:
             self._task = asyncio.get_running_loop().create_task(self._run(), name=TICK_TASK_NAME)
 
     async def stop(self) -> None:
         """Cancel the tick task and wait for it; cancel whoever still waits for a tick."""
+        self._started = False
         task, self._task = self._task, None
         await cancel_and_wait(task)
         for _, _, fut in self._waiters:

@@ -42,6 +42,7 @@ from valve_emulator.physics.stiction import (
     validate_parameters,
 )
 from valve_emulator.recordings.recording import Recording
+from valve_emulator.simulation import state as _state
 
 __all__ = ["LoopBank", "simulate_loop", "loop_step_kernel"]
 
@@ -196,6 +197,10 @@ class LoopBank:
         #: instructor faults: extra load (% flow added to the plant input) and a valve stuck completely
         self.load = np.zeros(n)
         self.frozen = np.zeros(n, dtype=np.bool_)
+        #: sensor faults: a bias added to the measured PV (PV units), and the value a stuck transmitter
+        #: shows (NaN: not stuck)
+        self.pv_bias = np.zeros(n)
+        self.pv_stuck = np.full(n, np.nan)
 
         # outputs of the current sample
         self.pv = self._plant.pv.copy()           # measured PV at t_k (before the first step: noise-free)
@@ -336,6 +341,44 @@ class LoopBank:
         """Make valve ``i`` stick completely (``True``) or release it (``False``)."""
         self.frozen[i] = bool(frozen)
 
+    def set_sensor(self, i: int, *, bias: float | None = None, stuck: float | None = None,
+                   release: bool = False) -> None:
+        """Sensor faults of loop ``i``: measured PV = plant PV + noise + ``bias``, or ``stuck`` (PV units)
+        whatever the process does; ``release`` un-sticks the transmitter."""
+        if bias is not None:
+            if not math.isfinite(bias):
+                raise ValueError(f"sensor bias must be finite (PV units), got {bias!r}")
+            self.pv_bias[i] = bias
+        if stuck is not None:
+            if not math.isfinite(stuck):
+                raise ValueError(f"sensor stuck value must be finite (PV units), got {stuck!r}")
+            self.pv_stuck[i] = stuck
+        if release:
+            self.pv_stuck[i] = math.nan
+
+    def _sensor(self, noise: np.ndarray) -> np.ndarray:
+        """``noise`` plus the sensor faults, as the additive term of the measured PV (one sample)."""
+        noise = noise + self.pv_bias
+        stuck = np.isfinite(self.pv_stuck)
+        if stuck.any():
+            noise[stuck] = self.pv_stuck[stuck] - self._plant.pv[stuck]
+        return noise
+
+    # -- snapshots --------------------------------------------------------------------------------------------
+    def _nested(self) -> tuple[type, ...]:
+        return (PIDBank, PlantBank, DisturbanceBank, NoiseBank, type(self._dist._normals))
+
+    def state(self) -> dict:
+        """The complete dynamic state (:func:`valve_emulator.simulation.state.capture`): after
+        :meth:`set_state` with it, the bank continues sample for sample as it did from here."""
+        return _state.capture(self, self._nested())
+
+    def set_state(self, state: dict) -> None:
+        """Restore a :meth:`state` of a bank built from the same configs (``StateMismatch`` otherwise,
+        with nothing changed)."""
+        _state.restore(self, state, self._nested(),
+                       make={"_noise": lambda: NoiseBank(np.ones(self.n), 0, index=self._seeds)})
+
     def _kernel_args(self) -> tuple:
         pid, plant = self._pid.kernel_args(), self._plant.kernel_args()
         return (pid, self._pid.kernel_output(), self._valve_args, self._char_kind, self._char_r, plant,
@@ -346,7 +389,7 @@ class LoopBank:
         t = self.t
         self._apply_sp_schedule(t)
         dist = self._dist.step(t) + self.load
-        noise = self._unit_noise(1)[0] * self.noise_std
+        noise = self._sensor(self._unit_noise(1)[0] * self.noise_std)
         pv_meas = np.empty(self.n)
         code = loop_step_kernel(self._sp, noise, dist, self.op_external, self.has_controller, self.frozen,
                                 *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in)
@@ -362,6 +405,8 @@ class LoopBank:
         so ``run(a)`` then ``run(b)`` equals ``run(a + b)`` and equals ``a + b`` calls of :meth:`step`.
         """
         steps = int(steps)
+        if np.isfinite(self.pv_stuck).any():   # a stuck transmitter depends on the plant sample by sample
+            return self._run_stepwise(steps)
         times = (self.k + np.arange(steps)) * self.dt
         sp = self._sp_table(steps)
         # loops without disturbance or noise need no per-sample generator calls
@@ -369,7 +414,7 @@ class LoopBank:
         dist = np.zeros((steps, self.n)) if quiet_dist else np.ascontiguousarray(
             self._dist.step_many(times)).reshape(steps, self.n)
         dist += self.load
-        noise = np.ascontiguousarray(self._unit_noise(steps) * self.noise_std)
+        noise = np.ascontiguousarray(self._unit_noise(steps) * self.noise_std + self.pv_bias)
         op_ext = np.ascontiguousarray(np.broadcast_to(self.op_external, (steps, self.n)))
         out = {name: np.empty((steps, self.n)) for name in ("pv", "op", "mv", "flow")}
         stuck = np.empty((steps, self.n), dtype=np.bool_)
@@ -383,6 +428,17 @@ class LoopBank:
         if steps:
             self.pv = pv_meas.copy()
         return {"t": times, "sp": sp, **out, "stuck": stuck}
+
+    def _run_stepwise(self, steps: int) -> dict[str, np.ndarray]:
+        """:meth:`run` by calls of :meth:`step` (same keys and shapes)."""
+        times = (self.k + np.arange(steps)) * self.dt
+        rows = {name: np.empty((steps, self.n)) for name in ("sp", "pv", "op", "mv", "flow")}
+        stuck = np.empty((steps, self.n), dtype=np.bool_)
+        for j in range(steps):
+            self.step()
+            rows["sp"][j], rows["pv"][j], rows["op"][j] = self._sp, self.pv, self.op
+            rows["mv"][j], rows["flow"][j], stuck[j] = self._vstate[:, MV], self.flow, self.stuck
+        return {"t": times, **rows, "stuck": stuck}
 
 
 def _shared(make, args: list[tuple]) -> list:

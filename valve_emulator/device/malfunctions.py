@@ -1,0 +1,260 @@
+"""Instructor malfunctions: faults injected into one loop at once or ramped over a simulated duration.
+
+A malfunction request is a mapping ``{"unit", "kind", ...parameters, "ramp": seconds}`` (the HTTP API's body,
+a scenario's event). :func:`parse_malfunction` checks it completely -- the kind, every parameter's presence,
+type and range -- before anything changes, and raises :class:`MalfunctionError` naming the field. The value
+ranges of the quantities the register map also carries (``S``, ``J``, ``load``, ``noise``) are the register
+map's own: the check encodes the target as the register words and runs the Modbus write check on them
+(:func:`~valve_emulator.device.registers.decode_write` with instructor permission), so the HTTP station can
+do nothing an instructor's Modbus write could not.
+
+==============  =====================================  ==========================================
+kind            parameters                             effect
+==============  =====================================  ==========================================
+stiction        ``S``, ``J`` (% travel; either/both)   stiction grows (or is cured) to S, J
+seize           --                                     the valve sticks completely
+release         --                                     the seized valve moves again
+load            ``flow`` (% flow, -100..100)           load disturbance step (or ramp) to ``flow``
+noise           ``std`` (PV units)                     PV measurement noise
+sensor_stuck    ``value`` (PV units; default: now)     the transmitter shows ``value`` whatever PV does
+sensor_drift    ``bias`` (PV units, finite)            the transmitter reads ``bias`` off
+clear           --                                     all of the above back to the loop's config
+==============  =====================================  ==========================================
+
+Ramps (``ramp`` > 0 simulated seconds; only for the kinds with a level: stiction, load, noise,
+sensor_drift) interpolate linearly from the value when the malfunction starts, ``x_0``, to the target ``x_1``:
+
+.. math:: x(t) = x_0 + (x_1 - x_0)\\,\\min\\!\\left(1, \\frac{t - t_0}{T_{ramp}}\\right),
+
+evaluated at every tick before the loops step, so the target is reached exactly at ``t_0 + T_ramp``.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from enum import StrEnum
+from typing import Any
+
+from valve_emulator.device.registers import DataType, RegisterError, Scaling, address_of, decode_write, register
+from valve_emulator.device.registers.codec import decode_value
+
+__all__ = ["Kind", "Malfunction", "MalfunctionError", "MalfunctionBank", "parse_malfunction", "register_word"]
+
+
+def register_word(name: str, value: float, scaling: Scaling, index: int) -> int:
+    """The word a client would write to the linear 16-bit register ``name`` for the physical ``value``.
+
+    Unlike the read encoding this does not clip to the register's range: an out-of-range value gives an
+    out-of-range word, which :func:`~valve_emulator.device.registers.decode_write` then refuses with the
+    register map's own message (the raw value is only bounded to what one word can carry).
+    """
+    reg = register(name)
+    v0, v1 = decode_value(reg, 0, scaling, index), decode_value(reg, 1, scaling, index)
+    raw = round((value - v0) / (v1 - v0))
+    if reg.type is DataType.INT16:
+        return min(max(raw, -32768), 32767) & 0xFFFF
+    return min(max(raw, 0), 65535)
+
+
+class Kind(StrEnum):
+    STICTION = "stiction"
+    SEIZE = "seize"
+    RELEASE = "release"
+    LOAD = "load"
+    NOISE = "noise"
+    SENSOR_STUCK = "sensor_stuck"
+    SENSOR_DRIFT = "sensor_drift"
+    CLEAR = "clear"
+
+
+#: kind -> (required parameters, optional parameters)
+PARAMETERS: dict[Kind, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    Kind.STICTION: ((), ("S", "J")),
+    Kind.SEIZE: ((), ()),
+    Kind.RELEASE: ((), ()),
+    Kind.LOAD: (("flow",), ()),
+    Kind.NOISE: (("std",), ()),
+    Kind.SENSOR_STUCK: ((), ("value",)),
+    Kind.SENSOR_DRIFT: (("bias",), ()),
+    Kind.CLEAR: ((), ()),
+}
+_RAMPED = {Kind.STICTION, Kind.LOAD, Kind.NOISE, Kind.SENSOR_DRIFT}
+#: parameter -> register that carries it (range checked by the register map)
+_REGISTER = {"S": "S", "J": "J", "flow": "load", "std": "noise"}
+
+
+class MalfunctionError(ValueError):
+    """A malfunction request that cannot be applied; ``field`` names the offending key."""
+
+    def __init__(self, message: str, *, field: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+@dataclass(frozen=True, kw_only=True)
+class Malfunction:
+    """One checked malfunction of loop ``index`` (bank order) at unit ``unit``."""
+
+    unit: int
+    index: int
+    kind: Kind
+    params: dict[str, float]
+    ramp: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"unit": self.unit, "kind": str(self.kind), **self.params, "ramp": self.ramp}
+
+
+def _number(body: Mapping[str, Any], key: str) -> float:
+    value = body[key]
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise MalfunctionError(f"field {key!r} must be a finite number, got {value!r}", field=key)
+    return float(value)
+
+
+def parse_malfunction(body: Any, *, unit_index: Mapping[int, int], scaling: Scaling) -> Malfunction:
+    """Check a request mapping completely (see the module docstring); raise :class:`MalfunctionError`."""
+    if not isinstance(body, Mapping):
+        raise MalfunctionError(f"request body: a malfunction must be a JSON object, got {type(body).__name__}",
+                               field="body")
+    for key in ("unit", "kind"):
+        if key not in body:
+            raise MalfunctionError(f"field {key!r} is required", field=key)
+    unit = body["unit"]
+    if isinstance(unit, bool) or not isinstance(unit, int) or unit not in unit_index:
+        raise MalfunctionError(f"field 'unit': no loop at unit {unit!r} (units {sorted(unit_index)})", field="unit")
+    try:
+        kind = Kind(body["kind"])
+    except (ValueError, TypeError):
+        raise MalfunctionError(f"field 'kind': unknown malfunction {body['kind']!r}; one of "
+                               f"{', '.join(k.value for k in Kind)}", field="kind") from None
+    required, optional = PARAMETERS[kind]
+    known = {"unit", "kind", "ramp", *required, *optional}
+    for key in body:
+        if key not in known:
+            raise MalfunctionError(f"field {key!r} is not a parameter of {kind.value} (it takes "
+                                   f"{', '.join(required + optional) or 'none'}, and ramp)", field=key)
+    for key in required:
+        if key not in body:
+            raise MalfunctionError(f"field {key!r} is required for {kind.value}", field=key)
+    if kind is Kind.STICTION and not ({"S", "J"} & set(body)):
+        raise MalfunctionError("stiction needs field 'S' or 'J' (or both)", field="S")
+    params = {key: _number(body, key) for key in required + optional if key in body}
+    ramp = _number(body, "ramp") if "ramp" in body else 0.0
+    if ramp < 0:
+        raise MalfunctionError(f"field 'ramp' must be >= 0 s, got {ramp!r}", field="ramp")
+    if ramp > 0 and kind not in _RAMPED:
+        raise MalfunctionError(f"field 'ramp': {kind.value} happens at once; ramps are for "
+                               f"{', '.join(sorted(k.value for k in _RAMPED))}", field="ramp")
+    index = unit_index[unit]
+    for key, value in params.items():
+        reg_name = _REGISTER.get(key)
+        if reg_name is None:
+            continue
+        try:
+            word = register_word(reg_name, value, scaling, index)
+            decode_write(address_of(reg_name), [word], scaling, index, instructor=True)
+        except RegisterError as exc:
+            raise MalfunctionError(f"field {key!r}: {exc}", field=key) from None
+    return Malfunction(unit=unit, index=index, kind=kind, params=params, ramp=ramp)
+
+
+@dataclass(kw_only=True)
+class _Ramp:
+    index: int
+    quantity: str          # S, J, load, noise, bias
+    start: float
+    target: float
+    t0: float
+    duration: float
+
+    def value(self, t: float) -> float:
+        frac = 1.0 if self.duration <= 0 else min(1.0, max(0.0, (t - self.t0) / self.duration))
+        return self.target if frac >= 1.0 else self.start + (self.target - self.start) * frac
+
+
+class MalfunctionBank:
+    """The active ramps of a loop bank and the log of applied malfunctions.
+
+    :meth:`inject` applies an immediate malfunction at once and registers a ramp otherwise; :meth:`apply`
+    (called by the device at each tick, before the step) sets every ramped quantity for time ``t``.
+    """
+
+    def __init__(self, bank: Any) -> None:
+        self.bank = bank
+        self._ramps: dict[tuple[int, str], _Ramp] = {}
+        #: applied malfunctions, oldest first: ``(simulated time, Malfunction)``
+        self.log: list[tuple[float, Malfunction]] = []
+        # the loops' configured values, for ``clear``
+        self._base = {"S": bank.S.copy(), "J": bank.J.copy(), "noise": bank.noise_std.copy()}
+
+    def _get(self, i: int, quantity: str) -> float:
+        b = self.bank
+        return float({"S": b.S, "J": b.J, "load": b.load, "noise": b.noise_std, "bias": b.pv_bias}[quantity][i])
+
+    def _set(self, i: int, quantity: str, value: float) -> None:
+        b = self.bank
+        if quantity in ("S", "J"):
+            b.set_valve(i, **{quantity: value})
+        elif quantity == "load":
+            b.set_load(i, value)
+        elif quantity == "noise":
+            b.set_noise(i, max(value, 0.0))
+        else:
+            b.set_sensor(i, bias=value)
+
+    def inject(self, m: Malfunction, t: float) -> None:
+        """Apply ``m`` starting at simulated time ``t``."""
+        i, b = m.index, self.bank
+        levels = {"S": "S", "J": "J", "flow": "load", "std": "noise", "bias": "bias"}
+        if m.kind is Kind.SEIZE:
+            b.set_frozen(i, True)
+        elif m.kind is Kind.RELEASE:
+            b.set_frozen(i, False)
+        elif m.kind is Kind.SENSOR_STUCK:
+            b.set_sensor(i, stuck=m.params.get("value", float(b.pv[i])))
+        elif m.kind is Kind.CLEAR:
+            for q in ("S", "J", "load", "noise", "bias"):
+                self._ramps.pop((i, q), None)
+            b.set_valve(i, S=float(self._base["S"][i]), J=float(self._base["J"][i]))
+            b.set_noise(i, float(self._base["noise"][i]))
+            b.set_load(i, 0.0)
+            b.set_frozen(i, False)
+            b.set_sensor(i, bias=0.0, release=True)
+        else:
+            for key, value in m.params.items():
+                q = levels[key]
+                ramp = _Ramp(index=i, quantity=q, start=self._get(i, q), target=value, t0=t, duration=m.ramp)
+                if m.ramp > 0:
+                    self._ramps[(i, q)] = ramp
+                else:
+                    self._ramps.pop((i, q), None)
+                    self._set(i, q, value)
+        self.log.append((t, m))
+
+    def apply(self, t: float) -> None:
+        """Set every ramped quantity for simulated time ``t``; finished ramps end with their target."""
+        if not self._ramps:
+            return
+        done = []
+        for key, ramp in self._ramps.items():
+            self._set(ramp.index, ramp.quantity, ramp.value(t))
+            if t >= ramp.t0 + ramp.duration:
+                done.append(key)
+        for key in done:
+            del self._ramps[key]
+
+    @property
+    def active(self) -> list[dict[str, Any]]:
+        """The ramps still running, for display."""
+        return [asdict(r) for r in self._ramps.values()]
+
+    # snapshots: the ramps are part of the state
+    def state(self) -> list[dict[str, Any]]:
+        return [asdict(r) for r in self._ramps.values()]
+
+    def set_state(self, ramps: list[dict[str, Any]]) -> None:
+        self._ramps = {(int(r["index"]), r["quantity"]): _Ramp(**r) for r in ramps}

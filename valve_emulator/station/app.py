@@ -1,0 +1,376 @@
+"""The instructor station over HTTP: aiohttp routes, the pages, server-sent events, access control.
+
+Runs in the event loop of the Modbus device (:func:`start_station`), so an HTTP request and a Modbus request
+see the same device between two ticks. The API is documented with examples in ``docs/station.md``.
+
+Access
+------
+The trainee page ``/`` and the trainee API (state, stream, operator actions, alarm acknowledge) are open.
+The instructor page ``/instructor`` and every instructor call need the station token when one is set
+(``--web-token``): header ``Authorization: Bearer TOKEN``, or the ``station_token`` cookie that
+``/instructor?token=TOKEN`` sets (HttpOnly, SameSite=Strict). Without a token the instructor API is open, and
+:func:`start_station` allows that only on a loopback address. The trainee's view of ``/api/state`` leaves out
+the instructor's information (S, J, malfunctions, notes, score; MV unless revealed), and so does
+``?view=trainee``, which the trainee page always asks for.
+
+Every ``POST``/``DELETE`` must carry ``Content-Type: application/json`` (a page of another site cannot send
+that without a CORS preflight, which this server never grants) and a JSON object body (``{}`` when there is
+nothing to say). A refused call answers ``{"error": message, "field": name}`` with a 4xx status and changes
+nothing; refusals are logged at WARNING once per client address, route and field, like refused Modbus writes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import ipaddress
+import json
+import logging
+import math
+from collections.abc import Awaitable, Callable
+from importlib import resources
+from typing import Any
+
+from aiohttp import web
+
+from valve_emulator.station.core import Station, StationError
+
+__all__ = ["make_app", "start_station", "is_loopback", "STATION_KEY"]
+
+_log = logging.getLogger("valve_emulator.station")
+STATION_KEY = web.AppKey("station", Station)
+_TOKEN = web.AppKey("token", object)
+_REFUSED = web.AppKey("refused", set)
+_STREAMS = web.AppKey("streams", set)
+_COOKIE = "station_token"
+_STATIC = ("index.html", "instructor.html", "station.js", "station.css", "report.html")
+
+
+def is_loopback(host: str) -> bool:
+    """``True`` for ``localhost`` and loopback addresses (127.0.0.0/8, ::1)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _static(name: str) -> str:
+    return resources.files("valve_emulator.station").joinpath("static", name).read_text(encoding="utf-8")
+
+
+def _client(request: web.Request) -> str:
+    return request.remote or "?"
+
+
+def _instructor(request: web.Request) -> bool:
+    token = request.app[_TOKEN]
+    if token is None:
+        return True
+    given = request.headers.get("Authorization", "")
+    given = given[7:] if given.startswith("Bearer ") else request.cookies.get(_COOKIE, "")
+    return hmac.compare_digest(given.encode(), str(token).encode())
+
+
+def _refuse(request: web.Request, exc: StationError) -> web.Response:
+    key = (_client(request), request.method, request.match_info.route.resource.canonical
+           if request.match_info.route.resource else request.path, exc.field)
+    seen = request.app[_REFUSED]
+    if key not in seen:
+        seen.add(key)
+        _log.warning("refused %s %s from %s: %s (field %s); further refusals of this field to this client are "
+                     "not logged", request.method, request.path, _client(request), exc, exc.field)
+    return web.json_response({"error": str(exc), "field": exc.field}, status=exc.status)
+
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
+def _api(*, instructor: bool = False) -> Callable[[Handler], Handler]:
+    """Wrap a handler: instructor check, StationError -> JSON 4xx."""
+    def wrap(handler: Handler) -> Handler:
+        async def run(request: web.Request) -> web.StreamResponse:
+            try:
+                if instructor and not _instructor(request):
+                    raise StationError("this call needs the instructor token", field="token", status=401)
+                if request.method in ("POST", "DELETE") and request.content_type != "application/json":
+                    raise StationError(f"request body: Content-Type must be application/json, got "
+                                       f"{request.content_type!r}", field="body", status=415)
+                return await handler(request)
+            except StationError as exc:
+                return _refuse(request, exc)
+        return run
+    return wrap
+
+
+async def _body(request: web.Request) -> dict[str, Any]:
+    raw = await request.read()
+    if not raw.strip():
+        return {}
+    try:
+        body = json.loads(raw)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise StationError(f"request body: not valid JSON ({exc})", field="body") from None
+    if not isinstance(body, dict):
+        raise StationError(f"request body: a JSON object is expected, got {type(body).__name__}", field="body")
+    return body
+
+
+def _view_instructor(request: web.Request) -> bool:
+    """The instructor's view: with instructor rights, unless the query asks for ``view=trainee`` (the
+    trainee page always does, so a trainee on a loopback-only station sees no more than elsewhere)."""
+    return request.query.get("view") != "trainee" and _instructor(request)
+
+
+def _units(request: web.Request) -> list[int] | None:
+    text = request.query.get("units")
+    if not text:
+        return None
+    try:
+        return [int(u) for u in text.split(",") if u.strip()]
+    except ValueError:
+        raise StationError(f"query 'units' must be comma-separated unit ids, got {text!r}", field="units") from None
+
+
+def _json(data: Any, status: int = 200) -> web.Response:
+    return web.Response(text=json.dumps(data, allow_nan=False, default=_jsonable), status=status,
+                        content_type="application/json")
+
+
+def _jsonable(x: Any) -> Any:
+    if hasattr(x, "item"):
+        return x.item()
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def _clean(x: Any) -> Any:
+    """NaN and infinities (no JSON numbers) as ``null``."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    return x
+
+
+def make_app(station: Station, *, token: str | None = None) -> web.Application:
+    """The aiohttp application of ``station`` (see the module docstring)."""
+    app = web.Application(client_max_size=1 << 20)
+    app[STATION_KEY], app[_TOKEN], app[_REFUSED], app[_STREAMS] = station, token, set(), set()
+    st = station
+    r = app.router
+
+    async def page(request: web.Request, name: str) -> web.Response:
+        return web.Response(text=_static(name), content_type="text/html" if name.endswith(".html") else
+                            "text/css" if name.endswith(".css") else "application/javascript")
+
+    async def index(request: web.Request) -> web.Response:
+        return await page(request, "index.html")
+
+    async def instructor_page(request: web.Request) -> web.Response:
+        given = request.query.get("token")
+        if token is not None and given is not None and hmac.compare_digest(given.encode(), token.encode()):
+            resp = web.HTTPFound("/instructor")
+            resp.set_cookie(_COOKIE, token, httponly=True, samesite="Strict")
+            raise resp
+        if not _instructor(request):
+            _refuse(request, StationError("the instructor page needs the token", field="token", status=401))
+            return web.Response(status=401, text="401: the instructor page needs the station token "
+                                                 "(/instructor?token=...)\n")
+        return await page(request, "instructor.html")
+
+    async def static(request: web.Request) -> web.Response:
+        name = request.match_info["name"]
+        if name not in _STATIC or name.endswith(".html"):
+            raise web.HTTPNotFound()
+        return await page(request, name)
+
+    @_api()
+    async def state(request: web.Request) -> web.Response:
+        return _json(_clean(st.state(instructor=_view_instructor(request), units=_units(request))))
+
+    @_api()
+    async def loops(request: web.Request) -> web.Response:
+        return _json({"loops": st.loop_list()})
+
+    @_api()
+    async def stream(request: web.Request) -> web.StreamResponse:
+        units = _units(request)
+        if units is None and st.bank.n > 50:
+            units = list(st.device.units[:50])
+        for u in units or ():
+            st.index_of(u)
+        try:
+            rate = float(request.query.get("rate", "10"))
+        except ValueError:
+            raise StationError("query 'rate' must be a number of events per second", field="rate") from None
+        if not 1 <= rate <= 50:
+            raise StationError(f"query 'rate' must be 1..50 events per second, got {rate:g}", field="rate")
+        instructor = _view_instructor(request)
+        resp = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-cache"})
+        await resp.prepare(request)
+        task = asyncio.current_task()
+        request.app[_STREAMS].add(task)
+        try:
+            while True:
+                data = json.dumps(_clean(st.state(instructor=instructor, units=units)), allow_nan=False)
+                await resp.write(f"data: {data}\n\n".encode())
+                await asyncio.sleep(1.0 / rate)
+        except (ConnectionResetError, asyncio.CancelledError):
+            pass
+        finally:
+            request.app[_STREAMS].discard(task)
+        return resp
+
+    @_api()
+    async def operate(request: web.Request) -> web.Response:
+        return _json(st.operate(request.match_info["unit"], await _body(request)))
+
+    @_api()
+    async def ack(request: web.Request) -> web.Response:
+        await _body(request)
+        return _json(st.acknowledge(request.match_info["unit"]))
+
+    @_api(instructor=True)
+    async def run(request: web.Request) -> web.Response:
+        await _body(request)
+        await st.run()
+        return _json({"running": True})
+
+    @_api(instructor=True)
+    async def freeze(request: web.Request) -> web.Response:
+        await _body(request)
+        await st.freeze()
+        return _json({"running": False, "time": st.bank.sample_time})
+
+    @_api(instructor=True)
+    async def speed(request: web.Request) -> web.Response:
+        await st.speed(await _body(request))
+        return _json({"time_scale": st.device.time_scale})
+
+    @_api(instructor=True)
+    async def snapshots(request: web.Request) -> web.Response:
+        return _json(st.list_snapshots())
+
+    @_api(instructor=True)
+    async def save(request: web.Request) -> web.Response:
+        return _json(st.save_snapshot(await _body(request)), status=201)
+
+    @_api(instructor=True)
+    async def restore(request: web.Request) -> web.Response:
+        await _body(request)
+        return _json(st.restore_snapshot(request.match_info["name"]))
+
+    @_api(instructor=True)
+    async def delete(request: web.Request) -> web.Response:
+        st.delete_snapshot(request.match_info["name"])
+        return _json({"deleted": request.match_info["name"]})
+
+    @_api(instructor=True)
+    async def malfunction(request: web.Request) -> web.Response:
+        return _json(st.malfunction(await _body(request)), status=201)
+
+    @_api(instructor=True)
+    async def reveal(request: web.Request) -> web.Response:
+        st.reveal(await _body(request))
+        return _json({"revealed": sorted(st.revealed)})
+
+    @_api(instructor=True)
+    async def session(request: web.Request) -> web.Response:
+        await _body(request)
+        st.reset_session()
+        return _json({"start": st.evaluation.start})
+
+    @_api(instructor=True)
+    async def scenario(request: web.Request) -> web.Response:
+        from valve_emulator.station.scenario_run import load_run
+
+        body = await _body(request)
+        st.scenario = load_run(st, body)
+        return _json(st.scenario.describe())
+
+    @_api(instructor=True)
+    async def scenario_action(request: web.Request) -> web.Response:
+        await _body(request)
+        if st.scenario is None:
+            raise StationError("no scenario loaded (POST /api/scenario first)", field="scenario", status=409)
+        action = request.match_info["action"]
+        if action == "start":
+            st.scenario.start(st)
+        elif action == "stop":
+            st.scenario.stop(st)
+        else:
+            raise web.HTTPNotFound()
+        return _json(st.scenario.describe())
+
+    @_api(instructor=True)
+    async def hint(request: web.Request) -> web.Response:
+        await _body(request)
+        if st.scenario is None:
+            raise StationError("no scenario loaded", field="scenario", status=409)
+        return _json(st.scenario.release_hint(st, request.match_info["id"]))
+
+    @_api(instructor=True)
+    async def report(request: web.Request) -> web.Response:
+        return _json(_clean(st.report()))
+
+    @_api(instructor=True)
+    async def report_html(request: web.Request) -> web.Response:
+        from valve_emulator.station.report import render_html
+
+        return web.Response(text=render_html(st), content_type="text/html")
+
+    @_api(instructor=True)
+    async def trend(request: web.Request) -> web.Response:
+        return web.Response(body=st.trend_png(request.match_info["unit"]), content_type="image/png")
+
+    r.add_get("/", index)
+    r.add_get("/instructor", instructor_page)
+    r.add_get("/static/{name}", static)
+    r.add_get("/api/state", state)
+    r.add_get("/api/loops", loops)
+    r.add_get("/api/stream", stream)
+    r.add_post("/api/loops/{unit}", operate)
+    r.add_post("/api/alarms/{unit}/ack", ack)
+    r.add_post("/api/run", run)
+    r.add_post("/api/freeze", freeze)
+    r.add_post("/api/speed", speed)
+    r.add_get("/api/snapshots", snapshots)
+    r.add_post("/api/snapshots", save)
+    r.add_post("/api/snapshots/{name}/restore", restore)
+    r.add_delete("/api/snapshots/{name}", delete)
+    r.add_post("/api/malfunctions", malfunction)
+    r.add_post("/api/reveal", reveal)
+    r.add_post("/api/session", session)
+    r.add_post("/api/scenario", scenario)
+    r.add_post("/api/scenario/{action}", scenario_action)
+    r.add_post("/api/hints/{id}/release", hint)
+    r.add_get("/api/report", report)
+    r.add_get("/report", report_html)
+    r.add_get("/api/trend/{unit}.png", trend)
+
+    async def stop_streams(app: web.Application) -> None:
+        for task in list(app[_STREAMS]):
+            task.cancel()
+
+    app.on_shutdown.append(stop_streams)
+    return app
+
+
+async def start_station(station: Station, *, host: str, port: int,
+                        token: str | None = None) -> tuple[web.AppRunner, int]:
+    """Serve ``station`` on ``host:port`` (0: a free port) in the running loop; returns the runner (call
+    ``await runner.cleanup()`` to stop) and the bound port. Refuses a non-loopback host without a token."""
+    if token is None and not is_loopback(host):
+        raise ValueError(f"--web on {host} (not loopback) needs --web-token: the instructor API would be open "
+                         f"to anyone who reaches the port")
+    if token is not None and len(token) < 8:
+        raise ValueError("--web-token must be at least 8 characters")
+    runner = web.AppRunner(make_app(station, token=token), access_log=None, shutdown_timeout=1.0)
+    await runner.setup()
+    site = web.TCPSite(runner, host, port)
+    await site.start()
+    bound = runner.addresses[0][1]
+    return runner, int(bound)
