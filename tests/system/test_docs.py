@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from valve_emulator.config import loop_from_mapping, server_from_mapping
+from valve_emulator.scenario.training import parse_training
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -60,21 +61,30 @@ YAML = [(p, ln, src) for p in DOCUMENTS for ln, src in blocks(p, "yaml")]
 
 @pytest.mark.parametrize(("path", "line", "src"), YAML, ids=_ids(YAML))
 def test_yaml_snippets_are_valid(path, line, src):
-    """A config snippet loads through the validating loader; a Kubernetes manifest is at least valid YAML."""
+    """A config or training-scenario snippet loads through its validating loader; a Kubernetes manifest is at
+    least valid YAML."""
     data = yaml.safe_load(src)
     assert isinstance(data, dict), f"{path.name}:{line}: not a mapping"
     if "apiVersion" in data:
         assert data["kind"] and data["spec"]
+    elif "triggers" in data or "scoring" in data or "hints" in data:
+        parse_training(data)
     elif "loops" in data or "fleet" in data:
         server_from_mapping(data, source=f"{path.name}:{line}")
     else:
         loop_from_mapping(data, source=f"{path.name}:{line}")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _free_ports(n: int) -> list[int]:
+    """``n`` distinct free ports (all bound at once, then released)."""
+    socks = [socket.socket() for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 BASH = [(p, ln, src) for p in DOCUMENTS for ln, src in blocks(p, "bash")]
@@ -84,9 +94,12 @@ BASH = [(p, ln, src) for p in DOCUMENTS for ln, src in blocks(p, "bash")]
 @pytest.mark.parametrize(("path", "line", "src"), BASH, ids=_ids(BASH))
 def test_shell_snippets_run(path, line, src, tmp_path):
     """A ``bash`` block runs as written (``sh`` blocks are for other machines: systemd, another host), in a
-    scratch folder, on a free port instead of 5020; servers it starts in the background are stopped after."""
-    script = ("set -euo pipefail\ntrap 'kill $(jobs -p) 2>/dev/null || true' EXIT\n"
-              + src.replace("5020", str(_free_port())))
+    scratch folder, on free ports instead of 5020 (Modbus) and 8080 (the station); servers it starts in the
+    background are stopped after. Any failing command fails it (``set -e``); a pipe into ``head`` may end
+    early, as it does for a reader."""
+    modbus, web = _free_ports(2)
+    script = ("set -eu\ntrap 'kill $(jobs -p) 2>/dev/null || true' EXIT\n"
+              + src.replace("5020", str(modbus)).replace("8080", str(web)))
     proc = subprocess.Popen(["bash", "-c", script], cwd=_workdir(tmp_path), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True,
                             env={**os.environ, "MPLBACKEND": "Agg"})
