@@ -7,8 +7,9 @@ import time
 
 import numpy as np
 import pytest
-from station_helpers import JSON, station_config
+from station_helpers import JSON, PLANT, station_config
 
+from valve_emulator.config import ConfigError, server_from_mapping
 from valve_emulator.device.registers import address_of
 from valve_emulator.device.snapshots import BacktrackRing
 
@@ -239,3 +240,20 @@ async def test_report_iae_equals_one_computed_from_the_recording(station_for, tm
     assert report["responses"][0]["response_time"] == pytest.approx(13.0, abs=0.11)
     html = await (await client.get("/report")).text()
     assert "data:image/png;base64," in html and "FIC101" in html
+
+
+async def test_alarm_limits_come_from_the_config_or_default_to_10_and_90_percent_of_the_range(station_for):
+    cfg = server_from_mapping({"device": {"tick": 0.1}, "loops": [
+        {"unit": 1, "name": "FIC101", "valve": {"S": 5.0, "J": 2.0}, "plant": {**PLANT, "alarms": [-2.5, 4.0]}},
+        {"unit": 2, "name": "HIC102", "valve": {"S": 3.0, "J": 1.0}, "plant": PLANT},
+    ]})
+    srv, station, client = await station_for(cfg)
+    loops = (await (await client.get("/api/state")).json())["loops"]
+    assert loops[0]["limits"] == [-2.5, 4.0]
+    assert loops[1]["limits"] == pytest.approx([-8.0, 8.0])      # pv_range [-10, 10]
+
+
+def test_bad_alarm_limits_name_the_key():
+    with pytest.raises(ConfigError, match=r"plant\.alarms must be \[lo, hi\] with lo < hi"):
+        server_from_mapping({"loops": [{"unit": 1, "valve": {"S": 1.0, "J": 0.0},
+                                        "plant": {**PLANT, "alarms": [4.0, -2.5]}}]})

@@ -12,7 +12,8 @@ and hands it to :meth:`Device.write <valve_emulator.device.tick.Device.write>`, 
 and error text apply unchanged (``register op_pct (holding 0) is writable only while the controller is in
 manual``). A page can do nothing a Modbus client could not.
 
-Alarms: a PV high and low limit per loop -- by default 10 % and 90 % of the loop's PV range, or the scenario's
+Alarms: a PV high and low limit per loop -- ``plant.alarms`` of its config (by default 10 % and 90 % of the
+loop's PV range), or the scenario's
 ``limits`` -- raise an alarm that stays until acknowledged *and* back inside the limits (ISA-18.2's latched
 alarm states, simplified: unacknowledged active, acknowledged active, unacknowledged returned).
 """
@@ -83,7 +84,8 @@ class Station:
         scaling = device.scaling
         lo, hi = np.asarray(scaling.pv_lo, dtype=float), np.asarray(scaling.pv_hi, dtype=float)
         self.pv_lo, self.pv_hi = lo, hi
-        self.lim_lo, self.lim_hi = lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo)
+        self.lim_lo = np.array([lp.plant.alarms[0] for lp in self.bank.loops], dtype=float)
+        self.lim_hi = np.array([lp.plant.alarms[1] for lp in self.bank.loops], dtype=float)
         self.alarm = [Alarm.NORMAL] * n
         self._alarmed: set[int] = set()   # loops whose alarm is not NORMAL
         self.revealed: set[int] = set()   # unit ids whose MV the trainee sees
