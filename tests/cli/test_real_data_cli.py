@@ -55,7 +55,11 @@ def test_diagnose_a_jittered_recorder_file_resamples_says_so_and_finds_stiction(
     assert lines[0].startswith("note: resampled onto a uniform 1 s grid: ") and "OP and SP held" in lines[0]
     assert "— answer: stiction: " in lines[1] and "S ≈" in lines[1]
     data = json.loads(out.read_text(encoding="utf-8"))
-    assert list(data) == ["fit_before", "fit_after", "findings", "verdict"]
+    assert list(data) == ["answer", "strength", "reasons", "friction", "source", "fit_before", "fit_after",
+                          "findings", "verdict"]
+    assert data["answer"] == "stiction" and data["strength"] in ("strong", "weak")
+    S = data["friction"]["S"]
+    assert S["interval"][0] <= S["value"] <= S["interval"][1]
     assert data["findings"][0]["physics"] in ("stiction", "deadband")   # the slip timing is blurred a little
 
 
@@ -150,7 +154,7 @@ def test_evaluate_scores_per_valve_and_window_with_the_detectors_and_writes_the_
     for method in ("diagnosis", "horch", "he", "bicoherence"):
         assert method in text
     results = json.loads(out.read_text(encoding="utf-8"))
-    assert [r["decision"] for r in results] == ["stiction", "stiction", "no stiction", "cannot tell"]
+    assert [r["decision"] for r in results] == ["stiction", "stiction", "no_stiction", "cannot_tell"]
     assert all(set(r["detectors"]) == {"horch", "he", "bicoherence"} for r in results)
     md = report.read_text(encoding="utf-8")
     assert md.startswith("# Intro kept") and md.rstrip().endswith("Outro kept.") and "\nold\n" not in md

@@ -20,8 +20,10 @@ from dataclasses import dataclass, field
 
 from valve_emulator.benchmark.scorecard import (
     ABSTAIN,
+    NEGATIVE,
     POSITIVE,
     Confusion,
+    call,
     confusion,
     leave_one_valve_out,
     markdown_table,
@@ -40,7 +42,7 @@ __all__ = ["Evaluation", "METHOD", "NOISE_GRID", "decision_of", "misclassified"]
 METHOD = "diagnosis"
 #: Values of NOISE_BANDS tried by the threshold check.
 NOISE_GRID = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
-_LABEL = {True: Answer.STICTION, False: Answer.NO_STICTION}
+_LABEL = {True: POSITIVE, False: NEGATIVE}
 
 
 def decision_of(method: str) -> Callable[[dict], str]:
@@ -53,17 +55,17 @@ def decision_of(method: str) -> Callable[[dict], str]:
 def _with_bands(k: float) -> Callable[[dict], str]:
     """Our binary decision had NOISE_BANDS been ``k`` (only the valve band against OP noise changes)."""
     def decide(r: dict) -> str:
+        other = r["decision"] if call(r["decision"]) != POSITIVE else Answer.NO_STICTION
         if r.get("band") is None or r.get("op_noise") is None:
-            return r["decision"] if r["decision"] != Answer.STICTION else Answer.NO_STICTION
-        return Answer.STICTION if r["band"] >= k * r["op_noise"] else (
-            r["decision"] if r["decision"] != Answer.STICTION else Answer.NO_STICTION)
+            return other
+        return Answer.STICTION if r["band"] >= k * r["op_noise"] else other
     return decide
 
 
 def _strong_only(r: dict) -> str:
     """Our decision had a weak stiction call (not surviving a drifting-load noise model) been "cannot tell"."""
     load = r.get("load_delta_bic")
-    if r["decision"] == Answer.STICTION and load is not None and load < DELTA_BIC:
+    if call(r["decision"]) == POSITIVE and load is not None and load < DELTA_BIC:
         return Answer.CANNOT_TELL
     return r["decision"]
 
@@ -81,10 +83,10 @@ def misclassified(results: list[dict], method: str = METHOD) -> list[tuple[str, 
             continue
         wins = [r for r in results if r["tag"] == tag]
         if v["label"]:
-            wrong = ([r for r in wins if dec(r) == Answer.NO_STICTION]
-                     or [r for r in wins if dec(r) != Answer.STICTION])
+            wrong = ([r for r in wins if call(dec(r)) == NEGATIVE]
+                     or [r for r in wins if call(dec(r)) != POSITIVE])
         else:
-            wrong = [r for r in wins if dec(r) == Answer.STICTION]
+            wrong = [r for r in wins if call(dec(r)) == POSITIVE]
         out.append((tag, v, (wrong or wins)[0]))
     return out
 
@@ -170,7 +172,7 @@ class Evaluation:
     def _stiction_rows(self) -> list[tuple]:
         rows = []
         for r in self.results:
-            if r["decision"] != Answer.STICTION:
+            if call(r["decision"]) != POSITIVE:
                 continue
             s95, j95 = r.get("S_95"), r.get("J_95")
             load = r.get("load_delta_bic")
@@ -233,7 +235,8 @@ class Evaluation:
             c = v["counts"]
             out += [f"#### {tag} — labelled {_LABEL[v['label']]}, called {_call(v['call'])}", "",
                     f"{len(v['windows'])} window(s): {c[POSITIVE]} called stiction, {c['no stiction']} no stiction, "
-                    f"{c[ABSTAIN]} cannot tell. Window shown: `{r['name']}` — **{r['decision']}**: {r['reason']}", ""]
+                    f"{c[ABSTAIN]} cannot tell. Window shown: `{r['name']}` — "
+                    f"**{Answer.parse(r['decision']).words}**: {r['reason']}", ""]
             if tag in self.figures:
                 out += [f"![{tag}]({self.figures[tag]})", ""]
         return "\n".join(out)
@@ -241,7 +244,7 @@ class Evaluation:
 
 def _call(c: str, *, ours: bool = True) -> str:
     """A call in the method's own words (our abstention is "cannot tell", a detector's "undetermined")."""
-    return str(Answer.CANNOT_TELL if ours else Decision.UNDETERMINED) if c == ABSTAIN else str(c)
+    return (Answer.CANNOT_TELL.words if ours else str(Decision.UNDETERMINED)) if c == ABSTAIN else str(c)
 
 
 def _pct(x: float) -> str:

@@ -43,7 +43,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer
+from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason
 from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_noise
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.candidates import get
@@ -65,6 +65,8 @@ NOISE_BANDS = 3.0
 MIN_FIT = 0.0
 #: Findings that are valve friction (the 2005 model's stiction, and its J = 0 case).
 VALVE_PHYSICS = VALVE_FRICTION
+#: Findings that are reason codes of their own (every physics of the vocabulary).
+_FINDING_REASONS = frozenset(str(r) for r in Reason)
 #: Order in which other findings name the cause of a "no stiction" answer.
 _CAUSES = ("disturbance", "quantization", "saturation", "characteristic", "actuator_lag", "dead_time")
 
@@ -112,12 +114,18 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float) -> dict:
         if NOISE_BANDS * noise <= S:
             iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
             kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
-            return dict(decision=Answer.STICTION, cause=valve.physics, S=S, J=J, intervals=ivs,
-                        reason=f"{kind}, S ≈ {S:.3g} %, J ≈ {J:.3g} % ({iv}); {fits}{_load_text(valve)}")
+            reason = f"{kind}, S ≈ {S:.3g} %, J ≈ {J:.3g} % ({iv}); {fits}{_load_text(valve)}"
+            reasons = [(Reason(valve.physics), reason)]
+            if valve.load_delta_bic is not None and valve.load_delta_bic < DELTA_BIC:
+                reasons.append((Reason.WEAK_EVIDENCE, _load_text(valve).removeprefix("; weak evidence: ")))
+            return dict(decision=Answer.STICTION, cause=valve.physics, S=S, J=J, intervals=ivs, reason=reason,
+                        reasons=reasons)
         small = (f"a valve band S ≈ {S:.3g} % fits, but it is below {NOISE_BANDS:g} OP noise σ "
                  f"({NOISE_BANDS * noise:.3g} %), where the noise moves such a valve either way; ")
+    pre = [(Reason.SMALL_BAND, small.rstrip("; "))] if small else []
     if not d.fit_after >= MIN_FIT:
-        return dict(decision=Answer.CANNOT_TELL, cause="",
+        return dict(decision=Answer.CANNOT_TELL, cause="", reasons=[(Reason.NOT_EXPLAINED, "the best model found "
+                    "predicts held-out PV worse than their mean")] + pre,
                     reason=f"{small}no valve friction that could matter improves the model, but the best model "
                            f"found predicts held-out PV worse than their mean (cross-validated fit "
                            f"{d.fit_after:.0f} % < {MIN_FIT:g} %): the loop is not explained, so neither is the "
@@ -128,18 +136,22 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float) -> dict:
     dist = next((f for f in ranked if f.physics == "disturbance"), None)
     if dist is not None and (not np.isfinite(cycle) or _same_period(dist.parameters["period"], cycle)):
         return dict(decision=Answer.NO_STICTION, cause="disturbance", tuning=tune,
+                    reasons=[(Reason.DISTURBANCE, dist.description)] + pre,
                     reason=f"{small}{dist.description}, not the valve; {fits}")
     if tune is not None and tune.aggressive:
         also = f"; also {ranked[0].description}" if ranked else ""
         return dict(decision=Answer.NO_STICTION, cause="tuning", tuning=tune,
+                    reasons=[(Reason.TUNING, f"the loop cycles through its own controller: {tune.reason}")] + pre,
                     reason=f"{small}the loop cycles through its own controller (aggressive tuning): {tune.reason}; "
                            f"no valve nonlinearity explains it{also}; {fits}")
     if ranked:
         return dict(decision=Answer.NO_STICTION, cause=ranked[0].physics, tuning=tune,
+                    reasons=[(Reason(ranked[0].physics), ranked[0].description)] + pre,
                     reason=f"{small}{ranked[0].description}; no valve friction that could matter; {fits}")
     if small:
-        return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune, reason=f"{small}{fits}")
+        return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune, reason=f"{small}{fits}", reasons=pre)
     return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune,
+                reasons=[(Reason.LINEAR, "a linear valve and plant explain the loop")],
                 reason=f"a linear valve and plant explain the loop: no candidate physics improves the model "
                        f"significantly; {fits}")
 
@@ -173,14 +185,18 @@ def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Cal
     ad = adequacy(rec)
     if not ad.ok:
         return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=ad.reason, adequacy=ad,
-                          notes=notes, seconds=time.perf_counter() - start)
+                          reasons=((ad.code, ad.reason),), notes=notes, seconds=time.perf_counter() - start)
     noise = op_noise(rec.op)
     try:
         d = explain(rec, None, progress=progress)
     except UninformativeData as exc:  # e.g. PV constant over the fit part: the data cannot decide
         return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=exc.reason, adequacy=ad,
-                          notes=notes, op_noise=noise, seconds=time.perf_counter() - start)
+                          reasons=((Reason.UNINFORMATIVE, exc.reason),), notes=notes, op_noise=noise,
+                          seconds=time.perf_counter() - start)
     out = _decide(rec, d, ad, noise)
+    named = {code for code, _ in out["reasons"]}
+    out["reasons"] = tuple(out["reasons"]) + tuple((Reason(f.physics), f.description) for f in d.findings
+                                                   if f.physics not in named and f.physics in _FINDING_REASONS)
     valve = _valve(d.findings)
     band = None if valve is None else float(valve.parameters["S"])
     load = None if valve is None else valve.load_delta_bic

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from valve_emulator.diagnosis.answers import Answer, Strength
+from valve_emulator.diagnosis.answers import Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.adequacy import Adequacy
 from valve_emulator.diagnosis.candidates.tuning import TuningAssessment
 from valve_emulator.diagnosis.explain.result import Explanation
@@ -29,6 +29,8 @@ class Assessment:
     cause : the physics behind the answer (``stiction``, ``deadband``, ``disturbance``, ``tuning``,
         ``linear``, ...; ``""`` for "cannot tell").
     reason : one sentence saying why.
+    reasons : ``(code, sentence)`` pairs, the answer's own first, then what else was found (a quantised PV
+        beside stiction, a weak evidence, a band inside OP noise...).
     S, J : the valve band and slip jump (% travel) when the decision is stiction (J = 0 for a deadband).
     intervals : 95 % intervals of ``S`` and ``J``.
     explanation : what the explain step found without a model (None when the data could not support it).
@@ -46,6 +48,7 @@ class Assessment:
     decision: Answer
     cause: str
     reason: str
+    reasons: tuple[tuple[Reason, str], ...] = ()
     S: float | None = None
     J: float | None = None
     intervals: dict = field(default_factory=dict)
@@ -66,7 +69,7 @@ class Assessment:
     @property
     def statement(self) -> str:
         """``"<decision>: <reason>"``."""
-        return f"{self.decision}: {self.reason}"
+        return f"{self.decision.words}: {self.reason}"
 
     @property
     def verdict(self) -> str:
@@ -114,7 +117,7 @@ class Assessment:
 
     def report(self, *, figure: str | None = None) -> str:
         """Markdown: the verdict, then the diagnosis report (when there is one)."""
-        head = [f"# Assessment of `{self.source}`", "", f"**Answer — {self.decision}:** {self.reason}", ""]
+        head = [f"# Assessment of `{self.source}`", "", f"**Answer — {self.decision.words}:** {self.reason}", ""]
         head += [f"- note: {n}" for n in self.notes]
         if self.tuning is not None:
             head.append(f"- tuning: {self.tuning.reason}")

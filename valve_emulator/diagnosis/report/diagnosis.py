@@ -15,12 +15,28 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Strength
+from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["Diagnosis"]
+
+#: Units of OP, in which a valve band S and slip jump J are expressed.
+OP_UNITS = "% travel"
+
+
+def _friction_json(f: Finding | None) -> dict | None:
+    """The valve-friction estimate: S and J, each with its 95 % interval and units (J = 0 for a deadband)."""
+    if f is None:
+        return None
+
+    def value(key: str) -> dict:
+        x = float(f.parameters.get(key, 0.0))
+        lo, hi = f.intervals.get(key, (x, x))
+        return {"value": round(x, 6), "interval": [round(float(lo), 6), round(float(hi), 6)], "units": OP_UNITS}
+
+    return {"physics": f.physics, "S": value("S"), "J": value("J")}
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -77,6 +93,21 @@ class Diagnosis:
         """The sentence the command line prints."""
         return self.assessment.verdict if self.assessment is not None else self.explanation.verdict
 
+    @property
+    def reasons(self) -> tuple[tuple[Reason, str], ...]:
+        """``(code, sentence)`` pairs saying why: on plant data the assessment's; with a model, one per finding
+        (``linear`` when there is none)."""
+        if self.assessment is not None:
+            return self.assessment.reasons
+        if not self.findings:
+            return ((Reason.LINEAR, "no candidate physics improves the model significantly"),)
+        return tuple((Reason(f.physics), f.description) for f in self.findings)
+
+    @property
+    def friction(self) -> Finding | None:
+        """The valve-friction finding (stiction, or a deadband: friction with J = 0), None when none was found."""
+        return next((f for f in self.findings if f.physics in VALVE_FRICTION), None)
+
     # -- the fitted model -----------------------------------------------------------------------------------
     def predict(self, op) -> np.ndarray:
         """Free-run PV (engineering units) of the fitted loop — linear part plus the found physics — for the
@@ -91,8 +122,16 @@ class Diagnosis:
 
     # -- output ---------------------------------------------------------------------------------------------
     def to_json(self) -> dict:
-        """``fit_before``, ``fit_after``, ``findings`` and ``verdict`` (the ``diagnose --json`` file)."""
-        return self.assessment.to_json() if self.assessment is not None else self.explanation.to_json()
+        """The ``diagnose --json`` document, valid against :data:`~valve_emulator.diagnosis.report.schema.SCHEMA`:
+        ``answer``, ``strength``, ``reasons`` (``code``, ``sentence``), ``friction`` (the valve-friction
+        estimate with 95 % intervals and units, or null), ``source``, then ``fit_before``, ``fit_after``,
+        ``findings`` and ``verdict``."""
+        base = self.assessment.to_json() if self.assessment is not None else self.explanation.to_json()
+        strength = self.strength
+        head = {"answer": str(self.answer), "strength": None if strength is None else str(strength),
+                "reasons": [{"code": str(c), "sentence": s} for c, s in self.reasons],
+                "friction": _friction_json(self.friction), "source": self.source}
+        return {**head, **base}
 
     def report(self, *, figure: str | None = None) -> str:
         """A Markdown report (``figure``: a path to link, relative to the report), with the notes on the data."""
