@@ -168,3 +168,33 @@ def test_evaluate_refuses_a_bad_index_before_running(tmp_path, capsys):
     (tmp_path / "index.csv").write_text("file,verdict\nx.csv,stiction\n", encoding="utf-8")
     assert main(["evaluate", str(tmp_path)]) == 2
     assert "index.csv: line 1: the index has no 'label' column" in capsys.readouterr().err
+
+
+def _counts_csv(path, rec: Recording) -> None:
+    """A generic CSV whose OP is in raw analog counts (0..27648 = 0..100 % travel)."""
+    rows = [f"{t:g},{276.48 * op:.3f},{pv:.6f}" for t, op, pv in zip(rec.t, rec.op, rec.pv)]
+    path.write_text("seconds,OUT,FLOW\n" + "\n".join(rows) + "\n", encoding="utf-8")
+
+
+def test_diagnose_op_in_raw_counts_reports_s_and_j_in_counts_and_with_op_range_in_travel(tmp_path, capsys):
+    path, out, ranged = tmp_path / "counts.csv", tmp_path / "a.json", tmp_path / "b.json"
+    _counts_csv(path, _sticky())
+    flags = [str(path), "--format", "csv", "--time", "seconds", "--op", "OUT", "--pv", "FLOW", "--quiet"]
+    assert main(["diagnose", *flags, "--json", str(out)]) == 0
+    assert main(["diagnose", *flags, "--json", str(ranged), "--op-range", "0", "27648"]) == 0
+    capsys.readouterr()
+    plain, known = (json.loads(p.read_text(encoding="utf-8")) for p in (out, ranged))
+    assert plain["answer"] == known["answer"] == "stiction"
+    assert plain["friction"]["S"]["units"] == "OP units" and plain["friction"]["travel"] is None
+    assert 3.5 * 276.48 < plain["friction"]["S"]["value"] < 6.5 * 276.48     # S = 5 % travel, in counts
+    travel = known["friction"]["travel"]
+    assert travel["S"]["units"] == "% travel" and travel["span"] == [0, 27648] and travel["span_source"] == "op_range"
+    assert travel["S"]["value"] == pytest.approx(known["friction"]["S"]["value"] / 276.48, rel=1e-3)
+
+
+def test_diagnose_refuses_a_reversed_op_range_naming_it(tmp_path, capsys):
+    path = tmp_path / "counts.csv"
+    _counts_csv(path, _sticky(duration=400.0))
+    flags = [str(path), "--format", "csv", "--time", "seconds", "--op", "OUT", "--pv", "FLOW", "--quiet"]
+    assert main(["diagnose", *flags, "--op-range", "100", "0"]) == 2
+    assert "must exceed" in capsys.readouterr().err

@@ -50,7 +50,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--ts", type=float, metavar="SECONDS", help="sample time, when there is no time column")
     g.add_argument("--skip", type=int, default=0, metavar="N", help="lines to skip before the header")
     g.add_argument("--decimal", choices=(".", ","), default=".", help="decimal mark (default '.')")
-    g.add_argument("--op-units", choices=("%", "mA"), default="%", help="OP's units in the file (default %%)")
+    g.add_argument("--op-units", choices=("%", "mA"), default=None,
+                   help="OP is %% of travel, or mA (4-20 mA = 0-100 %%); default: the standard format is %%, "
+                        "otherwise OP may be in any units (the answer does not depend on them)")
+    g.add_argument("--op-range", nargs=2, type=float, metavar=("LO", "HI"),
+                   help="OP's values at 0 and 100 %% travel, in OP's units (e.g. 0 27648 for raw counts): S and J "
+                        "are then also given in %% travel")
     g.add_argument("--pv-units", default="", metavar="UNITS", help="PV's engineering units (for the report)")
     g.add_argument("--encoding", default="utf-8", help="text encoding of the file (default utf-8)")
 
@@ -78,7 +83,10 @@ def run(args: argparse.Namespace) -> int:
         if p is not None and not p.parent.is_dir():
             raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
     nominal = load_loop(args.model) if args.model is not None else None
-    d = diagnose(args.recording, nominal, progress=_progress(args.quiet), **_reader_options(args))
+    if nominal is not None and args.op_range is not None:
+        raise ValueError("--op-range applies only to plant data (without --model): a model's OP is % travel")
+    extra = {} if args.op_range is None else {"op_range": tuple(args.op_range)}
+    d = diagnose(args.recording, nominal, progress=_progress(args.quiet), **extra, **_reader_options(args))
     written = []
     if args.plot:
         d.plot(args.plot, title=str(args.recording))

@@ -14,6 +14,7 @@ from valve_emulator.diagnosis.assess.adequacy import Adequacy
 from valve_emulator.diagnosis.candidates.tuning import TuningAssessment
 from valve_emulator.diagnosis.explain.result import Explanation
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
+from valve_emulator.diagnosis.fit.frame import Frame
 
 __all__ = ["Assessment"]
 
@@ -31,7 +32,8 @@ class Assessment:
     reason : one sentence saying why.
     reasons : ``(code, sentence)`` pairs, the answer's own first, then what else was found (a quantised PV
         beside stiction, a weak evidence, a band inside OP noise...).
-    S, J : the valve band and slip jump (% travel) when the decision is stiction (J = 0 for a deadband).
+    S, J : the valve band and slip jump (OP's units, see :attr:`frame`) when the decision is stiction (J = 0
+        for a deadband).
     intervals : 95 % intervals of ``S`` and ``J``.
     explanation : what the explain step found without a model (None when the data could not support it).
     adequacy : the checks of step 2.
@@ -41,6 +43,8 @@ class Assessment:
     band : S of the valve friction the diagnosis accepted, whether or not it was called stiction (None:
         none accepted), for sensitivity studies of :data:`NOISE_BANDS`.
     load_delta_bic : that valve friction's ΔBIC under a drifting-load noise model (None: none accepted).
+    frame : how OP was mapped into the search's frame, and OP's units and travel span (None when the data
+        could not support a model).
     seconds : wall time.
     """
 
@@ -59,6 +63,7 @@ class Assessment:
     op_noise: float = float("nan")
     band: float | None = None
     load_delta_bic: float | None = None
+    frame: Frame | None = None
     seconds: float = 0.0
 
     @property

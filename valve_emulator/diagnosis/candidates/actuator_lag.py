@@ -71,7 +71,7 @@ class ActuatorLag(ChainCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"tau": round(float(p[0]), 3)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = "%") -> str:
         return f"an actuator lag: τ ≈ {p[0]:.1f} s"
 
     def identity(self) -> np.ndarray:
