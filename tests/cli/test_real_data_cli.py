@@ -6,8 +6,10 @@ text export); nothing is read from the shared plant data.
 
 from __future__ import annotations
 
+import csv
 import json
 from datetime import datetime, timedelta
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -198,3 +200,42 @@ def test_diagnose_refuses_a_reversed_op_range_naming_it(tmp_path, capsys):
     flags = [str(path), "--format", "csv", "--time", "seconds", "--op", "OUT", "--pv", "FLOW", "--quiet"]
     assert main(["diagnose", *flags, "--op-range", "100", "0"]) == 2
     assert "must exceed" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------ plant-wide sweep
+
+def _plant_folder(tmp_path):
+    folder = tmp_path / "plant"
+    folder.mkdir()
+    write_csv(_sticky(duration=700.0), folder / "FIC101.csv")
+    write_csv(simulate([2.0], [12.0, 1.0], 4.0, 0.5, 12.0, duration=900.0, sp_steps=STEPS_300), folder / "FIC102.csv")
+    (folder / "FIC103.csv").write_text("t,op\n0,1\n", encoding="utf-8")        # unusable: no PV column
+    (folder / "notes.md").write_text("not a recording\n", encoding="utf-8")  # skipped
+    return folder
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_diagnose_a_folder_sweeps_it_one_line_each_and_writes_the_summary(tmp_path, capsys, jobs):
+    folder = _plant_folder(tmp_path)
+    table, doc = tmp_path / "sweep.csv", tmp_path / "sweep.json"
+    assert main(["diagnose", str(folder), "--jobs", str(jobs), "--csv", str(table), "--json", str(doc)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    lines = [ln for ln in out if ln.startswith("[")]
+    assert len(lines) == 3 and lines[-1].startswith("[####################] 3/3")
+    assert any("FIC101.csv: stiction" in ln for ln in lines) and any("FIC103.csv: error:" in ln for ln in lines)
+    assert "answers: error 1, no_stiction 1, stiction 1" in out
+    rows = list(csv.DictReader(table.open(encoding="utf-8")))
+    assert [Path(r["file"]).name for r in rows] == ["FIC101.csv", "FIC102.csv", "FIC103.csv"]
+    assert [r["answer"] for r in rows] == ["stiction", "no_stiction", ""]
+    assert 3.5 < float(rows[0]["S"]) < 6.5 and rows[0]["units"] == "% travel" and rows[0]["S_travel"] == rows[0]["S"]
+    data = json.loads(doc.read_text(encoding="utf-8"))
+    assert data[0]["document"]["answer"] == "stiction"
+    assert "FIC103.csv" in data[2]["error"] and data[2]["document"] is None
+
+
+def test_a_sweep_refuses_the_flags_of_one_file(tmp_path, capsys):
+    folder = _plant_folder(tmp_path)
+    assert main(["diagnose", str(folder), "--plot", str(tmp_path / "x.png")]) == 2
+    assert "apply to one file" in capsys.readouterr().err
+    assert main(["diagnose", str(folder / "FIC101.csv"), "--jobs", "2"]) == 2
+    assert "apply to a sweep" in capsys.readouterr().err
