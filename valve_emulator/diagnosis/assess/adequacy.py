@@ -18,7 +18,8 @@ answer "is the valve sticky?" whatever the method, and saying so beats a wrong a
    percentile) of at least :data:`EXCITATION` times its noise σ. White noise alone spans about 5 σ between those
    percentiles, so twice that is movement the noise cannot make. The noise σ is
    :func:`op_noise`, the robust standard deviation of sample-to-sample changes divided by √2 (as for the
-   OP turning points of :mod:`~valve_emulator.diagnosis.explain.locate`).
+   OP turning points of :mod:`~valve_emulator.diagnosis.explain.locate`); for an OP that mostly holds its
+   value (σ = 0) it is OP's resolution, the median non-zero step.
 
 Thresholds are constants, chosen once for every loop.
 """
@@ -48,6 +49,13 @@ def op_noise(op: np.ndarray) -> float:
     if d.size == 0:
         return 0.0
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+def _step(x: np.ndarray) -> float:
+    """OP's resolution when it mostly holds its value (zero noise σ): the median non-zero step (inf if none)."""
+    d = np.abs(np.diff(np.asarray(x, dtype=float)))
+    d = d[d > 0.0]
+    return float(np.median(d)) if d.size else float("inf")
 
 
 def longest_constant_run(x: np.ndarray) -> int:
@@ -94,7 +102,7 @@ def adequacy(rec: Recording) -> Adequacy:
     facts["op_range"] = float(hi - lo)
     noise = op_noise(op)
     facts["op_noise"] = noise
-    facts["op_range_in_noise"] = float((hi - lo) / noise) if noise > 0 else (float("inf") if hi > lo else 0.0)
+    facts["op_range_in_noise"] = float((hi - lo) / (noise if noise > 0 else _step(op)))
     for name, x in (("PV", pv), ("OP", op)):
         share = longest_constant_run(x) / T
         facts[f"{name.lower()}_flat_share"] = share
