@@ -161,10 +161,10 @@ class Candidate(ABC):
         """The JSON ``parameters`` dict for one parameter vector (its keys are part of the JSON output)."""
 
     @abstractmethod
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = "%") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
         """A short phrase for the verdict, e.g. ``"valve stiction: S ≈ 4.8 %, J ≈ 2.1 % (undershoot)"``;
         ``p`` in OP's units (see :mod:`~valve_emulator.diagnosis.fit.frame`), ``units`` their label after a
-        number (``"%"``, ``" mA"``, ``" OP units"``)."""
+        number, with its space (``" %"``, ``" mA"``, ``" OP units"``)."""
 
     @property
     def kind(self) -> Kind:

@@ -113,7 +113,7 @@ def _in_op_units(cand, act_params: np.ndarray, params: dict, ivs: dict, frame: F
     for i, name in enumerate(cand.param_names):
         if cand.dims.get(name) == "op":
             p_user[i] = frame.op_delta(p_user[i])
-    units = "%" if frame.units == TRAVEL else f" {frame.units}"
+    units = " %" if frame.units == TRAVEL else f" {frame.units}"
     if not frame.identity:
         params = {k: float(f"{v:.4g}") if isinstance(v, float) else v
                   for k, v in frame.convert(cand.dims, params).items()}
