@@ -123,3 +123,21 @@ def test_a_folder_without_index_is_labelled_by_its_sub_folders(tmp_path):
     (tmp_path / "misc").mkdir()
     with pytest.raises(ValueError, match="sub-folder 'misc' says neither"):
         read_index(tmp_path)
+
+
+def test_the_plant_index_is_scored_beside_the_methods_as_a_baseline(tmp_path):
+    sticky = dict(S=2.0, J=0.5, cause="stiction", reason="r")
+    res = [_w("A", True, "no_stiction", plant_index=0.9, cause="linear", reason="r"),
+           _w("B", False, "no_stiction", plant_index=0.7, cause="linear", reason="r"),
+           _w("C", False, "stiction", plant_index=0.1, **sticky), _w("D", True, "stiction", plant_index=None, **sticky)]
+    ev = Evaluation(res, source="set")
+    assert ev.methods[:2] == ["diagnosis", "plant index"]
+    c = ev.valves("plant index")
+    assert (c.tp, c.fn, c.fp, c.tn) == (1, 1, 1, 1) and c.coverage == pytest.approx(0.75)
+    assert "plant index" in ev.markdown() and "never shown to the diagnosis" in ev.markdown()
+    (tmp_path / "a.txt").write_text("x", encoding="utf-8")
+    (tmp_path / "index.csv").write_text("file,label,stick1\na.txt,stiction,0.42\n", encoding="utf-8")
+    assert read_index(tmp_path)[0].index == pytest.approx(0.42)
+    (tmp_path / "index.csv").write_text("file,label,stick1\na.txt,stiction,high\n", encoding="utf-8")
+    with pytest.raises(ValueError, match="line 2: stick1 'high' is not a number"):
+        read_index(tmp_path)

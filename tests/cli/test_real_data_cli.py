@@ -6,8 +6,10 @@ text export); nothing is read from the shared plant data.
 
 from __future__ import annotations
 
+import csv
 import json
 from datetime import datetime, timedelta
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -57,7 +59,11 @@ def test_diagnose_a_jittered_recorder_file_resamples_says_so_and_finds_stiction(
     assert lines[0].startswith("note: resampled onto a uniform 1 s grid: ") and "OP and SP held" in lines[0]
     assert "— answer: stiction: " in lines[1] and "S ≈" in lines[1]
     data = json.loads(out.read_text(encoding="utf-8"))
-    assert list(data) == ["fit_before", "fit_after", "findings", "verdict"]
+    assert list(data) == ["answer", "strength", "reasons", "friction", "source", "fit_before", "fit_after",
+                          "findings", "verdict"]
+    assert data["answer"] == "stiction" and data["strength"] in ("strong", "weak")
+    S = data["friction"]["S"]
+    assert S["interval"][0] <= S["value"] <= S["interval"][1]
     assert data["findings"][0]["physics"] in ("stiction", "deadband")   # the slip timing is blurred a little
 
 
@@ -154,7 +160,7 @@ def test_evaluate_scores_per_valve_and_window_with_the_detectors_and_writes_the_
     for method in ("diagnosis", "horch", "he", "bicoherence"):
         assert method in text
     results = json.loads(out.read_text(encoding="utf-8"))
-    assert [r["decision"] for r in results] == ["stiction", "stiction", "no stiction", "cannot tell"]
+    assert [r["decision"] for r in results] == ["stiction", "stiction", "no_stiction", "cannot_tell"]
     assert all(set(r["detectors"]) == {"horch", "he", "bicoherence"} for r in results)
     md = report.read_text(encoding="utf-8")
     assert md.startswith("# Intro kept") and md.rstrip().endswith("Outro kept.") and "\nold\n" not in md
@@ -168,3 +174,72 @@ def test_evaluate_refuses_a_bad_index_before_running(tmp_path, capsys):
     (tmp_path / "index.csv").write_text("file,verdict\nx.csv,stiction\n", encoding="utf-8")
     assert main(["evaluate", str(tmp_path)]) == 2
     assert "index.csv: line 1: the index has no 'label' column" in capsys.readouterr().err
+
+
+def _counts_csv(path, rec: Recording) -> None:
+    """A generic CSV whose OP is in raw analog counts (0..27648 = 0..100 % travel)."""
+    rows = [f"{t:g},{276.48 * op:.3f},{pv:.6f}" for t, op, pv in zip(rec.t, rec.op, rec.pv)]
+    path.write_text("seconds,OUT,FLOW\n" + "\n".join(rows) + "\n", encoding="utf-8")
+
+
+def test_diagnose_op_in_raw_counts_reports_s_and_j_in_counts_and_with_op_range_in_travel(tmp_path, capsys):
+    path, out, ranged = tmp_path / "counts.csv", tmp_path / "a.json", tmp_path / "b.json"
+    _counts_csv(path, _sticky())
+    flags = [str(path), "--format", "csv", "--time", "seconds", "--op", "OUT", "--pv", "FLOW", "--quiet"]
+    assert main(["diagnose", *flags, "--json", str(out)]) == 0
+    assert main(["diagnose", *flags, "--json", str(ranged), "--op-range", "0", "27648"]) == 0
+    capsys.readouterr()
+    plain, known = (json.loads(p.read_text(encoding="utf-8")) for p in (out, ranged))
+    assert plain["answer"] == known["answer"] == "stiction"
+    assert plain["friction"]["S"]["units"] == "OP units" and plain["friction"]["travel"] is None
+    assert 3.5 * 276.48 < plain["friction"]["S"]["value"] < 6.5 * 276.48     # S = 5 % travel, in counts
+    travel = known["friction"]["travel"]
+    assert travel["S"]["units"] == "% travel" and travel["span"] == [0, 27648] and travel["span_source"] == "op_range"
+    assert travel["S"]["value"] == pytest.approx(known["friction"]["S"]["value"] / 276.48, rel=1e-3)
+
+
+def test_diagnose_refuses_a_reversed_op_range_naming_it(tmp_path, capsys):
+    path = tmp_path / "counts.csv"
+    _counts_csv(path, _sticky(duration=400.0))
+    flags = [str(path), "--format", "csv", "--time", "seconds", "--op", "OUT", "--pv", "FLOW", "--quiet"]
+    assert main(["diagnose", *flags, "--op-range", "100", "0"]) == 2
+    assert "must exceed" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------ plant-wide sweep
+
+def _plant_folder(tmp_path):
+    folder = tmp_path / "plant"
+    folder.mkdir()
+    write_csv(_sticky(duration=700.0), folder / "FIC101.csv")
+    write_csv(simulate([2.0], [12.0, 1.0], 4.0, 0.5, 12.0, duration=900.0, sp_steps=STEPS_300), folder / "FIC102.csv")
+    (folder / "FIC103.csv").write_text("t,op\n0,1\n", encoding="utf-8")        # unusable: no PV column
+    (folder / "notes.md").write_text("not a recording\n", encoding="utf-8")  # skipped
+    return folder
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_diagnose_a_folder_sweeps_it_one_line_each_and_writes_the_summary(tmp_path, capsys, jobs):
+    folder = _plant_folder(tmp_path)
+    table, doc = tmp_path / "sweep.csv", tmp_path / "sweep.json"
+    assert main(["diagnose", str(folder), "--jobs", str(jobs), "--csv", str(table), "--json", str(doc)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    lines = [ln for ln in out if ln.startswith("[")]
+    assert len(lines) == 3 and lines[-1].startswith("[####################] 3/3")
+    assert any("FIC101.csv: stiction" in ln for ln in lines) and any("FIC103.csv: error:" in ln for ln in lines)
+    assert "answers: error 1, no_stiction 1, stiction 1" in out
+    rows = list(csv.DictReader(table.open(encoding="utf-8")))
+    assert [Path(r["file"]).name for r in rows] == ["FIC101.csv", "FIC102.csv", "FIC103.csv"]
+    assert [r["answer"] for r in rows] == ["stiction", "no_stiction", ""]
+    assert 3.5 < float(rows[0]["S"]) < 6.5 and rows[0]["units"] == "% travel" and rows[0]["S_travel"] == rows[0]["S"]
+    data = json.loads(doc.read_text(encoding="utf-8"))
+    assert data[0]["document"]["answer"] == "stiction"
+    assert "FIC103.csv" in data[2]["error"] and data[2]["document"] is None
+
+
+def test_a_sweep_refuses_the_flags_of_one_file(tmp_path, capsys):
+    folder = _plant_folder(tmp_path)
+    assert main(["diagnose", str(folder), "--plot", str(tmp_path / "x.png")]) == 2
+    assert "apply to one file" in capsys.readouterr().err
+    assert main(["diagnose", str(folder / "FIC101.csv"), "--jobs", "2"]) == 2
+    assert "apply to a sweep" in capsys.readouterr().err

@@ -97,7 +97,8 @@ def test_predict_on_a_new_op_follows_the_true_loop_where_the_nominal_model_does_
 def test_to_json_round_trips_with_the_documented_keys(diagnosis):
     data = diagnosis.to_json()
     assert json.loads(json.dumps(data)) == data
-    assert set(data) == {"fit_before", "fit_after", "findings", "verdict"}
+    assert list(data) == ["answer", "strength", "reasons", "friction", "source", "fit_before", "fit_after",
+                          "findings", "verdict"]
     assert set(data["findings"][0]) == {"physics", "parameters", "windows", "evidence"}
     assert diagnosis.report().startswith("# Diagnosis of ")
 
@@ -112,7 +113,9 @@ def test_plant_data_that_cannot_tell_keep_no_model_and_say_why():
     d = ve.diagnose({"t": np.arange(150.0), "op": 50 + rng.normal(size=150), "pv": rng.normal(size=150)})
     assert d.answer is ve.Answer.CANNOT_TELL and d.assessment is not None
     assert d.fit_before is None and d.findings == ()
-    assert d.to_json()["fit_before"] is None and d.to_json()["verdict"].startswith("cannot tell: ")
+    data = d.to_json()
+    assert data["fit_before"] is None and data["verdict"].startswith("cannot tell: ")
+    assert data["answer"] == "cannot_tell" and [r["code"] for r in data["reasons"]] == ["too_short"]
     with pytest.raises(ValueError, match="no model was fitted"):
         d.predict(np.zeros(10))
 

@@ -27,7 +27,7 @@ def _rec(op, pv, *, dt=1.0, sp=None, t=None, name="r") -> Recording:
 
 def test_too_short_a_record_cannot_tell_and_says_how_many_samples():
     a = assess(_rec(50 + RNG.normal(size=150), RNG.normal(size=150)))
-    assert a.decision == "cannot tell" and a.diagnosis is None
+    assert a.decision == "cannot_tell" and a.diagnosis is None
     assert "150 samples" in a.reason and "at least 200" in a.reason
 
 
@@ -35,7 +35,7 @@ def test_a_flat_pv_cannot_tell_and_names_the_look_alikes():
     op = np.linspace(5.0, 80.0, 600)              # OP winds up
     pv = np.r_[np.linspace(0.3, 0.0, 100), np.zeros(500)]   # flow stops at zero and stays there
     a = assess(_rec(op, pv))
-    assert a.decision == "cannot tell"
+    assert a.decision == "cannot_tell"
     assert "PV is flat" in a.reason and "84 % of the record" in a.reason and "seized valve" in a.reason
     assert a.adequacy.facts["pv_flat_share"] == pytest.approx(501 / 600)   # the last ramp sample is 0 too
 
@@ -44,7 +44,7 @@ def test_no_oscillation_and_no_excitation_cannot_tell():
     op = 40 + 0.1 * RNG.normal(size=800)          # OP only dithers, no set point change, no cycle
     pv = 50 + RNG.normal(size=800)
     a = assess(_rec(op, pv, sp=np.full(800, 50.0)))
-    assert a.decision == "cannot tell"
+    assert a.decision == "cannot_tell"
     assert "no oscillation" in a.reason and "no excitation" in a.reason
     assert a.adequacy.facts["op_range_in_noise"] < EXCITATION
 

@@ -5,7 +5,9 @@ Index
 A CSV file with a header naming at least ``file`` (a path relative to the index's folder) and ``label``;
 optional columns are ``tag`` (the valve or loop: windows of one valve are scored together, default the tag
 the file itself names, else its stem) and ``loop_type`` (``LIC``… level loops are integrating, which only
-the comparison detectors need to be told: Horch's test does not apply to them and He's fits PV there).
+the comparison detectors need to be told: Horch's test does not apply to them and He's fits PV there) and
+``stick1`` (the plant's own stiction index, when the set ships one: it is scored beside the methods as a
+baseline by :mod:`~valve_emulator.benchmark.evaluation`, never shown to the diagnosis).
 Labels are case-insensitive: ``stiction``, ``sticky``, ``yes``, ``1`` and ``true`` are stiction;
 ``no_stiction``, ``non-stiction``, ``no stiction``, ``normal``, ``no``, ``0`` and ``false`` are not.
 
@@ -53,6 +55,7 @@ class Item:
     tag: str = ""          # "" = take it from the file
     loop_type: str = ""
     name: str = ""         # as written in the index (for tables)
+    index: float | None = None   # the plant's own stiction index (column stick1), a baseline only
 
 
 def parse_label(text: str, where: str) -> bool:
@@ -77,7 +80,7 @@ def _from_index(path: Path) -> list[Item]:
         if need not in head:
             raise ValueError(f"{path}: line 1: the index has no {need!r} column (columns: {', '.join(head)}); "
                              "expected a header with file,label[,tag,loop_type]")
-    col = {k: head.index(k) for k in ("file", "label", "tag", "loop_type") if k in head}
+    col = {k: head.index(k) for k in ("file", "label", "tag", "loop_type", "stick1") if k in head}
     items = []
     for n, row in enumerate(rows[1:], start=2):
         if not any(c.strip() for c in row):
@@ -88,9 +91,14 @@ def _from_index(path: Path) -> list[Item]:
         file = base / name
         if not file.is_file():
             raise ValueError(f"{path}: line {n}: file {name!r} not found in {base}")
+        index = row[col["stick1"]].strip() if "stick1" in col else ""
+        try:
+            index_value = float(index) if index else None
+        except ValueError:
+            raise ValueError(f"{path}: line {n}: stick1 {index!r} is not a number") from None
         items.append(Item(str(file), parse_label(row[col["label"]], f"{path}: line {n}"),
                           row[col["tag"]].strip() if "tag" in col else "",
-                          row[col["loop_type"]].strip() if "loop_type" in col else "", name))
+                          row[col["loop_type"]].strip() if "loop_type" in col else "", name, index_value))
     if not items:
         raise ValueError(f"{path}: the index lists no files")
     return items
@@ -145,7 +153,7 @@ def run_window(item: Item) -> dict:
 
     start = time.perf_counter()
     out = {"name": item.name or Path(item.path).name, "path": item.path, "label": item.label,
-           "loop_type": item.loop_type, "tag": item.tag}
+           "loop_type": item.loop_type, "tag": item.tag, "plant_index": item.index}
     try:
         loaded = read_recording(item.path)
         out["tag"] = item.tag or loaded.tag or Path(item.path).stem

@@ -13,17 +13,20 @@ from dataclasses import dataclass
 from valve_emulator.benchmark.cases import CASES, Case, generate
 from valve_emulator.diagnosis.explain.pipeline import RULE, explain
 from valve_emulator.diagnosis.explain.result import Explanation
+from valve_emulator.diagnosis.report.diagnosis import Diagnosis
 
-__all__ = ["CASES", "CaseResult", "run_case", "table_text", "table_markdown", "proof_markdown"]
+__all__ = ["CASES", "CaseResult", "run_case", "slug", "table_text", "table_markdown", "proof_markdown"]
 
 
 @dataclass(frozen=True, eq=False)
 class CaseResult:
-    """One case: what was hidden, what the diagnosis found, and its figure (path relative to the report)."""
+    """One case: what was hidden, what the diagnosis found, its JSON document (as ``diagnose --json`` writes
+    it) and its figure (path relative to the report)."""
 
     case: Case
     diagnosis: Explanation
     figure: str | None = None
+    document: dict | None = None
 
     @property
     def found(self) -> dict:
@@ -34,7 +37,7 @@ class CaseResult:
         return set(self.found) == set(self.case.truth)
 
 
-def _slug(name: str) -> str:
+def slug(name: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in name.lower()).strip("_")
 
 
@@ -43,13 +46,14 @@ def run_case(case: Case, *, duration: float | None = None, figure_dir: str | os.
     """Generate, diagnose and (optionally) plot one case."""
     rec, nominal, _ = generate(case, duration=duration, seed=seed)
     result = explain(rec, nominal)
+    document = Diagnosis(recording=rec, explanation=result).to_json()
     figure = None
     if figure_dir is not None:
         from valve_emulator.diagnosis.report.plot import plot_diagnosis
 
-        figure = f"{_slug(case.name)}.png"
+        figure = f"{slug(case.name)}.png"
         plot_diagnosis(result, os.path.join(figure_dir, figure))
-    return CaseResult(case, result, figure)
+    return CaseResult(case, result, figure, document)
 
 
 def _params(d: dict) -> str:

@@ -30,23 +30,23 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
-from valve_emulator.diagnosis.answers import Answer
-
 __all__ = ["VALVE_SHARE", "Confusion", "call", "confusion", "valve_calls", "window_calls", "leave_one_valve_out",
            "markdown_table", "text_table"]
 
 #: Share of a valve's non-abstaining windows that must call stiction for the valve to be called stiction.
 VALVE_SHARE = 0.5
 
-#: The three calls: stiction, no stiction (the answers' words) and an abstention of any kind.
-POSITIVE, NEGATIVE, ABSTAIN = Answer.STICTION, Answer.NO_STICTION, "abstain"
+#: The three calls: stiction, no stiction and an abstention of any kind.
+POSITIVE, NEGATIVE, ABSTAIN = "stiction", "no stiction", "abstain"
 
 
 def call(decision: str) -> str:
-    """Map a method's decision to a call: ``stiction``, ``no stiction`` or ``abstain``."""
-    if decision == POSITIVE:
+    """Map a method's decision — an answer's code (``no_stiction``) or a detector's words (``no stiction``) —
+    to a call: ``stiction``, ``no stiction`` or ``abstain``."""
+    words = str(decision).replace("_", " ")
+    if words == POSITIVE:
         return POSITIVE
-    if decision == NEGATIVE:
+    if words == NEGATIVE:
         return NEGATIVE
     return ABSTAIN
 

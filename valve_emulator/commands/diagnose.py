@@ -1,4 +1,6 @@
-"""``valve-emulator diagnose FILE [--model NOMINAL.yaml] [reader flags] [--json OUT] [--report OUT.md] [--plot PNG]``.
+"""``valve-emulator diagnose FILE [--model NOMINAL.yaml] [reader flags] [--json OUT] [--report OUT.md] [--plot PNG]``,
+or a plant-wide sweep: ``valve-emulator diagnose FOLDER_OR_FILES... [--jobs N | --scheduler ADDRESS] [--csv OUT.csv]
+[--json OUT.json]``.
 
 With ``--model``: replays the nominal model on the recorded OP, locates the mismatch, names the physics the
 model leaves out, fits it and shows the fit improve (see :mod:`valve_emulator.diagnosis`). Without it — plant
@@ -11,6 +13,11 @@ a column mapping (``--op --pv --sp --time`` or ``--ts``, ``--skip``, ``--decimal
 A recording whose time steps jitter (the Modbus recorder's rows can come a tick late) is put on a uniform
 grid — OP held, PV interpolated — and the output says so; a real gap (more than
 :data:`~valve_emulator.recordings.resample.MAX_GAP` samples) is refused.
+
+Given a folder or several files, it diagnoses each recording as plant data
+(:mod:`valve_emulator.diagnosis.sweep`): one line per recording with a progress bar as they finish, then a
+count per answer; ``--csv`` and ``--json`` write the summary table (answers, reason codes, S, J, fits).
+``--jobs N`` uses N processes of this machine, ``--scheduler ADDRESS`` an existing Dask distributed cluster.
 
 The verdict goes to stdout (after any note on what was done to the data), progress to stderr. Inputs are
 checked before anything is written: a bad file, flag or config is one error line naming the file (and line),
@@ -32,14 +39,21 @@ HELP = ("find what a recording's model leaves out (with --model), or whether a p
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", type=Path, metavar="FILE",
-                   help="recording: standard CSV (t,sp,op,mv,pv), generic CSV/TSV (map columns below) or DCS export")
+    p.add_argument("recording", type=Path, metavar="FILE", nargs="+",
+                   help="recording: standard CSV (t,sp,op,mv,pv), generic CSV/TSV (map columns below) or DCS export; "
+                        "a folder or several files: a plant-wide sweep")
     p.add_argument("--model", type=Path, metavar="NOMINAL.yaml",
                    help="loop config of the nominal simulation (default: plant data, identify the linear part)")
     p.add_argument("--json", type=Path, metavar="OUT.json", help="write fit_before, fit_after, findings, verdict")
     p.add_argument("--report", type=Path, metavar="OUT.md", help="write a Markdown report")
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="write the figure")
     p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
+    s = p.add_argument_group("a plant-wide sweep (a folder or several files)")
+    s.add_argument("--jobs", type=int, default=1, metavar="N", help="recordings diagnosed at once (default 1)")
+    s.add_argument("--scheduler", metavar="ADDRESS",
+                   help="submit the recordings to this Dask distributed scheduler (e.g. tcp://10.0.0.5:8786; "
+                        "needs the extra valve_emulator[cluster])")
+    s.add_argument("--csv", type=Path, metavar="OUT.csv", help="write the summary table (one line per recording)")
     g = p.add_argument_group("reading the file (see valve_emulator.recordings.read_recording)")
     g.add_argument("--format", dest="fmt", choices=("auto", "standard", "csv", "dcs"), default="auto",
                    help="file format (default: detect)")
@@ -50,7 +64,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--ts", type=float, metavar="SECONDS", help="sample time, when there is no time column")
     g.add_argument("--skip", type=int, default=0, metavar="N", help="lines to skip before the header")
     g.add_argument("--decimal", choices=(".", ","), default=".", help="decimal mark (default '.')")
-    g.add_argument("--op-units", choices=("%", "mA"), default="%", help="OP's units in the file (default %%)")
+    g.add_argument("--op-units", choices=("%", "mA"), default=None,
+                   help="OP is %% of travel, or mA (4-20 mA = 0-100 %%); default: the standard format is %%, "
+                        "otherwise OP may be in any units (the answer does not depend on them)")
+    g.add_argument("--op-range", nargs=2, type=float, metavar=("LO", "HI"),
+                   help="OP's values at 0 and 100 %% travel, in OP's units (e.g. 0 27648 for raw counts): S and J "
+                        "are then also given in %% travel")
     g.add_argument("--pv-units", default="", metavar="UNITS", help="PV's engineering units (for the report)")
     g.add_argument("--encoding", default="utf-8", help="text encoding of the file (default utf-8)")
 
@@ -70,15 +89,68 @@ def _reader_options(args: argparse.Namespace) -> dict:
                 decimal=args.decimal, op_units=args.op_units, pv_units=args.pv_units, encoding=args.encoding)
 
 
+def _bar(done: int, total: int, width: int = 20) -> str:
+    full = int(round(width * done / total))
+    return "[" + "#" * full + "." * (width - full) + f"] {done}/{total}"
+
+
+def _line(row: dict) -> str:
+    if row["error"]:
+        return f"{row['file']}: error: {row['error']}"
+    what = f"{row['answer']}" + (f" ({row['strength']})" if row["strength"] else "")
+    if row["S"] is not None:
+        what += f", S {row['S']:.4g}, J {row['J']:.4g} {row['units']}"
+    return f"{row['file']}: {what} [{row['reasons']}] ({row['seconds']:.1f} s)"
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from valve_emulator.diagnosis.sweep import SweepTable, sweep
+
+    if args.model is not None or args.report is not None or args.plot is not None:
+        raise ValueError("a sweep (a folder or several files) diagnoses plant data: --model, --report and --plot "
+                         "apply to one file")
+    if args.scheduler is not None and args.jobs != 1:
+        raise ValueError("--jobs and --scheduler exclude each other (the cluster decides how many at once)")
+    options = {k: v for k, v in _reader_options(args).items() if v is not None}
+    if args.op_range is not None:
+        options["op_range"] = tuple(args.op_range)
+
+    def progress(done: int, total: int, row: dict) -> None:
+        print(f"{_bar(done, total)} {_line(row)}", flush=True)
+
+    table = SweepTable(sweep(args.recording, jobs=args.jobs, scheduler=args.scheduler, progress=progress, **options))
+    print("answers: " + ", ".join(f"{k} {n}" for k, n in sorted(table.counts().items())))
+    written = []
+    if args.csv:
+        args.csv.write_text(table.csv(), encoding="utf-8")
+        written.append(args.csv)
+    if args.json:
+        args.json.write_text(json.dumps(table.json(), indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+        written.append(args.json)
+    if written:
+        print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     from valve_emulator.config import load_loop
     from valve_emulator.diagnosis.api import diagnose
 
-    for flag, p in (("--json", args.json), ("--report", args.report), ("--plot", args.plot)):
+    for flag, p in (("--json", args.json), ("--report", args.report), ("--plot", args.plot), ("--csv", args.csv)):
         if p is not None and not p.parent.is_dir():
             raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
+    if args.jobs < 1:
+        raise ValueError(f"--jobs must be at least 1, got {args.jobs}")
+    if len(args.recording) > 1 or args.recording[0].is_dir():
+        return _sweep(args)
+    if args.jobs != 1 or args.scheduler is not None or args.csv is not None:
+        raise ValueError("--jobs, --scheduler and --csv apply to a sweep (a folder or several files)")
+    args.recording = args.recording[0]
     nominal = load_loop(args.model) if args.model is not None else None
-    d = diagnose(args.recording, nominal, progress=_progress(args.quiet), **_reader_options(args))
+    if nominal is not None and args.op_range is not None:
+        raise ValueError("--op-range applies only to plant data (without --model): a model's OP is % travel")
+    extra = {} if args.op_range is None else {"op_range": tuple(args.op_range)}
+    d = diagnose(args.recording, nominal, progress=_progress(args.quiet), **extra, **_reader_options(args))
     written = []
     if args.plot:
         d.plot(args.plot, title=str(args.recording))

@@ -43,14 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
 
 
-def _init_worker() -> None:
-    import numba
-
-    numba.set_num_threads(1)  # N processes on N cores: compiled parallel kernels would oversubscribe them
-
-
 def _run_all(items, jobs: int, say) -> list[dict]:
     from valve_emulator.benchmark.labelled import run_window
+    from valve_emulator.diagnosis.sweep import init_worker
 
     results: list[dict | None] = [None] * len(items)
 
@@ -64,7 +59,7 @@ def _run_all(items, jobs: int, say) -> list[dict]:
             done(i, run_window(item))
     else:
         with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
-                                 initializer=_init_worker) as pool:
+                                 initializer=init_worker) as pool:
             futures = {pool.submit(run_window, item): i for i, item in enumerate(items)}
             for fut in as_completed(futures):
                 done(futures[fut], fut.result())

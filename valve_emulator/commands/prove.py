@@ -2,13 +2,15 @@
 
 Simulates every case of :data:`valve_emulator.benchmark.proof.CASES` (closed loop, only OP and PV kept, PV
 noise), diagnoses each against a nominal model lacking the effect, prints the table and writes
-``DIR/proof.md`` with one figure per case under ``DIR/proof/`` (default ``DIR = ./proof``; the published copy in
+``DIR/proof.md`` with one figure and one JSON document (as ``diagnose --json`` writes) per case under
+``DIR/proof/`` (default ``DIR = ./proof``; the published copy in
 the documentation is made with ``--out docs``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -26,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from valve_emulator.benchmark.proof import CASES, proof_markdown, run_case, table_text
+    from valve_emulator.benchmark.proof import CASES, proof_markdown, run_case, slug, table_text
 
     cases = [c for c in CASES if not args.case or any(s in c.name for s in args.case)]
     if not cases:
@@ -39,10 +41,13 @@ def run(args: argparse.Namespace) -> int:
     results = []
     for i, case in enumerate(cases, 1):
         print(f"[{time.perf_counter() - start:6.1f} s] case {i}/{len(cases)}: {case.name}", file=sys.stderr, flush=True)
-        results.append(run_case(case, duration=args.duration, figure_dir=figures))
+        r = run_case(case, duration=args.duration, figure_dir=figures)
+        (figures / f"{slug(case.name)}.json").write_text(json.dumps(r.document, indent=2, ensure_ascii=False) + "\n",
+                                                         encoding="utf-8")
+        results.append(r)
     print(table_text(results))
     md = args.out / "proof.md"
     md.write_text(proof_markdown(results, figure_prefix="proof/", seconds=time.perf_counter() - start),
                   encoding="utf-8")
-    print(f"wrote {md} and {len(results)} figure(s) in {figures}")
+    print(f"wrote {md} and {len(results)} figure(s) and JSON document(s) in {figures}")
     return 0 if all(r.named_ok for r in results) else 1

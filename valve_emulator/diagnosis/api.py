@@ -10,6 +10,12 @@ The recording is read (a path, with the reader's options passed through), put on
 (:func:`~valve_emulator.recordings.resample.regularize`), then either explained against the model
 (:func:`~valve_emulator.diagnosis.explain.pipeline.explain`) or, without one, assessed
 (:func:`~valve_emulator.diagnosis.assess.decision.assess_uniform`).
+
+OP's units (:mod:`~valve_emulator.diagnosis.fit.frame`): OP's travel span is known — S and J are then also
+given in % of travel, and saturation and the flow characteristic are candidates — when ``op_range=(LO, HI)``
+is given (OP's values at 0 and 100 % travel), when the file is in the standard recording format or its
+reader was told ``op_units`` (``"%"`` or ``"mA"``, converted to %), or when a model is given. Otherwise OP
+may be in any units: the plant-data diagnosis works in a unit-free frame and reports S and J in OP's units.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from collections.abc import Callable, Mapping, Sequence
 from valve_emulator.config import LoopConfig, load_loop
 from valve_emulator.diagnosis.assess.decision import assess_uniform
 from valve_emulator.diagnosis.explain.pipeline import explain
+from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.report.diagnosis import Diagnosis
 from valve_emulator.recordings import MAX_GAP, Recording, RecordingError, read_recording, regularize
 
@@ -47,23 +54,28 @@ def _from_mapping(data: Mapping) -> Recording:
         raise RecordingError(f"recording mapping: {exc}") from exc
 
 
-def _recording(recording, reader_options: dict) -> tuple[Recording, tuple[str, ...]]:
+def _recording(recording, reader_options: dict) -> tuple[Recording, tuple[str, ...], str]:
+    """The recording, the reader's notes, and how OP's travel span is known from the file ("" if not)."""
     if isinstance(recording, (str, os.PathLike)):
-        loaded = read_recording(recording, **{"gap_factor": MAX_GAP, **reader_options})
-        return loaded.recording, tuple(loaded.notes)
+        options = {k: v for k, v in reader_options.items() if not (k == "op_units" and v is None)}
+        loaded = read_recording(recording, **{"gap_factor": MAX_GAP, **options})
+        span = ("standard format" if loaded.source_format == "standard" else
+                f"op_units {loaded.op_units}" if reader_options.get("op_units") is not None else "")
+        return loaded.recording, tuple(loaded.notes), span
     if reader_options:
         raise TypeError(f"reader options ({', '.join(sorted(reader_options))}) apply only to a recording given "
                         "as a path")
     if isinstance(recording, Recording):
-        return recording, ()
+        return recording, (), ""
     if isinstance(recording, Mapping):
-        return _from_mapping(recording), ()
+        return _from_mapping(recording), (), ""
     raise TypeError(f"recording must be a path, a Recording or a mapping of arrays, got {type(recording).__name__}")
 
 
 def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
              candidates: Sequence[str] | None = None, validation: str | None = None,
-             progress: Callable[[str], None] | None = None, **reader_options) -> Diagnosis:
+             progress: Callable[[str], None] | None = None, op_range: Sequence[float] | None = None,
+             **reader_options) -> Diagnosis:
     """Diagnose one loop's recording (see the module docstring).
 
     Parameters
@@ -78,6 +90,8 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
     candidates : candidate physics to search (default: all); only with a model.
     validation : ``"split"`` or ``"twofold"`` (default: split with a model); only with a model.
     progress : called with a short message at each stage.
+    op_range : OP's values at 0 and 100 % of travel, in OP's units (e.g. ``(0, 27648)`` for raw analog
+        counts), when known (see the module docstring); plant data only.
 
     Raises
     ------
@@ -88,12 +102,24 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
     """
     if model is None and (candidates is not None or validation is not None):
         raise TypeError("candidates and validation apply only with a model (plant data use the fixed rule)")
+    if model is not None and op_range is not None:
+        raise TypeError("op_range applies only to plant data: with a model OP is % travel")
+    if op_range is not None:
+        if len(op_range) != 2:
+            raise ValueError(f"op_range must be (LO, HI), OP's values at 0 and 100 % travel; got {op_range!r}")
+        frame_span = Frame.travel_percent((float(op_range[0]), float(op_range[1])), source="op_range")
     cfg = load_loop(model) if isinstance(model, (str, os.PathLike)) else model
-    rec, notes = _recording(recording, reader_options)
+    rec, notes, known = _recording(recording, reader_options)
     rec, note = regularize(rec)
     notes += (note,) if note else ()
     if cfg is not None:
         return Diagnosis(recording=rec, explanation=explain(rec, cfg, candidates=candidates, validation=validation,
                                                             progress=progress), notes=notes)
-    a = assess_uniform(rec, progress=progress)
+    if op_range is not None:
+        frame = frame_span
+    elif known:
+        frame = Frame.travel_percent(source=known)
+    else:
+        frame = Frame.unit_free(rec.op)
+    a = assess_uniform(rec, progress=progress, frame=frame)
     return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes)

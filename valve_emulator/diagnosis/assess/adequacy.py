@@ -6,9 +6,10 @@ answer "is the valve sticky?" whatever the method, and saying so beats a wrong a
 1. **Too short**: fewer than :data:`~valve_emulator.diagnosis.fit.data.MIN_SAMPLES` samples (room for a burn-in,
    a dead time and two cross-validation blocks).
 2. **Flat PV**: PV holds one value over at least :data:`FLAT_SHARE` of the record (the longest constant run).
-   Half the record then carries no information about the valve, and a PV that does not move while OP
-   does is what a seized valve, a closed block valve, a dead transmitter and a frozen archive all produce.
-   A constant OP is refused the same way (the valve was never asked to move).
+   Half the record then carries no information about the valve. A PV that does not move while OP travels
+   far (a robust range of at least :data:`EXCITATION` noise σ) is a finding of its own, *no response*: a
+   seized valve, a closed block valve, a dead transmitter and a frozen archive all produce it, and the
+   record cannot tell them apart. A constant OP is refused the same way (the valve was never asked to move).
 3. **No oscillation and no excitation**: nothing moved the loop that the data could learn from. Oscillation
    is the regularity test of Thornhill, Huang & Zhang (J. Process Control 13 (2003) 91–100; ``r > 1``,
    :func:`~valve_emulator.detectors.base.oscillation`, the test the comparison detectors use) on the
@@ -17,7 +18,8 @@ answer "is the valve sticky?" whatever the method, and saying so beats a wrong a
    percentile) of at least :data:`EXCITATION` times its noise σ. White noise alone spans about 5 σ between those
    percentiles, so twice that is movement the noise cannot make. The noise σ is
    :func:`op_noise`, the robust standard deviation of sample-to-sample changes divided by √2 (as for the
-   OP turning points of :mod:`~valve_emulator.diagnosis.explain.locate`).
+   OP turning points of :mod:`~valve_emulator.diagnosis.explain.locate`); for an OP that mostly holds its
+   value (σ = 0) it is OP's resolution, the median non-zero step.
 
 Thresholds are constants, chosen once for every loop.
 """
@@ -29,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from valve_emulator.detectors.base import oscillation
+from valve_emulator.diagnosis.answers import Reason
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES
 from valve_emulator.recordings.recording import Recording
 
@@ -46,6 +49,13 @@ def op_noise(op: np.ndarray) -> float:
     if d.size == 0:
         return 0.0
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+def _step(x: np.ndarray) -> float:
+    """OP's resolution when it mostly holds its value (zero noise σ): the median non-zero step (inf if none)."""
+    d = np.abs(np.diff(np.asarray(x, dtype=float)))
+    d = d[d > 0.0]
+    return float(np.median(d)) if d.size else float("inf")
 
 
 def longest_constant_run(x: np.ndarray) -> int:
@@ -66,6 +76,8 @@ class Adequacy:
     ----------
     ok : the record supports a conclusion.
     reason : for a refusal, the sentence after "cannot tell: "; "" otherwise.
+    code : for a refusal, its :class:`~valve_emulator.diagnosis.answers.Reason` (``too_short``, ``flat_pv``,
+        ``no_response``, ``flat_op``, ``no_excitation``); None otherwise.
     facts : the numbers checked (samples, flat shares, oscillation regularity and period, OP range in noise
         σ, set-point changes).
     """
@@ -73,6 +85,7 @@ class Adequacy:
     ok: bool
     reason: str = ""
     facts: dict = field(default_factory=dict)
+    code: Reason | None = None
 
 
 def adequacy(rec: Recording) -> Adequacy:
@@ -83,22 +96,28 @@ def adequacy(rec: Recording) -> Adequacy:
         span = f" ({T * rec.dt:g} s at {rec.dt:g} s)" if T >= 2 else ""
         return Adequacy(False, f"the record has {T} samples{span}; a diagnosis without a plant model needs at "
                                f"least {MIN_SAMPLES} (a burn-in, a dead time and two cross-validation blocks)",
-                        facts)
+                        facts, Reason.TOO_SHORT)
     op, pv = np.asarray(rec.op, dtype=float), np.asarray(rec.pv, dtype=float)
     lo, hi = np.percentile(op, [0.5, 99.5])
     facts["op_range"] = float(hi - lo)
+    noise = op_noise(op)
+    facts["op_noise"] = noise
+    facts["op_range_in_noise"] = float((hi - lo) / (noise if noise > 0 else _step(op)))
     for name, x in (("PV", pv), ("OP", op)):
         share = longest_constant_run(x) / T
         facts[f"{name.lower()}_flat_share"] = share
-        if share >= FLAT_SHARE:
-            other = (f" while OP moved over {facts['op_range']:.3g} %" if name == "PV" else "")
-            what = ("a seized valve, a closed block valve, a dead transmitter or a frozen archive look the same"
-                    if name == "PV" else "the valve was never asked to move")
-            return Adequacy(False, f"{name} is flat: it holds one value over {100 * share:.0f} % of the record"
-                                   f"{other}; {what}", facts)
-    noise = op_noise(op)
-    facts["op_noise"] = noise
-    facts["op_range_in_noise"] = float((hi - lo) / noise) if noise > 0 else float("inf")
+        if share < FLAT_SHARE:
+            continue
+        flat = f"{name} is flat: it holds one value over {100 * share:.0f} % of the record"
+        if name == "OP":
+            return Adequacy(False, f"{flat}; the valve was never asked to move", facts, Reason.FLAT_OP)
+        if facts["op_range_in_noise"] >= EXCITATION:
+            return Adequacy(False, f"{flat} while OP travelled over {facts['op_range']:.3g} (OP units; "
+                                   f"{facts['op_range_in_noise']:.3g} noise σ): no response; a seized valve, a "
+                                   "closed block valve, a dead transmitter or a frozen archive look the same — "
+                                   "the record cannot tell them apart", facts, Reason.NO_RESPONSE)
+        return Adequacy(False, f"{flat}; a seized valve, a closed block valve, a dead transmitter or a frozen "
+                               "archive look the same", facts, Reason.FLAT_PV)
     signals = [pv, op]
     sp_changes = 0
     if rec.has_sp and np.all(np.isfinite(rec.sp)):
@@ -115,5 +134,5 @@ def adequacy(rec: Recording) -> Adequacy:
         return Adequacy(False, f"no oscillation (regularity r = {osc.regularity:.2f} ≤ 1) and no excitation (no "
                                f"set-point change; OP's range is {facts['op_range_in_noise']:.1f} noise σ, "
                                f"less than {EXCITATION:g}): nothing moved the loop that the data could learn "
-                               "from", facts)
+                               "from", facts, Reason.NO_EXCITATION)
     return Adequacy(True, "", facts)

@@ -40,18 +40,20 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
-from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer
+from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason
 from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_noise
 from valve_emulator.diagnosis.assess.result import Assessment
-from valve_emulator.diagnosis.candidates import get
+from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
 from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.data import UninformativeData
+from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
@@ -65,6 +67,10 @@ NOISE_BANDS = 3.0
 MIN_FIT = 0.0
 #: Findings that are valve friction (the 2005 model's stiction, and its J = 0 case).
 VALVE_PHYSICS = VALVE_FRICTION
+#: Findings that are reason codes of their own (every physics of the vocabulary).
+_FINDING_REASONS = frozenset(str(r) for r in Reason)
+#: Candidates that need OP's travel stops (0 and 100 %): searched only when the travel span is known.
+NEEDS_SPAN = ("saturation", "characteristic")
 #: Order in which other findings name the cause of a "no stiction" answer.
 _CAUSES = ("disturbance", "quantization", "saturation", "characteristic", "actuator_lag", "dead_time")
 
@@ -101,7 +107,15 @@ def _load_text(valve: Finding) -> str:
             f"explains the record about as well (ΔBIC {load:.1f} < {DELTA_BIC:g} under that noise model)")
 
 
-def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float) -> dict:
+def _amount(x: float, frame: Frame) -> str:
+    """An OP difference in OP's units, with its share of travel when the span is known and OP is not in %."""
+    if frame.units == TRAVEL:
+        return f"{x:.3g} %"
+    pct = frame.travel(x)
+    return f"{x:.3g} {frame.units}" + ("" if pct is None else f" ({pct:.3g} % travel)")
+
+
+def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: Frame) -> dict:
     valve = _valve(d.findings)
     fits = f"held-out fit {d.fit_before:.0f} % → {d.fit_after:.0f} %"
     small = ""
@@ -112,12 +126,19 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float) -> dict:
         if NOISE_BANDS * noise <= S:
             iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
             kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
-            return dict(decision=Answer.STICTION, cause=valve.physics, S=S, J=J, intervals=ivs,
-                        reason=f"{kind}, S ≈ {S:.3g} %, J ≈ {J:.3g} % ({iv}); {fits}{_load_text(valve)}")
-        small = (f"a valve band S ≈ {S:.3g} % fits, but it is below {NOISE_BANDS:g} OP noise σ "
-                 f"({NOISE_BANDS * noise:.3g} %), where the noise moves such a valve either way; ")
+            reason = (f"{kind}, S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)} ({iv}); "
+                      f"{fits}{_load_text(valve)}")
+            reasons = [(Reason(valve.physics), reason)]
+            if valve.load_delta_bic is not None and valve.load_delta_bic < DELTA_BIC:
+                reasons.append((Reason.WEAK_EVIDENCE, _load_text(valve).removeprefix("; weak evidence: ")))
+            return dict(decision=Answer.STICTION, cause=valve.physics, S=S, J=J, intervals=ivs, reason=reason,
+                        reasons=reasons)
+        small = (f"a valve band S ≈ {_amount(S, frame)} fits, but it is below {NOISE_BANDS:g} OP noise σ "
+                 f"({_amount(NOISE_BANDS * noise, frame)}), where the noise moves such a valve either way; ")
+    pre = [(Reason.SMALL_BAND, small.rstrip("; "))] if small else []
     if not d.fit_after >= MIN_FIT:
-        return dict(decision=Answer.CANNOT_TELL, cause="",
+        return dict(decision=Answer.CANNOT_TELL, cause="", reasons=[(Reason.NOT_EXPLAINED, "the best model found "
+                    "predicts held-out PV worse than their mean")] + pre,
                     reason=f"{small}no valve friction that could matter improves the model, but the best model "
                            f"found predicts held-out PV worse than their mean (cross-validated fit "
                            f"{d.fit_after:.0f} % < {MIN_FIT:g} %): the loop is not explained, so neither is the "
@@ -128,18 +149,22 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float) -> dict:
     dist = next((f for f in ranked if f.physics == "disturbance"), None)
     if dist is not None and (not np.isfinite(cycle) or _same_period(dist.parameters["period"], cycle)):
         return dict(decision=Answer.NO_STICTION, cause="disturbance", tuning=tune,
+                    reasons=[(Reason.DISTURBANCE, dist.description)] + pre,
                     reason=f"{small}{dist.description}, not the valve; {fits}")
     if tune is not None and tune.aggressive:
         also = f"; also {ranked[0].description}" if ranked else ""
         return dict(decision=Answer.NO_STICTION, cause="tuning", tuning=tune,
+                    reasons=[(Reason.TUNING, f"the loop cycles through its own controller: {tune.reason}")] + pre,
                     reason=f"{small}the loop cycles through its own controller (aggressive tuning): {tune.reason}; "
                            f"no valve nonlinearity explains it{also}; {fits}")
     if ranked:
         return dict(decision=Answer.NO_STICTION, cause=ranked[0].physics, tuning=tune,
+                    reasons=[(Reason(ranked[0].physics), ranked[0].description)] + pre,
                     reason=f"{small}{ranked[0].description}; no valve friction that could matter; {fits}")
     if small:
-        return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune, reason=f"{small}{fits}")
+        return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune, reason=f"{small}{fits}", reasons=pre)
     return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune,
+                reasons=[(Reason.LINEAR, "a linear valve and plant explain the loop")],
                 reason=f"a linear valve and plant explain the loop: no candidate physics improves the model "
                        f"significantly; {fits}")
 
@@ -162,27 +187,37 @@ def assess(recording: Recording, *, progress: Callable[[str], None] | None = Non
 
 
 def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Callable[[str], None] | None = None,
-                   start: float | None = None) -> Assessment:
+                   start: float | None = None, frame: Frame | None = None) -> Assessment:
     """Assess a recording already on a uniform grid (steps 2 to 4 of the module docstring).
 
     ``notes`` say what was done to the data before (kept in the result); ``start`` is the
-    :func:`time.perf_counter` reading the wall time counts from (default: now).
+    :func:`time.perf_counter` reading the wall time counts from (default: now). ``frame`` maps OP into the
+    search's frame (:mod:`~valve_emulator.diagnosis.fit.frame`): a known travel span
+    (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.travel_percent`), or by default the unit-free frame of
+    this OP, in which any positive affine map of OP (and of PV) gives the same answer.
     """
     start = time.perf_counter() if start is None else start
     src = rec.source or "recording"
     ad = adequacy(rec)
     if not ad.ok:
         return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=ad.reason, adequacy=ad,
-                          notes=notes, seconds=time.perf_counter() - start)
+                          reasons=((ad.code, ad.reason),), notes=notes, seconds=time.perf_counter() - start)
     noise = op_noise(rec.op)
+    frame = frame or Frame.unit_free(rec.op)
+    inner = replace(rec, op=frame.to_internal(rec.op), mv=None if rec.mv is None else frame.to_internal(rec.mv))
+    names = [n for n in registry() if frame.known or n not in NEEDS_SPAN]
     try:
-        d = explain(rec, None, progress=progress)
+        d = explain(inner, None, candidates=names, progress=progress, frame=frame)
     except UninformativeData as exc:  # e.g. PV constant over the fit part: the data cannot decide
         return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=exc.reason, adequacy=ad,
-                          notes=notes, op_noise=noise, seconds=time.perf_counter() - start)
-    out = _decide(rec, d, ad, noise)
+                          reasons=((Reason.UNINFORMATIVE, exc.reason),), notes=notes, op_noise=noise,
+                          seconds=time.perf_counter() - start)
+    out = _decide(rec, d, ad, noise, frame)
+    named = {code for code, _ in out["reasons"]}
+    out["reasons"] = tuple(out["reasons"]) + tuple((Reason(f.physics), f.description) for f in d.findings
+                                                   if f.physics not in named and f.physics in _FINDING_REASONS)
     valve = _valve(d.findings)
     band = None if valve is None else float(valve.parameters["S"])
     load = None if valve is None else valve.load_delta_bic
     return Assessment(source=src, explanation=d, adequacy=ad, notes=notes, op_noise=noise, band=band,
-                      load_delta_bic=load, seconds=time.perf_counter() - start, **out)
+                      load_delta_bic=load, frame=frame, seconds=time.perf_counter() - start, **out)

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from valve_emulator.diagnosis.answers import Answer, Strength
+from valve_emulator.diagnosis.answers import Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.adequacy import Adequacy
 from valve_emulator.diagnosis.candidates.tuning import TuningAssessment
 from valve_emulator.diagnosis.explain.result import Explanation
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
+from valve_emulator.diagnosis.fit.frame import Frame
 
 __all__ = ["Assessment"]
 
@@ -29,7 +30,10 @@ class Assessment:
     cause : the physics behind the answer (``stiction``, ``deadband``, ``disturbance``, ``tuning``,
         ``linear``, ...; ``""`` for "cannot tell").
     reason : one sentence saying why.
-    S, J : the valve band and slip jump (% travel) when the decision is stiction (J = 0 for a deadband).
+    reasons : ``(code, sentence)`` pairs, the answer's own first, then what else was found (a quantised PV
+        beside stiction, a weak evidence, a band inside OP noise...).
+    S, J : the valve band and slip jump (OP's units, see :attr:`frame`) when the decision is stiction (J = 0
+        for a deadband).
     intervals : 95 % intervals of ``S`` and ``J``.
     explanation : what the explain step found without a model (None when the data could not support it).
     adequacy : the checks of step 2.
@@ -39,6 +43,8 @@ class Assessment:
     band : S of the valve friction the diagnosis accepted, whether or not it was called stiction (None:
         none accepted), for sensitivity studies of :data:`NOISE_BANDS`.
     load_delta_bic : that valve friction's ΔBIC under a drifting-load noise model (None: none accepted).
+    frame : how OP was mapped into the search's frame, and OP's units and travel span (None when the data
+        could not support a model).
     seconds : wall time.
     """
 
@@ -46,6 +52,7 @@ class Assessment:
     decision: Answer
     cause: str
     reason: str
+    reasons: tuple[tuple[Reason, str], ...] = ()
     S: float | None = None
     J: float | None = None
     intervals: dict = field(default_factory=dict)
@@ -56,6 +63,7 @@ class Assessment:
     op_noise: float = float("nan")
     band: float | None = None
     load_delta_bic: float | None = None
+    frame: Frame | None = None
     seconds: float = 0.0
 
     @property
@@ -66,7 +74,7 @@ class Assessment:
     @property
     def statement(self) -> str:
         """``"<decision>: <reason>"``."""
-        return f"{self.decision}: {self.reason}"
+        return f"{self.decision.words}: {self.reason}"
 
     @property
     def verdict(self) -> str:
@@ -114,7 +122,7 @@ class Assessment:
 
     def report(self, *, figure: str | None = None) -> str:
         """Markdown: the verdict, then the diagnosis report (when there is one)."""
-        head = [f"# Assessment of `{self.source}`", "", f"**Answer — {self.decision}:** {self.reason}", ""]
+        head = [f"# Assessment of `{self.source}`", "", f"**Answer — {self.decision.words}:** {self.reason}", ""]
         head += [f"- note: {n}" for n in self.notes]
         if self.tuning is not None:
             head.append(f"- tuning: {self.tuning.reason}")

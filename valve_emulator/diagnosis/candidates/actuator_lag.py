@@ -71,7 +71,10 @@ class ActuatorLag(ChainCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"tau": round(float(p[0]), 3)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+        if nominal is None:  # no model: nothing tells which of two lags in series is the actuator's
+            return (f"an actuator lag or a second plant lag: τ ≈ {p[0]:.1f} s (without a model the data cannot "
+                    "separate the two)")
         return f"an actuator lag: τ ≈ {p[0]:.1f} s"
 
     def identity(self) -> np.ndarray:

@@ -104,6 +104,9 @@ class Candidate(ABC):
     name : the word used in findings (``"stiction"``, ...).
     slot : one of :data:`SLOTS`; it fixes the candidate's :attr:`kind`.
     param_names : names of the parameter vector's entries, in order.
+    dims : which parameters are OP differences (``"op"``: a band, a jump) or OP levels (``"op_level"``: a
+        limit), converted from the search's frame to OP's units (:mod:`~valve_emulator.diagnosis.fit.frame`);
+        the others (times, PV quantities, labels) need no conversion.
     n_params : parameters counted by BIC (may differ from ``len(param_names)`` when a name is a label,
         e.g. the characteristic's type).
     """
@@ -112,6 +115,7 @@ class Candidate(ABC):
     slot: ClassVar[str]
     param_names: ClassVar[tuple[str, ...]]
     n_params: ClassVar[int]
+    dims: ClassVar[dict[str, str]] = {}
 
     @abstractmethod
     def grid(self, ctx: ChainContext) -> np.ndarray:
@@ -157,8 +161,10 @@ class Candidate(ABC):
         """The JSON ``parameters`` dict for one parameter vector (its keys are part of the JSON output)."""
 
     @abstractmethod
-    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
-        """A short phrase for the verdict, e.g. ``"valve stiction: S ≈ 4.8 %, J ≈ 2.1 % (undershoot)"``."""
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+        """A short phrase for the verdict, e.g. ``"valve stiction: S ≈ 4.8 %, J ≈ 2.1 % (undershoot)"``;
+        ``p`` in OP's units (see :mod:`~valve_emulator.diagnosis.fit.frame`), ``units`` their label after a
+        number, with its space (``" %"``, ``" mA"``, ``" OP units"``)."""
 
     @property
     def kind(self) -> Kind:

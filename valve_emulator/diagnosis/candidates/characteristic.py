@@ -67,7 +67,7 @@ class FlowCharacteristic(ChainCandidate):
         kind = CHARACTERISTICS[int(p[0])]
         return {"type": kind, "R": round(float(p[1]), 3) if kind == "equal_percentage" else None}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
         kind = CHARACTERISTICS[int(p[0])]
         if kind == "equal_percentage":
             return f"an equal-percentage flow characteristic: R ≈ {p[1]:.0f}"

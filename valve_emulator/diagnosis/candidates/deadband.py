@@ -27,6 +27,7 @@ class Deadband(ChainCandidate):
     slot: ClassVar[str] = "valve"
     param_names: ClassVar[tuple[str, ...]] = ("S", "start")
     n_params: ClassVar[int] = 1
+    dims: ClassVar[dict[str, str]] = {"S": "op"}
     threshold_axes: ClassVar[tuple[int, ...]] = (0,)
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
@@ -62,8 +63,8 @@ class Deadband(ChainCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"S": round(float(p[0]), 3)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
-        return f"a valve deadband (backlash): S ≈ {p[0]:.1f} %"
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+        return f"a valve deadband (backlash): S ≈ {p[0]:.3g}{units}"
 
     def identity(self) -> np.ndarray:
         return np.array([0.0, STARTS[0]])

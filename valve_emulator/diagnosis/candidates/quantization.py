@@ -95,7 +95,7 @@ class Quantization(OutputCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"q": float(f"{float(p[0]):.4g}")}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
         return f"a quantised PV (steps of about {p[0]:.3g} PV units)"
 
 

@@ -35,6 +35,7 @@ class Saturation(ChainCandidate):
     slot: ClassVar[str] = "limit"
     param_names: ClassVar[tuple[str, ...]] = ("lo", "hi")
     n_params: ClassVar[int] = 1
+    dims: ClassVar[dict[str, str]] = {"lo": "op_level", "hi": "op_level"}
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         op = np.clip(np.asarray(ctx.op, dtype=float), 0.0, 100.0)
@@ -62,7 +63,7 @@ class Saturation(ChainCandidate):
         return {"lo": round(float(p[0]), 3) if p[0] > 0.0 else None,
                 "hi": round(float(p[1]), 3) if p[1] < 100.0 else None}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
         if p[0] > 0.0:
             return f"saturation: no less flow below {p[0]:.1f} % travel"
         return f"saturation: no more flow above {p[1]:.1f} % travel"

@@ -55,6 +55,7 @@ class Stiction(ChainCandidate):
     slot: ClassVar[str] = "valve"
     param_names: ClassVar[tuple[str, ...]] = ("S", "J", "start")
     n_params: ClassVar[int] = 2
+    dims: ClassVar[dict[str, str]] = {"S": "op", "J": "op"}
     threshold_axes: ClassVar[tuple[int, ...]] = (0, 1)
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
@@ -99,8 +100,8 @@ class Stiction(ChainCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"S": round(float(p[0]), 3), "J": round(float(p[1]), 3)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None) -> str:
-        return f"valve stiction: S ≈ {p[0]:.1f} %, J ≈ {p[1]:.1f} % ({stiction_kind(p[0], p[1])})"
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+        return f"valve stiction: S ≈ {p[0]:.3g}{units}, J ≈ {p[1]:.3g}{units} ({stiction_kind(p[0], p[1])})"
 
     def identity(self) -> np.ndarray:
         return np.array([0.0, 0.0, STARTS[0]])

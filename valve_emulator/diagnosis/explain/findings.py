@@ -19,6 +19,7 @@ from valve_emulator.diagnosis.explain.result import Finding
 from valve_emulator.diagnosis.explain.search import Model, Round
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.fitter import Fitter
+from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
 from valve_emulator.diagnosis.fit.load_check import load_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.scorer import Scorer
@@ -106,10 +107,26 @@ def _slip_interval(scorer: Scorer, model: Model, act, n: float) -> tuple[float, 
     return intervals(rows, sse[:, 0], n, ("J",), 2, axes=(1,))["J"]
 
 
+def _in_op_units(cand, act_params: np.ndarray, params: dict, ivs: dict, frame: Frame) -> tuple:
+    """Parameters, intervals and the description from the search's frame in OP's units (4 significant digits)."""
+    p_user = np.array(act_params, dtype=float)
+    for i, name in enumerate(cand.param_names):
+        if cand.dims.get(name) == "op":
+            p_user[i] = frame.op_delta(p_user[i])
+    units = " %" if frame.units == TRAVEL else f" {frame.units}"
+    if not frame.identity:
+        params = {k: float(f"{v:.4g}") if isinstance(v, float) else v
+                  for k, v in frame.convert(cand.dims, params).items()}
+        ivs = frame.convert(cand.dims, ivs)
+    return params, ivs, units, p_user
+
+
 def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round], masks, horizon,
-             nominal: Nominal) -> tuple[Finding, ...]:
+             nominal: Nominal, frame: Frame | None = None) -> tuple[Finding, ...]:
     """One :class:`Finding` per candidate accepted in ``rounds``, in the order accepted (see the module
-    docstring); ``model`` is the final model, ``masks`` and ``horizon`` those the residual was located with."""
+    docstring); ``model`` is the final model, ``masks`` and ``horizon`` those the residual was located with,
+    ``frame`` the map of OP into the search's frame (parameters are reported in OP's units; default: % travel)."""
+    frame = frame or Frame()
     scorer = fitter.scorer
     out = []
     final = {a.name: a for a in model.active}
@@ -144,9 +161,10 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             if cand.slot == "valve" and problem.validation == "twofold":
                 load = load_delta_bic(scorer, without, chosen.model)
             nominal_info = {"theta": nominal.delay} if nominal.given else None
+            params, ivs, units, p_user = _in_op_units(cand, act.params, params, ivs, frame)
             out.append(Finding(physics=name, parameters=params, windows=loc.windows,
                                evidence=_evidence(dbic, without.heldout, chosen.model.heldout, ivs, loc, load),
-                               description=cand.describe(act.params, nominal_info), intervals=ivs,
+                               description=cand.describe(p_user, nominal_info, units=units), intervals=ivs,
                                delta_bic=dbic, fit_without=without.heldout, fit_with=chosen.model.heldout,
                                load_delta_bic=load))
     return tuple(out)

@@ -40,6 +40,7 @@ from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model,
 from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
 from valve_emulator.diagnosis.fit.fitter import Fitter
+from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.diagnosis.fit.scorer import Scorer
@@ -75,10 +76,10 @@ def _gain(num: Sequence[float], den: Sequence[float]) -> float:
     return float(num[-1] / den[-1])
 
 
-def _linear_table(nominal: Nominal, model: Model, problem: Problem) -> dict:
+def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame) -> dict:
     st, fit = model.fit.structure, model.fit
-    k = fit.gain * problem.y_scale
-    unit = " (per s)" if st.integrating else ""
+    k = fit.gain * problem.y_scale * frame.gain
+    unit = (" (per s)" if st.integrating else "") + ("" if frame.identity else f", per {frame.units}")
     nom_k = f"{_gain(nominal.num, nominal.den):.4g}" if nominal.given else "—"
     taus = lambda s: ", ".join(f"{t:.4g}" for t in s.taus) or "—"  # noqa: E731
     return {f"gain, PV per % flow{unit}": (nom_k, f"{k:.4g}"),
@@ -101,7 +102,8 @@ def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib
 
 def explain(recording: Recording, nominal: LoopConfig | None = None, *,
             candidates: Sequence[str] | None = None,
-            progress: Callable[[str], None] | None = None, validation: str | None = None) -> Explanation:
+            progress: Callable[[str], None] | None = None, validation: str | None = None,
+            frame: Frame | None = None) -> Explanation:
     """Explain what the nominal model leaves out (see the module docstring).
 
     Parameters
@@ -111,6 +113,9 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     candidates : names from the candidate registry (default: all); ``dead_time`` needs a nominal model.
     progress : called with a short message at each stage (the CLI prints them on stderr).
     validation : ``"split"`` or ``"twofold"`` (default: split with a nominal model, two-fold without).
+    frame : when ``recording.op`` was mapped into a unit-free frame
+        (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.to_internal`), that map: findings, the plant's gain,
+        the traces and :meth:`~Explanation.predict` are then in OP's own units. Default: OP is % travel.
 
     Raises
     ------
@@ -152,7 +157,8 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     located = locate(problem.t, problem.op, (problem.pv - pv_before) ** 2, dt=problem.dt,
                      response_time=horizon, masks=masks)
     say("estimating parameter intervals")
-    found = findings(fitter, problem, model, rounds, masks, horizon, nom)
+    frame = frame or Frame()
+    found = findings(fitter, problem, model, rounds, masks, horizon, nom, frame)
     ranking = tuple(RankRow(round=i + 1, option=o.label, parameters=param_text(o.model, o.added),
                             delta_bic=rnd.baseline.bic - o.model.bic, heldout=o.model.heldout, chosen=o is rnd.chosen)
                     for i, rnd in enumerate(rounds) for o in rnd.options)
@@ -161,15 +167,21 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     mv = run_chain(problem.op, valve_only, replace(ctx, characteristic=("linear", 50.0)),
                    nominal_valve=(nom.S, nom.J))[:, 0]
     surface, surface_best = stiction_surface(rounds, problem.n_fit)
-    traces = Traces(t=problem.t, op=problem.op, pv=problem.pv, pv_before=pv_before, pv_base=problem.to_pv(base.y_hat),
-                    pv_after=problem.to_pv(model.y_hat), mv_after=mv, flow_after=model.flow, test_start=test_start,
-                    surface=surface, surface_best=surface_best)
-    plant = {"gain": model.fit.gain * problem.y_scale, "taus": tuple(st.taus), "delay": st.delay,
+    if surface is not None and not frame.identity:
+        surface = (surface[0] / frame.gain, surface[1] / frame.gain, surface[2])
+        surface_best = (surface_best[0] / frame.gain, surface_best[1] / frame.gain)
+    back = frame.from_internal
+    traces = Traces(t=problem.t, op=back(problem.op), pv=problem.pv, pv_before=pv_before,
+                    pv_base=problem.to_pv(base.y_hat), pv_after=problem.to_pv(model.y_hat),
+                    mv_after=back(mv), flow_after=back(model.flow),
+                    test_start=test_start, surface=surface, surface_best=surface_best)
+    plant = {"gain": model.fit.gain * problem.y_scale * frame.gain, "taus": tuple(st.taus), "delay": st.delay,
              "integrating": st.integrating, "validation": problem.validation}
     fitted = FittedLoop(active=model.by_slot(), nominal_valve=(nom.S, nom.J), ctx=fitter.scorer.ctx(None),
-                        linear=model.fit, level=float(np.mean(model.flow)), record_length=problem.T, op=problem.op)
+                        linear=model.fit, level=float(np.mean(model.flow)), record_length=problem.T, op=problem.op,
+                        frame=None if frame.identity else frame)
     return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=base.heldout,
                        fit_after=model.heldout, findings=found, located=located,
-                       linear=_linear_table(nom, model, problem), ranking=ranking, traces=traces,
+                       linear=_linear_table(nom, model, problem, frame), ranking=ranking, traces=traces,
                        rule=RULE if validation == "split" else RULE_TWOFOLD, seconds=time.perf_counter() - start,
                        plant=plant, fitted=fitted)

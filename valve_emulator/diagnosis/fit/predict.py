@@ -22,6 +22,7 @@ import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import ChainContext
 from valve_emulator.diagnosis.fit.chain import Active, run_chain
+from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.fit.linear import LinearFit
 
 __all__ = ["FittedLoop"]
@@ -39,7 +40,8 @@ class FittedLoop:
     linear : the fitted linear part (PV domain, scaled units).
     level : the recorded flow's mean, which the linear part's filter removed.
     record_length : samples in the fitted record (the trend regressor's scale).
-    op : the recorded OP (a prediction on it reuses what the output term measured).
+    op : the recorded OP in the search's frame (a prediction on it reuses what the output term measured).
+    frame : the map of OP's own units into the search's frame (:mod:`~valve_emulator.diagnosis.fit.frame`).
     """
 
     active: dict[str, Active]
@@ -49,6 +51,7 @@ class FittedLoop:
     level: float
     record_length: int
     op: np.ndarray
+    frame: Frame | None = None
 
     def flow(self, op: np.ndarray) -> np.ndarray:
         """The chain's output (% flow) for ``op`` (T,)."""
@@ -57,7 +60,8 @@ class FittedLoop:
         return run_chain(op, chain, ctx, nominal_valve=self.nominal_valve)[:, 0]
 
     def predict(self, op) -> np.ndarray:
-        """Free-run PV (engineering units) of the fitted loop for the controller output ``op`` (% travel).
+        """Free-run PV (engineering units) of the fitted loop for the controller output ``op`` (OP's units, as
+        recorded).
 
         ``op`` is any 1-D array of at least two finite values sampled at the recording's step; the first
         sample is ``t = 0`` of the run (an output disturbance's phase counts from it).
@@ -68,6 +72,8 @@ class FittedLoop:
         bad = np.flatnonzero(~np.isfinite(op))
         if bad.size:
             raise ValueError(f"op must be finite, got {op[bad[0]]} at index {bad[0]}")
+        if self.frame is not None:
+            op = self.frame.to_internal(op)
         recorded = op.shape == self.op.shape and np.array_equal(op, self.op)
         flow = self.flow(op)
         if recorded:

@@ -15,12 +15,36 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Strength
+from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
+from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["Diagnosis"]
+
+
+def _sig(x: float) -> float:
+    return float(f"{float(x):.6g}")
+
+
+def _friction_json(f: Finding | None, frame: Frame) -> dict | None:
+    """The valve-friction estimate: S and J, each with its 95 % interval and units (J = 0 for a deadband), in
+    OP's units and, when OP's travel span is known, in % of travel (``travel``; null otherwise)."""
+    if f is None:
+        return None
+
+    def value(key: str, scale, units: str) -> dict:
+        x = float(f.parameters.get(key, 0.0))
+        lo, hi = f.intervals.get(key, (x, x))
+        return {"value": _sig(scale(x)), "interval": [_sig(scale(lo)), _sig(scale(hi))], "units": units}
+
+    same = lambda x: x  # noqa: E731
+    out = {"physics": f.physics, "S": value("S", same, frame.units), "J": value("J", same, frame.units)}
+    out["travel"] = None if not frame.known else {
+        "S": value("S", frame.travel, TRAVEL), "J": value("J", frame.travel, TRAVEL), "span": list(frame.span),
+        "span_source": frame.span_source}
+    return out
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -77,6 +101,28 @@ class Diagnosis:
         """The sentence the command line prints."""
         return self.assessment.verdict if self.assessment is not None else self.explanation.verdict
 
+    @property
+    def reasons(self) -> tuple[tuple[Reason, str], ...]:
+        """``(code, sentence)`` pairs saying why: on plant data the assessment's; with a model, one per finding
+        (``linear`` when there is none)."""
+        if self.assessment is not None:
+            return self.assessment.reasons
+        if not self.findings:
+            return ((Reason.LINEAR, "no candidate physics improves the model significantly"),)
+        return tuple((Reason(f.physics), f.description) for f in self.findings)
+
+    @property
+    def frame(self) -> Frame:
+        """OP's units and travel span (with a model: % travel, the model's)."""
+        if self.assessment is not None and self.assessment.frame is not None:
+            return self.assessment.frame
+        return Frame(span_source="model" if self.assessment is None else "assumed")
+
+    @property
+    def friction(self) -> Finding | None:
+        """The valve-friction finding (stiction, or a deadband: friction with J = 0), None when none was found."""
+        return next((f for f in self.findings if f.physics in VALVE_FRICTION), None)
+
     # -- the fitted model -----------------------------------------------------------------------------------
     def predict(self, op) -> np.ndarray:
         """Free-run PV (engineering units) of the fitted loop — linear part plus the found physics — for the
@@ -91,8 +137,16 @@ class Diagnosis:
 
     # -- output ---------------------------------------------------------------------------------------------
     def to_json(self) -> dict:
-        """``fit_before``, ``fit_after``, ``findings`` and ``verdict`` (the ``diagnose --json`` file)."""
-        return self.assessment.to_json() if self.assessment is not None else self.explanation.to_json()
+        """The ``diagnose --json`` document, valid against :data:`~valve_emulator.diagnosis.report.schema.SCHEMA`:
+        ``answer``, ``strength``, ``reasons`` (``code``, ``sentence``), ``friction`` (the valve-friction
+        estimate with 95 % intervals and units, or null), ``source``, then ``fit_before``, ``fit_after``,
+        ``findings`` and ``verdict``."""
+        base = self.assessment.to_json() if self.assessment is not None else self.explanation.to_json()
+        strength = self.strength
+        head = {"answer": str(self.answer), "strength": None if strength is None else str(strength),
+                "reasons": [{"code": str(c), "sentence": s} for c, s in self.reasons],
+                "friction": _friction_json(self.friction, self.frame), "source": self.source}
+        return {**head, **base}
 
     def report(self, *, figure: str | None = None) -> str:
         """A Markdown report (``figure``: a path to link, relative to the report), with the notes on the data."""

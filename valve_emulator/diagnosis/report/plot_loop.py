@@ -33,7 +33,7 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
     """Write the three-panel figure of ``a`` (on recording ``rec``) to ``path``."""
     fig = plt.figure(figsize=(13, 8.5), constrained_layout=True)
     grid = fig.add_gridspec(2, 2, height_ratios=(1.0, 1.1))
-    head = (title + "\n" if title else "") + "\n".join(textwrap.wrap(f"{a.decision}: {a.reason}", 150))
+    head = (title + "\n" if title else "") + "\n".join(textwrap.wrap(a.statement, 150))
     fig.suptitle(head, fontsize=9)
 
     ax = fig.add_subplot(grid[0, :])
