@@ -7,11 +7,13 @@ import sys
 from pathlib import Path
 
 NAME = "registers"
-HELP = "print the Modbus register map (name, table, address, type, scale, units, access)"
+HELP = ("print the Modbus register map: holding and input registers, coils and discrete inputs "
+        "(name, table, address, reference, type, scale, units, access)")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", type=Path, nargs="?", metavar="CONFIG", help="server or loop config (default: the embedded default)")
+    p.add_argument("config", type=Path, nargs="?", metavar="CONFIG",
+                   help="server or loop config (default: the embedded default)")
     p.add_argument("--format", choices=("md", "csv", "json"), default="md", help="output format (default %(default)s)")
 
 
