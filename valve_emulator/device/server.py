@@ -77,6 +77,7 @@ from pymodbus.framer import FramerSocket
 from pymodbus.pdu import DecodePDU, ExceptionResponse
 from pymodbus.pdu.register_message import WriteMultipleRegistersResponse, WriteSingleRegisterResponse
 
+from valve_emulator.device.comm import CommFaults, CommState
 from valve_emulator.device.connection import SOCKET_BUFFER, ModbusConnection, TurnBudget
 from valve_emulator.device.guard import ConnectionGuard, RefusalLog, binds_all_interfaces
 from valve_emulator.device.identity import Identity
@@ -92,6 +93,7 @@ from valve_emulator.device.pdu import (
 )
 from valve_emulator.device.registers import (
     BLOCK_STRIDE,
+    CommFault,
     RegisterAccessError,
     RegisterAddressError,
     RegisterError,
@@ -186,6 +188,7 @@ class EmulatorServer:
         self._apply_access(config)
         self._identities = {lp.device.unit: Identity.of_loop(lp) for lp in reversed(config.loops)}  # block 0 wins
         self.diagnostics = DiagnosticCounters()
+        self.comm = CommFaults({unit: blocks for unit, (_, blocks) in self._regions.items()})
         self._decoder = DecodePDU(is_server=True)
         self._framer = FramerSocket(self._decoder)
         self._server: asyncio.Server | None = None
@@ -297,6 +300,32 @@ class EmulatorServer:
         self.diagnostics.bus_messages += 1
         return self._framer.encode(self.answer(unit, frame[7:], instructor, peer=peer), unit, tid)
 
+    def handle_faulted(self, frame: bytes, instructor: bool, state: CommState, *, peer: str = "") -> bytes | None:
+        """:meth:`handle` for a unit with a communication fault (see :mod:`~valve_emulator.device.comm`):
+        the response frame, or ``None`` when nothing is to be sent."""
+        tid, unit = (frame[0] << 8) | frame[1], frame[6]
+        self.diagnostics.bus_messages += 1
+        pdu = self.answer_faulted(unit, frame[7:], instructor, state, peer=peer)
+        return None if pdu is None else self._framer.encode(pdu, unit, tid)
+
+    def answer_faulted(self, unit: int, pdu: bytes, instructor: bool, state: CommState, *,
+                       peer: str = "") -> bytes | None:
+        """:meth:`answer` under communication fault ``state``: ``None`` for no response (and for a
+        connection to be closed), an exception 0x06 / 0x04, or the normal answer (delay only, bad CRC: the
+        framing corrupts it)."""
+        fault = state.fault
+        if fault in (CommFault.NO_RESPONSE, CommFault.CLOSE):
+            self.requests += 1
+            self.diagnostics.server_messages += 1
+            return None
+        if fault in (CommFault.BUSY, CommFault.FAILURE):
+            self.requests += 1
+            self.diagnostics.server_messages += 1
+            self.diagnostics.exception_errors += 1   # on purpose: not charged to the client's error budget
+            code = ExcCodes.DEVICE_BUSY if fault is CommFault.BUSY else ExcCodes.DEVICE_FAILURE
+            return bytes((pdu[0] | 0x80, code))
+        return self.answer(unit, pdu, instructor, peer=peer)
+
     def answer(self, unit: int, pdu: bytes, instructor: bool, *, peer: str = "") -> bytes:
         """The response PDU to request ``pdu`` (function code first, at least one byte) for ``unit``.
 
@@ -355,19 +384,24 @@ class EmulatorServer:
         response = ExceptionResponse(fc, code)
         return bytes((response.function_code,)) + response.encode()
 
-    def _read(self, fc: int, table: str, region: tuple[int, int], address: int, count: int) -> bytes:
+    def _read(self, fc: int, table: str, unit: int, region: tuple[int, int], address: int, count: int) -> bytes:
+        if table == "holding" and self.comm.covers(unit, address):
+            return bytes((fc, 2 * count)) + self.comm.read(unit, address, count)
         start, blocks = region
         check_read(table, address, count, blocks=blocks)
         start += 2 * address
         return bytes((fc, 2 * count)) + self.device.image[start:start + 2 * count]
 
     def _write(self, unit: int, address: int, registers: Any, instructor: bool) -> None:
+        if self.comm.covers(unit, address):
+            self.comm.write(unit, address, registers, instructor=instructor)
+            return
         index, offset = self.device.layout.locate_write(unit, address, len(registers))
         self.device.write(index, offset, registers, instructor=instructor)
 
     def _execute(self, fc: int, pdu: Any, unit: int, region: tuple[int, int], instructor: bool) -> bytes:
         if fc in _READS:
-            return self._read(fc, _READS[fc], region, pdu.address, pdu.count)
+            return self._read(fc, _READS[fc], unit, region, pdu.address, pdu.count)
         if fc == 6:
             self._write(unit, pdu.address, pdu.registers, instructor)
             response = WriteSingleRegisterResponse(address=pdu.address, registers=pdu.registers)
@@ -375,9 +409,10 @@ class EmulatorServer:
         if fc == 16:
             self._write(unit, pdu.address, pdu.registers, instructor)
             return b"\x10" + WriteMultipleRegistersResponse(address=pdu.address, count=pdu.count).encode()
-        check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse before writing
+        if not self.comm.covers(unit, pdu.read_address):
+            check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse before writing
         self._write(unit, pdu.write_address, pdu.write_registers, instructor)
-        return self._read(23, "holding", region, pdu.read_address, pdu.read_count)
+        return self._read(23, "holding", unit, region, pdu.read_address, pdu.read_count)
 
     # --- the function codes decoded here (bits, diagnostics, mask write, identification) ------------
 
@@ -404,9 +439,7 @@ class EmulatorServer:
                     packed[i >> 3] |= 1 << (i & 7)
             return bytes((fc, len(packed))) + bytes(packed)
         if fc == 22:   # result = (current AND and_mask) OR (or_mask AND NOT and_mask), §6.16
-            check_read("holding", address, 1, blocks=region[1])
-            at = region[0] + 2 * address
-            current = (self.device.image[at] << 8) | self.device.image[at + 1]
+            current = int.from_bytes(self._read(3, "holding", unit, region, address, 1)[2:], "big")
             and_mask, or_mask = count, _u16(pdu, 5)
             self._write(unit, address, [(current & and_mask) | (or_mask & ~and_mask & 0xFFFF)], instructor)
             return bytes(pdu)

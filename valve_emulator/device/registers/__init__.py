@@ -21,32 +21,37 @@ Where things are:
 
 Holding registers (function codes 3, 6, 16, 22, 23)::
 
-    | name        | table   | address | reference | type    | scale | units               | access        |
-    |-------------|---------|---------|-----------|---------|-------|---------------------|---------------|
-    | op_pct      | holding | 0       | 40001     | uint16  | 100   | % travel            | RW            |
-    | op_ma       | holding | 1       | 40002     | uint16  | 1000  | mA                  | RW            |
-    | mv_pct      | holding | 2       | 40003     | uint16  | 100   | % travel            | R             |
-    | flow_pct    | holding | 3       | 40004     | uint16  | 100   | % flow              | R             |
-    | pv          | holding | 4       | 40005     | int16   | 100   | % of pv_range       | R             |
-    | sp          | holding | 5       | 40006     | int16   | 100   | % of pv_range       | RW-controller |
-    | mode        | holding | 6       | 40007     | uint16  | 1     | 0 manual, 1 auto    | RW-controller |
-    | kc          | holding | 7       | 40008     | uint16  | 1000  | % per PV unit       | RW-controller |
-    | ti          | holding | 8       | 40009     | uint16  | 10    | s (0 = no integral) | RW-controller |
-    | td          | holding | 9       | 40010     | uint16  | 10    | s                   | RW-controller |
-    | S           | holding | 10      | 40011     | uint16  | 100   | % travel            | RW-instructor |
-    | J           | holding | 11      | 40012     | uint16  | 100   | % travel            | RW-instructor |
-    | status      | holding | 12      | 40013     | uint16  | 1     | bits                | R             |
-    | map_version | holding | 13      | 40014     | uint16  | 1     |                     | R             |
-    | tick        | holding | 14      | 40015     | uint32  | 1     | ticks               | R             |
-    | overruns    | holding | 16      | 40017     | uint32  | 1     | ticks               | R             |
-    | time        | holding | 18      | 40019     | float32 | 1     | s                   | R             |
-    | op_f32      | holding | 20      | 40021     | float32 | 1     | % travel            | R             |
-    | mv_f32      | holding | 22      | 40023     | float32 | 1     | % travel            | R             |
-    | pv_f32      | holding | 24      | 40025     | float32 | 1     | PV units            | R             |
-    | sp_f32      | holding | 26      | 40027     | float32 | 1     | PV units            | R             |
-    | load        | holding | 28      | 40029     | int16   | 100   | % flow              | RW-instructor |
-    | noise       | holding | 29      | 40030     | uint16  | 100   | % of pv_range       | RW-instructor |
-    | fault       | holding | 30      | 40031     | uint16  | 1     | bits                | RW-instructor |
+    | name          | table   | address | reference | type    | scale | units                    | access        |
+    |---------------|---------|---------|-----------|---------|-------|--------------------------|---------------|
+    | op_pct        | holding | 0       | 40001     | uint16  | 100   | % travel                 | RW            |
+    | op_ma         | holding | 1       | 40002     | uint16  | 1000  | mA                       | RW            |
+    | mv_pct        | holding | 2       | 40003     | uint16  | 100   | % travel                 | R             |
+    | flow_pct      | holding | 3       | 40004     | uint16  | 100   | % flow                   | R             |
+    | pv            | holding | 4       | 40005     | int16   | 100   | % of pv_range            | R             |
+    | sp            | holding | 5       | 40006     | int16   | 100   | % of pv_range            | RW-controller |
+    | mode          | holding | 6       | 40007     | uint16  | 1     | 0 manual, 1 auto         | RW-controller |
+    | kc            | holding | 7       | 40008     | uint16  | 1000  | % per PV unit            | RW-controller |
+    | ti            | holding | 8       | 40009     | uint16  | 10    | s (0 = no integral)      | RW-controller |
+    | td            | holding | 9       | 40010     | uint16  | 10    | s                        | RW-controller |
+    | S             | holding | 10      | 40011     | uint16  | 100   | % travel                 | RW-instructor |
+    | J             | holding | 11      | 40012     | uint16  | 100   | % travel                 | RW-instructor |
+    | status        | holding | 12      | 40013     | uint16  | 1     | bits                     | R             |
+    | map_version   | holding | 13      | 40014     | uint16  | 1     |                          | R             |
+    | tick          | holding | 14      | 40015     | uint32  | 1     | ticks                    | R             |
+    | overruns      | holding | 16      | 40017     | uint32  | 1     | ticks                    | R             |
+    | time          | holding | 18      | 40019     | float32 | 1     | s                        | R             |
+    | op_f32        | holding | 20      | 40021     | float32 | 1     | % travel                 | R             |
+    | mv_f32        | holding | 22      | 40023     | float32 | 1     | % travel                 | R             |
+    | pv_f32        | holding | 24      | 40025     | float32 | 1     | PV units                 | R             |
+    | sp_f32        | holding | 26      | 40027     | float32 | 1     | PV units                 | R             |
+    | load          | holding | 28      | 40029     | int16   | 100   | % flow                   | RW-instructor |
+    | noise         | holding | 29      | 40030     | uint16  | 100   | % of pv_range            | RW-instructor |
+    | fault         | holding | 30      | 40031     | uint16  | 1     | bits                     | RW-instructor |
+    | comm_fault    | holding | 65280   | 465281    | uint16  | 1     | 0..5, see CommFault      | RW-instructor |
+    | comm_delay_ms | holding | 65281   | 465282    | uint16  | 1     | ms added to every answer | RW-instructor |
+
+``comm_fault`` and ``comm_delay_ms`` belong to the unit id, not to a loop: communication faults on demand
+(:class:`CommFault`, :mod:`valve_emulator.device.comm`), at fixed addresses above every loop's block.
 
 The rows a controller cannot write -- read-only (``R``) and instructor (``RW-instructor``) -- also appear
 as input registers (function code 4) at the same addresses, so a read-only client sees injected faults
@@ -144,18 +149,22 @@ from valve_emulator.device.registers.scaling import Scaling
 from valve_emulator.device.registers.table import (
     ACCESS_VALUES,
     BLOCK_STRIDE,
+    COMM_BASE,
     CONTROLLER_QUANTITIES,
     DEFAULT_PORT,
     INPUT_REGISTERS,
     MAP_VERSION,
     MAX_BLOCKS,
+    MAX_DELAY_MS,
     N_REGISTERS,
     REGISTERS,
     RW,
     RW_CONTROLLER,
     RW_INSTRUCTOR,
+    UNIT_REGISTERS,
     WRITABLE_QUANTITIES,
     Access,
+    CommFault,
     Conversion,
     Fault,
     R,
@@ -183,19 +192,23 @@ __all__ = [
     "ACCESS_VALUES",
     "BLOCK_STRIDE",
     "CDAB",
+    "COMM_BASE",
     "CONTROLLER_QUANTITIES",
     "DEFAULT_PORT",
     "INPUT_REGISTERS",
     "MAP_VERSION",
     "MAX_BLOCKS",
+    "MAX_DELAY_MS",
     "N_REGISTERS",
     "R",
     "REGISTERS",
     "RW",
     "RW_CONTROLLER",
     "RW_INSTRUCTOR",
+    "UNIT_REGISTERS",
     "WRITABLE_QUANTITIES",
     "Access",
+    "CommFault",
     "Conversion",
     "DataType",
     "Fault",
