@@ -103,6 +103,7 @@ from valve_emulator.device.registers import (
     decode_write,
 )
 from valve_emulator.device.registers.bits import COILS, BitTable, bit_values, check_bits, coil_write
+from valve_emulator.device.rtu import RtuSerialLink, RtuStreamConnection, SerialSettings
 from valve_emulator.device.tick import Device
 
 __all__ = ["EmulatorServer", "LIVE_DEVICE_KEYS"]
@@ -164,6 +165,8 @@ class EmulatorServer:
     time_scale : see :class:`~valve_emulator.device.tick.Device` (``inf`` fastest, ``0`` frozen).
     bank : an existing ``LoopBank`` (default: built from ``config``).
     clock, sleep, jitter_size : see :class:`~valve_emulator.device.tick.Device` (fake time in tests).
+    framer : ``"socket"`` (Modbus TCP, MBAP headers) or ``"rtu"`` (RTU frames with CRC over TCP, what
+        gateways call RTU over TCP; :mod:`~valve_emulator.device.rtu`). :meth:`open_serial` adds a serial line.
 
     A bind failure raises ``OSError`` after the tick task has been stopped again. Connection limits,
     timeouts and the error budget come from ``config.device`` (``max_connections``, ``idle_timeout``,
@@ -175,7 +178,12 @@ class EmulatorServer:
 
     def __init__(self, config: Any, *, host: str = "127.0.0.1", port: int = 0, time_scale: float = 1.0,
                  bank: Any = None, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> None:
+                 sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096,
+                 framer: str = "socket") -> None:
+        if framer not in ("socket", "rtu"):
+            raise ValueError(f"framer must be 'socket' (Modbus TCP) or 'rtu' (RTU over TCP), got {framer!r}")
+        self.framer = framer
+        self.serial_links: list[Any] = []
         self.host = host
         self.port = port
         self.device = Device.from_config(config, bank=bank, time_scale=time_scale, clock=clock, sleep=sleep,
@@ -253,7 +261,8 @@ class EmulatorServer:
         await self.device.start()
         try:
             loop = asyncio.get_running_loop()
-            self._server = await loop.create_server(lambda: ModbusConnection(self), self.host, self.port)
+            protocol = ModbusConnection if self.framer == "socket" else RtuStreamConnection
+            self._server = await loop.create_server(lambda: protocol(self), self.host, self.port)
         except BaseException:
             await self.device.stop()  # no half-started server: the tick task must not outlive us
             raise
@@ -272,8 +281,19 @@ class EmulatorServer:
                          "reach port %d can read and write this device; use an isolated network",
                          self.host, self.port)
 
+    def open_serial(self, port: str, settings: SerialSettings | None = None) -> RtuSerialLink:
+        """Serve the same units as Modbus RTU on serial device ``port`` too (call after :meth:`start`; closed by
+        :meth:`stop`). ``OSError`` naming the device when it cannot be opened."""
+        link = RtuSerialLink(self, port, settings or SerialSettings())
+        link.open()
+        self.serial_links.append(link)
+        return link
+
     async def stop(self) -> None:
         server, self._server = self._server, None
+        for link in self.serial_links:
+            link.close()
+        self.serial_links.clear()
         self.guard.stop()
         if server is not None:
             server.close()
