@@ -158,3 +158,42 @@ async def test_rtu_over_tcp_answers_a_pymodbus_client_with_the_rtu_framer(make_s
             assert rr.information[5] == b"FV-2"
         finally:
             client.close()
+
+
+async def test_serve_command_runs_tcp_and_rtu_from_one_process_on_one_tick(pty_pair, mbpoll):
+    import sys
+
+    server_end, client_end = pty_pair
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "valve_emulator", "serve", "--port", "0", "--rtu", server_end, "--baud", "9600",
+        "--parity", "N", "--stopbits", "2", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT)
+    try:
+        line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
+        assert f"Modbus RTU on {server_end} at 9600 8N2" in line, line
+        port = line.split("listening on 127.0.0.1:")[1].split(",")[0]
+        tick = address_of("tick")
+        rc, out = await _mbpoll(mbpoll, "-b", "9600", "-P", "none", "-s", "2", "-a", "1", "-r", str(tick),
+                                "-c", "2", "-t", "4", client_end)
+        assert rc == 0, out
+        rtu_tick = int(_values(out)[tick]) << 16 | int(_values(out)[tick + 1])
+        tcp = await asyncio.create_subprocess_exec(
+            mbpoll, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", "-r", str(tick), "-c", "2", "-t", "4",
+            "127.0.0.1", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT)
+        out = (await asyncio.wait_for(tcp.communicate(), 20))[0].decode()
+        assert tcp.returncode == 0, out
+        tcp_tick = int(_values(out)[tick]) << 16 | int(_values(out)[tick + 1])
+        assert 0 <= tcp_tick - rtu_tick <= 20        # the same tick counter, read a moment apart
+    finally:
+        proc.terminate()
+        await asyncio.wait_for(proc.wait(), 20)
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--baud", "9600"], "--baud, --parity and --stopbits set up the serial line of --rtu DEVICE"),
+    (["--rtu", "/nonexistent/ttyX"], "serial device /nonexistent/ttyX"),
+])
+def test_serve_refuses_bad_serial_flags(argv, message, capsys):
+    from valve_emulator.cli import main
+
+    assert main(["serve", "--port", "0", *argv]) != 0
+    assert message in capsys.readouterr().err
