@@ -197,3 +197,27 @@ def test_serve_refuses_bad_serial_flags(argv, message, capsys):
 
     assert main(["serve", "--port", "0", *argv]) != 0
     assert message in capsys.readouterr().err
+
+
+def _send_in_two_parts(port, gaps):
+    """Send a read of op_pct at 1200 8E1 in two parts ``gap`` s apart, for each gap; return the answers
+    (one open: socat ends the pty pair when one side closes)."""
+    frame = with_crc(struct.pack(">BBHH", 1, 3, address_of("op_pct"), 1))
+    answers = []
+    with serial.Serial(port, baudrate=1200, parity=serial.PARITY_EVEN, timeout=0.5) as line:
+        for gap in gaps:
+            line.write(frame[:3])
+            time.sleep(gap)
+            line.write(frame[3:])
+            answers.append(line.read(7))
+    return answers
+
+
+async def test_a_silence_inside_a_frame_discards_it(make_server, pty_pair):
+    server_end, client_end = pty_pair
+    settings = SerialSettings(baud=1200)                # t1.5 = 13.75 ms, t3.5 = 32.1 ms
+    async with make_server() as srv:
+        link = srv.open_serial(server_end, settings)
+        answers = await asyncio.to_thread(_send_in_two_parts, client_end, [0.022, 0.0])
+        assert answers == [b"", with_crc(b"\x01\x03\x02\x13\x88")]
+        assert link.dropped == 1

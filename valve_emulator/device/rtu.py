@@ -8,7 +8,10 @@
   default is 19200 baud, even parity (8E1). ``--stopbits`` lets 8N1 / 8E2 lines be served as well.
 - Frames are delimited by silence (§2.5.1.1): at least 3.5 character times between frames; a silence of
   more than 1.5 character times inside a frame makes it incomplete, and it is discarded. Above 19200 baud
-  the timers are fixed at 1.75 ms and 0.75 ms (:class:`SerialSettings`).
+  the timers are fixed at 1.75 ms and 0.75 ms (:class:`SerialSettings`). A request whose length follows
+  from its function code (:func:`request_length`) and whose CRC checks is answered as soon as its last byte
+  is in, as libmodbus and most devices do; any other frame ends with the t3.5 silence. (Waiting for the
+  silence would add t3.5 to every answer: at 115200 baud that alone costs a third of the line's rate.)
 - A frame with a bad CRC is discarded without a reply (§2.5.1.2), and counted (FC8 sub-function 0x0C).
   A frame for an address not served here is not answered (another slave on the bus may own it).
 - Address 0 is broadcast (§2.1): a write is carried out by every unit served here, and nobody answers;
@@ -216,6 +219,11 @@ class RtuSerialLink:
         self._last = now
         if self._timer is not None:
             self._timer.cancel()
+            self._timer = None
+        n = request_length(self._buf)
+        if n is not None and len(self._buf) == n and not self._broken and crc16(self._buf) == 0:
+            self._end_of_frame()   # complete by its length and CRC: no need to wait for the silence
+            return
         self._timer = self._loop.call_later(self.settings.t35, self._end_of_frame)
 
     def _end_of_frame(self) -> None:
