@@ -33,39 +33,13 @@ def make_server(fake_bank_cls):
     return make
 
 
-class Raw:
-    def __init__(self, reader, writer):
-        self.reader, self.writer, self.tid = reader, writer, 0
-
-    def send(self, unit, pdu):
-        self.tid += 1
-        self.writer.write(struct.pack(">HHHB", self.tid, 0, len(pdu) + 1, unit) + pdu)
-        return self.tid
-
-    async def receive(self, timeout=2.0):
-        """``(tid, response pdu)``; ``asyncio.TimeoutError`` when nothing comes."""
-        header = await asyncio.wait_for(self.reader.readexactly(7), timeout)
-        tid, _, length, _ = struct.unpack(">HHHB", header)
-        return tid, await self.reader.readexactly(length - 1)
-
-    async def ask(self, unit, pdu, timeout=2.0):
-        tid = self.send(unit, pdu)
-        got_tid, answer = await self.receive(timeout)
-        assert got_tid == tid
-        return answer
-
-
-async def _raw(srv):
-    return Raw(*await asyncio.open_connection("127.0.0.1", srv.port))
-
-
 def _set(address, value):
     return struct.pack(">BHH", 6, address, value)
 
 
-async def test_no_response_times_out_and_clearing_over_the_wire_restores_answers(make_server):
+async def test_no_response_times_out_and_clearing_over_the_wire_restores_answers(make_server, raw_for):
     async with make_server() as srv:
-        raw = await _raw(srv)
+        raw = await raw_for(srv)
         assert await raw.ask(UNIT, _set(FAULT, 1)) == _set(FAULT, 1)            # the write itself is answered
         raw.send(UNIT, READ_OP)
         t0 = time.monotonic()
@@ -79,13 +53,12 @@ async def test_no_response_times_out_and_clearing_over_the_wire_restores_answers
         assert await raw.ask(UNIT, clear_and_read) == b"\x17\x02\x13\x88"
         assert await raw.ask(UNIT, _set(FAULT, 0)) == _set(FAULT, 0)
         assert await raw.ask(UNIT, READ_OP) == b"\x03\x02\x13\x88"              # 5000: 50.00 %
-        raw.writer.close()
 
 
 @pytest.mark.parametrize(("fault", "code"), [(2, 0x06), (3, 0x04)])
-async def test_busy_and_failure_answer_with_their_exception_code(make_server, fault, code):
+async def test_busy_and_failure_answer_with_their_exception_code(make_server, raw_for, fault, code):
     async with make_server() as srv:
-        raw = await _raw(srv)
+        raw = await raw_for(srv)
         assert await raw.ask(UNIT, _set(FAULT, fault)) == _set(FAULT, fault)
         before = bytes(srv.device.image)
         assert await raw.ask(UNIT, READ_OP) == bytes((0x83, code))
@@ -95,25 +68,22 @@ async def test_busy_and_failure_answer_with_their_exception_code(make_server, fa
         assert await raw.ask(UNIT, _set(FAULT, 0)) == _set(FAULT, 0)
         assert await raw.ask(UNIT, READ_OP) == b"\x03\x02\x13\x88"
         assert srv.throttled == 0                                                # not charged to the client
-        raw.writer.close()
 
 
-async def test_close_ends_the_connection_and_a_new_one_can_clear_it(make_server):
+async def test_close_ends_the_connection_and_a_new_one_can_clear_it(make_server, raw_for):
     async with make_server() as srv:
-        raw = await _raw(srv)
+        raw = await raw_for(srv)
         assert await raw.ask(UNIT, _set(FAULT, 4)) == _set(FAULT, 4)
         raw.send(UNIT, READ_OP)
         assert await asyncio.wait_for(raw.reader.read(), 2) == b""               # closed, nothing answered
-        raw.writer.close()
-        raw = await _raw(srv)
+        raw = await raw_for(srv)
         assert await raw.ask(UNIT, _set(FAULT, 0)) == _set(FAULT, 0)
         assert await raw.ask(UNIT, READ_OP) == b"\x03\x02\x13\x88"
-        raw.writer.close()
 
 
-async def test_delay_holds_answers_in_order_while_the_unit_registers_answer_at_once(make_server):
+async def test_delay_holds_answers_in_order_while_the_unit_registers_answer_at_once(make_server, raw_for):
     async with make_server() as srv:
-        raw = await _raw(srv)
+        raw = await raw_for(srv)
         assert await raw.ask(UNIT, _set(DELAY, 300)) == _set(DELAY, 300)
         t0 = time.monotonic()
         assert await raw.ask(UNIT, READ_OP) == b"\x03\x02\x13\x88"
@@ -126,17 +96,15 @@ async def test_delay_holds_answers_in_order_while_the_unit_registers_answer_at_o
         assert await raw.ask(UNIT, _set(DELAY, 0)) == _set(DELAY, 0)
         assert await raw.ask(UNIT, READ_OP) == b"\x03\x02\x13\x88"
         assert time.monotonic() - t0 < 0.2
-        raw.writer.close()
 
 
-async def test_unit_registers_are_instructor_only_and_range_checked(make_server):
+async def test_unit_registers_are_instructor_only_and_range_checked(make_server, raw_for):
     async with make_server(_config(instructor_writes=False)) as srv:
-        raw = await _raw(srv)
+        raw = await raw_for(srv)
         assert await raw.ask(UNIT, _set(FAULT, 1)) == b"\x86\x02"
         assert await raw.ask(UNIT, struct.pack(">BHH", 3, FAULT, 2)) == b"\x03\x04\x00\x00\x00\x00"  # readable
-        raw.writer.close()
     async with make_server() as srv:
-        raw = await _raw(srv)
+        raw = await raw_for(srv)
         assert await raw.ask(UNIT, _set(FAULT, 6)) == b"\x86\x03"
         assert await raw.ask(UNIT, _set(DELAY, 10001)) == b"\x86\x03"
         bad_pair = struct.pack(">BHHBHH", 16, FAULT, 2, 4, 2, 20000)             # whole or nothing
@@ -146,4 +114,3 @@ async def test_unit_registers_are_instructor_only_and_range_checked(make_server)
         pair = struct.pack(">BHHBHH", 16, FAULT, 2, 4, 2, 100)
         assert await raw.ask(UNIT, pair) == struct.pack(">BHH", 16, FAULT, 2)
         assert srv.comm.state(UNIT).words == (2, 100) and srv.comm.state(OTHER).words == (0, 0)
-        raw.writer.close()

@@ -1,7 +1,6 @@
 """Function codes beyond registers, as raw frames over a real socket: bits (1, 2, 5, 15), diagnostics (8),
 mask write (22) and device identification (43), answered per the Modbus Application Protocol V1.1b3."""
 
-import asyncio
 import struct
 
 import pytest
@@ -30,35 +29,6 @@ def make_server(fake_bank_cls):
         config = config or _config()
         return EmulatorServer(config, bank=fake_bank_cls.for_config(config), time_scale=0)
     return make
-
-
-class Raw:
-    """A bare Modbus TCP client: send one PDU, get the response PDU (MBAP checked)."""
-
-    def __init__(self, reader, writer):
-        self.reader, self.writer, self.tid = reader, writer, 0
-
-    async def ask(self, unit, pdu):
-        self.tid += 1
-        self.writer.write(struct.pack(">HHHB", self.tid, 0, len(pdu) + 1, unit) + pdu)
-        header = await asyncio.wait_for(self.reader.readexactly(7), 2)
-        tid, proto, length, got_unit = struct.unpack(">HHHB", header)
-        assert (tid, proto, got_unit) == (self.tid, 0, unit)
-        return await self.reader.readexactly(length - 1)
-
-
-@pytest.fixture
-async def raw_for():
-    writers = []
-
-    async def connect(srv):
-        reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
-        writers.append(writer)
-        return Raw(reader, writer)
-
-    yield connect
-    for writer in writers:
-        writer.close()
 
 
 async def _register(raw, unit, name):

@@ -37,7 +37,7 @@ import time
 from pathlib import Path
 
 NAME = "serve"
-HELP = "serve the valve and process as a Modbus TCP device on a real-time tick"
+HELP = "serve the valve and process as a Modbus TCP (and RTU) device on a real-time tick"
 
 _log = logging.getLogger("valve_emulator.serve")
 
