@@ -50,6 +50,9 @@ MEI_DEVICE_ID: Final = 0x0E                # FC43's MEI type for read device ide
 COUNTER_SUBFUNCTIONS: Final = frozenset(range(0x0A, 0x0F))
 
 
+_FIXED_LENGTH: Final = {1: 5, 2: 5, 3: 5, 4: 5, 5: 5, 6: 5, 22: 7, 43: 4}   # PDU bytes, function code included
+
+
 def _u16(pdu: bytes, at: int) -> int:
     return (pdu[at] << 8) | pdu[at + 1]
 
@@ -64,11 +67,14 @@ def malformed(fc: int, pdu: bytes) -> str | None:
     n = len(pdu)
     if fc == 43 and n >= 2 and pdu[1] != MEI_DEVICE_ID:
         return None   # another MEI type (CANopen 0x0D): not offered, whatever its length
-    fixed = {1: 5, 2: 5, 3: 5, 4: 5, 5: 5, 6: 5, 22: 7, 43: 4}.get(fc)
+    fixed = _FIXED_LENGTH.get(fc)
     if fixed is not None and n != fixed:
         return f"function code {fc} needs a {fixed}-byte PDU, got {n}"
-    if fc in READ_FUNCTIONS and not 1 <= _u16(pdu, 3) <= MAX_READ:
-        return f"read count {_u16(pdu, 3)} outside 1..{MAX_READ}"
+    if fc in READ_FUNCTIONS:
+        count = _u16(pdu, 3)
+        return None if 1 <= count <= MAX_READ else f"read count {count} outside 1..{MAX_READ}"
+    if fc == 6:
+        return None
     if fc in BIT_READ_FUNCTIONS and not 1 <= _u16(pdu, 3) <= MAX_BITS_READ:
         return f"bit count {_u16(pdu, 3)} outside 1..{MAX_BITS_READ}"
     if fc == 5 and _u16(pdu, 3) not in (0x0000, 0xFF00):

@@ -127,11 +127,9 @@ class RtuResponder:
         """``(response frame or None, delay in s, communication fault applied)`` for one received ``frame``
         (address, PDU, CRC)."""
         server = self.server
-        diag = server.diagnostics
         if len(frame) < 4 or crc16(frame) != 0:
-            diag.comm_errors += 1
+            server.crc_errors += 1
             return None, 0.0, CommFault.NONE
-        diag.bus_messages += 1
         unit, pdu = frame[0], frame[1:-2]
         if unit == 0:
             if pdu[0] in _BROADCAST_WRITES:
@@ -139,6 +137,7 @@ class RtuResponder:
                     server.answer(target, pdu, instructor)
             return None, 0.0, CommFault.NONE
         if unit not in server.device.layout.regions and self.silent_unknown:
+            server.foreign_frames += 1
             return None, 0.0, CommFault.NONE
         state = server.comm.plan(unit, pdu) if server.comm.active else None
         if state is None:
@@ -234,7 +233,7 @@ class RtuSerialLink:
         self.frames += 1
         if broken:
             self.dropped += 1
-            self.server.diagnostics.comm_errors += 1
+            self.server.crc_errors += 1
             return
         reply, delay, _ = self.responder.respond(frame, self.server.instructor_allowed(""))
         if reply is None:
@@ -349,7 +348,7 @@ class RtuStreamConnection(asyncio.Protocol):
         self.slot.partial_since = now if buf else None
 
     def _drop(self) -> None:
-        self.server.diagnostics.comm_errors += 1
+        self.server.crc_errors += 1
         self._buf.clear()
 
     def _write(self, reply: bytes) -> None:

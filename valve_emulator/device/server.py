@@ -93,6 +93,7 @@ from valve_emulator.device.pdu import (
 )
 from valve_emulator.device.registers import (
     BLOCK_STRIDE,
+    COMM_BASE,
     CommFault,
     RegisterAccessError,
     RegisterAddressError,
@@ -125,26 +126,35 @@ LIVE_DEVICE_KEYS = ("read_only", "instructor_writes", "instructor_hosts", "max_c
                     "frame_timeout", "error_rate")
 
 
-@dataclasses.dataclass(slots=True)
 class DiagnosticCounters:
-    """The counters FC8 reads (serial line spec v1.02 §6.1 / application protocol §6.8), modulo 2^16.
+    """The counters FC8 reads (serial line spec v1.02 §6.1, application protocol §6.8), modulo 2^16.
 
-    ``bus_messages`` (0x0B): frames received; ``comm_errors`` (0x0C): frames dropped for a bad CRC (RTU);
-    ``exception_errors`` (0x0D): exception responses; ``server_messages`` (0x0E): requests addressed to
-    this server (any of its units, broadcasts included).
+    ``bus_messages`` (0x0B): frames received; ``comm_errors`` (0x0C): frames dropped for a bad CRC or a
+    silence inside them (RTU); ``exception_errors`` (0x0D): exception responses; ``server_messages``
+    (0x0E): requests addressed to this server (any of its units, broadcasts included). A view of the
+    server's own counters (nothing extra to count per request) since the last :meth:`clear`.
     """
 
-    bus_messages: int = 0
-    comm_errors: int = 0
-    exception_errors: int = 0
-    server_messages: int = 0
+    def __init__(self, server: EmulatorServer) -> None:
+        self._server = server
+        self._base = (0, 0, 0, 0)
+
+    def _now(self) -> tuple[int, int, int, int]:
+        s = self._server
+        return (s.requests + s.foreign_frames + s.crc_errors, s.crc_errors, s.exceptions + s.fault_exceptions,
+                s.requests)
 
     def clear(self) -> None:
-        self.bus_messages = self.comm_errors = self.exception_errors = self.server_messages = 0
+        self._base = self._now()
 
     def read(self, sub_function: int) -> int:
-        return (self.bus_messages, self.comm_errors, self.exception_errors,
-                self.server_messages)[sub_function - 0x0B]
+        k = sub_function - 0x0B
+        return (self._now()[k] - self._base[k]) & 0xFFFF
+
+    bus_messages = property(lambda self: self.read(0x0B))
+    comm_errors = property(lambda self: self.read(0x0C))
+    exception_errors = property(lambda self: self.read(0x0D))
+    server_messages = property(lambda self: self.read(0x0E))
 
 
 class _Refused(Exception):
@@ -195,7 +205,7 @@ class EmulatorServer:
         self.refusals = RefusalLog(_log)
         self._apply_access(config)
         self._identities = {lp.device.unit: Identity.of_loop(lp) for lp in reversed(config.loops)}  # block 0 wins
-        self.diagnostics = DiagnosticCounters()
+        self.diagnostics = DiagnosticCounters(self)
         self.comm = CommFaults({unit: blocks for unit, (_, blocks) in self._regions.items()})
         self._decoder = DecodePDU(is_server=True)
         self._framer = FramerSocket(self._decoder)
@@ -204,6 +214,9 @@ class EmulatorServer:
         self.turns = TurnBudget()
         self.requests = 0
         self.exceptions = 0
+        self.fault_exceptions = 0     # exception answers of communication faults (not charged to a client)
+        self.crc_errors = 0           # RTU frames dropped: bad CRC or a silence inside
+        self.foreign_frames = 0       # RTU frames for an address not served here
         self.violations = 0
         self.throttled = 0
 
@@ -317,14 +330,12 @@ class EmulatorServer:
         ``peer`` (the client's address) names the client when a refused write is logged.
         """
         tid, unit = (frame[0] << 8) | frame[1], frame[6]
-        self.diagnostics.bus_messages += 1
         return self._framer.encode(self.answer(unit, frame[7:], instructor, peer=peer), unit, tid)
 
     def handle_faulted(self, frame: bytes, instructor: bool, state: CommState, *, peer: str = "") -> bytes | None:
         """:meth:`handle` for a unit with a communication fault (see :mod:`~valve_emulator.device.comm`):
         the response frame, or ``None`` when nothing is to be sent."""
         tid, unit = (frame[0] << 8) | frame[1], frame[6]
-        self.diagnostics.bus_messages += 1
         pdu = self.answer_faulted(unit, frame[7:], instructor, state, peer=peer)
         return None if pdu is None else self._framer.encode(pdu, unit, tid)
 
@@ -336,12 +347,10 @@ class EmulatorServer:
         fault = state.fault
         if fault in (CommFault.NO_RESPONSE, CommFault.CLOSE):
             self.requests += 1
-            self.diagnostics.server_messages += 1
             return None
         if fault in (CommFault.BUSY, CommFault.FAILURE):
             self.requests += 1
-            self.diagnostics.server_messages += 1
-            self.diagnostics.exception_errors += 1   # on purpose: not charged to the client's error budget
+            self.fault_exceptions += 1   # on purpose: not in self.exceptions, which the error budget charges
             code = ExcCodes.DEVICE_BUSY if fault is CommFault.BUSY else ExcCodes.DEVICE_FAILURE
             return bytes((pdu[0] | 0x80, code))
         return self.answer(unit, pdu, instructor, peer=peer)
@@ -352,7 +361,6 @@ class EmulatorServer:
         Framing-independent: the TCP connection wraps it in MBAP, the RTU link in address and CRC.
         """
         self.requests += 1
-        self.diagnostics.server_messages += 1
         fc = pdu[0]
         try:
             region = self._regions.get(unit)
@@ -382,7 +390,6 @@ class EmulatorServer:
 
     def _refuse(self, fc: int, code: int, unit: int, reason: Exception, pdu: bytes, peer: str) -> bytes:
         self.exceptions += 1
-        self.diagnostics.exception_errors += 1
         _log.debug("unit %d fc %d -> exception 0x%02X: %s", unit, fc, code, reason)
         if fc in _ALL_WRITES and code != ExcCodes.GATEWAY_NO_RESPONSE and (
                 isinstance(reason, RegisterError) or code == ExcCodes.ILLEGAL_FUNCTION):
@@ -405,7 +412,7 @@ class EmulatorServer:
         return bytes((response.function_code,)) + response.encode()
 
     def _read(self, fc: int, table: str, unit: int, region: tuple[int, int], address: int, count: int) -> bytes:
-        if table == "holding" and self.comm.covers(unit, address):
+        if address >= COMM_BASE and table == "holding" and self.comm.covers(unit, address):
             return bytes((fc, 2 * count)) + self.comm.read(unit, address, count)
         start, blocks = region
         check_read(table, address, count, blocks=blocks)
@@ -413,7 +420,7 @@ class EmulatorServer:
         return bytes((fc, 2 * count)) + self.device.image[start:start + 2 * count]
 
     def _write(self, unit: int, address: int, registers: Any, instructor: bool) -> None:
-        if self.comm.covers(unit, address):
+        if address >= COMM_BASE and self.comm.covers(unit, address):
             self.comm.write(unit, address, registers, instructor=instructor)
             return
         index, offset = self.device.layout.locate_write(unit, address, len(registers))
@@ -488,7 +495,7 @@ class EmulatorServer:
         if sub == 0x0A:
             self.diagnostics.clear()
             return bytes(pdu)
-        return bytes(pdu[:3]) + (self.diagnostics.read(sub) & 0xFFFF).to_bytes(2, "big")
+        return bytes(pdu[:3]) + self.diagnostics.read(sub).to_bytes(2, "big")
 
 
 def _u16(pdu: bytes, at: int) -> int:
