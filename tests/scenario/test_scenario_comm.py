@@ -23,17 +23,18 @@ def scenario(events: str):
 
 def test_a_30_s_outage_is_set_and_cleared():
     sc = scenario("""\
-        - {at: 10, event: comm, fault: no_response, duration: 30}
+        - {at: 10, event: comm, fault: bad_crc, delay_ms: 250, duration: 30}
         - {at: 20, event: seize}
-        - {at: 50, event: comm, fault: 2, delay_ms: 250}
+        - {at: 50, event: comm, fault: no_response, duration: 30}
         """)
     assert [(ev.at, ev.kind, ev.writes) for ev in sc.events] == [
-        (10.0, "comm", (("comm_fault", 1), ("comm_delay_ms", 0))),
-        (20.0, "seize", (("fault", 1),)),
+        (10.0, "comm", (("comm_fault", 5), ("comm_delay_ms", 250))),
+        (20.0, "seize", (("fault", 1),)),                   # a slow link still carries the write out
         (40.0, "comm", (("comm_fault", 0), ("comm_delay_ms", 0))),
-        (50.0, "comm", (("comm_fault", 2), ("comm_delay_ms", 250))),
+        (50.0, "comm", (("comm_fault", 1), ("comm_delay_ms", 0))),
+        (80.0, "comm", (("comm_fault", 0), ("comm_delay_ms", 0))),
     ]
-    assert write_groups(sc.events[0].writes) == [(COMM_BASE, [1, 0])]   # one request to 0xFF00
+    assert write_groups(sc.events[0].writes) == [(COMM_BASE, [5, 250])]   # one request to 0xFF00
 
 
 @pytest.mark.parametrize(("events", "message"), [
@@ -43,6 +44,8 @@ def test_a_30_s_outage_is_set_and_cleared():
     ("- {at: 10, event: comm, fault: busy, duration: 0}", r"events\[0\].duration: must be > 0 s"),
     ("- {at: 90, event: comm, fault: close, duration: 30}", r"ends at 120 s, after the end of the scenario"),
     ("- {at: 10, event: comm}", r"a comm event needs 'fault'"),
+    ("- {at: 10, event: comm, fault: busy, duration: 30}\n- {at: 20, event: seize}",
+     r"s.yaml:7: a seize event at 20 s falls inside the communication fault set at 10 s \(line 6\)"),
 ])
 def test_bad_comm_events_name_the_line(events, message):
     with pytest.raises(ScenarioError, match=message):

@@ -33,7 +33,10 @@ write       ``register`` (a name), ``value``    any writable register, ``value``
 comm        ``fault`` (0..5 or its name),       ``comm_fault``, ``comm_delay_ms`` of the unit: a
             ``delay_ms`` (0..10000),            communication fault (``none``, ``no_response``,
             ``duration`` (s, optional)          ``busy``, ``failure``, ``close``, ``bad_crc``); with
-                                                ``duration`` both go back to 0 that much later
+                                                ``duration`` both go back to 0 that much later. No
+                                                other event may fall inside a ``no_response``,
+                                                ``busy``, ``failure`` or ``close`` fault: the unit
+                                                would not carry it out
 ==========  ==================================  =====================================================
 
 Everything is checked when the file is loaded -- before an emulator starts or a register is written --
@@ -325,6 +328,23 @@ def _restore(ev: Event) -> Event:
                  f"end of the communication fault of line {ev.line}", ev.line)
 
 
+#: comm_fault values under which the unit does not carry out the player's own writes
+_SILENCING: Final = frozenset({CommFault.NO_RESPONSE, CommFault.BUSY, CommFault.FAILURE, CommFault.CLOSE})
+
+
+def _check_outages(events: list[Event], source: str) -> None:
+    """Refuse an event scheduled while a ``comm`` event keeps the unit from carrying out requests: the
+    player writes over Modbus too, and only the unit registers answer during such a fault."""
+    since: Event | None = None
+    for ev in events:
+        if ev.kind == "comm":
+            since = ev if dict(ev.writes)["comm_fault"] in _SILENCING else None
+        elif since is not None:
+            raise ScenarioError(f"{source}:{ev.line}: a {ev.kind} event at {ev.at:g} s falls inside the "
+                                f"communication fault set at {since.at:g} s (line {since.line}), when the unit "
+                                f"carries out no write; move it, or end the fault first")
+
+
 # --- the file -----------------------------------------------------------------------------------------
 
 def _device(value: Any, where: _Where, base: Path) -> ServerConfig:
@@ -390,6 +410,7 @@ def parse_scenario(text: str, *, source: str = "<scenario>", base: Path | None =
             raise ScenarioError(f"{source}:{ev.line}: the communication fault ends at {ev.at:g} s, after the end "
                                 f"of the scenario (duration {duration:g} s)")
     events = sorted(events + ends, key=lambda ev: ev.at)   # stable: file order among events at one time
+    _check_outages(events, source)
     name, description = data.get("name", Path(source).stem), data.get("description", "")
     for key, value in (("name", name), ("description", description)):
         if not isinstance(value, str):
