@@ -221,3 +221,25 @@ async def test_a_silence_inside_a_frame_discards_it(make_server, pty_pair):
         answers = await asyncio.to_thread(_send_in_two_parts, client_end, [0.022, 0.0])
         assert answers == [b"", with_crc(b"\x01\x03\x02\x13\x88")]
         assert link.dropped == 1
+
+
+async def test_rtu_over_tcp_survives_garbage_and_answers_the_next_good_frame(make_server):
+    import random
+
+    rng = random.Random(16)
+    good = with_crc(struct.pack(">BBHH", 1, 3, address_of("op_pct"), 1))
+    async with make_server(framer="rtu") as srv:
+        reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+        try:
+            for size in (1, 3, 7, 40, 300):
+                junk = bytes(rng.randrange(256) for _ in range(size))
+                writer.write(junk)
+                await asyncio.sleep(0.1)                      # > STREAM_GAP: the partial frame is abandoned
+                writer.write(good)
+                answer = await asyncio.wait_for(reader.readexactly(7), 2)
+                assert answer == with_crc(b"\x01\x03\x02\x13\x88"), (size, answer)
+                await asyncio.sleep(0.05)
+                assert not reader._buffer                     # noqa: SLF001 - nothing else was answered
+        finally:
+            writer.close()
+        assert srv.crc_errors >= 4

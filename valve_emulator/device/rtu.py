@@ -38,7 +38,7 @@ from typing import Any, Final
 from valve_emulator.device.pdu import BIT_WRITE_FUNCTIONS, WRITE_FUNCTIONS
 from valve_emulator.device.registers import CommFault
 
-__all__ = ["PARITIES", "RtuResponder", "RtuSerialLink", "RtuStreamConnection", "SerialSettings", "crc16",
+__all__ = ["PARITIES", "STREAM_GAP", "RtuResponder", "RtuSerialLink", "RtuStreamConnection", "SerialSettings", "crc16",
            "request_length", "with_crc"]
 
 _log = logging.getLogger("valve_emulator.device.server")
@@ -276,14 +276,18 @@ def request_length(buf: bytes | bytearray) -> int | None:
 
 
 _MAX_FRAME: Final = 256
+#: Seconds of silence after which an incomplete RTU-over-TCP frame is abandoned.
+STREAM_GAP: Final = 0.05
 
 
 class RtuStreamConnection(asyncio.Protocol):
     """One client of ``--framer rtu``: RTU frames (address, PDU, CRC) on a TCP stream.
 
-    A frame whose CRC does not check cannot be resynchronised on a stream: it is dropped with everything
-    received so far (as a serial device drops a frame). Admission and the idle deadline are the Modbus TCP
-    server's (:class:`~valve_emulator.device.guard.ConnectionGuard`).
+    A frame whose CRC does not check is dropped with everything received so far (as a serial device drops
+    a frame); bytes left over that no frame explains are dropped when nothing has arrived for
+    :data:`STREAM_GAP` seconds, the stream's stand-in for the serial line's silence, so the next request
+    is read from its first byte again. Admission and the idle deadline are the Modbus TCP server's
+    (:class:`~valve_emulator.device.guard.ConnectionGuard`).
     """
 
     def __init__(self, server: Any) -> None:
@@ -294,6 +298,7 @@ class RtuStreamConnection(asyncio.Protocol):
         self.instructor = False
         self.peer_ip = ""
         self._buf = bytearray()
+        self._last = 0.0
         self._pending: set[asyncio.TimerHandle] = set()
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -317,8 +322,11 @@ class RtuStreamConnection(asyncio.Protocol):
         if self.slot is None:
             return
         buf = self._buf
-        buf += data
         now = self.server.guard.clock()
+        if buf and now - self._last > STREAM_GAP:
+            self._drop()   # a stale partial frame: the new data starts a request
+        self._last = now
+        buf += data
         while len(buf) >= 4:
             n = request_length(buf) or _crc_length(buf)
             if n is None:
