@@ -71,10 +71,10 @@ def test_serve_bad_flags_and_files_are_clear_errors(argv, words, capsys):
 def test_registers_command_prints_json_with_the_documented_keys(capsys):
     assert main(["registers", "--format", "json"]) == 0
     rows = json.loads(capsys.readouterr().out)
-    assert all(set(r) == {"name", "table", "address", "type", "scale", "units", "access"} for r in rows)
+    assert all(set(r) == {"name", "table", "address", "reference", "type", "scale", "units", "access"} for r in rows)
     holding = {r["name"]: r for r in rows if r["table"] == "holding"}
     for name in ("op_pct", "op_ma", "mv_pct", "pv"):
         assert name in holding
     assert holding["op_pct"]["access"].startswith("RW") and holding["op_ma"]["access"].startswith("RW")
     assert main(["registers", "--format", "csv"]) == 0
-    assert capsys.readouterr().out.splitlines()[0] == "name,table,address,type,scale,units,access"
+    assert capsys.readouterr().out.splitlines()[0] == "name,table,address,reference,type,scale,units,access"

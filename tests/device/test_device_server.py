@@ -115,8 +115,8 @@ async def test_reads_past_the_map_and_into_input_holes_get_0x02(make_server, cli
         assert rr.isError() and rr.exception_code == 0x02
         rr = await client.read_input_registers(address_of("op_pct"), count=1, device_id=OPEN_LOOP)
         assert rr.isError() and rr.exception_code == 0x02
-        rr = await client.read_coils(0, count=1, device_id=OPEN_LOOP)
-        assert rr.isError() and rr.exception_code == 0x01
+        rr = await client.read_coils(1, count=2, device_id=OPEN_LOOP)       # coils are 0..1
+        assert rr.isError() and rr.exception_code == 0x02
 
 
 async def test_read_only_mode_refuses_writes_with_illegal_function(make_server, client_for):

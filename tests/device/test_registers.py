@@ -65,8 +65,10 @@ def test_addresses_do_not_overlap_and_fill_the_map():
 
 def test_json_rows_have_exactly_the_documented_keys():
     rows = json.loads(format_registers(registers_table(), "json"))
-    assert rows and all(set(r) == {"name", "table", "address", "type", "scale", "units", "access"} for r in rows)
-    assert {r["type"] for r in rows} <= {"uint16", "int16", "uint32", "float32"}
+    assert rows and all(set(r) == {"name", "table", "address", "reference", "type", "scale", "units", "access"}
+                        for r in rows)
+    assert {r["type"] for r in rows} <= {"uint16", "int16", "uint32", "float32", "bit"}
+    assert {r["table"] for r in rows} == {"holding", "input", "coil", "discrete_input"}
     assert {r["access"] for r in rows} <= set(reg.ACCESS_VALUES)
 
 
@@ -78,6 +80,27 @@ def test_csv_and_md_render_the_same_rows():
     assert len(md) == len(rows) + 2 and md[0].startswith("| name")
     with pytest.raises(ValueError, match="fmt"):
         format_registers(rows, "xml")
+
+
+def test_every_entry_shows_the_one_based_reference_of_its_table():
+    by = {(r["name"], r["table"]): r["reference"] for r in registers_table()}
+    assert by[("op_pct", "holding")] == "40001" and by[("fault", "holding")] == "40031"
+    assert by[("pv", "input")] == "30005"
+    assert by[("auto", "coil")] == "00001" and by[("seized", "coil")] == "00002"
+    assert by[("stuck", "discrete_input")] == "10001" and by[("seized", "discrete_input")] == "10007"
+    assert reg.bits.reference("holding", 65280) == "465281"          # six digits past 9999
+
+
+def test_discrete_input_k_is_status_bit_k_and_coils_write_registers():
+    names = [b.name for b in reg.bits.DISCRETE_INPUTS]
+    assert names == ["stuck", "moving", "sat_low", "sat_high", "controller", "auto", "seized"]
+    assert all(b.status == 1 << b.address for b in reg.bits.DISCRETE_INPUTS)
+    assert reg.bits.coil_write(0, True) == (address_of("mode"), 1)
+    assert reg.bits.coil_write(1, False) == (address_of("fault"), 0)
+    assert reg.bits.bit_values(reg.bits.BitTable.DISCRETE_INPUT, 0b0110001, 4, 3) == [True, True, False]
+    with pytest.raises(reg.RegisterAddressError, match="coil 1..2 outside the coil table 0..1"):
+        reg.bits.check_bits(reg.bits.BitTable.COIL, 1, 2)
+    assert reg.bits.check_bits(reg.bits.BitTable.COIL, 65, 1, blocks=3) == (2, 1)   # loop 2's seized coil
 
 
 def test_module_docstring_table_is_the_generated_one():

@@ -39,6 +39,7 @@ def test_each_event_type_writes_the_documented_registers():
         - {at: 5, event: sp, value: 5.0}
         - {at: 6, event: normal, say: back to normal}
         - {at: 7, event: write, register: kc, value: 0.25}
+        - {at: 8, event: comm, fault: busy, delay_ms: 40}
         """)
     assert sc.unit == 3 and sc.dt == 0.1 and sc.loop.controller is not None
     writes = [ev.writes for ev in sc.events]
@@ -51,6 +52,7 @@ def test_each_event_type_writes_the_documented_registers():
         (("sp", 7500),),                                   # 5.0 on -10..10 is 75 % of the range
         (("S", 500), ("J", 200), ("load", 0), ("noise", 250), ("fault", 0)),   # noise 0.5 = 2.5 % of 20
         (("kc", 250),),
+        (("comm_fault", 2), ("comm_delay_ms", 40)),
     ]
     assert sc.events[6].say == "back to normal"
     assert [ev.kind for ev in sc.events] == list(EVENT_TYPES)

@@ -22,6 +22,7 @@ import pytest
 
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import INPUT_REGISTERS, N_REGISTERS, RegisterError, address_of, check_read
+from valve_emulator.device.registers.bits import BitTable, check_bits
 from valve_emulator.device.server import EmulatorServer
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
@@ -61,16 +62,18 @@ _INSTRUCTOR = [r.address for r in INPUT_REGISTERS if r.access == "RW-instructor"
 
 
 def _answerable(rng: random.Random, tid: int) -> tuple[bytes, tuple]:
-    """One malformed (or harmless) request and its expected answer ``(tid, unit, fc byte, code | -count)``."""
+    """One malformed (or harmless) request and its expected answer ``(tid, unit, fc byte, code | -bytes)``."""
     unit = rng.choice(UNITS)
-    kind = rng.randrange(13)
+    kind = rng.randrange(19)
+    if kind >= 13:
+        return _answerable_beyond_registers(rng, tid, unit, kind)
     if kind == 0:                                           # unit without a loop: 0x0B before anything else
         bad = rng.choice([u for u in range(256) if u not in UNITS])
         fc = rng.randrange(256)
         pdu = bytes([fc]) + rng.randbytes(rng.randrange(0, 12))
         return _mbap(tid, bad, pdu), (tid, bad, fc | 0x80, 0x0B)
     if kind == 1:                                           # unknown function code (incl. >= 0x80)
-        fc = rng.choice([f for f in range(256) if f not in (3, 4, 6, 16, 23)])
+        fc = rng.choice([f for f in range(256) if f not in _SUPPORTED])
         pdu = bytes([fc]) + rng.randbytes(rng.randrange(0, 40))
         return _mbap(tid, unit, pdu), (tid, unit, fc | 0x80, 0x01)
     if kind == 2:                                           # read count 0 or above 125
@@ -122,7 +125,54 @@ def _answerable(rng: random.Random, tid: int) -> tuple[bytes, tuple]:
     fc, address, count = rng.choice((3, 4)), rng.randrange(0, 40), rng.randrange(0, 130)
     code = _read_outcome({3: "holding", 4: "input"}[fc], address, count)
     return (_mbap(tid, unit, struct.pack(">BHH", fc, address, count)),
-            (tid, unit, fc | 0x80, code) if code else (tid, unit, fc, -count))
+            (tid, unit, fc | 0x80, code) if code else (tid, unit, fc, -2 * count))
+
+
+_SUPPORTED = (1, 2, 3, 4, 5, 6, 8, 15, 16, 22, 23, 43)
+
+
+def _answerable_beyond_registers(rng: random.Random, tid: int, unit: int, kind: int) -> tuple[bytes, tuple]:
+    """Kinds 13..18: malformed requests of the bit, diagnostics, mask write and identification codes, each
+    answered 0x03 by the same structural check, before any address; and random bit reads."""
+    if kind == 13:                                          # FC1/FC2: bit count 0 or above 2000
+        fc, count = rng.choice((1, 2)), rng.choice([0, 2001, rng.randrange(2001, 65536)])
+        return _mbap(tid, unit, struct.pack(">BHH", fc, rng.randrange(65536), count)), (tid, unit, fc | 0x80, 3)
+    if kind == 14:                                          # FC5 value neither 0xFF00 nor 0; fixed lengths cut
+        fc = rng.choice((5, 5, 1, 2, 22, 43))
+        if fc == 5:
+            value = rng.choice([1, 0x00FF, 0xFFFF, 0xFF01, rng.randrange(1, 0xFF00)])
+            return _mbap(tid, unit, struct.pack(">BHH", 5, rng.randrange(65536), value)), (tid, unit, 0x85, 3)
+        full = {1: struct.pack(">BHH", 1, 0, 1), 2: struct.pack(">BHH", 2, 0, 1),
+                22: struct.pack(">BHHH", 22, 0, 0xFFFF, 0), 43: b"\x2b\x0e\x01\x00"}[fc]
+        pdu = full[:rng.randrange(1, len(full))] if rng.random() < 0.5 else full + rng.randbytes(rng.randrange(1, 9))
+        if fc == 43 and len(pdu) == 1:
+            pdu = b"\x2b"                                   # MEI type missing
+        return _mbap(tid, unit, pdu), (tid, unit, fc | 0x80, 3)
+    if kind == 15:                                          # FC15: count 0 / > 1968 / byte count lies
+        count = rng.choice([0, 1969, rng.randrange(1, 1969)])
+        right = (count + 7) // 8
+        nbytes = rng.choice([right + 1, max(0, right - 1), rng.randrange(256)]) & 0xFF
+        data = rng.randbytes(rng.choice([right, nbytes, rng.randrange(0, 200)]) % 240)
+        pdu = struct.pack(">BHHB", 15, rng.randrange(65536), count, nbytes) + data
+        if 1 <= count <= 1968 and nbytes == right == len(data):
+            pdu += b"\x00"                                  # keep it malformed: one byte too many
+        return _mbap(tid, unit, pdu), (tid, unit, 0x8F, 3)
+    if kind == 16:                                          # FC8: counter sub-function with data, or too short
+        if rng.random() < 0.3:
+            return _mbap(tid, unit, b"\x08" + rng.randbytes(rng.randrange(0, 2))), (tid, unit, 0x88, 3)
+        sub = rng.randrange(0x0A, 0x0F)
+        data = rng.choice([rng.randbytes(rng.choice((0, 1, 3, 4))), struct.pack(">H", rng.randrange(1, 65536))])
+        return _mbap(tid, unit, struct.pack(">BH", 8, sub) + data), (tid, unit, 0x88, 3)
+    if kind == 17:                                          # FC43/0x0E: read device id code 0 or 5..255
+        code = rng.choice([0, rng.randrange(5, 256)])
+        return _mbap(tid, unit, bytes((43, 0x0E, code, rng.randrange(256)))), (tid, unit, 0xAB, 3)
+    # kind 18: random bit read (any address/count): either data or the specified exception
+    fc, address, count = rng.choice((1, 2)), rng.randrange(0, 40), rng.randrange(1, 12)
+    try:
+        check_bits(BitTable.COIL if fc == 1 else BitTable.DISCRETE_INPUT, address, count)
+    except RegisterError:
+        return _mbap(tid, unit, struct.pack(">BHH", fc, address, count)), (tid, unit, fc | 0x80, 2)
+    return _mbap(tid, unit, struct.pack(">BHH", fc, address, count)), (tid, unit, fc, -((count + 7) // 8))
 
 
 def _fatal(rng: random.Random, tid: int) -> tuple[bytes, bool, tuple | None]:
@@ -166,7 +216,7 @@ def _check_answers(sock: socket.socket, expected: list[tuple]) -> None:
         if code is not None and code > 0:
             assert body[1] == code and len(body) == 2, (body.hex(), code)
         else:
-            assert body[1] == -2 * code == len(body) - 2
+            assert body[1] == -code == len(body) - 2
 
 
 def _expect_closed(sock: socket.socket) -> None:

@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 NAME = "registers"
-HELP = "print the Modbus register map (name, table, address, type, scale, units, access)"
+HELP = ("print the Modbus register map: holding and input registers, coils and discrete inputs "
+        "(name, table, address, reference, type, scale, units, access)")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -5,6 +5,11 @@ HTTP API under ``/api``; ``docs/station.md``) in the same event loop, on the sam
 free port. Bound to another address than loopback it needs ``--web-token``. ``--snapshots DIR`` keeps the
 station's named snapshots as files there, so they survive a restart.
 
+Modbus RTU: ``--rtu DEVICE [--baud 19200] [--parity E|O|N] [--stopbits 1|2]`` serves the same units on a
+serial line as well (default 19200 8E1, the serial line specification's default), from the same process
+and tick as the TCP port; ``--framer rtu`` makes the TCP port speak RTU frames instead of Modbus TCP (RTU
+over TCP, as gateways do).
+
 SIGINT/SIGTERM stop it (a recording is complete up to the last tick: every row is flushed as written).
 SIGHUP re-reads CONFIG and applies its connection and access settings (``device.read_only``,
 ``instructor_*``, ``max_connections``, ``idle_timeout``, ``frame_timeout``, ``error_rate``) at once; other
@@ -37,7 +42,7 @@ import time
 from pathlib import Path
 
 NAME = "serve"
-HELP = "serve the valve and process as a Modbus TCP device on a real-time tick"
+HELP = "serve the valve and process as a Modbus TCP (and RTU) device on a real-time tick"
 
 _log = logging.getLogger("valve_emulator.serve")
 
@@ -74,6 +79,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backtrack", type=float, default=60.0, metavar="S",
                    help="station backtrack: a snapshot every S simulated seconds, the last 30 kept "
                         "(default %(default)s; 0 turns it off)")
+    g = p.add_argument_group("Modbus RTU")
+    g.add_argument("--rtu", metavar="DEVICE", help="also serve the units on this serial device (e.g. /dev/ttyUSB0)")
+    g.add_argument("--baud", type=int, default=19200, help="serial line baud rate (default %(default)s)")
+    g.add_argument("--parity", choices=("E", "O", "N"), default="E", help="parity (default %(default)s)")
+    g.add_argument("--stopbits", type=int, choices=(1, 2), default=1, help="stop bits (default %(default)s)")
+    g.add_argument("--framer", choices=("socket", "rtu"), default="socket",
+                   help="what the TCP port speaks: socket = Modbus TCP (default), rtu = RTU frames over TCP")
     p.add_argument("--processes", type=int, default=1, metavar="N",
                    help="split the loops over N server processes on ports PORT..PORT+N-1, each owning whole "
                         "units (default 1; one per core)")
@@ -112,6 +124,10 @@ def _check(args: argparse.Namespace) -> None:
         if not is_loopback(args.host):
             raise ValueError(f"--web on --host {args.host} needs --web-token: bound beyond loopback the instructor "
                              f"page and API must ask for a token")
+    if args.rtu is None and (args.baud, args.parity, args.stopbits) != (19200, "E", 1):
+        raise ValueError("--baud, --parity and --stopbits set up the serial line of --rtu DEVICE; give --rtu")
+    if args.rtu is not None and args.processes > 1:
+        raise ValueError("--rtu serves one serial line from one process; it cannot be combined with --processes")
     if args.port and args.port + args.processes - 1 > 65535:
         raise ValueError(f"--port {args.port} + --processes {args.processes} runs past port 65535")
 
@@ -168,10 +184,12 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                 record: Path | None = None, record_units=None, read_only: bool = False,
                 max_connections: int | None = None, process: tuple[int, int] | None = None,
                 web: int | None = None, web_token: str | None = None, snapshots: Path | None = None,
-                backtrack: float = 60.0) -> None:
+                backtrack: float = 60.0, rtu: str | None = None, serial=None, framer: str = "socket") -> None:
     """Serve until SIGINT/SIGTERM (or cancellation); ``ready(server)`` is called once listening.
 
     ``web``: also serve the instructor station on that port (:func:`start_web`).
+    ``rtu`` (a serial device) with ``serial`` (:class:`~valve_emulator.device.rtu.SerialSettings`) serves the
+    units on that line too; ``framer="rtu"`` makes the TCP port speak RTU frames.
 
     SIGHUP reloads ``config_path`` (:func:`reload_config`); ``record`` records ``record_units`` (default
     all) with :class:`~valve_emulator.device.record.TickRecorder`. ``process = (index, count)`` names the
@@ -190,7 +208,9 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
         except (NotImplementedError, RuntimeError):  # not the main thread / not supported
             pass
     try:
-        async with EmulatorServer(config, host=host, port=port, time_scale=time_scale) as srv:
+        async with EmulatorServer(config, host=host, port=port, time_scale=time_scale, framer=framer) as srv:
+            if rtu is not None:
+                srv.open_serial(rtu, serial)
             hup = getattr(signal, "SIGHUP", None)
             if hup is not None:  # installed before the "listening" line, which tells a supervisor we are up
                 handlers[hup] = lambda: reload_config(srv, config_path, read_only=read_only,
@@ -200,8 +220,11 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                 except (NotImplementedError, RuntimeError):
                     pass
             who = f"process {process[0]}/{process[1]} " if process is not None else ""
+            rtu_note = "" if framer == "socket" else "; the TCP port speaks RTU frames (RTU over TCP)"
+            if rtu is not None:
+                rtu_note += f"; Modbus RTU on {rtu} at {srv.serial_links[0].settings}"
             print(f"valve-emulator: {who}listening on {host}:{srv.port}, unit ids {describe_units(config)}; "
-                  f"tick {config.device.tick:g} s, time-scale {time_scale:g}; Ctrl-C stops", flush=True)
+                  f"tick {config.device.tick:g} s, time-scale {time_scale:g}{rtu_note}; Ctrl-C stops", flush=True)
             if binds_all_interfaces(host):
                 print("valve-emulator: WARNING: bound to all interfaces. Modbus TCP has no authentication: "
                       "anyone who can reach this port can move the valve. Use an isolated network.",
@@ -282,10 +305,16 @@ def run(args: argparse.Namespace) -> int:
     else:
         runner = asyncio.run
     port = args.port + args.process_index if args.port and process is not None else args.port
+    serial = None
+    if args.rtu is not None:
+        from valve_emulator.device.rtu import SerialSettings
+
+        serial = SerialSettings(baud=args.baud, parity=args.parity, stopbits=args.stopbits)
     runner(serve(cfg, host=args.host, port=port, time_scale=args.time_scale, config_path=args.config,
                  record=args.record, record_units=args.record_unit, read_only=args.read_only,
                  max_connections=args.max_connections, process=process, web=args.web,
-                 web_token=args.web_token, snapshots=args.snapshots, backtrack=args.backtrack))
+                 web_token=args.web_token, snapshots=args.snapshots, backtrack=args.backtrack,
+                 rtu=args.rtu, serial=serial, framer=args.framer))
     print("valve-emulator: stopped", flush=True)
     return 0
 

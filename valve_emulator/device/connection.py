@@ -26,8 +26,13 @@ Defences, all driven by callbacks and timer handles, never by tasks:
 - *End of stream.* The frames received before a FIN are still answered; a partial frame left at the end
   can never complete, so the connection is then closed.
 
+Communication faults (:mod:`~valve_emulator.device.comm`, asked per frame only while a unit has one): a
+request that gets no response is consumed silently; ``close`` answers the frames before it and closes the
+connection; a delay sends the answers before the delayed frame at once, holds everything after it (reading
+paused, order kept) and sends its answer ``comm_delay_ms`` later.
+
 Reading is paused whenever any of: the peer does not read (``pause_writing``), frames wait for their turn,
-the error budget is exhausted, or the connection is closing.
+the error budget is exhausted, an answer is being delayed, or the connection is closing.
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ import collections
 import logging
 import socket
 from typing import Any
+
+from valve_emulator.device.registers import CommFault
 
 __all__ = ["FRAMES_PER_ITERATION", "FRAMES_PER_TURN", "SOCKET_BUFFER", "VIOLATION_DELAY", "ModbusConnection",
            "TurnBudget"]
@@ -114,6 +121,7 @@ class ModbusConnection(asyncio.Protocol):
         self._eof = False
         self._throttle: asyncio.TimerHandle | None = None
         self._close_timer: asyncio.TimerHandle | None = None
+        self._delayed: asyncio.TimerHandle | None = None
         self._tokens = 0.0
         self._stamp = 0.0
 
@@ -143,7 +151,7 @@ class ModbusConnection(asyncio.Protocol):
         self.server.connection_set.discard(self)
         self.server.guard.release(self.slot)
         self._buf.clear()
-        for timer in (self._throttle, self._close_timer):
+        for timer in (self._throttle, self._close_timer, self._delayed):
             if timer is not None:
                 timer.cancel()
 
@@ -165,7 +173,7 @@ class ModbusConnection(asyncio.Protocol):
 
     def eof_received(self) -> bool:
         self._eof = True
-        if not self._backlog:
+        if not self._backlog and self._delayed is None:
             self._close_now()
         return True   # we close the transport ourselves, after answering the frames still queued
 
@@ -174,27 +182,44 @@ class ModbusConnection(asyncio.Protocol):
     def _serve(self) -> None:
         self._scheduled = False
         transport, slot, server = self.transport, self.slot, self.server
-        if slot is None or self._closing or transport.is_closing():
+        if slot is None or self._closing or transport.is_closing() or self._delayed is not None:
             return
-        buf, errors0, turns = self._buf, server.exceptions, server.turns
-        end_of_data, pos, answers = len(buf), 0, []
+        buf, errors0, turns, comm = self._buf, server.exceptions, server.turns, server.comm
+        end_of_data, pos, answers, frames = len(buf), 0, [], 0
         limit = min(FRAMES_PER_TURN, turns.left)
-        while end_of_data - pos >= 7 and len(answers) < limit:
+        while end_of_data - pos >= 7 and frames < limit:
             length = (buf[pos + 4] << 8) | buf[pos + 5]
             if buf[pos + 2] or buf[pos + 3] or not 2 <= length <= 254:
-                turns.spend(len(answers))
+                turns.spend(frames)
                 self._violation(bytes(buf[pos:pos + 7]), answers)
                 return
             end = pos + 6 + length
             if end > end_of_data:
                 break  # partial frame: wait for the rest
-            answers.append(server.handle(bytes(buf[pos:end]), self.instructor, peer=self.peer_ip))
-            pos = end
+            frame = bytes(buf[pos:end])
+            pos, frames = end, frames + 1
+            state = comm.plan(frame[6], frame[7:]) if comm.active else None
+            if state is None:
+                answers.append(server.handle(frame, self.instructor, peer=self.peer_ip))
+                continue
+            answer = server.handle_faulted(frame, self.instructor, state, peer=self.peer_ip)
+            if state.fault is CommFault.CLOSE:
+                turns.spend(frames)
+                if answers:
+                    transport.write(b"".join(answers))
+                self._close_now()
+                return
+            if state.delay_ms and answer is not None:
+                self._delayed = asyncio.get_running_loop().call_later(state.delay_ms / 1000, self._release,
+                                                                       answer)
+                break
+            if answer is not None:
+                answers.append(answer)
         del buf[:pos]
-        if answers:
-            turns.spend(len(answers))
+        if frames:
+            turns.spend(frames)
         now = server.guard.clock()
-        if answers:
+        if frames:
             slot.last_request = now
             slot.partial_since = now if buf else None  # the deadline runs from the current frame's start
             transport.write(b"".join(answers))
@@ -202,12 +227,20 @@ class ModbusConnection(asyncio.Protocol):
             slot.partial_since = now
         if server.exceptions != errors0:
             self._spend(server.exceptions - errors0, now)
-        self._backlog = len(answers) == limit and _complete(buf)
+        self._backlog = frames == limit and _complete(buf) and self._delayed is None
         if self._backlog:
             self._schedule()
-        elif self._eof:
+        elif self._eof and self._delayed is None:
             self._close_now()
         self._sync_reading()
+
+    def _release(self, answer: bytes) -> None:
+        """The delay of a delayed answer is over: send it and serve what arrived meanwhile."""
+        self._delayed = None
+        if self._closing or self.transport.is_closing():
+            return
+        self.transport.write(answer)
+        self._serve()
 
     def _schedule(self) -> None:
         """Queue for a turn to serve the waiting frames, unless something holds this connection back."""
@@ -220,7 +253,8 @@ class ModbusConnection(asyncio.Protocol):
         transport = self.transport
         if transport.is_closing():
             return
-        hold = self._write_paused or self._backlog or self._throttle is not None or self._closing
+        hold = (self._write_paused or self._backlog or self._throttle is not None or self._closing
+                or self._delayed is not None)
         if hold and transport.is_reading():
             transport.pause_reading()
         elif not hold and not transport.is_reading():

@@ -24,8 +24,16 @@ Hostile input
 -----------------------
 Every request PDU is checked against the structure the specification prescribes for its function code
 (:func:`~valve_emulator.device.pdu.malformed`: exact length, quantities 1..125 read, 1..123 written by
-FC16, 1..121 written by FC23, byte count = 2 × quantity) *before* pymodbus decodes it, so no malformed PDU
-reaches the decoder (which would log a warning per frame) and every one is answered ``0x03``. Every
+FC16, 1..121 written by FC23, 1..2000 bits read, 1..1968 written by FC15, byte count = 2 × quantity or
+⌈bits / 8⌉, coil values 0xFF00 / 0x0000, FC8 counter requests with data 0x0000, FC43 read codes 1..4)
+*before* anything decodes it, so no malformed PDU reaches a decoder (pymodbus' would log a warning per
+frame) and every one is answered ``0x03``.
+
+Function codes: 3, 4, 6, 16, 23 are decoded by pymodbus; 1, 2, 5, 15 (the bit tables of
+:mod:`~valve_emulator.device.registers.bits`), 8 (diagnostics: sub-function 0 echoes, 0x0A clears the
+counters, 0x0B..0x0E read them, :class:`DiagnosticCounters`), 22 (mask write, §6.16, checked and applied
+as the FC6 write of its result) and 43 / 0x0E (device identification, :mod:`~valve_emulator.device.identity`)
+are decoded here from the raw bytes. Every
 refused write is logged once per client address, register and exception code
 (:class:`~valve_emulator.device.guard.RefusalLog`). Listening on all interfaces logs a warning at start.
 
@@ -36,13 +44,16 @@ Answers (exception codes):
   of a fleet answers the other slices' units this way too: they live behind another port.)
 - units carrying several loops (blocks of 32 registers, see :mod:`~valve_emulator.device.registers`): a
   holding read may span blocks, an input read and a write must stay inside one block.
-- function codes other than 3, 4, 6, 16, 23: ``0x01`` illegal function.
-- ``read_only`` mode: every write function code (6, 16, 23) gets ``0x01`` illegal function (the server
-  does not offer writing at all), and nothing changes.
+- function codes other than 1, 2, 3, 4, 5, 6, 8, 15, 16, 22, 23, 43, an FC8 sub-function other than 0 and
+  0x0A..0x0E, an FC43 MEI type other than 0x0E: ``0x01`` illegal function.
+- ``read_only`` mode: every write function code (5, 6, 15, 16, 22, 23) gets ``0x01`` illegal function
+  (the server does not offer writing at all), and nothing changes.
 - read/write outside the map, an FC4 read over an unmapped input address, a write to a read-only register,
   to a controller register of a loop without controller, to an instructor register without permission
   (``instructor_writes`` off, or the client's IP not in ``instructor_hosts``), or to OP while the internal
-  controller is in auto: ``0x02`` illegal data address; nothing changes.
+  controller is in auto, and the same for a coil that writes such a register; a coil or discrete input
+  that does not exist; an FC43 object id the device does not have (individual access): ``0x02`` illegal
+  data address; nothing changes.
 - a value out of range, or a malformed PDU (wrong length for its function code, a quantity of 0 or above
   the limits, a byte count that disagrees with the quantity or with the bytes sent): ``0x03`` illegal
   data value; nothing changes (a multi-register write is checked completely before any of it is applied).
@@ -66,17 +77,34 @@ from pymodbus.framer import FramerSocket
 from pymodbus.pdu import DecodePDU, ExceptionResponse
 from pymodbus.pdu.register_message import WriteMultipleRegistersResponse, WriteSingleRegisterResponse
 
+from valve_emulator.device.comm import CommFaults, CommState
 from valve_emulator.device.connection import SOCKET_BUFFER, ModbusConnection, TurnBudget
 from valve_emulator.device.guard import ConnectionGuard, RefusalLog, binds_all_interfaces
-from valve_emulator.device.pdu import WRITE_FUNCTIONS, malformed, register_names, write_target
+from valve_emulator.device.identity import Identity
+from valve_emulator.device.pdu import (
+    BIT_READ_FUNCTIONS,
+    BIT_WRITE_FUNCTIONS,
+    COUNTER_SUBFUNCTIONS,
+    MEI_DEVICE_ID,
+    WRITE_FUNCTIONS,
+    malformed,
+    register_names,
+    write_target,
+)
 from valve_emulator.device.registers import (
     BLOCK_STRIDE,
+    COMM_BASE,
+    CommFault,
     RegisterAccessError,
     RegisterAddressError,
     RegisterError,
     RegisterValueError,
+    address_of,
     check_read,
+    decode_write,
 )
+from valve_emulator.device.registers.bits import COILS, BitTable, bit_values, check_bits, coil_write
+from valve_emulator.device.rtu import RtuSerialLink, RtuStreamConnection, SerialSettings
 from valve_emulator.device.tick import Device
 
 __all__ = ["EmulatorServer", "LIVE_DEVICE_KEYS"]
@@ -85,7 +113,10 @@ _log = logging.getLogger(__name__)
 
 _READS = {3: "holding", 4: "input"}
 _WRITES = WRITE_FUNCTIONS
-_SUPPORTED = frozenset(_READS) | _WRITES
+_ALL_WRITES = WRITE_FUNCTIONS | BIT_WRITE_FUNCTIONS
+_OWN_DECODING = BIT_READ_FUNCTIONS | BIT_WRITE_FUNCTIONS | frozenset({8, 22, 43})
+_SUPPORTED = frozenset(_READS) | _ALL_WRITES | _OWN_DECODING
+_STATUS_ADDRESS = address_of("status")
 _CODE_OF = ((RegisterValueError, ExcCodes.ILLEGAL_VALUE), (RegisterAccessError, ExcCodes.ILLEGAL_ADDRESS),
             (RegisterAddressError, ExcCodes.ILLEGAL_ADDRESS))
 _REGISTER_NAME = re.compile(r"\bregister (\w+)")
@@ -93,6 +124,37 @@ _REGISTER_NAME = re.compile(r"\bregister (\w+)")
 #: ``device`` settings :meth:`EmulatorServer.reconfigure` applies to a running server.
 LIVE_DEVICE_KEYS = ("read_only", "instructor_writes", "instructor_hosts", "max_connections", "idle_timeout",
                     "frame_timeout", "error_rate")
+
+
+class DiagnosticCounters:
+    """The counters FC8 reads (serial line spec v1.02 §6.1, application protocol §6.8), modulo 2^16.
+
+    ``bus_messages`` (0x0B): frames received; ``comm_errors`` (0x0C): frames dropped for a bad CRC or a
+    silence inside them (RTU); ``exception_errors`` (0x0D): exception responses; ``server_messages``
+    (0x0E): requests addressed to this server (any of its units, broadcasts included). A view of the
+    server's own counters (nothing extra to count per request) since the last :meth:`clear`.
+    """
+
+    def __init__(self, server: EmulatorServer) -> None:
+        self._server = server
+        self._base = (0, 0, 0, 0)
+
+    def _now(self) -> tuple[int, int, int, int]:
+        s = self._server
+        return (s.requests + s.foreign_frames + s.crc_errors, s.crc_errors, s.exceptions + s.fault_exceptions,
+                s.requests)
+
+    def clear(self) -> None:
+        self._base = self._now()
+
+    def read(self, sub_function: int) -> int:
+        k = sub_function - 0x0B
+        return (self._now()[k] - self._base[k]) & 0xFFFF
+
+    bus_messages = property(lambda self: self.read(0x0B))
+    comm_errors = property(lambda self: self.read(0x0C))
+    exception_errors = property(lambda self: self.read(0x0D))
+    server_messages = property(lambda self: self.read(0x0E))
 
 
 class _Refused(Exception):
@@ -113,6 +175,8 @@ class EmulatorServer:
     time_scale : see :class:`~valve_emulator.device.tick.Device` (``inf`` fastest, ``0`` frozen).
     bank : an existing ``LoopBank`` (default: built from ``config``).
     clock, sleep, jitter_size : see :class:`~valve_emulator.device.tick.Device` (fake time in tests).
+    framer : ``"socket"`` (Modbus TCP, MBAP headers) or ``"rtu"`` (RTU frames with CRC over TCP, what
+        gateways call RTU over TCP; :mod:`~valve_emulator.device.rtu`). :meth:`open_serial` adds a serial line.
 
     A bind failure raises ``OSError`` after the tick task has been stopped again. Connection limits,
     timeouts and the error budget come from ``config.device`` (``max_connections``, ``idle_timeout``,
@@ -124,7 +188,12 @@ class EmulatorServer:
 
     def __init__(self, config: Any, *, host: str = "127.0.0.1", port: int = 0, time_scale: float = 1.0,
                  bank: Any = None, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> None:
+                 sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096,
+                 framer: str = "socket") -> None:
+        if framer not in ("socket", "rtu"):
+            raise ValueError(f"framer must be 'socket' (Modbus TCP) or 'rtu' (RTU over TCP), got {framer!r}")
+        self.framer = framer
+        self.serial_links: list[Any] = []
         self.host = host
         self.port = port
         self.device = Device.from_config(config, bank=bank, time_scale=time_scale, clock=clock, sleep=sleep,
@@ -135,6 +204,9 @@ class EmulatorServer:
                                      frame_timeout=dev.frame_timeout, error_rate=dev.error_rate)
         self.refusals = RefusalLog(_log)
         self._apply_access(config)
+        self._identities = {lp.device.unit: Identity.of_loop(lp) for lp in reversed(config.loops)}  # block 0 wins
+        self.diagnostics = DiagnosticCounters(self)
+        self.comm = CommFaults({unit: blocks for unit, (_, blocks) in self._regions.items()})
         self._decoder = DecodePDU(is_server=True)
         self._framer = FramerSocket(self._decoder)
         self._server: asyncio.Server | None = None
@@ -142,6 +214,9 @@ class EmulatorServer:
         self.turns = TurnBudget()
         self.requests = 0
         self.exceptions = 0
+        self.fault_exceptions = 0     # exception answers of communication faults (not charged to a client)
+        self.crc_errors = 0           # RTU frames dropped: bad CRC or a silence inside
+        self.foreign_frames = 0       # RTU frames for an address not served here
         self.violations = 0
         self.throttled = 0
 
@@ -199,7 +274,8 @@ class EmulatorServer:
         await self.device.start()
         try:
             loop = asyncio.get_running_loop()
-            self._server = await loop.create_server(lambda: ModbusConnection(self), self.host, self.port)
+            protocol = ModbusConnection if self.framer == "socket" else RtuStreamConnection
+            self._server = await loop.create_server(lambda: protocol(self), self.host, self.port)
         except BaseException:
             await self.device.stop()  # no half-started server: the tick task must not outlive us
             raise
@@ -218,8 +294,19 @@ class EmulatorServer:
                          "reach port %d can read and write this device; use an isolated network",
                          self.host, self.port)
 
+    def open_serial(self, port: str, settings: SerialSettings | None = None) -> RtuSerialLink:
+        """Serve the same units as Modbus RTU on serial device ``port`` too (call after :meth:`start`; closed by
+        :meth:`stop`). ``OSError`` naming the device when it cannot be opened."""
+        link = RtuSerialLink(self, port, settings or SerialSettings())
+        link.open()
+        self.serial_links.append(link)
+        return link
+
     async def stop(self) -> None:
         server, self._server = self._server, None
+        for link in self.serial_links:
+            link.close()
+        self.serial_links.clear()
         self.guard.stop()
         if server is not None:
             server.close()
@@ -242,64 +329,106 @@ class EmulatorServer:
 
         ``peer`` (the client's address) names the client when a refused write is logged.
         """
+        tid, unit = (frame[0] << 8) | frame[1], frame[6]
+        return self._framer.encode(self.answer(unit, frame[7:], instructor, peer=peer), unit, tid)
+
+    def handle_faulted(self, frame: bytes, instructor: bool, state: CommState, *, peer: str = "") -> bytes | None:
+        """:meth:`handle` for a unit with a communication fault (see :mod:`~valve_emulator.device.comm`):
+        the response frame, or ``None`` when nothing is to be sent."""
+        tid, unit = (frame[0] << 8) | frame[1], frame[6]
+        pdu = self.answer_faulted(unit, frame[7:], instructor, state, peer=peer)
+        return None if pdu is None else self._framer.encode(pdu, unit, tid)
+
+    def answer_faulted(self, unit: int, pdu: bytes, instructor: bool, state: CommState, *,
+                       peer: str = "") -> bytes | None:
+        """:meth:`answer` under communication fault ``state``: ``None`` for no response (and for a
+        connection to be closed), an exception 0x06 / 0x04, or the normal answer (delay only, bad CRC: the
+        framing corrupts it)."""
+        fault = state.fault
+        if fault in (CommFault.NO_RESPONSE, CommFault.CLOSE):
+            self.requests += 1
+            return None
+        if fault in (CommFault.BUSY, CommFault.FAILURE):
+            self.requests += 1
+            self.fault_exceptions += 1   # on purpose: not in self.exceptions, which the error budget charges
+            code = ExcCodes.DEVICE_BUSY if fault is CommFault.BUSY else ExcCodes.DEVICE_FAILURE
+            return bytes((pdu[0] | 0x80, code))
+        return self.answer(unit, pdu, instructor, peer=peer)
+
+    def answer(self, unit: int, pdu: bytes, instructor: bool, *, peer: str = "") -> bytes:
+        """The response PDU to request ``pdu`` (function code first, at least one byte) for ``unit``.
+
+        Framing-independent: the TCP connection wraps it in MBAP, the RTU link in address and CRC.
+        """
         self.requests += 1
-        tid, unit, fc = (frame[0] << 8) | frame[1], frame[6], frame[7]
+        fc = pdu[0]
         try:
             region = self._regions.get(unit)
             if region is None:
                 raise _Refused(ExcCodes.GATEWAY_NO_RESPONSE, f"no loop on unit {unit}")
             if fc not in _SUPPORTED:
                 raise _Refused(ExcCodes.ILLEGAL_FUNCTION, f"function code {fc} not supported")
-            pdu = frame[7:]
             problem = malformed(fc, pdu)
             if problem is not None:
                 raise _Refused(ExcCodes.ILLEGAL_VALUE, f"malformed request: {problem}")
-            if self._read_only and fc in _WRITES:
+            if self._read_only and fc in _ALL_WRITES:
                 raise _Refused(ExcCodes.ILLEGAL_FUNCTION, "server is read-only (device.read_only)")
+            if fc in _OWN_DECODING:
+                return self._execute_raw(fc, pdu, unit, region, instructor)
             request = self._decoder.decode(pdu)
             if request is None:  # cannot happen after _malformed; never let it reach _execute
                 raise _Refused(ExcCodes.ILLEGAL_VALUE, "malformed request")
-            payload = self._execute(fc, request, unit, region, instructor)
+            return self._execute(fc, request, unit, region, instructor)
         except RegisterError as exc:
             code = next(c for cls, c in _CODE_OF if isinstance(exc, cls))
-            payload = self._refuse(fc, code, unit, exc, frame, peer)
+            return self._refuse(fc, code, unit, exc, pdu, peer)
         except _Refused as exc:
-            payload = self._refuse(fc, exc.code, unit, exc, frame, peer)
+            return self._refuse(fc, exc.code, unit, exc, pdu, peer)
         except Exception as exc:  # a bug, not a client error: say so loudly, answer, keep serving
             _log.exception("unit %d fc %d: request failed", unit, fc)
-            payload = self._refuse(fc, ExcCodes.DEVICE_FAILURE, unit, exc, frame, peer)
-        return self._framer.encode(payload, unit, tid)
+            return self._refuse(fc, ExcCodes.DEVICE_FAILURE, unit, exc, pdu, peer)
 
-    def _refuse(self, fc: int, code: int, unit: int, reason: Exception, frame: bytes, peer: str) -> bytes:
+    def _refuse(self, fc: int, code: int, unit: int, reason: Exception, pdu: bytes, peer: str) -> bytes:
         self.exceptions += 1
         _log.debug("unit %d fc %d -> exception 0x%02X: %s", unit, fc, code, reason)
-        if fc in _WRITES and code != ExcCodes.GATEWAY_NO_RESPONSE and (
+        if fc in _ALL_WRITES and code != ExcCodes.GATEWAY_NO_RESPONSE and (
                 isinstance(reason, RegisterError) or code == ExcCodes.ILLEGAL_FUNCTION):
-            address, count = write_target(fc, frame[7:])
+            address, count = write_target(fc, pdu)
             blocked = self._regions[unit][1] > 1   # name the registers inside the loop's block
-            span = register_names(address % BLOCK_STRIDE if blocked else address, count)
+            local = address % BLOCK_STRIDE if blocked else address
+            if fc in BIT_WRITE_FUNCTIONS:
+                span = [b.name for b in COILS[local:local + count]]
+                table = "coil"
+            else:
+                span = register_names(local, count)
+                table = "holding"
             match = _REGISTER_NAME.search(str(reason))
             # one key for everything outside the map: a client scanning addresses must not flood the log
             register = match.group(1) if match else (span[0] if span else "(outside the map)")
-            where = f"holding {address}" + (f"..{address + count - 1}" if count > 1 else "")
+            where = f"{table} {address}" + (f"..{address + count - 1}" if count > 1 else "")
             self.refusals.note(peer, register, code, "refused write from %s to unit %d %s (%s): exception 0x%02X, %s",
                                peer or "?", unit, where, ", ".join(span) or "outside the map", code, reason)
         response = ExceptionResponse(fc, code)
         return bytes((response.function_code,)) + response.encode()
 
-    def _read(self, fc: int, table: str, region: tuple[int, int], address: int, count: int) -> bytes:
+    def _read(self, fc: int, table: str, unit: int, region: tuple[int, int], address: int, count: int) -> bytes:
+        if address >= COMM_BASE and table == "holding" and self.comm.covers(unit, address):
+            return bytes((fc, 2 * count)) + self.comm.read(unit, address, count)
         start, blocks = region
         check_read(table, address, count, blocks=blocks)
         start += 2 * address
         return bytes((fc, 2 * count)) + self.device.image[start:start + 2 * count]
 
     def _write(self, unit: int, address: int, registers: Any, instructor: bool) -> None:
+        if address >= COMM_BASE and self.comm.covers(unit, address):
+            self.comm.write(unit, address, registers, instructor=instructor)
+            return
         index, offset = self.device.layout.locate_write(unit, address, len(registers))
         self.device.write(index, offset, registers, instructor=instructor)
 
     def _execute(self, fc: int, pdu: Any, unit: int, region: tuple[int, int], instructor: bool) -> bytes:
         if fc in _READS:
-            return self._read(fc, _READS[fc], region, pdu.address, pdu.count)
+            return self._read(fc, _READS[fc], unit, region, pdu.address, pdu.count)
         if fc == 6:
             self._write(unit, pdu.address, pdu.registers, instructor)
             response = WriteSingleRegisterResponse(address=pdu.address, registers=pdu.registers)
@@ -307,9 +436,70 @@ class EmulatorServer:
         if fc == 16:
             self._write(unit, pdu.address, pdu.registers, instructor)
             return b"\x10" + WriteMultipleRegistersResponse(address=pdu.address, count=pdu.count).encode()
-        check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse before writing
+        if not self.comm.covers(unit, pdu.read_address):
+            check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse before writing
         self._write(unit, pdu.write_address, pdu.write_registers, instructor)
-        return self._read(23, "holding", region, pdu.read_address, pdu.read_count)
+        return self._read(23, "holding", unit, region, pdu.read_address, pdu.read_count)
+
+    # --- the function codes decoded here (bits, diagnostics, mask write, identification) ------------
+
+    def _status(self, region: tuple[int, int], block: int) -> int:
+        at = region[0] + 2 * (BLOCK_STRIDE * block + _STATUS_ADDRESS)
+        return (self.device.image[at] << 8) | self.device.image[at + 1]
+
+    def _execute_raw(self, fc: int, pdu: bytes, unit: int, region: tuple[int, int], instructor: bool) -> bytes:
+        """Function codes 1, 2, 5, 8, 15, 22 and 43 on a well-formed ``pdu`` (see :mod:`.pdu`)."""
+        if fc == 8:
+            return self._diagnostics(pdu)
+        if fc == 43:
+            if pdu[1] != MEI_DEVICE_ID:
+                raise _Refused(ExcCodes.ILLEGAL_FUNCTION, f"MEI type 0x{pdu[1]:02X} not supported")
+            return self._identities[unit].response(pdu[2], pdu[3])
+        address, count = _u16(pdu, 1), _u16(pdu, 3)
+        if fc in BIT_READ_FUNCTIONS:
+            table = BitTable.COIL if fc == 1 else BitTable.DISCRETE_INPUT
+            block, offset = check_bits(table, address, count, blocks=region[1])
+            values = bit_values(table, self._status(region, block), offset, count)
+            packed = bytearray((count + 7) // 8)
+            for i, on in enumerate(values):
+                if on:
+                    packed[i >> 3] |= 1 << (i & 7)
+            return bytes((fc, len(packed))) + bytes(packed)
+        if fc == 22:   # result = (current AND and_mask) OR (or_mask AND NOT and_mask), §6.16
+            current = int.from_bytes(self._read(3, "holding", unit, region, address, 1)[2:], "big")
+            and_mask, or_mask = count, _u16(pdu, 5)
+            self._write(unit, address, [(current & and_mask) | (or_mask & ~and_mask & 0xFFFF)], instructor)
+            return bytes(pdu)
+        if fc == 5:
+            count, bits = 1, [pdu[3] == 0xFF]
+        else:
+            bits = [bool(pdu[6 + (i >> 3)] >> (i & 7) & 1) for i in range(count)]
+        block, offset = check_bits(BitTable.COIL, address, count, blocks=region[1])
+        index = self.device.layout.loops_of[unit][block]
+        writes = [coil_write(offset + i, on) for i, on in enumerate(bits)]
+        auto = self.device.effective_auto(index)
+        scaling = self.device.scaling
+        for reg_address, raw in writes:   # check every coil before any is applied: whole or nothing
+            decode_write(reg_address, [raw], scaling, index, auto=auto, instructor=instructor)
+        for reg_address, raw in writes:
+            self.device.write(index, reg_address, [raw], instructor=instructor)
+        return bytes(pdu) if fc == 5 else bytes(pdu[:5])
+
+    def _diagnostics(self, pdu: bytes) -> bytes:
+        """FC8 (§6.8): sub-function 0 echoes the request; 0x0A clears and 0x0B..0x0E read the counters."""
+        sub = _u16(pdu, 1)
+        if sub == 0:
+            return bytes(pdu)
+        if sub not in COUNTER_SUBFUNCTIONS:
+            raise _Refused(ExcCodes.ILLEGAL_FUNCTION, f"diagnostics sub-function 0x{sub:04X} not supported")
+        if sub == 0x0A:
+            self.diagnostics.clear()
+            return bytes(pdu)
+        return bytes(pdu[:3]) + self.diagnostics.read(sub).to_bytes(2, "big")
+
+
+def _u16(pdu: bytes, at: int) -> int:
+    return (pdu[at] << 8) | pdu[at + 1]
 
 
 def _normalise_ip(host: str) -> str:

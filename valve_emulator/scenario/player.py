@@ -39,7 +39,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from valve_emulator.device.registers import MAP_VERSION, N_REGISTERS, REGISTERS, RW_INSTRUCTOR, Status, address_of
+from valve_emulator.device.registers import (
+    MAP_VERSION,
+    N_REGISTERS,
+    REGISTERS,
+    RW_INSTRUCTOR,
+    UNIT_REGISTERS,
+    Status,
+    address_of,
+)
 from valve_emulator.scenario.timeline import Event, Scenario
 
 __all__ = [
@@ -55,8 +63,8 @@ __all__ = [
     "write_groups",
 ]
 
-_ADDRESS = {r.name: r.address for r in REGISTERS}
-_ACCESS = {r.name: r.access for r in REGISTERS}
+_ADDRESS = {r.name: r.address for r in REGISTERS + UNIT_REGISTERS}
+_ACCESS = {r.name: r.access for r in REGISTERS + UNIT_REGISTERS}
 
 
 class WriteRefused(OSError):

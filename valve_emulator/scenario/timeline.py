@@ -30,6 +30,13 @@ normal      --                                  ``S``, ``J`` and ``noise`` back 
                                                 ``load`` 0, ``fault`` 0 (the set point is left alone)
 write       ``register`` (a name), ``value``    any writable register, ``value`` in the units of the
                                                 register map (raw = value × scale)
+comm        ``fault`` (0..5 or its name),       ``comm_fault``, ``comm_delay_ms`` of the unit: a
+            ``delay_ms`` (0..10000),            communication fault (``none``, ``no_response``,
+            ``duration`` (s, optional)          ``busy``, ``failure``, ``close``, ``bad_crc``); with
+                                                ``duration`` both go back to 0 that much later. No
+                                                other event may fall inside a ``no_response``,
+                                                ``busy``, ``failure`` or ``close`` fault: the unit
+                                                would not carry it out
 ==========  ==================================  =====================================================
 
 Everything is checked when the file is loaded -- before an emulator starts or a register is written --
@@ -56,7 +63,15 @@ from typing import Any, Final
 import yaml
 
 from valve_emulator.config import ConfigError, LoopConfig, ServerConfig, load_server, server_from_mapping
-from valve_emulator.device.registers import REGISTERS, Register, RegisterError, Scaling, decode_write
+from valve_emulator.device.registers import (
+    REGISTERS,
+    UNIT_REGISTERS,
+    CommFault,
+    Register,
+    RegisterError,
+    Scaling,
+    decode_write,
+)
 
 __all__ = ["EVENT_TYPES", "Event", "Scenario", "ScenarioError", "load_scenario", "parse_scenario"]
 
@@ -70,10 +85,12 @@ EVENT_TYPES: Final[dict[str, tuple[tuple[str, ...], tuple[str, ...]]]] = {
     "sp": (("value",), ()),
     "normal": ((), ()),
     "write": (("register", "value"), ()),
+    "comm": (("fault",), ("delay_ms", "duration")),
 }
 _COMMON: Final = ("at", "event", "say")
 _TOP: Final = ("name", "description", "device", "unit", "time_scale", "duration", "events")
-_BY_NAME: Final = {r.name: r for r in REGISTERS}
+_BY_NAME: Final = {r.name: r for r in REGISTERS + UNIT_REGISTERS}
+_UNIT_NAMES: Final = frozenset(r.name for r in UNIT_REGISTERS)
 
 
 class ScenarioError(ValueError):
@@ -228,6 +245,9 @@ def _writes(kind: str, p: dict[str, Any], key: str, loop: LoopConfig, where: _Wh
         return [("load", _raw(_BY_NAME["load"], p["flow"], f"{key}.flow", where))]
     if kind == "noise":
         return [("noise", _raw(_BY_NAME["noise"], p["std"], f"{key}.std", where))]
+    if kind == "comm":
+        return [("comm_fault", int(p["fault"])), ("comm_delay_ms", _raw(_BY_NAME["comm_delay_ms"],
+                                                                        p.get("delay_ms", 0.0), key, where))]
     if kind in ("seize", "release"):
         return [("fault", int(kind == "seize"))]
     if kind == "sp":
@@ -271,15 +291,58 @@ def _event(m: Any, key: str, where: _Where, loop: LoopConfig, scaling: Scaling, 
     params: dict[str, Any] = {}
     for k in required + optional:
         if k in m:
-            params[k] = m[k] if k == "register" else _number(m[k], f"{key}.{k}", where)
+            params[k] = m[k] if k in ("register", "fault") else _number(m[k], f"{key}.{k}", where)
+    if kind == "comm":
+        params["fault"] = _comm_fault(m["fault"], f"{key}.fault", where)
+        if "duration" in params and params["duration"] <= 0:
+            raise where.fail(f"{key}.duration", "must be > 0 s")
     writes = _writes(kind, params, key, loop, where)
     for name, raw in writes:  # the device's own rules: the same check a write over Modbus gets
+        if name in _UNIT_NAMES:
+            lo, hi = _BY_NAME[name].write
+            if not lo <= raw <= hi:
+                raise where.fail(key, f"{kind}: register {name}: {raw} out of range {lo}..{hi}")
+            continue
         try:
             decode_write(_BY_NAME[name].address, [raw], scaling, index, auto=False, instructor=True)
         except RegisterError as exc:
             raise where.fail(key, f"{kind}: {exc}") from None
     writes.sort(key=lambda w: _BY_NAME[w[0]].address)
     return Event(at, kind, tuple(params.items()), tuple(writes), say, where.line(key))
+
+
+def _comm_fault(value: Any, key: str, where: _Where) -> int:
+    """A ``comm_fault`` value given as 0..5 or as the name of a :class:`CommFault`."""
+    names = {f.name.lower(): int(f) for f in CommFault}
+    if isinstance(value, str) and value in names:
+        return names[value]
+    if isinstance(value, int) and not isinstance(value, bool) and value in names.values():
+        return value
+    raise where.fail(key, f"must be 0..{max(CommFault)} or one of {', '.join(names)}, got {value!r}")
+
+
+def _restore(ev: Event) -> Event:
+    """The event that ends a ``comm`` event with a ``duration``: fault and delay back to 0."""
+    end = ev.at + dict(ev.params)["duration"]
+    return Event(end, "comm", (("fault", 0), ("delay_ms", 0.0)), (("comm_fault", 0), ("comm_delay_ms", 0)),
+                 f"end of the communication fault of line {ev.line}", ev.line)
+
+
+#: comm_fault values under which the unit does not carry out the player's own writes
+_SILENCING: Final = frozenset({CommFault.NO_RESPONSE, CommFault.BUSY, CommFault.FAILURE, CommFault.CLOSE})
+
+
+def _check_outages(events: list[Event], source: str) -> None:
+    """Refuse an event scheduled while a ``comm`` event keeps the unit from carrying out requests: the
+    player writes over Modbus too, and only the unit registers answer during such a fault."""
+    since: Event | None = None
+    for ev in events:
+        if ev.kind == "comm":
+            since = ev if dict(ev.writes)["comm_fault"] in _SILENCING else None
+        elif since is not None:
+            raise ScenarioError(f"{source}:{ev.line}: a {ev.kind} event at {ev.at:g} s falls inside the "
+                                f"communication fault set at {since.at:g} s (line {since.line}), when the unit "
+                                f"carries out no write; move it, or end the fault first")
 
 
 # --- the file -----------------------------------------------------------------------------------------
@@ -341,6 +404,13 @@ def parse_scenario(text: str, *, source: str = "<scenario>", base: Path | None =
             raise where.fail(f"events[{i}].at", f"{ev.at:g} s is after the end of the scenario "
                                                 f"(duration {duration:g} s)")
         events.append(ev)
+    ends = [_restore(ev) for ev in events if ev.kind == "comm" and "duration" in dict(ev.params)]
+    for ev in ends:
+        if ev.at > duration:
+            raise ScenarioError(f"{source}:{ev.line}: the communication fault ends at {ev.at:g} s, after the end "
+                                f"of the scenario (duration {duration:g} s)")
+    events = sorted(events + ends, key=lambda ev: ev.at)   # stable: file order among events at one time
+    _check_outages(events, source)
     name, description = data.get("name", Path(source).stem), data.get("description", "")
     for key, value in (("name", name), ("description", description)):
         if not isinstance(value, str):

@@ -19,34 +19,39 @@ Where things are:
   (:func:`encode_image`, :func:`encode`);
 - :mod:`~valve_emulator.device.registers.render` -- the documentation tables.
 
-Holding registers (function codes 3, 6, 16, 23)::
+Holding registers (function codes 3, 6, 16, 22, 23)::
 
-    | name        | table   | address | type    | scale | units               | access        |
-    |-------------|---------|---------|---------|-------|---------------------|---------------|
-    | op_pct      | holding | 0       | uint16  | 100   | % travel            | RW            |
-    | op_ma       | holding | 1       | uint16  | 1000  | mA                  | RW            |
-    | mv_pct      | holding | 2       | uint16  | 100   | % travel            | R             |
-    | flow_pct    | holding | 3       | uint16  | 100   | % flow              | R             |
-    | pv          | holding | 4       | int16   | 100   | % of pv_range       | R             |
-    | sp          | holding | 5       | int16   | 100   | % of pv_range       | RW-controller |
-    | mode        | holding | 6       | uint16  | 1     | 0 manual, 1 auto    | RW-controller |
-    | kc          | holding | 7       | uint16  | 1000  | % per PV unit       | RW-controller |
-    | ti          | holding | 8       | uint16  | 10    | s (0 = no integral) | RW-controller |
-    | td          | holding | 9       | uint16  | 10    | s                   | RW-controller |
-    | S           | holding | 10      | uint16  | 100   | % travel            | RW-instructor |
-    | J           | holding | 11      | uint16  | 100   | % travel            | RW-instructor |
-    | status      | holding | 12      | uint16  | 1     | bits                | R             |
-    | map_version | holding | 13      | uint16  | 1     |                     | R             |
-    | tick        | holding | 14      | uint32  | 1     | ticks               | R             |
-    | overruns    | holding | 16      | uint32  | 1     | ticks               | R             |
-    | time        | holding | 18      | float32 | 1     | s                   | R             |
-    | op_f32      | holding | 20      | float32 | 1     | % travel            | R             |
-    | mv_f32      | holding | 22      | float32 | 1     | % travel            | R             |
-    | pv_f32      | holding | 24      | float32 | 1     | PV units            | R             |
-    | sp_f32      | holding | 26      | float32 | 1     | PV units            | R             |
-    | load        | holding | 28      | int16   | 100   | % flow              | RW-instructor |
-    | noise       | holding | 29      | uint16  | 100   | % of pv_range       | RW-instructor |
-    | fault       | holding | 30      | uint16  | 1     | bits                | RW-instructor |
+    | name          | table   | address | reference | type    | scale | units                    | access        |
+    |---------------|---------|---------|-----------|---------|-------|--------------------------|---------------|
+    | op_pct        | holding | 0       | 40001     | uint16  | 100   | % travel                 | RW            |
+    | op_ma         | holding | 1       | 40002     | uint16  | 1000  | mA                       | RW            |
+    | mv_pct        | holding | 2       | 40003     | uint16  | 100   | % travel                 | R             |
+    | flow_pct      | holding | 3       | 40004     | uint16  | 100   | % flow                   | R             |
+    | pv            | holding | 4       | 40005     | int16   | 100   | % of pv_range            | R             |
+    | sp            | holding | 5       | 40006     | int16   | 100   | % of pv_range            | RW-controller |
+    | mode          | holding | 6       | 40007     | uint16  | 1     | 0 manual, 1 auto         | RW-controller |
+    | kc            | holding | 7       | 40008     | uint16  | 1000  | % per PV unit            | RW-controller |
+    | ti            | holding | 8       | 40009     | uint16  | 10    | s (0 = no integral)      | RW-controller |
+    | td            | holding | 9       | 40010     | uint16  | 10    | s                        | RW-controller |
+    | S             | holding | 10      | 40011     | uint16  | 100   | % travel                 | RW-instructor |
+    | J             | holding | 11      | 40012     | uint16  | 100   | % travel                 | RW-instructor |
+    | status        | holding | 12      | 40013     | uint16  | 1     | bits                     | R             |
+    | map_version   | holding | 13      | 40014     | uint16  | 1     |                          | R             |
+    | tick          | holding | 14      | 40015     | uint32  | 1     | ticks                    | R             |
+    | overruns      | holding | 16      | 40017     | uint32  | 1     | ticks                    | R             |
+    | time          | holding | 18      | 40019     | float32 | 1     | s                        | R             |
+    | op_f32        | holding | 20      | 40021     | float32 | 1     | % travel                 | R             |
+    | mv_f32        | holding | 22      | 40023     | float32 | 1     | % travel                 | R             |
+    | pv_f32        | holding | 24      | 40025     | float32 | 1     | PV units                 | R             |
+    | sp_f32        | holding | 26      | 40027     | float32 | 1     | PV units                 | R             |
+    | load          | holding | 28      | 40029     | int16   | 100   | % flow                   | RW-instructor |
+    | noise         | holding | 29      | 40030     | uint16  | 100   | % of pv_range            | RW-instructor |
+    | fault         | holding | 30      | 40031     | uint16  | 1     | bits                     | RW-instructor |
+    | comm_fault    | holding | 65280   | 465281    | uint16  | 1     | 0..5, see CommFault      | RW-instructor |
+    | comm_delay_ms | holding | 65281   | 465282    | uint16  | 1     | ms added to every answer | RW-instructor |
+
+``comm_fault`` and ``comm_delay_ms`` belong to the unit id, not to a loop: communication faults on demand
+(:class:`CommFault`, :mod:`valve_emulator.device.comm`), at fixed addresses above every loop's block.
 
 The rows a controller cannot write -- read-only (``R``) and instructor (``RW-instructor``) -- also appear
 as input registers (function code 4) at the same addresses, so a read-only client sees injected faults
@@ -85,6 +90,26 @@ Errors are :class:`RegisterError` (a ``ValueError``) subclasses that name the re
 refused request as attributes; the Modbus adapter alone translates them into exception codes. A rejected
 multi-register write changes nothing.
 
+Bit tables (coils: function codes 1, 5, 15; discrete inputs: function code 2)::
+
+    | name       | table          | address | reference | type | scale | units                       | access        |
+    |------------|----------------|---------|-----------|------|-------|-----------------------------|---------------|
+    | auto       | coil           | 0       | 00001     | bit  | 1     | 1 auto, 0 manual            | RW-controller |
+    | seized     | coil           | 1       | 00002     | bit  | 1     | 1 seizes the valve (fault)  | RW-instructor |
+    | stuck      | discrete_input | 0       | 10001     | bit  | 1     | valve at rest               | R             |
+    | moving     | discrete_input | 1       | 10002     | bit  | 1     | valve moving                | R             |
+    | sat_low    | discrete_input | 2       | 10003     | bit  | 1     | OP clipped at 0 %           | R             |
+    | sat_high   | discrete_input | 3       | 10004     | bit  | 1     | OP clipped at 100 %         | R             |
+    | controller | discrete_input | 4       | 10005     | bit  | 1     | internal controller present | R             |
+    | auto       | discrete_input | 5       | 10006     | bit  | 1     | controller in auto          | R             |
+    | seized     | discrete_input | 6       | 10007     | bit  | 1     | valve seized (fault bit 0)  | R             |
+
+Every bit is a view of a register (:mod:`~valve_emulator.device.registers.bits`): discrete input ``k`` is
+bit ``k`` of ``status``; coil ``auto`` writes ``mode`` and coil ``seized`` writes ``fault`` with 0 or 1, so
+a coil write is allowed, refused and answered exactly like the register write it stands for.
+``reference`` is the one-based number an HMI tag editor shows (4xxxx holding, 3xxxx input, 0xxxx coil,
+1xxxx discrete input): the table's digit followed by ``address + 1``.
+
 Many loops per unit id (blocks)
 -------------------------------
 A plant-size fleet (``fleet.loops_per_unit`` > 1, see ``docs/config.md``) puts several loops behind one
@@ -98,6 +123,7 @@ serves up to 247 × 2048 loops.
   four loops, which is how a SCADA driver polls many loops cheaply. Pads read 0.
 - Input reads (FC4) stay inside one block (the input table has holes in every block anyway).
 - Writes stay inside one block; a write that reaches a pad or the next block is an illegal address.
+- Coils and discrete inputs of loop ``k`` are at ``32k + address``; a bit request stays inside one block.
 
 With one block per unit (the default) nothing changes: the unit's map is 0..30 and address 31 is outside it.
 """

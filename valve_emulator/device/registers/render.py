@@ -8,18 +8,22 @@ import json
 from collections.abc import Sequence
 from typing import Any, Final
 
-from valve_emulator.device.registers.table import INPUT_REGISTERS, REGISTERS
+from valve_emulator.device.registers.bits import COILS, DISCRETE_INPUTS, reference
+from valve_emulator.device.registers.table import INPUT_REGISTERS, REGISTERS, UNIT_REGISTERS
 
 __all__ = ["format_registers", "registers_table"]
 
-_COLUMNS: Final = ("name", "table", "address", "type", "scale", "units", "access")
+_COLUMNS: Final = ("name", "table", "address", "reference", "type", "scale", "units", "access")
 
 
 def registers_table(config: Any = None) -> list[dict]:
-    """The map as rows with exactly the keys name, table, address, type, scale, units, access.
+    """The map as rows with exactly the keys name, table, address, reference, type, scale, units, access.
 
-    ``config`` (a ``ServerConfig``, a ``LoopConfig`` or ``None``) only fills in the PV engineering units of
-    the float32 copies when every loop shares them. Holding rows come first, then the input mirror.
+    ``address`` is the zero-based PDU address, ``reference`` the one-based reference of an HMI tag editor
+    (4xxxx holding, 3xxxx input, 0xxxx coil, 1xxxx discrete input). ``config`` (a ``ServerConfig``, a
+    ``LoopConfig`` or ``None``) only fills in the PV engineering units of the float32 copies when every loop
+    shares them. Holding rows come first (the loop's, then the unit registers), then the input mirror, the
+    coils and the discrete inputs (type ``bit``, ``units`` says what 1 means).
     """
     pv_units = "PV units"
     if config is not None:
@@ -27,11 +31,14 @@ def registers_table(config: Any = None) -> list[dict]:
         if len(units) == 1 and next(iter(units)):
             pv_units = next(iter(units))
     rows = []
-    for table, regs in (("holding", REGISTERS), ("input", INPUT_REGISTERS)):
+    for table, regs in (("holding", REGISTERS + UNIT_REGISTERS), ("input", INPUT_REGISTERS)):
         for r in regs:
             units = pv_units if r.units == "PV units" else r.units
-            rows.append(dict(zip(_COLUMNS, (r.name, table, r.address, r.type.value, r.scale, units,
-                                             r.access.value))))
+            rows.append(dict(zip(_COLUMNS, (r.name, table, r.address, reference(table, r.address), r.type.value,
+                                             r.scale, units, r.access.value))))
+    for b in (*COILS, *DISCRETE_INPUTS):
+        rows.append(dict(zip(_COLUMNS, (b.name, b.table.value, b.address, reference(b.table, b.address), "bit", 1,
+                                         b.meaning, b.access.value))))
     return rows
 
 

@@ -10,7 +10,7 @@ or a scale. The package docstring (:mod:`valve_emulator.device.registers`) docum
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import IntFlag, StrEnum
+from enum import IntEnum, IntFlag, StrEnum
 from typing import Final
 
 from valve_emulator.config.schema import BLOCK_STRIDE, MAX_BLOCKS
@@ -20,19 +20,23 @@ from valve_emulator.device.registers.words import DataType
 __all__ = [
     "ACCESS_VALUES",
     "BLOCK_STRIDE",
+    "COMM_BASE",
     "CONTROLLER_QUANTITIES",
     "DEFAULT_PORT",
     "INPUT_REGISTERS",
     "MAP_VERSION",
     "MAX_BLOCKS",
+    "MAX_DELAY_MS",
     "N_REGISTERS",
     "R",
     "REGISTERS",
     "RW",
     "RW_CONTROLLER",
     "RW_INSTRUCTOR",
+    "UNIT_REGISTERS",
     "WRITABLE_QUANTITIES",
     "Access",
+    "CommFault",
     "Conversion",
     "Fault",
     "Register",
@@ -90,6 +94,18 @@ class Status(IntFlag):
     CONTROLLER = 16     # the loop has an internal PI(D) controller
     AUTO = 32           # that controller is in auto
     SEIZED = 64         # instructor fault: the valve is seized (``fault`` bit 0), it does not move at all
+
+
+class CommFault(IntEnum):
+    """Values of the unit register ``comm_fault``: what the unit does to a request (see
+    :mod:`valve_emulator.device.comm`; requests for the unit registers themselves are always answered)."""
+
+    NONE = 0
+    NO_RESPONSE = 1      # the request is swallowed: the client times out
+    BUSY = 2             # exception 0x06 server device busy
+    FAILURE = 3          # exception 0x04 server device failure
+    CLOSE = 4            # the connection is closed (TCP); no response on a serial line
+    BAD_CRC = 5          # the response goes out with a corrupted CRC (RTU framings; Modbus TCP answers)
 
 
 class Fault(IntFlag):
@@ -189,6 +205,16 @@ REGISTERS: Final[tuple[Register, ...]] = (
              conversion=Conversion.PV_SPAN),
     Register("fault", 30, _U16, 1, "bits", RW_INSTRUCTOR, "fault", write=(0, 1),
              conversion=Conversion.BITS),
+)
+#: First address of the unit registers and the largest ``comm_delay_ms``.
+COMM_BASE: Final = 0xFF00
+MAX_DELAY_MS: Final = 10_000
+#: Registers of a unit id rather than of a loop: communication faults, at fixed addresses above the blocks.
+UNIT_REGISTERS: Final[tuple[Register, ...]] = (
+    Register("comm_fault", COMM_BASE, _U16, 1, "0..5, see CommFault",
+             RW_INSTRUCTOR, "comm_fault", write=(0, max(CommFault)), conversion=Conversion.BITS),
+    Register("comm_delay_ms", COMM_BASE + 1, _U16, 1, "ms added to every answer", RW_INSTRUCTOR,
+             "comm_delay_ms", write=(0, MAX_DELAY_MS)),
 )
 # Input registers mirror what a controller cannot write: the read-only rows and the instructor rows.
 INPUT_REGISTERS: Final = tuple(r for r in REGISTERS if r.access in (R, RW_INSTRUCTOR))
