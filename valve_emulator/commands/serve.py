@@ -16,7 +16,7 @@ SIGHUP re-reads CONFIG and applies its connection and access settings (``device.
 changes are reported as needing a restart, and an invalid file keeps the running config and logs why.
 ``--read-only`` and ``--max-connections`` win over the file, also after a reload.
 
-Several processes (plant-size fleets, ``docs/scale.md``): ``--processes N --process-index I`` serves
+Several processes (plant-size fleets, ``docs/deployment.md``): ``--processes N --process-index I`` serves
 slice ``I`` of the config's loops (whole units, :func:`valve_emulator.config.layout.partition`) on port
 ``PORT + I``; this is what an orchestrator starts once per process or machine. ``--processes N`` alone is
 the same N processes started by this one: the parent prints which port holds which units, forwards
