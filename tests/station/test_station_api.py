@@ -257,3 +257,33 @@ def test_bad_alarm_limits_name_the_key():
     with pytest.raises(ConfigError, match=r"plant\.alarms must be \[lo, hi\] with lo < hi"):
         server_from_mapping({"loops": [{"unit": 1, "valve": {"S": 1.0, "J": 0.0},
                                         "plant": {**PLANT, "alarms": [4.0, -2.5]}}]})
+
+
+async def test_a_comm_malfunction_acts_on_the_modbus_answers_and_clear_restores_them(station_for, client_for):
+    srv, station, client = await station_for()
+    modbus = await client_for(srv)
+    resp = await client.post("/api/malfunctions", json={"unit": 1, "kind": "comm", "fault": 2}, headers=JSON)
+    assert resp.status == 201, await resp.text()
+    rr = await modbus.read_holding_registers(address_of("pv"), count=1, device_id=1)
+    assert rr.isError() and rr.exception_code == 0x06                      # server device busy
+    other = await modbus.read_holding_registers(address_of("pv"), count=1, device_id=2)
+    assert not other.isError()                                             # only unit 1 is faulted
+    assert srv.comm.state(1).words == (2, 0)                               # the unit register shows it
+    resp = await client.post("/api/malfunctions", json={"unit": 1, "kind": "clear"}, headers=JSON)
+    assert resp.status == 201
+    rr = await modbus.read_holding_registers(address_of("pv"), count=1, device_id=1)
+    assert not rr.isError() and srv.comm.state(1).words == (0, 0)
+
+
+@pytest.mark.parametrize(("body", "field"), [
+    ({"unit": 1, "kind": "comm"}, "fault"),
+    ({"unit": 1, "kind": "comm", "fault": 9}, "fault"),
+    ({"unit": 1, "kind": "comm", "fault": 1.5}, "fault"),
+    ({"unit": 1, "kind": "comm", "delay_ms": 20000}, "delay_ms"),
+    ({"unit": 1, "kind": "comm", "fault": 1, "ramp": 10}, "ramp"),
+])
+async def test_a_bad_comm_malfunction_names_the_field_and_changes_nothing(station_for, body, field):
+    srv, station, client = await station_for()
+    resp = await client.post("/api/malfunctions", json=body, headers=JSON)
+    assert resp.status == 400 and (await resp.json())["field"] == field
+    assert srv.comm.state(1).words == (0, 0)

@@ -38,7 +38,16 @@ from dataclasses import asdict, dataclass
 from enum import StrEnum
 from typing import Any
 
-from valve_emulator.device.registers import DataType, RegisterError, Scaling, address_of, decode_write, register
+from valve_emulator.device.registers import (
+    MAX_DELAY_MS,
+    CommFault,
+    DataType,
+    RegisterError,
+    Scaling,
+    address_of,
+    decode_write,
+    register,
+)
 from valve_emulator.device.registers.codec import decode_value
 
 __all__ = ["Kind", "Malfunction", "MalfunctionError", "MalfunctionBank", "parse_malfunction", "register_word"]
@@ -67,6 +76,7 @@ class Kind(StrEnum):
     NOISE = "noise"
     SENSOR_STUCK = "sensor_stuck"
     SENSOR_DRIFT = "sensor_drift"
+    COMM = "comm"
     CLEAR = "clear"
 
 
@@ -79,6 +89,7 @@ PARAMETERS: dict[Kind, tuple[tuple[str, ...], tuple[str, ...]]] = {
     Kind.NOISE: (("std",), ()),
     Kind.SENSOR_STUCK: ((), ("value",)),
     Kind.SENSOR_DRIFT: (("bias",), ()),
+    Kind.COMM: ((), ("fault", "delay_ms")),
     Kind.CLEAR: ((), ()),
 }
 _RAMPED = {Kind.STICTION, Kind.LOAD, Kind.NOISE, Kind.SENSOR_DRIFT}
@@ -106,6 +117,10 @@ class Malfunction:
 
     def as_dict(self) -> dict[str, Any]:
         return {"unit": self.unit, "kind": str(self.kind), **self.params, "ramp": self.ramp}
+
+
+def _whole(value: float | None) -> int | None:
+    return None if value is None else int(value)
 
 
 def _number(body: Mapping[str, Any], key: str) -> float:
@@ -142,7 +157,11 @@ def parse_malfunction(body: Any, *, unit_index: Mapping[int, int], scaling: Scal
             raise MalfunctionError(f"field {key!r} is required for {kind.value}", field=key)
     if kind is Kind.STICTION and not ({"S", "J"} & set(body)):
         raise MalfunctionError("stiction needs field 'S' or 'J' (or both)", field="S")
+    if kind is Kind.COMM and not ({"fault", "delay_ms"} & set(body)):
+        raise MalfunctionError("comm needs field 'fault' or 'delay_ms' (or both)", field="fault")
     params = {key: _number(body, key) for key in required + optional if key in body}
+    if kind is Kind.COMM:
+        _check_comm(params)
     ramp = _number(body, "ramp") if "ramp" in body else 0.0
     if ramp < 0:
         raise MalfunctionError(f"field 'ramp' must be >= 0 s, got {ramp!r}", field="ramp")
@@ -160,6 +179,17 @@ def parse_malfunction(body: Any, *, unit_index: Mapping[int, int], scaling: Scal
         except RegisterError as exc:
             raise MalfunctionError(f"field {key!r}: {exc}", field=key) from None
     return Malfunction(unit=unit, index=index, kind=kind, params=params, ramp=ramp)
+
+
+def _check_comm(params: Mapping[str, float]) -> None:
+    """A communication fault: ``fault`` one of :class:`CommFault`, ``delay_ms`` 0..MAX_DELAY_MS (whole ms)."""
+    allowed = {"fault": (min(CommFault), max(CommFault)), "delay_ms": (0, MAX_DELAY_MS)}
+    for key, value in params.items():
+        lo, hi = allowed[key]
+        if value != int(value) or not lo <= value <= hi:
+            names = ", ".join(f"{int(f)} {f.name.lower()}" for f in CommFault) if key == "fault" else "ms"
+            raise MalfunctionError(f"field {key!r} must be a whole number {lo}..{hi} ({names}), got {value:g}",
+                                   field=key)
 
 
 @dataclass(kw_only=True)
@@ -185,6 +215,9 @@ class MalfunctionBank:
 
     def __init__(self, bank: Any) -> None:
         self.bank = bank
+        #: the Modbus server's communication faults (:class:`~valve_emulator.device.comm.CommFaults`), handed
+        #: over by the server that serves this device; without one a ``comm`` malfunction is refused
+        self.comm: Any = None
         self._ramps: dict[tuple[int, str], _Ramp] = {}
         #: applied malfunctions, oldest first: ``(simulated time, Malfunction)``
         self.log: list[tuple[float, Malfunction]] = []
@@ -216,7 +249,13 @@ class MalfunctionBank:
             b.set_frozen(i, False)
         elif m.kind is Kind.SENSOR_STUCK:
             b.set_sensor(i, stuck=m.params.get("value", float(b.pv[i])))
+        elif m.kind is Kind.COMM:
+            if self.comm is None:
+                raise MalfunctionError("comm: this device is not served over Modbus here", field="kind")
+            self.comm.set(m.unit, fault=_whole(m.params.get("fault")), delay_ms=_whole(m.params.get("delay_ms")))
         elif m.kind is Kind.CLEAR:
+            if self.comm is not None:
+                self.comm.set(m.unit, fault=int(CommFault.NONE), delay_ms=0)
             for q in ("S", "J", "load", "noise", "bias"):
                 self._ramps.pop((i, q), None)
             b.set_valve(i, S=float(self._base["S"][i]), J=float(self._base["J"][i]))

@@ -207,6 +207,8 @@ class EmulatorServer:
         self._identities = {lp.device.unit: Identity.of_loop(lp) for lp in reversed(config.loops)}  # block 0 wins
         self.diagnostics = DiagnosticCounters(self)
         self.comm = CommFaults({unit: blocks for unit, (_, blocks) in self._regions.items()})
+        if self.device.malfunctions is not None:   # the instructor's comm malfunction acts on these
+            self.device.malfunctions.comm = self.comm
         self._decoder = DecodePDU(is_server=True)
         self._framer = FramerSocket(self._decoder)
         self._server: asyncio.Server | None = None

@@ -252,9 +252,9 @@ class Station:
     def malfunction(self, body: Any) -> dict[str, Any]:
         try:
             m = parse_malfunction(body, unit_index=self.device.unit_index, scaling=self.device.scaling)
+            self.device.inject(m)
         except MalfunctionError as exc:
             raise StationError(str(exc), field=exc.field) from None
-        self.device.inject(m)
         t = float(self.bank.t)
         self.evaluation.malfunction(t, m.unit, m.kind.value)
         self._log_instructor("malfunction", m.as_dict(), unit=m.unit)
