@@ -86,9 +86,13 @@ async def test_record_and_monitor_sub_commands_read_a_running_emulator(tmp_path,
     out = tmp_path / "rec.csv"
     async with EmulatorServer(config(), time_scale=20.0) as srv:
         port = str(srv.port)
+        # A generous per-request timeout: on a fresh checkout the emulator's first ticks compile its kernels
+        # in this same event loop, and what is tested here is the sub-commands, not the latency.
         assert await asyncio.to_thread(cli_main, ["record", "--port", port, "--out", str(out), "--step", "0.5",
-                                                  "--period", "0.025", "--until", "4", "--quiet"]) == 0
-        assert await asyncio.to_thread(cli_main, ["monitor", "--port", port, "--once", "--plain"]) == 0
+                                                  "--period", "0.025", "--until", "4", "--quiet",
+                                                  "--timeout", "20"]) == 0
+        assert await asyncio.to_thread(cli_main, ["monitor", "--port", port, "--once", "--plain",
+                                                  "--timeout", "20"]) == 0
     rec = read_csv(out)
     assert rec.columns[:5] == ("t", "sp", "op", "mv", "pv") and rec.t[-1] >= 4.0
     assert np.mean(np.abs(np.diff(rec.t) - 0.5) < 1e-6) >= 0.8        # on the device's time grid
