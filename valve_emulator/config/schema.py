@@ -310,7 +310,7 @@ class PlantConfig:
     units: str = ""                     # PV engineering units, e.g. "kg/m3"
     disturbance: DisturbanceConfig = DisturbanceConfig()
     noise: float = 0.0                  # measurement noise std, engineering units, >= 0
-    alarms: tuple[float, float] | None = None  # PV low/high alarm limits; None -> 10 % / 90 % of pv_range
+    alarms: tuple[float, float] | None = None  # PV low/high alarm limits; None: see alarm_limits
 
     def __post_init__(self) -> None:
         num, den = reals(self.num, "num"), reals(self.den, "den")
@@ -326,13 +326,18 @@ class PlantConfig:
         pv_range = (pv0 - 100.0, pv0 + 100.0) if self.pv_range is None else interval(self.pv_range, "pv_range")
         if not isinstance(self.disturbance, DisturbanceConfig):
             raise ConfigError("{key} must be a DisturbanceConfig", key="disturbance")
-        if self.alarms is None:
-            alarms = (pv_range[0] + 0.1 * (pv_range[1] - pv_range[0]), pv_range[1] - 0.1 * (pv_range[1] - pv_range[0]))
-        else:
-            alarms = interval(self.alarms, "alarms")
+        alarms = None if self.alarms is None else interval(self.alarms, "alarms")
         _set(self, num=num, den=den, delay=real(self.delay, "delay", ge=0), pv0=pv0,
              u0=real(self.u0, "u0", none_ok=True), pv_range=pv_range, units=text(self.units, "units"),
              noise=real(self.noise, "noise", ge=0), alarms=alarms)
+
+    @property
+    def alarm_limits(self) -> tuple[float, float]:
+        """PV low/high alarm limits: ``alarms`` when given, else 10 % and 90 % of ``pv_range``."""
+        if self.alarms is not None:
+            return self.alarms
+        lo, hi = self.pv_range
+        return lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo)
 
 
 @dataclass(frozen=True, slots=True)

@@ -84,8 +84,7 @@ class Station:
         scaling = device.scaling
         lo, hi = np.asarray(scaling.pv_lo, dtype=float), np.asarray(scaling.pv_hi, dtype=float)
         self.pv_lo, self.pv_hi = lo, hi
-        self.lim_lo = np.array([lp.plant.alarms[0] for lp in self.bank.loops], dtype=float)
-        self.lim_hi = np.array([lp.plant.alarms[1] for lp in self.bank.loops], dtype=float)
+        self.lim_lo, self.lim_hi = np.array([lp.plant.alarm_limits for lp in self.bank.loops], dtype=float).T
         self.alarm = [Alarm.NORMAL] * n
         self._alarmed: set[int] = set()   # loops whose alarm is not NORMAL
         self.revealed: set[int] = set()   # unit ids whose MV the trainee sees
