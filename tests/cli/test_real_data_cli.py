@@ -182,6 +182,7 @@ def _counts_csv(path, rec: Recording) -> None:
     path.write_text("seconds,OUT,FLOW\n" + "\n".join(rows) + "\n", encoding="utf-8")
 
 
+@pytest.mark.slow
 def test_diagnose_op_in_raw_counts_reports_s_and_j_in_counts_and_with_op_range_in_travel(tmp_path, capsys):
     path, out, ranged = tmp_path / "counts.csv", tmp_path / "a.json", tmp_path / "b.json"
     _counts_csv(path, _sticky())
@@ -218,6 +219,7 @@ def _plant_folder(tmp_path):
     return folder
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_diagnose_a_folder_sweeps_it_one_line_each_and_writes_the_summary(tmp_path, capsys, jobs):
     folder = _plant_folder(tmp_path)

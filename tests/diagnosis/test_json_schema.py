@@ -56,6 +56,7 @@ def test_plant_data_documents_are_valid_and_carry_the_answer_as_codes(name):
     assert (doc["strength"] is not None) == (answer == "stiction")
 
 
+@pytest.mark.slow
 def test_a_document_with_a_model_is_valid_and_its_friction_has_intervals_and_units():
     rec, nominal, _ = generate(CASES[0])     # stiction, undershoot
     doc = ve.diagnose(rec, nominal).to_json()
@@ -65,6 +66,7 @@ def test_a_document_with_a_model_is_valid_and_its_friction_has_intervals_and_uni
     assert S["interval"][0] <= S["value"] <= S["interval"][1] and S["units"]
 
 
+@pytest.mark.slow
 def test_prove_writes_one_valid_document_per_case(tmp_path, capsys):
     assert main(["prove", "--out", str(tmp_path), "--case", "control", "--case", "actuator lag",
                  "--duration", "900"]) in (0, 1)

@@ -17,6 +17,7 @@ def _folder(tmp_path):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_the_sweep_on_a_local_dask_cluster_matches_the_sequential_sweep(tmp_path):
     folder = _folder(tmp_path)
     seen = []
