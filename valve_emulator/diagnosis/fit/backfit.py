@@ -40,6 +40,7 @@ from valve_emulator.diagnosis.fit.linear import (
     filter_inputs,
     fit_one,
     highpass,
+    input_grid_sse,
     polish,
 )
 
@@ -84,13 +85,15 @@ def _best_delay(flow: np.ndarray, target: np.ndarray, window: tuple[int, int], s
     With ``extra`` regressors the filtered input and the target are first cleared of them over the record
     (Frisch–Waugh–Lovell; exact for the target, approximate for delayed inputs — enough to rank dead times).
     """
+    if extra is None:
+        y = target if prefilter is None else highpass(target, prefilter)
+        sse = input_grid_sse(flow, y, window, delays, st, dt, prefilter=prefilter)[0]
+        return replace(st, delay=float(delays[int(np.argmin(sse))]) * dt)
     z = filter_inputs(flow[:, None], st, dt)
     y = target
     if prefilter is not None:
-        z, y = highpass(z, prefilter), highpass(target, prefilter)
-        extra = None if extra is None else highpass(extra, prefilter)
-    if extra is not None:
-        z, y = _project_out(z, extra), _project_out(y, extra)
+        z, y, extra = highpass(z, prefilter), highpass(target, prefilter), highpass(extra, prefilter)
+    z, y = _project_out(z, extra), _project_out(y, extra)
     sse = delay_grid_sse(z, y, window, delays, st, prefiltered=prefilter is not None)[0]
     return replace(st, delay=float(delays[int(np.argmin(sse))]) * dt)
 

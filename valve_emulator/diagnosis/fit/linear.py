@@ -44,7 +44,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.signal import lfilter
 
-from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, filter_columns, grid_sse, normal_equations
+from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_sse, grid_sse, normal_equations
 
 __all__ = [
     "PRIOR_WIDTH",
@@ -52,6 +52,7 @@ __all__ = [
     "LinearFit",
     "highpass",
     "filter_inputs",
+    "input_grid_sse",
     "delay_grid_sse",
     "fit_one",
     "polish",
@@ -138,22 +139,62 @@ def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float, *, mean:
                   ) -> np.ndarray:
     """The regressor source :math:`z` (see the module docstring), time along axis 0: (T,) or (T, n).
 
-    ``mean`` is the input level removed before filtering (default: each column's own mean).
+    ``mean`` is the input level removed before filtering (default: each column's own mean). The filter starts
+    at rest for the first input: :math:`z_k = u_0` until the filter's order is reached.
     """
     u = np.asarray(u, dtype=np.float64)
     u2 = u[:, None] if u.ndim == 1 else u
-    u2 = np.ascontiguousarray(u2)
     # A constant per column changes z by a constant (or, integrating, by a ramp) that the offset and
     # trend regressors absorb; removing the mean keeps the cumulative sums of an integrator small.
-    mean = u2.mean(axis=0) if mean is None else np.full(u2.shape[1], float(mean))
+    x = u2 - (u2.mean(axis=0) if mean is None else float(mean))
     alpha = structure.denominator(dt)
-    out = np.empty_like(u2)
-    filter_columns(u2, mean, alpha, float(np.sum(alpha)), bool(structure.integrating), float(dt), out)
+    p = alpha.size - 1
+    T = x.shape[0]
+    start = min(max(p, 1), T)
+    out = np.empty_like(x)
+    out[:start] = x[0]
+    if start < T:
+        # z_k = g u_{k-1} - sum_i alpha_i z_{k-i} from k = start, the earlier outputs all u_0: the filter's
+        # state for those past outputs (scipy.signal.lfiltic's formula, one column at a time at once).
+        zi = -np.cumsum(alpha[:0:-1])[::-1][:, None] * x[0] if p else None
+        b = [float(np.sum(alpha))]
+        seg = x[start - 1:T - 1]
+        out[start:] = lfilter(b, alpha, seg, axis=0) if zi is None else lfilter(b, alpha, seg, axis=0, zi=zi)[0]
+    if structure.integrating:
+        out = np.cumsum(dt * out, axis=0)
     return out[:, 0] if u.ndim == 1 else out
 
 
+def input_grid_sse(u: np.ndarray, y: np.ndarray, window: tuple[int, int], delays: np.ndarray,
+                   structure: LinearStructure, dt: float, *, prefilter: float | None = None,
+                   frac: float = 0.0) -> np.ndarray:
+    """Residual sum of squares for every column of the plant input ``u`` (T, n) and every dead time.
+
+    The same numbers as :func:`delay_grid_sse` of :func:`filter_inputs` (then :func:`highpass` with
+    ``prefilter``, then a delay by the fraction ``frac`` of a sample), in one compiled pass per column that
+    never stores the filtered inputs. ``y`` is in the cost domain (prefiltered with ``prefilter``).
+    """
+    u = np.ascontiguousarray(u[:, None] if u.ndim == 1 else u, dtype=np.float64)
+    delays = np.ascontiguousarray(delays, dtype=np.int64)
+    w0, w1 = _check_window(window, delays, structure)
+    trend = int(structure.integrating and prefilter is None)
+    sse = np.empty((u.shape[1], delays.size))
+    grid_sse(u, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, structure.ntaps, trend, sse,
+             alpha=structure.denominator(dt), integ=structure.integrating, dt=dt, lam=prefilter, frac=frac)
+    return sse
+
+
+def _check_window(window: tuple[int, int], delays: np.ndarray, structure: LinearStructure) -> tuple[int, int]:
+    w0, w1 = int(window[0]), int(window[1])
+    if delays.size == 0:
+        raise ValueError("no dead times to score")
+    if w0 < int(delays.max()) + structure.ntaps - 1:
+        raise ValueError(f"window start {w0} leaves no room for delay {int(delays.max())} samples")
+    return w0, w1
+
+
 def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays: np.ndarray,
-                   structure: LinearStructure, *, prefiltered: bool = False, return_coef: bool = False):
+                   structure: LinearStructure, *, prefiltered: bool = False) -> np.ndarray:
     """Residual sum of squares of the least-squares fit for every column of ``z`` and every delay.
 
     Parameters
@@ -167,20 +208,16 @@ def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
 
     Returns
     -------
-    sse : (n, len(delays)); with ``return_coef`` also coef (n, len(delays), q) = taps, offset[, trend].
+    sse : (n, len(delays)).
     """
     z = np.ascontiguousarray(z, dtype=np.float64)
     delays = np.ascontiguousarray(delays, dtype=np.int64)
-    w0, w1 = int(window[0]), int(window[1])
-    ntaps = structure.ntaps
-    if delays.size and w0 < int(delays.max()) + ntaps - 1:
-        raise ValueError(f"window start {w0} leaves no room for delay {int(delays.max())} samples")
+    w0, w1 = _check_window(window, delays, structure)
     trend = int(structure.integrating and not prefiltered)
-    q = ntaps + 1 + trend
     sse = np.empty((z.shape[1], delays.size))
-    coef = np.empty((z.shape[1], delays.size, q))
-    grid_sse(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, ntaps, trend, sse, coef)
-    return (sse, coef) if return_coef else sse
+    grid_sse(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, structure.ntaps, trend, sse,
+             filtered=True)
+    return sse
 
 
 def _shift(z: np.ndarray, s: int) -> np.ndarray:
@@ -291,6 +328,20 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
 
     if taus0.size == 0 and not free_delay:
         return fit(structure)
+    y_cost = np.ascontiguousarray(y if prefilter is None else highpass(y, prefilter), dtype=np.float64)
+    u1 = np.ascontiguousarray(u, dtype=np.float64).reshape(-1)
+
+    def sse(st: LinearStructure) -> float:
+        # Without extra regressors a compiled pass gives the same SSE as fit_one (from the normal equations
+        # instead of the residual: equal to rounding) at a fraction of the cost of building the regressors.
+        # Not for an integrator's unfiltered ramps, whose normal equations lose digits to cancellation.
+        ds = st.delay / dt
+        m = int(np.floor(ds + 1e-9))
+        if extra is not None or window[0] < m + st.ntaps or (st.integrating and prefilter is None):
+            return fit(st).sse
+        return float(column_sse(u1, st.denominator(dt), st.integrating, float(dt), prefilter is not None,
+                                float(prefilter or 0.0), max(0.0, ds - m), y_cost, window[0], window[1], m,
+                                st.ntaps, int(st.integrating and prefilter is None)))
 
     def make(p: np.ndarray) -> LinearStructure:
         taus = tuple(float(np.exp(np.clip(v, lo_tau, hi_tau))) for v in p[:taus0.size])
@@ -298,7 +349,7 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
         return replace(structure, taus=taus, delay=delay)
 
     def cost(p: np.ndarray) -> float:
-        c = n * np.log(max(fit(make(p)).sse, 1e-300))
+        c = n * np.log(max(sse(make(p)), 1e-300))
         if use_prior:
             c += float(np.sum(((np.sort(p[:taus0.size]) - np.sort(log_prior)) / PRIOR_WIDTH) ** 2))
         return c

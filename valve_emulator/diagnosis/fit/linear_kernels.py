@@ -1,61 +1,45 @@
-r"""Compiled kernels of the batched linear fit (numba): all-pole filtering and least squares over dead times.
+r"""Compiled kernel of the batched linear fit (numba): filtering and least squares over dead times, in one pass.
 
-Arrays are time-major, ``(T, n)``, columns innermost — the layout the valve kernels produce — and the
-parallel versions split the columns into blocks of :data:`_BLOCK` (contiguous in every row). The Python
-entry points are :func:`~valve_emulator.diagnosis.fit.linear.filter_inputs` and
+:func:`grid_sse` streams every input column once through the regressor filter (all-pole part, integrator,
+high-pass prefilter, fractional delay) and, in the same pass, accumulates what the normal equations of every
+dead time need — so the filtered inputs never exist as a (T, n) array. Memory traffic, not arithmetic, bounded
+the earlier two-kernel version (filter everything, then fit everything): at 10⁴ samples × 512 columns each
+intermediate array is 40 MB.
+
+How the normal equations of all dead times come from one pass: the Gram entries
+:math:`\sum_{k=w_0}^{w_1-1} z_{k-d-i} z_{k-d-j}` are differences of running sums
+:math:`P_l(m) = \sum_{i<m} z_i z_{i-l}` taken at two short runs of indices (one near :math:`w_0`, one near
+:math:`w_1`), so only those runs are kept; the cross terms :math:`\sum_k z_{k-d-i} y_k` need the last
+``dmax + taps`` filtered values, kept in a ring buffer. The work is (delays + taps − 1)·T per column.
+
+The kernel is serial and releases the GIL; :func:`grid_sse` splits the columns over
+``numba.get_num_threads()`` Python threads. A single-threaded compiled function compiles in a fraction of the
+time of a ``parallel=True`` one, and this is the kernel a fresh install compiles first.
+
+The Python entry points are :func:`~valve_emulator.diagnosis.fit.linear.input_grid_sse` and
 :func:`~valve_emulator.diagnosis.fit.linear.delay_grid_sse`; the maths is in that module's docstring.
 """
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numba
 import numpy as np
 
-__all__ = ["filter_columns", "grid_sse", "normal_equations"]
+__all__ = ["RIDGE", "column_sse", "grid_sse", "normal_equations"]
 
 # Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
 # without changing any well-posed fit beyond rounding.
 RIDGE = 1e-10
-# Fewer columns than this run serially: starting the thread pool costs more than it saves.
-_PARALLEL_MIN = 16
-# Columns per parallel task: a block is contiguous in every row of a time-major array.
-_BLOCK = 32
+# Fewer columns than this run in the calling thread: handing work to another thread costs more than it saves.
+_THREAD_MIN = 16
+# Columns processed together in the time loop (one row of the ring buffer stays in a cache line or two).
+_BLOCK = 128
+# Samples whose cross terms with the output are accumulated together (see _grid_columns).
+_TILE = 16
 
-
-@numba.njit(cache=True, inline="always")
-def _filter_block(u, mean, c0, c1, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
-    # Time-major (T, n) arrays, columns innermost: the layout the valve kernels produce, so no transpose.
-    T = u.shape[0]
-    p = alpha.shape[0] - 1
-    start = min(max(p, 1), T)
-    for k in range(start):  # at rest for the first input: no transient when it is already settled
-        for c in range(c0, c1):
-            out[k, c] = u[0, c] - mean[c]
-    for k in range(start, T):
-        for c in range(c0, c1):
-            s = gain * (u[k - 1, c] - mean[c])
-            for i in range(1, p + 1):
-                s -= alpha[i] * out[k - i, c]
-            out[k, c] = s
-    if integ:
-        acc = np.zeros(c1 - c0)
-        for k in range(T):
-            for c in range(c0, c1):
-                acc[c - c0] += dt * out[k, c]
-                out[k, c] = acc[c - c0]
-
-
-@numba.njit(cache=True, parallel=True)
-def _filter_parallel(u, mean, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
-    n = u.shape[1]
-    nblocks = (n + _BLOCK - 1) // _BLOCK
-    for b in numba.prange(nblocks):
-        _filter_block(u, mean, b * _BLOCK, min(n, (b + 1) * _BLOCK), alpha, gain, integ, dt, out)
-
-
-@numba.njit(cache=True)
-def _filter_serial(u, mean, alpha, gain, integ, dt, out):  # pragma: no cover - compiled
-    _filter_block(u, mean, 0, u.shape[1], alpha, gain, integ, dt, out)
+_pool: ThreadPoolExecutor | None = None
 
 
 @numba.njit(cache=True, inline="always")
@@ -92,101 +76,273 @@ def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
     return max(sse, 0.0)
 
 
-@numba.njit(cache=True, inline="always")
-def _grid_block(c0, c1, z, y, w0, w1, delays, ntaps, trend, sums, sse, coef):  # pragma: no cover - compiled
-    # Gram entries come from prefix sums (O(1) per delay); only the cross-correlation with PV costs
-    # O(T) per lag, and neighbouring delays share lags: the work is (delays + taps - 1)·T per column.
-    # Time-major z (T, n); a block of columns is processed together, columns innermost.
-    T = z.shape[0]
-    nb = c1 - c0
+@numba.njit(cache=True, nogil=True)
+def _grid_columns(u, c_lo, c_hi, filtered, alpha, integ, dt, highpass, lam, frac, y, w0, w1, delays, ntaps, trend,
+                  sse):  # pragma: no cover - compiled
+    # u (T, n) time-major, columns innermost. Columns c_lo..c_hi-1 are scored, _BLOCK at a time.
+    # filtered: u already holds the regressor source z (no filter, no prefilter, no fractional delay).
+    T = u.shape[0]
     nd = delays.shape[0]
-    q = ntaps + 1 + trend
-    dmin, dmax = delays.min(), delays.max()
+    dmin, dmax = delays[0], delays[0]
+    for di in range(nd):
+        dmin = min(dmin, delays[di])
+        dmax = max(dmax, delays[di])
     nlag = dmax - dmin + ntaps
+    q = ntaps + 1 + trend
+    p = alpha.shape[0] - 1
+    gain = 0.0
+    for i in range(p + 1):
+        gain += alpha[i]
+    start = min(max(p, 1), T)
+    ring = 1
+    while ring < dmax + ntaps + _TILE:   # the tile of samples whose cross terms are pending, and its lags
+        ring *= 2
+    mask = ring - 1
+    rring = 1
+    while rring < p + 1:
+        rring *= 2
+    rmask = rring - 1
+    lo0 = w0 - dmax - (ntaps - 1)   # first index of the run of running sums kept near w0
+    hi0 = w1 - dmax - (ntaps - 1)   # ... and near w1
+    # Window sums of y and of the trend t = k/T: yy, sum y, sum t y, sum t², sum t.
+    yy = sy = ty = tt = st = 0.0
+    for k in range(w0, w1):
+        t = k / T
+        yy += y[k] * y[k]
+        sy += y[k]
+        ty += t * y[k]
+        tt += t * t
+        st += t
     nw = w1 - w0
-    yy, sy, ty, tt, st = sums[0], sums[1], sums[2], sums[3], sums[4]
-    P = np.zeros((ntaps, T + 1, nb))      # P[l, m, j] = sum_{i<m} z[i] z[i-l]
-    P1 = np.zeros((T + 1, nb))            # sum z
-    PK = np.zeros((T + 1, nb))            # sum i z[i]
-    for m in range(T):
-        for j in range(nb):
-            zm = z[m, c0 + j]
-            P1[m + 1, j] = P1[m, j] + zm
-            PK[m + 1, j] = PK[m, j] + m * zm
-            for tap in range(ntaps):
-                P[tap, m + 1, j] = P[tap, m, j] + (zm * z[m - tap, c0 + j] if m >= tap else 0.0)
-    X = np.zeros((nlag, nb))              # X[i, j] = sum_k z[k - (dmin + i), j] y[k]
-    for k in range(w0, w1):               # time outermost: the nlag rows in use stay in cache
-        yk = y[k]
-        for i in range(nlag):
-            row = k - dmin - i
-            for j in range(nb):
-                X[i, j] += z[row, c0 + j] * yk
     G = np.zeros((q, q))
     r = np.zeros(q)
     beta = np.zeros(q)
-    for j in range(nb):
-        for di in range(nd):
-            d = delays[di]
-            for i in range(ntaps):
-                a0, a1 = w0 - d - i, w1 - d - i          # index range of z for tap i
-                for jj in range(i, ntaps):
-                    G[i, jj] = P[jj - i, a1, j] - P[jj - i, a0, j]
-                G[i, ntaps] = P1[a1, j] - P1[a0, j]
+    for b0 in range(c_lo, c_hi, _BLOCK):
+        nb = min(_BLOCK, c_hi - b0)
+        mean = np.zeros(nb)
+        if not filtered:
+            for k in range(T):
+                for j in range(nb):
+                    mean[j] += u[k, b0 + j]
+            for j in range(nb):
+                mean[j] /= T
+        Z = np.zeros((ring, nb))              # the last `ring` values of z
+        R = np.zeros((rring, nb))             # the last values of the all-pole filter's output
+        acc = np.zeros(nb)                    # integrator
+        v0 = np.zeros(nb)                     # prefilter: its input at k = 0 (it starts at rest there)
+        hstate = np.zeros(nb)                 # prefilter: transposed direct-form state
+        hprev = np.zeros(nb)                  # prefiltered value at k - 1 (fractional delay)
+        P = np.zeros((ntaps, nb))             # running sums P_l(k) = sum_{i<k} z_i z_{i-l}
+        P1 = np.zeros(nb)                     # sum_{i<k} z_i
+        PK = np.zeros(nb)                     # sum_{i<k} i z_i
+        loP = np.zeros((ntaps, nlag, nb))
+        loP1 = np.zeros((nlag, nb))
+        loPK = np.zeros((nlag, nb))
+        hiP = np.zeros((ntaps, nlag, nb))
+        hiP1 = np.zeros((nlag, nb))
+        hiPK = np.zeros((nlag, nb))
+        X = np.zeros((nlag, nb))              # X[i] = sum_k z_{k - dmin - i} y_k
+        tile0 = w0                            # first sample whose cross terms are not yet in X
+        for k in range(T + 1):
+            # Keep the running sums (over indices < k) where the Gram entries will need them.
+            if lo0 <= k < lo0 + nlag:
+                for j in range(nb):
+                    loP1[k - lo0, j] = P1[j]
+                    loPK[k - lo0, j] = PK[j]
+                    for tap in range(ntaps):
+                        loP[tap, k - lo0, j] = P[tap, j]
+            if hi0 <= k < hi0 + nlag:
+                for j in range(nb):
+                    hiP1[k - hi0, j] = P1[j]
+                    hiPK[k - hi0, j] = PK[j]
+                    for tap in range(ntaps):
+                        hiP[tap, k - hi0, j] = P[tap, j]
+            if k == T:
+                break
+            # One stage at a time over the block's columns: branch-free inner loops, and row indices rather
+            # than row views (a view costs two atomic reference-count updates, more than the loop it serves).
+            kz = k & mask
+            if filtered:
+                for j in range(nb):
+                    Z[kz, j] = u[k, b0 + j]
+            else:
+                # All-pole part, unit DC gain, strictly causal; at rest at the first input.
+                kr = k & rmask
+                if k < start:
+                    for j in range(nb):
+                        R[kr, j] = u[0, b0 + j] - mean[j]
+                else:
+                    for j in range(nb):
+                        R[kr, j] = gain * (u[k - 1, b0 + j] - mean[j])
+                    for i in range(1, p + 1):
+                        ki = (k - i) & rmask
+                        ai = alpha[i]
+                        for j in range(nb):
+                            R[kr, j] -= ai * R[ki, j]
+                for j in range(nb):
+                    Z[kz, j] = R[kr, j]
+                if integ:
+                    for j in range(nb):
+                        acc[j] += dt * Z[kz, j]
+                        Z[kz, j] = acc[j]
+                if highpass:
+                    # (1 - q^-1)/(1 - lam q^-1) of z - z_0, transposed direct form (as scipy's lfilter).
+                    if k == 0:
+                        for j in range(nb):
+                            v0[j] = Z[kz, j]
+                    for j in range(nb):
+                        x = Z[kz, j] - v0[j]
+                        h = x + hstate[j]
+                        hstate[j] = -x + lam * h
+                        Z[kz, j] = h
+                if frac > 0.0:
+                    for j in range(nb):
+                        h = Z[kz, j]
+                        if k > 0:
+                            Z[kz, j] = (1.0 - frac) * h + frac * hprev[j]
+                        hprev[j] = h
+            for j in range(nb):
+                P1[j] += Z[kz, j]
+                PK[j] += k * Z[kz, j]
+            for tap in range(min(ntaps, k + 1)):
+                kt = (k - tap) & mask
+                for j in range(nb):
+                    P[tap, j] += Z[kz, j] * Z[kt, j]
+            if w0 <= k < w1 and (k - tile0 + 1 == _TILE or k == w1 - 1):
+                # Cross terms for the samples tile0..k, lag outermost: one row of X stays in the first-level
+                # cache while the tile's rows of the ring stream past (same summation order as sample by sample).
+                for i in range(nlag):
+                    for kk in range(tile0, k + 1):
+                        yk = y[kk]
+                        ki = (kk - dmin - i) & mask
+                        for j in range(nb):
+                            X[i, j] += Z[ki, j] * yk
+                tile0 = k + 1
+        for j in range(nb):
+            for di in range(nd):
+                d = delays[di]
+                for i in range(ntaps):
+                    o = dmax - d + ntaps - 1 - i     # a0 - lo0 = a1 - hi0, with a0 = w0 - d - i, a1 = w1 - d - i
+                    for jj in range(i, ntaps):
+                        G[i, jj] = hiP[jj - i, o, j] - loP[jj - i, o, j]
+                    G[i, ntaps] = hiP1[o, j] - loP1[o, j]
+                    if trend:
+                        # sum_k (k/T) z[k-s] = sum_m (m+s) z[m] / T
+                        s_ = d + i
+                        G[i, ntaps + 1] = (hiPK[o, j] - loPK[o, j] + s_ * (hiP1[o, j] - loP1[o, j])) / T
+                    r[i] = X[d - dmin + i, j]
+                G[ntaps, ntaps] = nw
+                r[ntaps] = sy
                 if trend:
-                    # sum_k (k/T) z[k-s] = sum_m (m+s) z[m] / T
-                    s_ = d + i
-                    G[i, ntaps + 1] = (PK[a1, j] - PK[a0, j] + s_ * (P1[a1, j] - P1[a0, j])) / T
-                r[i] = X[d - dmin + i, j]
-            G[ntaps, ntaps] = nw
-            r[ntaps] = sy
+                    G[ntaps, ntaps + 1] = st
+                    G[ntaps + 1, ntaps + 1] = tt
+                    r[ntaps + 1] = ty
+                sse[b0 + j, di] = _solve_sse(G, r, yy, q, beta)
+
+
+@numba.njit(cache=True, nogil=True)
+def column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, trend):  # pragma: no cover
+    """SSE of the fit for one input column ``u`` (T,) and one dead time of ``m`` samples (+ ``frac``).
+
+    The arguments are :func:`grid_sse`'s for a single column and a single delay; this scalar version of the same
+    pass is what a polish evaluates thousands of times (the block kernel's per-sample loop set-up, amortised
+    over a block of columns, would dominate for one). The Gram entries are summed directly over the window.
+    """
+    T = u.shape[0]
+    q = ntaps + 1 + trend
+    p = alpha.shape[0] - 1
+    gain = 0.0
+    for i in range(p + 1):
+        gain += alpha[i]
+    start = min(max(p, 1), T)
+    mean = 0.0
+    for k in range(T):
+        mean += u[k]
+    mean /= T
+    ring = 1
+    while ring < m + ntaps + 1:
+        ring *= 2
+    mask = ring - 1
+    rring = 1
+    while rring < p + 1:
+        rring *= 2
+    rmask = rring - 1
+    Z = np.zeros(ring)
+    R = np.zeros(rring)
+    acc = v0 = hstate = hprev = 0.0
+    G = np.zeros((q, q))
+    r = np.zeros(q)
+    beta = np.zeros(q)
+    x = np.zeros(q)
+    yy = 0.0
+    for k in range(w1):
+        if k < start:
+            s = u[0] - mean
+        else:
+            s = gain * (u[k - 1] - mean)
+            for i in range(1, p + 1):
+                s -= alpha[i] * R[(k - i) & rmask]
+        R[k & rmask] = s
+        if integ:
+            acc += dt * s
+            s = acc
+        if highpass:
+            if k == 0:
+                v0 = s
+            xk = s - v0
+            h = xk + hstate
+            hstate = -xk + lam * h
+            s = h
+        if frac > 0.0:
+            h = s
+            if k > 0:
+                s = (1.0 - frac) * h + frac * hprev
+            hprev = h
+        Z[k & mask] = s
+        if k >= w0:
+            for i in range(ntaps):
+                x[i] = Z[(k - m - i) & mask]
+            x[ntaps] = 1.0
             if trend:
-                G[ntaps, ntaps + 1] = st
-                G[ntaps + 1, ntaps + 1] = tt
-                r[ntaps + 1] = ty
-            sse[c0 + j, di] = _solve_sse(G, r, yy, q, beta)
+                x[ntaps + 1] = k / T
+            yk = y[k]
+            yy += yk * yk
             for i in range(q):
-                coef[c0 + j, di, i] = beta[i]
+                r[i] += x[i] * yk
+                for jj in range(i, q):
+                    G[i, jj] += x[i] * x[jj]
+    return _solve_sse(G, r, yy, q, beta)
 
 
-@numba.njit(cache=True)
-def _window_sums(y, w0, w1, T):  # pragma: no cover - compiled
-    s = np.zeros(5)  # yy, sum y, sum t y, sum t^2, sum t  with t = k/T
-    for k in range(w0, w1):
-        t = k / T
-        s[0] += y[k] * y[k]
-        s[1] += y[k]
-        s[2] += t * y[k]
-        s[3] += t * t
-        s[4] += t
-    return s
+def _threads() -> int:
+    return max(1, int(numba.get_num_threads()))
 
 
-@numba.njit(cache=True, parallel=True)
-def _grid_parallel(z, y, w0, w1, delays, ntaps, trend, sse, coef):  # pragma: no cover - compiled
-    sums = _window_sums(y, w0, w1, z.shape[0])
-    n = z.shape[1]
-    nblocks = (n + _BLOCK - 1) // _BLOCK
-    for b in numba.prange(nblocks):
-        _grid_block(b * _BLOCK, min(n, (b + 1) * _BLOCK), z, y, w0, w1, delays, ntaps, trend, sums, sse, coef)
+def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=None, integ=False, dt=1.0,
+             lam=None, frac=0.0) -> None:
+    """Fill ``sse`` (n, nd) for every column of ``u`` (T, n) and every dead time of ``delays``, in place.
 
-
-@numba.njit(cache=True)
-def _grid_serial(z, y, w0, w1, delays, ntaps, trend, sse, coef):  # pragma: no cover - compiled
-    sums = _window_sums(y, w0, w1, z.shape[0])
-    _grid_block(0, z.shape[1], z, y, w0, w1, delays, ntaps, trend, sums, sse, coef)
-
-
-def filter_columns(u, mean, alpha, gain, integ, dt, out) -> None:
-    """``out`` = the strictly causal, unit-DC-gain all-pole filter of ``u − mean`` (+ integrator), in place."""
-    kernel = _filter_parallel if u.shape[1] >= _PARALLEL_MIN else _filter_serial
-    kernel(u, mean, alpha, gain, integ, dt, out)
-
-
-def grid_sse(z, y, w0, w1, delays, ntaps, trend, sse, coef) -> None:
-    """Fill ``sse`` (n, nd) and ``coef`` (n, nd, q) for every column of ``z`` and every delay, in place."""
-    kernel = _grid_parallel if z.shape[1] >= _PARALLEL_MIN else _grid_serial
-    kernel(z, y, w0, w1, delays, ntaps, trend, sse, coef)
+    ``filtered``: ``u`` is already the regressor source z. Otherwise z is made from each column minus its mean
+    by the all-pole filter ``alpha`` (unit DC gain, one sample of delay), an integrator (``integ``, scaled by
+    ``dt``), the high-pass prefilter of pole ``lam`` (None: none) and a fractional delay ``frac`` (0 ≤ f < 1).
+    """
+    global _pool
+    alpha = np.ones(1) if alpha is None else np.ascontiguousarray(alpha, dtype=np.float64)
+    args = (bool(filtered), alpha, bool(integ), float(dt), lam is not None, float(lam or 0.0), float(frac),
+            y, int(w0), int(w1), delays, int(ntaps), int(trend), sse)
+    n = u.shape[1]
+    workers = min(_threads(), max(1, n // _THREAD_MIN))
+    if workers == 1:
+        _grid_columns(u, 0, n, *args)
+        return
+    if _pool is None or _pool._max_workers < workers:
+        _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="valve_emulator-fit")
+    # Whole blocks per worker, as even as the block size allows.
+    cuts = [min(n, _BLOCK * round(n * w / workers / _BLOCK)) for w in range(workers + 1)]
+    cuts[-1] = n
+    futures = [_pool.submit(_grid_columns, u, a, b, *args) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+    for f in futures:
+        f.result()
 
 
 @numba.njit(cache=True)
@@ -194,7 +350,7 @@ def normal_equations(X, y):  # pragma: no cover - compiled
     """``(XᵀX, Xᵀy)`` of a tall, skinny least-squares problem, single-threaded.
 
     Why not ``X.T @ X``: numpy hands that to a multi-threaded BLAS, whose threads then compete with the
-    compiled kernels' thread pool for the same cores; at 10⁴–10⁵ samples that contention doubled the
+    compiled kernels' threads for the same cores; at 10⁴–10⁵ samples that contention doubled the
     diagnosis' run time. A plain loop over the rows is as fast for a handful of columns and never waits.
     """
     T, q = X.shape

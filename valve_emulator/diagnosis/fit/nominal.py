@@ -28,9 +28,8 @@ from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.linear import (
     LinearFit,
     LinearStructure,
-    delay_grid_sse,
-    filter_inputs,
     highpass,
+    input_grid_sse,
     polish,
 )
 from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_function_to_zoh
@@ -147,9 +146,7 @@ def _family_fits(problem: Problem, u: np.ndarray, integrating: bool) -> LinearFi
     target = problem.y if lam is None else highpass(problem.y, lam)
     for taus in taus_grid:
         st = LinearStructure(taus=taus, integrating=integrating)
-        z = filter_inputs(u[:, None], st, dt)
-        z = z if lam is None else highpass(z, lam)
-        sse = delay_grid_sse(z, target, problem.train, problem.delays, st, prefiltered=lam is not None)[0]
+        sse = input_grid_sse(u, target, problem.train, problem.delays, st, dt, prefilter=lam)[0]
         i = int(np.argmin(sse))
         if sse[i] < best[0]:
             best = (float(sse[i]), st, int(problem.delays[i]))
