@@ -4,8 +4,8 @@ The recording is the proof cases' concentration loop with concealed stiction (S 
 and PV, PV noise 5 % of the amplitude); the nominal model lacks the stiction (``--no-model``: plant data, the
 linear part identified). *Warm*: one untimed warm-up loads the compiled kernels (numba caches them on disk),
 then the median of ``--repeat`` runs. *First run*: a fresh interpreter with an empty kernel cache
-(``NUMBA_CACHE_DIR`` a new temporary folder), as after a fresh install: imports, compilation and one
-diagnosis, timed from outside. Run::
+(``NUMBA_CACHE_DIR`` a new temporary folder), as after a fresh install: imports, reading the recording's CSV,
+compilation and one diagnosis, timed from outside. Run::
 
     python bench/bench_diagnose.py [--samples 1000 10000] [--repeat 3] [--no-model] [--no-first-run]
 """
@@ -13,6 +13,7 @@ diagnosis, timed from outside. Run::
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import subprocess
@@ -20,26 +21,37 @@ import sys
 import tempfile
 import time
 
-from valve_emulator.benchmark.cases import CASES, generate
+from valve_emulator.benchmark.cases import CASES, generate, nominal_mapping
 from valve_emulator.diagnosis.explain.pipeline import explain
+from valve_emulator.recordings.recording import write_csv
 
 _FIRST_RUN = """
-import sys
-from valve_emulator.benchmark.cases import CASES, generate
+import json, sys
 import valve_emulator as ve
-case = CASES[0]
-rec, nominal, _ = generate(case, duration=int(sys.argv[1]) - 1 + case.cut)
-d = ve.diagnose(rec, None if sys.argv[2] == "none" else nominal)
-print(d.answer)
+from valve_emulator.config import loop_from_mapping
+model = None if sys.argv[2] == "none" else loop_from_mapping(json.load(open(sys.argv[2])))
+print(ve.diagnose(sys.argv[1], model).answer)
 """
 
 
 def first_run(samples: int, model: bool) -> float:
-    """Seconds for a fresh interpreter with an empty kernel cache to import, compile and diagnose once."""
-    with tempfile.TemporaryDirectory() as cache:
-        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+    """Seconds for a fresh interpreter with an empty kernel cache to import, compile and diagnose once.
+
+    The recording (standard CSV) and the nominal model (JSON of the configuration mapping) are written first,
+    so the child does what a user's first ``diagnose`` does — read a file, compile the diagnosis' kernels,
+    diagnose — and not the simulation that made the recording.
+    """
+    case = CASES[0]
+    rec, _, _ = generate(case, duration=samples - 1 + case.cut)
+    nominal = nominal_mapping(case)
+    with tempfile.TemporaryDirectory() as tmp:
+        csv_path, model_path = os.path.join(tmp, "loop.csv"), os.path.join(tmp, "model.json")
+        write_csv(rec, csv_path)
+        with open(model_path, "w") as f:
+            json.dump(nominal, f)
+        env = {**os.environ, "NUMBA_CACHE_DIR": os.path.join(tmp, "numba")}
         t = time.perf_counter()
-        subprocess.run([sys.executable, "-c", _FIRST_RUN, str(samples), "model" if model else "none"], env=env,
+        subprocess.run([sys.executable, "-c", _FIRST_RUN, csv_path, model_path if model else "none"], env=env,
                        check=True, capture_output=True)
         return time.perf_counter() - t
 

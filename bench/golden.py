@@ -58,9 +58,7 @@ def _write_cases(folder: Path) -> list[tuple[str, Path, Path]]:
             w.writerow(["t", "op", "pv"])
             for t, op, pv in zip(rec.t, rec.op, rec.pv):
                 w.writerow([repr(float(t)), repr(float(op)), repr(float(pv))])
-        sim = dict(case.loop["simulation"])
-        nominal = cases._merge(case.loop, {**case.nominal, "simulation": sim})
-        nominal = {**nominal, "name": "nominal"}
+        nominal = cases.nominal_mapping(case)
         yaml_path.write_text(yaml.safe_dump(json.loads(json.dumps(nominal))), encoding="utf-8")
         out.append((slug, csv_path, yaml_path))
     return out

@@ -11,8 +11,10 @@ from valve_emulator.diagnosis.fit.linear import (
     filter_inputs,
     fit_one,
     highpass,
+    input_grid_sse,
     polish,
 )
+from valve_emulator.diagnosis.fit.linear_kernels import column_sse
 from valve_emulator.physics.plant import PlantBank, transfer_function_to_zoh
 
 DT = 1.0
@@ -67,6 +69,36 @@ def test_delay_grid_equals_direct_least_squares(structure):
                                                                    delay=float(d)), DT).sse
                         for d in delays] for c in range(u.shape[0])])
     np.testing.assert_allclose(sse, direct, rtol=1e-6)
+
+
+@pytest.mark.parametrize("structure", [LinearStructure(taus=(7.0,)), LinearStructure(integrating=True),
+                                       LinearStructure(taus=(4.0, 2.0), integrating=True), LinearStructure()])
+@pytest.mark.parametrize("lam", [None, 0.9])
+@pytest.mark.parametrize("frac", [0.0, 0.4])
+def test_one_pass_from_the_inputs_equals_filtering_then_fitting(structure, lam, frac):
+    """The compiled pass that filters while it fits (and its scalar one-column, one-delay form) gives the SSE of
+    the explicit route: filter_inputs, highpass, a fractional delay, then least squares per column and delay —
+    for 40 columns (split over threads) and for one."""
+    rng = np.random.default_rng(5)
+    u = 50.0 + np.cumsum(rng.normal(size=(T, 40)), axis=0) * 0.2
+    y = np.cumsum(rng.normal(size=T)) * 0.1
+    delays = np.array([0, 2, 5, 9])
+    z = filter_inputs(u, structure, DT)
+    yc = y
+    if lam is not None:
+        z, yc = highpass(z, lam), highpass(y, lam)
+    if frac:
+        z = np.vstack([z[:1], (1.0 - frac) * z[1:] + frac * z[:-1]])
+    explicit = delay_grid_sse(z, yc, WINDOW, delays, structure, prefiltered=lam is not None)
+    fused = input_grid_sse(u, yc, WINDOW, delays, structure, DT, prefilter=lam, frac=frac)
+    np.testing.assert_allclose(fused, explicit, rtol=1e-7)
+    trend = int(structure.integrating and lam is None)
+    one = column_sse(u[:, 7], structure.denominator(DT), structure.integrating, DT, lam, frac, yc, *WINDOW, 5,
+                     structure.ntaps, trend)
+    assert one == pytest.approx(explicit[7, 2], rel=1e-6)
+    if not trend:  # the residual route of fit_one (its ramps' normal equations are ill-conditioned unfiltered)
+        st = LinearStructure(structure.taus, structure.integrating, delay=5.0 + frac)
+        assert one == pytest.approx(fit_one(u[:, 7], y, WINDOW, st, DT, prefilter=lam).sse, rel=1e-6)
 
 
 def test_grid_finds_the_true_delay_and_a_constant_column_changes_nothing():

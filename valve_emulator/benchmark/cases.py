@@ -26,7 +26,7 @@ from valve_emulator.config import LoopConfig, loop_from_mapping
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.simulation.loop import simulate_loop
 
-__all__ = ["Case", "CASES", "generate"]
+__all__ = ["Case", "CASES", "generate", "nominal_mapping"]
 
 
 @dataclass(frozen=True)
@@ -125,6 +125,11 @@ def _with_lag(loop: dict, lag: float) -> dict:
     plant = dict(loop["plant"])
     plant["den"] = list(np.polymul(plant["den"], [lag, 1.0]))
     return {**loop, "plant": plant}
+
+
+def nominal_mapping(case: Case) -> dict:
+    """The configuration mapping of a case's nominal model (what a user would write in its YAML file)."""
+    return {**_merge(case.loop, {**case.nominal, "simulation": dict(case.loop["simulation"])}), "name": "nominal"}
 
 
 def generate(case: Case, *, duration: float | None = None, seed: int | None = None

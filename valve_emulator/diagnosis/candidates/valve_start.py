@@ -44,28 +44,20 @@ def _pre_roll(T: int) -> int:
 
 
 @numba.njit(cache=True)
-def _run_valves(op, K, pre, S, J, R, codes, state, out):  # pragma: no cover - compiled
-    # The physics layer's step kernel in a compiled time loop over the record preceded by its mirrored
-    # pre-roll (op[K], ..., op[1]). Pre-rolled valves step from the start of the pre-roll, the others from
-    # the record's first sample; both write straight into out (T, n). op is (T, n), or (T, 1) shared.
-    shared = op.shape[1] == 1
-    for g in range(2):
-        idx = np.flatnonzero(pre) if g == 0 else np.flatnonzero(~pre)
-        first = 0 if g == 0 else K
-        m = idx.shape[0]
-        if m == 0:
-            continue
-        Sg, Jg, Rg, cg = S[idx], J[idx], R[idx], codes[idx]
-        st = state[idx]
-        u = np.empty(m)
-        for kk in range(first, K + op.shape[0]):
-            k = K - kk if kk < K else kk - K   # pre-roll: op[K], ..., op[1]; then op[0], op[1], ...
+def _run_valves(op, K, first, cols, S, J, R, codes, state, out):  # pragma: no cover - compiled
+    # The physics layer's step kernel in a compiled time loop over the record, from sample `first`: K for
+    # valves that start at OP(0), 0 for valves that first run through the mirrored pre-roll (op[K], ..., op[1]).
+    # Valve i reads OP column cols[i] and writes MV column cols[i] of out (T, n).
+    m = cols.shape[0]
+    u = np.empty(m)
+    for kk in range(first, K + op.shape[0]):
+        k = K - kk if kk < K else kk - K
+        for i in range(m):
+            u[i] = min(max(op[k, cols[i] if op.shape[1] > 1 else 0], 0.0), 100.0)
+        stiction_step_kernel(u, S, J, R, codes, state)
+        if kk >= K:
             for i in range(m):
-                u[i] = min(max(op[k, 0 if shared else idx[i]], 0.0), 100.0)
-            stiction_step_kernel(u, Sg, Jg, Rg, cg, st)
-            if kk >= K:
-                for i in range(m):
-                    out[kk - K, idx[i]] = st[i, MV]
+                out[kk - K, cols[i]] = state[i, MV]
 
 
 def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray, ctx: ChainContext) -> np.ndarray:
@@ -88,7 +80,12 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
     state = np.zeros((n, NSTATE))
     initial_state(state, np.clip(first - d * (J + _EPS), 0.0, 100.0), d, S, J, codes)
     out = np.empty((T, n))
-    _run_valves(x2, K, pre, S, J, np.full(n, float(ctx.rest_samples)), codes, state, out)
+    R = np.full(n, float(ctx.rest_samples))
+    if not x2.flags.writeable:  # numba compiles a separate specialisation for read-only arrays
+        x2 = x2.copy()
+    for group, k0 in ((np.flatnonzero(pre), 0), (np.flatnonzero(~pre), K)):
+        if group.size:
+            _run_valves(x2, K, k0, group, S[group], J[group], R[group], codes[group], state[group], out)
     return out
 
 

@@ -44,7 +44,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.signal import lfilter
 
-from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_sse, grid_sse, normal_equations
+from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_sse, grid_sse, kernel_array, normal_equations
 
 __all__ = [
     "PRIOR_WIDTH",
@@ -174,13 +174,13 @@ def input_grid_sse(u: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     ``prefilter``, then a delay by the fraction ``frac`` of a sample), in one compiled pass per column that
     never stores the filtered inputs. ``y`` is in the cost domain (prefiltered with ``prefilter``).
     """
-    u = np.ascontiguousarray(u[:, None] if u.ndim == 1 else u, dtype=np.float64)
-    delays = np.ascontiguousarray(delays, dtype=np.int64)
+    u = u[:, None] if u.ndim == 1 else u
+    delays = np.asarray(delays, dtype=np.int64)
     w0, w1 = _check_window(window, delays, structure)
     trend = int(structure.integrating and prefilter is None)
     sse = np.empty((u.shape[1], delays.size))
-    grid_sse(u, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, structure.ntaps, trend, sse,
-             alpha=structure.denominator(dt), integ=structure.integrating, dt=dt, lam=prefilter, frac=frac)
+    grid_sse(u, y, w0, w1, delays, structure.ntaps, trend, sse, alpha=structure.denominator(dt),
+             integ=structure.integrating, dt=dt, lam=prefilter, frac=frac)
     return sse
 
 
@@ -210,13 +210,11 @@ def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     -------
     sse : (n, len(delays)).
     """
-    z = np.ascontiguousarray(z, dtype=np.float64)
-    delays = np.ascontiguousarray(delays, dtype=np.int64)
+    delays = np.asarray(delays, dtype=np.int64)
     w0, w1 = _check_window(window, delays, structure)
     trend = int(structure.integrating and not prefiltered)
     sse = np.empty((z.shape[1], delays.size))
-    grid_sse(z, np.ascontiguousarray(y, dtype=np.float64), w0, w1, delays, structure.ntaps, trend, sse,
-             filtered=True)
+    grid_sse(z, y, w0, w1, delays, structure.ntaps, trend, sse, filtered=True)
     return sse
 
 
@@ -287,7 +285,7 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
         cols.append(np.asarray(extra, dtype=float).reshape(T, -1))
     X = np.hstack(cols)
     w0, w1 = window
-    Xw, yw = np.ascontiguousarray(X[w0:w1]), np.ascontiguousarray(y[w0:w1], dtype=np.float64)
+    Xw, yw = kernel_array(X[w0:w1]), kernel_array(y[w0:w1])
     G, b = normal_equations(Xw, yw)
     G[np.diag_indices_from(G)] *= 1.0 + RIDGE
     beta = np.linalg.solve(G + 1e-300 * np.eye(G.shape[0]), b)
@@ -328,8 +326,8 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
 
     if taus0.size == 0 and not free_delay:
         return fit(structure)
-    y_cost = np.ascontiguousarray(y if prefilter is None else highpass(y, prefilter), dtype=np.float64)
-    u1 = np.ascontiguousarray(u, dtype=np.float64).reshape(-1)
+    y_cost = kernel_array(y if prefilter is None else highpass(y, prefilter))
+    u1 = kernel_array(u)
 
     def sse(st: LinearStructure) -> float:
         # Without extra regressors a compiled pass gives the same SSE as fit_one (from the normal equations
@@ -339,9 +337,8 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
         m = int(np.floor(ds + 1e-9))
         if extra is not None or window[0] < m + st.ntaps or (st.integrating and prefilter is None):
             return fit(st).sse
-        return float(column_sse(u1, st.denominator(dt), st.integrating, float(dt), prefilter is not None,
-                                float(prefilter or 0.0), max(0.0, ds - m), y_cost, window[0], window[1], m,
-                                st.ntaps, int(st.integrating and prefilter is None)))
+        return column_sse(u1, st.denominator(dt), st.integrating, dt, prefilter, max(0.0, ds - m), y_cost,
+                          window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None))
 
     def make(p: np.ndarray) -> LinearStructure:
         taus = tuple(float(np.exp(np.clip(v, lo_tau, hi_tau))) for v in p[:taus0.size])
@@ -358,6 +355,6 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     step = np.concatenate([np.full(taus0.size, 0.3), [max(dt, 0.1 * structure.delay)] if free_delay else []])
     simplex = np.vstack([x0] + [x0 + np.eye(x0.size)[i] * step[i] for i in range(x0.size)])
     res = minimize(cost, x0, method="Nelder-Mead",
-                   options={"initial_simplex": simplex, "maxfev": max_evals, "xatol": 1e-3, "fatol": 1e-6})
+                   options={"initial_simplex": simplex, "maxfev": max_evals, "xatol": 1e-3, "fatol": 1e-3})
     best = make(res.x) if res.fun <= cost(x0) else structure
     return fit(best)

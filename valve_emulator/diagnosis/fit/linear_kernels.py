@@ -27,7 +27,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numba
 import numpy as np
 
-__all__ = ["RIDGE", "column_sse", "grid_sse", "normal_equations"]
+__all__ = ["RIDGE", "column_sse", "grid_sse", "kernel_array", "normal_equations"]
 
 # Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
 # without changing any well-posed fit beyond rounding.
@@ -42,7 +42,7 @@ _TILE = 16
 _pool: ThreadPoolExecutor | None = None
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True)
 def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
     """Cholesky solve of G beta = r (upper triangle of G filled); return yy - beta·r."""
     L = np.zeros((q, q))
@@ -211,12 +211,18 @@ def _grid_columns(u, c_lo, c_hi, filtered, alpha, integ, dt, highpass, lam, frac
             if w0 <= k < w1 and (k - tile0 + 1 == _TILE or k == w1 - 1):
                 # Cross terms for the samples tile0..k, lag outermost: one row of X stays in the first-level
                 # cache while the tile's rows of the ring stream past (same summation order as sample by sample).
-                for i in range(nlag):
+                if nb == 1:  # one column: no inner loop to set up per (lag, sample)
                     for kk in range(tile0, k + 1):
                         yk = y[kk]
-                        ki = (kk - dmin - i) & mask
-                        for j in range(nb):
-                            X[i, j] += Z[ki, j] * yk
+                        for i in range(nlag):
+                            X[i, 0] += Z[(kk - dmin - i) & mask, 0] * yk
+                else:
+                    for i in range(nlag):
+                        for kk in range(tile0, k + 1):
+                            yk = y[kk]
+                            ki = (kk - dmin - i) & mask
+                            for j in range(nb):
+                                X[i, j] += Z[ki, j] * yk
                 tile0 = k + 1
         for j in range(nb):
             for di in range(nd):
@@ -241,13 +247,8 @@ def _grid_columns(u, c_lo, c_hi, filtered, alpha, integ, dt, highpass, lam, frac
 
 
 @numba.njit(cache=True, nogil=True)
-def column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, trend):  # pragma: no cover
-    """SSE of the fit for one input column ``u`` (T,) and one dead time of ``m`` samples (+ ``frac``).
-
-    The arguments are :func:`grid_sse`'s for a single column and a single delay; this scalar version of the same
-    pass is what a polish evaluates thousands of times (the block kernel's per-sample loop set-up, amortised
-    over a block of columns, would dominate for one). The Gram entries are summed directly over the window.
-    """
+def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, trend):  # pragma: no cover
+    """Compiled body of :func:`column_sse`."""
     T = u.shape[0]
     q = ntaps + 1 + trend
     p = alpha.shape[0] - 1
@@ -314,6 +315,28 @@ def column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, tr
     return _solve_sse(G, r, yy, q, beta)
 
 
+def kernel_array(a, dtype=np.float64) -> np.ndarray:
+    """``a`` as a C-contiguous, writable array of ``dtype``, copied only when it is not one already.
+
+    numba compiles (and caches) one specialisation per array layout *and* per read-only flag; frozen recordings
+    and broadcast views are read-only, so without this a first run would compile each kernel twice.
+    """
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return a if a.flags.writeable else a.copy()
+
+
+def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend) -> float:
+    """SSE of the fit for one input column ``u`` (T,) and one dead time of ``m`` whole samples plus ``frac``.
+
+    The arguments are :func:`grid_sse`'s for a single column and a single delay; this scalar version of the same
+    pass is what a polish evaluates thousands of times (the block kernel's per-sample loop set-up, amortised
+    over a block of columns, would dominate for one). The Gram entries are summed directly over the window.
+    """
+    return float(_column_sse(kernel_array(u).reshape(-1), kernel_array(alpha), bool(integ), float(dt),
+                             lam is not None, float(lam or 0.0), float(frac), kernel_array(y), int(w0), int(w1),
+                             int(m), int(ntaps), int(trend)))
+
+
 def _threads() -> int:
     return max(1, int(numba.get_num_threads()))
 
@@ -327,9 +350,10 @@ def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=N
     ``dt``), the high-pass prefilter of pole ``lam`` (None: none) and a fractional delay ``frac`` (0 ≤ f < 1).
     """
     global _pool
-    alpha = np.ones(1) if alpha is None else np.ascontiguousarray(alpha, dtype=np.float64)
+    u = kernel_array(u)
+    alpha = np.ones(1) if alpha is None else kernel_array(alpha)
     args = (bool(filtered), alpha, bool(integ), float(dt), lam is not None, float(lam or 0.0), float(frac),
-            y, int(w0), int(w1), delays, int(ntaps), int(trend), sse)
+            kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend), sse)
     n = u.shape[1]
     workers = min(_threads(), max(1, n // _THREAD_MIN))
     if workers == 1:
