@@ -8,10 +8,12 @@ import pytest
 from historian import STEPS_300, simulate
 from scipy.signal import lfilter
 
+from valve_emulator.diagnosis.answers import Answer, Reason
 from valve_emulator.diagnosis.assess.decision import assess
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.diagnosis.fit.load_check import LAMBDAS, load_bic_of
+from valve_emulator.recordings.recording import Recording
 
 pytestmark = pytest.mark.slow  # each test fits several simulated plant records
 
@@ -83,3 +85,31 @@ def test_a_nominal_model_diagnosis_carries_no_load_qualifier():
     d = diagnose(rec, nominal)
     valve = [f for f in d.findings if f.physics in ("stiction", "deadband")]
     assert valve and all(f.load_delta_bic is None for f in valve)
+
+
+def _recording(u: np.ndarray, y: np.ndarray) -> Recording:
+    """An open-loop historian record: OP with a little jitter of its own, as exported values have."""
+    jitter = np.random.default_rng(11).normal(0.0, 0.05, u.size)
+    return Recording(np.arange(u.size, dtype=float), None, u + jitter, None, y, source="open loop")
+
+
+def test_a_loop_whose_load_wanders_is_explained_under_the_drifting_load_noise_model():
+    # A linear valve and plant driven by big OP steps, and a random-walk load far larger than the response: a
+    # free-run replay never catches up with the load (cross-validated fit below 0 %), yet what OP does to PV is
+    # plain. The answer is "no stiction", not "cannot tell", and says why.
+    u, y = _open_loop(2.0, 0.05, seed=4)
+    a = assess(_recording(u, y))
+    assert a.explanation.fit_after < 0.0, "the recipe must defeat the free-run fit"
+    assert a.explanation.input_delta_bic >= DELTA_BIC
+    assert a.decision is Answer.NO_STICTION, a.reason
+    assert "drifting-load noise model" in a.reason
+
+
+def test_pv_that_op_does_not_drive_stays_cannot_tell():
+    # The same OP, and a PV that is a random walk of its own: no model explains it either way.
+    u, _ = _open_loop(2.0, 0.05, seed=4)
+    y = np.cumsum(np.random.default_rng(9).normal(0.0, 2.0, u.size))
+    a = assess(_recording(u, y))
+    assert a.explanation is not None and a.explanation.input_delta_bic < DELTA_BIC
+    assert a.decision is Answer.CANNOT_TELL
+    assert a.reasons[0][0] is Reason.NOT_EXPLAINED, a.reasons

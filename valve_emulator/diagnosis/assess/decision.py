@@ -24,10 +24,16 @@ run on each loop:
      there too), *weak* when a linear valve with a compensated drifting load explains the record about as
      well. The qualifier does not change the answer (see ``docs/real-data.md`` for what requiring it would
      do on labelled plant data).
-   * ``cannot tell`` when no valve friction is accepted and the final model's cross-validated fit is below
-     :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their mean). Absence of evidence counts only
-     where a model explains the loop well enough for stiction to have shown; a stiction call needs no such
-     bound, its evidence being the improvement over the linear valve.
+   * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
+     its cross-validated free-run fit is below :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their
+     mean) *and*, under the drifting-load noise model, it does not explain PV better than that noise model
+     alone by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`
+     (:func:`~valve_emulator.diagnosis.fit.load_check.input_delta_bic`). Absence of evidence counts only where
+     a model explains the loop well enough for stiction to have shown; a free run cannot show that on a loop
+     whose load wanders (its replay never catches up with the load); the prediction-error view with a
+     random-walk load can (a nonstationary disturbance term, as in Bacci di Capaci, Scali & Pannocchia,
+     *J. Process Control*, 2016). A stiction
+     call needs no such bound, its evidence being the improvement over the linear valve.
    * otherwise ``no stiction``, with the cause: the first accepted non-valve candidate (an external
      disturbance, a quantised PV, saturation, a flow characteristic, an actuator lag), or, for a loop that
      cycles regularly, aggressive ``tuning`` when :meth:`~valve_emulator.diagnosis.candidates.tuning.Tuning.
@@ -136,13 +142,19 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
         small = (f"a valve band S ≈ {_amount(S, frame)} fits, but it is below {NOISE_BANDS:g} OP noise σ "
                  f"({_amount(NOISE_BANDS * noise, frame)}), where the noise moves such a valve either way; ")
     pre = [(Reason.SMALL_BAND, small.rstrip("; "))] if small else []
+    load = d.input_delta_bic
     if not d.fit_after >= MIN_FIT:
-        return dict(decision=Answer.CANNOT_TELL, cause="", reasons=[(Reason.NOT_EXPLAINED, "the best model found "
-                    "predicts held-out PV worse than their mean")] + pre,
-                    reason=f"{small}no valve friction that could matter improves the model, but the best model "
-                           f"found predicts held-out PV worse than their mean (cross-validated fit "
-                           f"{d.fit_after:.0f} % < {MIN_FIT:g} %): the loop is not explained, so neither is the "
-                           "absence of stiction shown")
+        if load is None or not load >= DELTA_BIC:
+            also = "" if load is None else (f", nor, under a drifting-load noise model, does it explain PV better "
+                                            f"than the load alone (ΔBIC {load:.1f} < {DELTA_BIC:g})")
+            return dict(decision=Answer.CANNOT_TELL, cause="", reasons=[(Reason.NOT_EXPLAINED, "the best model "
+                        f"found predicts held-out PV worse than their mean{also}")] + pre,
+                        reason=f"{small}no valve friction that could matter improves the model, but the best model "
+                               f"found predicts held-out PV worse than their mean (cross-validated fit "
+                               f"{d.fit_after:.0f} % < {MIN_FIT:g} %){also}: the loop is not explained, so neither "
+                               "is the absence of stiction shown")
+        fits += (f"; a free run misses a drifting load, but under a drifting-load noise model the model explains "
+                 f"PV (ΔBIC {load:.1f} against the load alone)")
     tune = _tuning(rec, d, ad.facts)
     ranked = sorted((f for f in d.findings if f.physics in _CAUSES), key=lambda f: _CAUSES.index(f.physics))
     cycle = ad.facts.get("period", float("nan")) if ad.facts.get("oscillating") else float("nan")

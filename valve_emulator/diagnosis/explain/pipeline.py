@@ -41,6 +41,7 @@ from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import Frame
+from valve_emulator.diagnosis.fit.load_check import input_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.diagnosis.fit.scorer import Scorer
@@ -184,4 +185,5 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
                        fit_after=model.heldout, findings=found, located=located,
                        linear=_linear_table(nom, model, problem, frame), ranking=ranking, traces=traces,
                        rule=RULE if validation == "split" else RULE_TWOFOLD, seconds=time.perf_counter() - start,
-                       plant=plant, fitted=fitted)
+                       plant=plant, fitted=fitted,
+                       input_delta_bic=input_delta_bic(fitter.scorer, model) if validation == "twofold" else None)

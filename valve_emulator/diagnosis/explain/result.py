@@ -116,6 +116,9 @@ class Explanation:
     seconds : wall time.
     plant : the fitted linear part, numerically: gain (PV/%), taus, delay, integrating, validation.
     fitted : the final model, replayable on any OP (:meth:`predict`).
+    input_delta_bic : plant data only (two-fold validation): how much the final model explains PV under the
+        drifting-load noise model, against that noise model alone
+        (:func:`~valve_emulator.diagnosis.fit.load_check.input_delta_bic`); None with a nominal model.
     """
 
     source: str
@@ -132,6 +135,7 @@ class Explanation:
     seconds: float = 0.0
     plant: dict = field(default_factory=dict)
     fitted: FittedLoop | None = None
+    input_delta_bic: float | None = None
 
     @property
     def verdict(self) -> str:

@@ -37,12 +37,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from valve_emulator.diagnosis.fit.linear import LinearStructure, polish
+from valve_emulator.diagnosis.fit.linear import LinearStructure, highpass, polish
 from valve_emulator.diagnosis.fit.nominal import bic
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.scorer import Scorer
 
-__all__ = ["LAMBDAS", "load_bic", "load_bic_of", "load_delta_bic"]
+__all__ = ["LAMBDAS", "input_delta_bic", "load_bic", "load_bic_of", "load_delta_bic", "noise_only_bic"]
 
 #: The noise model's λ searched (0: a pure random-walk load; 0.98: a load that wanders over ~50 samples).
 LAMBDAS = (0.0, 0.3, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98)
@@ -79,3 +79,27 @@ def load_bic(scorer: Scorer, model: Model) -> tuple[float, float]:
 def load_delta_bic(scorer: Scorer, without: Model, with_: Model) -> float:
     """BIC of ``without`` minus that of ``with_``, both under the drifting-load noise model (see above)."""
     return load_bic(scorer, without)[0] - load_bic(scorer, with_)[0]
+
+
+def noise_only_bic(y: np.ndarray, window: tuple[int, int]) -> float:
+    """BIC of ``y`` on ``window`` as the drifting-load noise model alone — a level and the load, no input — at
+    the λ of :data:`LAMBDAS` that fits best (2 parameters: the level and λ)."""
+    w0, w1 = window
+    best = float("inf")
+    for lam in LAMBDAS:
+        e = highpass(y, lam)[w0:w1]
+        e = e - e.mean()
+        best = min(best, bic(float(e @ e), e.size, 2))
+    return best
+
+
+def input_delta_bic(scorer: Scorer, model: Model) -> float:
+    """How much OP explains PV once a drifting load is allowed for: BIC of PV as load noise alone
+    (:func:`noise_only_bic`) minus BIC of ``model`` (:func:`load_bic`), both under the drifting-load noise model.
+
+    The free-run fit of a model on plant data can be below zero although the model captures what OP does to PV:
+    the load wanders, and a free-run replay never catches up with it. This figure asks the question the
+    free-run fit cannot answer there — does the model explain PV's response to OP — with the same noise model
+    and the same ΔBIC rule as the strength of a stiction call.
+    """
+    return noise_only_bic(scorer.p.y, scorer.p.train) - load_bic(scorer, model)[0]
