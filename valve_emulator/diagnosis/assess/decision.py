@@ -63,7 +63,8 @@ from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
-__all__ = ["Assessment", "assess", "assess_uniform", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS"]
+__all__ = ["Assessment", "assess", "assess_uniform", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS",
+           "op_flat_at_extreme"]
 
 #: The three answers.
 DECISIONS = tuple(Answer)
@@ -75,10 +76,33 @@ MIN_FIT = 0.0
 VALVE_PHYSICS = VALVE_FRICTION
 #: Findings that are reason codes of their own (every physics of the vocabulary).
 _FINDING_REASONS = frozenset(str(r) for r in Reason)
-#: Candidates that need OP's travel stops (0 and 100 %): searched only when the travel span is known.
+#: Candidates that need OP's travel stops (0 and 100 %): searched only when the travel span is known —
+#: saturation also when OP demonstrably sits flat at an extreme (:func:`op_flat_at_extreme`).
 NEEDS_SPAN = ("saturation", "characteristic")
+#: OP "flat at an extreme": one unbroken run of at least this share of the record (and
+#: :data:`FLAT_EXTREME_MIN` samples) exactly at OP's highest or lowest value — a controller output held at
+#: its limit repeats one value, where a moving or noisy OP touches its extreme for a sample or two.
+FLAT_EXTREME_SHARE = 0.05
+FLAT_EXTREME_MIN = 10
 #: Order in which other findings name the cause of a "no stiction" answer.
 _CAUSES = ("disturbance", "quantization", "saturation", "characteristic", "actuator_lag", "dead_time")
+
+
+def op_flat_at_extreme(op: np.ndarray) -> bool:
+    """Whether OP sits flat at its highest or lowest value for one run of :data:`FLAT_EXTREME_SHARE` of the
+    record (at least :data:`FLAT_EXTREME_MIN` samples): there OP is at a limit, so a flow limit (saturation)
+    can be told from the data even when the travel span is not known. Independent of OP's units."""
+    op = np.asarray(op, dtype=float)
+    span = float(np.ptp(op)) if op.size else 0.0
+    if not span > 0.0:
+        return False
+    need = max(FLAT_EXTREME_MIN, int(np.ceil(FLAT_EXTREME_SHARE * op.size)))
+    tol = 1e-9 * span  # the same value, up to the rounding of a unit conversion
+    for at in (op >= op.max() - tol, op <= op.min() + tol):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], at.astype(np.int8), [0]])))
+        if edges.size and int(np.max(edges[1::2] - edges[::2])) >= need:
+            return True
+    return False
 
 
 def _valve(findings: tuple[Finding, ...]) -> Finding | None:
@@ -217,7 +241,8 @@ def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Cal
     noise = op_noise(rec.op)
     frame = frame or Frame.unit_free(rec.op)
     inner = replace(rec, op=frame.to_internal(rec.op), mv=None if rec.mv is None else frame.to_internal(rec.mv))
-    names = [n for n in registry() if frame.known or n not in NEEDS_SPAN]
+    flat_extreme = op_flat_at_extreme(rec.op)
+    names = [n for n in registry() if frame.known or n not in NEEDS_SPAN or (n == "saturation" and flat_extreme)]
     try:
         d = explain(inner, None, candidates=names, progress=progress, frame=frame)
     except UninformativeData as exc:  # e.g. PV constant over the fit part: the data cannot decide

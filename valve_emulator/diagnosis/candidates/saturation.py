@@ -8,8 +8,9 @@ valve. The model clips the chain signal after the characteristic,
 .. math::  \text{flow} = \min(\max(x, \ell), h),
 
 with one active limit (``lo`` = ℓ or ``hi`` = h; the other one at the travel stop, 0 or 100 %), so one
-parameter for BIC. Its signature: the residual of a model without it lives where OP sits beyond
-the limit.
+parameter for BIC. On plant data it is a candidate only where OP's travel span is known or OP demonstrably sits
+flat at an extreme (:func:`~valve_emulator.diagnosis.assess.decision.op_flat_at_extreme`). Its signature: the
+residual of a model without it lives where OP sits beyond the limit.
 
 Grid: each side at the 2nd … 40th percentiles of OP (``lo``) and the 60th … 98th (``hi``), so that at least
 2 % of the samples lie beyond the limit (fewer could not be told from noise); :meth:`refine` searches
@@ -64,9 +65,11 @@ class Saturation(ChainCandidate):
                 "hi": round(float(p[1]), 3) if p[1] < 100.0 else None}
 
     def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
-        if p[0] > 0.0:
-            return f"saturation: no less flow below {p[0]:.1f} % travel"
-        return f"saturation: no more flow above {p[1]:.1f} % travel"
+        """``p`` in OP's units, NaN for the side without a limit (see ``explain.findings``)."""
+        where = " travel" if units.strip() == "%" else ""
+        if np.isfinite(p[0]):
+            return f"saturation: no less flow below OP {p[0]:.4g}{units}{where}"
+        return f"saturation: no more flow above OP {p[1]:.4g}{units}{where}"
 
     def identity(self) -> np.ndarray:
         return np.array([0.0, 100.0])
