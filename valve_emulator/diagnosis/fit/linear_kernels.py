@@ -77,6 +77,37 @@ def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
+def _ring(n):  # pragma: no cover - compiled
+    """Size (a power of two, at least ``n``) and index mask of a ring buffer."""
+    size = 1
+    while size < n:
+        size *= 2
+    return size, size - 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _filter_setup(alpha, T):  # pragma: no cover - compiled
+    """Order p, DC gain sum(alpha) and first recursive sample of the all-pole filter, and the ring of its past
+    outputs."""
+    p = alpha.shape[0] - 1
+    gain = 0.0
+    for i in range(p + 1):
+        gain += alpha[i]
+    rring, rmask = _ring(p + 1)
+    return p, gain, min(max(p, 1), T), rring, rmask
+
+
+@numba.njit(cache=True, nogil=True)
+def _keep(row, P, P1, PK, keepP, keepP1, keepPK):  # pragma: no cover - compiled
+    """Copy the running sums into row ``row`` of a kept run."""
+    for j in range(P1.shape[0]):
+        keepP1[row, j] = P1[j]
+        keepPK[row, j] = PK[j]
+        for tap in range(P.shape[0]):
+            keepP[tap, row, j] = P[tap, j]
+
+
+@numba.njit(cache=True, nogil=True)
 def _grid_columns(u, c_lo, c_hi, filtered, alpha, integ, dt, highpass, lam, frac, y, w0, w1, delays, ntaps, trend,
                   sse):  # pragma: no cover - compiled
     # u (T, n) time-major, columns innermost. Columns c_lo..c_hi-1 are scored, _BLOCK at a time.
@@ -89,19 +120,8 @@ def _grid_columns(u, c_lo, c_hi, filtered, alpha, integ, dt, highpass, lam, frac
         dmax = max(dmax, delays[di])
     nlag = dmax - dmin + ntaps
     q = ntaps + 1 + trend
-    p = alpha.shape[0] - 1
-    gain = 0.0
-    for i in range(p + 1):
-        gain += alpha[i]
-    start = min(max(p, 1), T)
-    ring = 1
-    while ring < dmax + ntaps + _TILE:   # the tile of samples whose cross terms are pending, and its lags
-        ring *= 2
-    mask = ring - 1
-    rring = 1
-    while rring < p + 1:
-        rring *= 2
-    rmask = rring - 1
+    p, gain, start, rring, rmask = _filter_setup(alpha, T)
+    ring, mask = _ring(dmax + ntaps + _TILE)   # the tile of samples whose cross terms are pending, and its lags
     lo0 = w0 - dmax - (ntaps - 1)   # first index of the run of running sums kept near w0
     hi0 = w1 - dmax - (ntaps - 1)   # ... and near w1
     # Window sums of y and of the trend t = k/T: yy, sum y, sum t y, sum t², sum t.
@@ -146,17 +166,9 @@ def _grid_columns(u, c_lo, c_hi, filtered, alpha, integ, dt, highpass, lam, frac
         for k in range(T + 1):
             # Keep the running sums (over indices < k) where the Gram entries will need them.
             if lo0 <= k < lo0 + nlag:
-                for j in range(nb):
-                    loP1[k - lo0, j] = P1[j]
-                    loPK[k - lo0, j] = PK[j]
-                    for tap in range(ntaps):
-                        loP[tap, k - lo0, j] = P[tap, j]
+                _keep(k - lo0, P, P1, PK, loP, loP1, loPK)
             if hi0 <= k < hi0 + nlag:
-                for j in range(nb):
-                    hiP1[k - hi0, j] = P1[j]
-                    hiPK[k - hi0, j] = PK[j]
-                    for tap in range(ntaps):
-                        hiP[tap, k - hi0, j] = P[tap, j]
+                _keep(k - hi0, P, P1, PK, hiP, hiP1, hiPK)
             if k == T:
                 break
             # One stage at a time over the block's columns: branch-free inner loops, and row indices rather
@@ -251,23 +263,12 @@ def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, t
     """Compiled body of :func:`column_sse`."""
     T = u.shape[0]
     q = ntaps + 1 + trend
-    p = alpha.shape[0] - 1
-    gain = 0.0
-    for i in range(p + 1):
-        gain += alpha[i]
-    start = min(max(p, 1), T)
+    p, gain, start, rring, rmask = _filter_setup(alpha, T)
     mean = 0.0
     for k in range(T):
         mean += u[k]
     mean /= T
-    ring = 1
-    while ring < m + ntaps + 1:
-        ring *= 2
-    mask = ring - 1
-    rring = 1
-    while rring < p + 1:
-        rring *= 2
-    rmask = rring - 1
+    ring, mask = _ring(m + ntaps + 1)
     Z = np.zeros(ring)
     R = np.zeros(rring)
     acc = v0 = hstate = hprev = 0.0
