@@ -87,13 +87,14 @@ async def test_record_and_monitor_sub_commands_read_a_running_emulator(tmp_path,
     async with EmulatorServer(config(), time_scale=20.0) as srv:
         port = str(srv.port)
         # A generous per-request timeout: on a fresh checkout the emulator's first ticks compile its kernels
-        # in this same event loop, and what is tested here is the sub-commands, not the latency.
+        # in this same event loop (a row or two of the first second then comes late), and what is tested here is
+        # the sub-commands, not the latency: 16 steps, of which 80 % must be on the grid.
         assert await asyncio.to_thread(cli_main, ["record", "--port", port, "--out", str(out), "--step", "0.5",
-                                                  "--period", "0.025", "--until", "4", "--quiet",
+                                                  "--period", "0.025", "--until", "8", "--quiet",
                                                   "--timeout", "20"]) == 0
         assert await asyncio.to_thread(cli_main, ["monitor", "--port", port, "--once", "--plain",
                                                   "--timeout", "20"]) == 0
     rec = read_csv(out)
-    assert rec.columns[:5] == ("t", "sp", "op", "mv", "pv") and rec.t[-1] >= 4.0
+    assert rec.columns[:5] == ("t", "sp", "op", "mv", "pv") and rec.t[-1] >= 8.0
     assert np.mean(np.abs(np.diff(rec.t) - 0.5) < 1e-6) >= 0.8        # on the device's time grid
     assert f"valve monitor -- 127.0.0.1:{port} unit 1" in capsys.readouterr().out
