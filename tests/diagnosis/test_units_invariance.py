@@ -54,7 +54,9 @@ def _findings(a):
     return () if a.diagnosis is None else a.diagnosis.findings
 
 
-def _same(name: str, a: float, b: float, c: float = 1.0, d: float = 0.0) -> None:
+def _assert_same(name: str, a: float, b: float, c: float = 1.0, d: float = 0.0):
+    """Assert that the mapped record gives the base record's answer, reasons and findings, and S, J that follow
+    the map; return the mapped record's assessment."""
     base, got = _base(name), assess_uniform(_mapped(name, a, b, c, d))
     assert got.decision == base.decision, (got.verdict, base.verdict)
     assert [r for r, _ in got.reasons] == [r for r, _ in base.reasons]
@@ -64,6 +66,7 @@ def _same(name: str, a: float, b: float, c: float = 1.0, d: float = 0.0) -> None
         assert pytest.approx(a * base.J, rel=0.05, abs=0.05 * a * base.S) == got.J
         lo, hi = got.intervals["S"]
         assert lo == pytest.approx(a * base.intervals["S"][0], rel=0.05)
+    return got
 
 
 scales = st.floats(min_value=-3.0, max_value=3.0).map(lambda e: 10.0 ** e)
@@ -73,7 +76,7 @@ scales = st.floats(min_value=-3.0, max_value=3.0).map(lambda e: 10.0 ** e)
 @settings(max_examples=2, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(a=scales, b=st.floats(min_value=-1e3, max_value=1e3), c=scales, d=st.floats(min_value=-1e3, max_value=1e3))
 def test_random_positive_affine_maps_of_op_and_pv_change_nothing(name, a, b, c, d):
-    _same(name, a, b * a, c, d * c)
+    _assert_same(name, a, b * a, c, d * c)
 
 
 @pytest.mark.parametrize("how", ["deviation from 50 %", "mean-centred, unit variance", "0-1 fraction",
@@ -82,7 +85,7 @@ def test_the_exports_a_user_meets_give_the_stiction_answer_and_s_j_in_op_units(h
     op = _record("stiction, undershoot").op
     a, b = {"deviation from 50 %": (1.0, -50.0), "mean-centred, unit variance": (1 / op.std(), -op.mean() / op.std()),
             "0-1 fraction": (0.01, 0.0), "4-20 mA": (0.16, 4.0), "raw counts 0-27648": (276.48, 0.0)}[how]
-    _same("stiction, undershoot", a, b)
+    assert _assert_same("stiction, undershoot", a, b).decision is Answer.STICTION
 
 
 def test_a_known_span_gives_s_and_j_in_percent_of_travel_too():

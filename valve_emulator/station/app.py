@@ -291,26 +291,29 @@ def make_app(station: Station, *, token: str | None = None) -> web.Application:
         st.scenario = load_run(st, body)
         return _json(st.scenario.describe())
 
+    def loaded():
+        """The loaded scenario run, or a 409 naming the call that loads one."""
+        if st.scenario is None:
+            raise StationError("no scenario loaded (POST /api/scenario first)", field="scenario", status=409)
+        return st.scenario
+
     @_api(instructor=True)
     async def scenario_action(request: web.Request) -> web.Response:
         await _body(request)
-        if st.scenario is None:
-            raise StationError("no scenario loaded (POST /api/scenario first)", field="scenario", status=409)
+        run = loaded()
         action = request.match_info["action"]
         if action == "start":
-            st.scenario.start(st)
+            run.start(st)
         elif action == "stop":
-            st.scenario.stop(st)
+            run.stop(st)
         else:
             raise web.HTTPNotFound()
-        return _json(st.scenario.describe())
+        return _json(run.describe())
 
     @_api(instructor=True)
     async def hint(request: web.Request) -> web.Response:
         await _body(request)
-        if st.scenario is None:
-            raise StationError("no scenario loaded", field="scenario", status=409)
-        return _json(st.scenario.release_hint(st, request.match_info["id"]))
+        return _json(loaded().release_hint(st, request.match_info["id"]))
 
     @_api(instructor=True)
     async def report(request: web.Request) -> web.Response:

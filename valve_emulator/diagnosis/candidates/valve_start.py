@@ -29,6 +29,7 @@ import numba
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import ChainContext
+from valve_emulator.physics._arrays import kernel_array
 from valve_emulator.physics.stiction import MODELS, MV, NSTATE, initial_state, stiction_step_kernel
 
 __all__ = ["PRE_ROLL", "STARTS", "valve_output", "sync_burn_in"]
@@ -81,8 +82,7 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
     initial_state(state, np.clip(first - d * (J + _EPS), 0.0, 100.0), d, S, J, codes)
     out = np.empty((T, n))
     R = np.full(n, float(ctx.rest_samples))
-    if not x2.flags.writeable:  # numba compiles a separate specialisation for read-only arrays
-        x2 = x2.copy()
+    x2 = kernel_array(x2)
     for group, k0 in ((np.flatnonzero(pre), 0), (np.flatnonzero(~pre), K)):
         if group.size:
             _run_valves(x2, K, k0, group, S[group], J[group], R[group], codes[group], state[group], out)

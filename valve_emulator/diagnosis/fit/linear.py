@@ -44,7 +44,8 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.signal import lfilter
 
-from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_sse, grid_sse, kernel_array, normal_equations
+from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_sse, grid_sse, normal_equations
+from valve_emulator.physics._arrays import kernel_array
 
 __all__ = [
     "PRIOR_WIDTH",
@@ -54,6 +55,7 @@ __all__ = [
     "filter_inputs",
     "input_grid_sse",
     "delay_grid_sse",
+    "split_delay",
     "fit_one",
     "polish",
 ]
@@ -218,6 +220,12 @@ def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     return sse
 
 
+def split_delay(delay_samples: float) -> tuple[int, float]:
+    """A dead time in samples as whole samples ``m`` and the fraction ``f`` of one more (0 ≤ f < 1)."""
+    m = int(np.floor(delay_samples + 1e-9))
+    return m, max(0.0, delay_samples - m)
+
+
 def _shift(z: np.ndarray, s: int) -> np.ndarray:
     """``z_{k-s}``, holding the first value before the record starts."""
     if s <= 0:
@@ -234,8 +242,7 @@ def _delayed_regressors(z: np.ndarray, delay_samples: float, ntaps: int) -> np.n
     Interpolating the filtered input between samples is the first-order (in Δt/τ) form of the exact
     fractional-delay ZOH of Åström & Wittenmark; it is exact for the integer delays the grid uses.
     """
-    m = int(np.floor(delay_samples + 1e-9))
-    f = max(0.0, delay_samples - m)
+    m, f = split_delay(delay_samples)
     cols = []
     for j in range(ntaps):
         col = _shift(z, m + j)
@@ -333,11 +340,10 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
         # Without extra regressors a compiled pass gives the same SSE as fit_one (from the normal equations
         # instead of the residual: equal to rounding) at a fraction of the cost of building the regressors.
         # Not for an integrator's unfiltered ramps, whose normal equations lose digits to cancellation.
-        ds = st.delay / dt
-        m = int(np.floor(ds + 1e-9))
+        m, frac = split_delay(st.delay / dt)
         if extra is not None or window[0] < m + st.ntaps or (st.integrating and prefilter is None):
             return fit(st).sse
-        return column_sse(u1, st.denominator(dt), st.integrating, dt, prefilter, max(0.0, ds - m), y_cost,
+        return column_sse(u1, st.denominator(dt), st.integrating, dt, prefilter, frac, y_cost,
                           window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None))
 
     def make(p: np.ndarray) -> LinearStructure:

@@ -27,7 +27,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numba
 import numpy as np
 
-__all__ = ["RIDGE", "column_sse", "grid_sse", "kernel_array", "normal_equations"]
+from valve_emulator.physics._arrays import kernel_array
+
+__all__ = ["RIDGE", "column_sse", "grid_sse", "normal_equations"]
 
 # Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
 # without changing any well-posed fit beyond rounding.
@@ -314,16 +316,6 @@ def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, t
                 for jj in range(i, q):
                     G[i, jj] += x[i] * x[jj]
     return _solve_sse(G, r, yy, q, beta)
-
-
-def kernel_array(a, dtype=np.float64) -> np.ndarray:
-    """``a`` as a C-contiguous, writable array of ``dtype``, copied only when it is not one already.
-
-    numba compiles (and caches) one specialisation per array layout *and* per read-only flag; frozen recordings
-    and broadcast views are read-only, so without this a first run would compile each kernel twice.
-    """
-    a = np.ascontiguousarray(a, dtype=dtype)
-    return a if a.flags.writeable else a.copy()
 
 
 def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend) -> float:

@@ -45,6 +45,7 @@ from valve_emulator.diagnosis.fit.linear import (
     highpass,
     input_grid_sse,
     polish,
+    split_delay,
 )
 from valve_emulator.diagnosis.fit.nominal import Nominal, bic
 from valve_emulator.diagnosis.fit.records import Model
@@ -167,9 +168,8 @@ class Scorer:
         """
         frac = 0.0
         if delays is None:
-            ds = st.delay / self.p.dt
-            m = int(np.floor(ds + 1e-9))
-            frac, delays = max(0.0, ds - m), np.array([m])
+            m, frac = split_delay(st.delay / self.p.dt)
+            delays = np.array([m])
         return input_grid_sse(flows, aim.cost, self.p.train, delays, st, self.p.dt, prefilter=self.lam,
                               frac=frac), delays
 
