@@ -5,7 +5,7 @@ and PV, PV noise 5 % of the amplitude); the nominal model lacks the stiction (``
 linear part identified). *Warm*: one untimed warm-up loads the compiled kernels (numba caches them on disk),
 then the median of ``--repeat`` runs. *First run*: a fresh interpreter with an empty kernel cache
 (``NUMBA_CACHE_DIR`` a new temporary folder), as after a fresh install: imports, reading the recording's CSV,
-compilation and one diagnosis, timed from outside. Run::
+compilation and one diagnosis, timed from outside; then the same after ``valve-emulator compile`` (untimed). Run::
 
     python bench/bench_diagnose.py [--samples 1000 10000] [--repeat 3] [--no-model] [--no-first-run]
 """
@@ -34,12 +34,13 @@ print(ve.diagnose(sys.argv[1], model).answer)
 """
 
 
-def first_run(samples: int, model: bool) -> float:
+def first_run(samples: int, model: bool, ahead: bool = False) -> float:
     """Seconds for a fresh interpreter with an empty kernel cache to import, compile and diagnose once.
 
     The recording (standard CSV) and the nominal model (JSON of the configuration mapping) are written first,
     so the child does what a user's first ``diagnose`` does — read a file, compile the diagnosis' kernels,
-    diagnose — and not the simulation that made the recording.
+    diagnose — and not the simulation that made the recording. ``ahead``: ``valve-emulator compile`` runs
+    first (not timed), as after an install that follows the README.
     """
     case = CASES[0]
     rec, _, _ = generate(case, duration=samples - 1 + case.cut)
@@ -50,6 +51,9 @@ def first_run(samples: int, model: bool) -> float:
         with open(model_path, "w") as f:
             json.dump(nominal, f)
         env = {**os.environ, "NUMBA_CACHE_DIR": os.path.join(tmp, "numba")}
+        if ahead:
+            subprocess.run([sys.executable, "-m", "valve_emulator", "compile"], env=env, check=True,
+                           capture_output=True)
         t = time.perf_counter()
         subprocess.run([sys.executable, "-c", _FIRST_RUN, csv_path, model_path if model else "none"], env=env,
                        check=True, capture_output=True)
@@ -76,7 +80,8 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             d = explain(rec, None if args.no_model else nominal)
             times.append(time.perf_counter() - t)
-        first = "" if args.no_first_run else f" | first run {first_run(n, not args.no_model):5.1f} s"
+        first = "" if args.no_first_run else (f" | first run {first_run(n, not args.no_model):5.1f} s, after "
+                                              f"`compile` {first_run(n, not args.no_model, ahead=True):5.1f} s")
         print(f"{len(rec):6d} samples: warm median {statistics.median(times):5.2f} s (min {min(times):.2f}, "
               f"max {max(times):.2f}){first} | {d.verdict}")
     return 0

@@ -30,6 +30,7 @@ COMMANDS = (
     "diagnose",
     "prove",
     "evaluate",
+    "compile",
 )
 
 

@@ -96,3 +96,41 @@ def test_a_read_only_install_caches_outside_the_package(tmp_path):
         for p in [package, *package.rglob("*")]:
             p.chmod(p.stat().st_mode | 0o200)
         shutil.rmtree(target, ignore_errors=True)
+
+
+# Runs what a user runs first — simulate a loop, diagnose the recording with and without a model, tick a device —
+# and counts the kernels that had to be compiled (cache misses) and loaded (hits) across the whole package.
+FIRST_USE = """
+import json, sys
+from numba.core.registry import CPUDispatcher
+from valve_emulator.cli import main
+from valve_emulator.commands._config import load_server_or_default
+from valve_emulator.device.tick import Device
+
+table1 = sys.argv[1]
+assert main(["simulate", table1 + "/level_overshoot.yaml", "--out", "rec.csv", "--duration", "900"]) == 0
+assert main(["diagnose", "rec.csv", "--json", "plant.json"]) == 0
+assert main(["diagnose", "rec.csv", "--model", table1 + "/level_no_stiction.yaml", "--json", "m.json"]) == 0
+Device.from_config(load_server_or_default(None), time_scale=0.0).advance(5)
+kernels = [k for m in list(sys.modules.values()) if (m.__name__ or "").startswith("valve_emulator")
+           for k in vars(m).values() if isinstance(k, CPUDispatcher)]
+print(json.dumps({"hits": sum(sum(k.stats.cache_hits.values()) for k in kernels),
+                  "misses": {k.py_func.__qualname__: sum(k.stats.cache_misses.values()) for k in kernels
+                             if sum(k.stats.cache_misses.values())}}))
+"""
+
+
+@pytest.mark.slow
+def test_compile_ahead_leaves_nothing_for_the_first_simulate_diagnose_and_serve_to_compile(tmp_path):
+    env = _env(tmp_path)
+    ahead = subprocess.run([sys.executable, "-m", "valve_emulator", "compile"], env=env, cwd=tmp_path,
+                           capture_output=True, text=True, timeout=600)
+    assert ahead.returncode == 0, ahead.stderr
+    cache = tmp_path / "xdg" / "valve_emulator" / "numba"
+    assert f"into {cache}" in ahead.stdout and list(cache.rglob("*.nbi"))
+    out = subprocess.run([sys.executable, "-c", FIRST_USE, str(ROOT / "configs" / "table1")], env=env,
+                         cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    counts = json.loads(out.stdout.strip().splitlines()[-1])
+    assert counts["misses"] == {}, f"compiled on first use although compiled ahead: {counts['misses']}"
+    assert counts["hits"] >= 8, "the first use ran the cached kernels"

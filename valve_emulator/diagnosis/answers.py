@@ -70,3 +70,4 @@ class Reason(StrEnum):
     NO_EXCITATION = "no_excitation"
     NOT_EXPLAINED = "not_explained"          # no model predicts held-out PV better than its mean
     UNINFORMATIVE = "uninformative"          # the fit part carries no information
+    PART_OF_RECORD = "part_of_record"        # answered on one half: one linear model explains neither whole

@@ -34,6 +34,14 @@ run on each loop:
      random-walk load can (a nonstationary disturbance term, as in Bacci di Capaci, Scali & Pannocchia,
      *J. Process Control*, 2016). A stiction
      call needs no such bound, its evidence being the improvement over the linear valve.
+   * a record that is ``not explained`` as a whole (and holds at least twice
+     :data:`~valve_emulator.diagnosis.fit.data.MIN_SAMPLES`) is assessed again as its two halves, each as a
+     record of its own: a plant whose operating point, gain or load moves within the record can be linear over
+     shorter stretches where it is not over the whole (fitting the stretches one model holds on, as
+     stiction quantification on plant data does, e.g. Bacci di Capaci & Scali's selection of stationary
+     windows). When the halves that are answered agree, the answer is theirs, with the figures of the half
+     whose model predicts held-out PV best and the reason ``part_of_record``; when they disagree or neither is
+     answered, the answer stays ``cannot tell``.
    * otherwise ``no stiction``, with the cause: the first accepted non-valve candidate (an external
      disturbance, a quantised PV, saturation, a flow characteristic, an actuator lag), or, for a loop that
      cycles regularly, aggressive ``tuning`` when :meth:`~valve_emulator.diagnosis.candidates.tuning.Tuning.
@@ -58,7 +66,7 @@ from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningA
 from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
-from valve_emulator.diagnosis.fit.data import UninformativeData
+from valve_emulator.diagnosis.fit.data import MIN_SAMPLES, UninformativeData
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
@@ -233,6 +241,40 @@ def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Cal
     this OP, in which any positive affine map of OP (and of PV) gives the same answer.
     """
     start = time.perf_counter() if start is None else start
+    whole = _assess_once(rec, notes, progress, start, frame)
+    if not (whole.decision is Answer.CANNOT_TELL and any(c is Reason.NOT_EXPLAINED for c, _ in whole.reasons)
+            and len(rec) >= 2 * MIN_SAMPLES):
+        return whole
+    return _by_halves(rec, whole, progress, start, frame)
+
+
+def _by_halves(rec: Recording, whole: Assessment, progress: Callable[[str], None] | None, start: float,
+               frame: Frame | None) -> Assessment:
+    """A record that one linear model does not explain, assessed again as two halves (step 4's last rule)."""
+    n = len(rec)
+    cuts = ((0, n // 2), (n // 2, n))
+    parts = []
+    for i0, i1 in cuts:
+        if progress is not None:
+            progress(f"not explained as a whole: assessing samples {i0}–{i1 - 1} on their own")
+        parts.append(_assess_once(rec.slice(i0, i1), (), progress, time.perf_counter(),
+                                  frame if frame is not None and frame.known else None))
+    answered = [(cut, a) for cut, a in zip(cuts, parts) if a.decision is not Answer.CANNOT_TELL]
+    said = "; ".join(f"samples {i0}–{i1 - 1}: {a.decision.words}" for (i0, i1), a in zip(cuts, parts))
+    if not answered or len({a.decision for _, a in answered}) > 1:
+        why = ("neither half is explained either" if not answered else f"its halves disagree ({said})")
+        return replace(whole, reason=f"{whole.reason}; {why}", seconds=time.perf_counter() - start)
+    (i0, i1), best = max(answered, key=lambda ca: ca[1].explanation.fit_after)
+    sentence = (f"one linear model explains neither the whole record nor its absence of stiction, so each half was "
+                f"assessed on its own ({said}); the answer and its figures are those of samples {i0}–{i1 - 1}")
+    return replace(best, source=whole.source, notes=whole.notes + (f"answered on samples {i0}–{i1 - 1} of {n}",),
+                   reason=f"{best.reason}; {sentence}", reasons=best.reasons + ((Reason.PART_OF_RECORD, sentence),),
+                   seconds=time.perf_counter() - start)
+
+
+def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str], None] | None, start: float,
+                 frame: Frame | None) -> Assessment:
+    """Steps 2 to 4 on the whole of ``rec``."""
     src = rec.source or "recording"
     ad = adequacy(rec)
     if not ad.ok:

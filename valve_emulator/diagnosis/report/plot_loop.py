@@ -3,7 +3,7 @@ r"""One loop's assessment as a figure (PNG, matplotlib's Agg backend): the data,
 Three panels:
 
 1. OP (left axis) and PV with its set point (right axis) over time — where a stuck valve, a cycle or a
-   flat PV shows;
+   flat PV shows; shaded, the half a record was answered on when one model explains neither the whole;
 2. PV against OP, coloured by time — a sticky valve draws a parallelogram, a linear valve a line;
 3. the recorded PV against the final model's replay (and the linear model's) when there is a diagnosis,
    otherwise the refusal's reason.
@@ -44,8 +44,11 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
     if rec.has_sp:
         ax2.plot(rec.t, rec.sp, color="k", ls="--", lw=0.7, label="SP")
     ax2.set_ylabel("PV")
-    lines = ax.get_lines() + ax2.get_lines()
-    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="upper left")
+    handles = ax.get_lines() + ax2.get_lines()
+    if a.diagnosis is not None and any(code == "part_of_record" for code, _ in a.reasons):
+        t = a.diagnosis.traces.t
+        handles.append(ax.axvspan(t[0], t[-1], color="tab:green", alpha=0.08, label="the part answered"))
+    ax.legend(handles, [h.get_label() for h in handles], fontsize=8, loc="upper left")
     ax.set_title("The recording", fontsize=10)
 
     ax = fig.add_subplot(grid[1, 0])

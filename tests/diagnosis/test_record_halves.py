@@ -1,0 +1,60 @@
+"""A record one linear model does not explain is assessed again as two halves (assess/decision.py, step 4).
+
+Known truth: the proof cases' concentration loop — with concealed stiction (S = 5, J = 2 % travel), or with
+nothing left out — for 1,300 s, followed by as long a stretch in which PV is a random walk of its own that OP
+does not drive (a transmitter gone bad, a loop put on another duty). No single linear model explains the
+whole; the first half is the loop itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from valve_emulator.benchmark.cases import CASES, generate
+from valve_emulator.diagnosis.answers import Answer, Reason
+from valve_emulator.diagnosis.assess.decision import assess
+from valve_emulator.recordings.recording import Recording
+
+pytestmark = pytest.mark.slow
+
+
+def _with_a_bad_second_half(case_index: int, seed: int) -> tuple[Recording, int]:
+    case = CASES[case_index]
+    loop, _, _ = generate(case, duration=1300 + case.cut)
+    n = len(loop)
+    walk = np.cumsum(np.random.default_rng(seed).normal(0.0, 1.0, n)) * np.std(loop.pv) / 3
+    rec = Recording(np.arange(2 * n) * loop.dt, None, np.concatenate([loop.op, loop.op[::-1]]), None,
+                    np.concatenate([loop.pv, loop.pv[-1] + walk]), source=f"{case.name} + bad half")
+    return rec, n
+
+
+def _codes(a) -> list[Reason]:
+    return [code for code, _ in a.reasons]
+
+
+def test_stiction_is_found_on_the_half_that_a_model_explains():
+    rec, n = _with_a_bad_second_half(0, seed=3)
+    a = assess(rec)
+    assert a.decision is Answer.STICTION, a.reason
+    assert Reason.PART_OF_RECORD in _codes(a)
+    assert f"those of samples 0–{n - 1}" in a.reason
+    assert any(note == f"answered on samples 0–{n - 1} of {2 * n}" for note in a.notes), a.notes
+    # The figures are the half's: the concealed valve, in the unit-free frame mapped back to OP (% travel here).
+    assert abs(a.S - 5.0) <= 0.5 and abs(a.J - 2.0) <= 0.6, (a.S, a.J)
+
+
+def test_a_linear_loop_is_answered_no_stiction_on_the_half_that_a_model_explains():
+    rec, _ = _with_a_bad_second_half(9, seed=3)
+    a = assess(rec)
+    assert a.decision is Answer.NO_STICTION, a.reason
+    assert Reason.PART_OF_RECORD in _codes(a)
+
+
+def test_halves_that_disagree_leave_the_record_cannot_tell():
+    # Here the random-walk half happens to be "explained" (as no stiction) while the sticky half is stiction:
+    # one record, two answers — the record does not decide.
+    rec, _ = _with_a_bad_second_half(0, seed=2)
+    a = assess(rec)
+    assert a.decision is Answer.CANNOT_TELL
+    assert _codes(a)[0] is Reason.NOT_EXPLAINED and "halves disagree" in a.reason, a.reason
