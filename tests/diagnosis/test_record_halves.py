@@ -8,8 +8,12 @@ whole; the first half is the loop itself.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from valve_emulator.benchmark.cases import CASES, generate
 from valve_emulator.diagnosis.answers import Answer, Reason
@@ -58,3 +62,15 @@ def test_halves_that_disagree_leave_the_record_cannot_tell():
     a = assess(rec)
     assert a.decision is Answer.CANNOT_TELL
     assert _codes(a)[0] is Reason.NOT_EXPLAINED and "halves disagree" in a.reason, a.reason
+
+
+@settings(max_examples=3, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@given(a=st.floats(-3.0, 3.0).map(lambda e: 10.0 ** e), b=st.floats(-1e3, 1e3),
+       c=st.floats(-3.0, 3.0).map(lambda e: 10.0 ** e), d=st.floats(-1e3, 1e3))
+def test_answering_by_halves_does_not_depend_on_op_or_pv_units(a, b, c, d):
+    rec, _ = _with_a_bad_second_half(0, seed=3)
+    base = assess(rec)
+    got = assess(replace(rec, op=a * rec.op + b, pv=c * rec.pv + d))
+    assert got.decision is base.decision is Answer.STICTION, got.reason
+    assert _codes(got) == _codes(base)
+    assert abs(got.S - a * base.S) <= 0.05 * a * base.S and abs(got.J - a * base.J) <= 0.05 * a * base.S

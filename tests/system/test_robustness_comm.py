@@ -44,6 +44,8 @@ async def _poll(port: int, stop: asyncio.Event, seen: list[tuple[float, bool]]) 
             seen.append((loop.time(), False))
             writer.close()                 # the unanswered request would stay in line: start afresh
             reader = writer = None
+        except (asyncio.IncompleteReadError, ConnectionError):
+            break                          # the server closed: the scenario is over (the checks below need it late)
         await asyncio.sleep(0.05)
     if writer is not None:
         writer.close()
