@@ -8,6 +8,7 @@ whole; the first half is the loop itself.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 
 import numpy as np
@@ -23,6 +24,7 @@ from valve_emulator.recordings.recording import Recording
 pytestmark = pytest.mark.slow
 
 
+@functools.cache
 def _with_a_bad_second_half(case_index: int, seed: int) -> tuple[Recording, int]:
     case = CASES[case_index]
     loop, _, _ = generate(case, duration=1300 + case.cut)
@@ -37,9 +39,14 @@ def _codes(a) -> list[Reason]:
     return [code for code, _ in a.reasons]
 
 
+@functools.cache
+def _sticky_assessed():
+    return assess(_with_a_bad_second_half(0, seed=3)[0])
+
+
 def test_stiction_is_found_on_the_half_that_a_model_explains():
-    rec, n = _with_a_bad_second_half(0, seed=3)
-    a = assess(rec)
+    _, n = _with_a_bad_second_half(0, seed=3)
+    a = _sticky_assessed()
     assert a.decision is Answer.STICTION, a.reason
     assert Reason.PART_OF_RECORD in _codes(a)
     assert f"those of samples 0–{n - 1}" in a.reason
@@ -69,7 +76,7 @@ def test_halves_that_disagree_leave_the_record_cannot_tell():
        c=st.floats(-3.0, 3.0).map(lambda e: 10.0 ** e), d=st.floats(-1e3, 1e3))
 def test_answering_by_halves_does_not_depend_on_op_or_pv_units(a, b, c, d):
     rec, _ = _with_a_bad_second_half(0, seed=3)
-    base = assess(rec)
+    base = _sticky_assessed()
     got = assess(replace(rec, op=a * rec.op + b, pv=c * rec.pv + d))
     assert got.decision is base.decision is Answer.STICTION, got.reason
     assert _codes(got) == _codes(base)
