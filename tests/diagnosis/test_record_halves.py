@@ -81,3 +81,23 @@ def test_answering_by_halves_does_not_depend_on_op_or_pv_units(a, b, c, d):
     assert got.decision is base.decision is Answer.STICTION, got.reason
     assert _codes(got) == _codes(base)
     assert abs(got.S - a * base.S) <= 0.05 * a * base.S and abs(got.J - a * base.J) <= 0.05 * a * base.S
+
+
+def test_the_document_of_a_record_answered_by_halves_is_valid_and_keeps_the_half_s_model():
+    import json
+
+    import jsonschema
+
+    import valve_emulator as ve
+    from valve_emulator.diagnosis.report.schema import schema
+
+    rec, n = _with_a_bad_second_half(0, seed=3)
+    result = ve.diagnose(rec)
+    doc = json.loads(json.dumps(result.to_json()))
+    jsonschema.validate(doc, schema(), cls=jsonschema.Draft202012Validator)
+    assert doc["answer"] == "stiction" and doc["friction"] is not None
+    assert "part_of_record" in [r["code"] for r in doc["reasons"]]
+    # The kept model is the loop's: replaying the loop half's OP reproduces its PV (held-out fit well above 0).
+    pv = result.predict(rec.op[:n])
+    err = np.mean((pv[200:] - rec.pv[200:n]) ** 2) / np.var(rec.pv[200:n])
+    assert err < 0.3, err
