@@ -141,3 +141,18 @@ def test_the_plant_index_is_scored_beside_the_methods_as_a_baseline(tmp_path):
     (tmp_path / "index.csv").write_text("file,label,stick1\na.txt,stiction,high\n", encoding="utf-8")
     with pytest.raises(ValueError, match="line 2: stick1 'high' is not a number"):
         read_index(tmp_path)
+
+
+def test_the_halves_check_shows_the_figures_without_answers_from_halves():
+    # A: sticky, one window answered stiction on a half, one no stiction as a whole; B: not sticky, answered no
+    # stiction on a half; C: not sticky, answered as a whole.
+    kw = dict(cause="x", S=1.0, J=0.0, reason="r")
+    res = [_w("A", True, "stiction", "a1", part_of_record=True, **kw),
+           _w("A", True, "no stiction", "a2", **kw),
+           _w("B", False, "no stiction", "b1", part_of_record=True, **kw),
+           _w("C", False, "no stiction", "c1", **kw)]
+    rows = {(r[0], r[1]): r[2:] for r in Evaluation(res).halves_check()}
+    assert rows["as answered", "valve"][3:] == (1.0, 1, 0, 0, 2)       # coverage, TP FN FP TN
+    assert rows["without answers from halves", "valve"][3:] == (pytest.approx(2 / 3), 0, 1, 0, 2)
+    assert rows["without answers from halves", "window"][3:] == (0.5, 0, 2, 0, 2)
+    assert "2 window(s) were not explained by one linear model as a whole" in Evaluation(res).markdown()

@@ -84,6 +84,11 @@ def _strong_only(r: dict) -> str:
     return r["decision"]
 
 
+def _without_halves(r: dict) -> str:
+    """Our decision had a record not explained as a whole stayed "cannot tell" (no answer from its halves)."""
+    return Answer.CANNOT_TELL if r.get("part_of_record") else r["decision"]
+
+
 def misclassified(results: list[dict], method: str = METHOD) -> list[tuple[str, dict, dict]]:
     """``(tag, valve, representative window)`` for each valve whose call disagrees with its label.
 
@@ -143,6 +148,17 @@ class Evaluation:
                                                 for v in valve_calls(self.results, dec).values())),
                             ("window", confusion(window_calls(self.results, dec)))):
                 rows.append((name, unit, c.sensitivity, c.specificity, c.balanced_accuracy, c.tp, c.fn, c.fp, c.tn))
+        return rows
+
+    def halves_check(self) -> list[tuple]:
+        """Per valve and per window: the answers as given, and had no record been answered by its halves."""
+        rows = []
+        for name, dec in (("as answered", decision_of(METHOD)), ("without answers from halves", _without_halves)):
+            for unit, c in (("valve", confusion((v["label"], v["call"])
+                                                for v in valve_calls(self.results, dec).values())),
+                            ("window", confusion(window_calls(self.results, dec)))):
+                rows.append((name, unit, c.sensitivity, c.specificity, c.balanced_accuracy, c.coverage, c.tp, c.fn,
+                             c.fp, c.tn))
         return rows
 
     # -- tables ---------------------------------------------------------------------------------------------
@@ -245,6 +261,12 @@ class Evaluation:
                "answers count both; here is what answering \"cannot tell\" to the weak ones would give.", "",
                markdown_table(("rule", "unit", "sensitivity", "specificity", "balanced accuracy", "TP", "FN", "FP",
                                "TN"), self.load_check()), "",
+               "### Halves check: records answered on a half", "",
+               f"{sum(bool(r.get('part_of_record')) for r in self.results)} window(s) were not explained by one "
+               "linear model as a whole and were answered on their halves (reason `part_of_record`). Had they "
+               "stayed \"cannot tell\":", "",
+               markdown_table(("rule", "unit", "sensitivity", "specificity", "balanced accuracy", "coverage", "TP",
+                               "FN", "FP", "TN"), self.halves_check()), "",
                "### Misclassified valves", ""]
         wrong = misclassified(self.results)
         if not wrong:
