@@ -262,7 +262,7 @@ def _by_halves(rec: Recording, whole: Assessment, progress: Callable[[str], None
     answered = [(cut, a) for cut, a in zip(cuts, parts) if a.decision is not Answer.CANNOT_TELL]
     said = "; ".join(f"samples {i0}–{i1 - 1}: {a.decision.words}" for (i0, i1), a in zip(cuts, parts))
     if not answered or len({a.decision for _, a in answered}) > 1:
-        why = ("neither half is explained either" if not answered else f"its halves disagree ({said})")
+        why = (f"neither half answers on its own either ({said})" if not answered else f"its halves disagree ({said})")
         return replace(whole, reason=f"{whole.reason}; {why}", seconds=time.perf_counter() - start)
     (i0, i1), best = max(answered, key=lambda ca: ca[1].explanation.fit_after)
     sentence = (f"one linear model explains neither the whole record nor its absence of stiction, so each half was "
