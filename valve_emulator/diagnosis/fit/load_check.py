@@ -68,12 +68,21 @@ def load_bic_of(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], struct
 
 
 def load_bic(scorer: Scorer, model: Model) -> tuple[float, float]:
-    """:func:`load_bic_of` for a model of the search (its chain output, linear structure and parameters)."""
+    """:func:`load_bic_of` for a model of the search (its chain output, linear structure and parameters).
+
+    Remembered per model on the scorer: the strength of a valve finding and :func:`input_delta_bic` often ask
+    for the same final model.
+    """
+    hit = scorer.memo.get(id(model))
+    if hit is not None and hit[0] is model:
+        return hit[1]
     p = scorer.p
     out = model.by_slot().get("output")
     extra = None if out is None else out.candidate.regressors(out.params, scorer.ctx(model))
-    return load_bic_of(model.flow, p.y, p.train, model.fit.structure, p.dt, k=model.k, free_delay=model.delay_free,
-                       max_delay=scorer.dmax, extra=extra)
+    result = load_bic_of(model.flow, p.y, p.train, model.fit.structure, p.dt, k=model.k,
+                         free_delay=model.delay_free, max_delay=scorer.dmax, extra=extra)
+    scorer.memo[id(model)] = (model, result)
+    return result
 
 
 def load_delta_bic(scorer: Scorer, without: Model, with_: Model) -> float:

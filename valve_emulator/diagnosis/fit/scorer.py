@@ -86,6 +86,9 @@ class Scorer:
         self.dmax = float(problem.delays.max()) * problem.dt
         self.lam = problem.prefilter
         self.prior = nominal.structure.taus if nominal.given else None
+        #: Scores derived from a model that later stages ask for again (see ``load_check.load_bic``), by the
+        #: model's ``id`` with the model itself kept, so that an id is never reused while it is remembered.
+        self.memo: dict[int, tuple[Model, object]] = {}
 
     def aim(self, model: Model | None) -> Aim:
         """What the linear part is fitted to while ``model`` is extended or profiled (the scaled PV unless the
