@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -127,10 +128,16 @@ def test_compile_ahead_leaves_nothing_for_the_first_simulate_diagnose_and_serve_
                            capture_output=True, text=True, timeout=600)
     assert ahead.returncode == 0, ahead.stderr
     cache = tmp_path / "xdg" / "valve_emulator" / "numba"
-    assert f"into {cache}" in ahead.stdout and list(cache.rglob("*.nbi"))
+    compiled = re.search(r"compiled (\d+) kernel\(s\) of diagnose, simulate, serve in .* s into "
+                         + re.escape(str(cache)), ahead.stdout)
+    assert compiled and int(compiled.group(1)) >= 10 and list(cache.rglob("*.nbi")), ahead.stdout
     out = subprocess.run([sys.executable, "-c", FIRST_USE, str(ROOT / "configs" / "table1")], env=env,
                          cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     counts = json.loads(out.stdout.strip().splitlines()[-1])
     assert counts["misses"] == {}, f"compiled on first use although compiled ahead: {counts['misses']}"
     assert counts["hits"] >= 8, "the first use ran the cached kernels"
+    again = subprocess.run([sys.executable, "-m", "valve_emulator", "compile"], env=env, cwd=tmp_path,
+                           capture_output=True, text=True, timeout=600)
+    assert again.stdout.startswith("nothing to compile: the kernels of diagnose, simulate, serve were already in"), \
+        again.stdout

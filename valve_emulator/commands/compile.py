@@ -67,6 +67,16 @@ def _serve() -> None:
 _WORK = {"diagnose": _diagnose, "simulate": _simulate, "serve": _serve}
 
 
+def _compiled() -> int:
+    """How many compilations the package's kernels needed in this process (numba's cache misses)."""
+    from numba.core.registry import CPUDispatcher
+
+    kernels = {id(k): k for m in list(sys.modules.values())
+               if (getattr(m, "__name__", "") or "").startswith("valve_emulator")
+               for k in vars(m).values() if isinstance(k, CPUDispatcher)}
+    return sum(sum(k.stats.cache_misses.values()) for k in kernels.values())
+
+
 def run(args: argparse.Namespace) -> int:
     from valve_emulator._cache import cache_dir
 
@@ -76,5 +86,9 @@ def run(args: argparse.Namespace) -> int:
         t = time.perf_counter()
         _WORK[part]()
         print(f"{part}: {time.perf_counter() - t:.1f} s", file=sys.stderr, flush=True)
-    print(f"compiled the kernels of {', '.join(parts)} in {time.perf_counter() - start:.1f} s into {cache_dir()}")
+    n, seconds = _compiled(), time.perf_counter() - start
+    if n:
+        print(f"compiled {n} kernel(s) of {', '.join(parts)} in {seconds:.1f} s into {cache_dir()}")
+    else:
+        print(f"nothing to compile: the kernels of {', '.join(parts)} were already in {cache_dir()} ({seconds:.1f} s)")
     return 0
