@@ -126,15 +126,21 @@ class Evaluation:
         return [METHOD] + index + list(DETECTORS)
 
     def windows(self, method: str) -> Confusion:
-        return confusion(window_calls(self.results, decision_of(method)))
+        return self._windows_by(decision_of(method))
 
     def valves(self, method: str) -> Confusion:
-        return confusion((v["label"], v["call"]) for v in valve_calls(self.results, decision_of(method)).values())
+        return self._valves_by(decision_of(method))
+
+    def _windows_by(self, decide: Callable[[dict], str]) -> Confusion:
+        return confusion(window_calls(self.results, decide))
+
+    def _valves_by(self, decide: Callable[[dict], str]) -> Confusion:
+        return confusion((v["label"], v["call"]) for v in valve_calls(self.results, decide).values())
 
     def threshold_check(self) -> tuple[list[tuple], Confusion]:
         rows = []
         for k in NOISE_GRID:
-            c = confusion((v["label"], v["call"]) for v in valve_calls(self.results, _with_bands(k)).values())
+            c = self._valves_by(_with_bands(k))
             rows.append((f"{k:g}" + (" (used)" if k == NOISE_BANDS else ""), c.sensitivity, c.specificity,
                          c.balanced_accuracy))
         lovo, _ = leave_one_valve_out(self.results, NOISE_GRID, lambda r, k: _with_bands(k)(r))
@@ -142,23 +148,20 @@ class Evaluation:
 
     def load_check(self) -> list[tuple]:
         """Per valve and per window: the answers as given, and had weak stiction calls been "cannot tell"."""
-        rows = []
-        for name, dec in (("as answered", decision_of(METHOD)), ("strong calls only", _strong_only)):
-            for unit, c in (("valve", confusion((v["label"], v["call"])
-                                                for v in valve_calls(self.results, dec).values())),
-                            ("window", confusion(window_calls(self.results, dec)))):
-                rows.append((name, unit, c.sensitivity, c.specificity, c.balanced_accuracy, c.tp, c.fn, c.fp, c.tn))
-        return rows
+        return self._against(("strong calls only", _strong_only), coverage=False)
 
     def halves_check(self) -> list[tuple]:
         """Per valve and per window: the answers as given, and had no record been answered by its halves."""
+        return self._against(("without answers from halves", _without_halves), coverage=True)
+
+    def _against(self, other: tuple[str, Callable[[dict], str]], *, coverage: bool) -> list[tuple]:
+        """Rows (rule, unit, sensitivity, specificity, balanced accuracy[, coverage], TP, FN, FP, TN) of our
+        answers as given and under the ``other`` (name, decision) rule, per valve and per window."""
         rows = []
-        for name, dec in (("as answered", decision_of(METHOD)), ("without answers from halves", _without_halves)):
-            for unit, c in (("valve", confusion((v["label"], v["call"])
-                                                for v in valve_calls(self.results, dec).values())),
-                            ("window", confusion(window_calls(self.results, dec)))):
-                rows.append((name, unit, c.sensitivity, c.specificity, c.balanced_accuracy, c.coverage, c.tp, c.fn,
-                             c.fp, c.tn))
+        for name, decide in (("as answered", decision_of(METHOD)), other):
+            for unit, c in (("valve", self._valves_by(decide)), ("window", self._windows_by(decide))):
+                rows.append((name, unit, c.sensitivity, c.specificity, c.balanced_accuracy,
+                             *((c.coverage,) if coverage else ()), c.tp, c.fn, c.fp, c.tn))
         return rows
 
     # -- tables ---------------------------------------------------------------------------------------------
