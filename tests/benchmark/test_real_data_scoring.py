@@ -156,3 +156,21 @@ def test_the_halves_check_shows_the_figures_without_answers_from_halves():
     assert rows["without answers from halves", "valve"][3:] == (pytest.approx(2 / 3), 0, 1, 0, 2)
     assert rows["without answers from halves", "window"][3:] == (0.5, 0, 2, 0, 2)
     assert "2 window(s) were not explained by one linear model as a whole" in Evaluation(res).markdown()
+
+
+def test_the_flat_pv_check_scores_both_methods_without_the_flat_windows():
+    # A: sticky, one window flat (cannot tell; the index says 0.9), one called stiction (index 0.2);
+    # B: sticky, its only window flat (no_response; index 1.0); C: not sticky, answered no stiction (index 0.6).
+    kw = dict(cause="x", S=1.0, J=0.0, reason="r")
+    res = [_w("A", True, "cannot tell", "a1", reasons=["flat_pv"], plant_index=0.9, **kw),
+           _w("A", True, "stiction", "a2", reasons=["stiction"], plant_index=0.2, **kw),
+           _w("B", True, "cannot tell", "b1", reasons=["no_response"], plant_index=1.0, **kw),
+           _w("C", False, "no stiction", "c1", reasons=["linear"], plant_index=0.6, **kw)]
+    rows = {r[:3]: r[3:] for r in Evaluation(res).flat_check()}
+    assert rows["all windows", "diagnosis", "window"][3:] == (1, 2, 0, 1)              # TP FN FP TN
+    assert rows["all windows", "plant index", "window"][3:] == (2, 1, 1, 0)
+    assert rows["PV not flat", "diagnosis", "window"][3:] == (1, 0, 0, 1)
+    assert rows["PV not flat", "plant index", "window"][3:] == (0, 1, 1, 0)
+    assert rows["PV not flat", "diagnosis", "valve"][3:] == (1, 0, 0, 1)               # B has no window left
+    md = Evaluation(res).markdown()
+    assert "2 window(s) have a flat PV" in md

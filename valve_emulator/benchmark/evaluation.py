@@ -32,7 +32,7 @@ from valve_emulator.benchmark.scorecard import (
     window_calls,
 )
 from valve_emulator.detectors import DETECTORS, Decision
-from valve_emulator.diagnosis.answers import Answer
+from valve_emulator.diagnosis.answers import Answer, Reason
 from valve_emulator.diagnosis.assess.decision import NOISE_BANDS
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 
@@ -87,6 +87,15 @@ def _strong_only(r: dict) -> str:
 def _without_halves(r: dict) -> str:
     """Our decision had a record not explained as a whole stayed "cannot tell" (no answer from its halves)."""
     return Answer.CANNOT_TELL if r.get("part_of_record") else r["decision"]
+
+
+#: Reason codes of a record whose PV does not respond: no method can tell a sticky valve from those data.
+_NO_RESPONSE = frozenset({str(Reason.FLAT_PV), str(Reason.NO_RESPONSE)})
+
+
+def _flat(r: dict) -> bool:
+    """The window's PV is flat (our answer's reasons say so): the record holds no evidence either way."""
+    return bool(_NO_RESPONSE & set(r.get("reasons", ())))
 
 
 def misclassified(results: list[dict], method: str = METHOD) -> list[tuple[str, dict, dict]]:
@@ -153,6 +162,19 @@ class Evaluation:
     def halves_check(self) -> list[tuple]:
         """Per valve and per window: the answers as given, and had no record been answered by its halves."""
         return self._against(("without answers from halves", _without_halves), coverage=True)
+
+    def flat_check(self) -> list[tuple]:
+        """Ours and the plant index per valve and per window: on every window, and on the windows whose PV
+        responds (not flat: ``flat_pv``/``no_response``), where a record can show stiction at all."""
+        rows = []
+        responding = Evaluation([r for r in self.results if not _flat(r)])
+        methods = [m for m in self.methods if m in (METHOD, PLANT_INDEX)]
+        for where, ev in (("all windows", self), ("PV not flat", responding)):
+            for m in methods:
+                for unit, c in (("valve", ev.valves(m)), ("window", ev.windows(m))):
+                    rows.append((where, m, unit, c.sensitivity, c.specificity, c.balanced_accuracy, c.tp, c.fn,
+                                 c.fp, c.tn))
+        return rows
 
     def _against(self, other: tuple[str, Callable[[dict], str]], *, coverage: bool) -> list[tuple]:
         """Rows (rule, unit, sensitivity, specificity, balanced accuracy[, coverage], TP, FN, FP, TN) of our
@@ -270,6 +292,14 @@ class Evaluation:
                "stayed \"cannot tell\":", "",
                markdown_table(("rule", "unit", "sensitivity", "specificity", "balanced accuracy", "coverage", "TP",
                                "FN", "FP", "TN"), self.halves_check()), "",
+               "### Flat-PV check: the windows a record can answer", "",
+               f"{sum(_flat(r) for r in self.results)} window(s) have a flat PV (reason `flat_pv` or "
+               "`no_response`): a seized valve, a closed block valve, a dead transmitter and a frozen archive "
+               "give the same record, so the answer there is \"cannot tell\" and the headline counts it as a "
+               "missed call. The same scores on the other windows, for the diagnosis and the plant index alike "
+               "(a secondary figure: the headline is the one above).", "",
+               markdown_table(("windows", "method", "unit", "sensitivity", "specificity", "balanced accuracy",
+                               "TP", "FN", "FP", "TN"), self.flat_check()), "",
                "### Misclassified valves", ""]
         wrong = misclassified(self.results)
         if not wrong:

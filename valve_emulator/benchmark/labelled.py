@@ -146,7 +146,8 @@ def run_window(item: Item) -> dict:
 
     Keys: ``name``, ``tag``, ``label``, ``loop_type``, ``samples``, ``dt``, ``decision``, ``cause``,
     ``reason``, ``S``, ``J`` and their intervals, ``op_noise``, ``fit_before``, ``fit_after``, ``notes``,
-    ``part_of_record`` (answered on a half of the record), ``detectors`` (name → decision and reason),
+    ``part_of_record`` (answered on a half of the record), ``reasons`` (the answer's reason codes),
+    ``detectors`` (name → decision and reason),
     ``seconds``; or ``error`` (the reader's or the diagnosis' message) when the file cannot be used.
     """
     from valve_emulator.recordings import read_recording
@@ -167,7 +168,8 @@ def run_window(item: Item) -> dict:
         out["tag"] = out["tag"] or Path(item.path).stem
         return out
     out.update(samples=len(rec), dt=rec.dt, op_noise=a.op_noise, notes=list(a.notes) + list(loaded.notes),
-               part_of_record=any(code is Reason.PART_OF_RECORD for code, _ in a.reasons), **a.summary())
+               part_of_record=any(code is Reason.PART_OF_RECORD for code, _ in a.reasons),
+               reasons=[str(code) for code, _ in a.reasons], **a.summary())
     integrating = item.loop_type.upper() in INTEGRATING_TYPES
     dets = run_detectors(rec.op, rec.pv, dt=rec.dt, sp=rec.sp if rec.has_sp else None, integrating=integrating)
     out["detectors"] = {n: {"decision": str(r.decision), "reason": r.reason} for n, r in dets.items()}

@@ -28,6 +28,7 @@ from typing import Final
 import numba
 import numpy as np
 
+from valve_emulator.diagnosis._threads import run_split, workers_for
 from valve_emulator.diagnosis.candidates.base import ChainContext
 from valve_emulator.physics._arrays import kernel_array
 from valve_emulator.physics.stiction import MODELS, MV, NSTATE, initial_state, stiction_step_kernel
@@ -44,7 +45,7 @@ def _pre_roll(T: int) -> int:
     return min(T - 1, max(100, T // 5))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _run_valves(op, K, first, cols, S, J, R, codes, state, out):  # pragma: no cover - compiled
     # The physics layer's step kernel in a compiled time loop over the record, from sample `first`: K for
     # valves that start at OP(0), 0 for valves that first run through the mirrored pre-roll (op[K], ..., op[1]).
@@ -84,8 +85,11 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
     R = np.full(n, float(ctx.rest_samples))
     x2 = kernel_array(x2)
     for group, k0 in ((np.flatnonzero(pre), 0), (np.flatnonzero(~pre), K)):
-        if group.size:
-            _run_valves(x2, K, k0, group, S[group], J[group], R[group], codes[group], state[group], out)
+        # The valves are independent: a large group runs in parallel threads (the kernel releases the GIL).
+        workers = workers_for(group.size)
+        cuts = [group.size * w // workers for w in range(workers + 1)]
+        run_split(lambda a, b, g=group, k0=k0: _run_valves(x2, K, k0, g[a:b], S[g[a:b]], J[g[a:b]], R[g[a:b]],
+                                                            codes[g[a:b]], state[g[a:b]], out), cuts)
     return out
 
 

@@ -22,11 +22,10 @@ The Python entry points are :func:`~valve_emulator.diagnosis.fit.linear.input_gr
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numba
 import numpy as np
 
+from valve_emulator.diagnosis._threads import run_split, workers_for
 from valve_emulator.physics._arrays import kernel_array
 
 __all__ = ["RIDGE", "column_sse", "grid_sse", "normal_equations"]
@@ -34,15 +33,10 @@ __all__ = ["RIDGE", "column_sse", "grid_sse", "normal_equations"]
 # Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
 # without changing any well-posed fit beyond rounding.
 RIDGE = 1e-10
-# Fewer columns than this run in the calling thread: handing work to another thread costs more than it saves.
-_THREAD_MIN = 16
 # Columns processed together in the time loop (one row of the ring buffer stays in a cache line or two).
 _BLOCK = 128
 # Samples whose cross terms with the output are accumulated together (see _grid_columns).
 _TILE = 16
-
-_pool: ThreadPoolExecutor | None = None
-
 
 @numba.njit(cache=True, nogil=True)
 def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
@@ -330,10 +324,6 @@ def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend) -> fl
                              int(m), int(ntaps), int(trend)))
 
 
-def _threads() -> int:
-    return max(1, int(numba.get_num_threads()))
-
-
 def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=None, integ=False, dt=1.0,
              lam=None, frac=0.0) -> None:
     """Fill ``sse`` (n, nd) for every column of ``u`` (T, n) and every dead time of ``delays``, in place.
@@ -342,24 +332,16 @@ def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=N
     by the all-pole filter ``alpha`` (unit DC gain, one sample of delay), an integrator (``integ``, scaled by
     ``dt``), the high-pass prefilter of pole ``lam`` (None: none) and a fractional delay ``frac`` (0 ≤ f < 1).
     """
-    global _pool
     u = kernel_array(u)
     alpha = np.ones(1) if alpha is None else kernel_array(alpha)
     args = (bool(filtered), alpha, bool(integ), float(dt), lam is not None, float(lam or 0.0), float(frac),
             kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend), sse)
     n = u.shape[1]
-    workers = min(_threads(), max(1, n // _THREAD_MIN))
-    if workers == 1:
-        _grid_columns(u, 0, n, *args)
-        return
-    if _pool is None or _pool._max_workers < workers:
-        _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="valve_emulator-fit")
+    workers = workers_for(n)
     # Whole blocks per worker, as even as the block size allows.
     cuts = [min(n, _BLOCK * round(n * w / workers / _BLOCK)) for w in range(workers + 1)]
     cuts[-1] = n
-    futures = [_pool.submit(_grid_columns, u, a, b, *args) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
-    for f in futures:
-        f.result()
+    run_split(lambda a, b: _grid_columns(u, a, b, *args), cuts)
 
 
 @numba.njit(cache=True)

@@ -1,0 +1,46 @@
+"""One pool of Python threads for the diagnosis' compiled kernels that release the GIL.
+
+A kernel compiled with ``nogil=True`` runs in parallel in plain threads; a ``parallel=True`` kernel would
+compile several times slower, and it is the kernels that a fresh install compiles first. The pool has
+``numba.get_num_threads()`` workers (1 in the workers of a plant-wide sweep, which are processes already).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
+
+__all__ = ["MIN_PER_WORKER", "run_split", "workers_for"]
+
+#: Fewer items than this per worker run in the calling thread: handing work to a thread costs more than it saves.
+MIN_PER_WORKER = 16
+
+_pool: ThreadPoolExecutor | None = None
+
+
+def workers_for(n: int) -> int:
+    """Threads worth using for ``n`` independent items."""
+    return min(max(1, int(numba.get_num_threads())), max(1, n // MIN_PER_WORKER))
+
+
+def run_split(work: Callable[[int, int], object], cuts: list[int]) -> None:
+    """Call ``work(a, b)`` for every consecutive pair of ``cuts`` (non-empty ranges only), one per thread.
+
+    The last range runs in the calling thread; exceptions propagate after every range has finished.
+    """
+    global _pool
+    ranges = [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+    if len(ranges) <= 1:
+        for a, b in ranges:
+            work(a, b)
+        return
+    if _pool is None or _pool._max_workers < len(ranges) - 1:
+        _pool = ThreadPoolExecutor(max_workers=len(ranges) - 1, thread_name_prefix="valve_emulator-fit")
+    futures = [_pool.submit(work, a, b) for a, b in ranges[:-1]]
+    try:
+        work(*ranges[-1])
+    finally:
+        for f in futures:
+            f.result()
