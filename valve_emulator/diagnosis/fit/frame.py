@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Frame", "CENTER", "WIDTH", "TRAVEL"]
+__all__ = ["Frame", "CENTER", "WIDTH", "TRAVEL", "UNKNOWN_UNITS"]
 
 #: Internal coordinate of OP's robust midpoint when the span is unknown.
 CENTER = 50.0
@@ -32,6 +32,8 @@ CENTER = 50.0
 WIDTH = 40.0
 #: Units of a quantity in % of travel.
 TRAVEL = "% travel"
+#: The units of an OP whose span is not known: its own, whatever they are.
+UNKNOWN_UNITS = "OP units"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -60,11 +62,11 @@ class Frame:
         if not hi > lo:
             raise ValueError(f"op range: the value at 100 % travel ({hi:g}) must exceed the one at 0 % ({lo:g})")
         gain = 100.0 / (hi - lo)
-        label = units or (TRAVEL if (lo, hi) == (0.0, 100.0) else "OP units")
+        label = units or (TRAVEL if (lo, hi) == (0.0, 100.0) else UNKNOWN_UNITS)
         return cls(offset=-lo * gain, gain=gain, units=label, span=(lo, hi), span_source=source)
 
     @classmethod
-    def unit_free(cls, op: np.ndarray, *, units: str = "OP units") -> Frame:
+    def unit_free(cls, op: np.ndarray, *, units: str = UNKNOWN_UNITS) -> Frame:
         """The frame of an OP whose span is unknown (robust midpoint and range, see the module docstring)."""
         lo, hi = np.percentile(np.asarray(op, dtype=float), [0.5, 99.5])
         width = float(hi - lo)

@@ -22,11 +22,19 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
 from valve_emulator.diagnosis.explain.result import Explanation  # noqa: E402
+from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame  # noqa: E402
 
-__all__ = ["plot_diagnosis"]
+__all__ = ["op_units", "plot_diagnosis"]
 
 # How much of the held-out part the PV panel shows: enough for a few cycles, few enough to see them.
 _SHOW = 600
+
+
+def op_units(frame: Frame | None) -> str:
+    """OP's units for an axis label: % travel by default, the recording's own when its span is unknown."""
+    if frame is None:
+        return TRAVEL
+    return "its own units" if frame.units == UNKNOWN_UNITS else frame.units
 
 
 def _stretch(d: Explanation) -> slice:
@@ -58,17 +66,19 @@ def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
     ax.set(title="Held-out part: recorded vs simulated PV", xlabel="t (s)", ylabel="PV")
     ax.legend(fontsize=8, loc="best")
 
+    units = op_units(d.fitted.frame if d.fitted is not None else None)
     ax = axes[1, 0]
     k = slice(max(0, tr.t.size - 2 * _SHOW), tr.t.size)
     found = {f.physics for f in d.findings}
     if "characteristic" in found:  # the finding lives on the flow axis: show the fitted curve
         order = np.argsort(tr.op)
         ax.plot(tr.op[order], tr.flow_after[order], color="tab:blue", lw=1.2, label="fitted valve")
-        ax.set(title="Fitted valve: flow against OP", xlabel="OP (%)", ylabel="flow (% of maximum)")
+        flow = "flow (% of maximum)" if d.fitted is None or d.fitted.frame is None else f"flow (as OP, {units})"
+        ax.set(title="Fitted valve: flow against OP", xlabel=f"OP ({units})", ylabel=flow)
     else:
         ax.plot(tr.op[k], tr.mv_after[k], color="tab:blue", lw=0.8, label="fitted valve")
-        ax.set(title="Fitted valve: MV against OP (last part of the record)", xlabel="OP (%)",
-               ylabel="MV (%)")
+        ax.set(title="Fitted valve: MV against OP (last part of the record)", xlabel=f"OP ({units})",
+               ylabel=f"MV ({units})")
     lo, hi = float(np.min(tr.op[k])), float(np.max(tr.op[k]))
     ax.plot([lo, hi], [lo, hi], color="0.6", ls=":", lw=1.0, label="nominal (linear, MV = OP)")
     ax.legend(fontsize=8, loc="best")
@@ -91,6 +101,6 @@ def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
                     label="estimate" if accepted else "best of the search (not accepted)")
             ax.legend(fontsize=8, loc="upper left")
         ax.set(title="Stiction cost surface over (S, J)" + ("" if accepted else " — stiction not accepted"),
-               xlabel="S (% travel)", ylabel="J (% travel)", ylim=(J[0], J[-1]))
+               xlabel=f"S ({units})", ylabel=f"J ({units})", ylim=(J[0], J[-1]))
     fig.savefig(path, dpi=110)
     plt.close(fig)

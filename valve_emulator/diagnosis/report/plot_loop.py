@@ -24,6 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from valve_emulator.diagnosis.assess.result import Assessment  # noqa: E402
+from valve_emulator.diagnosis.report.plot import op_units  # noqa: E402
 from valve_emulator.recordings.recording import Recording  # noqa: E402
 
 __all__ = ["plot_loop"]
@@ -36,9 +37,11 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
     head = (title + "\n" if title else "") + "\n".join(textwrap.wrap(a.statement, 150))
     fig.suptitle(head, fontsize=9)
 
+    # Without a model (a refused record) nothing says what OP's units are: the recording's own.
+    op_label = f"OP ({op_units(a.frame)})" if a.frame is not None else "OP"
     ax = fig.add_subplot(grid[0, :])
-    ax.plot(rec.t, rec.op, color="tab:blue", lw=0.8, label="OP (%)")
-    ax.set(xlabel="t (s)", ylabel="OP (%)")
+    ax.plot(rec.t, rec.op, color="tab:blue", lw=0.8, label=op_label)
+    ax.set(xlabel="t (s)", ylabel=op_label)
     ax2 = ax.twinx()
     ax2.plot(rec.t, rec.pv, color="tab:red", lw=0.8, label="PV")
     if rec.has_sp:
@@ -54,7 +57,7 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
     ax = fig.add_subplot(grid[1, 0])
     sc = ax.scatter(rec.op, rec.pv, c=rec.t, s=4, cmap="viridis")
     fig.colorbar(sc, ax=ax, label="t (s)")
-    ax.set(xlabel="OP (%)", ylabel="PV", title="PV against OP")
+    ax.set(xlabel=op_label, ylabel="PV", title="PV against OP")
 
     ax = fig.add_subplot(grid[1, 1])
     d = a.diagnosis
