@@ -28,12 +28,16 @@ from valve_emulator.diagnosis.fit.uncertainty import intervals
 __all__ = ["findings", "param_text", "stiction_surface"]
 
 
-def param_text(model: Model, added: tuple[str, ...]) -> str:
+def param_text(model: Model, added: tuple[str, ...], frame: Frame | None = None) -> str:
+    """The parameters of the candidates ``added`` to ``model``, in OP's units when ``frame`` maps them."""
     parts = []
     for a in model.active:
         if a.name in added:
+            params = a.candidate.parameters(a.params)
+            if frame is not None and not frame.identity:
+                params = frame.convert(a.candidate.dims, params)
             parts.append(", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                   for k, v in a.candidate.parameters(a.params).items() if v is not None))
+                                   for k, v in params.items() if v is not None))
     return "; ".join(parts)
 
 

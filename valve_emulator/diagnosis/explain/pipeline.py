@@ -40,7 +40,7 @@ from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model,
 from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
 from valve_emulator.diagnosis.fit.fitter import Fitter
-from valve_emulator.diagnosis.fit.frame import Frame
+from valve_emulator.diagnosis.fit.frame import UNKNOWN_UNITS, Frame
 from valve_emulator.diagnosis.fit.load_check import input_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
@@ -80,13 +80,15 @@ def _gain(num: Sequence[float], den: Sequence[float]) -> float:
 def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame) -> dict:
     st, fit = model.fit.structure, model.fit
     k = fit.gain * problem.y_scale * frame.gain
-    unit = (" (per s)" if st.integrating else "") + ("" if frame.identity else f", per {frame.units}")
+    # Per % of flow in % travel; per unit of OP otherwise (the frame's gain carries the map).
+    per = "% flow" if frame.identity else ("OP unit" if frame.units == UNKNOWN_UNITS else frame.units)
     nom_k = f"{_gain(nominal.num, nominal.den):.4g}" if nominal.given else "—"
     taus = lambda s: ", ".join(f"{t:.4g}" for t in s.taus) or "—"  # noqa: E731
-    return {f"gain, PV per % flow{unit}": (nom_k, f"{k:.4g}"),
+    yes_no = lambda flag: "yes" if flag else "no"  # noqa: E731
+    return {f"gain, PV per {per}" + (" per s" if st.integrating else ""): (nom_k, f"{k:.4g}"),
             "time constants (s)": (taus(nominal.structure) if nominal.given else "—", taus(st)),
             "dead time (s)": (f"{nominal.delay:.4g}" if nominal.given else "—", f"{st.delay:.4g}"),
-            "integrating": ("yes" if nominal.structure.integrating else "no",) * 2}
+            "integrating": (yes_no(nominal.structure.integrating) if nominal.given else "—", yes_no(st.integrating))}
 
 
 def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib: dict, say, validation: str):
@@ -160,7 +162,7 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     say("estimating parameter intervals")
     frame = frame or Frame()
     found = findings(fitter, problem, model, rounds, masks, horizon, nom, frame)
-    ranking = tuple(RankRow(round=i + 1, option=o.label, parameters=param_text(o.model, o.added),
+    ranking = tuple(RankRow(round=i + 1, option=o.label, parameters=param_text(o.model, o.added, frame),
                             delta_bic=rnd.baseline.bic - o.model.bic, heldout=o.model.heldout, chosen=o is rnd.chosen)
                     for i, rnd in enumerate(rounds) for o in rnd.options)
     ctx = fitter.scorer.ctx(model)

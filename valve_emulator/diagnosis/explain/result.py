@@ -186,8 +186,10 @@ class Explanation:
         out += [f"| {k} | {v[0]} | {v[1]} |" for k, v in self.linear.items()]
         out += ["", "## Candidate ranking", "", self.rule, "",
                 "| round | option | parameters | ΔBIC | held-out fit | chosen |", "|---|---|---|---|---|---|"]
-        out += [f"| {r.round} | {r.option} | {r.parameters} | {r.delta_bic:.0f} | {r.heldout:.1f} % | "
-                f"{'yes' if r.chosen else ''} |" for r in self.ranking]
+        # Two-fold validation cross-validates only the options it compares; the others show "—".
+        out += [f"| {r.round} | {r.option} | {r.parameters} | {r.delta_bic:.0f} | "
+                f"{'—' if r.heldout != r.heldout else f'{r.heldout:.1f} %'} | {'yes' if r.chosen else ''} |"
+                for r in self.ranking]
         if figure:
             out += ["", f"![diagnosis figure]({figure})"]
         out += ["", f"_Computed in {self.seconds:.1f} s._", ""]

@@ -1,0 +1,81 @@
+"""Figures and reports speak the answer's units: % travel only when the travel span is known.
+
+Known truth: the proof cases' sticky concentration loop (S = 5 %, J = 2 % of travel), concealed (OP and PV
+only). Given with its travel span, the figures say "% travel"; exported mean-centred without a span, the
+answer is in OP's own units and so are the axes, the candidate ranking and the linear part's gain — a "%"
+there would claim a span nobody gave.
+"""
+
+import matplotlib.figure
+import pytest
+
+import valve_emulator as ve
+from valve_emulator.benchmark.cases import CASES, generate
+from valve_emulator.diagnosis.report.plot_loop import plot_loop
+
+
+@pytest.fixture(scope="module")
+def loop():
+    rec, _, _ = generate(CASES[0], duration=1200.0)
+    return rec
+
+
+@pytest.fixture(scope="module")
+def scaled(loop):
+    """The loop exported mean-centred and in tenths of a per cent (S = 50, J = 20 in OP's units)."""
+    return ve.diagnose({"t": loop.t, "op": 10.0 * (loop.op - loop.op.mean()), "pv": loop.pv})
+
+
+def _labels(monkeypatch, draw) -> set[str]:
+    """Every axis label of the figures that ``draw`` saves."""
+    seen: set[str] = set()
+    save = matplotlib.figure.Figure.savefig
+
+    def capture(fig, *args, **kwargs):
+        for ax in fig.axes:
+            seen.update((ax.get_xlabel(), ax.get_ylabel()))
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", capture)
+    draw()
+    return seen - {""}
+
+
+@pytest.mark.parametrize("known_span", [True, False])
+def test_op_s_and_j_axes_carry_the_answer_s_units(loop, tmp_path, monkeypatch, known_span):
+    data = {"t": loop.t, "op": loop.op if known_span else loop.op - loop.op.mean(), "pv": loop.pv}
+    d = ve.diagnose(data, op_range=(0.0, 100.0) if known_span else None)
+    assert d.answer == "stiction"
+    units = "% travel" if known_span else "its own units"
+
+    diagnosis = _labels(monkeypatch, lambda: d.plot(tmp_path / "d.png"))
+    assert {f"S ({units})", f"J ({units})", f"OP ({units})", f"MV ({units})"} <= diagnosis
+    loop_figure = _labels(monkeypatch, lambda: plot_loop(d.recording, d.assessment, tmp_path / "l.png"))
+    assert f"OP ({units})" in loop_figure
+    if not known_span:
+        assert not any("%" in label for label in diagnosis | loop_figure)
+
+
+def test_the_candidate_ranking_gives_parameters_in_op_s_units(scaled):
+    friction = next(f for f in scaled.explanation.findings if f.physics in ("stiction", "deadband"))
+    assert friction.parameters["S"] == pytest.approx(50.0, rel=0.1)             # 10 × 5 % travel
+    chosen = next(r for r in scaled.explanation.ranking if r.chosen and r.option == friction.physics)
+    assert f"S={friction.parameters['S']:.4g}" in chosen.parameters
+
+
+def test_the_linear_part_states_its_gain_per_op_unit_and_what_was_identified(scaled):
+    linear = scaled.explanation.linear
+    assert "gain, PV per OP unit" in linear                                     # not "per % flow"
+    assert linear["integrating"] == ("—", "no")                                 # no nominal; a self-regulating plant
+    gain_given = ve.diagnose({"t": scaled.recording.t, "op": scaled.recording.op / 10.0 + 50.0,
+                              "pv": scaled.recording.pv}, op_range=(0.0, 100.0)).explanation.linear
+    assert float(linear["gain, PV per OP unit"][1]) == pytest.approx(
+        float(gain_given["gain, PV per % flow"][1]) / 10.0, rel=0.05)          # the map's scale, inverted
+
+
+def test_options_the_two_fold_rule_did_not_cross_validate_show_no_fit(scaled):
+    rows = [line for line in scaled.report().splitlines() if line.startswith("| 1 |")]
+    assert rows and not any("nan" in line for line in rows)
+    unchosen = [r for r in scaled.explanation.ranking if r.heldout != r.heldout]
+    assert unchosen, "the two-fold rule leaves some options without a held-out fit"
+    assert any("| — |" in line for line in rows)
