@@ -7,10 +7,12 @@ there would claim a span nobody gave.
 """
 
 import matplotlib.figure
+import numpy as np
 import pytest
 
 import valve_emulator as ve
 from valve_emulator.benchmark.cases import CASES, generate
+from valve_emulator.detectors.base import oscillation
 from valve_emulator.diagnosis.report.plot_loop import plot_loop
 
 
@@ -79,3 +81,28 @@ def test_options_the_two_fold_rule_did_not_cross_validate_show_no_fit(scaled):
     unchosen = [r for r in scaled.explanation.ranking if r.heldout != r.heldout]
     assert unchosen, "the two-fold rule leaves some options without a held-out fit"
     assert any("| — |" in line for line in rows)
+
+
+def test_the_figure_shows_whole_cycles_of_a_finely_sampled_record(monkeypatch, tmp_path):
+    # The concentration loop with S = 5 %, J = 2 % sampled at 0.1 s: its cycle (about 140 s) is 1,400
+    # samples, so a fixed number of samples would show a fraction of one.
+    truth = ve.load_loop("configs/table1/concentration_undershoot.yaml")
+    rec = ve.simulate_loop(truth, duration=1500.0)                # held out: the last 450 s, three cycles
+    d = ve.diagnose(rec, model="configs/table1/concentration_no_stiction.yaml", candidates=["stiction"])
+    assert d.explanation.findings[0].physics == "stiction"
+    spans = {}
+    save = matplotlib.figure.Figure.savefig
+
+    def capture(fig, *args, **kwargs):
+        held_out, valve = fig.axes[1], fig.axes[2]
+        spans["pv"] = np.ptp(held_out.get_lines()[0].get_xdata())
+        spans["op"] = valve.get_lines()[0].get_xdata()
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", capture)
+    d.plot(tmp_path / "d.png")
+    period = oscillation(rec.op).period * rec.dt
+    assert 130.0 < period < 160.0
+    assert spans["pv"] >= 3 * period                      # the held-out panel: at least three whole cycles
+    op = spans["op"]                                      # the valve panel: OP's whole swing, both ways
+    assert np.ptp(op) >= 0.9 * np.ptp(rec.op[-len(op):]) and len(op) * rec.dt >= 1.5 * period

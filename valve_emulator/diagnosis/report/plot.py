@@ -21,13 +21,16 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
+from valve_emulator.detectors.base import oscillation  # noqa: E402
 from valve_emulator.diagnosis.explain.result import Explanation  # noqa: E402
 from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame  # noqa: E402
 
 __all__ = ["op_units", "plot_diagnosis"]
 
-# How much of the held-out part the PV panel shows: enough for a few cycles, few enough to see them.
+# Samples the PV panel shows of the held-out part when OP does not cycle (else a few cycles of it).
 _SHOW = 600
+# Cycles shown: of the held-out part in the PV panel, and at the record's end in the valve panel.
+_CYCLES_PV, _CYCLES_VALVE = 4, 2
 
 
 def op_units(frame: Frame | None) -> str:
@@ -37,10 +40,16 @@ def op_units(frame: Frame | None) -> str:
     return "its own units" if frame.units == UNKNOWN_UNITS else frame.units
 
 
+def _shown(d: Explanation, cycles: int, least: int) -> int:
+    """Samples to show: ``cycles`` periods of OP when it cycles regularly (Thornhill's r > 1), at least
+    ``least`` — a number of samples alone would show a fraction of a cycle of a finely sampled record."""
+    osc = oscillation(d.traces.op)
+    return max(least, int(np.ceil(cycles * osc.period)) if osc.regular else 0)
+
+
 def _stretch(d: Explanation) -> slice:
-    tr = d.traces
-    a = tr.test_start
-    return slice(a, min(tr.t.size, a + _SHOW))
+    a = d.traces.test_start
+    return slice(a, min(d.traces.t.size, a + _shown(d, _CYCLES_PV, _SHOW)))
 
 
 def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
@@ -59,7 +68,7 @@ def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
 
     ax = axes[0, 1]
     s = _stretch(d)
-    ax.plot(tr.t[s], tr.pv[s], color="0.55", lw=0.8, label="recorded PV")
+    ax.plot(tr.t[s], tr.pv[s], color="0.7", lw=2.6, label="recorded PV")  # wide: visible under a fit of 100 %
     ax.plot(tr.t[s], tr.pv_before[s], color="tab:red", ls="--", lw=1.0,
             label=f"nominal model, fit {d.fit_before:.0f} %")
     ax.plot(tr.t[s], tr.pv_after[s], color="tab:blue", lw=1.2, label=f"with the findings, fit {d.fit_after:.0f} %")
@@ -68,7 +77,7 @@ def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
 
     units = op_units(d.fitted.frame if d.fitted is not None else None)
     ax = axes[1, 0]
-    k = slice(max(0, tr.t.size - 2 * _SHOW), tr.t.size)
+    k = slice(max(0, tr.t.size - _shown(d, _CYCLES_VALVE, 2 * _SHOW)), tr.t.size)
     found = {f.physics for f in d.findings}
     if "characteristic" in found:  # the finding lives on the flow axis: show the fitted curve
         order = np.argsort(tr.op)
