@@ -40,11 +40,12 @@ def op_units(frame: Frame | None) -> str:
     return "its own units" if frame.units == UNKNOWN_UNITS else frame.units
 
 
-def _shown(d: Explanation, cycles: int, least: int) -> int:
-    """Samples to show: ``cycles`` periods of OP when it cycles regularly (Thornhill's r > 1), at least
-    ``least`` — a number of samples alone would show a fraction of a cycle of a finely sampled record."""
+def _shown(d: Explanation, cycles: int, otherwise: int) -> int:
+    """Samples to show: ``cycles`` periods of OP when it cycles regularly (Thornhill's r > 1), else
+    ``otherwise`` — a fixed number of samples shows a fraction of a cycle of a finely sampled record and a
+    tangle of cycles of a coarsely sampled one."""
     osc = oscillation(d.traces.op)
-    return max(least, int(np.ceil(cycles * osc.period)) if osc.regular else 0)
+    return int(np.ceil(cycles * osc.period)) if osc.regular else otherwise
 
 
 def _stretch(d: Explanation) -> slice:
