@@ -58,6 +58,21 @@ def test_op_s_and_j_axes_carry_the_answer_s_units(loop, tmp_path, monkeypatch, k
         assert not any("%" in label for label in diagnosis | loop_figure)
 
 
+def test_a_plant_figure_names_the_identified_model_not_a_nominal_one(scaled, monkeypatch, tmp_path):
+    titles: list[str] = []
+    save = matplotlib.figure.Figure.savefig
+
+    def capture(fig, *args, **kwargs):
+        titles.extend(ax.get_title() for ax in fig.axes)
+        titles.extend(t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts())
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", capture)
+    scaled.plot(tmp_path / "d.png")
+    assert "Residual of the linear model identified from the data (windows shaded)" in titles
+    assert not any("nominal model" in t for t in titles)
+
+
 def test_the_candidate_ranking_gives_parameters_in_op_s_units(scaled):
     friction = next(f for f in scaled.explanation.findings if f.physics in ("stiction", "deadband"))
     assert friction.parameters["S"] == pytest.approx(50.0, rel=0.1)             # 10 × 5 % travel

@@ -2,7 +2,8 @@ r"""The diagnosis figure (PNG, matplotlib's Agg backend; nothing is shown on scr
 
 Four panels:
 
-1. the nominal model's residual over the whole record, the located windows shaded, the held-out part marked;
+1. the nominal model's residual (plant data: the identified linear model's) over the whole record, the
+   located windows shaded, the held-out part marked;
 2. recorded PV against the nominal replay and the final model on a stretch of the held-out part;
 3. MV against OP of the fitted valve (the model's valve position; the recording has none), or flow against
    OP when the finding is a flow characteristic;
@@ -65,13 +66,14 @@ def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
         ax.axvspan(a, b, color="tab:orange", alpha=0.3, lw=0)
     ax.axvline(tr.t[tr.test_start], color="k", ls="--", lw=0.8)
     ax.text(tr.t[tr.test_start], ax.get_ylim()[1], " held out →", va="top", fontsize=8)
-    ax.set(title="Residual of the nominal model (windows shaded)", xlabel="t (s)", ylabel="PV − simulated PV")
+    base = "nominal model" if d.given else "linear model identified from the data"
+    ax.set(title=f"Residual of the {base} (windows shaded)", xlabel="t (s)", ylabel="PV − simulated PV")
 
     ax = axes[0, 1]
     s = _stretch(d)
     ax.plot(tr.t[s], tr.pv[s], color="0.7", lw=2.6, label="recorded PV")  # wide: visible under a fit of 100 %
     ax.plot(tr.t[s], tr.pv_before[s], color="tab:red", ls="--", lw=1.0,
-            label=f"nominal model, fit {d.fit_before:.0f} %")
+            label=f"{base}, fit {d.fit_before:.0f} %")
     ax.plot(tr.t[s], tr.pv_after[s], color="tab:blue", lw=1.2, label=f"with the findings, fit {d.fit_after:.0f} %")
     ax.set(title="Held-out part: recorded vs simulated PV", xlabel="t (s)", ylabel="PV")
     ax.legend(fontsize=8, loc="best")
