@@ -7,6 +7,7 @@ compile several times slower, and it is the kernels that a fresh install compile
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -18,6 +19,8 @@ __all__ = ["MIN_PER_WORKER", "run_split", "workers_for"]
 MIN_PER_WORKER = 16
 
 _pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+_pool_lock = threading.Lock()   # diagnoses may run in several threads at once (a Dask worker's)
 
 
 def workers_for(n: int) -> int:
@@ -30,15 +33,18 @@ def run_split(work: Callable[[int, int], object], cuts: list[int]) -> None:
 
     The last range runs in the calling thread; exceptions propagate after every range has finished.
     """
-    global _pool
+    global _pool, _pool_size
     ranges = [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
     if len(ranges) <= 1:
         for a, b in ranges:
             work(a, b)
         return
-    if _pool is None or _pool._max_workers < len(ranges) - 1:
-        _pool = ThreadPoolExecutor(max_workers=len(ranges) - 1, thread_name_prefix="valve_emulator-fit")
-    futures = [_pool.submit(work, a, b) for a, b in ranges[:-1]]
+    with _pool_lock:
+        if _pool is None or _pool_size < len(ranges) - 1:
+            _pool_size = len(ranges) - 1
+            _pool = ThreadPoolExecutor(max_workers=_pool_size, thread_name_prefix="valve_emulator-fit")
+        pool = _pool
+    futures = [pool.submit(work, a, b) for a, b in ranges[:-1]]
     try:
         work(*ranges[-1])
     finally:

@@ -1,0 +1,53 @@
+"""The thread pool of the compiled kernels: every range runs once, errors reach the caller, callers may overlap."""
+
+import threading
+
+import pytest
+
+from valve_emulator.diagnosis._threads import MIN_PER_WORKER, run_split, workers_for
+
+
+def test_every_non_empty_range_runs_once_and_the_last_in_the_calling_thread():
+    seen, lock = [], threading.Lock()
+
+    def work(a, b):
+        with lock:
+            seen.append((a, b, threading.current_thread() is threading.main_thread()))
+
+    run_split(work, [0, 0, 40, 90, 90, 130])
+    assert sorted(r[:2] for r in seen) == [(0, 40), (40, 90), (90, 130)]
+    assert [r[2] for r in seen if r[:2] == (90, 130)] == [True]
+
+
+def test_an_error_in_any_range_reaches_the_caller_after_all_ranges_ran():
+    done = []
+
+    def work(a, b):
+        if a == 0:
+            raise ValueError("range 0")
+        done.append(a)
+
+    with pytest.raises(ValueError, match="range 0"):
+        run_split(work, [0, 10, 20, 30])
+    assert sorted(done) == [10, 20]
+
+
+def test_callers_in_several_threads_each_get_all_their_ranges():
+    totals = {}
+
+    def caller(k):
+        got = []
+        run_split(lambda a, b: got.append(b - a), [0, 25, 50, 75, 100])
+        totals[k] = sum(got)
+
+    threads = [threading.Thread(target=caller, args=(k,)) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert totals == dict.fromkeys(range(8), 100)
+
+
+def test_small_jobs_stay_in_one_thread():
+    assert workers_for(MIN_PER_WORKER - 1) == 1
+    assert workers_for(0) == 1
