@@ -168,8 +168,8 @@ def run_window(item: Item) -> dict:
         out["tag"] = out["tag"] or Path(item.path).stem
         return out
     out.update(samples=len(rec), dt=rec.dt, op_noise=a.op_noise, notes=list(a.notes) + list(loaded.notes),
-               part_of_record=any(code is Reason.PART_OF_RECORD for code, _ in a.reasons),
-               reasons=[str(code) for code, _ in a.reasons], **a.summary())
+               part_of_record=Reason.PART_OF_RECORD in a.codes, reasons=[str(code) for code in a.codes],
+               **a.summary())
     integrating = item.loop_type.upper() in INTEGRATING_TYPES
     dets = run_detectors(rec.op, rec.pv, dt=rec.dt, sp=rec.sp if rec.has_sp else None, integrating=integrating)
     out["detectors"] = {n: {"decision": str(r.decision), "reason": r.reason} for n, r in dets.items()}

@@ -242,7 +242,7 @@ def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Cal
     """
     start = time.perf_counter() if start is None else start
     whole = _assess_once(rec, notes, progress, start, frame)
-    if not (whole.decision is Answer.CANNOT_TELL and any(c is Reason.NOT_EXPLAINED for c, _ in whole.reasons)
+    if not (whole.decision is Answer.CANNOT_TELL and Reason.NOT_EXPLAINED in whole.codes
             and len(rec) >= 2 * MIN_SAMPLES):
         return whole
     return _by_halves(rec, whole, progress, start, frame)

@@ -72,6 +72,11 @@ class Assessment:
         return self.explanation
 
     @property
+    def codes(self) -> tuple[Reason, ...]:
+        """The codes of :attr:`reasons`, in order."""
+        return tuple(code for code, _ in self.reasons)
+
+    @property
     def statement(self) -> str:
         """``"<decision>: <reason>"``."""
         return f"{self.decision.words}: {self.reason}"

@@ -23,6 +23,7 @@ matplotlib.use("Agg")  # a file-only backend: works without a display, in tests 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from valve_emulator.diagnosis.answers import Reason  # noqa: E402
 from valve_emulator.diagnosis.assess.result import Assessment  # noqa: E402
 from valve_emulator.diagnosis.report.plot import op_units  # noqa: E402
 from valve_emulator.recordings.recording import Recording  # noqa: E402
@@ -48,7 +49,7 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
         ax2.plot(rec.t, rec.sp, color="k", ls="--", lw=0.7, label="SP")
     ax2.set_ylabel("PV")
     handles = ax.get_lines() + ax2.get_lines()
-    if a.diagnosis is not None and any(code == "part_of_record" for code, _ in a.reasons):
+    if a.diagnosis is not None and Reason.PART_OF_RECORD in a.codes:
         t = a.diagnosis.traces.t
         handles.append(ax.axvspan(t[0], t[-1], color="tab:green", alpha=0.08, label="the part answered"))
     ax.legend(handles, [h.get_label() for h in handles], fontsize=8, loc="upper left")
