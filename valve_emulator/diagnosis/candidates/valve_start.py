@@ -85,11 +85,14 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
     R = np.full(n, float(ctx.rest_samples))
     x2 = kernel_array(x2)
     for group, k0 in ((np.flatnonzero(pre), 0), (np.flatnonzero(~pre), K)):
+
+        def run(a: int, b: int, group=group, k0=k0) -> None:
+            i = group[a:b]
+            _run_valves(x2, K, k0, i, S[i], J[i], R[i], codes[i], state[i], out)
+
         # The valves are independent: a large group runs in parallel threads (the kernel releases the GIL).
         workers = workers_for(group.size)
-        cuts = [group.size * w // workers for w in range(workers + 1)]
-        run_split(lambda a, b, g=group, k0=k0: _run_valves(x2, K, k0, g[a:b], S[g[a:b]], J[g[a:b]], R[g[a:b]],
-                                                            codes[g[a:b]], state[g[a:b]], out), cuts)
+        run_split(run, [group.size * w // workers for w in range(workers + 1)])
     return out
 
 

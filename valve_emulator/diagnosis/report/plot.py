@@ -41,17 +41,11 @@ def op_units(frame: Frame | None) -> str:
     return "its own units" if frame.units == UNKNOWN_UNITS else frame.units
 
 
-def _shown(d: Explanation, cycles: int, otherwise: int) -> int:
-    """Samples to show: ``cycles`` periods of OP when it cycles regularly (Thornhill's r > 1), else
-    ``otherwise`` — a fixed number of samples shows a fraction of a cycle of a finely sampled record and a
-    tangle of cycles of a coarsely sampled one."""
-    osc = oscillation(d.traces.op)
-    return int(np.ceil(cycles * osc.period)) if osc.regular else otherwise
-
-
-def _stretch(d: Explanation) -> slice:
-    a = d.traces.test_start
-    return slice(a, min(d.traces.t.size, a + _shown(d, _CYCLES_PV, _SHOW)))
+def _shown(period: float | None, cycles: int, otherwise: int) -> int:
+    """Samples to show: ``cycles`` periods of OP's regular cycle (``period`` in samples), else ``otherwise`` —
+    a fixed number of samples shows a fraction of a cycle of a finely sampled record and a tangle of cycles of
+    a coarsely sampled one."""
+    return int(np.ceil(cycles * period)) if period is not None else otherwise
 
 
 def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
@@ -69,8 +63,10 @@ def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
     base = "nominal model" if d.given else "linear model identified from the data"
     ax.set(title=f"Residual of the {base} (windows shaded)", xlabel="t (s)", ylabel="PV − simulated PV")
 
+    osc = oscillation(tr.op)
+    period = osc.period if osc.regular else None   # Thornhill's r > 1
     ax = axes[0, 1]
-    s = _stretch(d)
+    s = slice(tr.test_start, min(tr.t.size, tr.test_start + _shown(period, _CYCLES_PV, _SHOW)))
     ax.plot(tr.t[s], tr.pv[s], color="0.7", lw=2.6, label="recorded PV")  # wide: visible under a fit of 100 %
     ax.plot(tr.t[s], tr.pv_before[s], color="tab:red", ls="--", lw=1.0,
             label=f"{base}, fit {d.fit_before:.0f} %")
@@ -78,14 +74,15 @@ def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
     ax.set(title="Held-out part: recorded vs simulated PV", xlabel="t (s)", ylabel="PV")
     ax.legend(fontsize=8, loc="best")
 
-    units = op_units(d.fitted.frame if d.fitted is not None else None)
+    frame = d.fitted.frame if d.fitted is not None else None
+    units = op_units(frame)
     ax = axes[1, 0]
-    k = slice(max(0, tr.t.size - _shown(d, _CYCLES_VALVE, 2 * _SHOW)), tr.t.size)
+    k = slice(max(0, tr.t.size - _shown(period, _CYCLES_VALVE, 2 * _SHOW)), tr.t.size)
     found = {f.physics for f in d.findings}
     if "characteristic" in found:  # the finding lives on the flow axis: show the fitted curve
         order = np.argsort(tr.op)
         ax.plot(tr.op[order], tr.flow_after[order], color="tab:blue", lw=1.2, label="fitted valve")
-        flow = "flow (% of maximum)" if d.fitted is None or d.fitted.frame is None else f"flow (as OP, {units})"
+        flow = "flow (% of maximum)" if frame is None else f"flow (as OP, {units})"
         ax.set(title="Fitted valve: flow against OP", xlabel=f"OP ({units})", ylabel=flow)
     else:
         ax.plot(tr.op[k], tr.mv_after[k], color="tab:blue", lw=0.8, label="fitted valve")
