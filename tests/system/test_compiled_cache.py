@@ -103,9 +103,9 @@ def test_a_read_only_install_caches_outside_the_package(tmp_path):
 # and counts the kernels that had to be compiled (cache misses) and loaded (hits) across the whole package.
 FIRST_USE = """
 import json, sys
-from numba.core.registry import CPUDispatcher
 from valve_emulator.cli import main
 from valve_emulator.commands._config import load_server_or_default
+from valve_emulator.commands.compile import kernel_cache_stats
 from valve_emulator.device.tick import Device
 
 table1 = sys.argv[1]
@@ -113,11 +113,9 @@ assert main(["simulate", table1 + "/level_overshoot.yaml", "--out", "rec.csv", "
 assert main(["diagnose", "rec.csv", "--json", "plant.json"]) == 0
 assert main(["diagnose", "rec.csv", "--model", table1 + "/level_no_stiction.yaml", "--json", "m.json"]) == 0
 Device.from_config(load_server_or_default(None), time_scale=0.0).advance(5)
-kernels = [k for m in list(sys.modules.values()) if (m.__name__ or "").startswith("valve_emulator")
-           for k in vars(m).values() if isinstance(k, CPUDispatcher)]
-print(json.dumps({"hits": sum(sum(k.stats.cache_hits.values()) for k in kernels),
-                  "misses": {k.py_func.__qualname__: sum(k.stats.cache_misses.values()) for k in kernels
-                             if sum(k.stats.cache_misses.values())}}))
+stats = kernel_cache_stats()
+print(json.dumps({"hits": sum(h for h, _ in stats.values()),
+                  "misses": {name: m for name, (_, m) in stats.items() if m}}))
 """
 
 

@@ -67,14 +67,17 @@ def _serve() -> None:
 _WORK = {"diagnose": _diagnose, "simulate": _simulate, "serve": _serve}
 
 
-def _compiled() -> int:
-    """How many compilations the package's kernels needed in this process (numba's cache misses)."""
+def kernel_cache_stats() -> dict[str, tuple[int, int]]:
+    """``module.name`` → (loaded from the cache, compiled) of every compiled kernel of the package imported in
+    this process (numba's cache hits and misses), each kernel once however many modules import it."""
     from numba.core.registry import CPUDispatcher
 
     kernels = {id(k): k for m in list(sys.modules.values())
                if (getattr(m, "__name__", "") or "").startswith("valve_emulator")
                for k in vars(m).values() if isinstance(k, CPUDispatcher)}
-    return sum(sum(k.stats.cache_misses.values()) for k in kernels.values())
+    return {f"{k.py_func.__module__}.{k.py_func.__qualname__}": (sum(k.stats.cache_hits.values()),
+                                                                  sum(k.stats.cache_misses.values()))
+            for k in kernels.values()}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         t = time.perf_counter()
         _WORK[part]()
         print(f"{part}: {time.perf_counter() - t:.1f} s", file=sys.stderr, flush=True)
-    n, seconds = _compiled(), time.perf_counter() - start
+    n, seconds = sum(m for _, m in kernel_cache_stats().values()), time.perf_counter() - start
     if n:
         print(f"compiled {n} kernel(s) of {', '.join(parts)} in {seconds:.1f} s into {cache_dir()}")
     else:
