@@ -136,7 +136,8 @@ async def test_operator_may_not_call_the_station_methods(served):
         ns = await client.get_namespace_index(NAMESPACE)
         station = await client.nodes.objects.get_child(f"{ns}:ValveEmulator")
         with pytest.raises(ua.UaStatusCodeError) as err:
-            await station.call_method(f"{ns}:InjectMalfunction", json.dumps({"unit": 1, "kind": "sensor_drift", "bias": 1.0}))
+            body = json.dumps({"unit": 1, "kind": "sensor_drift", "bias": 1.0})
+            await station.call_method(f"{ns}:InjectMalfunction", body)
         assert type(err.value).__name__ == "BadUserAccessDenied"
         with pytest.raises(ua.UaStatusCodeError):
             await station.call_method(f"{ns}:Freeze")

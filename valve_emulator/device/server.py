@@ -215,6 +215,8 @@ class EmulatorServer:
         self._tls_server: asyncio.Server | None = None
         #: the Modbus/TCP Security listener's port (:meth:`open_tls`), None without one
         self.tls_port: int | None = None
+        #: TLS connections whose handshake succeeded (a client certificate signed by the CA)
+        self.tls_sessions = 0
         self.connection_set: set[ModbusConnection] = set()
         self.turns = TurnBudget()
         self.requests = 0

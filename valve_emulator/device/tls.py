@@ -91,9 +91,16 @@ class TlsModbusConnection(ModbusConnection):
 
     def connection_made(self, transport: Any) -> None:
         super().connection_made(transport)
+        self.server.tls_sessions += 1   # only after a complete handshake: a refused client never gets here
         ssl_object = transport.get_extra_info("ssl_object")
         self.role = role_of(ssl_object.getpeercert(binary_form=True)) if ssl_object is not None else None
         self.instructor = self.permission()
 
     def permission(self) -> bool:
         return self.role == INSTRUCTOR
+
+    def eof_received(self) -> bool:
+        # TLS cannot stay half-open (asyncio closes the transport after the peer's close_notify whatever we
+        # answer, and warns when we ask to keep it): do the plain connection's bookkeeping, then say so.
+        super().eof_received()
+        return False

@@ -338,8 +338,8 @@ class OpcUaServer:
         item.BrowseName = ua.QualifiedName(name, self.ns)
         item.NodeClass = ua.NodeClass.Object
         item.ParentNodeId = parent.nodeid
-        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.Organizes if parent.nodeid == ua.NodeId(ua.ObjectIds.ObjectsFolder)
-                                         else ua.ObjectIds.HasComponent)
+        folder = parent.nodeid == ua.NodeId(ua.ObjectIds.ObjectsFolder)
+        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.Organizes if folder else ua.ObjectIds.HasComponent)
         item.TypeDefinition = typedef or ua.NodeId(ua.ObjectIds.BaseObjectType)
         attrs = ua.ObjectAttributes()
         attrs.DisplayName = ua.LocalizedText(name)
