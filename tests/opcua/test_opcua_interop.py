@@ -167,3 +167,43 @@ def test_users_file_errors_name_file_and_key(tmp_path, capsys):
     assert main(["serve", "--port", "0", "--opcua", "0", "--opcua-users", str(bad)]) == 2
     assert "users.ines.password" in capsys.readouterr().err
     assert Path(bad).read_text().count("plain-text") == 1   # nothing rewritten
+
+
+def test_config_sections_serve_opcua_and_tls_with_paths_relative_to_the_file(tmp_path):
+    """``opcua:`` and ``tls:`` in a server file do what the flags do; a missing key is named with its line."""
+    from pymodbus.client import ModbusTlsClient
+
+    from valve_emulator.config import ConfigError, load_server
+    from valve_emulator.device.certs import modbus_certificate
+
+    modbus_certificate(tmp_path / "pki", "server", server=True)
+    modbus_certificate(tmp_path / "pki", "client-instructor", role="instructor")
+    cfg = tmp_path / "plant.yaml"
+    cfg.write_text("device: {tick: 0.1}\nloops:\n  - {unit: 1, name: FIC1, plant: {fopdt: {gain: 1, tau: 5}}}\n"
+                   "opcua: {port: 0}\n"
+                   "tls: {port: 0, certificate: pki/server.pem, private_key: pki/server-key.pem, ca: pki/ca.pem}\n")
+    loaded = load_server(cfg)
+    assert loaded.opcua.port == 0 and loaded.tls.ca == str(tmp_path / "pki" / "ca.pem")
+    proc = subprocess.Popen([sys.executable, "-m", "valve_emulator", "serve", str(cfg), "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        lines = [proc.stdout.readline() for _ in range(3)]
+        assert any(OPCUA_LINE.search(ln) for ln in lines), lines
+        tls = next(re.search(r"Modbus/TCP Security .* on [\d.]+:(\d+)", ln) for ln in lines if "Security" in ln)
+        import ssl
+
+        ctx = ssl.create_default_context(cafile=str(tmp_path / "pki" / "ca.pem"))
+        ctx.check_hostname = False   # pymodbus' synchronous client passes no server name; the CA is still checked
+        ctx.load_cert_chain(str(tmp_path / "pki" / "client-instructor.pem"),
+                            str(tmp_path / "pki" / "client-instructor-key.pem"))
+        client = ModbusTlsClient("127.0.0.1", port=int(tls.group(1)), sslctx=ctx, retries=0)
+        assert client.connect()
+        assert not client.write_register(10, 250, device_id=1).isError()   # S: an instructor certificate
+        client.close()
+    finally:
+        err = stop(proc)
+    assert "Traceback" not in err, err[-2000:]
+    cfg.write_text("device: {tick: 0.1}\nloops:\n  - {unit: 1, plant: {fopdt: {gain: 1, tau: 5}}}\n"
+                   "tls:\n  port: 802\n  certificate: a.pem\n")
+    with pytest.raises(ConfigError, match=r"plant.yaml:4: tls.private_key is required"):
+        load_server(cfg)

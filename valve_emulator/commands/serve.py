@@ -158,30 +158,45 @@ def _check_secure(args: argparse.Namespace) -> None:
             raise ValueError(f"{flag} must be a port 0..65535, got {port}")
         if port is not None and args.processes > 1:
             raise ValueError(f"{flag} with --processes: it serves one process's loops; use --processes 1")
-    if args.opcua is None and (args.opcua_policy or args.opcua_cert or args.opcua_key or args.opcua_users):
-        raise ValueError("--opcua-policy, --opcua-cert, --opcua-key and --opcua-users need --opcua PORT")
-    tls = {"--tls-cert": args.tls_cert, "--tls-key": args.tls_key, "--tls-ca": args.tls_ca}
-    if args.tls_port is None and any(tls.values()):
-        raise ValueError("--tls-cert, --tls-key and --tls-ca need --tls-port PORT")
-    if args.tls_port is not None:
-        missing = [flag for flag, path in tls.items() if path is None]
-        if missing:
-            raise ValueError(f"--tls-port needs {', '.join(missing)} "
-                             "(make them with 'valve-emulator certs --modbus DIR')")
+    if args.opcua_policy:
+        from valve_emulator.config.schema import OPCUA_POLICIES
+
+        for policy in args.opcua_policy:
+            if policy not in OPCUA_POLICIES:
+                raise ValueError(f"--opcua-policy {policy!r}: one of {', '.join(OPCUA_POLICIES)}")
 
 
-def opcua_security(args: argparse.Namespace):
-    """The :class:`~valve_emulator.opcua.OpcUaSecurity` of the flags (files read and checked now)."""
+def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
+    """The OPC UA port and :class:`~valve_emulator.opcua.OpcUaSecurity`: the flags over the config's ``opcua``
+    section (files read and checked now); ``(None, None)`` without OPC UA."""
+    sec = config.opcua
+    port = args.opcua if args.opcua is not None else sec.port
+    if port is None:
+        return None, None
     from valve_emulator.opcua import OpcUaSecurity, load_users
 
-    users = load_users(args.opcua_users) if args.opcua_users is not None else None
-    for flag, path in (("--opcua-cert", args.opcua_cert), ("--opcua-key", args.opcua_key)):
-        if path is not None and not path.is_file():
-            raise ValueError(f"{flag} {path}: no such file")
-    security = OpcUaSecurity(policies=tuple(args.opcua_policy or ("None",)), certificate=args.opcua_cert,
-                             private_key=args.opcua_key, users=users)
+    users_path = args.opcua_users or sec.users
+    cert, key = args.opcua_cert or sec.certificate, args.opcua_key or sec.private_key
+    for what, path in (("certificate", cert), ("private key", key)):
+        if path is not None and not Path(path).is_file():
+            raise ValueError(f"opcua {what} {path}: no such file")
+    security = OpcUaSecurity(policies=tuple(args.opcua_policy or sec.policies),
+                             certificate=Path(cert) if cert else None, private_key=Path(key) if key else None,
+                             users=load_users(users_path) if users_path is not None else None)
     security.check(args.host)
-    return security
+    return port, security
+
+
+def tls_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
+    """The Modbus/TCP Security port and its TLS context: the flags over the config's ``tls`` section."""
+    sec = config.tls
+    port = args.tls_port if args.tls_port is not None else sec.port
+    if port is None:
+        return None, None
+    from valve_emulator.device.tls import server_context
+
+    return port, server_context(args.tls_cert or sec.certificate, args.tls_key or sec.private_key,
+                                args.tls_ca or sec.ca)
 
 
 def apply_overrides(config, *, read_only: bool = False, max_connections: int | None = None):
@@ -391,18 +406,14 @@ def run(args: argparse.Namespace) -> int:
         from valve_emulator.device.rtu import SerialSettings
 
         serial = SerialSettings(baud=args.baud, parity=args.parity, stopbits=args.stopbits)
-    security = opcua_security(args) if args.opcua is not None else None
-    tls_context = None
-    if args.tls_port is not None:
-        from valve_emulator.device.tls import server_context
-
-        tls_context = server_context(args.tls_cert, args.tls_key, args.tls_ca)
+    opcua_port, security = opcua_settings(args, cfg)
+    tls_port, tls_context = tls_settings(args, cfg)
     runner(serve(cfg, host=args.host, port=port, time_scale=args.time_scale, config_path=args.config,
                  record=args.record, record_units=args.record_unit, read_only=args.read_only,
                  max_connections=args.max_connections, process=process, web=args.web,
                  web_token=args.web_token, snapshots=args.snapshots, backtrack=args.backtrack,
-                 rtu=args.rtu, serial=serial, framer=args.framer, opcua=args.opcua,
-                 opcua_security=security, tls_port=args.tls_port, tls_context=tls_context))
+                 rtu=args.rtu, serial=serial, framer=args.framer, opcua=opcua_port,
+                 opcua_security=security, tls_port=tls_port, tls_context=tls_context))
     print("valve-emulator: stopped", flush=True)
     return 0
 
