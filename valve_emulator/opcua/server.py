@@ -179,6 +179,37 @@ def _loopback(host: str) -> bool:
         return False
 
 
+class RepeatFilter(logging.Filter):
+    """Let through at most one log record per logging call site every ``interval`` seconds.
+
+    asyncua logs every malformed message a client sends with a full traceback; a client sending garbage as
+    fast as it can would make formatting tracebacks the server's main work and starve the tick. Installed on
+    asyncua's loggers while the server runs; the next record let through says how many were dropped."""
+
+    def __init__(self, interval: float = 10.0) -> None:
+        super().__init__()
+        self.interval = interval
+        self._last: dict[tuple[str, int], float] = {}
+        self._dropped: dict[tuple[str, int], int] = {}
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = (record.pathname, record.lineno)   # the call site: asyncua formats values into some messages
+        now = record.created
+        if now - self._last.get(key, -math.inf) < self.interval:
+            self._dropped[key] = self._dropped.get(key, 0) + 1
+            return False
+        self._last[key] = now
+        dropped = self._dropped.pop(key, 0)
+        if dropped:
+            record.msg = f"{record.msg} ({dropped} more like this in the last {self.interval:g} s were not logged)"
+        return True
+
+
+def _asyncua_loggers() -> list[logging.Logger]:
+    names = [n for n in logging.root.manager.loggerDict if n == "asyncua" or n.startswith("asyncua.")]
+    return [logging.getLogger(n) for n in names]
+
+
 class _CheckedWrites(AttributeService):
     """asyncua's attribute service with the loop variables' writes routed through ``Device.write``."""
 
@@ -235,6 +266,7 @@ class OpcUaServer:
         self._sent: dict[int, Any] = {}
         self._epoch = datetime.now(UTC)
         self._publisher: asyncio.Task | None = None
+        self._log_filter = RepeatFilter()
         self.writes = 0
         self.refused = 0
 
@@ -501,6 +533,8 @@ class OpcUaServer:
     # --- lifecycle -------------------------------------------------------------------------------------
 
     async def start(self) -> None:
+        for logger in _asyncua_loggers():
+            logger.addFilter(self._log_filter)
         sec = self.security
         users = UsersFile(users=sec.users or {}, anonymous=not sec.users)
         server = Server(user_manager=users)
@@ -552,6 +586,8 @@ class OpcUaServer:
         server, self.server = self.server, None
         if server is not None:
             await server.stop()
+        for logger in _asyncua_loggers():
+            logger.removeFilter(self._log_filter)
 
     async def __aenter__(self) -> OpcUaServer:
         await self.start()
