@@ -42,6 +42,7 @@ import contextlib
 import json
 import logging
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -75,6 +76,10 @@ _log = logging.getLogger(__name__)
 
 NAMESPACE = "urn:valve-emulator"
 APPLICATION_URI = "urn:valve-emulator:server"
+#: The publisher yields to the event loop after this many monitored variables ...
+YIELD_EVERY = 200
+#: ... and stops for this tick once it has used this share of the tick period.
+PUBLISH_BUDGET = 0.3
 SECURE_POLICIES = ("Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
 
 
@@ -179,6 +184,18 @@ def _loopback(host: str) -> bool:
         return False
 
 
+class _SharedDataValue(ua.DataValue):
+    """A DataValue this server makes fresh for every read and notification and never changes afterwards.
+
+    asyncua deep-copies every value it hands to a monitored item (to guard against a caller changing it later);
+    a deep copy of a DataValue costs about 0.3 ms, which made copying, not the process or the network, the
+    cost of a subscription (10,000 notifications a second took 3 s of each second). Since nothing changes
+    these values, a "copy" may be the value itself."""
+
+    def __deepcopy__(self, memo: dict) -> _SharedDataValue:
+        return self
+
+
 class RepeatFilter(logging.Filter):
     """Let through at most one log record per logging call site every ``interval`` seconds.
 
@@ -267,6 +284,13 @@ class OpcUaServer:
         self._epoch = datetime.now(UTC)
         self._publisher: asyncio.Task | None = None
         self._log_filter = RepeatFilter()
+        self._active: list[tuple[Any, int, Callable[[], ua.DataValue]]] = []
+        self._readers: dict[ua.NodeId, Callable[..., ua.DataValue]] = {}
+        self._dirty = True
+        #: data-change notifications handed to subscriptions (one per monitored item and change)
+        self.notifications = 0
+        #: ticks after which the publisher ran out of its budget and went on at the next tick
+        self.deferred = 0
         self.writes = 0
         self.refused = 0
 
@@ -295,8 +319,8 @@ class OpcUaServer:
         return self._epoch + timedelta(seconds=float(self.device.bank.sample_time))
 
     def _data_value(self, value: Any, variant: ua.VariantType) -> ua.DataValue:
-        return ua.DataValue(Value=ua.Variant(value, variant), SourceTimestamp=self._timestamp(),
-                            ServerTimestamp=datetime.now(UTC))
+        return _SharedDataValue(Value=ua.Variant(value, variant), SourceTimestamp=self._timestamp(),
+                                ServerTimestamp=datetime.now(UTC))
 
     def _reader(self, index: int, var: Variable) -> Callable[..., ua.DataValue]:
         return lambda *_: self._data_value(self.value(index, var), var.variant)
@@ -336,58 +360,53 @@ class OpcUaServer:
 
     # --- address space --------------------------------------------------------------------------------
 
-    async def _add_variable(self, parent: Any, name: str, value: Any, variant: ua.VariantType, typedef: int,
-                            *, writable: bool = False, modelling: bool = False) -> ua.NodeId:
+    def _node_id(self, identifier: str) -> ua.NodeId:
+        return ua.NodeId(identifier, self.ns)
+
+    def _object_item(self, parent: ua.NodeId, identifier: str, name: str,
+                     typedef: ua.NodeId | int = ua.ObjectIds.BaseObjectType) -> ua.AddNodesItem:
+        """An object under ``parent`` typed ``typedef``; a type's children are not copied (each loop gets its
+        own variables, with its own ranges and units)."""
         item = ua.AddNodesItem()
-        item.RequestedNewNodeId = ua.NodeId(f"{parent.nodeid.Identifier}.{name}", self.ns)
+        item.RequestedNewNodeId = self._node_id(identifier)
         item.BrowseName = ua.QualifiedName(name, self.ns)
+        item.NodeClass = ua.NodeClass.Object
+        item.ParentNodeId = parent
+        folder = parent == ua.NodeId(ua.ObjectIds.ObjectsFolder)
+        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.Organizes if folder else ua.ObjectIds.HasComponent)
+        item.TypeDefinition = typedef if isinstance(typedef, ua.NodeId) else ua.NodeId(typedef)
+        attrs = ua.ObjectAttributes()
+        attrs.DisplayName = attrs.Description = ua.LocalizedText(name)
+        item.NodeAttributes = attrs
+        return item
+
+    def _variable_item(self, parent: ua.NodeId, name: str, value: Any, variant: ua.VariantType, typedef: int, *,
+                       writable: bool = False, datatype: int | None = None, prop: bool = False) -> ua.AddNodesItem:
+        """A variable (or, ``prop``, a property) ``name`` of ``parent``; node id ``<parent id>.<name>``."""
+        item = ua.AddNodesItem()
+        item.RequestedNewNodeId = self._node_id(f"{parent.Identifier}.{name}")
+        item.BrowseName = ua.QualifiedName(name, 0 if prop else self.ns)
         item.NodeClass = ua.NodeClass.Variable
-        item.ParentNodeId = parent.nodeid
-        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasComponent)
-        item.TypeDefinition = ua.NodeId(typedef)
+        item.ParentNodeId = parent
+        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasProperty if prop else ua.ObjectIds.HasComponent)
+        item.TypeDefinition = ua.NodeId(ua.ObjectIds.PropertyType if prop else typedef)
         attrs = ua.VariableAttributes()
-        attrs.DisplayName = ua.LocalizedText(name)
-        attrs.Description = ua.LocalizedText(name)
-        attrs.DataType = ua.NodeId(int(variant.value))
+        attrs.DisplayName = attrs.Description = ua.LocalizedText(name)
+        attrs.DataType = ua.NodeId(datatype if datatype is not None else int(variant.value))
         attrs.Value = ua.Variant(value, variant)
         attrs.ValueRank = ua.ValueRank.Scalar
         access = ua.AccessLevel.CurrentRead.mask | (ua.AccessLevel.CurrentWrite.mask if writable else 0)
         attrs.AccessLevel = attrs.UserAccessLevel = access
         item.NodeAttributes = attrs
-        result = (await self.server.iserver.isession.add_nodes([item]))[0]
-        result.StatusCode.check()
-        node_id = result.AddedNodeId
-        self.node_ids.add(node_id)
-        if modelling:
-            await self.server.get_node(node_id).set_modelling_rule(True)
-        return node_id
+        return item
 
-    async def _add_object(self, parent: Any, node_id: str, name: str, typedef: ua.NodeId | None = None) -> Any:
-        """An object under ``parent`` typed ``typedef`` (default BaseObjectType), without copying the type's
-        children (the caller adds the loop's own variables, with the loop's ranges and units)."""
-        item = ua.AddNodesItem()
-        item.RequestedNewNodeId = ua.NodeId(node_id, self.ns)
-        item.BrowseName = ua.QualifiedName(name, self.ns)
-        item.NodeClass = ua.NodeClass.Object
-        item.ParentNodeId = parent.nodeid
-        folder = parent.nodeid == ua.NodeId(ua.ObjectIds.ObjectsFolder)
-        item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.Organizes if folder else ua.ObjectIds.HasComponent)
-        item.TypeDefinition = typedef or ua.NodeId(ua.ObjectIds.BaseObjectType)
-        attrs = ua.ObjectAttributes()
-        attrs.DisplayName = ua.LocalizedText(name)
-        attrs.Description = ua.LocalizedText(name)
-        item.NodeAttributes = attrs
-        result = (await self.server.iserver.isession.add_nodes([item]))[0]
-        result.StatusCode.check()
-        self.node_ids.add(result.AddedNodeId)
-        return self.server.get_node(result.AddedNodeId)
-
-    async def _add_property(self, node_id: ua.NodeId, name: str, value: Any, variant: ua.VariantType,
-                            datatype: int | None = None) -> None:
-        node = self.server.get_node(node_id)
-        prop = await node.add_property(ua.NodeId(f"{node_id.Identifier}.{name}", self.ns), ua.QualifiedName(name, 0),
-                                       value, variant, datatype)
-        self.node_ids.add(prop.nodeid)
+    async def _add(self, items: list[ua.AddNodesItem]) -> None:
+        """Add ``items`` to the address space, in order, in batches."""
+        session = self.server.iserver.isession
+        for k in range(0, len(items), 5000):
+            for result in await session.add_nodes(items[k:k + 5000]):
+                result.StatusCode.check()
+                self.node_ids.add(result.AddedNodeId)
 
     def _eu_range(self, loop: Any, var: Variable) -> tuple[float, float] | None:
         if "PV" in var.units or "pv_range" in var.units:
@@ -397,60 +416,68 @@ class OpcUaServer:
         return None
 
     def _units(self, loop: Any, var: Variable) -> str:
-        if "PV units" in var.units:
-            return str(loop.plant.units)
-        if var.name == "noise":
+        if "PV units" in var.units or var.name == "noise":
             return str(loop.plant.units)
         return var.units
 
-    async def _define_loop_type(self) -> Any:
-        base = self.server.get_node(ua.ObjectIds.BaseObjectType)
-        loop_type = await base.add_object_type(ua.NodeId("LoopType", self.ns), ua.QualifiedName("LoopType", self.ns))
-        for var in VARIABLES:
-            zero = 0.0 if var.analog else 0
-            typedef = ua.ObjectIds.AnalogItemType if var.analog else ua.ObjectIds.BaseDataVariableType
-            await self._add_variable(loop_type, var.name, zero, var.variant, typedef, writable=var.write is not None,
-                                     modelling=True)
-        for name in BITS:
-            await self._add_variable(loop_type, name, False, ua.VariantType.Boolean, ua.ObjectIds.TwoStateDiscreteType,
-                                     modelling=True)
-        return loop_type
+    @staticmethod
+    def _typedef(var: Variable) -> int:
+        return ua.ObjectIds.AnalogItemType if var.analog else ua.ObjectIds.BaseDataVariableType
 
-    async def _add_loop(self, unit_node: Any, index: int, loop: Any, loop_type: Any) -> None:
-        aspace = self.server.iserver.aspace
+    async def _define_loop_type(self) -> ua.NodeId:
+        """LoopType under BaseObjectType: the variables every loop object has (modelling rule Mandatory)."""
+        base = self.server.get_node(ua.ObjectIds.BaseObjectType)
+        loop_type = await base.add_object_type(self._node_id("LoopType"), ua.QualifiedName("LoopType", self.ns))
+        items = [self._variable_item(loop_type.nodeid, v.name, 0.0 if v.analog else 0, v.variant, self._typedef(v),
+                                     writable=v.write is not None) for v in VARIABLES]
+        items += [self._variable_item(loop_type.nodeid, name, False, ua.VariantType.Boolean,
+                                      ua.ObjectIds.TwoStateDiscreteType) for name in BITS]
+        await self._add(items)
+        for item in items:
+            await self.server.get_node(item.RequestedNewNodeId).set_modelling_rule(True)
+        return loop_type.nodeid
+
+    def _loop_items(self, unit: ua.NodeId, index: int, loop: Any, loop_type: ua.NodeId) -> list[ua.AddNodesItem]:
+        """The object of loop ``index`` under its unit, its variables and their properties."""
         name = str(loop.name)
-        obj = await self._add_object(unit_node, f"{unit_node.nodeid.Identifier}.{name}", name, loop_type.nodeid)
+        obj = self._object_item(unit, f"{unit.Identifier}.{name}", name, loop_type)
+        items = [obj]
         for var in VARIABLES:
-            typedef = ua.ObjectIds.AnalogItemType if var.analog else ua.ObjectIds.BaseDataVariableType
-            node_id = await self._add_variable(obj, var.name, self.value(index, var), var.variant, typedef,
-                                               writable=var.write is not None)
+            node = self._variable_item(obj.RequestedNewNodeId, var.name, self.value(index, var), var.variant,
+                                       self._typedef(var), writable=var.write is not None)
+            items.append(node)
+            self.targets[node.RequestedNewNodeId] = (index, var)
+            self._readers[node.RequestedNewNodeId] = self._reader(index, var)
             if var.analog:
                 rng = self._eu_range(loop, var)
                 if rng is not None:
-                    await self._add_property(node_id, "EURange", ua.Range(Low=rng[0], High=rng[1]),
-                                             ua.VariantType.ExtensionObject, ua.ObjectIds.Range)
+                    items.append(self._variable_item(node.RequestedNewNodeId, "EURange", ua.Range(Low=rng[0],
+                                                     High=rng[1]), ua.VariantType.ExtensionObject, 0,
+                                                     datatype=ua.ObjectIds.Range, prop=True))
                 units = self._units(loop, var)
                 code, symbol = _UNECE.get(units, (-1, units))
                 eu = ua.EUInformation(NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact", UnitId=code,
                                       DisplayName=ua.LocalizedText(symbol), Description=ua.LocalizedText(units))
-                await self._add_property(node_id, "EngineeringUnits", eu, ua.VariantType.ExtensionObject,
-                                         ua.ObjectIds.EUInformation)
-            self.targets[node_id] = (index, var)
-            reader = self._reader(index, var)
-            aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, reader)
-            self._watch(node_id, reader)
-        for name, (bit, true_state, false_state) in BITS.items():
-            node_id = await self._add_variable(obj, name, False, ua.VariantType.Boolean,
-                                               ua.ObjectIds.TwoStateDiscreteType)
-            await self._add_property(node_id, "TrueState", ua.LocalizedText(true_state), ua.VariantType.LocalizedText)
-            await self._add_property(node_id, "FalseState", ua.LocalizedText(false_state), ua.VariantType.LocalizedText)
-            reader = self._bit_reader(index, bit)
-            aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, reader)
-            self._watch(node_id, reader)
+                items.append(self._variable_item(node.RequestedNewNodeId, "EngineeringUnits", eu,
+                                                 ua.VariantType.ExtensionObject, 0, datatype=ua.ObjectIds.EUInformation,
+                                                 prop=True))
+        for bit_name, (bit, true_state, false_state) in BITS.items():
+            node = self._variable_item(obj.RequestedNewNodeId, bit_name, False, ua.VariantType.Boolean,
+                                       ua.ObjectIds.TwoStateDiscreteType)
+            items.append(node)
+            self._readers[node.RequestedNewNodeId] = self._bit_reader(index, bit)
+            for prop, text in (("TrueState", true_state), ("FalseState", false_state)):
+                items.append(self._variable_item(node.RequestedNewNodeId, prop, ua.LocalizedText(text),
+                                                 ua.VariantType.LocalizedText, 0, prop=True))
+        return items
 
-    def _watch(self, node_id: ua.NodeId, reader: Callable[..., ua.DataValue]) -> None:
-        attval = self.server.iserver.aspace._nodes[node_id].attributes[ua.AttributeIds.Value]
-        self._monitored.append((attval, len(self._monitored), reader))
+    def _serve_values(self) -> None:
+        """Answer reads of the loop variables from the register image, and watch them for subscriptions."""
+        aspace = self.server.iserver.aspace
+        for node_id, reader in self._readers.items():
+            aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, reader)
+            attval = aspace._nodes[node_id].attributes[ua.AttributeIds.Value]
+            self._monitored.append((attval, len(self._monitored), reader))
 
     async def _add_methods(self, station_node: Any) -> None:
         if self.station is None:
@@ -511,11 +538,30 @@ class OpcUaServer:
     # --- publishing ------------------------------------------------------------------------------------
 
     async def _publish(self) -> None:
-        """After every tick, hand the monitored variables whose value changed to their subscriptions."""
-        device, seen = self.device, self.device.ticks
+        """After every tick, hand the monitored variables whose value changed to their subscriptions.
+
+        Only variables with a monitored item are read (the list is rebuilt when a client adds or deletes
+        one). The tick comes first: the loop yields to the event loop every :data:`YIELD_EVERY` variables, and
+        when a tick's share of work (:data:`PUBLISH_BUDGET` of the tick period) is spent it stops and goes on
+        after the next tick where it stopped, so a subscription larger than the machine can feed gets every
+        variable's latest value less often instead of delaying the tick."""
+        device, seen, at = self.device, self.device.ticks, 0
+        clock = time.perf_counter
         while True:
             seen = await device.wait_for_tick(seen + 1)
-            for attval, key, reader in self._monitored:
+            if self._dirty:
+                self._dirty, at = False, 0
+                self._active = [entry for entry in self._monitored if entry[0].datachange_callbacks]
+            period = device.period if math.isfinite(device.period) else float(device.bank.dt)
+            deadline, active, done = clock() + PUBLISH_BUDGET * period, self._active, 0
+            while done < len(active):
+                attval, key, reader = active[at % len(active)]
+                at, done = (at + 1) % len(active), done + 1
+                if done % YIELD_EVERY == 0:
+                    await asyncio.sleep(0)
+                    if clock() > deadline:
+                        self.deferred += 1
+                        break
                 callbacks = attval.datachange_callbacks
                 if not callbacks:
                     continue
@@ -524,11 +570,27 @@ class OpcUaServer:
                 if self._sent.get(key) == value:
                     continue
                 self._sent[key] = value
+                self.notifications += len(callbacks)
                 for handle, callback in list(callbacks.items()):
                     try:
                         await callback(handle, dv)
                     except Exception:   # one broken subscription must not stop the others
                         _log.exception("OPC UA: a data-change notification failed")
+
+    def _track_monitored_items(self) -> None:
+        """Mark the list of monitored variables stale whenever asyncua adds or removes a data-change callback."""
+        aspace = self.server.iserver.aspace
+        add, delete = aspace.add_datachange_callback, aspace.delete_datachange_callback
+
+        def added(*args: Any, **kwargs: Any) -> Any:
+            self._dirty = True
+            return add(*args, **kwargs)
+
+        def deleted(*args: Any, **kwargs: Any) -> Any:
+            self._dirty = True
+            return delete(*args, **kwargs)
+
+        aspace.add_datachange_callback, aspace.delete_datachange_callback = added, deleted
 
     # --- lifecycle -------------------------------------------------------------------------------------
 
@@ -559,14 +621,20 @@ class OpcUaServer:
             await server.load_private_key(str(sec.private_key))
         self.ns = await server.register_namespace(NAMESPACE)
         loop_type = await self._define_loop_type()
-        root = await self._add_object(server.nodes.objects, "ValveEmulator", "ValveEmulator")
-        units: dict[int, Any] = {}
+        objects = ua.NodeId(ua.ObjectIds.ObjectsFolder)
+        station = self._object_item(objects, "ValveEmulator", "ValveEmulator")
+        items, units = [station], {}
         for index, loop in enumerate(self.loops):
             unit = int(self.device.units[index])
             if unit not in units:
-                units[unit] = await self._add_object(root, f"Unit{unit}", f"Unit{unit}")
-            await self._add_loop(units[unit], index, loop, loop_type)
+                units[unit] = self._object_item(station.RequestedNewNodeId, f"Unit{unit}", f"Unit{unit}")
+                items.append(units[unit])
+            items += self._loop_items(units[unit].RequestedNewNodeId, index, loop, loop_type)
+        await self._add(items)
+        self._serve_values()
+        root = server.get_node(station.RequestedNewNodeId)
         await self._add_methods(root)
+        self._track_monitored_items()
         await server.start()
         self.port = int(server.bserver.port)
         self._publisher = asyncio.get_running_loop().create_task(self._publish(), name="valve-emulator-opcua")
