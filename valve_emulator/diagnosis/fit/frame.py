@@ -112,13 +112,13 @@ class Frame:
         lo, hi = robust_range(op)
         a, b = self.span
         pct_lo, pct_hi = (100.0 * (x - a) / (b - a) for x in (lo, hi))
-        said = f"the declared span {a:g}..{b:g} ({self.span_source})"
+        said = f"OP ran from {lo:.4g} to {hi:.4g} (0.5th–99.5th percentile)"
+        span = f"the declared span {a:g}..{b:g} ({self.span_source})"
         if pct_lo < SPAN_LOW or pct_hi > SPAN_HIGH:
-            why = (f"OP ran from {lo:.4g} to {hi:.4g} (0.5th–99.5th percentile), {pct_lo:.4g}..{pct_hi:.4g} % of "
-                   f"{said}, outside {SPAN_LOW:g}..{SPAN_HIGH:g} %")
+            why = f"{said}, {pct_lo:.4g}..{pct_hi:.4g} % of {span}, outside {SPAN_LOW:g}..{SPAN_HIGH:g} %"
         elif moving and pct_hi - pct_lo < SPAN_MIN_USED:
-            why = (f"OP moved clearly beyond its noise but only from {lo:.4g} to {hi:.4g}, {pct_hi - pct_lo:.3g} % "
-                   f"of {said}, less than {SPAN_MIN_USED:g} %")
+            why = (f"{said}, {pct_hi - pct_lo:.3g} % of {span}, less than {SPAN_MIN_USED:g} % while it moves "
+                   "clearly beyond its noise")
         else:
             return ""
         return f"{why}: OP is not in those units"
