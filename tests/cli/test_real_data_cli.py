@@ -260,6 +260,8 @@ def test_diagnose_a_folder_sweeps_it_one_line_each_and_writes_the_summary(tmp_pa
     assert [r["answer"] for r in rows] == ["stiction", "no_stiction", ""]
     assert 3.5 < float(rows[0]["S"]) < 6.5 and rows[0]["units"] == "% travel" and rows[0]["S_travel"] == rows[0]["S"]
     data = json.loads(doc.read_text(encoding="utf-8"))
+    band = data[0]["document"]["friction"]["band"]["S"]["value"]             # S as a fraction of the OP band used
+    assert band > 0 and float(rows[0]["S_band"]) == pytest.approx(band)
     assert data[0]["document"]["answer"] == "stiction"
     assert "FIC103.csv" in data[2]["error"] and data[2]["document"] is None
 
