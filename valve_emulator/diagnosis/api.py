@@ -114,7 +114,8 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
     notes += (note,) if note else ()
     if cfg is not None:
         return Diagnosis(recording=rec, explanation=explain(rec, cfg, candidates=candidates, validation=validation,
-                                                            progress=progress), notes=notes)
+                                                            progress=progress), notes=notes, model=cfg,
+                         pv_units=reader_options.get("pv_units", ""))
     if op_range is not None:
         frame = frame_span
     elif known:
@@ -122,4 +123,5 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
     else:
         frame = Frame.unit_free(rec.op)
     a = assess_uniform(rec, progress=progress, frame=frame)
-    return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes)
+    return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes,
+                     pv_units=reader_options.get("pv_units", ""))

@@ -15,10 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
+from valve_emulator.diagnosis.report.twin import Twin, twin
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["Diagnosis"]
@@ -57,12 +59,16 @@ class Diagnosis:
     explanation : the explain step's record (None when plant data could not support a model at all).
     assessment : the plant-data answer (None when a model was given).
     notes : what was done to the data on the way in (reader notes, resampling).
+    model : the nominal model it was run against (None for plant data); the twin takes its controller.
+    pv_units : PV's engineering units, as the reader was told (for the twin).
     """
 
     recording: Recording
     explanation: Explanation | None
     assessment: Assessment | None = None
     notes: tuple[str, ...] = ()
+    model: LoopConfig | None = None
+    pv_units: str = ""
 
     # -- the answer ---------------------------------------------------------------------------------------
     @property
@@ -134,6 +140,16 @@ class Diagnosis:
             reason = "" if self.assessment is None else f" ({self.assessment.reason})"
             raise ValueError(f"{self.source}: no model was fitted: the data could not support one{reason}")
         return self.explanation.predict(op)
+
+    def twin(self, *, name: str | None = None) -> Twin:
+        """The loop this diagnosis found as a loop config, with a header saying where each number came from
+        (:mod:`~valve_emulator.diagnosis.report.twin`); ``Twin.text()`` is the YAML file."""
+        return twin(self, model=self.model, pv_units=self.pv_units, name=name)
+
+    def to_config(self, *, name: str | None = None) -> LoopConfig:
+        """The twin's :class:`~valve_emulator.config.LoopConfig`: what ``simulate`` and ``serve`` read
+        (see :meth:`twin`). Raises ValueError when no model was fitted."""
+        return self.twin(name=name).config
 
     # -- output ---------------------------------------------------------------------------------------------
     def to_json(self) -> dict:

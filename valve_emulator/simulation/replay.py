@@ -1,0 +1,111 @@
+"""Drive a loop config with a recording: its OP (open loop) or its set point (closed loop).
+
+``valve-emulator simulate TWIN.yaml --replay REC`` compares a loop — typically the twin a diagnosis wrote —
+with the recording it came from:
+
+* **open loop** (:func:`replay_op`): the recorded OP, mapped to % travel by ``valve.op_range``, drives valve
+  and plant, as the diagnosis' free-run fit does. The controller is cut out (its ``op_limits`` still clip the
+  OP: an OP the controller could not have written is not replayed) and the measurement noise is left out, so
+  the PV is the loop's prediction, comparable with the recorded PV sample for sample.
+* **closed loop** (:func:`replay_sp`): the recorded SP drives the loop's own controller (in auto), which
+  writes OP; noise stays in, because inside a loop it changes what the loop does (when a sticky valve slips).
+  The result is compared by its character — a limit cycle's period and amplitude — not sample for sample.
+
+A recording starts mid-cycle, and a sticky valve put at rest at the first OP may never slip on an OP that
+swings little more than S. So the open-loop replay starts as the diagnosis' default valve start does
+(:mod:`valve_emulator.diagnosis.candidates.valve_start`): the loop first runs through the record's first fifth
+(at least 100 samples) mirrored in time, ``OP[K], …, OP[1]``, which joins the record at ``OP[0]``; by then the
+valve is in a state a valve cycling on this OP reaches. The closed-loop replay starts at rest at the first OP
+and SP (the loop makes its own cycle). Both run on the recording's time grid, which must be uniform with the
+config's ``simulation.dt`` as its step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from valve_emulator.config import LoopConfig
+from valve_emulator.recordings.recording import Recording, RecordingError
+from valve_emulator.simulation.loop import LoopBank
+
+__all__ = ["op_travel", "pre_roll_length", "replay_op", "replay_sp"]
+
+_EPS = 1e-6   # % travel: a valve put at rest J + this below OP slips at the first sample that rises
+
+
+def op_travel(config: LoopConfig, op: np.ndarray) -> np.ndarray:
+    """A recording's OP (in its own units) as % travel, by ``valve.op_range`` (OP at 0 and 100 %)."""
+    lo, hi = config.valve.op_range
+    return 100.0 * (np.asarray(op, dtype=float) - lo) / (hi - lo)
+
+
+def _check_grid(config: LoopConfig, rec: Recording) -> None:
+    src = rec.source or "recording"
+    if len(rec) < 2:
+        raise RecordingError(f"{src}: a replay needs at least 2 samples, got {len(rec)}")
+    dt = config.simulation.dt
+    steps = np.diff(rec.t)
+    bad = np.flatnonzero(np.abs(steps - dt) > 0.01 * dt)
+    if bad.size:
+        i = int(bad[0])
+        raise RecordingError(f"{src}: line {i + 3}: sample step {steps[i]:g} s differs from the loop's "
+                             f"simulation.dt = {dt:g} s by more than 1 %; replay a recording sampled every dt")
+
+
+def _recording(config: LoopConfig, rec: Recording, out: dict[str, np.ndarray]) -> Recording:
+    return Recording(t=np.asarray(rec.t) - rec.t[0], sp=out["sp"][:, 0], op=out["op"][:, 0], mv=out["mv"][:, 0],
+                     pv=out["pv"][:, 0], extra={"flow": out["flow"][:, 0], "stuck": out["stuck"][:, 0].astype(float)},
+                     source=config.source or config.name)
+
+
+def pre_roll_length(T: int) -> int:
+    """Samples of the mirrored pre-roll of a record of ``T`` samples: its first fifth, at least 100."""
+    return min(T - 1, max(100, T // 5))
+
+
+def replay_op(config: LoopConfig, rec: Recording) -> Recording:
+    """The loop's PV for the recorded OP, open loop and noise-free (see the module docstring).
+
+    Returns a recording on ``rec``'s grid (time from 0) with ``op`` and ``mv`` in % travel.
+    """
+    _check_grid(config, rec)
+    lo, hi = config.controller.op_limits if config.controller is not None else (0.0, 100.0)
+    op = np.clip(op_travel(config, rec.op), max(lo, 0.0), min(hi, 100.0))
+    K = pre_roll_length(op.size)
+    rolled = np.concatenate([op[K:0:-1], op])
+    start = float(np.clip(rolled[0] - config.valve.J - _EPS, 0.0, 100.0))   # about to move up at OP[K]
+    valve = dataclasses.replace(config.valve, op0=start, initial_direction=1)
+    plant = dataclasses.replace(config.plant, noise=0.0)
+    cfg = dataclasses.replace(config, valve=valve, plant=plant, controller=None)
+    bank = LoopBank([cfg])
+    bank.run(K, op=rolled[:K, None])
+    bank.settle_plants()   # the pre-roll is for the valve: the plant starts at rest, as the fit's does
+    out = bank.run(op.size, op=op[:, None])
+    return _recording(cfg, rec, out)
+
+
+def replay_sp(config: LoopConfig, rec: Recording) -> Recording:
+    """The loop in closed loop with its own controller, driven by the recorded SP (see the module docstring).
+
+    Raises
+    ------
+    RecordingError
+        The recording has no set point (naming it).
+    ValueError
+        The loop has no controller.
+    """
+    src = rec.source or "recording"
+    sp = np.asarray(rec.sp, dtype=float)
+    if not np.all(np.isfinite(sp)):
+        raise RecordingError(f"{src}: no set point (the sp column is missing or has gaps); a closed-loop replay "
+                             "drives the loop with the recorded SP")
+    if config.controller is None:
+        raise ValueError(f"{config.source or config.name}: the loop has no controller to replay the set point with")
+    _check_grid(config, rec)
+    c = config.controller
+    op0 = float(np.clip(op_travel(config, rec.op[:1])[0], *c.op_limits))
+    controller = dataclasses.replace(c, sp=float(sp[0]), sp_steps=(), bias=op0, mode="auto")
+    cfg = dataclasses.replace(config, controller=controller)
+    return _recording(cfg, rec, LoopBank([cfg]).run(len(rec), sp=sp[:, None]))
