@@ -179,6 +179,8 @@ class LoopBank:
         # with one vectorised comparison instead of a Python pass over every loop
         self._sp_next = np.array([s[0][0] if s else math.inf for s in self._sp_steps], dtype=float)
         self._pid.reset(self._plant.pv, self._sp, op_init)
+        self._controlled = self.has_controller.copy()
+        self._op_limits = np.array([c.op_limits if c else (0.0, 100.0) for c in ctrls], dtype=float)
         for i, c in enumerate(ctrls):
             if c is not None and c.mode == "manual":
                 self._pid.set_manual(i, op_init[i])
@@ -363,6 +365,20 @@ class LoopBank:
         if stuck.any():
             noise[stuck] = self.pv_stuck[stuck] - self._plant.pv[stuck]
         return noise
+
+    def follow_external(self, external: bool) -> None:
+        """Let every valve follow the external OP (``op_external``, :meth:`run`'s ``op``) instead of its
+        controller (``True``), or hand the valves back to their controllers (``False``): in auto, continuing
+        bumplessly from the OP, PV and set point they have now.
+
+        A closed-loop replay leads in open loop on the recorded OP, then lets the controller take over
+        (:mod:`~valve_emulator.simulation.replay`).
+        """
+        if external:
+            self.has_controller[:] = False
+            return
+        self.has_controller[:] = self._controlled
+        self._pid.reset(self.pv, self._sp, np.clip(self.op, self._op_limits[:, 0], self._op_limits[:, 1]))
 
     def settle_plants(self) -> None:
         """Put every plant at rest for the flow it now receives (valves and controllers keep their state).

@@ -15,9 +15,12 @@ A recording starts mid-cycle, and a sticky valve put at rest at the first OP may
 swings little more than S. So the open-loop replay starts as the diagnosis' default valve start does
 (:mod:`valve_emulator.diagnosis.candidates.valve_start`): the loop first runs through the record's first fifth
 (at least 100 samples) mirrored in time, ``OP[K], …, OP[1]``, which joins the record at ``OP[0]``; by then the
-valve is in a state a valve cycling on this OP reaches. The closed-loop replay starts at rest at the first OP
-and SP (the loop makes its own cycle). Both run on the recording's time grid, which must be uniform with the
-config's ``simulation.dt`` as its step.
+valve is in a state a valve cycling on this OP reaches; the plant then starts at rest, as the fit's does.
+The closed-loop replay starts the same way and follows the recorded OP over that same first fifth (the loop
+is then where the recording is, mid-cycle), then hands the valve to the controller, which continues bumplessly
+from there: a loop started at rest with PV at SP could sit on a stuck valve for a long time before its first
+slip. Both run on the recording's time grid, which must be uniform with the config's ``simulation.dt`` as its
+step.
 """
 
 from __future__ import annotations
@@ -65,25 +68,36 @@ def pre_roll_length(T: int) -> int:
     return min(T - 1, max(100, T // 5))
 
 
+def _lead_in(config: LoopConfig, op: np.ndarray) -> LoopBank:
+    """A bank of ``config`` whose valve has run through the mirrored pre-roll of ``op`` (% travel) and whose
+    plant is at rest for the flow that left it; the valve follows the external OP."""
+    K = pre_roll_length(op.size)
+    rolled = op[K:0:-1]
+    start = float(np.clip(rolled[0] - config.valve.J - _EPS, 0.0, 100.0))   # about to move up at OP[K]
+    valve = dataclasses.replace(config.valve, op0=start, initial_direction=1)
+    controller = config.controller and dataclasses.replace(config.controller, bias=start, sp_steps=())
+    bank = LoopBank([dataclasses.replace(config, valve=valve, controller=controller)])
+    bank.follow_external(True)
+    bank.run(K, op=rolled[:, None])
+    bank.settle_plants()   # the pre-roll is for the valve: the plant starts at rest, as the fit's does
+    return bank
+
+
+def _op(config: LoopConfig, rec: Recording) -> np.ndarray:
+    """The recorded OP in % travel, within what the controller could write and the valve's travel."""
+    lo, hi = config.controller.op_limits if config.controller is not None else (0.0, 100.0)
+    return np.clip(op_travel(config, rec.op), max(lo, 0.0), min(hi, 100.0))
+
+
 def replay_op(config: LoopConfig, rec: Recording) -> Recording:
     """The loop's PV for the recorded OP, open loop and noise-free (see the module docstring).
 
     Returns a recording on ``rec``'s grid (time from 0) with ``op`` and ``mv`` in % travel.
     """
     _check_grid(config, rec)
-    lo, hi = config.controller.op_limits if config.controller is not None else (0.0, 100.0)
-    op = np.clip(op_travel(config, rec.op), max(lo, 0.0), min(hi, 100.0))
-    K = pre_roll_length(op.size)
-    rolled = np.concatenate([op[K:0:-1], op])
-    start = float(np.clip(rolled[0] - config.valve.J - _EPS, 0.0, 100.0))   # about to move up at OP[K]
-    valve = dataclasses.replace(config.valve, op0=start, initial_direction=1)
-    plant = dataclasses.replace(config.plant, noise=0.0)
-    cfg = dataclasses.replace(config, valve=valve, plant=plant, controller=None)
-    bank = LoopBank([cfg])
-    bank.run(K, op=rolled[:K, None])
-    bank.settle_plants()   # the pre-roll is for the valve: the plant starts at rest, as the fit's does
-    out = bank.run(op.size, op=op[:, None])
-    return _recording(cfg, rec, out)
+    op = _op(config, rec)
+    cfg = dataclasses.replace(config, plant=dataclasses.replace(config.plant, noise=0.0), controller=None)
+    return _recording(cfg, rec, _lead_in(cfg, op).run(op.size, op=op[:, None]))
 
 
 def replay_sp(config: LoopConfig, rec: Recording) -> Recording:
@@ -104,8 +118,11 @@ def replay_sp(config: LoopConfig, rec: Recording) -> Recording:
     if config.controller is None:
         raise ValueError(f"{config.source or config.name}: the loop has no controller to replay the set point with")
     _check_grid(config, rec)
-    c = config.controller
-    op0 = float(np.clip(op_travel(config, rec.op[:1])[0], *c.op_limits))
-    controller = dataclasses.replace(c, sp=float(sp[0]), sp_steps=(), bias=op0, mode="auto")
-    cfg = dataclasses.replace(config, controller=controller)
-    return _recording(cfg, rec, LoopBank([cfg]).run(len(rec), sp=sp[:, None]))
+    op = _op(config, rec)
+    cfg = dataclasses.replace(config, controller=dataclasses.replace(config.controller, mode="auto"))
+    bank = _lead_in(cfg, op)
+    K = pre_roll_length(op.size)
+    head = bank.run(K, sp=sp[:K, None], op=op[:K, None])
+    bank.follow_external(False)
+    tail = bank.run(op.size - K, sp=sp[K:, None])
+    return _recording(cfg, rec, {k: np.concatenate([head[k], tail[k]]) for k in head})
