@@ -56,12 +56,12 @@ def continuous_transfer_function(structure: LinearStructure, taps: np.ndarray, d
     if n == 0:   # a static gain: y_k = b u_{k-1}, which is what the simulator makes of num = [b], den = [1]
         return (float(num_d[1]),), (1.0,)
     num_d = np.concatenate([num_d, np.zeros(n + 1 - num_d.size)])
-    A, B, C, _ = tf2ss(num_d, den_d)
-    M = np.zeros((n + 1, n + 1))
-    M[:n, :n], M[:n, n:], M[n, n] = A, B, 1.0
-    L = np.real(logm(M)) / dt
     with warnings.catch_warnings():   # the numerator's leading zeros are expected: a strictly proper plant
         warnings.simplefilter("ignore", BadCoefficients)
+        A, B, C, _ = tf2ss(num_d, den_d)
+        M = np.zeros((n + 1, n + 1))
+        M[:n, :n], M[:n, n:], M[n, n] = A, B, 1.0
+        L = np.real(logm(M)) / dt
         num, _ = ss2tf(L[:n, :n], L[:n, n:], C, np.zeros((1, 1)))
     num = _trim(np.real(num[0]), float(np.max(np.abs(num))))
     return tuple(float(x) for x in num), tuple(float(x) for x in _denominator(structure))

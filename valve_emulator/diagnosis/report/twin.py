@@ -183,7 +183,7 @@ def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name
         raise ValueError(f"{diagnosis.source}: no model was fitted, so there is no twin to write{reason}")
     fitted, rec = explanation.fitted, diagnosis.recording
     ctx, st = fitted.ctx, fitted.linear.structure
-    frame = fitted.frame or Frame(span_source="model" if model is not None else "assumed")
+    frame = diagnosis.frame
     active = fitted.active
     prov = [f"Twin of {diagnosis.source}, written by valve-emulator diagnose --twin: the loop the diagnosis "
             "found, as a loop config.",
