@@ -57,6 +57,8 @@ __all__ = ["Twin", "twin", "identify_pi", "replay_fit", "PV_MARGIN"]
 PV_MARGIN = 0.25
 #: Fewest unsaturated samples, and least share of OP's variance explained, for an identified PI to be used.
 _PI_MIN_SAMPLES, _PI_MIN_R2 = 20, 0.9
+#: An identified integral time beyond this many record lengths counts as no integral action.
+_PI_MAX_TI = 100.0
 #: OP within this distance (% travel) of 0 or 100 counts as saturated for the PI identification.
 _PI_EDGE = 0.5
 
@@ -86,7 +88,8 @@ def identify_pi(t: np.ndarray, sp: np.ndarray, pv: np.ndarray, op: np.ndarray
     :math:`\Delta\mathrm{op}_k = k_c\,\Delta e_k + (k_c\Delta t/T_i)\,e_k`, fitted by least squares on the
     samples where OP (now and before) is off its stops — the recorded PV is what the controller read, so the
     regressors carry no error. A negative :math:`k_c` (for ``e = sp − pv``) is direct action; a wrong-signed
-    integral term means no integral action. Refused below :data:`_PI_MIN_R2` of Δop's variance explained.
+    integral term, or an integral time beyond :data:`_PI_MAX_TI` record lengths, means no integral action.
+    Refused below :data:`_PI_MIN_R2` of Δop's variance explained.
     """
     dt = float(np.median(np.diff(t)))
     e = np.asarray(sp, dtype=float) - np.asarray(pv, dtype=float)
@@ -105,6 +108,8 @@ def identify_pi(t: np.ndarray, sp: np.ndarray, pv: np.ndarray, op: np.ndarray
     if r2 < _PI_MIN_R2 or a == 0.0:
         return None
     ti = a * dt / b if b != 0.0 and (a > 0) == (b > 0) else None
+    if ti is not None and ti > _PI_MAX_TI * (t[-1] - t[0]):
+        ti = None   # an integral that would take ages to act is rounding, not a tuning
     return abs(a), ti, "reverse" if a > 0 else "direct"
 
 
