@@ -49,7 +49,8 @@ def test_diagnose_writes_a_twin_that_loads_with_its_provenance(files):
     assert text.startswith("# Twin of ") and "# valve.S, valve.J: stiction found" in text
     cfg = load_loop(files / "twin.yaml")
     assert cfg.plant.units == "m" and cfg.controller.mode == "auto"
-    assert [cfg.valve.S, cfg.valve.J] == pytest.approx([3.0, 1.5], abs=0.3)
+    found = [cfg.valve.S, cfg.valve.J]
+    assert found == pytest.approx([3.0, 1.5], abs=0.3)
 
 
 def test_the_open_loop_replay_fits_within_two_points_of_fit_after(files, tmp_path, capsys):
@@ -113,7 +114,9 @@ def test_serve_twin_answers_with_pv_and_sp_in_the_recordings_units(files):
         assert m, line + (proc.stderr.read() if proc.poll() is not None else "")
         client = ModbusTcpClient(m.group(1), port=int(m.group(2)), timeout=10)
         assert client.connect()
-        assert _float(client, "sp_f32") == pytest.approx(cfg.controller.sp, abs=1e-5)   # the recording's SP, m
+        rec = read_recording(files / "rec.csv").recording
+        assert cfg.controller.sp == pytest.approx(float(np.median(rec.sp)))   # the loop's usual set point, m
+        assert _float(client, "sp_f32") == pytest.approx(cfg.controller.sp, abs=1e-5)
         lo, hi = cfg.plant.pv_range
         assert lo < _float(client, "pv_f32") < hi
         client.close()

@@ -39,8 +39,9 @@ def with_sp(name: str, duration: float) -> tuple[Recording, object]:
 
 @functools.cache
 def diagnosed(name: str, duration: float):
-    """``(recording, nominal, diagnosis)`` of a proof case (cached: several tests look at the same one)."""
-    rec, nominal, _ = generate(BY_NAME[name], duration=duration)
+    """``(recording, nominal, diagnosis)`` of a proof case with its SP kept, against its nominal model (cached:
+    several tests look at the same one; with a model the diagnosis reads only t, OP and PV)."""
+    rec, nominal = with_sp(name, duration)
     return rec, nominal, diagnose(rec, nominal)
 
 
@@ -95,9 +96,8 @@ def test_the_twin_carries_the_found_physics_in_travel_units():
 def test_the_closed_loop_replay_keeps_the_limit_cycle(name, duration):
     """Acceptance: the twin in closed loop on the recorded SP cycles with the recording's period and PV amplitude,
     each within 20 %."""
-    rec, nominal = with_sp(name, duration)
-    cfg = diagnose(rec, nominal).to_config()
-    sim = replay_sp(cfg, rec)
+    rec, _, d = diagnosed(name, duration)
+    sim = replay_sp(d.to_config(), rec)
     want, got = measure_limit_cycle(rec.t, rec.pv), measure_limit_cycle(sim.t, sim.pv)
     assert want.sustained and got.sustained
     assert got.period == pytest.approx(want.period, rel=0.2)
@@ -133,7 +133,8 @@ def test_plant_data_with_a_set_point_gets_the_identified_pi_in_the_twins_units()
 
 def test_without_a_set_point_or_a_controller_to_copy_the_controller_is_manual():
     rec, nominal, _ = diagnosed("stiction, level loop", 400.0)
-    twin = diagnose(rec, dataclasses.replace(nominal, controller=None)).twin()
+    no_sp = Recording(rec.t, None, rec.op, None, rec.pv, source=rec.source)
+    twin = diagnose(no_sp, dataclasses.replace(nominal, controller=None)).twin()
     c = twin.config.controller
     assert c.mode == "manual" and c.bias == pytest.approx(twin.config.valve.op0)
     assert any("manual" in line for line in twin.provenance)

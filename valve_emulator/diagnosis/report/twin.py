@@ -25,7 +25,7 @@ controller
     has a set point, a PI identified from it (:func:`identify_pi`); else a controller in **manual** holding
     the first OP, tuned by the SIMC rules (Skogestad, *J. Process Control* 13 (2003) 291–309) for the twin's
     own plant, so an operator can switch it to auto. A saturation found becomes its ``op_limits``. It starts at
-    the recording's first OP and SP.
+    the recording's first OP, with the recorded SP's median (PV's without one) as its set point.
 simulation, device
     ``dt`` and ``device.tick`` are the recording's sample time, ``duration`` its length.
 
@@ -258,7 +258,7 @@ def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name
         limits = (max(0.0, float(sat.params[0])), min(100.0, float(sat.params[1])))
         prov.append("controller.op_limits: the saturation found by the diagnosis.")
     has_sp = rec.sp is not None and bool(np.all(np.isfinite(rec.sp)))
-    sp0 = float(rec.sp[0]) if has_sp else float(rec.pv[0])
+    sp0 = float(np.median(rec.sp if has_sp else rec.pv))   # the loop's usual set point (the served device's)
     bias = float(np.clip(op0, *limits))
     pi = identify_pi(rec.t, rec.sp, rec.pv, op) if has_sp else None
     if model is not None and model.controller is not None:
