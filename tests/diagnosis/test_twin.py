@@ -9,6 +9,8 @@ import functools
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from valve_emulator.benchmark.cases import CASES, generate
 from valve_emulator.config import loop_from_mapping
@@ -156,3 +158,28 @@ def test_the_twin_file_says_where_each_number_came_from(tmp_path):
     for key in ("valve.S", "plant.num", "controller", "op_range", "actuator lag"):
         assert any(key in line for line in header), key
     assert dataclasses.replace(load_loop(path), source="") == dataclasses.replace(twin.config, source="")
+
+
+@functools.cache
+def plant_twin(a: float = 1.0, b: float = 0.0, c: float = 1.0, d: float = 0.0):
+    """The twin of the level loop's plant data (with SP) after OP -> a·OP + b and PV, SP -> c·PV + d."""
+    rec, _ = with_sp("stiction, level loop", 300.0)
+    mapped = Recording(rec.t, c * rec.sp + d, a * rec.op + b, None, c * rec.pv + d, source="mapped")
+    return diagnose(mapped).to_config()
+
+
+@pytest.mark.slow
+@settings(max_examples=3, deadline=None, derandomize=True)
+@given(a=st.floats(0.01, 300.0), b=st.floats(-5e3, 5e3), c=st.floats(0.05, 20.0), d=st.floats(-1e3, 1e3))
+def test_the_twin_moves_with_the_units_of_op_and_pv(a, b, c, d):
+    """Without a model the twin's travel is the unit-free frame: S, J and the plant's dynamics stay put while
+    op_range follows OP's map; the plant's gain, pv0, noise and the controller's kc follow PV's."""
+    ref, got = plant_twin(), plant_twin(a, b, c, d)
+    friction = [got.valve.S, got.valve.J]
+    assert friction == pytest.approx([ref.valve.S, ref.valve.J], rel=0.02, abs=0.05)
+    assert got.valve.op_range == pytest.approx([a * x + b for x in ref.valve.op_range], rel=1e-6, abs=1e-6)
+    assert got.plant.den == pytest.approx(ref.plant.den, rel=0.02)
+    assert got.plant.num[-1] == pytest.approx(c * ref.plant.num[-1], rel=0.02)
+    assert got.plant.pv0 == pytest.approx(c * ref.plant.pv0 + d, rel=0.02, abs=0.02 * c)
+    assert got.controller.kc == pytest.approx(ref.controller.kc / c, rel=0.01)
+    assert got.controller.ti == pytest.approx(ref.controller.ti, rel=0.01)
