@@ -29,7 +29,7 @@ import dataclasses
 
 import numpy as np
 
-from valve_emulator.config import LoopConfig
+from valve_emulator.config import DisturbanceConfig, LoopConfig
 from valve_emulator.recordings.recording import Recording, RecordingError
 from valve_emulator.simulation.loop import LoopBank
 
@@ -76,11 +76,22 @@ def _lead_in(config: LoopConfig, op: np.ndarray) -> LoopBank:
     start = float(np.clip(rolled[0] - config.valve.J - _EPS, 0.0, 100.0))   # about to move up at OP[K]
     valve = dataclasses.replace(config.valve, op0=start, initial_direction=1)
     controller = config.controller and dataclasses.replace(config.controller, bias=start, sp_steps=())
-    bank = LoopBank([dataclasses.replace(config, valve=valve, controller=controller)])
+    plant = dataclasses.replace(config.plant, disturbance=_delayed(config.plant.disturbance, K * config.simulation.dt))
+    bank = LoopBank([dataclasses.replace(config, valve=valve, plant=plant, controller=controller)])
     bank.follow_external(True)
     bank.run(K, op=rolled[:, None])
     bank.settle_plants()   # the pre-roll is for the valve: the plant starts at rest, as the fit's does
     return bank
+
+
+def _delayed(d: DisturbanceConfig, lead: float) -> DisturbanceConfig:
+    """The load disturbance as seen from a run that starts ``lead`` seconds before the recording: its time 0 stays
+    the recording's first sample."""
+    if d.type == "sine":
+        return dataclasses.replace(d, phase=d.phase - 2.0 * np.pi * lead / d.period)
+    if d.type == "step":
+        return dataclasses.replace(d, time=d.time + lead)
+    return d
 
 
 def _op(config: LoopConfig, rec: Recording) -> np.ndarray:

@@ -29,8 +29,9 @@ controller
 simulation, device
     ``dt`` and ``device.tick`` are the recording's sample time, ``duration`` its length.
 
-What the twin leaves out: an ``output`` finding (a quantised PV, an external oscillating disturbance) has no
-key in the loop config; the header says so when one was found.
+An external oscillating disturbance found (a sinusoid added to PV) becomes ``plant.disturbance``: the sinusoid
+at the plant input that the plant turns into it (amplitude divided by the plant's gain at that frequency, phase
+less its phase). A quantised PV has no key in the loop config; the header says so when one was found.
 """
 
 from __future__ import annotations
@@ -42,7 +43,14 @@ from pathlib import Path
 
 import numpy as np
 
-from valve_emulator.config import ControllerConfig, LoopConfig, PlantConfig, SimulationConfig, ValveConfig
+from valve_emulator.config import (
+    ControllerConfig,
+    DisturbanceConfig,
+    LoopConfig,
+    PlantConfig,
+    SimulationConfig,
+    ValveConfig,
+)
 from valve_emulator.config.schema import CHARACTERISTICS, DeviceConfig
 from valve_emulator.config.writer import dump_loop
 from valve_emulator.diagnosis.fit.continuous import continuous_transfer_function
@@ -154,6 +162,17 @@ def _operating_point(fitted: FittedLoop) -> tuple[float, float]:
     return float(y0 * ctx.y_scale + ctx.y_mean), float(u0)
 
 
+def _input_sine(params: np.ndarray, plant: PlantConfig) -> DisturbanceConfig:
+    r"""The input sinusoid (% flow) that ``plant`` turns into the output one found, ``A sin(ωt + φ)`` in PV units:
+    amplitude ``A/|G(jω)|`` and phase ``φ − arg G(jω)``, the dead time included (steady state; the phase counts
+    from the recording's first sample)."""
+    period, amplitude, phase = (float(x) for x in params[:3])
+    w = 2.0 * np.pi / period
+    g = np.polyval(plant.num, 1j * w) / np.polyval(plant.den, 1j * w) * np.exp(-1j * w * plant.delay)
+    return DisturbanceConfig(type="sine", amplitude=amplitude / abs(g), period=period,
+                             phase=float(np.angle(np.exp(1j * (phase - np.angle(g))))))
+
+
 def _slug(text: str) -> str:
     stem = Path(text).stem if text else "recording"
     return "twin_" + (re.sub(r"[^A-Za-z0-9]+", "_", stem).strip("_").lower() or "recording")
@@ -247,9 +266,14 @@ def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name
     prov.append(f"plant.pv0, u0: the fit's operating point; plant.noise: RMS residual of the final model "
                 f"({_g(noise)}); pv_range: the recorded PV range widened by {PV_MARGIN:g} of it each side"
                 + (f"; units: {units}." if units else "."))
-    if "output" in active:
-        prov.append(f"Left out: the {active['output'].name} finding acts on the measured PV, which the loop "
-                    "config cannot express.")
+    out = active.get("output")
+    if out is not None and out.name == "disturbance":
+        plant = replace(plant, disturbance=_input_sine(out.params, plant))
+        prov.append("plant.disturbance: the external oscillating disturbance found (a sinusoid in PV), as the "
+                    "sinusoid at the plant input that the plant turns into it.")
+    elif out is not None:
+        prov.append(f"Left out: the {out.name} finding acts on the measured PV, which the loop config cannot "
+                    "express.")
 
     # the controller
     limits = (0.0, 100.0)
