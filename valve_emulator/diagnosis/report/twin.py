@@ -186,6 +186,104 @@ def _finding_text(diagnosis, physics: str) -> str:
     return f" (95 % intervals in OP's units: {ivs})" if ivs else ""
 
 
+def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray) -> tuple[ValveConfig, list[str]]:
+    """The valve section (``op``: the recorded OP in the twin's travel) and its provenance."""
+    fitted, rec, frame = diagnosis.explanation.fitted, diagnosis.recording, diagnosis.frame
+    ctx, active = fitted.ctx, fitted.active
+    if frame.known:
+        lines = [f"valve.op_range: the recording's OP at 0 and 100 % travel ({frame.span_source}); OP, S and J "
+                 "are in % travel."]
+    else:
+        lo, hi = frame.to_internal(np.percentile(rec.op, [0.5, 99.5]))
+        lines = ["valve.op_range: OP's travel span is unknown; the twin's travel is the diagnosis' unit-free "
+                 f"frame (the recording's robust OP range on {_g(lo)}-{_g(hi)} %); op_range maps OP's units to it."]
+    found = active.get("valve")
+    if found is not None:
+        S = float(found.params[0])
+        J = float(found.params[1]) if found.name == "stiction" else 0.0
+        lines.append(f"valve.S, valve.J: {found.name} found by the diagnosis{_finding_text(diagnosis, found.name)}.")
+    else:
+        S, J = fitted.nominal_valve
+        lines.append("valve.S, valve.J: " + ("the model's valve (no valve friction found)." if model is not None
+                                             else "no valve friction found (a free valve)."))
+    char = active.get("characteristic")
+    kind, R = (CHARACTERISTICS[int(char.params[0])], float(char.params[1])) if char is not None \
+        else ctx.characteristic
+    lines.append("valve.characteristic: " + ("found by the diagnosis." if char is not None else
+                                             "the model's." if model is not None else "linear (assumed)."))
+    rest = model.valve.rest_time if model is not None else (ctx.rest_samples - 0.5) * ctx.dt
+    valve = ValveConfig(model=ctx.valve_model, S=S, J=J, rest_time=rest, op0=float(np.clip(op[0], 0.0, 100.0)),
+                        characteristic=kind, rangeability=R if R > 1.0 else 50.0, op_range=_op_range(frame),
+                        **({"ma_table": model.valve.ma_table} if model is not None else {}))
+    return valve, lines
+
+
+def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str) -> tuple[PlantConfig, list[str]]:
+    """The plant section (before the replay's operating-point shift) and its provenance."""
+    explanation, rec = diagnosis.explanation, diagnosis.recording
+    fitted = explanation.fitted
+    ctx, st, active = fitted.ctx, fitted.linear.structure, fitted.active
+    lag = active.get("actuator")
+    tau_a = float(lag.params[0]) if lag is not None else None
+    num, den = _plant(fitted, tau_a)
+    pv0, u0 = _operating_point(fitted)
+    w0 = ctx.window[0]
+    noise = float(np.sqrt(np.mean((explanation.traces.pv[w0:] - explanation.traces.pv_after[w0:]) ** 2)))
+    lo, hi = float(np.min(rec.pv)), float(np.max(rec.pv))
+    span = hi - lo if hi > lo else max(abs(hi), 1.0)
+    units = pv_units or (model.plant.units if model is not None else "")
+    plant = PlantConfig(num, den, delay=st.delay, pv0=pv0, u0=u0, units=units, noise=noise,
+                        pv_range=(lo - PV_MARGIN * span, hi + PV_MARGIN * span))
+    origin = "re-fitted by the diagnosis from the model's structure" if model is not None else \
+        "identified from the recording"
+    lines = [f"plant.num, den, delay: the final model's linear part, {origin} ({st.describe()}), as a continuous "
+             "transfer function in PV units per % flow"
+             + (f"; times the actuator lag 1/({_g(tau_a)}s+1) found by the diagnosis" if tau_a else "") + ".",
+             f"plant.pv0, u0: the fit's operating point; plant.noise: RMS residual of the final model ({_g(noise)}); "
+             f"pv_range: the recorded PV range widened by {PV_MARGIN:g} of it each side"
+             + (f"; units: {units}." if units else ".")]
+    out = active.get("output")
+    if out is not None and out.name == "disturbance":
+        plant = replace(plant, disturbance=_input_sine(out.params, plant))
+        lines.append("plant.disturbance: the external oscillating disturbance found (a sinusoid in PV), as the "
+                     "sinusoid at the plant input that the plant turns into it.")
+    elif out is not None:
+        lines.append(f"Left out: the {out.name} finding acts on the measured PV, which the loop config cannot "
+                     "express.")
+    return plant, lines
+
+
+def _controller(diagnosis, model: LoopConfig | None, op: np.ndarray, plant: PlantConfig
+                ) -> tuple[ControllerConfig, list[str]]:
+    """The controller section (``op``: the recorded OP in the twin's travel) and its provenance."""
+    rec, fitted = diagnosis.recording, diagnosis.explanation.fitted
+    st, lines = fitted.linear.structure, []
+    limits = (0.0, 100.0)
+    sat = fitted.active.get("limit")
+    if sat is not None:
+        limits = (max(0.0, float(sat.params[0])), min(100.0, float(sat.params[1])))
+        lines.append("controller.op_limits: the saturation found by the diagnosis.")
+    has_sp = rec.sp is not None and bool(np.all(np.isfinite(rec.sp)))
+    pi = identify_pi(rec.t, rec.sp, rec.pv, op) if has_sp else None
+    if model is not None and model.controller is not None:
+        c = model.controller
+        kc, ti, td, action, mode = c.kc, c.ti, c.td, c.action, "auto"
+        limits = (max(limits[0], c.op_limits[0]), min(limits[1], c.op_limits[1]))
+        lines.append("controller: the model's tuning and action.")
+    elif pi is not None:
+        (kc, ti, action), td, mode = pi, 0.0, "auto"
+        lines.append("controller: PI identified from the recorded SP, PV and OP (velocity form, least squares).")
+    else:
+        kc, ti, action = _simc(plant.num, plant.den, plant.delay, st.taus, st.integrating, fitted.ctx.dt)
+        td, mode = 0.0, "manual"
+        lines.append("controller: manual at the first OP (the recording shows no controller to copy); tuning by "
+                     "the SIMC rules for the twin's plant, for when it is switched to auto.")
+    sp = float(np.median(rec.sp if has_sp else rec.pv))   # the loop's usual set point (the served device's)
+    controller = ControllerConfig(kc, ti=ti, td=td, sp=sp, bias=float(np.clip(op[0], *limits)), action=action,
+                                  op_limits=limits, mode=mode)
+    return controller, lines
+
+
 def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name: str | None = None) -> Twin:
     """The twin of ``diagnosis`` (see the module docstring).
 
@@ -205,108 +303,22 @@ def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name
     if explanation is None or explanation.fitted is None:
         reason = "" if diagnosis.assessment is None else f" ({diagnosis.assessment.reason})"
         raise ValueError(f"{diagnosis.source}: no model was fitted, so there is no twin to write{reason}")
-    fitted, rec = explanation.fitted, diagnosis.recording
-    ctx, st = fitted.ctx, fitted.linear.structure
-    frame = diagnosis.frame
-    active = fitted.active
-    prov = [f"Twin of {diagnosis.source}, written by valve-emulator diagnose --twin: the loop the diagnosis "
-            "found, as a loop config.",
-            f"Answer: {diagnosis.answer}; held-out fit {_g(explanation.fit_before)} % -> "
-            f"{_g(explanation.fit_after)} % ({diagnosis.verdict})."]
-
-    # OP scaling and the valve
-    op_range = _op_range(frame)
-    if frame.known:
-        prov.append(f"valve.op_range: the recording's OP at 0 and 100 % travel ({frame.span_source}); OP, S and J "
-                    "are in % travel.")
-    else:
-        prov.append("valve.op_range: OP's travel span is unknown; the twin's travel is the diagnosis' unit-free "
-                    f"frame (the recording's robust OP range on {_g(frame.to_internal(np.percentile(rec.op, 0.5)))}"
-                    f"-{_g(frame.to_internal(np.percentile(rec.op, 99.5)))} %); op_range maps OP's units to it.")
-    valve_found = active.get("valve")
-    if valve_found is not None:
-        S = float(valve_found.params[0])
-        J = float(valve_found.params[1]) if valve_found.name == "stiction" else 0.0
-        prov.append(f"valve.S, valve.J: {valve_found.name} found by the diagnosis"
-                    f"{_finding_text(diagnosis, valve_found.name)}.")
-    else:
-        S, J = fitted.nominal_valve
-        prov.append("valve.S, valve.J: " + ("the model's valve (no valve friction found)." if model is not None
-                                            else "no valve friction found (a free valve)."))
-    char = active.get("characteristic")
-    kind, R = (CHARACTERISTICS[int(char.params[0])], float(char.params[1])) if char is not None \
-        else ctx.characteristic
-    prov.append("valve.characteristic: " + ("found by the diagnosis." if char is not None else
-                                            "the model's." if model is not None else "linear (assumed)."))
-    op = frame.to_internal(rec.op)
-    op0 = float(np.clip(op[0], 0.0, 100.0))
-    rest = model.valve.rest_time if model is not None else (ctx.rest_samples - 0.5) * ctx.dt
-    valve = ValveConfig(model=ctx.valve_model, S=S, J=J, rest_time=rest, op0=op0, characteristic=kind,
-                        rangeability=R if R > 1.0 else 50.0, op_range=op_range,
-                        **({"ma_table": model.valve.ma_table} if model is not None else {}))
-
-    # the plant
-    lag = active.get("actuator")
-    tau_a = float(lag.params[0]) if lag is not None else None
-    num, den = _plant(fitted, tau_a)
-    pv0, u0 = _operating_point(fitted)
-    w0 = ctx.window[0]
-    residual = explanation.traces.pv[w0:] - explanation.traces.pv_after[w0:]
-    noise = float(np.sqrt(np.mean(residual ** 2)))
-    lo, hi = float(np.min(rec.pv)), float(np.max(rec.pv))
-    span = hi - lo if hi > lo else max(abs(hi), 1.0)
-    units = pv_units or (model.plant.units if model is not None else "")
-    plant = PlantConfig(num, den, delay=st.delay, pv0=pv0, u0=u0, units=units, noise=noise,
-                        pv_range=(lo - PV_MARGIN * span, hi + PV_MARGIN * span))
-    origin = "re-fitted by the diagnosis from the model's structure" if model is not None else \
-        "identified from the recording"
-    prov.append(f"plant.num, den, delay: the final model's linear part, {origin} ({st.describe()}), as a "
-                "continuous transfer function in PV units per % flow" +
-                (f"; times the actuator lag 1/({_g(tau_a)}s+1) found by the diagnosis" if tau_a else "") + ".")
-    prov.append(f"plant.pv0, u0: the fit's operating point; plant.noise: RMS residual of the final model "
-                f"({_g(noise)}); pv_range: the recorded PV range widened by {PV_MARGIN:g} of it each side"
-                + (f"; units: {units}." if units else "."))
-    out = active.get("output")
-    if out is not None and out.name == "disturbance":
-        plant = replace(plant, disturbance=_input_sine(out.params, plant))
-        prov.append("plant.disturbance: the external oscillating disturbance found (a sinusoid in PV), as the "
-                    "sinusoid at the plant input that the plant turns into it.")
-    elif out is not None:
-        prov.append(f"Left out: the {out.name} finding acts on the measured PV, which the loop config cannot "
-                    "express.")
-
-    # the controller
-    limits = (0.0, 100.0)
-    sat = active.get("limit")
-    if sat is not None:
-        limits = (max(0.0, float(sat.params[0])), min(100.0, float(sat.params[1])))
-        prov.append("controller.op_limits: the saturation found by the diagnosis.")
-    has_sp = rec.sp is not None and bool(np.all(np.isfinite(rec.sp)))
-    sp0 = float(np.median(rec.sp if has_sp else rec.pv))   # the loop's usual set point (the served device's)
-    bias = float(np.clip(op0, *limits))
-    pi = identify_pi(rec.t, rec.sp, rec.pv, op) if has_sp else None
-    if model is not None and model.controller is not None:
-        c = model.controller
-        kc, ti, td, action, mode = c.kc, c.ti, c.td, c.action, "auto"
-        limits = (max(limits[0], c.op_limits[0]), min(limits[1], c.op_limits[1]))
-        prov.append("controller: the model's tuning and action.")
-    elif pi is not None:
-        (kc, ti, action), td, mode = pi, 0.0, "auto"
-        prov.append("controller: PI identified from the recorded SP, PV and OP (velocity form, least squares).")
-    else:
-        kc, ti, action = _simc(num, den, plant.delay, st.taus, st.integrating, ctx.dt)
-        td, mode = 0.0, "manual"
-        prov.append("controller: manual at the first OP (the recording shows no controller to copy); tuning "
-                    "by the SIMC rules for the twin's plant, for when it is switched to auto.")
-    controller = ControllerConfig(kc, ti=ti, td=td, sp=sp0, bias=bias, action=action, op_limits=limits,
-                                  mode=mode)
-    duration = max(float(rec.t[-1] - rec.t[0]), ctx.dt)
-    prov.append(f"simulation.dt, device.tick: the recording's sample time ({_g(ctx.dt)} s); duration: its length.")
+    rec, dt = diagnosis.recording, explanation.fitted.ctx.dt
+    op = diagnosis.frame.to_internal(rec.op)
+    valve, valve_lines = _valve(diagnosis, model, op)
+    plant, plant_lines = _plant_section(diagnosis, model, pv_units)
+    controller, controller_lines = _controller(diagnosis, model, op, plant)
     cfg = LoopConfig(name or _slug(diagnosis.source), description=f"twin of {diagnosis.source}", valve=valve,
                      plant=plant, controller=controller,
-                     simulation=SimulationConfig(dt=ctx.dt, duration=duration),
-                     device=DeviceConfig(tick=ctx.dt))
-    return Twin(_replay_operating_point(cfg, explanation, rec), tuple(prov))
+                     simulation=SimulationConfig(dt=dt, duration=max(float(rec.t[-1] - rec.t[0]), dt)),
+                     device=DeviceConfig(tick=dt))
+    head = [f"Twin of {diagnosis.source}, written by valve-emulator diagnose --twin: the loop the diagnosis found, "
+            "as a loop config.",
+            f"Answer: {diagnosis.answer}; held-out fit {_g(explanation.fit_before)} % -> "
+            f"{_g(explanation.fit_after)} % ({diagnosis.verdict}).",
+            *valve_lines, *plant_lines, *controller_lines,
+            f"simulation.dt, device.tick: the recording's sample time ({_g(dt)} s); duration: its length."]
+    return Twin(_replay_operating_point(cfg, explanation, rec), tuple(head))
 
 
 def _replay_operating_point(cfg: LoopConfig, explanation, rec) -> LoopConfig:
