@@ -57,8 +57,10 @@ def _check_grid(config: LoopConfig, rec: Recording) -> None:
                              f"simulation.dt = {dt:g} s by more than 1 %; replay a recording sampled every dt")
 
 
-def _recording(config: LoopConfig, rec: Recording, out: dict[str, np.ndarray]) -> Recording:
-    return Recording(t=np.asarray(rec.t) - rec.t[0], sp=out["sp"][:, 0], op=out["op"][:, 0], mv=out["mv"][:, 0],
+def _recording(config: LoopConfig, rec: Recording, out: dict[str, np.ndarray], *, sp=None) -> Recording:
+    """The run as a recording on ``rec``'s grid (time from 0); ``sp`` replaces the run's set point."""
+    sp = out["sp"][:, 0] if sp is None else sp
+    return Recording(t=np.asarray(rec.t) - rec.t[0], sp=sp, op=out["op"][:, 0], mv=out["mv"][:, 0],
                      pv=out["pv"][:, 0], extra={"flow": out["flow"][:, 0], "stuck": out["stuck"][:, 0].astype(float)},
                      source=config.source or config.name)
 
@@ -103,12 +105,13 @@ def _op(config: LoopConfig, rec: Recording) -> np.ndarray:
 def replay_op(config: LoopConfig, rec: Recording) -> Recording:
     """The loop's PV for the recorded OP, open loop and noise-free (see the module docstring).
 
-    Returns a recording on ``rec``'s grid (time from 0) with ``op`` and ``mv`` in % travel.
+    Returns a recording on ``rec``'s grid (time from 0) with ``op`` and ``mv`` in % travel and the recorded set
+    point (NaN where there is none: no controller ran).
     """
     _check_grid(config, rec)
     op = _op(config, rec)
     cfg = dataclasses.replace(config, plant=dataclasses.replace(config.plant, noise=0.0), controller=None)
-    return _recording(cfg, rec, _lead_in(cfg, op).run(op.size, op=op[:, None]))
+    return _recording(cfg, rec, _lead_in(cfg, op).run(op.size, op=op[:, None]), sp=rec.sp)
 
 
 def replay_sp(config: LoopConfig, rec: Recording) -> Recording:
