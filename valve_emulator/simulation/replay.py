@@ -96,6 +96,14 @@ def _delayed(d: DisturbanceConfig, lead: float) -> DisturbanceConfig:
     return d
 
 
+def _operating_point_fixed(config: LoopConfig) -> LoopConfig:
+    """``config`` with ``plant.u0`` given: unset, it is the initial flow of the loop as configured, which a
+    replay (that starts the valve elsewhere) must keep."""
+    if config.plant.u0 is not None:
+        return config
+    return dataclasses.replace(config, plant=dataclasses.replace(config.plant, u0=float(LoopBank([config]).flow[0])))
+
+
 def _op(config: LoopConfig, rec: Recording) -> np.ndarray:
     """The recorded OP in % travel, within what the controller could write and the valve's travel."""
     lo, hi = config.controller.op_limits if config.controller is not None else (0.0, 100.0)
@@ -110,6 +118,7 @@ def replay_op(config: LoopConfig, rec: Recording) -> Recording:
     """
     _check_grid(config, rec)
     op = _op(config, rec)
+    config = _operating_point_fixed(config)
     cfg = dataclasses.replace(config, plant=dataclasses.replace(config.plant, noise=0.0), controller=None)
     return _recording(cfg, rec, _lead_in(cfg, op).run(op.size, op=op[:, None]), sp=rec.sp)
 
@@ -133,6 +142,7 @@ def replay_sp(config: LoopConfig, rec: Recording) -> Recording:
         raise ValueError(f"{config.source or config.name}: the loop has no controller to replay the set point with")
     _check_grid(config, rec)
     op = _op(config, rec)
+    config = _operating_point_fixed(config)
     cfg = dataclasses.replace(config, controller=dataclasses.replace(config.controller, mode="auto"))
     bank = _lead_in(cfg, op)
     K = pre_roll_length(op.size)
