@@ -67,7 +67,7 @@ _DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts"
 KEYS: dict[str, tuple[str, ...]] = {
     "": _LOOP_SECTIONS + ("device",),
     "valve": ("model", "S", "J", "seed_s", "seed_j", "rest_time", "initial_direction", "op0",
-              "characteristic", "rangeability", "ma_table"),
+              "characteristic", "rangeability", "ma_table", "op_range"),
     "plant": ("num", "den", "delay", "fopdt", "integrator", "pv0", "u0", "pv_range", "units",
               "disturbance", "noise", "alarms"),
     "plant.fopdt": ("gain", "tau", "delay"),
@@ -230,6 +230,8 @@ class ValveConfig:
     characteristic: str = "linear"  # inherent flow characteristic: linear | equal_percentage | quick_opening
     rangeability: float = 50.0     # R > 1, used by equal_percentage
     ma_table: tuple[tuple[float, float], ...] = DEFAULT_MA_TABLE  # (mA, % travel) points, >= 2
+    op_range: tuple[float, float] = (0.0, 100.0)  # a recording's OP at 0 and 100 % travel, in its own units
+                                                  # (lo < hi); maps a replayed recording's OP to travel
     seed_form: tuple[float, float] | None = None  # (seed_s, seed_j) as typed, when given in that form
 
     def __post_init__(self) -> None:
@@ -242,7 +244,7 @@ class ValveConfig:
              op0=real(self.op0, "op0", ge=0, le=100),
              characteristic=choice(self.characteristic, "characteristic", CHARACTERISTICS),
              rangeability=real(self.rangeability, "rangeability", gt=1))
-        _set(self, ma_table=_ma_table(self.ma_table))
+        _set(self, ma_table=_ma_table(self.ma_table), op_range=interval(self.op_range, "op_range"))
         if self.seed_form is not None:
             s, j = sequence(self.seed_form, "seed_form", length=2)
             s, j = real(s, "seed_s", ge=0), real(j, "seed_j", ge=0)

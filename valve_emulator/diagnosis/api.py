@@ -119,6 +119,7 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
         raise TypeError("op_range applies only to plant data: with a model OP is % travel")
     declared = _declared_span(op_range)
     cfg = load_loop(model) if isinstance(model, (str, os.PathLike)) else model
+    pv_units = reader_options.get("pv_units", "")
     rec, notes, known = _recording(recording, reader_options)
     rec, note = regularize(rec)
     notes += (note,) if note else ()
@@ -133,9 +134,11 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
     notes += (refuted,) if refuted else ()
     if cfg is not None:
         return Diagnosis(recording=rec, explanation=explain(rec, cfg, candidates=candidates, validation=validation,
-                                                            progress=progress), notes=notes, caveats=caveats)
+                                                            progress=progress), notes=notes, caveats=caveats,
+                         model=cfg, pv_units=pv_units)
     a = assess_uniform(rec, progress=progress, frame=None if refuted else declared)
-    return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes, caveats=caveats)
+    return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes, caveats=caveats,
+                     pv_units=pv_units)
 
 
 def _declared_span(op_range: Sequence[float] | None) -> Frame | None:

@@ -27,7 +27,7 @@ import numpy as np
 
 from valve_emulator.recordings.recording import Recording, RecordingError
 
-__all__ = ["Problem", "prepare", "prefilter_for", "folds", "HELD_OUT", "MIN_SAMPLES", "VALIDATIONS",
+__all__ = ["Problem", "prepare", "prefilter_for", "folds", "fold_windows", "HELD_OUT", "MIN_SAMPLES", "VALIDATIONS",
            "fit_percent", "UninformativeData"]
 
 #: Fraction of the record, at its end, held out from fitting.
@@ -141,7 +141,11 @@ def folds(problem: Problem) -> tuple[tuple[tuple[int, int], tuple[int, int]], ..
     predictions depend on the recorded OP only, never on past PV, so a held-out block may precede the
     samples fitted without leaking them.
     """
-    T, w0 = problem.T, problem.train[0]
+    return fold_windows(problem.T, problem.train[0])
+
+
+def fold_windows(T: int, w0: int) -> tuple[tuple[tuple[int, int], tuple[int, int]], ...]:
+    """:func:`folds` of a record of ``T`` samples whose burn-in ends at ``w0``."""
     a = int(round((1.0 - HELD_OUT) * T))
     b = max(w0 + 1, int(round(HELD_OUT * T)))
     return ((w0, a), (a, T)), ((b, T), (w0, b))

@@ -15,10 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, robust_range
+from valve_emulator.diagnosis.report.twin import Twin, twin
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["Diagnosis"]
@@ -65,6 +67,8 @@ class Diagnosis:
     assessment : the plant-data answer (None when a model was given).
     notes : what was done to the data on the way in (reader notes, resampling, a refuted OP span).
     caveats : ``(code, sentence)`` pairs that qualify any answer, after its own reasons (``op_units_refuted``).
+    model : the nominal model it was run against (None for plant data); the twin takes its controller.
+    pv_units : PV's engineering units, as the reader was told (for the twin).
     """
 
     recording: Recording
@@ -72,6 +76,8 @@ class Diagnosis:
     assessment: Assessment | None = None
     notes: tuple[str, ...] = ()
     caveats: tuple[tuple[Reason, str], ...] = ()
+    model: LoopConfig | None = None
+    pv_units: str = ""
 
     # -- the answer ---------------------------------------------------------------------------------------
     @property
@@ -144,6 +150,16 @@ class Diagnosis:
             reason = "" if self.assessment is None else f" ({self.assessment.reason})"
             raise ValueError(f"{self.source}: no model was fitted: the data could not support one{reason}")
         return self.explanation.predict(op)
+
+    def twin(self, *, name: str | None = None) -> Twin:
+        """The loop this diagnosis found as a loop config, with a header saying where each number came from
+        (:mod:`~valve_emulator.diagnosis.report.twin`); ``Twin.text()`` is the YAML file."""
+        return twin(self, model=self.model, pv_units=self.pv_units, name=name)
+
+    def to_config(self, *, name: str | None = None) -> LoopConfig:
+        """The twin's :class:`~valve_emulator.config.LoopConfig`: what ``simulate`` and ``serve`` read
+        (see :meth:`twin`). Raises ValueError when no model was fitted."""
+        return self.twin(name=name).config
 
     # -- output ---------------------------------------------------------------------------------------------
     def to_json(self) -> dict:
