@@ -113,18 +113,26 @@ def _common_words(scaling: Scaling, *, tick: int, overruns: int, time: float) ->
                     dtype=np.int64)
 
 
-def _floats(state: Any, name: str, n: int, optional: bool = False) -> np.ndarray:
+def _array(state: Any, name: str, n: int, dtype: type, optional: bool) -> np.ndarray:
+    """``state.name`` as a contiguous array (n,) of ``dtype``; zeros for a missing optional array.
+
+    A bank's arrays already have that form and are passed through untouched: at one loop the conversions
+    would cost more than the compiled pass itself (the manual clock of the testing kit runs ticks back to back).
+    """
     value = getattr(state, name, None) if optional else getattr(state, name)
     if value is None:
-        return np.zeros(n)
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=np.float64), (n,)))
+        return np.zeros(n, dtype=dtype)
+    if type(value) is np.ndarray and value.dtype == dtype and value.shape == (n,) and value.flags.c_contiguous:
+        return value
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=dtype), (n,)))
+
+
+def _floats(state: Any, name: str, n: int, optional: bool = False) -> np.ndarray:
+    return _array(state, name, n, np.float64, optional)
 
 
 def _bools(state: Any, name: str, n: int, optional: bool = False) -> np.ndarray:
-    value = getattr(state, name, None) if optional else getattr(state, name)
-    if value is None:
-        return np.zeros(n, dtype=np.bool_)
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=np.bool_), (n,)))
+    return _array(state, name, n, np.bool_, optional)
 
 
 def encode_image(state: Any, scaling: Scaling, image: bytearray | np.ndarray, offsets: np.ndarray, *,
