@@ -4,7 +4,7 @@
 //
 //   node pi_lockstep.js --port 5020 [--iterations 400] [--ticks 5] [--sp 2.0] [--kc 0.5] [--ti 20]
 //
-// Prints one JSON line: {"iterations", "ticks", "pv": [PV read after every step], "op": [...], "seconds"}.
+// Prints one JSON line: {"iterations", "ticks", "pv": [PV read at each scan], "op": [OP written], "seconds"}.
 "use strict";
 
 const ModbusRTU = require("modbus-serial");
@@ -39,14 +39,15 @@ async function main() {
   const pv = [];
   const op = [];
   const start = process.hrtime.bigint();
-  for (let k = 0; k < o.iterations; k++) {
-    const error = o.sp - (await readPv(client));
+  for (let k = 0; k < o.iterations; k++) {     // one scan: read PV, compute, write OP, write step
+    const measured = await readPv(client);
+    const error = o.sp - measured;
     integral = Math.min(Math.max(integral + (o.kc * period / o.ti) * error, 0), 100);
     const out = Math.min(Math.max(o.kc * error + integral, 0), 100);
     await client.writeRegister(OP_PCT, Math.round(out * 100));
     await client.writeRegister(STEP, o.ticks);
+    pv.push(measured);
     op.push(out);
-    pv.push(await readPv(client));
   }
   const seconds = Number(process.hrtime.bigint() - start) / 1e9;
   client.close(() => {});

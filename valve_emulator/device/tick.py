@@ -17,7 +17,7 @@ accumulates. Each tick
    wins; OP is then held until the next write),
 2. steps every loop one ``dt`` (``bank.step()``: one compiled call for all loops),
 3. re-encodes the register image of every loop (one compiled pass,
-   :func:`~valve_emulator.device.registers.encode_image`).
+   :class:`~valve_emulator.device.registers.kernel.ImageEncoder`, the compiled ``encode_image`` bound to the image).
 
 At plant scale the tick's own compute time matters as much as its lateness: while it runs, no request is
 answered. :attr:`Device.tick_time` keeps the duration of each tick (steps 1–3) next to the lateness.
@@ -68,7 +68,8 @@ import numpy as np
 from valve_emulator.device._tasks import cancel_and_wait
 from valve_emulator.device.image import ImageLayout
 from valve_emulator.device.malfunctions import Malfunction, MalfunctionBank
-from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, encode_image, patch
+from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, patch
+from valve_emulator.device.registers.kernel import ImageEncoder
 from valve_emulator.device.snapshots import Snapshot, SnapshotError
 
 __all__ = ["JitterBuffer", "Device", "TICK_TASK_NAME"]
@@ -192,6 +193,7 @@ class Device:
         self.on_tick: list[Callable[[Device], None]] = []
         self.offsets = self.layout.offsets
         self.image = bytearray(self.layout.size)
+        self._encode = ImageEncoder(scaling, self.image, self.offsets)
         self._refresh()
 
     @classmethod
@@ -265,8 +267,7 @@ class Device:
     # --- one tick -----------------------------------------------------------------------------------
 
     def _refresh(self) -> None:
-        encode_image(self.bank, self.scaling, self.image, self.offsets, tick=self.ticks, overruns=self.overruns,
-                     time=self.bank.sample_time)
+        self._encode(self.bank, tick=self.ticks, overruns=self.overruns, time=self.bank.sample_time)
 
     def tick(self) -> None:
         """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""
