@@ -2,18 +2,8 @@
 
 from __future__ import annotations
 
-from importlib.metadata import entry_points
-
 import pytest
-
-PLUGIN = "valve_emulator.testing.plugin"
-
-
-def plugin_args() -> list[str]:
-    """Command-line arguments that give a pytest run the kit's plugin: none once the package's ``pytest11`` entry
-    point is installed (``pip install``, what users do and ``.ci/run`` does); ``-p`` on an older install."""
-    installed = any(ep.value == PLUGIN for ep in entry_points(group="pytest11"))
-    return [] if installed else ["-p", PLUGIN]
+from kit_helpers import plugin_args
 
 
 @pytest.fixture

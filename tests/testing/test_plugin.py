@@ -5,7 +5,7 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
-from conftest import PLUGIN
+from kit_helpers import PLUGIN
 
 ROOT = Path(__file__).resolve().parents[2]
 
