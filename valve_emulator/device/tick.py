@@ -78,6 +78,8 @@ TICK_TASK_NAME = "valve-emulator-tick"
 #: Loop-ticks (ticks × loops) :meth:`Device.advance` runs in one compiled call when nothing else acts in them
 #: (the call's output arrays take about 50 bytes per loop-tick).
 QUIET_RUN = 1 << 16
+#: Fewer ticks than this run one by one: a compiled run's set-up costs more than a few single steps.
+QUIET_MIN = 8
 _log = logging.getLogger(__name__)
 
 
@@ -295,17 +297,17 @@ class Device:
         """Run ``k`` ticks immediately (only with ``time_scale == 0`` or frozen); returns the tick count.
 
         Ticks that nothing can tell apart from the bank's own stepping -- no write pending, no ramp running,
-        no :attr:`on_tick` callback -- run as one compiled ``bank.run`` (at most :data:`QUIET_RUN` loop-ticks
-        at a time), which the loop bank guarantees equal to as many ``bank.step()`` calls, bit for bit; the
-        image is then encoded once, after the last of them.
+        no :attr:`on_tick` callback -- run as one compiled ``bank.run`` (from :data:`QUIET_MIN` ticks, at most
+        :data:`QUIET_RUN` loop-ticks at a time), which the loop bank guarantees equal to as many ``bank.step()``
+        calls, bit for bit; the image is then encoded once, after the last of them.
         """
         if self.time_scale != 0 and not self._frozen:
             raise RuntimeError(f"Device.advance needs frozen time (time_scale=0 or freeze()), "
                                f"not time_scale={self.time_scale}")
         end = self.ticks + int(k)
         while self.ticks < end:
-            if self._quiet():
-                self._run_quiet(min(end - self.ticks, max(1, QUIET_RUN // self.bank.n)))
+            if end - self.ticks >= QUIET_MIN and self._quiet():
+                self._run_quiet(min(end - self.ticks, max(QUIET_MIN, QUIET_RUN // self.bank.n)))
             else:
                 self.tick()
         return self.ticks
