@@ -203,12 +203,13 @@ class Emulator:
         if not device.lockstep:
             return await device.wait_for_tick(target)
         loop = asyncio.get_running_loop()
-        while device.ticks < target:
+        while True:
             turn_end = loop.time() + _TURN
             while device.ticks < target and loop.time() < turn_end:
                 device.advance(min(_BATCH, target - device.ticks))
+            if device.ticks >= target:
+                return device.ticks
             await asyncio.sleep(0)   # requests waiting since the turn began are answered here
-        return device.ticks
 
     # --- clients ---------------------------------------------------------------------------------------
 
