@@ -8,8 +8,9 @@
    tick runs on its own: the ramp sets its quantity each tick). Target: <= 2 s.
 2. Lockstep over Modbus TCP against ``valve-emulator serve --lockstep`` in its own process: ``--steps`` scans of a
    client doing write OP + write ``step`` (1 tick) + read PV, one request outstanding at a time; steps per second,
-   medians over ``--rounds``. Clients: pymodbus' sync ``ModbusTcpClient``; a plain-socket client that sends the
-   three requests of a scan in one segment (the server answers pipelined requests in order); and the Node program
+   medians over ``--rounds``. Clients: pymodbus' sync ``ModbusTcpClient``; the same with write ``step`` + read PV
+   as one FC23 request (the server writes first, runs the ticks, then reads); a plain-socket client that sends
+   the three requests of a scan in one segment (the server answers pipelined requests in order); and the Node program
    tests/node/pi_lockstep.js (npm modbus-serial; needs ``npm ci`` in tests/node). Target (Python): >= 2,000.
 """
 
@@ -80,6 +81,18 @@ def pymodbus_steps(port: int, steps: int) -> float:
         return steps / (time.perf_counter() - t0)
 
 
+def fc23_steps(port: int, steps: int) -> float:
+    """Write OP (FC6), then write step and read PV in one FC23 request (written first, read after the ticks)."""
+    from pymodbus.client import ModbusTcpClient
+
+    with ModbusTcpClient("127.0.0.1", port=port) as c:
+        t0 = time.perf_counter()
+        for k in range(steps):
+            c.write_register(0, 4000 + k % 2000, device_id=1)
+            c.readwrite_registers(read_address=24, read_count=2, write_address=STEP, values=[1], device_id=1)
+        return steps / (time.perf_counter() - t0)
+
+
 def socket_steps(port: int, steps: int) -> float:
     """Write OP, write step, read PV sent together; the three answers (12 + 12 + 13 bytes) read back."""
     with socket.create_connection(("127.0.0.1", port)) as s:
@@ -119,6 +132,7 @@ def main() -> None:
     print("Manual clock, one loop, one simulated hour (36,000 ticks of 0.1 s); target <= 2 s:\n")
     print(table(rows, ("case", "wall s")) + "\n")
     clients = (("Python, pymodbus ModbusTcpClient", pymodbus_steps),
+               ("Python, pymodbus, write step + read PV as one FC23 request", fc23_steps),
                ("Python, plain socket, the scan's 3 requests in one segment", socket_steps),
                ("Node 20, npm modbus-serial (tests/node/pi_lockstep.js)", node_steps))
     rows = []

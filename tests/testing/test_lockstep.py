@@ -34,6 +34,13 @@ def test_a_step_write_is_answered_after_its_ticks_have_run():
         assert [r.time for r in step] == [0.0, pytest.approx(2.4)]         # arrival, before the ticks
 
 
+def test_fc23_writes_step_then_reads_what_the_ticks_left():
+    with Emulator() as emu, emu.client() as c:
+        tick = c.readwrite_registers(read_address=14, read_count=2, write_address=STEP_ADDRESS, values=[7],
+                                     device_id=1)
+        assert c.convert_from_registers(tick.registers, U32) == 7 == emu.ticks
+
+
 def test_a_step_write_is_refused_while_the_device_runs_its_own_clock():
     with Emulator(clock="real", time_scale=1.0) as emu, emu.client() as c:
         refused = c.write_register(STEP_ADDRESS, 10, device_id=1)
