@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
 import socket
 import threading
 
@@ -143,25 +144,33 @@ def test_real_clock_advance_waits_for_the_ticks():
         assert emu.advance(2.0) >= start + 20
 
 
+def _open_fds() -> set[str]:
+    """The file descriptors this process has open (sockets, the event loop's selector and self-pipe, ...)."""
+    return set(os.listdir("/proc/self/fd"))
+
+
 def test_sync_flavour_leaves_no_thread_socket_or_open_client():
+    fds = _open_fds()
     with Emulator() as emu:
         port = emu.port
         client = emu.client()
         client.connect()
         thread = emu._thread
+        assert len(_open_fds() - fds) >= 4      # listener, both ends of the connection, the loop's selector
     assert not thread.is_alive() and not client.connected and _refused(port)
     assert not [t for t in threading.enumerate() if t.name == "valve-emulator-testing"]
+    assert _open_fds() <= fds
 
 
 async def test_async_flavour_leaves_no_task_or_socket():
-    before = asyncio.all_tasks()
+    before, fds = asyncio.all_tasks(), _open_fds()
     async with Emulator() as emu:
         port = emu.port
         async with emu.client() as c:
             await emu.advance(1.0)
             assert (await c.read_holding_registers(14, count=2, device_id=1)).registers == [0, 10]
     await asyncio.sleep(0)
-    assert asyncio.all_tasks() == before and _refused(port)
+    assert asyncio.all_tasks() == before and _refused(port) and _open_fds() <= fds
 
 
 async def test_requests_are_answered_while_a_long_advance_runs():
