@@ -190,6 +190,8 @@ def test_configs_from_a_file_a_mapping_or_bad_input(tmp_path):
     assert emu.units == (3,) and emu.dt == 0.5
     with pytest.raises(ConfigError, match="tick"):
         Emulator({"device": {"tick": -1}, "loops": [{"unit": 1}]})
+    with pytest.raises(ConfigError, match="lockstep"):
+        Emulator({"device": {"lockstep": "yes"}, "loops": [{"unit": 1}]})
     with pytest.raises(ValueError, match="clock"):
         Emulator(clock="fast")
     with pytest.raises(RuntimeError, match="not running"):
