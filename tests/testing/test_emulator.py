@@ -194,6 +194,8 @@ def test_configs_from_a_file_a_mapping_or_bad_input(tmp_path):
         Emulator({"device": {"lockstep": "yes"}, "loops": [{"unit": 1}]})
     with pytest.raises(ValueError, match="clock"):
         Emulator(clock="fast")
+    with pytest.raises(ValueError, match="lockstep"):
+        Emulator({"device": {"lockstep": True}, "loops": [{"unit": 1}]}, clock="real")
     with pytest.raises(RuntimeError, match="not running"):
         emu.state(0)
     assert math.isfinite(Emulator().dt)

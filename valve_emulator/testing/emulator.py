@@ -91,6 +91,9 @@ class Emulator:
         if clock == "real" and not time_scale > 0:
             raise ValueError(f"time_scale must be > 0 for the real clock, got {time_scale!r}")
         cfg = load_config(config)
+        if clock == "real" and cfg.device.lockstep:
+            raise ValueError("clock 'real' with a config that sets device.lockstep: in lockstep the clock is "
+                             "manual (leave clock at 'manual')")
         if instructor and not cfg.device.instructor_writes:
             from valve_emulator.commands.serve import with_device
 
