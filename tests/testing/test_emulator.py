@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import math
 import os
 import socket
@@ -145,8 +146,11 @@ def test_real_clock_advance_waits_for_the_ticks():
 
 
 def _open_fds() -> set[str]:
-    """The file descriptors this process has open (sockets, the event loop's selector and self-pipe, ...)."""
-    return set(os.listdir("/proc/self/fd"))
+    """The file descriptors this process has open (sockets, the event loop's selector and self-pipe, ...), after
+    a garbage collection (so that objects earlier tests dropped do not close theirs in between)."""
+    gc.collect()
+    return {f"{fd}->{os.readlink(f'/proc/self/fd/{fd}')}" for fd in os.listdir("/proc/self/fd")
+            if os.path.exists(f"/proc/self/fd/{fd}")}
 
 
 def test_sync_flavour_leaves_no_thread_socket_or_open_client():
@@ -191,11 +195,12 @@ def test_configs_from_a_file_a_mapping_or_bad_input(tmp_path):
     with pytest.raises(ConfigError, match="tick"):
         Emulator({"device": {"tick": -1}, "loops": [{"unit": 1}]})
     with pytest.raises(ConfigError, match="lockstep"):
-        Emulator({"device": {"lockstep": "yes"}, "loops": [{"unit": 1}]})
+        Emulator({"device": {"lockstep": "yes"}, "loops": [{"unit": 1, "plant": {"num": [1.0], "den": [1.0, 1.0]}}]})
     with pytest.raises(ValueError, match="clock"):
         Emulator(clock="fast")
     with pytest.raises(ValueError, match="lockstep"):
-        Emulator({"device": {"lockstep": True}, "loops": [{"unit": 1}]}, clock="real")
+        Emulator({"device": {"lockstep": True}, "loops": [{"unit": 1, "plant": {"num": [1.0], "den": [1.0, 1.0]}}]},
+                 clock="real")
     with pytest.raises(RuntimeError, match="not running"):
         emu.state(0)
     assert math.isfinite(Emulator().dt)
