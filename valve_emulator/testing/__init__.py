@@ -1,4 +1,4 @@
-"""Layer 7: the loopback testing kit, for tests of SCADA drivers, PLC programs and control logic.
+"""The top layer: the loopback testing kit, for tests of SCADA drivers, PLC programs and control logic.
 
 - :class:`Emulator` -- the emulated device as a real Modbus TCP server on a free port, with a clock the test
   owns (``"manual"``: no tick until :meth:`Emulator.advance`), its state, faults, snapshots and the traffic it
