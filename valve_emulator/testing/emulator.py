@@ -45,11 +45,9 @@ from valve_emulator.device.registers import (
     register,
 )
 from valve_emulator.device.registers.codec import decode_value
+from valve_emulator.testing import CLOCKS
 
 __all__ = ["CLOCKS", "Emulator", "load_config"]
-
-#: The clocks an :class:`Emulator` can run on.
-CLOCKS = ("manual", "real")
 #: Wall time :meth:`Emulator.advance` runs ticks back to back before it lets waiting requests in.
 _TURN = 0.002
 #: Ticks per call of ``Device.advance`` inside a turn.

@@ -26,7 +26,7 @@ from typing import Any
 
 import pytest
 
-from valve_emulator.testing.emulator import CLOCKS, Emulator
+from valve_emulator.testing import CLOCKS
 
 _MARKER = "valve_emulator"
 _SETTINGS = ("config", "clock", "time_scale", "instructor", "host", "port")
@@ -93,9 +93,11 @@ def valve_emulator(request: pytest.FixtureRequest, valve_emulator_factory: Any) 
 
 @pytest.fixture
 def _valve_emulator_sync_factory(request: pytest.FixtureRequest) -> Any:
-    running: list[Emulator] = []
+    from valve_emulator.testing.emulator import Emulator
 
-    def make(**overrides: Any) -> Emulator:
+    running: list[Any] = []
+
+    def make(**overrides: Any) -> Any:
         emu = Emulator(**settings(request, **overrides))
         emu.__enter__()
         running.append(emu)
@@ -114,9 +116,11 @@ except ImportError:   # pragma: no cover - async tests need pytest-asyncio anywa
 if pytest_asyncio is not None:
     @pytest_asyncio.fixture
     async def _valve_emulator_async_factory(request: pytest.FixtureRequest) -> Any:
-        running: list[Emulator] = []
+        from valve_emulator.testing.emulator import Emulator
 
-        async def make(**overrides: Any) -> Emulator:
+        running: list[Any] = []
+
+        async def make(**overrides: Any) -> Any:
             emu = Emulator(**settings(request, **overrides))
             await emu.start()
             running.append(emu)
