@@ -91,7 +91,7 @@ def test_diagnose_reads_a_generic_export_with_the_reader_flags(tmp_path, capsys)
     assert report.read_text(encoding="utf-8").startswith("# Assessment of ")
 
 
-def test_diagnose_reads_a_dcs_export_and_refuses_a_flat_pv_politely(tmp_path, capsys):
+def test_diagnose_reads_a_dcs_export_and_answers_no_response_to_a_flat_pv(tmp_path, capsys):
     rec = simulate([2.0], [12.0, 1.0], 4.0, 0.5, 12.0, duration=600.0, sp_steps=STEPS_300)
     flat = Recording(rec.t, rec.sp, rec.op, None, np.zeros(len(rec)), source="flat")
     path = tmp_path / "FIC101.txt"
@@ -99,7 +99,7 @@ def test_diagnose_reads_a_dcs_export_and_refuses_a_flat_pv_politely(tmp_path, ca
     plot = tmp_path / "flat.png"
     assert main(["diagnose", str(path), "--plot", str(plot), "--quiet"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("cannot tell: PV is flat: it holds one value over 100 % of the record")
+    assert out.startswith("no response: PV is flat: it holds one value over 100 % of the record")
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

@@ -31,7 +31,7 @@ __all__ = [
     "ACTIONS", "BLOCK_STRIDE", "CHARACTERISTICS", "DISTURBANCES", "KEYS", "MAX_BLOCKS", "MAX_UNIT", "MODELS",
     "MODES", "WORD_ORDERS", "WordOrder",
     "ConfigError", "ControllerConfig", "DeviceConfig", "DisturbanceConfig", "LoopConfig", "PlantConfig",
-    "ServerConfig", "SimulationConfig", "ValveConfig",
+    "OpcUaConfig", "OPCUA_POLICIES", "ServerConfig", "SimulationConfig", "TlsConfig", "ValveConfig",
 ]
 
 DISTURBANCES = ("none", "step", "sine", "random_walk")
@@ -80,7 +80,9 @@ KEYS: dict[str, tuple[str, ...]] = {
     "controller": ("kc", "ti", "td", "sp", "sp_steps", "bias", "action", "op_limits", "mode"),
     "simulation": ("dt", "duration", "seed"),
     "device": _DEVICE,
-    "server": ("device", "loops", "fleet"),
+    "server": ("device", "loops", "fleet", "opcua", "tls"),
+    "opcua": ("port", "policies", "certificate", "private_key", "users"),
+    "tls": ("port", "certificate", "private_key", "ca"),
     "server.device": _DEVICE[1:],
     "loops[i]": _LOOP_SECTIONS + ("unit",),
     "fleet": ("count", "first_unit", "loops_per_unit", "seed", "base", "vary"),
@@ -388,6 +390,52 @@ class SimulationConfig:
         _set(self, dt=dt, duration=duration, seed=integer(self.seed, "seed", ge=0))
 
 
+#: OPC UA security policies (the secure ones always with Sign&Encrypt).
+OPCUA_POLICIES = ("None", "Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
+
+
+def _optional_path(value: Any, key: str) -> str | None:
+    return None if value is None else text(value, key)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class OpcUaConfig:
+    """The OPC UA server beside Modbus (YAML ``opcua``; ``docs/opcua.md``). Paths are relative to the file."""
+
+    port: int | None = None           # 0..65535 (0: a free port); None: no OPC UA server
+    policies: tuple[str, ...] = ("None",)   # of OPCUA_POLICIES
+    certificate: str | None = None    # application instance certificate (valve-emulator certs --opcua DIR)
+    private_key: str | None = None
+    users: str | None = None          # users file: names, hashed passwords, roles
+
+    def __post_init__(self) -> None:
+        policies = tuple(choice(p, f"policies[{i}]", OPCUA_POLICIES)
+                         for i, p in enumerate(sequence(self.policies, "policies", min_len=1)))
+        _set(self, port=None if self.port is None else integer(self.port, "port", ge=0, le=65535),
+             policies=policies, certificate=_optional_path(self.certificate, "certificate"),
+             private_key=_optional_path(self.private_key, "private_key"), users=_optional_path(self.users, "users"))
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TlsConfig:
+    """Modbus/TCP Security beside the plain port (YAML ``tls``; ``docs/opcua.md``). Paths relative to the file."""
+
+    port: int | None = None           # 0..65535 (802 by convention; 0: a free port); None: no TLS listener
+    certificate: str | None = None    # the server's certificate (PEM)
+    private_key: str | None = None
+    ca: str | None = None             # the CA that signs client certificates
+
+    def __post_init__(self) -> None:
+        _set(self, port=None if self.port is None else integer(self.port, "port", ge=0, le=65535),
+             certificate=_optional_path(self.certificate, "certificate"),
+             private_key=_optional_path(self.private_key, "private_key"), ca=_optional_path(self.ca, "ca"))
+        if self.port is not None:
+            for key in ("certificate", "private_key", "ca"):
+                if getattr(self, key) is None:
+                    raise ConfigError("{key} is required with tls.port (make the files with "
+                                      "'valve-emulator certs --modbus DIR')", key=key)
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class DeviceConfig:
     """Modbus TCP device settings (YAML ``device``).
@@ -479,9 +527,13 @@ class ServerConfig:
     loops: tuple[LoopConfig, ...]   # non-empty, (unit, block) addresses unique
     _: KW_ONLY
     source: str = ""
+    opcua: OpcUaConfig = OpcUaConfig()   # the OPC UA server (port None: none)
+    tls: TlsConfig = TlsConfig()         # the Modbus/TCP Security listener (port None: none)
 
     def __post_init__(self) -> None:
         _instance(self.device, "device", DeviceConfig)
+        _instance(self.opcua, "opcua", OpcUaConfig)
+        _instance(self.tls, "tls", TlsConfig)
         loops = sequence(self.loops, "loops", min_len=1)
         seen: dict[tuple[int, int], int] = {}
         blocks: dict[int, int] = {}

@@ -144,8 +144,12 @@ class ModbusConnection(asyncio.Protocol):
                     sock.setsockopt(socket.SOL_SOCKET, option, SOCKET_BUFFER)
             except OSError:  # not every transport (or platform) allows it; the defaults then apply
                 pass
-        self.instructor = self.server.instructor_allowed(self.peer_ip)
+        self.instructor = self.permission()
         self.server.connection_set.add(self)
+
+    def permission(self) -> bool:
+        """May this client write the instructor registers (asked again when the server is reconfigured)?"""
+        return self.server.instructor_allowed(self.peer_ip)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.server.connection_set.discard(self)

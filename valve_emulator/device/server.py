@@ -218,6 +218,11 @@ class EmulatorServer:
         self._decoder = DecodePDU(is_server=True)
         self._framer = FramerSocket(self._decoder)
         self._server: asyncio.Server | None = None
+        self._tls_server: asyncio.Server | None = None
+        #: the Modbus/TCP Security listener's port (:meth:`open_tls`), None without one
+        self.tls_port: int | None = None
+        #: TLS connections whose handshake succeeded (a client certificate signed by the CA)
+        self.tls_sessions = 0
         self.connection_set: set[ModbusConnection] = set()
         self.turns = TurnBudget()
         self.requests = 0
@@ -276,7 +281,7 @@ class EmulatorServer:
         self._apply_access(dataclasses.replace(self.config, device=live))
         self.refusals.clear()  # new rules: report refusals under them afresh
         for conn in self.connection_set:
-            conn.instructor = self.instructor_allowed(conn.peer_ip)
+            conn.instructor = conn.permission()
         return restart
 
     # --- lifecycle ----------------------------------------------------------------------------------
@@ -313,8 +318,25 @@ class EmulatorServer:
         self.serial_links.append(link)
         return link
 
+    async def open_tls(self, context: Any, *, host: str | None = None, port: int = 802) -> int:
+        """Serve the same units as Modbus/TCP Security too: TLS with ``context``
+        (:func:`~valve_emulator.device.tls.server_context`) on ``host`` (default: the plain port's) and ``port``
+        (0: a free one); returns the port. Call after :meth:`start`; closed by :meth:`stop`."""
+        from valve_emulator.device.tls import TlsModbusConnection
+
+        loop = asyncio.get_running_loop()
+        self._tls_server = await loop.create_server(lambda: TlsModbusConnection(self), host or self.host, port,
+                                                    ssl=context, ssl_handshake_timeout=self.guard.frame_timeout)
+        self.tls_port = self._tls_server.sockets[0].getsockname()[1]
+        _log.info("serving units %s over Modbus/TCP Security on %s:%d", list(self.units), host or self.host,
+                  self.tls_port)
+        return self.tls_port
+
     async def stop(self) -> None:
         server, self._server = self._server, None
+        tls, self._tls_server = self._tls_server, None
+        if tls is not None:
+            tls.close()
         for link in self.serial_links:
             link.close()
         self.serial_links.clear()
@@ -324,6 +346,8 @@ class EmulatorServer:
             for conn in list(self.connection_set):
                 conn.transport.abort()
             await server.wait_closed()
+        if tls is not None:
+            await tls.wait_closed()
         await self.device.stop()
 
     async def __aenter__(self) -> EmulatorServer:
