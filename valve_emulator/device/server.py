@@ -201,6 +201,9 @@ class EmulatorServer:
         self.host = host
         self.port = port
         if config.device.lockstep:
+            if config.device.read_only:
+                raise ValueError("device.lockstep with device.read_only (--read-only): the device would refuse the "
+                                 "step writes that are its clock")
             time_scale = 0.0
         self.device = Device.from_config(config, bank=bank, time_scale=time_scale, clock=clock, sleep=sleep,
                                          jitter_size=jitter_size)
