@@ -83,3 +83,4 @@ class Reason(StrEnum):
     NOT_EXPLAINED = "not_explained"          # no model predicts held-out PV better than its mean
     UNINFORMATIVE = "uninformative"          # the fit part carries no information
     PART_OF_RECORD = "part_of_record"        # answered on one half: one linear model explains neither whole
+    OP_UNITS_REFUTED = "op_units_refuted"    # OP's declared travel span does not fit OP: it was dropped

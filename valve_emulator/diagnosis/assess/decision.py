@@ -237,10 +237,12 @@ def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Cal
     """Assess a recording already on a uniform grid (steps 2 to 4 of the module docstring).
 
     ``notes`` say what was done to the data before (kept in the result); ``start`` is the
-    :func:`time.perf_counter` reading the wall time counts from (default: now). ``frame`` maps OP into the
-    search's frame (:mod:`~valve_emulator.diagnosis.fit.frame`): a known travel span
-    (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.travel_percent`), or by default the unit-free frame of
-    this OP, in which any positive affine map of OP (and of PV) gives the same answer.
+    :func:`time.perf_counter` reading the wall time counts from (default: now). The search runs in the
+    unit-free frame of this OP (:mod:`~valve_emulator.diagnosis.fit.frame`), in which any positive affine map of
+    OP (and any affine map of PV) gives the same answer; ``frame`` may declare OP's travel span
+    (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.travel_percent`), which adds S and J in % travel and the
+    candidates that need the travel stops (check it first with
+    :meth:`~valve_emulator.diagnosis.fit.frame.Frame.refutation`).
     """
     start = time.perf_counter() if start is None else start
     whole = _assess_once(rec, notes, progress, start, frame)
@@ -289,7 +291,7 @@ def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str
         return Assessment(source=src, decision=answer, cause="", reason=ad.reason, adequacy=ad,
                           reasons=((ad.code, ad.reason),), notes=notes, seconds=time.perf_counter() - start)
     noise = op_noise(rec.op)
-    frame = frame or Frame.unit_free(rec.op)
+    frame = Frame.unit_free(rec.op, declared=frame)   # the search never sees OP's units; a span is kept aside
     inner = replace(rec, op=frame.to_internal(rec.op), mv=None if rec.mv is None else frame.to_internal(rec.mv))
     flat_extreme = op_flat_at_extreme(rec.op)
     names = [n for n in registry() if frame.known or n not in NEEDS_SPAN or (n == "saturation" and flat_extreme)]

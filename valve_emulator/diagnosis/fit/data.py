@@ -84,6 +84,8 @@ class Problem:
         always on PV itself.
     source : the recording's name, for messages.
     validation : one of :data:`VALIDATIONS`; with ``"twofold"`` the fit part runs to the end.
+    stops : where OP is at 0 and 100 % travel in ``op``'s frame (see
+        :attr:`~valve_emulator.diagnosis.fit.frame.Frame.stops`).
     """
 
     t: np.ndarray
@@ -99,6 +101,7 @@ class Problem:
     prefilter: float | None = None
     source: str = ""
     validation: str = "split"
+    stops: tuple[float, float] = (0.0, 100.0)
 
     @property
     def T(self) -> int:
@@ -154,7 +157,8 @@ def _delay_grid(dt: float, T: int, nominal_delay: float | None) -> np.ndarray:
 
 
 def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: float = 0.0,
-            prefilter: float | None = None, validation: str = "split") -> Problem:
+            prefilter: float | None = None, validation: str = "split",
+            stops: tuple[float, float] = (0.0, 100.0)) -> Problem:
     """Check a recording and split it (see the module docstring).
 
     Parameters
@@ -162,7 +166,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     rec : the recording (``t``, ``op``, ``pv`` used; ``sp``/``mv`` may be absent).
     nominal_delay : the nominal model's dead time (s), which centres the dead-time grid; None = no model.
     settle_time : the nominal plant's settling time (s), a lower bound for the burn-in.
-    prefilter : see :class:`Problem`.
+    prefilter, stops : see :class:`Problem`.
     validation : ``"split"`` (hold out the last 30 %) or ``"twofold"`` (fit on all, cross-validate).
 
     Raises
@@ -209,4 +213,4 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     t, op, pv, y = arrays
     return Problem(t=t, op=op, pv=pv, y=y, y_mean=y_mean, y_scale=y_scale, dt=float(dt), train=(w0, w1),
                    delays=delays, op_span=float(max(hi - lo, 1e-6)), prefilter=prefilter, source=src,
-                   validation=validation)
+                   validation=validation, stops=stops)
