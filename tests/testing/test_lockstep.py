@@ -106,3 +106,14 @@ def test_valve_emulator_registers_lists_step(capsys):
 
     assert main(["registers", "--format", "csv"]) == 0
     assert "step,holding,65296,465297,uint16,1,ticks to run (lockstep),RW" in capsys.readouterr().out
+
+
+async def test_a_broadcast_step_runs_its_ticks_once_and_other_broadcasts_reach_every_unit():
+    cfg = load_config({"device": {"tick": 0.1, "lockstep": True}, "loops": [
+        {"unit": u, "plant": {"num": [1.0], "den": [5.0, 1.0]}} for u in (1, 2, 3)]})
+    srv = EmulatorServer(cfg)
+    srv.broadcast(bytes((6,)) + STEP_ADDRESS.to_bytes(2, "big") + (5).to_bytes(2, "big"), False)
+    assert srv.device.ticks == 5
+    srv.broadcast(bytes((6, 0, 0)) + (2500).to_bytes(2, "big"), False)       # op_pct 25 % on every unit
+    srv.device.advance(1)
+    assert list(srv.device.bank.op_external) == [25.0, 25.0, 25.0]

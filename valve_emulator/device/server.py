@@ -107,7 +107,7 @@ from valve_emulator.device.registers import (
 from valve_emulator.device.registers.bits import COILS, BitTable, bit_values, check_bits, coil_write
 from valve_emulator.device.rtu import RtuSerialLink, RtuStreamConnection, SerialSettings
 from valve_emulator.device.tick import Device
-from valve_emulator.device.traffic import TrafficLog
+from valve_emulator.device.traffic import TrafficLog, request_span
 
 __all__ = ["EmulatorServer", "LIVE_DEVICE_KEYS"]
 
@@ -396,6 +396,14 @@ class EmulatorServer:
                 self.traffic.note(client, unit, pdu, response)
             return response
         return self.answer(unit, pdu, instructor, peer=peer, client=client)
+
+    def broadcast(self, pdu: bytes, instructor: bool) -> None:
+        """A broadcast write (unit 0 on a serial line): carried out by every unit, nothing answered. The clock's
+        ``step`` belongs to the whole device, so a broadcast step runs its ticks once, not once per unit."""
+        for n, target in enumerate(dict.fromkeys(self.units)):
+            if n and pdu[0] in _ALL_WRITES and request_span(pdu)[0] == _STEP.address:
+                break
+            self.answer(target, pdu, instructor)
 
     def answer(self, unit: int, pdu: bytes, instructor: bool, *, peer: str = "", client: str = "") -> bytes:
         """The response PDU to request ``pdu`` (function code first, at least one byte) for ``unit``.
