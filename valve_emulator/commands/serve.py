@@ -10,6 +10,11 @@ serial line as well (default 19200 8E1, the serial line specification's default)
 and tick as the TCP port; ``--framer rtu`` makes the TCP port speak RTU frames instead of Modbus TCP (RTU
 over TCP, as gateways do).
 
+Lockstep: ``--lockstep`` (or ``device.lockstep: true`` in CONFIG) runs no tick by itself: a client writes N to the
+``step`` register (holding 65296, every unit id) and the device runs N ticks before it answers that write, so a
+PLC program in any language closes the loop deterministically (read PV, compute, write OP, write step;
+docs/testing.md). The station's ``POST /api/step`` does the same.
+
 SIGINT/SIGTERM stop it (a recording is complete up to the last tick: every row is flushed as written).
 SIGHUP re-reads CONFIG and applies its connection and access settings (``device.read_only``,
 ``instructor_*``, ``max_connections``, ``idle_timeout``, ``frame_timeout``, ``error_rate``) at once; other
@@ -58,6 +63,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port (default %(default)s; 0 picks a free port)")
     p.add_argument("--time-scale", type=float, default=1.0, metavar="X",
                    help="simulated seconds per wall second (default %(default)s; same physics, faster clock)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="no tick runs by itself: a client writes N to the step register (holding 65296) to run N "
+                        "ticks, answered once they have run (device.lockstep)")
     p.add_argument("--uvloop", action="store_true", help="use uvloop's event loop (pip install uvloop)")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     p.add_argument("--read-only", action="store_true",
@@ -117,6 +125,10 @@ def _check(args: argparse.Namespace) -> None:
         raise ValueError(f"--port must be 0..65535, got {args.port}")
     if not (math.isfinite(args.time_scale) and args.time_scale > 0):
         raise ValueError(f"--time-scale must be a finite number > 0, got {args.time_scale}")
+    if args.lockstep and args.time_scale != 1.0:
+        raise ValueError("--lockstep and --time-scale: in lockstep the client's step writes are the clock")
+    if args.lockstep and args.processes > 1:
+        raise ValueError("--lockstep with --processes: each process would have its own clock; use one process")
     if args.max_connections is not None and not 1 <= args.max_connections <= 65535:
         raise ValueError(f"--max-connections must be 1..65535, got {args.max_connections}")
     if args.record_unit and args.record is None:
@@ -199,12 +211,17 @@ def tls_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
                                 args.tls_ca or sec.ca)
 
 
-def apply_overrides(config, *, read_only: bool = False, max_connections: int | None = None):
-    """``config`` with the command line's ``--read-only`` / ``--max-connections`` in every device section."""
-    changes = {k: v for k, v in (("read_only", read_only or None), ("max_connections", max_connections))
-               if v is not None}
-    if not changes:
-        return config
+def apply_overrides(config, *, read_only: bool = False, max_connections: int | None = None,
+                    lockstep: bool = False):
+    """``config`` with the command line's ``--read-only`` / ``--max-connections`` / ``--lockstep`` in every device
+    section."""
+    changes = {k: v for k, v in (("read_only", read_only or None), ("max_connections", max_connections),
+                                 ("lockstep", lockstep or None)) if v is not None}
+    return with_device(config, **changes) if changes else config
+
+
+def with_device(config, **changes):
+    """``config`` with ``changes`` to the device settings of the server and of every loop."""
     loops = tuple(dataclasses.replace(lp, device=dataclasses.replace(lp.device, **changes)) for lp in config.loops)
     return dataclasses.replace(config, device=dataclasses.replace(config.device, **changes), loops=loops)
 
@@ -225,7 +242,8 @@ def reload_config(server, path: Path | None, *, read_only: bool = False,
         config = load_server(path)
         if process is not None:
             config = server_slice(config, *process)
-        config = apply_overrides(config, read_only=read_only, max_connections=max_connections)
+        config = apply_overrides(config, read_only=read_only, max_connections=max_connections,
+                                 lockstep=server.config.device.lockstep)   # --lockstep outlives a reload
     except (ValueError, OSError) as exc:  # ConfigError is a ValueError and names file, line and key
         _log.error("config reload failed, keeping the running config: %s", exc)
         return False
@@ -269,6 +287,7 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
     """
     from valve_emulator.device.guard import binds_all_interfaces
     from valve_emulator.device.record import TickRecorder
+    from valve_emulator.device.registers import STEP_ADDRESS
     from valve_emulator.device.server import EmulatorServer
 
     stop = asyncio.Event()
@@ -295,8 +314,10 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
             rtu_note = "" if framer == "socket" else "; the TCP port speaks RTU frames (RTU over TCP)"
             if rtu is not None:
                 rtu_note += f"; Modbus RTU on {rtu} at {srv.serial_links[0].settings}"
+            clock = (f"lockstep (no tick until a client writes step, holding {STEP_ADDRESS})" if srv.device.lockstep
+                     else f"time-scale {time_scale:g}")
             print(f"valve-emulator: {who}listening on {host}:{srv.port}, unit ids {describe_units(config)}; "
-                  f"tick {config.device.tick:g} s, time-scale {time_scale:g}{rtu_note}; Ctrl-C stops", flush=True)
+                  f"tick {config.device.tick:g} s, {clock}{rtu_note}; Ctrl-C stops", flush=True)
             if binds_all_interfaces(host):
                 print("valve-emulator: WARNING: bound to all interfaces. Modbus TCP has no authentication: "
                       "anyone who can reach this port can move the valve. Use an isolated network.",
@@ -384,7 +405,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_server_or_default(args.config)
     if process is not None:
         cfg = server_slice(cfg, *process)
-    cfg = apply_overrides(cfg, read_only=args.read_only, max_connections=args.max_connections)
+    cfg = apply_overrides(cfg, read_only=args.read_only, max_connections=args.max_connections,
+                          lockstep=args.lockstep)
     units = [lp.device.unit for lp in cfg.loops]
     if args.record is not None and any(lp.device.block for lp in cfg.loops):
         raise ValueError("--record: recording needs one loop per unit id; this config puts several loops behind "

@@ -60,7 +60,7 @@ MAX_BLOCKS = 0x10000 // BLOCK_STRIDE
 
 _LOOP_SECTIONS = ("name", "description", "valve", "plant", "controller", "simulation")
 _DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts", "read_only",
-           "max_connections", "idle_timeout", "frame_timeout", "error_rate")
+           "max_connections", "idle_timeout", "frame_timeout", "error_rate", "lockstep")
 
 #: Allowed YAML keys per section ("" = top level of a single-loop file, "server" = top level of a
 #: multi-loop file). Anything else is an error naming the key.
@@ -460,6 +460,7 @@ class DeviceConfig:
     idle_timeout: float = 60.0      # s > 0, close a connection that has sent no complete request this long
     frame_timeout: float = 5.0      # s > 0, a request frame must arrive completely within this time
     error_rate: float = 100.0       # > 0, exception answers per s per connection before it is read slower
+    lockstep: bool = False          # the clock is the client's: no tick runs until it writes the step register
 
     def __post_init__(self) -> None:
         hosts = []
@@ -480,7 +481,7 @@ class DeviceConfig:
              max_connections=integer(self.max_connections, "max_connections", ge=1, le=65535),
              idle_timeout=real(self.idle_timeout, "idle_timeout", gt=0),
              frame_timeout=real(self.frame_timeout, "frame_timeout", gt=0),
-             error_rate=real(self.error_rate, "error_rate", gt=0))
+             error_rate=real(self.error_rate, "error_rate", gt=0), lockstep=boolean(self.lockstep, "lockstep"))
 
 
 def _instance(value: Any, key: str, cls: type, *, none_ok: bool = False) -> None:

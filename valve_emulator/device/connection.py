@@ -204,9 +204,9 @@ class ModbusConnection(asyncio.Protocol):
             pos, frames = end, frames + 1
             state = comm.plan(frame[6], frame[7:]) if comm.active else None
             if state is None:
-                answers.append(server.handle(frame, self.instructor, peer=self.peer_ip))
+                answers.append(server.handle(frame, self.instructor, peer=self.peer_ip, client=slot.peer))
                 continue
-            answer = server.handle_faulted(frame, self.instructor, state, peer=self.peer_ip)
+            answer = server.handle_faulted(frame, self.instructor, state, peer=self.peer_ip, client=slot.peer)
             if state.fault is CommFault.CLOSE:
                 turns.spend(frames)
                 if answers:
