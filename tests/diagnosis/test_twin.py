@@ -207,3 +207,41 @@ def test_an_external_disturbance_becomes_the_input_sinusoid_that_makes_it():
     # On plant data fit_after is cross-validated (each block predicted by a model fitted on the other); the twin
     # is the model fitted on the whole record, so it is compared with that model's own prediction.
     assert abs(replay_fit(d, replay_op(cfg, rec).pv) - replay_fit(d, d.predict(rec.op))) <= 2.0
+
+
+@functools.cache
+def declared_twin(span: tuple[float, float] | None):
+    """``(diagnosis, twin config, recording)`` of the level loop's plant data (true S = 3, J = 1.5 % travel) with
+    OP written on ``span`` (OP at 0 and 100 % travel) and that span declared; None: OP in % but undeclared."""
+    rec, _ = with_sp("stiction, level loop", 300.0)
+    lo, hi = span or (0.0, 100.0)
+    op = lo + (hi - lo) * rec.op / 100.0
+    mapped = Recording(rec.t, rec.sp, op, None, rec.pv, source="declared")
+    d = diagnose(mapped, op_range=span)
+    return d, d.to_config(), mapped
+
+
+@pytest.mark.parametrize("span", [(0.0, 100.0), (4.0, 20.0), (0.0, 27648.0)], ids=["%", "mA", "counts"])
+def test_a_declared_span_makes_the_twins_travel_the_real_travel(span):
+    """Known truth: with OP's span declared, op_range is that span and S, J are the diagnosis' figures in %
+    travel (near the truth, 3 and 1.5), whatever OP's units; the open-loop replay fits as the diagnosis did."""
+    d, cfg, rec = declared_twin(span)
+    travel = d.to_json()["friction"]["travel"]
+    assert cfg.valve.op_range == pytest.approx(span)
+    found = [cfg.valve.S, cfg.valve.J]
+    assert found == pytest.approx([travel["S"]["value"], travel["J"]["value"]], rel=0.1, abs=0.1)
+    assert found == pytest.approx([3.0, 1.5], rel=0.3)
+    assert replay_fit(d, replay_op(cfg, rec).pv) == pytest.approx(d.explanation.fit_after, abs=2.0)
+
+
+def test_without_a_declared_span_the_twins_travel_stays_the_unit_free_frame():
+    """The same recording with no span: op_range maps OP onto the unit-free frame (not 0..100), S and J are in it,
+    and the open-loop replay still fits as the diagnosis did."""
+    d, cfg, rec = declared_twin(None)
+    assert not d.frame.known
+    assert cfg.valve.op_range == pytest.approx((d.frame.op_level(0.0), d.frame.op_level(100.0)))
+    assert cfg.valve.op_range != pytest.approx((0.0, 100.0), abs=1.0)
+    found = [cfg.valve.S, cfg.valve.J]
+    internal = [d.frame.gain * d.friction.parameters[k] for k in ("S", "J")]
+    assert found == pytest.approx(internal, rel=0.01)
+    assert replay_fit(d, replay_op(cfg, rec).pv) == pytest.approx(d.explanation.fit_after, abs=2.0)

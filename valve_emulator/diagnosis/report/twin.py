@@ -6,10 +6,13 @@ r"""The twin: the loop a diagnosis found, written as a loop config that ``simula
 valve
     ``S``, ``J`` of the stiction (or deadband: ``J = 0``) finding, else the nominal valve's; the
     characteristic found, else the nominal one; the valve model and rest criterion of the nominal valve. All in
-    % travel: in the diagnosis' frame (:mod:`~valve_emulator.diagnosis.fit.frame`), which is % travel when
-    OP's travel span is known and otherwise the unit-free frame (the recording's robust OP range on 30–70 %).
-    ``valve.op_range`` keeps the map — the recording's OP at 0 and 100 % of that travel — so a replay
-    (:mod:`~valve_emulator.simulation.replay`) feeds the recording's OP exactly as the diagnosis did.
+    the twin's travel: the real % travel when OP's travel span is known (the standard format, ``op_units``,
+    ``op_range``), and otherwise the diagnosis' unit-free frame (:mod:`~valve_emulator.diagnosis.fit.frame`: the
+    recording's robust OP range on 30–70 %). The search always runs in the unit-free frame; :class:`TwinTravel`
+    maps every OP quantity from it to the twin's travel exactly (differences scale, levels map affinely, the
+    plant's gain per % flow divides by the same ratio). ``valve.op_range`` is the recording's OP at 0 and 100 %
+    of that travel (the declared span when known), so a replay (:mod:`~valve_emulator.simulation.replay`) feeds
+    the recording's OP exactly as the diagnosis did.
 plant
     The final model's linear part as a continuous transfer function (:mod:`~valve_emulator.diagnosis.fit.
     continuous`), in PV units per % flow, with its dead time. A found actuator lag ``1/(τs + 1)`` joins the
@@ -59,7 +62,7 @@ from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.simulation.replay import replay_op
 
-__all__ = ["Twin", "twin", "identify_pi", "replay_fit", "PV_MARGIN"]
+__all__ = ["Twin", "TwinTravel", "twin", "identify_pi", "replay_fit", "PV_MARGIN"]
 
 #: ``pv_range`` is the recorded PV's range widened by this fraction of it on each side.
 PV_MARGIN = 0.25
@@ -137,29 +140,62 @@ def _simc(num: tuple[float, ...], den: tuple[float, ...], delay: float, taus: tu
     return kc, ti, "reverse" if k > 0 else "direct"
 
 
-def _op_range(frame: Frame) -> tuple[float, float]:
-    """The recording's OP at 0 and 100 % of the frame's travel."""
-    return frame.op_level(0.0), frame.op_level(100.0)
+@dataclass(frozen=True)
+class TwinTravel:
+    r"""The map from the diagnosis' internal OP frame to the twin's travel (0–100 % between ``op_range``).
+
+    The twin's travel is the chain's travel scale (0 and 100 at :attr:`Frame.stops
+    <valve_emulator.diagnosis.fit.frame.Frame.stops>`): the real % travel when OP's span is known, else the
+    unit-free frame itself (the identity). It is ``travel = 100 (u − s_0)/(s_1 − s_0)``, so OP differences
+    (S, J) scale by ``ratio = 100/(s_1 − s_0)``, OP levels (OP, the operating point) map affinely, and a gain per
+    unit of internal flow divides by ``ratio``. The saturation limits and the characteristic already act on this
+    scale and need no map.
+    """
+
+    stops: tuple[float, float]
+
+    @property
+    def ratio(self) -> float:
+        """Travel units per internal unit."""
+        return 100.0 / (self.stops[1] - self.stops[0])
+
+    def level(self, u):
+        """Internal OP levels (a float or an array) in the twin's travel."""
+        x = (np.asarray(u, dtype=float) - self.stops[0]) * self.ratio
+        return float(x) if x.ndim == 0 else x
+
+    def delta(self, du: float) -> float:
+        """An internal OP difference (a band S, a jump J) in the twin's travel."""
+        return float(du) * self.ratio
+
+    def op_range(self, frame: Frame) -> tuple[float, float]:
+        """The recording's OP at 0 and 100 % of the twin's travel (the declared span when it is known)."""
+        if frame.span is not None:
+            return float(frame.span[0]), float(frame.span[1])
+        return frame.op_level(self.stops[0]), frame.op_level(self.stops[1])
 
 
-def _plant(fitted: FittedLoop, lag: float | None) -> tuple[tuple[float, ...], tuple[float, ...]]:
+def _plant(fitted: FittedLoop, lag: float | None, travel: TwinTravel
+           ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The linear part as ``(num, den)`` in PV units per % flow of the twin's travel."""
     ctx, fit = fitted.ctx, fitted.linear
     num, den = continuous_transfer_function(fit.structure, fit.taps, ctx.dt)
-    num = tuple(c * ctx.y_scale for c in num)
+    num = tuple(c * ctx.y_scale / travel.ratio for c in num)
     if lag:
         den = tuple(float(c) for c in np.polymul(den, [lag, 1.0]))
     return num, den
 
 
-def _operating_point(fitted: FittedLoop) -> tuple[float, float]:
-    """``(pv0, u0)``: PV at the operating-point flow, and that flow (see the module docstring)."""
+def _operating_point(fitted: FittedLoop, travel: TwinTravel) -> tuple[float, float]:
+    """``(pv0, u0)``: PV at the operating-point flow, and that flow in the twin's travel (see the module
+    docstring)."""
     fit, ctx = fitted.linear, fitted.ctx
     if not fit.structure.integrating:
-        return fit.offset * ctx.y_scale + ctx.y_mean, fitted.level
+        return fit.offset * ctx.y_scale + ctx.y_mean, travel.level(fitted.level)
     # y = H(u - level) + offset + trend·k/N: the trend is the integrator fed by (level - u0).
     u0 = fitted.level - fit.trend / (fitted.record_length * ctx.dt * fit.gain)
     y0 = fit.predict(fitted.flow(fitted.op), ctx.dt)[0]
-    return float(y0 * ctx.y_scale + ctx.y_mean), float(u0)
+    return float(y0 * ctx.y_scale + ctx.y_mean), travel.level(u0)
 
 
 def _input_sine(params: np.ndarray, plant: PlantConfig) -> DisturbanceConfig:
@@ -186,24 +222,25 @@ def _finding_text(diagnosis, physics: str) -> str:
     return f" (95 % intervals in OP's units: {ivs})" if ivs else ""
 
 
-def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray) -> tuple[ValveConfig, list[str]]:
+def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray, travel: TwinTravel
+           ) -> tuple[ValveConfig, list[str]]:
     """The valve section (``op``: the recorded OP in the twin's travel) and its provenance."""
     fitted, rec, frame = diagnosis.explanation.fitted, diagnosis.recording, diagnosis.frame
     ctx, active = fitted.ctx, fitted.active
     if frame.known:
-        lines = [f"valve.op_range: the recording's OP at 0 and 100 % travel ({frame.span_source}); OP, S and J "
-                 "are in % travel."]
+        lines = [f"valve.op_range: the recording's OP at 0 and 100 % travel ({frame.span_source}); OP, S, J, "
+                 "plant.u0 and the plant's input are in % travel."]
     else:
         lo, hi = frame.to_internal(np.percentile(rec.op, [0.5, 99.5]))
         lines = ["valve.op_range: OP's travel span is unknown; the twin's travel is the diagnosis' unit-free "
                  f"frame (the recording's robust OP range on {_g(lo)}-{_g(hi)} %); op_range maps OP's units to it."]
     found = active.get("valve")
     if found is not None:
-        S = float(found.params[0])
-        J = float(found.params[1]) if found.name == "stiction" else 0.0
+        S = travel.delta(found.params[0])
+        J = travel.delta(found.params[1]) if found.name == "stiction" else 0.0
         lines.append(f"valve.S, valve.J: {found.name} found by the diagnosis{_finding_text(diagnosis, found.name)}.")
     else:
-        S, J = fitted.nominal_valve
+        S, J = (travel.delta(x) for x in fitted.nominal_valve)
         lines.append("valve.S, valve.J: " + ("the model's valve (no valve friction found)." if model is not None
                                              else "no valve friction found (a free valve)."))
     char = active.get("characteristic")
@@ -213,20 +250,21 @@ def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray) -> tuple[ValveCo
                                              "the model's." if model is not None else "linear (assumed)."))
     rest = model.valve.rest_time if model is not None else (ctx.rest_samples - 0.5) * ctx.dt
     valve = ValveConfig(model=ctx.valve_model, S=S, J=J, rest_time=rest, op0=float(np.clip(op[0], 0.0, 100.0)),
-                        characteristic=kind, rangeability=R if R > 1.0 else 50.0, op_range=_op_range(frame),
+                        characteristic=kind, rangeability=R if R > 1.0 else 50.0, op_range=travel.op_range(frame),
                         **({"ma_table": model.valve.ma_table} if model is not None else {}))
     return valve, lines
 
 
-def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str) -> tuple[PlantConfig, list[str]]:
+def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: TwinTravel
+                   ) -> tuple[PlantConfig, list[str]]:
     """The plant section (before the replay's operating-point shift) and its provenance."""
     explanation, rec = diagnosis.explanation, diagnosis.recording
     fitted = explanation.fitted
     ctx, st, active = fitted.ctx, fitted.linear.structure, fitted.active
     lag = active.get("actuator")
     tau_a = float(lag.params[0]) if lag is not None else None
-    num, den = _plant(fitted, tau_a)
-    pv0, u0 = _operating_point(fitted)
+    num, den = _plant(fitted, tau_a, travel)
+    pv0, u0 = _operating_point(fitted, travel)
     w0 = ctx.window[0]
     noise = float(np.sqrt(np.mean((explanation.traces.pv[w0:] - explanation.traces.pv_after[w0:]) ** 2)))
     lo, hi = float(np.min(rec.pv)), float(np.max(rec.pv))
@@ -304,9 +342,10 @@ def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name
         reason = "" if diagnosis.assessment is None else f" ({diagnosis.assessment.reason})"
         raise ValueError(f"{diagnosis.source}: no model was fitted, so there is no twin to write{reason}")
     rec, dt = diagnosis.recording, explanation.fitted.ctx.dt
-    op = diagnosis.frame.to_internal(rec.op)
-    valve, valve_lines = _valve(diagnosis, model, op)
-    plant, plant_lines = _plant_section(diagnosis, model, pv_units)
+    travel = TwinTravel(diagnosis.frame.stops)
+    op = travel.level(diagnosis.frame.to_internal(rec.op))
+    valve, valve_lines = _valve(diagnosis, model, op, travel)
+    plant, plant_lines = _plant_section(diagnosis, model, pv_units, travel)
     controller, controller_lines = _controller(diagnosis, model, op, plant)
     cfg = LoopConfig(name or _slug(diagnosis.source), description=f"twin of {diagnosis.source}", valve=valve,
                      plant=plant, controller=controller,
