@@ -24,7 +24,7 @@ from valve_emulator.diagnosis.report.schema import schema
 #: Draws of the property tests, and the share that must meet the tolerances.
 DRAWS, PASS_RATE = 40, 0.95
 #: Samples of each drawn recording (dt = 1 s), after the first 300 s are cut.
-SAMPLES = 3000
+SAMPLES = 2000
 
 
 def _simc(gain: float, tau: float, theta: float) -> tuple[float, float]:
