@@ -17,8 +17,9 @@ tightly than σ (its MAP and least-squares estimates agree to within their stand
 decision below.
 
 When the search is done, :func:`settle` asks, group by group, whether the final model's linear part may stay
-at the nominal values: the same model with the time constants held at the nominal ones (the candidates' own
-parameters refined again around them; held parameters are not counted by BIC) against the model with them
+at the nominal values: the same model with the time constants held at the nominal ones (the parameters of a
+candidate that trades off against them, the actuator lag, refined again around them; held parameters are not
+counted by BIC) against the model with them
 moved, by the penalised BIC
 
 .. math::  \mathrm{BIC}_\mathrm{held} = N \ln(\mathrm{SSE}_\mathrm{held}/N) + (k - n_\tau) \ln N, \qquad
@@ -68,7 +69,8 @@ def _settle_poles(search: Search, model: Model) -> tuple[Model, list[LinearMove]
     held_st = replace(st, taus=nominal, taus_held=True)
     fit = scorer.polish(model.flow, held_st, model.delay_free, aim)  # only a free dead time moves
     held = scorer.model(model.by_slot(), fit, model.delay_free, model.flow, target=aim.y)
-    held = search.validated(search.rerefine(held))
+    trading = {a.name for a in model.active if getattr(a.candidate, "joint_with_poles", False)}
+    held = search.validated(search.rerefine(held, only=trading) if trading else held)
     kept, delta = _decide(search, model, held, scorer.prior_penalty(st))
     order = np.argsort(st.taus)  # both ascending: the i-th fitted time constant is the i-th nominal one's
     return kept, [LinearMove(parameter="time_constant", index=i, nominal=float(nominal[i]),

@@ -129,11 +129,13 @@ class Search:
             model = self.validated(self.rerefine(rnd.chosen.model, rnd.chosen.added))
         return model, rounds
 
-    def rerefine(self, model: Model, just_added: tuple[str, ...] = ()) -> Model:
+    def rerefine(self, model: Model, just_added: tuple[str, ...] = (), only: set[str] | None = None) -> Model:
         """Refine earlier-accepted grid physics again with the new one in place; keep it if BIC improves."""
         aim = self.scorer.aim(model)
         for a in model.active:
             if a.name in just_added or a.slot == "delay" or a.candidate.kind is not Kind.CHAIN:
+                continue
+            if only is not None and a.name not in only:
                 continue
             rest = replace(model, active=tuple(b for b in model.active if b is not a))
             active, fit, flow, _ = self.fitter.refine(rest, a.candidate, a.params, model.fit.structure,

@@ -57,6 +57,7 @@ __all__ = [
     "delay_grid_sse",
     "split_delay",
     "fit_one",
+    "sse_one",
     "polish",
 ]
 
@@ -334,6 +335,25 @@ def _fit_held_gain(x: np.ndarray, y: np.ndarray, window: tuple[int, int], struct
                      w1 - w0)
 
 
+def sse_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], st: LinearStructure, dt: float, *,
+            prefilter: float | None = None, y_cost: np.ndarray | None = None,
+            extra: np.ndarray | None = None) -> float:
+    """The fit-part SSE of :func:`fit_one` (``y_cost``: ``y`` already in the cost domain, to save the prefilter).
+
+    Without extra regressors a compiled pass gives the same SSE as fit_one (from the normal equations instead
+    of the residual: equal to rounding) at a fraction of the cost of building the regressors. Not for an
+    integrator's unfiltered ramps, whose normal equations lose digits to cancellation, nor a held gain.
+    """
+    m, frac = split_delay(st.delay / dt)
+    if (extra is not None or window[0] < m + st.ntaps or (st.integrating and prefilter is None)
+            or st.gain is not None):
+        return fit_one(u, y, window, st, dt, prefilter=prefilter, extra=extra).sse
+    if y_cost is None:
+        y_cost = kernel_array(y if prefilter is None else highpass(y, prefilter))
+    return column_sse(kernel_array(u), st.denominator(dt), st.integrating, dt, prefilter, frac, y_cost,
+                      window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None))
+
+
 def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float,
            *, free_delay: bool, delay_bounds: tuple[float, float], prefilter: float | None = None,
            prior: tuple[float, ...] | None = None, max_evals: int = 200,
@@ -347,9 +367,9 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
 
     ``extra`` regressors are fitted jointly at every evaluation (see :func:`fit_one`).
 
-    ``prior`` (time constants of a nominal model, same count as ``structure.taus``) adds a weak
-    log-normal prior, ``Σ ((ln τ − ln τ_nom)/ln 1.5)²`` (:data:`PRIOR_WIDTH`), to ``N ln SSE`` (−2 log
-    posterior up to a constant).
+    ``prior`` (time constants of a nominal model, same count as ``structure.taus``) adds the
+    log-normal prior, ``Σ ((ln τ − ln τ_nom)/σ)²`` with σ = :data:`PRIOR_WIDTH` (ln 1.25), to ``N ln SSE``
+    (−2 log posterior up to a constant; :mod:`~valve_emulator.diagnosis.explain.prior`).
     The data dominate whenever they determine the poles; the prior only decides between near-equivalent
     solutions — notably an actuator lag in series with a re-fitted plant pole, where (6s+1)² and
     (4s+1)(8s+1) differ by one part in ten in the s² term — in favour of the plant the user believes in.
@@ -370,15 +390,7 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     u1 = kernel_array(u)
 
     def sse(st: LinearStructure) -> float:
-        # Without extra regressors a compiled pass gives the same SSE as fit_one (from the normal equations
-        # instead of the residual: equal to rounding) at a fraction of the cost of building the regressors.
-        # Not for an integrator's unfiltered ramps, whose normal equations lose digits to cancellation.
-        m, frac = split_delay(st.delay / dt)
-        if (extra is not None or window[0] < m + st.ntaps or (st.integrating and prefilter is None)
-                or st.gain is not None):
-            return fit(st).sse
-        return column_sse(u1, st.denominator(dt), st.integrating, dt, prefilter, frac, y_cost,
-                          window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None))
+        return sse_one(u1, y, window, st, dt, prefilter=prefilter, y_cost=y_cost, extra=extra)
 
     def make(p: np.ndarray) -> LinearStructure:
         taus = tuple(float(np.exp(np.clip(v, lo_tau, hi_tau))) for v in p[:taus0.size]) or structure.taus
