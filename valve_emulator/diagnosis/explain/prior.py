@@ -69,7 +69,7 @@ def _settle_poles(search: Search, model: Model) -> tuple[Model, list[LinearMove]
     held_st = replace(st, taus=nominal, taus_held=True)
     fit = scorer.polish(model.flow, held_st, model.delay_free, aim)  # only a free dead time moves
     held = scorer.model(model.by_slot(), fit, model.delay_free, model.flow, target=aim.y)
-    trading = {a.name for a in model.active if getattr(a.candidate, "joint_with_poles", False)}
+    trading = {a.name for a in model.active if search.fitter.trades_with_prior(a.candidate)}
     held = search.validated(search.rerefine(held, only=trading) if trading else held)
     kept, delta = _decide(search, model, held, scorer.prior_penalty(st))
     order = np.argsort(st.taus)  # both ascending: the i-th fitted time constant is the i-th nominal one's

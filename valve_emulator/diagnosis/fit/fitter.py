@@ -140,7 +140,7 @@ class Fitter:
             fit = self.scorer.polish(flow, st0, free, aim)
             st = fit.structure
         fine = self.surface(cand.name, g, sse.min(axis=1))
-        if joint and getattr(cand, "joint_with_poles", False):
+        if joint and self.trades_with_prior(cand):
             best, st = self.joint_polish(active, ctx, cand, best, st, free, aim)
             flow = self.scorer.chain(active, ctx, cand, best[None, :])[:, 0]
             fit = self.scorer.polish(flow, st, free, aim)
@@ -151,6 +151,11 @@ class Fitter:
         new_active = dict(active)
         new_active[cand.slot] = Active(cand, best)
         return new_active, fit, flow, fine
+
+    def trades_with_prior(self, cand: Candidate) -> bool:
+        """Whether ``cand`` trades off against the poles and a nominal model's prior must choose between the
+        fits (without a model there is no prior, and the two orderings of two lags are one answer)."""
+        return bool(getattr(cand, "joint_with_poles", False)) and self.nominal.given
 
     def joint_polish(self, active, ctx, cand, best: np.ndarray, st: LinearStructure, free: bool, aim: Aim
                      ) -> tuple[np.ndarray, LinearStructure]:
@@ -304,7 +309,7 @@ class Fitter:
                     new_active["delay"] = Active(dead_time, np.array([fit.structure.delay]))
                 m = self.scorer.model(new_active, fit, free, flow, target=aim.y)
                 results.append((m.bic + self.scorer.prior_penalty(m.fit.structure), m, scan_surface, fine))
-            if getattr(cand, "joint_with_poles", False):
+            if self.trades_with_prior(cand):
                 results = self._joint_results(model, cand, free, results)
             _, m, scan_surface, fine = min(results, key=lambda r: r[0])
             options.append(Option(added=added, model=m, coarse=ranked[free][0][3], scan=scan_surface, fine=fine))
@@ -321,7 +326,7 @@ class Fitter:
         """
         ranked = sorted(starts, key=lambda r: r[0])
         top = ranked[:_STARTS]
-        if getattr(cand, "joint_with_poles", False) and self.nominal.given and self.nominal.structure.taus:
+        if self.trades_with_prior(cand) and self.nominal.structure.taus:
             nominal = self.nominal.structure.taus
             at_nominal = [r for r in ranked if r[2].taus == nominal]
             if at_nominal and not any(r[2].taus == nominal for r in top):
