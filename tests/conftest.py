@@ -15,6 +15,10 @@ import numpy as np
 import pytest
 
 _HERE = os.path.dirname(os.path.abspath(__file__))
+# The testing kit's fixtures (valve_emulator, valve_emulator_factory): its pytest11 entry point loads them once the
+# package is installed; naming the module here too keeps a checkout whose install predates the kit working.
+# pytester runs the kit's plugin and the docs' examples in a scratch project.
+pytest_plugins = ["valve_emulator.testing.plugin", "pytester"]
 
 
 def pytest_collection_modifyitems(items):

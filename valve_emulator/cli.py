@@ -20,6 +20,7 @@ __all__ = ["COMMANDS", "main"]
 COMMANDS = (
     "serve",
     "registers",
+    "certs",
     "simulate",
     "limit_cycle",
     "figure5",

@@ -25,6 +25,31 @@ def _w(tag, label, decision, name=None, **kw):
 def test_calls_map_every_methods_answers():
     assert [call(d) for d in ("stiction", "no stiction", "cannot tell", "undetermined", "not applicable")] == \
         ["stiction", "no stiction", "abstain", "abstain", "abstain"]
+    assert call("no_response") == "abstain"      # strictly, "no response" is not a stiction call
+
+
+def test_the_headline_flags_no_response_and_the_strict_figure_counts_it_a_miss():
+    # A: sticky, its windows no response and cannot tell (PV flat while OP travels; then OP barely moved);
+    # B: sticky, called stiction; C: not sticky, no response (a closed block valve on a healthy valve);
+    # D: not sticky, no stiction.
+    res = [_w("A", True, "no_response", "a1", reasons=["no_response"], reason="r"),
+           _w("A", True, "cannot_tell", "a2", reasons=["flat_pv"], reason="r"),
+           _w("B", True, "stiction", "b1", S=1.0, J=0.0, cause="deadband", reason="r"),
+           _w("C", False, "no_response", "c1", reasons=["no_response"], reason="r"),
+           _w("D", False, "no_stiction", "d1", cause="linear", reason="r")]
+    ev = Evaluation(res, source="set")
+    head, strict = ev.valves("diagnosis"), ev.valves("diagnosis, strict")
+    assert (head.tp, head.fn, head.fp, head.tn) == (2, 0, 1, 1) and head.coverage == 1.0
+    assert (strict.tp, strict.fn, strict.fp, strict.tn) == (1, 1, 0, 2) and strict.coverage == 0.5
+    wh, ws = ev.windows("diagnosis"), ev.windows("diagnosis, strict")
+    assert (wh.tp, wh.fn, wh.fp, wh.tn) == (2, 1, 1, 1) and wh.balanced_accuracy == pytest.approx(0.5 * (2 / 3 + 0.5))
+    assert (ws.tp, ws.fn, ws.fp, ws.tn) == (1, 2, 0, 2) and ws.coverage == pytest.approx(0.4)
+    assert {tag for tag, _, _ in misclassified(res)} == {"C"}
+    md = ev.markdown()
+    assert "| diagnosis | 100 % | 50 % | 75 % | 100 % | 2 | 0 | 1 | 1 |" in md
+    assert "| diagnosis, strict | 50 % | 100 % | 75 % | 50 % | 1 | 1 | 0 | 2 |" in md
+    assert "| A |  | stiction | 2 | 0/0/1/1 | no response |" in md
+    assert "#### C — labelled no stiction, called no response" in md
 
 
 def test_confusion_counts_abstentions_as_not_called_and_balanced_accuracy_known_truth():
@@ -131,7 +156,7 @@ def test_the_plant_index_is_scored_beside_the_methods_as_a_baseline(tmp_path):
            _w("B", False, "no_stiction", plant_index=0.7, cause="linear", reason="r"),
            _w("C", False, "stiction", plant_index=0.1, **sticky), _w("D", True, "stiction", plant_index=None, **sticky)]
     ev = Evaluation(res, source="set")
-    assert ev.methods[:2] == ["diagnosis", "plant index"]
+    assert ev.methods[:3] == ["diagnosis", "diagnosis, strict", "plant index"]
     c = ev.valves("plant index")
     assert (c.tp, c.fn, c.fp, c.tn) == (1, 1, 1, 1) and c.coverage == pytest.approx(0.75)
     assert "plant index" in ev.markdown() and "never shown to the diagnosis" in ev.markdown()
@@ -160,14 +185,15 @@ def test_the_halves_check_shows_the_figures_without_answers_from_halves():
 
 def test_the_flat_pv_check_scores_both_methods_without_the_flat_windows():
     # A: sticky, one window flat (cannot tell; the index says 0.9), one called stiction (index 0.2);
-    # B: sticky, its only window flat (no_response; index 1.0); C: not sticky, answered no stiction (index 0.6).
+    # B: sticky, its only window flat while OP travels (no response, flagged; index 1.0); C: not sticky, answered
+    # no stiction (index 0.6).
     kw = dict(cause="x", S=1.0, J=0.0, reason="r")
     res = [_w("A", True, "cannot tell", "a1", reasons=["flat_pv"], plant_index=0.9, **kw),
            _w("A", True, "stiction", "a2", reasons=["stiction"], plant_index=0.2, **kw),
-           _w("B", True, "cannot tell", "b1", reasons=["no_response"], plant_index=1.0, **kw),
+           _w("B", True, "no_response", "b1", reasons=["no_response"], plant_index=1.0, **kw),
            _w("C", False, "no stiction", "c1", reasons=["linear"], plant_index=0.6, **kw)]
     rows = {r[:3]: r[3:] for r in Evaluation(res).flat_check()}
-    assert rows["all windows", "diagnosis", "window"][3:] == (1, 2, 0, 1)              # TP FN FP TN
+    assert rows["all windows", "diagnosis", "window"][3:] == (2, 1, 0, 1)              # TP FN FP TN
     assert rows["all windows", "plant index", "window"][3:] == (2, 1, 1, 0)
     assert rows["PV not flat", "diagnosis", "window"][3:] == (1, 0, 0, 1)
     assert rows["PV not flat", "plant index", "window"][3:] == (0, 1, 1, 0)

@@ -62,6 +62,9 @@ def test_serve_warns_when_bound_to_all_interfaces():
     (["serve", "--port", "70000"], "--port"),
     (["serve", "--time-scale", "0"], "--time-scale"),
     (["serve", "no/such/file.yaml"], "no/such/file.yaml"),
+    (["serve", "--lockstep", "--time-scale", "5"], "--lockstep and --time-scale"),
+    (["serve", "--lockstep", "--processes", "2", "x.yaml"], "--lockstep with --processes"),
+    (["serve", "--lockstep", "--read-only", "--port", "0"], "would refuse the step writes"),
 ])
 def test_serve_bad_flags_and_files_are_clear_errors(argv, words, capsys):
     assert main(argv) == 2

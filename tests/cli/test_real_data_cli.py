@@ -91,7 +91,7 @@ def test_diagnose_reads_a_generic_export_with_the_reader_flags(tmp_path, capsys)
     assert report.read_text(encoding="utf-8").startswith("# Assessment of ")
 
 
-def test_diagnose_reads_a_dcs_export_and_refuses_a_flat_pv_politely(tmp_path, capsys):
+def test_diagnose_reads_a_dcs_export_and_answers_no_response_to_a_flat_pv(tmp_path, capsys):
     rec = simulate([2.0], [12.0, 1.0], 4.0, 0.5, 12.0, duration=600.0, sp_steps=STEPS_300)
     flat = Recording(rec.t, rec.sp, rec.op, None, np.zeros(len(rec)), source="flat")
     path = tmp_path / "FIC101.txt"
@@ -99,7 +99,7 @@ def test_diagnose_reads_a_dcs_export_and_refuses_a_flat_pv_politely(tmp_path, ca
     plot = tmp_path / "flat.png"
     assert main(["diagnose", str(path), "--plot", str(plot), "--quiet"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("cannot tell: PV is flat: it holds one value over 100 % of the record")
+    assert out.startswith("no response: PV is flat: it holds one value over 100 % of the record")
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -160,14 +160,15 @@ def test_evaluate_scores_per_valve_and_window_with_the_detectors_and_writes_the_
     for method in ("diagnosis", "horch", "he", "bicoherence"):
         assert method in text
     results = json.loads(out.read_text(encoding="utf-8"))
-    assert [r["decision"] for r in results] == ["stiction", "stiction", "no_stiction", "cannot_tell"]
+    assert [r["decision"] for r in results] == ["stiction", "stiction", "no_stiction", "no_response"]
     assert all(set(r["detectors"]) == {"horch", "he", "bicoherence"} for r in results)
     md = report.read_text(encoding="utf-8")
     assert md.startswith("# Intro kept") and md.rstrip().endswith("Outro kept.") and "\nold\n" not in md
-    # per valve: V1 found, V2 rightly not, V3 (flat PV) cannot tell, so missed: sensitivity 1/2, specificity 1
-    assert "| diagnosis | 50 % | 100 % | 75 % |" in md
-    assert "#### V3 — labelled stiction, called cannot tell" in md and "![V3](fig/V3.png)" in md
-    assert (tmp_path / "fig" / "V3.png").stat().st_size > 10_000
+    # per valve: V1 found, V2 rightly not, V3 (flat PV while OP travels) answered no response: flagged in the
+    # headline (sensitivity 2/2), a miss in the strict figure (sensitivity 1/2, specificity 1)
+    assert "| diagnosis | 100 % | 100 % | 100 % |" in md
+    assert "| diagnosis, strict | 50 % | 100 % | 75 % |" in md
+    assert "### Misclassified valves\n\nNone." in md
 
 
 def test_evaluate_refuses_a_bad_index_before_running(tmp_path, capsys):
@@ -197,6 +198,31 @@ def test_diagnose_op_in_raw_counts_reports_s_and_j_in_counts_and_with_op_range_i
     travel = known["friction"]["travel"]
     assert travel["S"]["units"] == "% travel" and travel["span"] == [0, 27648] and travel["span_source"] == "op_range"
     assert travel["S"]["value"] == pytest.approx(known["friction"]["S"]["value"] / 276.48, rel=1e-3)
+
+
+@pytest.mark.slow
+def test_diagnose_says_when_the_data_refute_the_declared_op_units_and_answers_as_without_them(tmp_path, capsys):
+    rec = _sticky()
+    fraction = Recording(rec.t, rec.sp, rec.op / 100.0, None, rec.pv, source="fraction")   # OP 0..1, as % travel
+    path, standard, generic = tmp_path / "FIC101.csv", tmp_path / "standard.json", tmp_path / "generic.json"
+    write_csv(fraction, path)
+    assert main(["diagnose", str(path), "--quiet", "--json", str(standard)]) == 0
+    out = capsys.readouterr().out
+    assert "note: OP ran from" in out and "(standard format)" in out and "declaration was dropped" in out
+    flags = ["--format", "csv", "--time", "t", "--op", "op", "--pv", "pv", "--sp", "sp", "--quiet"]
+    assert main(["diagnose", str(path), *flags, "--op-units", "%", "--json", str(generic)]) == 0
+    assert "(op_units %)" in capsys.readouterr().out
+    a, b = (json.loads(p.read_text(encoding="utf-8")) for p in (standard, generic))
+    assert a["answer"] == b["answer"] == "stiction"
+    assert [r["code"] for r in a["reasons"]] == [r["code"] for r in b["reasons"]]
+    assert a["reasons"][-1]["code"] == "op_units_refuted" and a["friction"]["travel"] is None
+    assert a["friction"]["band"]["S"]["value"] == pytest.approx(b["friction"]["band"]["S"]["value"], rel=1e-6)
+    ranged = tmp_path / "ranged.json"                  # the span said right: kept, S in % travel
+    assert main(["diagnose", str(path), *flags, "--op-range", "0", "1", "--json", str(ranged)]) == 0
+    capsys.readouterr()
+    c = json.loads(ranged.read_text(encoding="utf-8"))
+    assert "op_units_refuted" not in [r["code"] for r in c["reasons"]]
+    assert 3.5 < c["friction"]["travel"]["S"]["value"] < 6.5                     # S = 5 % travel
 
 
 def test_diagnose_refuses_a_reversed_op_range_naming_it(tmp_path, capsys):
@@ -235,6 +261,8 @@ def test_diagnose_a_folder_sweeps_it_one_line_each_and_writes_the_summary(tmp_pa
     assert [r["answer"] for r in rows] == ["stiction", "no_stiction", ""]
     assert 3.5 < float(rows[0]["S"]) < 6.5 and rows[0]["units"] == "% travel" and rows[0]["S_travel"] == rows[0]["S"]
     data = json.loads(doc.read_text(encoding="utf-8"))
+    band = data[0]["document"]["friction"]["band"]["S"]["value"]             # S as a fraction of the OP band used
+    assert band > 0 and float(rows[0]["S_band"]) == pytest.approx(band)
     assert data[0]["document"]["answer"] == "stiction"
     assert "FIC103.csv" in data[2]["error"] and data[2]["document"] is None
 

@@ -324,7 +324,7 @@ SERVER_ERRORS = [
     ("device:\n  word_order: abcd\nloops:\n  - {unit: 1, " + VALID_PLANT[:-1] + "}\n",
      ["device.word_order must be one of ABCD, CDAB, got 'abcd'"], 2),
     ("loops:\n  - {unit: 1, " + VALID_PLANT[:-1] + "}\nvalve: {}\n",
-     ["unknown key valve (allowed: device, loops, fleet)"], 3),
+     ["unknown key valve (allowed: device, loops, fleet, opcua, tls)"], 3),
     ("fleet:\n  count: 5\n  bas: {}\n", ["unknown key fleet.bas"], 3),
     ("fleet:\n  count: 5\n  base: {" + VALID_PLANT[:-1] + "}\n  vary: {Q: [1, 2]}\n",
      ["unknown key fleet.vary.Q"], 4),

@@ -1,5 +1,5 @@
 """The answer on two records that real plants produce: a finely quantised PV over a stiction cycle, and a PV
-that stays flat while OP travels far."""
+that stays flat while OP travels far (the answer "no response"), or while OP only dithers ("cannot tell")."""
 
 from __future__ import annotations
 
@@ -33,11 +33,12 @@ def _flat_pv_record(op: np.ndarray) -> Recording:
     return Recording(t, None, op, None, pv, source="flat")
 
 
-def test_a_flat_pv_while_op_travels_twenty_percent_is_no_response_and_cannot_tell():
+def test_a_flat_pv_while_op_travels_twenty_percent_is_the_answer_no_response():
     op = 40.0 + 20.0 * (np.arange(800) // 100 % 2) + 0.2 * RNG.normal(size=800)   # OP travels 20 % and back
     a = assess(_flat_pv_record(op))
-    assert a.decision is Answer.CANNOT_TELL
+    assert a.decision is Answer.NO_RESPONSE and a.decision.needs_attention and a.diagnosis is None
     assert [c for c, _ in a.reasons] == [Reason.NO_RESPONSE]
+    assert "inspect it" in a.reason and a.statement.startswith("no response: PV is flat")
     assert "seized valve" in a.reason and "closed block valve" in a.reason and "dead transmitter" in a.reason
 
 
@@ -45,3 +46,4 @@ def test_a_flat_pv_while_op_only_dithers_is_a_flat_pv_not_a_missing_response():
     op = 40.0 + 0.2 * RNG.normal(size=800)
     a = assess(_flat_pv_record(op))
     assert a.decision is Answer.CANNOT_TELL and [c for c, _ in a.reasons] == [Reason.FLAT_PV]
+    assert not a.decision.needs_attention

@@ -1,5 +1,5 @@
 """The JSON a diagnosis writes is valid against the schema shipped with the package, for every kind of
-answer (stiction, no stiction, cannot tell and each refusal), with and without a model, and for `prove`."""
+answer (stiction, no stiction, no response, cannot tell and each refusal), with and without a model, and for `prove`."""
 
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ PLANT = {
                               "pv": 50 + RNG.normal(size=800), "sp": np.full(800, 50.0)},
 }
 EXPECTED = {"stiction": ("stiction", "stiction"), "linear": ("no_stiction", "linear"),
-            "too short": ("cannot_tell", "too_short"), "no response": ("cannot_tell", "no_response"),
+            "too short": ("cannot_tell", "too_short"), "no response": ("no_response", "no_response"),
             "no excitation": ("cannot_tell", "no_excitation")}
 
 

@@ -31,11 +31,11 @@ def test_too_short_a_record_cannot_tell_and_says_how_many_samples():
     assert "150 samples" in a.reason and "at least 200" in a.reason
 
 
-def test_a_flat_pv_cannot_tell_and_names_the_look_alikes():
+def test_a_flat_pv_while_op_winds_up_is_no_response_and_names_the_look_alikes():
     op = np.linspace(5.0, 80.0, 600)              # OP winds up
     pv = np.r_[np.linspace(0.3, 0.0, 100), np.zeros(500)]   # flow stops at zero and stays there
     a = assess(_rec(op, pv))
-    assert a.decision == "cannot_tell"
+    assert a.decision == "no_response"
     assert "PV is flat" in a.reason and "84 % of the record" in a.reason and "seized valve" in a.reason
     assert a.adequacy.facts["pv_flat_share"] == pytest.approx(501 / 600)   # the last ramp sample is 0 too
 

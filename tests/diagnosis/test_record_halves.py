@@ -101,3 +101,18 @@ def test_the_document_of_a_record_answered_by_halves_is_valid_and_keeps_the_half
     pv = result.predict(rec.op[:n])
     err = np.mean((pv[200:] - rec.pv[200:n]) ** 2) / np.var(rec.pv[200:n])
     assert err < 0.3, err
+
+
+def test_a_half_whose_pv_stops_responding_answers_no_response_for_the_record():
+    # The first half: PV a random walk that OP does not drive (no model explains it); the second: PV frozen
+    # for 360 of its 400 samples while OP keeps swinging 20 units — a valve that seized (or a transmitter that
+    # froze) halfway. PV is flat over 45 % of the whole, so only the half answers no response.
+    rng = np.random.default_rng(1)
+    n = 400
+    op = 50 + 10 * np.sin(np.arange(2 * n) * 2 * np.pi / 150) + 0.3 * rng.normal(size=2 * n)
+    walk = 40 + np.cumsum(rng.normal(0.0, 0.5, n + 40))
+    pv = np.concatenate([walk, np.full(n - 40, walk[-1])])
+    a = assess(Recording(np.arange(2.0 * n), None, op, None, pv, source="seizes halfway"))
+    assert a.decision is Answer.NO_RESPONSE, a.reason
+    assert _codes(a) == [Reason.NO_RESPONSE, Reason.PART_OF_RECORD]
+    assert a.notes == (f"answered on samples {n}–{2 * n - 1} of {2 * n}",) and a.diagnosis is None

@@ -161,6 +161,14 @@ def test_generic_csv_with_title_lines_decimal_comma_and_names(tmp_path):
     assert loaded.pv_units == "m3/h" and loaded.columns["time"] == "Time"
 
 
+def test_seconds_with_a_decimal_comma_are_a_time_column(tmp_path):
+    path = tmp_path / "export.csv"
+    path.write_text("Zeit;OUT;FLOW\n0,0;1,5;10\n0,5;1,6;11\n1,0;1,7;12\n", encoding="utf-8")
+    rec = read_recording(path, decimal=",", time="Zeit", op="OUT", pv="FLOW").recording
+    np.testing.assert_array_equal(rec.t, [0.0, 0.5, 1.0])
+    np.testing.assert_array_equal(rec.op, [1.5, 1.6, 1.7])
+
+
 def test_generic_tsv_without_header_uses_ts_and_column_numbers(tmp_path):
     path = tmp_path / "log.tsv"
     path.write_text("a\t40.0\t1.0\nb\t41.0\t1.5\nc\t42.0\t2.0\n", encoding="utf-8")

@@ -4,29 +4,33 @@ import pytest
 from aiohttp.test_utils import TestClient, TestServer
 from station_helpers import station_config
 
-from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.snapshots import SnapshotStore
 from valve_emulator.station.app import make_app
 from valve_emulator.station.core import Station
+from valve_emulator.testing import Emulator
 
 
 @pytest.fixture
 async def station_for(tmp_path):
-    """``await station_for(config, time_scale=..., token=...)``: (EmulatorServer, Station, TestClient)."""
+    """``await station_for(config, time_scale=..., token=...)``: (EmulatorServer, Station, TestClient).
+
+    The device is the testing kit's :class:`~valve_emulator.testing.Emulator`: ``time_scale=0`` (the default) its
+    manual clock, a test steps it with ``srv.device.advance``; above 0 its real clock at that speed.
+    """
     made = []
 
     async def make(config=None, *, time_scale=0.0, token=None, snapshots=None, backtrack=None):
-        srv = EmulatorServer(config or station_config(), host="127.0.0.1", port=0, time_scale=time_scale)
-        await srv.__aenter__()
-        station = Station(srv.device, snapshots=snapshots or SnapshotStore(tmp_path / "snapshots"),
+        emu = Emulator(config or station_config(), clock="real" if time_scale else "manual",
+                       time_scale=time_scale or 1.0)
+        await emu.start()
+        station = Station(emu.device, snapshots=snapshots or SnapshotStore(tmp_path / "snapshots"),
                           backtrack=backtrack)
         client = TestClient(TestServer(make_app(station, token=token), host="127.0.0.1", port=0))
         await client.start_server()
-        made.append((srv, client))
-        return srv, station, client
+        made.append((emu, client))
+        return emu.server, station, client
 
     yield make
-    for srv, client in made:
+    for emu, client in made:
         await client.close()
-        await srv.__aexit__(None, None, None)
-
+        await emu.stop()

@@ -13,14 +13,15 @@ import numpy as np
 import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
-from valve_emulator.config import ServerConfig, load_loop, server_from_mapping
+from valve_emulator.config import ServerConfig, load_loop
 from valve_emulator.device.registers import address_of
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.physics.controller import PID
 from valve_emulator.simulation.limit_cycle import measure_limit_cycle
 from valve_emulator.simulation.loop import LoopBank, simulate_loop
+from valve_emulator.testing import Emulator
 
-pytestmark = pytest.mark.usefixtures("no_task_leak")
+pytestmark = pytest.mark.usefixtures("no_task_leak")   # no_task_leak is an async fixture: async tests only
 
 TABLE1 = Path(__file__).resolve().parents[2] / "configs" / "table1"
 F32 = AsyncModbusTcpClient.DATATYPE.FLOAT32
@@ -71,23 +72,22 @@ def mbpoll_read(mbpoll, port, name) -> int:
     return int(line.split(":")[1].split()[0])
 
 
-async def test_mbpoll_sees_the_deadband_and_the_slip_jump(mbpoll):
+def test_mbpoll_sees_the_deadband_and_the_slip_jump(mbpoll):
     """A real third-party client: with S = 5, J = 2, a 2 % step after a reversal leaves MV where it is and a
     further 4 % breaks the valve free: MV slips by J plus the 1 % OP has gone past the band."""
     S, J = 5.0, 2.0
-    cfg = server_from_mapping({"device": {"tick": 0.1}, "loops": [
-        {"unit": 1, "valve": {"S": S, "J": J}, "plant": {"num": [3.0], "den": [10.0, 1.0], "delay": 10.0}}]})
-    async with EmulatorServer(cfg, time_scale=0) as srv:
-        async def set_op(pct):
-            await asyncio.to_thread(mbpoll_cmd, mbpoll, srv.port, "-r", "0", "-t", "4", "127.0.0.1",
-                                    str(round(pct * 100)))
-            srv.device.advance(10)  # 1 s: the valve comes to rest (rest_time 0.5 s)
-            return await asyncio.to_thread(mbpoll_read, mbpoll, srv.port, "mv_pct")
+    cfg = {"device": {"tick": 0.1}, "loops": [
+        {"unit": 1, "valve": {"S": S, "J": J}, "plant": {"num": [3.0], "den": [10.0, 1.0], "delay": 10.0}}]}
+    with Emulator(cfg) as emu:                        # the testing kit: manual clock, a thread of its own
+        def set_op(pct):
+            mbpoll_cmd(mbpoll, emu.port, "-r", "0", "-t", "4", "127.0.0.1", str(round(pct * 100)))
+            emu.advance(1.0)  # the valve comes to rest (rest_time 0.5 s)
+            return mbpoll_read(mbpoll, emu.port, "mv_pct")
 
-        mv_up = await set_op(60.0)
+        mv_up = set_op(60.0)
         assert mv_up == round((60.0 - (S - J) / 2) * 100)
-        assert await set_op(58.0) == mv_up            # reversal by 2 % < S: stuck
-        mv_after = await set_op(54.0)                  # 6 % in total > S: breaks away
+        assert set_op(58.0) == mv_up                  # reversal by 2 % < S: stuck
+        mv_after = set_op(54.0)                        # 6 % in total > S: breaks away
         assert (mv_up - mv_after) / 100 == pytest.approx(J + 1.0)
         assert mv_after == round((54.0 + (S - J) / 2) * 100)
 
@@ -96,25 +96,21 @@ async def test_mbpoll_sees_the_deadband_and_the_slip_jump(mbpoll):
 
 
 async def run_external_pi(cfg_loop, *, tick, rest_time=None, duration=700.0, scan=0.1):
-    """External PI over Modbus in frozen time: each scan reads PV, writes OP, then advances scan/tick ticks."""
+    """External PI over Modbus on the testing kit's manual clock: each scan reads PV, writes OP, then advances
+    one scan (scan/tick ticks)."""
     ctl = cfg_loop.controller
     pid = PID(kc=ctl.kc, ti=ctl.ti, bias=ctl.bias, dt=scan)
     pid.reset(0.0, 0.0)
-    per_scan = round(scan / tick)
     t_hist, op_hist = [], []
-    async with EmulatorServer(external(cfg_loop, tick=tick, rest_time=rest_time), time_scale=0) as srv:
-        client = await connect(srv.port)
-        try:
-            for k in range(int(duration / scan)):
-                t = k * scan
-                sp = 1.0 if t >= 10.0 else 0.0
-                op = pid(sp, await read_pv(client))
-                await write_op(client, op)
-                t_hist.append(t)
-                op_hist.append(op)
-                srv.device.advance(per_scan)
-        finally:
-            client.close()
+    async with Emulator(external(cfg_loop, tick=tick, rest_time=rest_time)) as emu, emu.client() as client:
+        for k in range(int(duration / scan)):
+            t = k * scan
+            sp = 1.0 if t >= 10.0 else 0.0
+            op = pid(sp, await read_pv(client))
+            await write_op(client, op)
+            t_hist.append(t)
+            op_hist.append(op)
+            await emu.advance(scan)
     return measure_limit_cycle(np.array(t_hist), np.array(op_hist), last_fraction=0.7)
 
 
@@ -230,11 +226,7 @@ async def test_tick_keeps_time_at_time_scale_10_with_10_clients_polling():
 
 async def test_time_register_is_the_time_of_the_values_it_sits_beside():
     cfg = external(load_loop(TABLE1 / "concentration_undershoot.yaml"))
-    async with EmulatorServer(cfg, time_scale=0) as srv:
-        client = await connect(srv.port)
-        try:
-            srv.device.advance(5)  # samples 0..4 computed: the values are those of t = 0.4 s
-            rr = await client.read_holding_registers(address_of("time"), count=2, device_id=1)
-            assert client.convert_from_registers(rr.registers, F32, word_order="big") == pytest.approx(0.4)
-        finally:
-            client.close()
+    async with Emulator(cfg) as emu, emu.client() as client:
+        await emu.advance(0.5)  # samples 0..4 computed: the values are those of t = 0.4 s
+        rr = await client.read_holding_registers(address_of("time"), count=2, device_id=1)
+        assert client.convert_from_registers(rr.registers, F32, word_order="big") == pytest.approx(0.4)

@@ -4,6 +4,11 @@ Built from the per-window dicts of :func:`~valve_emulator.benchmark.labelled.run
 :mod:`~valve_emulator.benchmark.scorecard`. Methods: ``diagnosis`` (this project's assessment,
 :mod:`~valve_emulator.diagnosis.assess.decision`) and the comparison detectors side by side, on the same windows.
 
+The assessment answers *no response* where PV does not respond to OP (the valve is not moving or the loop is
+open: someone must inspect it). The headline (``diagnosis``) counts that answer as flagging the valve — it
+needs attention, as a sticky valve does; the strict figure beside it (``diagnosis, strict``) counts it as not
+called stiction, like an abstention.
+
 The one threshold of the assessment that was not taken from the literature or from a convention used
 elsewhere in the package, :data:`~valve_emulator.diagnosis.assess.decision.NOISE_BANDS`, is also checked:
 the valve-level balanced accuracy for other values, and a leave-one-valve-out estimate in which each
@@ -36,10 +41,13 @@ from valve_emulator.diagnosis.answers import Answer, Reason
 from valve_emulator.diagnosis.assess.decision import NOISE_BANDS
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 
-__all__ = ["Evaluation", "METHOD", "PLANT_INDEX", "INDEX_THRESHOLD", "NOISE_GRID", "decision_of", "misclassified"]
+__all__ = ["Evaluation", "METHOD", "STRICT", "PLANT_INDEX", "INDEX_THRESHOLD", "NOISE_GRID", "decision_of",
+           "misclassified"]
 
-#: Name of this project's method in the tables.
+#: Name of this project's method in the tables: the headline, where *no response* flags the valve.
 METHOD = "diagnosis"
+#: The same answers scored strictly: *no response* counts as not called stiction.
+STRICT = "diagnosis, strict"
 #: Name of the plant's own stiction index (the index file's ``stick1``) in the tables: a baseline.
 PLANT_INDEX = "plant index"
 #: The plant index calls stiction at or above this value (it abstains where the index has no value).
@@ -52,10 +60,17 @@ _LABEL = {True: POSITIVE, False: NEGATIVE}
 def decision_of(method: str) -> Callable[[dict], str]:
     """Reads ``method``'s decision from a window result."""
     if method == METHOD:
+        return lambda r: _headline(r["decision"])
+    if method == STRICT:
         return lambda r: r["decision"]
     if method == PLANT_INDEX:
         return _index_call
     return lambda r: r["detectors"][method]["decision"]
+
+
+def _headline(decision: str) -> str:
+    """Our decision as the headline scores it: *no response* (inspect the valve) flags it, as stiction does."""
+    return POSITIVE if decision == Answer.NO_RESPONSE else decision
 
 
 def _index_call(r: dict) -> str:
@@ -132,7 +147,7 @@ class Evaluation:
     @property
     def methods(self) -> list[str]:
         index = [PLANT_INDEX] if any(r.get("plant_index") is not None for r in self.results) else []
-        return [METHOD] + index + list(DETECTORS)
+        return [METHOD, STRICT] + index + list(DETECTORS)
 
     def windows(self, method: str) -> Confusion:
         return self._windows_by(decision_of(method))
@@ -149,10 +164,10 @@ class Evaluation:
     def threshold_check(self) -> tuple[list[tuple], Confusion]:
         rows = []
         for k in NOISE_GRID:
-            c = self._valves_by(_with_bands(k))
+            c = self._valves_by(lambda r, k=k: _headline(_with_bands(k)(r)))
             rows.append((f"{k:g}" + (" (used)" if k == NOISE_BANDS else ""), c.sensitivity, c.specificity,
                          c.balanced_accuracy))
-        lovo, _ = leave_one_valve_out(self.results, NOISE_GRID, lambda r, k: _with_bands(k)(r))
+        lovo, _ = leave_one_valve_out(self.results, NOISE_GRID, lambda r, k: _headline(_with_bands(k)(r)))
         return rows, lovo
 
     def load_check(self) -> list[tuple]:
@@ -180,7 +195,8 @@ class Evaluation:
         """Rows (rule, unit, sensitivity, specificity, balanced accuracy[, coverage], TP, FN, FP, TN) of our
         answers as given and under the ``other`` (name, decision) rule, per valve and per window."""
         rows = []
-        for name, decide in (("as answered", decision_of(METHOD)), other):
+        other_name, rule = other
+        for name, decide in (("as answered", decision_of(METHOD)), (other_name, lambda r: _headline(rule(r)))):
             for unit, c in (("valve", self._valves_by(decide)), ("window", self._windows_by(decide))):
                 rows.append((name, unit, c.sensitivity, c.specificity, c.balanced_accuracy,
                              *((c.coverage,) if coverage else ()), c.tp, c.fn, c.fp, c.tn))
@@ -212,17 +228,16 @@ class Evaluation:
         rows = []
         for tag, v in ours.items():
             wins = [r for r in self.results if r["tag"] == tag]
-            c = v["counts"]
             S = [r["S"] for r in wins if r.get("S") is not None]
             s_text = f"{statistics.median(S):.3g}" if S else "—"
             mark = "" if (v["call"] == POSITIVE) == v["label"] else " ✗"
             rows.append((tag, wins[0].get("loop_type", ""), _LABEL[v["label"]], len(wins),
-                         f"{c[POSITIVE]}/{c['no stiction']}/{c[ABSTAIN]}", _call(v["call"]) + mark, s_text,
-                         *(_call(dets[d][tag]["call"], ours=False) for d in DETECTORS)))
+                         "/".join(str(n) for n in _answer_counts(wins).values()), _valve_words(v, wins) + mark,
+                         s_text, *(_call(dets[d][tag]["call"], ours=False) for d in DETECTORS)))
         return rows
 
     def _loop_header(self) -> tuple:
-        return ("tag", "type", "label", "windows", "ours: stiction/no/cannot tell", "ours (valve)",
+        return ("tag", "type", "label", "windows", "ours: stiction/no/no response/cannot tell", "ours (valve)",
                 "median S %", *DETECTORS)
 
     def _stiction_rows(self) -> list[tuple]:
@@ -244,7 +259,8 @@ class Evaluation:
         """Plain-text tables for the terminal."""
         parts = [f"{len(self.results)} windows, {len(valve_calls(self.results, decision_of(METHOD)))} valves, "
                  f"{self.seconds:.0f} s with {self.jobs} job(s)", "",
-                 "Per valve (stiction vs not; an abstention counts as not called stiction):",
+                 "Per valve (stiction vs not; an abstention counts as not called stiction; 'diagnosis' counts 'no "
+                 "response' as flagged, 'diagnosis, strict' as not called stiction):",
                  text_table(self._SUMMARY, self._summary_rows("valve")), "",
                  "Per window:", text_table(self._SUMMARY, self._summary_rows("window")), "",
                  "Confusion per valve (label x answer):", text_table(self._MATRIX, self._matrix_rows("valve")), "",
@@ -259,6 +275,10 @@ class Evaluation:
         out = [f"_Generated by `valve-emulator evaluate {self.source}`: {len(self.results)} windows, {n_valves} "
                f"valves, {self.seconds:.0f} s with {self.jobs} job(s). Do not edit by hand._", "",
                "### Per valve (the headline: windows of one valve are not independent)", "",
+               f"`{METHOD}` is the headline: it counts the answer *no response* (PV does not respond to OP: the valve "
+               "is not moving or the loop is open, inspect it) as flagging the valve, since it needs attention as "
+               f"a sticky one does; `{STRICT}` counts it as not called stiction (a miss on a sticky valve). In the "
+               "confusion matrices, *called stiction* holds the flagged ones.", "",
                f"`{PLANT_INDEX}` is the plant's own stiction index (the index file's `stick1`, a grid search of a "
                f"Kano model) thresholded at {INDEX_THRESHOLD:g}: a baseline computed here by the report, never "
                "shown to the diagnosis.", "",
@@ -268,7 +288,8 @@ class Evaluation:
                "Per valve:", "", markdown_table(self._MATRIX, self._matrix_rows("valve")), "",
                "Per window:", "", markdown_table(self._MATRIX, self._matrix_rows("window")), "",
                "### Per loop", "",
-               "Our window answers (stiction / no stiction / cannot tell), the valve's call by the valve rule, the "
+               "Our window answers (stiction / no stiction / no response / cannot tell), the valve's call by the "
+               "valve rule (headline: *no response* flags the valve), the "
                "median S of the windows called stiction, and each detector's valve call (undetermined: all its "
                "windows were undetermined or not applicable; ✗: our call disagrees with the label).", "",
                markdown_table(self._loop_header(), self._loop_rows()), "",
@@ -295,9 +316,10 @@ class Evaluation:
                "### Flat-PV check: the windows a record can answer", "",
                f"{sum(_flat(r) for r in self.results)} window(s) have a flat PV (reason `flat_pv` or "
                "`no_response`): a seized valve, a closed block valve, a dead transmitter and a frozen archive "
-               "give the same record, so the answer there is \"cannot tell\" and the headline counts it as a "
-               "missed call. The same scores on the other windows, for the diagnosis and the plant index alike "
-               "(a secondary figure: the headline is the one above).", "",
+               "give the same record. Where OP travelled far the answer is *no response* (flagged in the "
+               "headline, a miss in the strict figure), where it barely moved *cannot tell* (a miss). The same "
+               "scores on the other windows, for the diagnosis and the plant index alike (a secondary figure: "
+               "the headline is the one above).", "",
                markdown_table(("windows", "method", "unit", "sensitivity", "specificity", "balanced accuracy",
                                "TP", "FN", "FP", "TN"), self.flat_check()), "",
                "### Misclassified valves", ""]
@@ -305,14 +327,31 @@ class Evaluation:
         if not wrong:
             out.append("None.")
         for tag, v, r in wrong:
-            c = v["counts"]
-            out += [f"#### {tag} — labelled {_LABEL[v['label']]}, called {_call(v['call'])}", "",
-                    f"{len(v['windows'])} window(s): {c[POSITIVE]} called stiction, {c['no stiction']} no stiction, "
-                    f"{c[ABSTAIN]} cannot tell. Window shown: `{r['name']}` — "
+            wins = [w for w in self.results if w["tag"] == tag]
+            c = _answer_counts(wins)
+            out += [f"#### {tag} — labelled {_LABEL[v['label']]}, called {_valve_words(v, wins)}", "",
+                    f"{len(v['windows'])} window(s): "
+                    + ", ".join(f"{n} {a.words}" for a, n in c.items())
+                    + f". Window shown: `{r['name']}` — "
                     f"**{Answer.parse(r['decision']).words}**: {r['reason']}", ""]
             if tag in self.figures:
                 out += [f"![{tag}]({self.figures[tag]})", ""]
         return "\n".join(out)
+
+
+def _answer_counts(windows: list[dict]) -> dict[Answer, int]:
+    """How many of these windows got each of our answers (stiction, no stiction, no response, cannot tell)."""
+    counts = dict.fromkeys((Answer.STICTION, Answer.NO_STICTION, Answer.NO_RESPONSE, Answer.CANNOT_TELL), 0)
+    for r in windows:
+        counts[Answer.parse(r["decision"])] += 1
+    return counts
+
+
+def _valve_words(v: dict, windows: list[dict]) -> str:
+    """Our valve call in words: a valve flagged only by *no response* answers is "no response"."""
+    if v["call"] == POSITIVE and not any(call(r["decision"]) == POSITIVE for r in windows):
+        return Answer.NO_RESPONSE.words
+    return _call(v["call"])
 
 
 def _call(c: str, *, ours: bool = True) -> str:

@@ -1,4 +1,5 @@
-"""``valve-emulator diagnose FILE [--model NOMINAL.yaml] [reader flags] [--json OUT] [--report OUT.md] [--plot PNG]``,
+"""``valve-emulator diagnose FILE [--model NOMINAL.yaml] [reader flags] [--json OUT] [--report OUT.md] [--plot PNG]
+[--twin TWIN.yaml]``,
 or a plant-wide sweep: ``valve-emulator diagnose FOLDER_OR_FILES... [--jobs N | --scheduler ADDRESS] [--csv OUT.csv]
 [--json OUT.json]``.
 
@@ -19,6 +20,9 @@ Given a folder or several files, it diagnoses each recording as plant data
 count per answer; ``--csv`` and ``--json`` write the summary table (answers, reason codes, S, J, fits).
 ``--jobs N`` uses N processes of this machine, ``--scheduler ADDRESS`` an existing Dask distributed cluster.
 
+``--twin`` writes the loop the diagnosis found as a loop config (:mod:`valve_emulator.diagnosis.report.twin`),
+which ``simulate`` replays against the recording and ``serve`` serves as a device.
+
 The verdict goes to stdout (after any note on what was done to the data), progress to stderr. Inputs are
 checked before anything is written: a bad file, flag or config is one error line naming the file (and line),
 exit code 2, and no output file.
@@ -32,6 +36,8 @@ import os
 import sys
 import time
 from pathlib import Path
+
+from valve_emulator.commands._reader import add_reader_arguments, reader_options
 
 NAME = "diagnose"
 HELP = ("find what a recording's model leaves out (with --model), or whether a plant loop's valve sticks (without): "
@@ -47,6 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", type=Path, metavar="OUT.json", help="write fit_before, fit_after, findings, verdict")
     p.add_argument("--report", type=Path, metavar="OUT.md", help="write a Markdown report")
     p.add_argument("--plot", type=Path, metavar="OUT.png", help="write the figure")
+    p.add_argument("--twin", type=Path, metavar="TWIN.yaml",
+                   help="write the twin: the loop the diagnosis found as a loop config (simulate, serve)")
     p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
     s = p.add_argument_group("a plant-wide sweep (a folder or several files)")
     s.add_argument("--jobs", type=int, default=1, metavar="N", help="recordings diagnosed at once (default 1)")
@@ -54,24 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="submit the recordings to this Dask distributed scheduler (e.g. tcp://10.0.0.5:8786; "
                         "needs the extra valve_emulator[cluster])")
     s.add_argument("--csv", type=Path, metavar="OUT.csv", help="write the summary table (one line per recording)")
-    g = p.add_argument_group("reading the file (see valve_emulator.recordings.read_recording)")
-    g.add_argument("--format", dest="fmt", choices=("auto", "standard", "csv", "dcs"), default="auto",
-                   help="file format (default: detect)")
-    g.add_argument("--op", metavar="COL", help="controller output column (name or 1-based number)")
-    g.add_argument("--pv", metavar="COL", help="process value column")
-    g.add_argument("--sp", metavar="COL", help="set point column")
-    g.add_argument("--time", metavar="COL", help="time column (seconds or date-times)")
-    g.add_argument("--ts", type=float, metavar="SECONDS", help="sample time, when there is no time column")
-    g.add_argument("--skip", type=int, default=0, metavar="N", help="lines to skip before the header")
-    g.add_argument("--decimal", choices=(".", ","), default=".", help="decimal mark (default '.')")
-    g.add_argument("--op-units", choices=("%", "mA"), default=None,
-                   help="OP is %% of travel, or mA (4-20 mA = 0-100 %%); default: the standard format is %%, "
-                        "otherwise OP may be in any units (the answer does not depend on them)")
-    g.add_argument("--op-range", nargs=2, type=float, metavar=("LO", "HI"),
-                   help="OP's values at 0 and 100 %% travel, in OP's units (e.g. 0 27648 for raw counts): S and J "
-                        "are then also given in %% travel")
-    g.add_argument("--pv-units", default="", metavar="UNITS", help="PV's engineering units (for the report)")
-    g.add_argument("--encoding", default="utf-8", help="text encoding of the file (default utf-8)")
+    add_reader_arguments(p)
 
 
 def _progress(quiet: bool):
@@ -82,11 +73,6 @@ def _progress(quiet: bool):
             print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
     return say
-
-
-def _reader_options(args: argparse.Namespace) -> dict:
-    return dict(fmt=args.fmt, op=args.op, pv=args.pv, sp=args.sp, time=args.time, ts=args.ts, skip=args.skip,
-                decimal=args.decimal, op_units=args.op_units, pv_units=args.pv_units, encoding=args.encoding)
 
 
 def _bar(done: int, total: int, width: int = 20) -> str:
@@ -106,12 +92,12 @@ def _line(row: dict) -> str:
 def _sweep(args: argparse.Namespace) -> int:
     from valve_emulator.diagnosis.sweep import SweepTable, sweep
 
-    if args.model is not None or args.report is not None or args.plot is not None:
-        raise ValueError("a sweep (a folder or several files) diagnoses plant data: --model, --report and --plot "
-                         "apply to one file")
+    if any(p is not None for p in (args.model, args.report, args.plot, args.twin)):
+        raise ValueError("a sweep (a folder or several files) diagnoses plant data: --model, --report, --plot and "
+                         "--twin apply to one file")
     if args.scheduler is not None and args.jobs != 1:
         raise ValueError("--jobs and --scheduler exclude each other (the cluster decides how many at once)")
-    options = {k: v for k, v in _reader_options(args).items() if v is not None}
+    options = {k: v for k, v in reader_options(args).items() if v is not None}
     if args.op_range is not None:
         options["op_range"] = tuple(args.op_range)
 
@@ -136,7 +122,8 @@ def run(args: argparse.Namespace) -> int:
     from valve_emulator.config import load_loop
     from valve_emulator.diagnosis.api import diagnose
 
-    for flag, p in (("--json", args.json), ("--report", args.report), ("--plot", args.plot), ("--csv", args.csv)):
+    for flag, p in (("--json", args.json), ("--report", args.report), ("--plot", args.plot), ("--csv", args.csv),
+                    ("--twin", args.twin)):
         if p is not None and not p.parent.is_dir():
             raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
     if args.jobs < 1:
@@ -150,8 +137,12 @@ def run(args: argparse.Namespace) -> int:
     if nominal is not None and args.op_range is not None:
         raise ValueError("--op-range applies only to plant data (without --model): a model's OP is % travel")
     extra = {} if args.op_range is None else {"op_range": tuple(args.op_range)}
-    d = diagnose(args.recording, nominal, progress=_progress(args.quiet), **extra, **_reader_options(args))
+    d = diagnose(args.recording, nominal, progress=_progress(args.quiet), **extra, **reader_options(args))
+    twin = d.twin().text() if args.twin else None   # before anything is written: no model, no twin
     written = []
+    if twin is not None:
+        args.twin.write_text(twin, encoding="utf-8")
+        written.append(args.twin)
     if args.plot:
         d.plot(args.plot, title=str(args.recording))
         written.append(args.plot)

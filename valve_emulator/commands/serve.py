@@ -10,6 +10,11 @@ serial line as well (default 19200 8E1, the serial line specification's default)
 and tick as the TCP port; ``--framer rtu`` makes the TCP port speak RTU frames instead of Modbus TCP (RTU
 over TCP, as gateways do).
 
+Lockstep: ``--lockstep`` (or ``device.lockstep: true`` in CONFIG) runs no tick by itself: a client writes N to the
+``step`` register (holding 65296, every unit id) and the device runs N ticks before it answers that write, so a
+PLC program in any language closes the loop deterministically (read PV, compute, write OP, write step;
+docs/testing.md). The station's ``POST /api/step`` does the same.
+
 SIGINT/SIGTERM stop it (a recording is complete up to the last tick: every row is flushed as written).
 SIGHUP re-reads CONFIG and applies its connection and access settings (``device.read_only``,
 ``instructor_*``, ``max_connections``, ``idle_timeout``, ``frame_timeout``, ``error_rate``) at once; other
@@ -58,6 +63,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port (default %(default)s; 0 picks a free port)")
     p.add_argument("--time-scale", type=float, default=1.0, metavar="X",
                    help="simulated seconds per wall second (default %(default)s; same physics, faster clock)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="no tick runs by itself: a client writes N to the step register (holding 65296) to run N "
+                        "ticks, answered once they have run (device.lockstep)")
     p.add_argument("--uvloop", action="store_true", help="use uvloop's event loop (pip install uvloop)")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     p.add_argument("--read-only", action="store_true",
@@ -86,6 +94,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--stopbits", type=int, choices=(1, 2), default=1, help="stop bits (default %(default)s)")
     g.add_argument("--framer", choices=("socket", "rtu"), default="socket",
                    help="what the TCP port speaks: socket = Modbus TCP (default), rtu = RTU frames over TCP")
+    g = p.add_argument_group("OPC UA and Modbus/TCP Security (docs/opcua.md)")
+    g.add_argument("--opcua", type=int, metavar="PORT",
+                   help="also serve the loops over OPC UA on this port (4840 by convention; 0 picks a free port)")
+    g.add_argument("--opcua-policy", action="append", metavar="POLICY", default=None,
+                   help="OPC UA security policy: None, Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss "
+                        "(Sign&Encrypt; repeatable; default None, loopback only)")
+    g.add_argument("--opcua-cert", type=Path, metavar="CERT",
+                   help="OPC UA application certificate (valve-emulator certs --opcua DIR)")
+    g.add_argument("--opcua-key", type=Path, metavar="KEY", help="its private key")
+    g.add_argument("--opcua-users", type=Path, metavar="USERS.yaml",
+                   help="users with hashed passwords and a role each (operator, instructor); without it anonymous "
+                        "clients are operators")
+    g.add_argument("--tls-port", type=int, metavar="PORT",
+                   help="also serve Modbus/TCP Security (TLS, mutual authentication, roles) on this port "
+                        "(802 by convention; 0 picks a free port)")
+    g.add_argument("--tls-cert", type=Path, metavar="CERT", help="the TLS server certificate (PEM)")
+    g.add_argument("--tls-key", type=Path, metavar="KEY", help="its private key (PEM)")
+    g.add_argument("--tls-ca", type=Path, metavar="CA", help="the CA that signs client certificates (PEM)")
     p.add_argument("--processes", type=int, default=1, metavar="N",
                    help="split the loops over N server processes on ports PORT..PORT+N-1, each owning whole "
                         "units (default 1; one per core)")
@@ -99,6 +125,10 @@ def _check(args: argparse.Namespace) -> None:
         raise ValueError(f"--port must be 0..65535, got {args.port}")
     if not (math.isfinite(args.time_scale) and args.time_scale > 0):
         raise ValueError(f"--time-scale must be a finite number > 0, got {args.time_scale}")
+    if args.lockstep and args.time_scale != 1.0:
+        raise ValueError("--lockstep and --time-scale: in lockstep the client's step writes are the clock")
+    if args.lockstep and args.processes > 1:
+        raise ValueError("--lockstep with --processes: each process would have its own clock; use one process")
     if args.max_connections is not None and not 1 <= args.max_connections <= 65535:
         raise ValueError(f"--max-connections must be 1..65535, got {args.max_connections}")
     if args.record_unit and args.record is None:
@@ -128,16 +158,70 @@ def _check(args: argparse.Namespace) -> None:
         raise ValueError("--baud, --parity and --stopbits set up the serial line of --rtu DEVICE; give --rtu")
     if args.rtu is not None and args.processes > 1:
         raise ValueError("--rtu serves one serial line from one process; it cannot be combined with --processes")
+    _check_secure(args)
     if args.port and args.port + args.processes - 1 > 65535:
         raise ValueError(f"--port {args.port} + --processes {args.processes} runs past port 65535")
 
 
-def apply_overrides(config, *, read_only: bool = False, max_connections: int | None = None):
-    """``config`` with the command line's ``--read-only`` / ``--max-connections`` in every device section."""
-    changes = {k: v for k, v in (("read_only", read_only or None), ("max_connections", max_connections))
-               if v is not None}
-    if not changes:
-        return config
+def _check_secure(args: argparse.Namespace) -> None:
+    """The OPC UA and Modbus/TLS flags: ports in range, the files each needs, one process."""
+    for flag, port in (("--opcua", args.opcua), ("--tls-port", args.tls_port)):
+        if port is not None and not 0 <= port <= 65535:
+            raise ValueError(f"{flag} must be a port 0..65535, got {port}")
+        if port is not None and args.processes > 1:
+            raise ValueError(f"{flag} with --processes: it serves one process's loops; use --processes 1")
+    if args.opcua_policy:
+        from valve_emulator.config.schema import OPCUA_POLICIES
+
+        for policy in args.opcua_policy:
+            if policy not in OPCUA_POLICIES:
+                raise ValueError(f"--opcua-policy {policy!r}: one of {', '.join(OPCUA_POLICIES)}")
+
+
+def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
+    """The OPC UA port and :class:`~valve_emulator.opcua.OpcUaSecurity`: the flags over the config's ``opcua``
+    section (files read and checked now); ``(None, None)`` without OPC UA."""
+    sec = config.opcua
+    port = args.opcua if args.opcua is not None else sec.port
+    if port is None:
+        return None, None
+    from valve_emulator.opcua import OpcUaSecurity, load_users
+
+    users_path = args.opcua_users or sec.users
+    cert, key = args.opcua_cert or sec.certificate, args.opcua_key or sec.private_key
+    for what, path in (("certificate", cert), ("private key", key)):
+        if path is not None and not Path(path).is_file():
+            raise ValueError(f"opcua {what} {path}: no such file")
+    security = OpcUaSecurity(policies=tuple(args.opcua_policy or sec.policies),
+                             certificate=Path(cert) if cert else None, private_key=Path(key) if key else None,
+                             users=load_users(users_path) if users_path is not None else None)
+    security.check(args.host)
+    return port, security
+
+
+def tls_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
+    """The Modbus/TCP Security port and its TLS context: the flags over the config's ``tls`` section."""
+    sec = config.tls
+    port = args.tls_port if args.tls_port is not None else sec.port
+    if port is None:
+        return None, None
+    from valve_emulator.device.tls import server_context
+
+    return port, server_context(args.tls_cert or sec.certificate, args.tls_key or sec.private_key,
+                                args.tls_ca or sec.ca)
+
+
+def apply_overrides(config, *, read_only: bool = False, max_connections: int | None = None,
+                    lockstep: bool = False):
+    """``config`` with the command line's ``--read-only`` / ``--max-connections`` / ``--lockstep`` in every device
+    section."""
+    changes = {k: v for k, v in (("read_only", read_only or None), ("max_connections", max_connections),
+                                 ("lockstep", lockstep or None)) if v is not None}
+    return with_device(config, **changes) if changes else config
+
+
+def with_device(config, **changes):
+    """``config`` with ``changes`` to the device settings of the server and of every loop."""
     loops = tuple(dataclasses.replace(lp, device=dataclasses.replace(lp.device, **changes)) for lp in config.loops)
     return dataclasses.replace(config, device=dataclasses.replace(config.device, **changes), loops=loops)
 
@@ -158,7 +242,8 @@ def reload_config(server, path: Path | None, *, read_only: bool = False,
         config = load_server(path)
         if process is not None:
             config = server_slice(config, *process)
-        config = apply_overrides(config, read_only=read_only, max_connections=max_connections)
+        config = apply_overrides(config, read_only=read_only, max_connections=max_connections,
+                                 lockstep=server.config.device.lockstep)   # --lockstep outlives a reload
     except (ValueError, OSError) as exc:  # ConfigError is a ValueError and names file, line and key
         _log.error("config reload failed, keeping the running config: %s", exc)
         return False
@@ -184,12 +269,17 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                 record: Path | None = None, record_units=None, read_only: bool = False,
                 max_connections: int | None = None, process: tuple[int, int] | None = None,
                 web: int | None = None, web_token: str | None = None, snapshots: Path | None = None,
-                backtrack: float = 60.0, rtu: str | None = None, serial=None, framer: str = "socket") -> None:
+                backtrack: float = 60.0, rtu: str | None = None, serial=None, framer: str = "socket",
+                opcua: int | None = None, opcua_security=None, tls_port: int | None = None,
+                tls_context=None) -> None:
     """Serve until SIGINT/SIGTERM (or cancellation); ``ready(server)`` is called once listening.
 
     ``web``: also serve the instructor station on that port (:func:`start_web`).
     ``rtu`` (a serial device) with ``serial`` (:class:`~valve_emulator.device.rtu.SerialSettings`) serves the
     units on that line too; ``framer="rtu"`` makes the TCP port speak RTU frames.
+
+    ``opcua`` (a port) also serves the loops over OPC UA with ``opcua_security``; ``tls_port`` with
+    ``tls_context`` (:func:`~valve_emulator.device.tls.server_context`) serves Modbus/TCP Security.
 
     SIGHUP reloads ``config_path`` (:func:`reload_config`); ``record`` records ``record_units`` (default
     all) with :class:`~valve_emulator.device.record.TickRecorder`. ``process = (index, count)`` names the
@@ -197,6 +287,7 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
     """
     from valve_emulator.device.guard import binds_all_interfaces
     from valve_emulator.device.record import TickRecorder
+    from valve_emulator.device.registers import STEP_ADDRESS
     from valve_emulator.device.server import EmulatorServer
 
     stop = asyncio.Event()
@@ -223,16 +314,25 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
             rtu_note = "" if framer == "socket" else "; the TCP port speaks RTU frames (RTU over TCP)"
             if rtu is not None:
                 rtu_note += f"; Modbus RTU on {rtu} at {srv.serial_links[0].settings}"
+            clock = (f"lockstep (no tick until a client writes step, holding {STEP_ADDRESS})" if srv.device.lockstep
+                     else f"time-scale {time_scale:g}")
             print(f"valve-emulator: {who}listening on {host}:{srv.port}, unit ids {describe_units(config)}; "
-                  f"tick {config.device.tick:g} s, time-scale {time_scale:g}{rtu_note}; Ctrl-C stops", flush=True)
+                  f"tick {config.device.tick:g} s, {clock}{rtu_note}; Ctrl-C stops", flush=True)
             if binds_all_interfaces(host):
                 print("valve-emulator: WARNING: bound to all interfaces. Modbus TCP has no authentication: "
                       "anyone who can reach this port can move the valve. Use an isolated network.",
                       file=sys.stderr, flush=True)
-            station_runner = None
+            if tls_port is not None:
+                bound = await srv.open_tls(tls_context, port=tls_port)
+                print(f"valve-emulator: Modbus/TCP Security (TLS, client certificates) on {host}:{bound}", flush=True)
+            station_runner = opcua_server = station = None
+            if web is not None or opcua is not None:
+                station = make_station(srv, snapshots=snapshots, backtrack=backtrack)
             if web is not None:
-                station_runner = await start_web(srv, host=host, port=web, token=web_token, snapshots=snapshots,
-                                                 backtrack=backtrack)
+                station_runner = await start_web(station, host=host, port=web, token=web_token)
+            if opcua is not None:
+                opcua_server = await start_opcua(srv, station, config, host=host, port=opcua,
+                                                 security=opcua_security)
             recorder = TickRecorder(srv.device, record, units=record_units) if record is not None else None
             if recorder is not None:
                 await recorder.start()
@@ -248,6 +348,8 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
             finally:
                 if recorder is not None:
                     await recorder.stop()
+                if opcua_server is not None:
+                    await opcua_server.stop()
                 if station_runner is not None:
                     await station_runner.cleanup()
     finally:
@@ -258,14 +360,29 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                 pass
 
 
-async def start_web(srv, *, host: str, port: int, token: str | None, snapshots: Path | None, backtrack: float):
-    """Start the instructor station of ``srv``'s device on ``host:port``; print its URL; return its runner."""
+def make_station(srv, *, snapshots: Path | None, backtrack: float):
+    """The instructor station over ``srv``'s device, shared by the HTTP pages and the OPC UA methods."""
     from valve_emulator.device.snapshots import BacktrackRing, SnapshotStore
-    from valve_emulator.station.app import start_station
     from valve_emulator.station.core import Station
 
-    station = Station(srv.device, snapshots=SnapshotStore(snapshots),
-                      backtrack=BacktrackRing(backtrack, 30) if backtrack > 0 else None)
+    return Station(srv.device, snapshots=SnapshotStore(snapshots),
+                   backtrack=BacktrackRing(backtrack, 30) if backtrack > 0 else None)
+
+
+async def start_opcua(srv, station, config, *, host: str, port: int, security):
+    """Start the OPC UA server over ``srv``'s device (methods through ``station``); print its URL; return it."""
+    from valve_emulator.opcua import OpcUaServer
+
+    server = OpcUaServer(srv.device, loops=config.loops, host=host, port=port, security=security, station=station)
+    await server.start()
+    print(f"valve-emulator: OPC UA at {server.url} (policies {', '.join(server.security.policies)})", flush=True)
+    return server
+
+
+async def start_web(station, *, host: str, port: int, token: str | None):
+    """Start the instructor ``station``'s HTTP pages on ``host:port``; print its URL; return its runner."""
+    from valve_emulator.station.app import start_station
+
     runner, bound = await start_station(station, host=host, port=port, token=token)
     where = f"[{host}]" if ":" in host else host
     print(f"valve-emulator: instructor station at http://{where}:{bound}/ (trainee) and "
@@ -288,7 +405,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_server_or_default(args.config)
     if process is not None:
         cfg = server_slice(cfg, *process)
-    cfg = apply_overrides(cfg, read_only=args.read_only, max_connections=args.max_connections)
+    cfg = apply_overrides(cfg, read_only=args.read_only, max_connections=args.max_connections,
+                          lockstep=args.lockstep)
     units = [lp.device.unit for lp in cfg.loops]
     if args.record is not None and any(lp.device.block for lp in cfg.loops):
         raise ValueError("--record: recording needs one loop per unit id; this config puts several loops behind "
@@ -310,11 +428,14 @@ def run(args: argparse.Namespace) -> int:
         from valve_emulator.device.rtu import SerialSettings
 
         serial = SerialSettings(baud=args.baud, parity=args.parity, stopbits=args.stopbits)
+    opcua_port, security = opcua_settings(args, cfg)
+    tls_port, tls_context = tls_settings(args, cfg)
     runner(serve(cfg, host=args.host, port=port, time_scale=args.time_scale, config_path=args.config,
                  record=args.record, record_units=args.record_unit, read_only=args.read_only,
                  max_connections=args.max_connections, process=process, web=args.web,
                  web_token=args.web_token, snapshots=args.snapshots, backtrack=args.backtrack,
-                 rtu=args.rtu, serial=serial, framer=args.framer))
+                 rtu=args.rtu, serial=serial, framer=args.framer, opcua=opcua_port,
+                 opcua_security=security, tls_port=tls_port, tls_context=tls_context))
     print("valve-emulator: stopped", flush=True)
     return 0
 

@@ -17,6 +17,7 @@ from valve_emulator.config.schema import (
     SimulationConfig,
     ValveConfig,
 )
+from valve_emulator.config.writer import dump_loop, loop_to_mapping, write_loop
 
 __all__ = [
     "ConfigError",
@@ -29,10 +30,13 @@ __all__ = [
     "SimulationConfig",
     "Slice",
     "ValveConfig",
+    "dump_loop",
     "load_loop",
+    "loop_to_mapping",
     "load_server",
     "loop_from_mapping",
     "partition",
     "server_from_mapping",
     "server_slice",
+    "write_loop",
 ]

@@ -34,9 +34,11 @@ from valve_emulator.config.schema import (
     DeviceConfig,
     DisturbanceConfig,
     LoopConfig,
+    OpcUaConfig,
     PlantConfig,
     ServerConfig,
     SimulationConfig,
+    TlsConfig,
     ValveConfig,
     choice,
     integer,
@@ -346,7 +348,20 @@ def _server(ctx: _Context, data: Any, default_name: str) -> ServerConfig:
                                default_name=f"loop_{unit:03d}"))
     if "fleet" in top:
         loops += _fleet(ctx, top["fleet"], device, {loop.device.unit for loop in loops})
-    return ctx.call("", ServerConfig, device, tuple(loops), source=ctx.source)
+    secure = {key: _secure_section(ctx, top.get(key), key, cls) for key, cls in (("opcua", OpcUaConfig),
+                                                                                  ("tls", TlsConfig))}
+    return ctx.call("", ServerConfig, device, tuple(loops), source=ctx.source, **secure)
+
+
+def _secure_section(ctx: _Context, value: Any, key: str, cls: type) -> Any:
+    """The ``opcua`` / ``tls`` section, its file paths made relative to the config file's folder."""
+    m = ctx.section(value, key, KEYS[key])
+    if not ctx.source.startswith("<"):
+        base = Path(ctx.source).parent
+        for k in ("certificate", "private_key", "users", "ca"):
+            if isinstance(m.get(k), str):
+                m[k] = str(base / m[k])
+    return ctx.call(key, cls, **m)
 
 
 # --- public entry points ------------------------------------------------------------------------------

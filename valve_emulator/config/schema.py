@@ -31,7 +31,7 @@ __all__ = [
     "ACTIONS", "BLOCK_STRIDE", "CHARACTERISTICS", "DISTURBANCES", "KEYS", "MAX_BLOCKS", "MAX_UNIT", "MODELS",
     "MODES", "WORD_ORDERS", "WordOrder",
     "ConfigError", "ControllerConfig", "DeviceConfig", "DisturbanceConfig", "LoopConfig", "PlantConfig",
-    "ServerConfig", "SimulationConfig", "ValveConfig",
+    "OpcUaConfig", "OPCUA_POLICIES", "ServerConfig", "SimulationConfig", "TlsConfig", "ValveConfig",
 ]
 
 DISTURBANCES = ("none", "step", "sine", "random_walk")
@@ -60,14 +60,14 @@ MAX_BLOCKS = 0x10000 // BLOCK_STRIDE
 
 _LOOP_SECTIONS = ("name", "description", "valve", "plant", "controller", "simulation")
 _DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts", "read_only",
-           "max_connections", "idle_timeout", "frame_timeout", "error_rate")
+           "max_connections", "idle_timeout", "frame_timeout", "error_rate", "lockstep")
 
 #: Allowed YAML keys per section ("" = top level of a single-loop file, "server" = top level of a
 #: multi-loop file). Anything else is an error naming the key.
 KEYS: dict[str, tuple[str, ...]] = {
     "": _LOOP_SECTIONS + ("device",),
     "valve": ("model", "S", "J", "seed_s", "seed_j", "rest_time", "initial_direction", "op0",
-              "characteristic", "rangeability", "ma_table"),
+              "characteristic", "rangeability", "ma_table", "op_range"),
     "plant": ("num", "den", "delay", "fopdt", "integrator", "pv0", "u0", "pv_range", "units",
               "disturbance", "noise", "alarms"),
     "plant.fopdt": ("gain", "tau", "delay"),
@@ -80,7 +80,9 @@ KEYS: dict[str, tuple[str, ...]] = {
     "controller": ("kc", "ti", "td", "sp", "sp_steps", "bias", "action", "op_limits", "mode"),
     "simulation": ("dt", "duration", "seed"),
     "device": _DEVICE,
-    "server": ("device", "loops", "fleet"),
+    "server": ("device", "loops", "fleet", "opcua", "tls"),
+    "opcua": ("port", "policies", "certificate", "private_key", "users"),
+    "tls": ("port", "certificate", "private_key", "ca"),
     "server.device": _DEVICE[1:],
     "loops[i]": _LOOP_SECTIONS + ("unit",),
     "fleet": ("count", "first_unit", "loops_per_unit", "seed", "base", "vary"),
@@ -228,6 +230,8 @@ class ValveConfig:
     characteristic: str = "linear"  # inherent flow characteristic: linear | equal_percentage | quick_opening
     rangeability: float = 50.0     # R > 1, used by equal_percentage
     ma_table: tuple[tuple[float, float], ...] = DEFAULT_MA_TABLE  # (mA, % travel) points, >= 2
+    op_range: tuple[float, float] = (0.0, 100.0)  # a recording's OP at 0 and 100 % travel, in its own units
+                                                  # (lo < hi); maps a replayed recording's OP to travel
     seed_form: tuple[float, float] | None = None  # (seed_s, seed_j) as typed, when given in that form
 
     def __post_init__(self) -> None:
@@ -240,7 +244,7 @@ class ValveConfig:
              op0=real(self.op0, "op0", ge=0, le=100),
              characteristic=choice(self.characteristic, "characteristic", CHARACTERISTICS),
              rangeability=real(self.rangeability, "rangeability", gt=1))
-        _set(self, ma_table=_ma_table(self.ma_table))
+        _set(self, ma_table=_ma_table(self.ma_table), op_range=interval(self.op_range, "op_range"))
         if self.seed_form is not None:
             s, j = sequence(self.seed_form, "seed_form", length=2)
             s, j = real(s, "seed_s", ge=0), real(j, "seed_j", ge=0)
@@ -388,6 +392,52 @@ class SimulationConfig:
         _set(self, dt=dt, duration=duration, seed=integer(self.seed, "seed", ge=0))
 
 
+#: OPC UA security policies (the secure ones always with Sign&Encrypt).
+OPCUA_POLICIES = ("None", "Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
+
+
+def _optional_path(value: Any, key: str) -> str | None:
+    return None if value is None else text(value, key)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class OpcUaConfig:
+    """The OPC UA server beside Modbus (YAML ``opcua``; ``docs/opcua.md``). Paths are relative to the file."""
+
+    port: int | None = None           # 0..65535 (0: a free port); None: no OPC UA server
+    policies: tuple[str, ...] = ("None",)   # of OPCUA_POLICIES
+    certificate: str | None = None    # application instance certificate (valve-emulator certs --opcua DIR)
+    private_key: str | None = None
+    users: str | None = None          # users file: names, hashed passwords, roles
+
+    def __post_init__(self) -> None:
+        policies = tuple(choice(p, f"policies[{i}]", OPCUA_POLICIES)
+                         for i, p in enumerate(sequence(self.policies, "policies", min_len=1)))
+        _set(self, port=None if self.port is None else integer(self.port, "port", ge=0, le=65535),
+             policies=policies, certificate=_optional_path(self.certificate, "certificate"),
+             private_key=_optional_path(self.private_key, "private_key"), users=_optional_path(self.users, "users"))
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TlsConfig:
+    """Modbus/TCP Security beside the plain port (YAML ``tls``; ``docs/opcua.md``). Paths relative to the file."""
+
+    port: int | None = None           # 0..65535 (802 by convention; 0: a free port); None: no TLS listener
+    certificate: str | None = None    # the server's certificate (PEM)
+    private_key: str | None = None
+    ca: str | None = None             # the CA that signs client certificates
+
+    def __post_init__(self) -> None:
+        _set(self, port=None if self.port is None else integer(self.port, "port", ge=0, le=65535),
+             certificate=_optional_path(self.certificate, "certificate"),
+             private_key=_optional_path(self.private_key, "private_key"), ca=_optional_path(self.ca, "ca"))
+        if self.port is not None:
+            for key in ("certificate", "private_key", "ca"):
+                if getattr(self, key) is None:
+                    raise ConfigError("{key} is required with tls.port (make the files with "
+                                      "'valve-emulator certs --modbus DIR')", key=key)
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class DeviceConfig:
     """Modbus TCP device settings (YAML ``device``).
@@ -410,6 +460,7 @@ class DeviceConfig:
     idle_timeout: float = 60.0      # s > 0, close a connection that has sent no complete request this long
     frame_timeout: float = 5.0      # s > 0, a request frame must arrive completely within this time
     error_rate: float = 100.0       # > 0, exception answers per s per connection before it is read slower
+    lockstep: bool = False          # the clock is the client's: no tick runs until it writes the step register
 
     def __post_init__(self) -> None:
         hosts = []
@@ -430,7 +481,7 @@ class DeviceConfig:
              max_connections=integer(self.max_connections, "max_connections", ge=1, le=65535),
              idle_timeout=real(self.idle_timeout, "idle_timeout", gt=0),
              frame_timeout=real(self.frame_timeout, "frame_timeout", gt=0),
-             error_rate=real(self.error_rate, "error_rate", gt=0))
+             error_rate=real(self.error_rate, "error_rate", gt=0), lockstep=boolean(self.lockstep, "lockstep"))
 
 
 def _instance(value: Any, key: str, cls: type, *, none_ok: bool = False) -> None:
@@ -478,9 +529,13 @@ class ServerConfig:
     loops: tuple[LoopConfig, ...]   # non-empty, (unit, block) addresses unique
     _: KW_ONLY
     source: str = ""
+    opcua: OpcUaConfig = OpcUaConfig()   # the OPC UA server (port None: none)
+    tls: TlsConfig = TlsConfig()         # the Modbus/TCP Security listener (port None: none)
 
     def __post_init__(self) -> None:
         _instance(self.device, "device", DeviceConfig)
+        _instance(self.opcua, "opcua", OpcUaConfig)
+        _instance(self.tls, "tls", TlsConfig)
         loops = sequence(self.loops, "loops", min_len=1)
         seen: dict[tuple[int, int], int] = {}
         blocks: dict[int, int] = {}

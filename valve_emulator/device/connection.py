@@ -144,8 +144,12 @@ class ModbusConnection(asyncio.Protocol):
                     sock.setsockopt(socket.SOL_SOCKET, option, SOCKET_BUFFER)
             except OSError:  # not every transport (or platform) allows it; the defaults then apply
                 pass
-        self.instructor = self.server.instructor_allowed(self.peer_ip)
+        self.instructor = self.permission()
         self.server.connection_set.add(self)
+
+    def permission(self) -> bool:
+        """May this client write the instructor registers (asked again when the server is reconfigured)?"""
+        return self.server.instructor_allowed(self.peer_ip)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.server.connection_set.discard(self)
@@ -200,9 +204,9 @@ class ModbusConnection(asyncio.Protocol):
             pos, frames = end, frames + 1
             state = comm.plan(frame[6], frame[7:]) if comm.active else None
             if state is None:
-                answers.append(server.handle(frame, self.instructor, peer=self.peer_ip))
+                answers.append(server.handle(frame, self.instructor, peer=self.peer_ip, client=slot.peer))
                 continue
-            answer = server.handle_faulted(frame, self.instructor, state, peer=self.peer_ip)
+            answer = server.handle_faulted(frame, self.instructor, state, peer=self.peer_ip, client=slot.peer)
             if state.fault is CommFault.CLOSE:
                 turns.spend(frames)
                 if answers:

@@ -287,6 +287,11 @@ class MalfunctionBank:
             del self._ramps[key]
 
     @property
+    def ramping(self) -> bool:
+        """Is a ramp still running (so every tick must set its quantity)?"""
+        return bool(self._ramps)
+
+    @property
     def active(self) -> list[dict[str, Any]]:
         """The ramps still running, for display."""
         return [asdict(r) for r in self._ramps.values()]

@@ -17,20 +17,19 @@ Disk failures (full, read-only, removed) are reported once per file with the fil
 reason, that file stops recording, and the device keeps ticking and serving: a recorder must never be the
 reason the plant model stops.
 
-The recorder waits for ticks with :meth:`Device.wait_for_tick`, whose futures are resolved inside the
-tick, so it writes each tick's row before the next tick runs (also with ``time_scale = inf``, where the
-tick task yields to the loop between ticks).
+The recorder is one of the device's :attr:`~valve_emulator.device.tick.Device.on_tick` callbacks, so it writes
+each tick's row inside that tick, however the ticks are run: by the real-time task, back to back with
+``time_scale = inf``, or many at once by :meth:`Device.advance` (a lockstep client's ``step`` write, the testing
+kit's manual clock).
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from valve_emulator.device._tasks import cancel_and_wait
 from valve_emulator.recordings.recording import CsvRecordingWriter
 
 __all__ = ["EXTRA_COLUMNS", "TickRecorder", "recording_paths"]
@@ -83,7 +82,7 @@ class TickRecorder:
         self.rows = 0
         self.failed: dict[int, str] = {}
         self._writers: dict[int, CsvRecordingWriter] = {}
-        self._task: asyncio.Task | None = None
+        self._first = 0   # the tick count when recording started
 
     # --- lifecycle ----------------------------------------------------------------------------------
 
@@ -97,13 +96,14 @@ class TickRecorder:
                 self._fail(unit, writer, exc)
                 continue
             self._writers[unit] = writer
-        if self._task is None:
-            self._task = asyncio.get_running_loop().create_task(self._run(), name="valve-emulator-recorder")
+        if self._on_tick not in self.device.on_tick:
+            self._first = self.device.ticks
+            self.device.on_tick.append(self._on_tick)
 
     async def stop(self) -> None:
         """Stop recording and close the files (every written row is already flushed)."""
-        task, self._task = self._task, None
-        await cancel_and_wait(task)
+        if self._on_tick in self.device.on_tick:
+            self.device.on_tick.remove(self._on_tick)
         for unit, writer in list(self._writers.items()):
             try:
                 writer.close()
@@ -120,14 +120,8 @@ class TickRecorder:
 
     # --- recording ----------------------------------------------------------------------------------
 
-    async def _run(self) -> None:
-        device, k = self.device, self.device.ticks
-        while self._writers:
-            try:
-                k = await device.wait_for_tick(k + self.every)
-            except RuntimeError as exc:   # the tick task failed: there is nothing more to record
-                _log.error("recording stopped at tick %d: %s", device.ticks, exc)
-                return
+    def _on_tick(self, device: Any) -> None:
+        if self._writers and (device.ticks - self._first) % self.every == 0:
             self.record()
 
     def record(self) -> None:

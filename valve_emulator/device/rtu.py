@@ -133,8 +133,7 @@ class RtuResponder:
         unit, pdu = frame[0], frame[1:-2]
         if unit == 0:
             if pdu[0] in _BROADCAST_WRITES:
-                for target in server.units:
-                    server.answer(target, pdu, instructor)
+                server.broadcast(pdu, instructor)
             return None, 0.0, CommFault.NONE
         if unit not in server.device.layout.regions and self.silent_unknown:
             server.foreign_frames += 1

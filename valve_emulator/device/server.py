@@ -93,6 +93,7 @@ from valve_emulator.device.pdu import (
 )
 from valve_emulator.device.registers import (
     BLOCK_STRIDE,
+    CLOCK_REGISTERS,
     COMM_BASE,
     CommFault,
     RegisterAccessError,
@@ -106,6 +107,7 @@ from valve_emulator.device.registers import (
 from valve_emulator.device.registers.bits import COILS, BitTable, bit_values, check_bits, coil_write
 from valve_emulator.device.rtu import RtuSerialLink, RtuStreamConnection, SerialSettings
 from valve_emulator.device.tick import Device
+from valve_emulator.device.traffic import TrafficLog, request_span
 
 __all__ = ["EmulatorServer", "LIVE_DEVICE_KEYS"]
 
@@ -120,6 +122,7 @@ _STATUS_ADDRESS = address_of("status")
 _CODE_OF = ((RegisterValueError, ExcCodes.ILLEGAL_VALUE), (RegisterAccessError, ExcCodes.ILLEGAL_ADDRESS),
             (RegisterAddressError, ExcCodes.ILLEGAL_ADDRESS))
 _REGISTER_NAME = re.compile(r"\bregister (\w+)")
+_STEP = CLOCK_REGISTERS[0]
 
 #: ``device`` settings :meth:`EmulatorServer.reconfigure` applies to a running server.
 LIVE_DEVICE_KEYS = ("read_only", "instructor_writes", "instructor_hosts", "max_connections", "idle_timeout",
@@ -172,7 +175,8 @@ class EmulatorServer:
     ----------
     config : ``ServerConfig`` (device settings and one loop per unit id).
     host, port : where to listen; ``port=0`` picks a free port, read it back from :attr:`port`.
-    time_scale : see :class:`~valve_emulator.device.tick.Device` (``inf`` fastest, ``0`` frozen).
+    time_scale : see :class:`~valve_emulator.device.tick.Device` (``inf`` fastest, ``0`` frozen); a config with
+        ``device.lockstep`` runs at ``0``: lockstep, the clock moves only when a client writes ``step``.
     bank : an existing ``LoopBank`` (default: built from ``config``).
     clock, sleep, jitter_size : see :class:`~valve_emulator.device.tick.Device` (fake time in tests).
     framer : ``"socket"`` (Modbus TCP, MBAP headers) or ``"rtu"`` (RTU frames with CRC over TCP, what
@@ -196,6 +200,11 @@ class EmulatorServer:
         self.serial_links: list[Any] = []
         self.host = host
         self.port = port
+        if config.device.lockstep:
+            if config.device.read_only:
+                raise ValueError("device.lockstep with device.read_only (--read-only): the device would refuse the "
+                                 "step writes that are its clock")
+            time_scale = 0.0
         self.device = Device.from_config(config, bank=bank, time_scale=time_scale, clock=clock, sleep=sleep,
                                          jitter_size=jitter_size)
         self._regions = self.device.layout.regions   # unit -> (image start byte, blocks)
@@ -212,6 +221,11 @@ class EmulatorServer:
         self._decoder = DecodePDU(is_server=True)
         self._framer = FramerSocket(self._decoder)
         self._server: asyncio.Server | None = None
+        self._tls_server: asyncio.Server | None = None
+        #: the Modbus/TCP Security listener's port (:meth:`open_tls`), None without one
+        self.tls_port: int | None = None
+        #: TLS connections whose handshake succeeded (a client certificate signed by the CA)
+        self.tls_sessions = 0
         self.connection_set: set[ModbusConnection] = set()
         self.turns = TurnBudget()
         self.requests = 0
@@ -221,6 +235,9 @@ class EmulatorServer:
         self.foreign_frames = 0       # RTU frames for an address not served here
         self.violations = 0
         self.throttled = 0
+        #: every request answered, when a :class:`~valve_emulator.device.traffic.TrafficLog` is set (the testing
+        #: kit sets one; off by default: a production server keeps no per-request rows)
+        self.traffic: TrafficLog | None = None
 
     def _apply_access(self, config: Any) -> None:
         dev = config.device
@@ -267,7 +284,7 @@ class EmulatorServer:
         self._apply_access(dataclasses.replace(self.config, device=live))
         self.refusals.clear()  # new rules: report refusals under them afresh
         for conn in self.connection_set:
-            conn.instructor = self.instructor_allowed(conn.peer_ip)
+            conn.instructor = conn.permission()
         return restart
 
     # --- lifecycle ----------------------------------------------------------------------------------
@@ -304,8 +321,25 @@ class EmulatorServer:
         self.serial_links.append(link)
         return link
 
+    async def open_tls(self, context: Any, *, host: str | None = None, port: int = 802) -> int:
+        """Serve the same units as Modbus/TCP Security too: TLS with ``context``
+        (:func:`~valve_emulator.device.tls.server_context`) on ``host`` (default: the plain port's) and ``port``
+        (0: a free one); returns the port. Call after :meth:`start`; closed by :meth:`stop`."""
+        from valve_emulator.device.tls import TlsModbusConnection
+
+        loop = asyncio.get_running_loop()
+        self._tls_server = await loop.create_server(lambda: TlsModbusConnection(self), host or self.host, port,
+                                                    ssl=context, ssl_handshake_timeout=self.guard.frame_timeout)
+        self.tls_port = self._tls_server.sockets[0].getsockname()[1]
+        _log.info("serving units %s over Modbus/TCP Security on %s:%d", list(self.units), host or self.host,
+                  self.tls_port)
+        return self.tls_port
+
     async def stop(self) -> None:
         server, self._server = self._server, None
+        tls, self._tls_server = self._tls_server, None
+        if tls is not None:
+            tls.close()
         for link in self.serial_links:
             link.close()
         self.serial_links.clear()
@@ -315,6 +349,8 @@ class EmulatorServer:
             for conn in list(self.connection_set):
                 conn.transport.abort()
             await server.wait_closed()
+        if tls is not None:
+            await tls.wait_closed()
         await self.device.stop()
 
     async def __aenter__(self) -> EmulatorServer:
@@ -326,42 +362,62 @@ class EmulatorServer:
 
     # --- one request --------------------------------------------------------------------------------
 
-    def handle(self, frame: bytes, instructor: bool, *, peer: str = "") -> bytes:
+    def handle(self, frame: bytes, instructor: bool, *, peer: str = "", client: str = "") -> bytes:
         """Answer one complete MBAP ``frame`` (header + PDU) with a complete response frame.
 
-        ``peer`` (the client's address) names the client when a refused write is logged.
+        ``peer`` (the client's address) names the client when a refused write is logged; ``client`` (its
+        ``ip:port``) names it in :attr:`traffic`.
         """
         tid, unit = (frame[0] << 8) | frame[1], frame[6]
-        return self._framer.encode(self.answer(unit, frame[7:], instructor, peer=peer), unit, tid)
+        return self._framer.encode(self.answer(unit, frame[7:], instructor, peer=peer, client=client), unit, tid)
 
-    def handle_faulted(self, frame: bytes, instructor: bool, state: CommState, *, peer: str = "") -> bytes | None:
+    def handle_faulted(self, frame: bytes, instructor: bool, state: CommState, *, peer: str = "",
+                       client: str = "") -> bytes | None:
         """:meth:`handle` for a unit with a communication fault (see :mod:`~valve_emulator.device.comm`):
         the response frame, or ``None`` when nothing is to be sent."""
         tid, unit = (frame[0] << 8) | frame[1], frame[6]
-        pdu = self.answer_faulted(unit, frame[7:], instructor, state, peer=peer)
+        pdu = self.answer_faulted(unit, frame[7:], instructor, state, peer=peer, client=client)
         return None if pdu is None else self._framer.encode(pdu, unit, tid)
 
     def answer_faulted(self, unit: int, pdu: bytes, instructor: bool, state: CommState, *,
-                       peer: str = "") -> bytes | None:
+                       peer: str = "", client: str = "") -> bytes | None:
         """:meth:`answer` under communication fault ``state``: ``None`` for no response (and for a
         connection to be closed), an exception 0x06 / 0x04, or the normal answer (delay only, bad CRC: the
         framing corrupts it)."""
         fault = state.fault
-        if fault in (CommFault.NO_RESPONSE, CommFault.CLOSE):
+        if fault in (CommFault.NO_RESPONSE, CommFault.CLOSE, CommFault.BUSY, CommFault.FAILURE):
             self.requests += 1
-            return None
-        if fault in (CommFault.BUSY, CommFault.FAILURE):
-            self.requests += 1
-            self.fault_exceptions += 1   # on purpose: not in self.exceptions, which the error budget charges
-            code = ExcCodes.DEVICE_BUSY if fault is CommFault.BUSY else ExcCodes.DEVICE_FAILURE
-            return bytes((pdu[0] | 0x80, code))
-        return self.answer(unit, pdu, instructor, peer=peer)
+            response = None
+            if fault in (CommFault.BUSY, CommFault.FAILURE):
+                self.fault_exceptions += 1   # on purpose: not in self.exceptions, which the error budget charges
+                code = ExcCodes.DEVICE_BUSY if fault is CommFault.BUSY else ExcCodes.DEVICE_FAILURE
+                response = bytes((pdu[0] | 0x80, code))
+            if self.traffic is not None:
+                self.traffic.note(client, unit, pdu, response)
+            return response
+        return self.answer(unit, pdu, instructor, peer=peer, client=client)
 
-    def answer(self, unit: int, pdu: bytes, instructor: bool, *, peer: str = "") -> bytes:
+    def broadcast(self, pdu: bytes, instructor: bool) -> None:
+        """A broadcast write (unit 0 on a serial line): carried out by every unit, nothing answered. The clock's
+        ``step`` belongs to the whole device, so a broadcast step runs its ticks once, not once per unit."""
+        for n, target in enumerate(dict.fromkeys(self.units)):
+            if n and pdu[0] in _ALL_WRITES and request_span(pdu)[0] == _STEP.address:
+                break
+            self.answer(target, pdu, instructor)
+
+    def answer(self, unit: int, pdu: bytes, instructor: bool, *, peer: str = "", client: str = "") -> bytes:
         """The response PDU to request ``pdu`` (function code first, at least one byte) for ``unit``.
 
         Framing-independent: the TCP connection wraps it in MBAP, the RTU link in address and CRC.
         """
+        if self.traffic is None:
+            return self._answer(unit, pdu, instructor, peer)
+        arrived = self.traffic.arrival()
+        response = self._answer(unit, pdu, instructor, peer)
+        self.traffic.note(client, unit, pdu, response, arrived=arrived)
+        return response
+
+    def _answer(self, unit: int, pdu: bytes, instructor: bool, peer: str) -> bytes:
         self.requests += 1
         fc = pdu[0]
         try:
@@ -415,6 +471,9 @@ class EmulatorServer:
 
     def _read(self, fc: int, table: str, unit: int, region: tuple[int, int], address: int, count: int) -> bytes:
         if address >= COMM_BASE and table == "holding" and self.comm.covers(unit, address):
+            if address == _STEP.address:
+                _check_step(address, count)
+                return bytes((fc, 2, 0, 0))   # nothing pending: a step's ticks have run before its answer
             return bytes((fc, 2 * count)) + self.comm.read(unit, address, count)
         start, blocks = region
         check_read(table, address, count, blocks=blocks)
@@ -423,7 +482,10 @@ class EmulatorServer:
 
     def _write(self, unit: int, address: int, registers: Any, instructor: bool) -> None:
         if address >= COMM_BASE and self.comm.covers(unit, address):
-            self.comm.write(unit, address, registers, instructor=instructor)
+            if address == _STEP.address:
+                self._step(registers)
+            else:
+                self.comm.write(unit, address, registers, instructor=instructor)
             return
         index, offset = self.device.layout.locate_write(unit, address, len(registers))
         self.device.write(index, offset, registers, instructor=instructor)
@@ -442,6 +504,14 @@ class EmulatorServer:
             check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse before writing
         self._write(unit, pdu.write_address, pdu.write_registers, instructor)
         return self._read(23, "holding", unit, region, pdu.read_address, pdu.read_count)
+
+    def _step(self, registers: Any) -> None:
+        """A write of the clock's ``step`` register: run that many ticks now, before the write is answered."""
+        _check_step(_STEP.address, len(registers))
+        if not self.device.lockstep:
+            raise RegisterAccessError(f"register step (holding {_STEP.address}) is writable only in lockstep "
+                                      f"(serve --lockstep); this device runs its own clock", register="step")
+        self.device.advance(int(registers[0]))
 
     # --- the function codes decoded here (bits, diagnostics, mask write, identification) ------------
 
@@ -498,6 +568,14 @@ class EmulatorServer:
             self.diagnostics.clear()
             return bytes(pdu)
         return bytes(pdu[:3]) + self.diagnostics.read(sub).to_bytes(2, "big")
+
+
+def _check_step(address: int, count: int) -> None:
+    """A request that touches ``step`` must be that one register alone (it is not beside the unit registers)."""
+    if count != 1:
+        raise RegisterAddressError(f"holding registers {address}..{address + count - 1}: register step "
+                                   f"(holding {_STEP.address}) is read and written alone", address=address,
+                                   count=count)
 
 
 def _u16(pdu: bytes, at: int) -> int:

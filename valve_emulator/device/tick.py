@@ -17,7 +17,7 @@ accumulates. Each tick
    wins; OP is then held until the next write),
 2. steps every loop one ``dt`` (``bank.step()``: one compiled call for all loops),
 3. re-encodes the register image of every loop (one compiled pass,
-   :func:`~valve_emulator.device.registers.encode_image`).
+   :class:`~valve_emulator.device.registers.kernel.ImageEncoder`, the compiled ``encode_image`` bound to the image).
 
 At plant scale the tick's own compute time matters as much as its lateness: while it runs, no request is
 answered. :attr:`Device.tick_time` keeps the duration of each tick (steps 1–3) next to the lateness.
@@ -30,7 +30,11 @@ simulated time then lags wall-clock time by ``(m − 1)·dt`` for each overrun.
 
 Time scale: ``time_scale = 1`` is real time, ``> 1`` faster. ``math.inf`` runs ticks back to back as fast
 as possible (yielding to the event loop between ticks; no jitter is recorded). ``0`` freezes time: no tick
-task runs and only :meth:`Device.advance` steps the bank. Tests synchronise on :meth:`Device.wait_for_tick`
+task runs and only :meth:`Device.advance` steps the bank. That is *lockstep* (:attr:`Device.lockstep`,
+``serve --lockstep``): the clock is the client's, who runs N ticks by writing N to the ``step`` register
+(the server calls :meth:`Device.advance` before it answers the write), and the testing kit's manual clock.
+Nothing in a tick reads the wall clock, so the same writes between the same ticks give the same state, bit
+for bit. Tests synchronise on :meth:`Device.wait_for_tick`
 instead of sleeping. The clock and the sleep function are injectable for tests.
 
 Run/freeze and speed at runtime: :meth:`Device.freeze` stops the tick task (simulated time and the ``tick``
@@ -64,12 +68,18 @@ import numpy as np
 from valve_emulator.device._tasks import cancel_and_wait
 from valve_emulator.device.image import ImageLayout
 from valve_emulator.device.malfunctions import Malfunction, MalfunctionBank
-from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, encode_image, patch
+from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, patch
+from valve_emulator.device.registers.kernel import ImageEncoder
 from valve_emulator.device.snapshots import Snapshot, SnapshotError
 
 __all__ = ["JitterBuffer", "Device", "TICK_TASK_NAME"]
 
 TICK_TASK_NAME = "valve-emulator-tick"
+#: Loop-ticks (ticks × loops) :meth:`Device.advance` runs in one compiled call when nothing else acts in them
+#: (the call's output arrays take about 50 bytes per loop-tick).
+QUIET_RUN = 1 << 16
+#: Fewer ticks than this run one by one: a compiled run's set-up costs more than a few single steps.
+QUIET_MIN = 8
 _log = logging.getLogger(__name__)
 
 
@@ -85,6 +95,17 @@ class JitterBuffer:
     def add(self, lateness: float) -> None:
         self._buf[self._count % self._buf.size] = lateness
         self._count += 1
+
+    def add_many(self, value: float, count: int) -> None:
+        """``count`` latenesses of ``value`` each (a run of ticks timed together)."""
+        size = self._buf.size
+        count = int(count)
+        if count >= size:
+            self._buf[:] = value
+        else:
+            at = (self._count + np.arange(count)) % size
+            self._buf[at] = value
+        self._count += count
 
     def __len__(self) -> int:
         return min(self._count, self._buf.size)
@@ -174,6 +195,7 @@ class Device:
         self.on_tick: list[Callable[[Device], None]] = []
         self.offsets = self.layout.offsets
         self.image = bytearray(self.layout.size)
+        self._encode = ImageEncoder(scaling, self.image, self.offsets)
         self._refresh()
 
     @classmethod
@@ -247,8 +269,7 @@ class Device:
     # --- one tick -----------------------------------------------------------------------------------
 
     def _refresh(self) -> None:
-        encode_image(self.bank, self.scaling, self.image, self.offsets, tick=self.ticks, overruns=self.overruns,
-                     time=self.bank.sample_time)
+        self._encode(self.bank, tick=self.ticks, overruns=self.overruns, time=self.bank.sample_time)
 
     def tick(self) -> None:
         """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""
@@ -262,6 +283,10 @@ class Device:
         for callback in self.on_tick:
             callback(self)
         self.tick_time.add(self._clock() - start)
+        self._wake()
+
+    def _wake(self) -> None:
+        """Resolve the waiters of every tick count reached."""
         waiters = self._waiters
         while waiters and waiters[0][0] <= self.ticks:
             fut = heapq.heappop(waiters)[2]
@@ -269,13 +294,36 @@ class Device:
                 fut.set_result(self.ticks)
 
     def advance(self, k: int = 1) -> int:
-        """Run ``k`` ticks immediately (only with ``time_scale == 0`` or frozen); returns the tick count."""
+        """Run ``k`` ticks immediately (only with ``time_scale == 0`` or frozen); returns the tick count.
+
+        Ticks that nothing can tell apart from the bank's own stepping -- no write pending, no ramp running,
+        no :attr:`on_tick` callback -- run as one compiled ``bank.run`` (from :data:`QUIET_MIN` ticks, at most
+        :data:`QUIET_RUN` loop-ticks at a time), which the loop bank guarantees equal to as many ``bank.step()``
+        calls, bit for bit; the image is then encoded once, after the last of them.
+        """
         if self.time_scale != 0 and not self._frozen:
             raise RuntimeError(f"Device.advance needs frozen time (time_scale=0 or freeze()), "
                                f"not time_scale={self.time_scale}")
-        for _ in range(int(k)):
-            self.tick()
+        end = self.ticks + int(k)
+        while self.ticks < end:
+            if end - self.ticks >= QUIET_MIN and self._quiet():
+                self._run_quiet(min(end - self.ticks, max(QUIET_MIN, QUIET_RUN // self.bank.n)))
+            else:
+                self.tick()
         return self.ticks
+
+    def _quiet(self) -> bool:
+        """May the next ticks run as one ``bank.run`` (nothing but the bank acts in them)?"""
+        return (not self._pending and not self.on_tick and hasattr(self.bank, "run")
+                and (self.malfunctions is None or not self.malfunctions.ramping))
+
+    def _run_quiet(self, m: int) -> None:
+        start = self._clock()
+        self.bank.run(m)
+        self.ticks += m
+        self._refresh()
+        self.tick_time.add_many((self._clock() - start) / m, m)
+        self._wake()
 
     async def wait_for_tick(self, k: int) -> int:
         """Wait until at least ``k`` ticks have run; returns the tick count."""
@@ -288,6 +336,11 @@ class Device:
         return await fut
 
     # --- instructor: run/freeze, speed, snapshots, malfunctions --------------------------------------
+
+    @property
+    def lockstep(self) -> bool:
+        """``True`` with ``time_scale == 0``: only :meth:`advance` (a client's ``step`` write) moves the clock."""
+        return self.time_scale == 0
 
     @property
     def frozen(self) -> bool:

@@ -19,11 +19,23 @@ VALVE_FRICTION = ("stiction", "deadband")
 
 
 class Answer(StrEnum):
-    """The answer for one loop (deadband, friction with J = 0, counts as stiction)."""
+    """The answer for one loop (deadband, friction with J = 0, counts as stiction).
+
+    ``no_response`` is a finding, not an abstention: PV holds one value while OP travels far, so the valve is not
+    moving or the loop is open (a seized valve, a closed block valve, an open bypass, a dead transmitter, a
+    frozen archive) — the loop needs inspecting, though the record cannot say which of these it is.
+    ``cannot_tell`` is kept for records that cannot decide.
+    """
 
     STICTION = "stiction"
     NO_STICTION = "no_stiction"
+    NO_RESPONSE = "no_response"
     CANNOT_TELL = "cannot_tell"
+
+    @property
+    def needs_attention(self) -> bool:
+        """Whether the answer asks someone to look at the valve (stiction, or a PV that does not respond)."""
+        return self in (Answer.STICTION, Answer.NO_RESPONSE)
 
     @property
     def words(self) -> str:
@@ -71,3 +83,4 @@ class Reason(StrEnum):
     NOT_EXPLAINED = "not_explained"          # no model predicts held-out PV better than its mean
     UNINFORMATIVE = "uninformative"          # the fit part carries no information
     PART_OF_RECORD = "part_of_record"        # answered on one half: one linear model explains neither whole
+    OP_UNITS_REFUTED = "op_units_refuted"    # OP's declared travel span does not fit OP: it was dropped

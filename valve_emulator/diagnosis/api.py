@@ -11,11 +11,16 @@ The recording is read (a path, with the reader's options passed through), put on
 (:func:`~valve_emulator.diagnosis.explain.pipeline.explain`) or, without one, assessed
 (:func:`~valve_emulator.diagnosis.assess.decision.assess_uniform`).
 
-OP's units (:mod:`~valve_emulator.diagnosis.fit.frame`): OP's travel span is known — S and J are then also
-given in % of travel, and saturation and the flow characteristic are candidates — when ``op_range=(LO, HI)``
-is given (OP's values at 0 and 100 % travel), when the file is in the standard recording format or its
-reader was told ``op_units`` (``"%"`` or ``"mA"``, converted to %), or when a model is given. Otherwise OP
-may be in any units: the plant-data diagnosis works in a unit-free frame and reports S and J in OP's units.
+OP's units (:mod:`~valve_emulator.diagnosis.fit.frame`): the plant-data search always runs in a unit-free
+frame of OP, so its answer does not depend on OP's units or offset, nor on PV's units, offset or sign. OP's
+travel span is *declared* by ``op_range=(LO, HI)`` (OP's values at 0 and 100 % travel), by the standard
+recording format or a reader told ``op_units`` (``"%"`` or ``"mA"``, converted to %), or by a model (its OP
+is % travel). A declared span adds S and J in % of travel, and saturation and the flow characteristic as
+candidates — unless the data refute it (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.refutation`: OP
+outside about −1..101 % of the span, or clearly moving within less than 0.5 % of it). A refuted span is
+dropped and the answer says so (reason ``op_units_refuted``, and a note naming OP's observed range); with a
+model, whose OP is % travel by construction, the model is still fitted, with the same reason and note.
+S and J are always also given as fractions of the OP band used (OP's robust range).
 """
 
 from __future__ import annotations
@@ -24,6 +29,8 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 
 from valve_emulator.config import LoopConfig, load_loop
+from valve_emulator.diagnosis.answers import Reason
+from valve_emulator.diagnosis.assess.adequacy import EXCITATION, adequacy
 from valve_emulator.diagnosis.assess.decision import assess_uniform
 from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.fit.frame import Frame
@@ -32,6 +39,12 @@ from valve_emulator.recordings import MAX_GAP, Recording, RecordingError, read_r
 
 __all__ = ["diagnose", "ARRAYS"]
 
+#: What a refuted travel span means for plant data (after the refutation's sentence) ...
+DROPPED = ("; the declaration was dropped: the answer does not use it, and S and J are in OP's units and as a "
+           "fraction of the OP band used")
+#: ... and for a model, whose OP is % travel by construction.
+DROPPED_MODEL = ("; the model's OP is % of travel, so its fit and findings on this recording are not to be trusted: "
+                 "convert OP to % travel, or diagnose without the model")
 #: The arrays a mapping may hold: required first, then optional.
 ARRAYS = {"t": True, "op": True, "pv": True, "sp": False, "mv": False}
 
@@ -55,7 +68,7 @@ def _from_mapping(data: Mapping) -> Recording:
 
 
 def _recording(recording, reader_options: dict) -> tuple[Recording, tuple[str, ...], str]:
-    """The recording, the reader's notes, and how OP's travel span is known from the file ("" if not)."""
+    """The recording, the reader's notes, and how the file declares OP's travel span ("" if it does not)."""
     if isinstance(recording, (str, os.PathLike)):
         options = {k: v for k, v in reader_options.items() if not (k == "op_units" and v is None)}
         loaded = read_recording(recording, **{"gap_factor": MAX_GAP, **options})
@@ -104,22 +117,40 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
         raise TypeError("candidates and validation apply only with a model (plant data use the fixed rule)")
     if model is not None and op_range is not None:
         raise TypeError("op_range applies only to plant data: with a model OP is % travel")
-    if op_range is not None:
-        if len(op_range) != 2:
-            raise ValueError(f"op_range must be (LO, HI), OP's values at 0 and 100 % travel; got {op_range!r}")
-        frame_span = Frame.travel_percent((float(op_range[0]), float(op_range[1])), source="op_range")
+    declared = _declared_span(op_range)
     cfg = load_loop(model) if isinstance(model, (str, os.PathLike)) else model
+    pv_units = reader_options.get("pv_units", "")
     rec, notes, known = _recording(recording, reader_options)
     rec, note = regularize(rec)
     notes += (note,) if note else ()
     if cfg is not None:
+        declared = Frame(span_source="model")
+    elif declared is None and known:
+        declared = Frame.travel_percent(source=known)
+    refuted = "" if declared is None else declared.refutation(rec.op, moving=_moving(rec))
+    if refuted:
+        refuted += (DROPPED_MODEL if cfg is not None else DROPPED)
+    caveats = ((Reason.OP_UNITS_REFUTED, refuted),) if refuted else ()
+    notes += (refuted,) if refuted else ()
+    if cfg is not None:
         return Diagnosis(recording=rec, explanation=explain(rec, cfg, candidates=candidates, validation=validation,
-                                                            progress=progress), notes=notes)
-    if op_range is not None:
-        frame = frame_span
-    elif known:
-        frame = Frame.travel_percent(source=known)
-    else:
-        frame = Frame.unit_free(rec.op)
-    a = assess_uniform(rec, progress=progress, frame=frame)
-    return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes)
+                                                            progress=progress), notes=notes, caveats=caveats,
+                         model=cfg, pv_units=pv_units)
+    a = assess_uniform(rec, progress=progress, frame=None if refuted else declared)
+    return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes, caveats=caveats,
+                     pv_units=pv_units)
+
+
+def _declared_span(op_range: Sequence[float] | None) -> Frame | None:
+    """The travel span ``op_range`` declares (None without one)."""
+    if op_range is None:
+        return None
+    if len(op_range) != 2:
+        raise ValueError(f"op_range must be (LO, HI), OP's values at 0 and 100 % travel; got {op_range!r}")
+    return Frame.travel_percent((float(op_range[0]), float(op_range[1])), source="op_range")
+
+
+def _moving(rec: Recording) -> bool:
+    """Whether OP moves clearly beyond its noise: its robust range reaches :data:`EXCITATION` noise σ (the
+    adequacy check's excitation by OP)."""
+    return adequacy(rec).facts.get("op_range_in_noise", 0.0) >= EXCITATION

@@ -2,11 +2,12 @@ r"""A plant-wide sweep: the plant-data diagnosis of many recordings, on one mach
 
 :func:`sweep` diagnoses every recording of a list of files and folders (a folder stands for the recording
 files in it, :func:`recordings_in`) and returns one flat row per recording (:func:`diagnose_file`): the
-answer, its strength and reason codes, S and J in OP's units (and in % travel when the span is known), the
-held-out fits, the time, and the whole JSON document. It runs them one after the other, in ``jobs`` worker
-processes of this machine, or on an existing Dask distributed cluster (``scheduler``: its address, or a
-``distributed`` client or cluster object; the optional extra ``valve_emulator[cluster]``). A file that cannot
-be read or diagnosed is a row with its ``error``, not the end of the sweep.
+answer, its strength and reason codes, S and J in OP's units, as fractions of the OP band used, and in % travel
+when the span is known, the held-out fits, the time, and the whole JSON document. It runs them one after the
+other, in ``jobs`` worker processes of this machine, or on an existing Dask distributed cluster
+(``scheduler``: its address, or a ``distributed`` client or cluster object; the optional extra
+``valve_emulator[cluster]``). A file that cannot be read or diagnosed is a row with its ``error``, not the end
+of the sweep.
 
 :class:`SweepTable` writes the rows as CSV (one line per recording) and JSON.
 """
@@ -28,8 +29,8 @@ __all__ = ["RECORDING_SUFFIXES", "recordings_in", "diagnose_file", "sweep", "Swe
 #: File suffixes a folder's recordings may have (others, e.g. reports and figures, are skipped).
 RECORDING_SUFFIXES = (".csv", ".txt", ".tsv", ".dat")
 #: The summary table's columns.
-COLUMNS = ("file", "answer", "strength", "reasons", "S", "J", "units", "S_travel", "J_travel", "fit_before",
-           "fit_after", "seconds", "error")
+COLUMNS = ("file", "answer", "strength", "reasons", "S", "J", "units", "S_band", "J_band", "S_travel", "J_travel",
+           "fit_before", "fit_after", "seconds", "error")
 
 
 def init_worker() -> None:
@@ -57,11 +58,12 @@ def recordings_in(paths: Iterable[str | os.PathLike]) -> list[Path]:
     return out
 
 
-def _value(doc: dict, key: str, travel: bool = False):
+def _value(doc: dict, key: str, scale: str = ""):
+    """S or J from the document's friction: in OP's units, or on ``scale`` (``"band"``, ``"travel"``)."""
     fr = doc.get("friction")
-    if fr is None or (travel and fr.get("travel") is None):
+    if fr is None or (scale and fr.get(scale) is None):
         return None
-    return (fr["travel"] if travel else fr)[key]["value"]
+    return (fr[scale] if scale else fr)[key]["value"]
 
 
 def diagnose_file(path: str | os.PathLike, options: dict | None = None) -> dict:
@@ -79,8 +81,9 @@ def diagnose_file(path: str | os.PathLike, options: dict | None = None) -> dict:
         row.update(error=str(exc), seconds=round(time.perf_counter() - start, 2), document=None)
         return row
     row.update(answer=doc["answer"], strength=doc["strength"], reasons=" ".join(r["code"] for r in doc["reasons"]),
-               S=_value(doc, "S"), J=_value(doc, "J"), S_travel=_value(doc, "S", True),
-               J_travel=_value(doc, "J", True),
+               S=_value(doc, "S"), J=_value(doc, "J"), S_band=_value(doc, "S", "band"),
+               J_band=_value(doc, "J", "band"), S_travel=_value(doc, "S", "travel"),
+               J_travel=_value(doc, "J", "travel"),
                units=None if doc["friction"] is None else doc["friction"]["S"]["units"],
                fit_before=doc["fit_before"], fit_after=doc["fit_after"],
                seconds=round(time.perf_counter() - start, 2), document=doc)

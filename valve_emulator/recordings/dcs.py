@@ -110,7 +110,7 @@ def parse_dcs(lines: list[str], source: str, *, skip: int = 0, op: ColumnSpec | 
         t = ts * np.arange(len(table))
         stamps_used = False
     else:
-        stamps = table.times(jt)
+        stamps = table.times(jt, decimal=decimal)
         t, more = time_axis(stamps, table, jt, declared_ts=declared_ts, gap_factor=gap_factor)
         notes += more
         stamps_used = True

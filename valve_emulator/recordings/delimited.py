@@ -86,7 +86,7 @@ def parse_delimited(lines: list[str], source: str, *, skip: int = 0, header: boo
         if jt is None:
             raise located(source, f"no time column (none called {'/'.join(TIME_NAMES)}); pass time= with a "
                                   "column, or ts= with the sample time in seconds", line=first - 1)
-        t, notes = time_axis(table.times(jt), table, jt, gap_factor=gap_factor)
+        t, notes = time_axis(table.times(jt, decimal=decimal), table, jt, gap_factor=gap_factor)
         start, columns["time"] = table.cell(0, jt), names[jt]
     columns.update({role: names[j] for role, j in cols.items()})
     return Parsed(

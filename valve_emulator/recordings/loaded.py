@@ -102,7 +102,9 @@ class LoadedRecording:
     auto_segments, excluded : ``(t_start, t_end)`` of the AUTO runs and of the excluded (MANUAL) runs.
     start : the first sample's time stamp as written in the file (``None`` without stamps).
     info : further header facts (declared sample time, row count, the DCS's own stiction parameters, ...).
-    notes : things that were tolerated and that a user should know (irregular stamps, flags, OP range).
+    notes : things that were tolerated and that a user should know (irregular stamps, flags, MANUAL samples).
+        Whether OP really is in the units declared is for the diagnosis to judge (its unit-free frame and the
+        ``op_units_refuted`` rule, :mod:`~valve_emulator.diagnosis.fit.frame`), not the reader.
     """
 
     recording: Recording
@@ -140,7 +142,8 @@ class LoadedRecording:
                  f"  {len(rec)} samples used of {len(self.full)}, "
                  + (f"dt {rec.dt:g} s, " if len(rec) > 1 else "") + f"t {rec.t[0]:g}..{rec.t[-1]:g} s",
                  "  columns: " + ", ".join(f"{k}={v}" for k, v in self.columns.items()),
-                 f"  OP in {self.op_units} (shown in %), PV scale {self.pv_scale:g} {self.pv_units}".rstrip()]
+                 f"  OP in {self.op_units} (shown in %), {np.min(rec.op):g}..{np.max(rec.op):g}; "
+                 f"PV scale {self.pv_scale:g} {self.pv_units}".rstrip()]
         for t0, t1 in self.excluded:
             lines.append(f"  excluded (not AUTO): {t0:g}..{t1:g} s")
         lines += [f"  note: {n}" for n in self.notes]
@@ -239,9 +242,6 @@ def finish(p: Parsed, *, op_units: str = "%", ma_table: Sequence[Sequence[float]
         op = table.to_pct(op)
         p.notes.append("OP converted from mA to % travel with the table "
                        + ", ".join(f"{a:g} mA = {b:g} %" for a, b in table.points))
-    lo, hi = float(np.min(op)), float(np.max(op))
-    if lo < -2.0 or hi > 102.0:
-        p.notes.append(f"OP spans {lo:g}..{hi:g}, outside 0..100 % travel: check op_units")
     extra = dict(p.extra)
     if p.auto is not None:
         extra.setdefault("mode", p.auto.astype(float))

@@ -172,16 +172,17 @@ class Table:
             raise self.error(f"not a number: {c!r}{hint}", i, j)
         return float(text)
 
-    def times(self, j: int) -> np.ndarray:
-        """Column ``j`` as time in seconds: plain numbers are seconds, otherwise date-times.
+    def times(self, j: int, *, decimal: str = ".") -> np.ndarray:
+        """Column ``j`` as time in seconds: plain numbers are seconds (with the file's ``decimal`` mark),
+        otherwise date-times.
 
         Date-times are ISO 8601 (``2024-06-27 21:55:00``, ``2024-06-27T21:55:00.5``, with or without a UTC
         offset) or ``YYYY/MM/DD HH:MM[:SS[.f]]``; they are returned as POSIX seconds (naive stamps taken as
         UTC, so only differences matter). All cells of the column must be of the same kind.
         """
         cells = self.cells(j)
-        if cells and _DECIMAL.fullmatch(cells[0]):
-            return self.numbers(j)
+        if cells and _DECIMAL.fullmatch(cells[0].strip().replace(decimal, ".")):
+            return self.numbers(j, decimal=decimal)
         out = np.empty(len(cells))
         for i, c in enumerate(cells):
             stamp = _parse_datetime(c)

@@ -179,6 +179,8 @@ class LoopBank:
         # with one vectorised comparison instead of a Python pass over every loop
         self._sp_next = np.array([s[0][0] if s else math.inf for s in self._sp_steps], dtype=float)
         self._pid.reset(self._plant.pv, self._sp, op_init)
+        self._controlled = self.has_controller.copy()
+        self._op_limits = np.array([c.op_limits if c else (0.0, 100.0) for c in ctrls], dtype=float)
         for i, c in enumerate(ctrls):
             if c is not None and c.mode == "manual":
                 self._pid.set_manual(i, op_init[i])
@@ -364,6 +366,29 @@ class LoopBank:
             noise[stuck] = self.pv_stuck[stuck] - self._plant.pv[stuck]
         return noise
 
+    def follow_external(self, external: bool) -> None:
+        """Let every valve follow the external OP (``op_external``, :meth:`run`'s ``op``) instead of its
+        controller (``True``), or hand the valves back to their controllers (``False``): in auto, continuing
+        bumplessly from the OP, PV and set point they have now.
+
+        A closed-loop replay leads in open loop on the recorded OP, then lets the controller take over
+        (:mod:`~valve_emulator.simulation.replay`).
+        """
+        if external:
+            self.has_controller[:] = False
+            return
+        self.has_controller[:] = self._controlled
+        self._pid.reset(self.pv, self._sp, np.clip(self.op, self._op_limits[:, 0], self._op_limits[:, 1]))
+
+    def settle_plants(self) -> None:
+        """Put every plant at rest for the flow it now receives (valves and controllers keep their state).
+
+        A replay that first runs the valves through a pre-roll (:mod:`~valve_emulator.simulation.replay`)
+        starts the plants afresh: an integrating plant would otherwise carry what the pre-roll fed it.
+        """
+        self._plant.reset(self.flow + self.load)
+        self.pv = self._plant.pv.copy()
+
     # -- snapshots --------------------------------------------------------------------------------------------
     def _nested(self) -> tuple[type, ...]:
         return (PIDBank, PlantBank, DisturbanceBank, NoiseBank, type(self._dist._normals))
@@ -398,24 +423,43 @@ class LoopBank:
         self.pv = pv_meas
         self.k += 1
 
-    def run(self, steps: int) -> dict[str, np.ndarray]:
+    def run(self, steps: int, *, sp: np.ndarray | None = None, op: np.ndarray | None = None
+            ) -> dict[str, np.ndarray]:
         """Advance ``steps`` samples in one compiled loop; return arrays of shape (steps, n).
 
         Keys: ``t`` (steps,), ``sp``, ``op``, ``mv``, ``flow``, ``pv``, ``stuck``. The bank's state carries on,
         so ``run(a)`` then ``run(b)`` equals ``run(a + b)`` and equals ``a + b`` calls of :meth:`step`.
+
+        ``sp`` and ``op`` (steps, n), when given, are the set point at every sample (instead of the schedule)
+        and the external OP at every sample (instead of the one held since the last write): a recording
+        replayed through the loops (:mod:`~valve_emulator.simulation.replay`). Afterwards the bank holds
+        their last rows.
         """
         steps = int(steps)
+        if (sp is not None or op is not None) and np.isfinite(self.pv_stuck).any():
+            raise ValueError("a replayed sp or op cannot be combined with a stuck transmitter")
         if np.isfinite(self.pv_stuck).any():   # a stuck transmitter depends on the plant sample by sample
             return self._run_stepwise(steps)
         times = (self.k + np.arange(steps)) * self.dt
-        sp = self._sp_table(steps)
+        if sp is None:
+            sp = self._sp_table(steps)
+        else:
+            sp = self._replayed("sp", sp, steps)
+            if steps:   # a replayed set point replaces the schedule
+                self._sp[:] = sp[-1]
+                self._sp_steps = [[] for _ in range(self.n)]
+                self._sp_next[:] = math.inf
+        if op is not None:
+            op = self._replayed("op", op, steps)
+            if steps:
+                self.op_external[:] = op[-1]
         # loops without disturbance or noise need no per-sample generator calls
         quiet_dist = all(c.plant.disturbance.type == "none" for c in self.loops)
         dist = np.zeros((steps, self.n)) if quiet_dist else np.ascontiguousarray(
             self._dist.step_many(times)).reshape(steps, self.n)
         dist += self.load
         noise = np.ascontiguousarray(self._unit_noise(steps) * self.noise_std + self.pv_bias)
-        op_ext = np.ascontiguousarray(np.broadcast_to(self.op_external, (steps, self.n)))
+        op_ext = np.ascontiguousarray(np.broadcast_to(self.op_external, (steps, self.n)) if op is None else op)
         out = {name: np.empty((steps, self.n)) for name in ("pv", "op", "mv", "flow")}
         stuck = np.empty((steps, self.n), dtype=np.bool_)
         pv_meas = np.empty(self.n)
@@ -428,6 +472,16 @@ class LoopBank:
         if steps:
             self.pv = pv_meas.copy()
         return {"t": times, "sp": sp, **out, "stuck": stuck}
+
+    def _replayed(self, name: str, values: np.ndarray, steps: int) -> np.ndarray:
+        """A replayed input of :meth:`run` as a contiguous (steps, n) float array of finite values."""
+        a = np.asarray(values, dtype=float)
+        a = a.reshape(-1, 1) if a.ndim == 1 and self.n == 1 else a
+        if a.shape != (steps, self.n):
+            raise ValueError(f"{name} must have shape ({steps}, {self.n}), got {np.shape(values)}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} must be finite")
+        return np.ascontiguousarray(a)
 
     def _run_stepwise(self, steps: int) -> dict[str, np.ndarray]:
         """:meth:`run` by calls of :meth:`step` (same keys and shapes)."""

@@ -251,6 +251,19 @@ def make_app(station: Station, *, token: str | None = None) -> web.Application:
         return _json({"time_scale": st.device.time_scale})
 
     @_api(instructor=True)
+    async def step(request: web.Request) -> web.Response:
+        """Lockstep over HTTP, like a Modbus write of ``step``: run ``ticks`` ticks (default 1), then answer."""
+        ticks = (await _body(request)).get("ticks", 1)
+        if isinstance(ticks, bool) or not isinstance(ticks, int) or not 0 <= ticks <= 0xFFFF:
+            raise StationError(f"field 'ticks' must be a whole number of ticks 0..65535, got {ticks!r}",
+                               field="ticks")
+        if not st.device.lockstep:
+            raise StationError("the device is not in lockstep (serve --lockstep): it runs its own clock",
+                               field="ticks", status=409)
+        st.device.advance(ticks)
+        return _json({"ticks": st.device.ticks, "time": st.bank.sample_time})
+
+    @_api(instructor=True)
     async def snapshots(request: web.Request) -> web.Response:
         return _json(st.list_snapshots())
 
@@ -340,6 +353,7 @@ def make_app(station: Station, *, token: str | None = None) -> web.Application:
     r.add_post("/api/run", run)
     r.add_post("/api/freeze", freeze)
     r.add_post("/api/speed", speed)
+    r.add_post("/api/step", step)
     r.add_get("/api/snapshots", snapshots)
     r.add_post("/api/snapshots", save)
     r.add_post("/api/snapshots/{name}/restore", restore)

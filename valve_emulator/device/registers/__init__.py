@@ -49,9 +49,13 @@ Holding registers (function codes 3, 6, 16, 22, 23)::
     | fault         | holding | 30      | 40031     | uint16  | 1     | bits                     | RW-instructor |
     | comm_fault    | holding | 65280   | 465281    | uint16  | 1     | 0..5, see CommFault      | RW-instructor |
     | comm_delay_ms | holding | 65281   | 465282    | uint16  | 1     | ms added to every answer | RW-instructor |
+    | step          | holding | 65296   | 465297    | uint16  | 1     | ticks to run (lockstep)  | RW            |
 
 ``comm_fault`` and ``comm_delay_ms`` belong to the unit id, not to a loop: communication faults on demand
 (:class:`CommFault`, :mod:`valve_emulator.device.comm`), at fixed addresses above every loop's block.
+``step`` belongs to the device's clock (every unit id answers it): in lockstep (``serve --lockstep``) writing N
+runs N ticks of every loop and only then answers, so the next read sees their result; it reads 0, and
+outside lockstep a write is refused (illegal data address, like OP in auto).
 
 The rows a controller cannot write -- read-only (``R``) and instructor (``RW-instructor``) -- also appear
 as input registers (function code 4) at the same addresses, so a read-only client sees injected faults
@@ -133,6 +137,7 @@ from valve_emulator.device.registers.codec import (
     decode_write,
     encode_loop,
     encode_value,
+    encode_write,
     patch,
     status_word,
     write_range,
@@ -177,6 +182,7 @@ __all__ = [
     "encode_image",
     "encode_loop",
     "encode_value",
+    "encode_write",
     "encode_words",
     "format_registers",
     "from_words",

@@ -51,7 +51,8 @@ from valve_emulator.device.registers.table import (
 )
 from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, split32
 
-__all__ = ["decode_value", "decode_write", "encode_loop", "encode_value", "patch", "status_word", "write_range"]
+__all__ = ["decode_value", "decode_write", "encode_loop", "encode_value", "encode_write", "patch", "status_word",
+           "write_range"]
 
 _STATUS: Final = address_of("status")
 # Written quantities that also flip a status bit: quantity -> (bit, is the bit set for this value?)
@@ -109,6 +110,30 @@ def encode_value(reg: Register, value: Any, scaling: Scaling, index: int) -> tup
     if reg.width == 2:
         return split32(raw, cdab)
     return (raw & 0xFFFF,)
+
+
+def encode_write(reg: Register, value: float, scaling: Scaling, index: int) -> tuple[int, ...]:
+    """The words a client writes to ``reg`` to set the physical ``value`` of loop ``index`` (a protocol that
+    carries engineering values, such as OPC UA, then writes them like any Modbus client).
+
+    Unlike :func:`encode_value` nothing is clipped: a value beyond what the register can carry, or a flag or
+    bit field that is not a whole number, raises :class:`RegisterValueError` naming the register, and a word
+    outside the register's write range is refused by :func:`decode_write` as it would be over Modbus.
+    """
+    value = float(value)
+    if reg.type is DataType.FLOAT32 or reg.width != 1:
+        raise RegisterAccessError(f"register {reg.name} is not written directly", register=reg.name)
+    if reg.conversion in (Conversion.FLAG, Conversion.BITS, Conversion.COUNTER) or (reg.zero_is_off and value == 0):
+        raw = value
+    else:
+        raw = _scaled(reg, value, scaling, index)
+    lo, hi = reg.type.raw_range
+    if not (math.isfinite(raw) and raw == raw and lo <= round(raw) <= hi) or (
+            reg.conversion in (Conversion.FLAG, Conversion.BITS) and raw != int(raw)):
+        raise RegisterValueError(f"register {reg.name}: {value:g} cannot be written (raw {raw:g} outside "
+                                 f"{lo}..{hi} or not a whole number)", register=reg.name, value=value,
+                                 allowed=write_range(reg, scaling, index))
+    return (round(raw) & 0xFFFF,)
 
 
 def status_word(*, stuck: bool, sat_low: bool, sat_high: bool, controller: bool, auto: bool,

@@ -26,7 +26,7 @@ from valve_emulator.device.registers.scaling import Scaling
 from valve_emulator.device.registers.table import MAP_VERSION, N_REGISTERS, Conversion, Fault, Status, register
 from valve_emulator.device.registers.words import CDAB, split32
 
-__all__ = ["encode", "encode_image", "encode_words"]
+__all__ = ["ImageEncoder", "encode", "encode_image", "encode_words"]
 
 _ROW_BYTES: Final = 2 * N_REGISTERS
 #: The image is written through a native-order uint16 view: swap bytes on little-endian machines.
@@ -113,18 +113,30 @@ def _common_words(scaling: Scaling, *, tick: int, overruns: int, time: float) ->
                     dtype=np.int64)
 
 
-def _floats(state: Any, name: str, n: int, optional: bool = False) -> np.ndarray:
+def _array(state: Any, name: str, n: int, dtype: np.dtype, optional: bool) -> np.ndarray:
+    """``state.name`` as a contiguous array (n,) of ``dtype``; zeros for a missing optional array.
+
+    A bank's arrays already have that form and are passed through untouched: at one loop the conversions
+    would cost more than the compiled pass itself (the manual clock of the testing kit runs ticks back to back).
+    """
     value = getattr(state, name, None) if optional else getattr(state, name)
     if value is None:
-        return np.zeros(n)
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=np.float64), (n,)))
+        return np.zeros(n, dtype=dtype)
+    if type(value) is np.ndarray and value.dtype is dtype and value.shape == (n,) and value.flags.c_contiguous:
+        return value
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=dtype), (n,)))
+
+
+_F64: Final = np.dtype(np.float64)
+_BOOL: Final = np.dtype(np.bool_)
+
+
+def _floats(state: Any, name: str, n: int, optional: bool = False) -> np.ndarray:
+    return _array(state, name, n, _F64, optional)
 
 
 def _bools(state: Any, name: str, n: int, optional: bool = False) -> np.ndarray:
-    value = getattr(state, name, None) if optional else getattr(state, name)
-    if value is None:
-        return np.zeros(n, dtype=np.bool_)
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=np.bool_), (n,)))
+    return _array(state, name, n, _BOOL, optional)
 
 
 def encode_image(state: Any, scaling: Scaling, image: bytearray | np.ndarray, offsets: np.ndarray, *,
@@ -134,22 +146,36 @@ def encode_image(state: Any, scaling: Scaling, image: bytearray | np.ndarray, of
     ``state`` is read as :func:`encode` describes (a ``LoopBank`` qualifies); ``image`` is a writable
     buffer of at least ``offsets.max() + 62`` bytes with even offsets.
     """
-    n = scaling.n
-    offsets = np.ascontiguousarray(offsets, dtype=np.int64)
-    if offsets.shape != (n,) or (n and (offsets.min() < 0 or offsets.max() + _ROW_BYTES > len(image)
-                                        or np.any(offsets & 1))):
-        raise ValueError(f"encode_image: need {n} even offsets inside an image of {len(image)} bytes")
-    op = _floats(state, "op", n)
-    words16 = np.frombuffer(image, dtype=np.uint16)  # native order: the kernel swaps bytes itself
-    _encode_kernel(op, np.ascontiguousarray(scaling.op_to_ma(op), dtype=np.float64), _floats(state, "mv", n),
-                   _floats(state, "flow", n), _floats(state, "pv", n), _floats(state, "sp", n),
-                   _floats(state, "kc", n), _floats(state, "ti", n), _floats(state, "td", n),
-                   _floats(state, "S", n), _floats(state, "J", n), _floats(state, "load", n, True),
-                   _floats(state, "noise_std", n, True), _bools(state, "stuck", n),
-                   _bools(state, "sat_low", n), _bools(state, "sat_high", n), _bools(state, "has_controller", n),
-                   _bools(state, "auto", n), _bools(state, "frozen", n, True), scaling.pv_lo, scaling.pv_hi,
-                   _common_words(scaling, tick=tick, overruns=overruns, time=time),
-                   scaling.word_order is CDAB, offsets // 2, words16)
+    ImageEncoder(scaling, image, offsets)(state, tick=tick, overruns=overruns, time=time)
+
+
+class ImageEncoder:
+    """:func:`encode_image` bound to one image and its offsets, checked once: the device's call at every tick,
+    where the checks and conversions of the offsets would cost as much as the compiled pass at one loop."""
+
+    def __init__(self, scaling: Scaling, image: bytearray | np.ndarray, offsets: np.ndarray) -> None:
+        n = scaling.n
+        offsets = np.ascontiguousarray(offsets, dtype=np.int64)
+        if offsets.shape != (n,) or (n and (offsets.min() < 0 or offsets.max() + _ROW_BYTES > len(image)
+                                            or np.any(offsets & 1))):
+            raise ValueError(f"encode_image: need {n} even offsets inside an image of {len(image)} bytes")
+        self.scaling = scaling
+        self._words16 = np.frombuffer(image, dtype=np.uint16)  # native order: the kernel swaps bytes itself
+        self._half = offsets // 2
+
+    def __call__(self, state: Any, *, tick: int, overruns: int, time: float) -> None:
+        scaling, n = self.scaling, self.scaling.n
+        op = _floats(state, "op", n)
+        _encode_kernel(op, np.ascontiguousarray(scaling.op_to_ma(op), dtype=np.float64), _floats(state, "mv", n),
+                       _floats(state, "flow", n), _floats(state, "pv", n), _floats(state, "sp", n),
+                       _floats(state, "kc", n), _floats(state, "ti", n), _floats(state, "td", n),
+                       _floats(state, "S", n), _floats(state, "J", n), _floats(state, "load", n, True),
+                       _floats(state, "noise_std", n, True), _bools(state, "stuck", n),
+                       _bools(state, "sat_low", n), _bools(state, "sat_high", n),
+                       _bools(state, "has_controller", n), _bools(state, "auto", n),
+                       _bools(state, "frozen", n, True), scaling.pv_lo, scaling.pv_hi,
+                       _common_words(scaling, tick=tick, overruns=overruns, time=time),
+                       scaling.word_order is CDAB, self._half, self._words16)
 
 
 def encode_words(state: Any, scaling: Scaling, *, tick: int, overruns: int, time: float) -> np.ndarray:

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from typing import Any, Final
 
 from valve_emulator.device.registers.bits import COILS, DISCRETE_INPUTS, reference
-from valve_emulator.device.registers.table import INPUT_REGISTERS, REGISTERS, UNIT_REGISTERS
+from valve_emulator.device.registers.table import CLOCK_REGISTERS, INPUT_REGISTERS, REGISTERS, UNIT_REGISTERS
 
 __all__ = ["format_registers", "registers_table"]
 
@@ -22,8 +22,8 @@ def registers_table(config: Any = None) -> list[dict]:
     ``address`` is the zero-based PDU address, ``reference`` the one-based reference of an HMI tag editor
     (4xxxx holding, 3xxxx input, 0xxxx coil, 1xxxx discrete input). ``config`` (a ``ServerConfig``, a
     ``LoopConfig`` or ``None``) only fills in the PV engineering units of the float32 copies when every loop
-    shares them. Holding rows come first (the loop's, then the unit registers), then the input mirror, the
-    coils and the discrete inputs (type ``bit``, ``units`` says what 1 means).
+    shares them. Holding rows come first (the loop's, then the unit registers and the clock's ``step``), then
+    the input mirror, the coils and the discrete inputs (type ``bit``, ``units`` says what 1 means).
     """
     pv_units = "PV units"
     if config is not None:
@@ -31,7 +31,7 @@ def registers_table(config: Any = None) -> list[dict]:
         if len(units) == 1 and next(iter(units)):
             pv_units = next(iter(units))
     rows = []
-    for table, regs in (("holding", REGISTERS + UNIT_REGISTERS), ("input", INPUT_REGISTERS)):
+    for table, regs in (("holding", REGISTERS + UNIT_REGISTERS + CLOCK_REGISTERS), ("input", INPUT_REGISTERS)):
         for r in regs:
             units = pv_units if r.units == "PV units" else r.units
             rows.append(dict(zip(_COLUMNS, (r.name, table, r.address, reference(table, r.address), r.type.value,

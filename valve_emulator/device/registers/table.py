@@ -21,6 +21,7 @@ __all__ = [
     "ACCESS_VALUES",
     "BLOCK_STRIDE",
     "COMM_BASE",
+    "CLOCK_REGISTERS",
     "CONTROLLER_QUANTITIES",
     "DEFAULT_PORT",
     "INPUT_REGISTERS",
@@ -33,6 +34,7 @@ __all__ = [
     "RW",
     "RW_CONTROLLER",
     "RW_INSTRUCTOR",
+    "STEP_ADDRESS",
     "UNIT_REGISTERS",
     "WRITABLE_QUANTITIES",
     "Access",
@@ -215,6 +217,13 @@ UNIT_REGISTERS: Final[tuple[Register, ...]] = (
              RW_INSTRUCTOR, "comm_fault", write=(0, max(CommFault)), conversion=Conversion.BITS),
     Register("comm_delay_ms", COMM_BASE + 1, _U16, 1, "ms added to every answer", RW_INSTRUCTOR,
              "comm_delay_ms", write=(0, MAX_DELAY_MS)),
+)
+#: The device's clock, answered by every unit id: writing ``step`` = N runs N ticks of the whole device before the
+#: write is answered (lockstep only: ``serve --lockstep``, see :mod:`valve_emulator.device.tick`); it reads 0.
+STEP_ADDRESS: Final = COMM_BASE + 0x10
+CLOCK_REGISTERS: Final[tuple[Register, ...]] = (
+    Register("step", STEP_ADDRESS, _U16, 1, "ticks to run (lockstep)", RW, "step", write=(0, 0xFFFF),
+             conversion=Conversion.COUNTER),
 )
 # Input registers mirror what a controller cannot write: the read-only rows and the instructor rows.
 INPUT_REGISTERS: Final = tuple(r for r in REGISTERS if r.access in (R, RW_INSTRUCTOR))

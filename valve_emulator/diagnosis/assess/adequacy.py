@@ -7,9 +7,11 @@ answer "is the valve sticky?" whatever the method, and saying so beats a wrong a
    a dead time and two cross-validation blocks).
 2. **Flat PV**: PV holds one value over at least :data:`FLAT_SHARE` of the record (the longest constant run).
    Half the record then carries no information about the valve. A PV that does not move while OP travels
-   far (a robust range of at least :data:`EXCITATION` noise σ) is a finding of its own, *no response*: a
-   seized valve, a closed block valve, a dead transmitter and a frozen archive all produce it, and the
-   record cannot tell them apart. A constant OP is refused the same way (the valve was never asked to move).
+   far (a robust range of at least :data:`EXCITATION` noise σ) is a finding of its own, *no response* (the
+   answer :attr:`~valve_emulator.diagnosis.answers.Answer.NO_RESPONSE`): the valve is not moving or the loop is
+   open — a seized valve, a closed block valve, an open bypass, a dead transmitter and a frozen archive all
+   produce it, and the record cannot tell them apart, but each needs someone to inspect the loop. A constant
+   OP is refused the same way (the valve was never asked to move).
 3. **No oscillation and no excitation**: nothing moved the loop that the data could learn from. Oscillation
    is the regularity test of Thornhill, Huang & Zhang (J. Process Control 13 (2003) 91–100; ``r > 1``,
    :func:`~valve_emulator.detectors.base.oscillation`, the test the comparison detectors use) on the
@@ -75,7 +77,7 @@ class Adequacy:
     Attributes
     ----------
     ok : the record supports a conclusion.
-    reason : for a refusal, the sentence after "cannot tell: "; "" otherwise.
+    reason : for a refusal, the sentence after "cannot tell: " (or "no response: "); "" otherwise.
     code : for a refusal, its :class:`~valve_emulator.diagnosis.answers.Reason` (``too_short``, ``flat_pv``,
         ``no_response``, ``flat_op``, ``no_excitation``); None otherwise.
     facts : the numbers checked (samples, flat shares, oscillation regularity and period, OP range in noise
@@ -113,9 +115,11 @@ def adequacy(rec: Recording) -> Adequacy:
             return Adequacy(False, f"{flat}; the valve was never asked to move", facts, Reason.FLAT_OP)
         if facts["op_range_in_noise"] >= EXCITATION:
             return Adequacy(False, f"{flat} while OP travelled over {facts['op_range']:.3g} (OP units; "
-                                   f"{facts['op_range_in_noise']:.3g} noise σ): no response; a seized valve, a "
-                                   "closed block valve, a dead transmitter or a frozen archive look the same — "
-                                   "the record cannot tell them apart", facts, Reason.NO_RESPONSE)
+                                   f"{facts['op_range_in_noise']:.3g} noise σ): PV does not respond to OP, so the "
+                                   "valve is not moving or the loop is open — inspect it; a seized valve, a "
+                                   "closed block valve, an open bypass, a dead transmitter or a frozen archive "
+                                   "look the same, and the record cannot tell them apart", facts,
+                            Reason.NO_RESPONSE)
         return Adequacy(False, f"{flat}; a seized valve, a closed block valve, a dead transmitter or a frozen "
                                "archive look the same", facts, Reason.FLAT_PV)
     signals = [pv, op]

@@ -1,4 +1,4 @@
-r"""Plant data without a plant model: stiction, no stiction (and why), or a polite "cannot tell".
+r"""Plant data without a plant model: stiction, no stiction (and why), no response, or a polite "cannot tell".
 
 :func:`assess` is what ``valve-emulator diagnose FILE`` (no ``--model``) and ``valve-emulator evaluate``
 run on each loop:
@@ -6,7 +6,9 @@ run on each loop:
 1. **Uniform time** (:func:`~valve_emulator.recordings.resample.regularize`): a jittered recorder file is put
    on a grid, real gaps are refused (:func:`assess`; :func:`assess_uniform` takes a recording already on one).
 2. **Can the data tell?** (:func:`~valve_emulator.diagnosis.assess.adequacy.adequacy`): too short, a flat PV, no
-   oscillation and no excitation → ``cannot tell`` with the reason.
+   oscillation and no excitation → ``cannot tell`` with the reason; a flat PV while OP travels far →
+   ``no response``, an answer of its own: the valve is not moving or the loop is open, so the loop needs
+   inspecting (which of the look-alikes it is, the record cannot say).
 3. **Diagnosis** (:func:`~valve_emulator.diagnosis.explain.pipeline.explain`, no nominal model, two-fold
    validation): the linear part (FOPDT or IPDT with its dead time) is identified together with every
    candidate — the valve's (``stiction``, ``deadband``, ``actuator_lag``, ``characteristic``), and those
@@ -40,8 +42,8 @@ run on each loop:
      shorter stretches where it is not over the whole (fitting the stretches one model holds on, as
      stiction quantification on plant data does, e.g. Bacci di Capaci & Scali's selection of stationary
      windows). When the halves that are answered agree, the answer is theirs, with the figures of the half
-     whose model predicts held-out PV best and the reason ``part_of_record``; when they disagree or neither is
-     answered, the answer stays ``cannot tell``.
+     whose model predicts held-out PV best and the reason ``part_of_record`` (a ``no response`` half counts as
+     answered); when they disagree or neither is answered, the answer stays ``cannot tell``.
    * otherwise ``no stiction``, with the cause: the first accepted non-valve candidate (an external
      disturbance, a quantised PV, saturation, a flow characteristic, an actuator lag), or, for a loop that
      cycles regularly, aggressive ``tuning`` when :meth:`~valve_emulator.diagnosis.candidates.tuning.Tuning.
@@ -74,7 +76,7 @@ from valve_emulator.recordings.resample import regularize
 __all__ = ["Assessment", "assess", "assess_uniform", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS",
            "op_flat_at_extreme"]
 
-#: The three answers.
+#: The four answers.
 DECISIONS = tuple(Answer)
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
@@ -235,10 +237,12 @@ def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Cal
     """Assess a recording already on a uniform grid (steps 2 to 4 of the module docstring).
 
     ``notes`` say what was done to the data before (kept in the result); ``start`` is the
-    :func:`time.perf_counter` reading the wall time counts from (default: now). ``frame`` maps OP into the
-    search's frame (:mod:`~valve_emulator.diagnosis.fit.frame`): a known travel span
-    (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.travel_percent`), or by default the unit-free frame of
-    this OP, in which any positive affine map of OP (and of PV) gives the same answer.
+    :func:`time.perf_counter` reading the wall time counts from (default: now). The search runs in the
+    unit-free frame of this OP (:mod:`~valve_emulator.diagnosis.fit.frame`), in which any positive affine map of
+    OP (and any affine map of PV) gives the same answer; ``frame`` may declare OP's travel span
+    (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.travel_percent`), which adds S and J in % travel and the
+    candidates that need the travel stops (check it first with
+    :meth:`~valve_emulator.diagnosis.fit.frame.Frame.refutation`).
     """
     start = time.perf_counter() if start is None else start
     whole = _assess_once(rec, notes, progress, start, frame)
@@ -264,12 +268,17 @@ def _by_halves(rec: Recording, whole: Assessment, progress: Callable[[str], None
     if not answered or len({a.decision for _, a in answered}) > 1:
         why = (f"neither half answers on its own either ({said})" if not answered else f"its halves disagree ({said})")
         return replace(whole, reason=f"{whole.reason}; {why}", seconds=time.perf_counter() - start)
-    (i0, i1), best = max(answered, key=lambda ca: ca[1].explanation.fit_after)
+    (i0, i1), best = max(answered, key=lambda ca: _held_out_fit(ca[1]))
     sentence = (f"one linear model explains neither the whole record nor its absence of stiction, so each half was "
                 f"assessed on its own ({said}); the answer and its figures are those of samples {i0}–{i1 - 1}")
     return replace(best, source=whole.source, notes=whole.notes + (f"answered on samples {i0}–{i1 - 1} of {n}",),
                    reason=f"{best.reason}; {sentence}", reasons=best.reasons + ((Reason.PART_OF_RECORD, sentence),),
                    seconds=time.perf_counter() - start)
+
+
+def _held_out_fit(a: Assessment) -> float:
+    """The cross-validated fit of an assessment's model (-inf for an answer without one: ``no_response``)."""
+    return -np.inf if a.explanation is None else a.explanation.fit_after
 
 
 def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str], None] | None, start: float,
@@ -278,10 +287,11 @@ def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str
     src = rec.source or "recording"
     ad = adequacy(rec)
     if not ad.ok:
-        return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=ad.reason, adequacy=ad,
+        answer = Answer.NO_RESPONSE if ad.code is Reason.NO_RESPONSE else Answer.CANNOT_TELL
+        return Assessment(source=src, decision=answer, cause="", reason=ad.reason, adequacy=ad,
                           reasons=((ad.code, ad.reason),), notes=notes, seconds=time.perf_counter() - start)
     noise = op_noise(rec.op)
-    frame = frame or Frame.unit_free(rec.op)
+    frame = Frame.unit_free(rec.op, declared=frame)   # the search never sees OP's units; a span is kept aside
     inner = replace(rec, op=frame.to_internal(rec.op), mv=None if rec.mv is None else frame.to_internal(rec.mv))
     flat_extreme = op_flat_at_extreme(rec.op)
     names = [n for n in registry() if frame.known or n not in NEEDS_SPAN or (n == "saturation" and flat_extreme)]

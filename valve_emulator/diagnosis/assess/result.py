@@ -1,4 +1,4 @@
-r"""The answer for one plant loop: stiction, no stiction (and why) or cannot tell (and why).
+r"""The answer for one plant loop: stiction, no stiction (and why), no response (inspect it), or cannot tell.
 
 An :class:`Assessment` is the frozen record :func:`~valve_emulator.diagnosis.assess.decision.assess` returns;
 it composes the explain step's :class:`~valve_emulator.diagnosis.explain.result.Explanation` (when the data
@@ -28,7 +28,7 @@ class Assessment:
     source : the recording's name.
     decision : the :class:`~valve_emulator.diagnosis.answers.Answer`.
     cause : the physics behind the answer (``stiction``, ``deadband``, ``disturbance``, ``tuning``,
-        ``linear``, ...; ``""`` for "cannot tell").
+        ``linear``, ...; ``""`` for "no response" and "cannot tell").
     reason : one sentence saying why.
     reasons : ``(code, sentence)`` pairs, the answer's own first, then what else was found (a quantised PV
         beside stiction, a weak evidence, a band inside OP noise...).

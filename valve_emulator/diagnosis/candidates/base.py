@@ -79,6 +79,9 @@ class ChainContext:
     y_scale, y_mean : how the fit scales PV, ``y = (pv − y_mean) / y_scale``.
     window : ``(w0, w1)``, the samples the linear part is fitted on.
     residual : scaled PV minus the prediction of the model being extended (None when not known).
+    stops : where 0 and 100 % travel lie on the chain's input scale (the search's frame, see
+        :attr:`~valve_emulator.diagnosis.fit.frame.Frame.stops`); the characteristic and limit slots act on
+        travel, ``100 (x − stops[0]) / (stops[1] − stops[0])``.
     """
 
     dt: float
@@ -94,6 +97,18 @@ class ChainContext:
     y_mean: float = 0.0
     window: tuple[int, int] = (0, 0)
     residual: np.ndarray | None = None
+    stops: tuple[float, float] = (0.0, 100.0)
+
+    def travel(self, x: np.ndarray) -> np.ndarray:
+        """The chain's signal ``x`` on the travel scale of the characteristic and limit slots (0–100 %)."""
+        lo, hi = self.stops
+        return np.asarray(x, dtype=float) if (lo, hi) == (0.0, 100.0) else (np.asarray(x, dtype=float) - lo) * (
+            100.0 / (hi - lo))
+
+    def from_travel(self, v: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`travel`."""
+        lo, hi = self.stops
+        return v if (lo, hi) == (0.0, 100.0) else lo + np.asarray(v, dtype=float) * ((hi - lo) / 100.0)
 
 
 class Candidate(ABC):
@@ -105,8 +120,9 @@ class Candidate(ABC):
     slot : one of :data:`SLOTS`; it fixes the candidate's :attr:`kind`.
     param_names : names of the parameter vector's entries, in order.
     dims : which parameters are OP differences (``"op"``: a band, a jump) or OP levels (``"op_level"``: a
-        limit), converted from the search's frame to OP's units (:mod:`~valve_emulator.diagnosis.fit.frame`);
-        the others (times, PV quantities, labels) need no conversion.
+        limit, on the travel scale of :meth:`ChainContext.travel`), converted from the search's frame to OP's
+        units (:mod:`~valve_emulator.diagnosis.fit.frame`); the others (times, PV quantities,
+        labels) need no conversion.
     n_params : parameters counted by BIC (may differ from ``len(param_names)`` when a name is a label,
         e.g. the characteristic's type).
     """

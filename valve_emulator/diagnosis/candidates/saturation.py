@@ -12,9 +12,11 @@ parameter for BIC. On plant data it is a candidate only where OP's travel span i
 flat at an extreme (:func:`~valve_emulator.diagnosis.assess.decision.op_flat_at_extreme`). Its signature: the
 residual of a model without it lives where OP sits beyond the limit.
 
-Grid: each side at the 2nd … 40th percentiles of OP (``lo``) and the 60th … 98th (``hi``), so that at least
-2 % of the samples lie beyond the limit (fewer could not be told from noise); :meth:`refine` searches
-±1.5 grid steps around the best at a tenth of a step.
+Limits are levels on the travel scale (0 and 100 % at the travel stops,
+:meth:`~valve_emulator.diagnosis.candidates.base.ChainContext.travel`). Grid: each side at the 2nd … 40th
+percentiles of OP (``lo``) and the 60th … 98th (``hi``), so that at least 2 % of the samples lie beyond the
+limit (fewer could not be told from noise); :meth:`refine` searches ±1.5 grid steps around the best at a tenth
+of a step.
 """
 
 from __future__ import annotations
@@ -39,14 +41,15 @@ class Saturation(ChainCandidate):
     dims: ClassVar[dict[str, str]] = {"lo": "op_level", "hi": "op_level"}
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
-        op = np.clip(np.asarray(ctx.op, dtype=float), 0.0, 100.0)
+        op = np.clip(ctx.travel(ctx.op), 0.0, 100.0)
         lo = np.unique(np.percentile(op, PERCENTILES))
         hi = np.unique(np.percentile(op, [100.0 - p for p in PERCENTILES]))
         rows = [(v, 100.0) for v in lo if v > 0.0] + [(0.0, v) for v in hi if v < 100.0]
         return np.array(rows, dtype=float).reshape(-1, 2)
 
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
-        step = max(ctx.op_span / 20.0, 1e-3)
+        lo_stop, hi_stop = ctx.stops
+        step = max(ctx.op_span * 100.0 / (hi_stop - lo_stop) / 20.0, 1e-3)
         offsets = step * np.linspace(-1.5, 1.5, 31)
         lo, hi = float(best[0]), float(best[1])
         if lo > 0.0:

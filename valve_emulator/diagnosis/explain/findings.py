@@ -119,7 +119,7 @@ def _in_op_units(cand, act_params: np.ndarray, params: dict, ivs: dict, frame: F
             p_user[i] = frame.op_delta(p_user[i])
         elif cand.dims.get(name) == "op_level":  # a level at the frame's stops (0, 100) is no level: NaN
             v = p_user[i]
-            p_user[i] = frame.op_level(v) if 0.0 < v < 100.0 else np.nan
+            p_user[i] = frame.stop_level(v) if 0.0 < v < 100.0 else np.nan
     units = " %" if frame.units == TRAVEL else f" {frame.units}"
     if not frame.identity:
         params = {k: float(f"{v:.4g}") if isinstance(v, float) else v

@@ -42,7 +42,7 @@ from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model,
 from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
 from valve_emulator.diagnosis.fit.fitter import Fitter
-from valve_emulator.diagnosis.fit.frame import UNKNOWN_UNITS, Frame
+from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame
 from valve_emulator.diagnosis.fit.load_check import input_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
@@ -78,7 +78,7 @@ def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame
     st, fit = model.fit.structure, model.fit
     k = fit.gain * problem.y_scale * frame.gain
     # Per % of flow in % travel; per unit of OP otherwise (the frame's gain carries the map).
-    per = "% flow" if frame.identity else ("OP unit" if frame.units == UNKNOWN_UNITS else frame.units)
+    per = "% flow" if frame.units == TRAVEL else ("OP unit" if frame.units == UNKNOWN_UNITS else frame.units)
     nom_k = f"{nominal_gain(nominal.num, nominal.den):.4g}" if nominal.given else "—"
     taus = lambda s: ", ".join(f"{t:.4g}" for t in s.taus) or "—"  # noqa: E731
     yes_no = lambda flag: "yes" if flag else "no"  # noqa: E731
@@ -88,10 +88,12 @@ def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame
             "integrating": (yes_no(nominal.structure.integrating) if nominal.given else "—", yes_no(st.integrating))}
 
 
-def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib: dict, say, validation: str):
+def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib: dict, say, validation: str,
+         stops: tuple[float, float]):
     """Prepare, (identify,) search: one pass in one cost domain."""
     problem = prepare(recording, nominal_delay=nom.delay if nom else None,
-                      settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter, validation=validation)
+                      settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter, validation=validation,
+                      stops=stops)
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
         nom = identify(problem)
@@ -134,18 +136,19 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     validation = validation or ("split" if nominal is not None else "twofold")
     dt = recording.dt if len(recording) >= 2 else 1.0
     nom = nominal_from_config(nominal, dt) if nominal is not None else None
+    frame = frame or Frame()
     if nom is None:
         lib.pop("dead_time", None)  # without a nominal model the dead time is simply identified
-        problem, nom, fitter, model, rounds, tests = _run(recording, None, None, lib, say, validation)
+        problem, nom, fitter, model, rounds, tests = _run(recording, None, None, lib, say, validation, frame.stops)
         st = model.fit.structure
         if st.integrating:
             say("the plant integrates: searching again on prefiltered PV")
             lam = prefilter_for(st.delay + sum(st.taus), dt)
-            problem, nom, fitter, model, rounds, tests = _run(recording, None, lam, lib, say, validation)
+            problem, nom, fitter, model, rounds, tests = _run(recording, None, lam, lib, say, validation, frame.stops)
     else:
         st = nom.structure
         lam = prefilter_for(st.delay + sum(st.taus), dt) if st.integrating else None
-        problem, nom, fitter, model, rounds, tests = _run(recording, nom, lam, lib, say, validation)
+        problem, nom, fitter, model, rounds, tests = _run(recording, nom, lam, lib, say, validation, frame.stops)
     base = rounds[0].baseline if rounds else model
     test_start = problem.test[0] if validation == "split" else int(round((1.0 - HELD_OUT) * problem.T))
     if nom.given:
@@ -161,7 +164,6 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     located = locate(problem.t, problem.op, (problem.pv - pv_before) ** 2, dt=problem.dt,
                      response_time=horizon, masks=masks)
     say("estimating parameter intervals")
-    frame = frame or Frame()
     found = findings(fitter, problem, model, rounds, masks, horizon, nom, frame)
     tests += dead_time_move(found, nom.delay, st.delay)
     ranking = tuple(RankRow(round=i + 1, option=o.label, parameters=param_text(o.model, o.added, frame),

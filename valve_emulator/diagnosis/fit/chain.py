@@ -4,6 +4,10 @@ A slot holds either an *active* candidate with fixed parameters, the nominal mod
 nominal valve's S and J, the nominal characteristic; no actuator dynamics), or — for the candidate under
 search — a whole grid of parameter vectors, which turns the signal from one column into ``n``. Slots
 before the gridded one are computed once and shared by every column.
+
+The actuator and valve slots act on OP in the search's frame; the characteristic and limit slots on travel
+(0–100 % between the travel stops, :meth:`~valve_emulator.diagnosis.candidates.base.ChainContext.travel`), and
+the flow goes back to the search's frame after them.
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ __all__ = ["Active", "CHAIN_SLOTS", "run_chain"]
 #: Slots that transform the signal, in order (the dead time is part of the linear fit; ``output`` candidates
 #: act after the plant, see :mod:`~valve_emulator.diagnosis.fit.backfit`). The nominal model has no limit.
 CHAIN_SLOTS = ("actuator", "valve", "characteristic", "limit")
+#: The first slot that acts on travel (it and the slots after it).
+_FIRST_ON_TRAVEL = "characteristic"
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,6 +71,8 @@ def run_chain(op: np.ndarray, active: dict[str, Active], ctx: ChainContext, *, n
     """
     x = np.asarray(op, dtype=float)
     for slot in CHAIN_SLOTS:
+        if slot == _FIRST_ON_TRAVEL:
+            x = ctx.travel(x)
         if grid_candidate is not None and slot == grid_candidate.slot:
             x = grid_candidate.apply(x, grid, ctx)
         elif slot in active:
@@ -74,4 +82,5 @@ def run_chain(op: np.ndarray, active: dict[str, Active], ctx: ChainContext, *, n
             x = y[:, 0] if x.ndim == 1 else y
         else:
             x = _nominal(slot, x, ctx, *nominal_valve)
+    x = ctx.from_travel(x)
     return x[:, None] if x.ndim == 1 else x

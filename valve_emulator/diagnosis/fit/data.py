@@ -27,7 +27,7 @@ import numpy as np
 
 from valve_emulator.recordings.recording import Recording, RecordingError
 
-__all__ = ["Problem", "prepare", "prefilter_for", "folds", "HELD_OUT", "MIN_SAMPLES", "VALIDATIONS",
+__all__ = ["Problem", "prepare", "prefilter_for", "folds", "fold_windows", "HELD_OUT", "MIN_SAMPLES", "VALIDATIONS",
            "fit_percent", "UninformativeData"]
 
 #: Fraction of the record, at its end, held out from fitting.
@@ -84,6 +84,8 @@ class Problem:
         always on PV itself.
     source : the recording's name, for messages.
     validation : one of :data:`VALIDATIONS`; with ``"twofold"`` the fit part runs to the end.
+    stops : where OP is at 0 and 100 % travel in ``op``'s frame (see
+        :attr:`~valve_emulator.diagnosis.fit.frame.Frame.stops`).
     """
 
     t: np.ndarray
@@ -99,6 +101,7 @@ class Problem:
     prefilter: float | None = None
     source: str = ""
     validation: str = "split"
+    stops: tuple[float, float] = (0.0, 100.0)
 
     @property
     def T(self) -> int:
@@ -138,7 +141,11 @@ def folds(problem: Problem) -> tuple[tuple[tuple[int, int], tuple[int, int]], ..
     predictions depend on the recorded OP only, never on past PV, so a held-out block may precede the
     samples fitted without leaking them.
     """
-    T, w0 = problem.T, problem.train[0]
+    return fold_windows(problem.T, problem.train[0])
+
+
+def fold_windows(T: int, w0: int) -> tuple[tuple[tuple[int, int], tuple[int, int]], ...]:
+    """:func:`folds` of a record of ``T`` samples whose burn-in ends at ``w0``."""
     a = int(round((1.0 - HELD_OUT) * T))
     b = max(w0 + 1, int(round(HELD_OUT * T)))
     return ((w0, a), (a, T)), ((b, T), (w0, b))
@@ -154,7 +161,8 @@ def _delay_grid(dt: float, T: int, nominal_delay: float | None) -> np.ndarray:
 
 
 def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: float = 0.0,
-            prefilter: float | None = None, validation: str = "split") -> Problem:
+            prefilter: float | None = None, validation: str = "split",
+            stops: tuple[float, float] = (0.0, 100.0)) -> Problem:
     """Check a recording and split it (see the module docstring).
 
     Parameters
@@ -162,7 +170,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     rec : the recording (``t``, ``op``, ``pv`` used; ``sp``/``mv`` may be absent).
     nominal_delay : the nominal model's dead time (s), which centres the dead-time grid; None = no model.
     settle_time : the nominal plant's settling time (s), a lower bound for the burn-in.
-    prefilter : see :class:`Problem`.
+    prefilter, stops : see :class:`Problem`.
     validation : ``"split"`` (hold out the last 30 %) or ``"twofold"`` (fit on all, cross-validate).
 
     Raises
@@ -209,4 +217,4 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     t, op, pv, y = arrays
     return Problem(t=t, op=op, pv=pv, y=y, y_mean=y_mean, y_scale=y_scale, dt=float(dt), train=(w0, w1),
                    delays=delays, op_span=float(max(hi - lo, 1e-6)), prefilter=prefilter, source=src,
-                   validation=validation)
+                   validation=validation, stops=stops)

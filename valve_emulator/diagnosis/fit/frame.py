@@ -3,19 +3,25 @@ r"""The unit-free frame the plant-data diagnosis works in, and the way back to O
 A recording's OP may be % of travel, mA, a 0–1 fraction, raw analog counts, engineering units of the
 manipulated flow, or a mean-centred or normalised signal. Grids, thresholds and the stiction machine must
 not depend on where its 0 and 100 lie, so OP is mapped once, by a positive affine map, to an internal
-coordinate ``u`` in which the whole search runs:
+coordinate ``u = 50 + 40 (op − m) / R`` in which the whole search runs, with ``m`` the midpoint and ``R`` the
+width of OP's robust range (0.5th–99.5th percentile, the *OP band used*). It depends on the data only through
+statistics that move with any positive affine map of OP, so the search sees the same numbers, and gives the
+same answer and findings, whatever OP's units and offset and whatever the file said about them.
 
-* **travel span known** (the standard recording format, ``--op-units``, ``--op-range LO HI``, or a nominal
-  model): ``u = 100 (op − LO) / (HI − LO)``, % of travel, so saturation at the travel stops and the flow
-  characteristic keep their meaning;
-* **unknown**: ``u = 50 + 40 (op − m) / R`` with ``m`` the midpoint and ``R`` the width of OP's robust range
-  (0.5th–99.5th percentile). It depends on the data only through statistics that move with any positive
-  affine map of OP, so the diagnosis gives the same answer and findings whatever OP's units and offset.
-  Saturation and the flow characteristic, which need the travel stops, are not candidates then.
+A **travel span** (OP's values at 0 and 100 % travel) is a claim about OP that the file or the user makes:
+the standard recording format (OP in %), ``--op-units``, ``--op-range LO HI``. It is kept beside the map,
+never in it: it adds S and J in % of travel, and the travel stops at which the chain's saturation candidate
+and the flow characteristic act (:attr:`Frame.stops`, their internal images). The data can refute it
+(:meth:`Frame.refutation`): an OP whose robust range leaves [:data:`SPAN_LOW`, :data:`SPAN_HIGH`] % of the
+span, or that moves clearly beyond its noise within less than :data:`SPAN_MIN_USED` % of it, is not in those
+units (a 0–1 fraction, raw counts, a deviation from the operating point read as %); the span is then dropped
+and the answer says so. A nominal model's OP is % travel by construction: :meth:`Frame.travel_percent` with
+the span (0, 100) is the identity map of the model path.
 
-PV needs no frame: the fit scales it (``y = (pv − ȳ)/σ_y``) and its candidates (a quantum, a disturbance
-amplitude) move with it. Parameters come back in OP's units (:meth:`Frame.op_delta`, :meth:`Frame.op_level`),
-and in % of travel when the span is known (:meth:`Frame.travel`).
+PV needs no frame: the fit scales it (``y = (pv − ȳ)/σ_y``, either sign of the process gain) and its
+candidates (a quantum, a disturbance amplitude) move with it. Parameters come back in OP's units
+(:meth:`Frame.op_delta`, :meth:`Frame.op_level`), as a fraction of the OP band used (:meth:`Frame.band`), and in %
+of travel when the span is known (:meth:`Frame.travel`).
 """
 
 from __future__ import annotations
@@ -24,16 +30,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Frame", "CENTER", "WIDTH", "TRAVEL", "UNKNOWN_UNITS"]
+__all__ = ["Frame", "CENTER", "WIDTH", "TRAVEL", "UNKNOWN_UNITS", "SPAN_LOW", "SPAN_HIGH", "SPAN_MIN_USED"]
 
-#: Internal coordinate of OP's robust midpoint when the span is unknown.
+#: Internal coordinate of OP's robust midpoint.
 CENTER = 50.0
-#: Internal width of OP's robust range when the span is unknown.
+#: Internal width of OP's robust range (the OP band used).
 WIDTH = 40.0
 #: Units of a quantity in % of travel.
 TRAVEL = "% travel"
 #: The units of an OP whose span is not known: its own, whatever they are.
 UNKNOWN_UNITS = "OP units"
+#: A declared span is refuted when OP's robust range leaves [SPAN_LOW, SPAN_HIGH] % of it: a 1 % margin for
+#: a positioner's overtravel and an archive's rounding, where a 0–1 fraction, raw counts or a deviation from
+#: the operating point read as % land far outside (or, below, far inside) the span.
+SPAN_LOW, SPAN_HIGH = -1.0, 101.0
+#: ... or when OP moves clearly beyond its noise over less than this share (%) of the span: no loop cycles
+#: or answers set-point changes with half a per cent of travel, where a 0–1 fraction read as % does.
+SPAN_MIN_USED = 0.5
+
+
+def robust_range(x) -> tuple[float, float]:
+    """The 0.5th and 99.5th percentiles: a signal's range without its few outliers."""
+    lo, hi = np.percentile(np.asarray(x, dtype=float), [0.5, 99.5])
+    return float(lo), float(hi)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -45,7 +64,9 @@ class Frame:
     offset, gain : the map (``gain > 0``).
     units : OP's units for reports (``"% travel"``, ``"OP units"``, ...).
     span : OP's values at 0 and 100 % travel, when known (else None).
-    span_source : how the span is known (``"standard format"``, ``"--op-range"``, ``"op_units"``, ``"model"``).
+    span_source : how the span is known (``"standard format"``, ``"op_range"``, ``"op_units mA"``, ``"model"``).
+    band_range : OP's robust range (0.5th–99.5th percentile, OP's units), the OP band used, when the frame was
+        made from the data (:meth:`unit_free`); S and J are also reported as fractions of its width.
     """
 
     offset: float = 0.0
@@ -53,11 +74,13 @@ class Frame:
     units: str = TRAVEL
     span: tuple[float, float] | None = (0.0, 100.0)
     span_source: str = "assumed"
+    band_range: tuple[float, float] | None = None
 
     @classmethod
     def travel_percent(cls, span: tuple[float, float] = (0.0, 100.0), *, source: str = "assumed",
                        units: str | None = None) -> Frame:
-        """The frame of a known travel span (``span`` = OP at 0 and 100 %)."""
+        """The frame of a known travel span (``span`` = OP at 0 and 100 %): a declaration, mapped to % travel.
+        The plant-data search runs in :meth:`unit_free` of it; the model path in it (the identity for OP in %)."""
         lo, hi = float(span[0]), float(span[1])
         if not hi > lo:
             raise ValueError(f"op range: the value at 100 % travel ({hi:g}) must exceed the one at 0 % ({lo:g})")
@@ -66,15 +89,39 @@ class Frame:
         return cls(offset=-lo * gain, gain=gain, units=label, span=(lo, hi), span_source=source)
 
     @classmethod
-    def unit_free(cls, op: np.ndarray, *, units: str = UNKNOWN_UNITS) -> Frame:
-        """The frame of an OP whose span is unknown (robust midpoint and range, see the module docstring)."""
-        lo, hi = np.percentile(np.asarray(op, dtype=float), [0.5, 99.5])
-        width = float(hi - lo)
+    def unit_free(cls, op: np.ndarray, *, units: str = UNKNOWN_UNITS, declared: Frame | None = None) -> Frame:
+        """The search's frame of ``op`` (robust midpoint and range, see the module docstring), keeping the travel
+        span (and its units) of ``declared`` when that has one."""
+        lo, hi = robust_range(op)
+        width = hi - lo
         if not width > 0.0:   # OP nearly constant: any positive scale keeps the map invertible
             width = float(np.ptp(op)) or 1.0
         gain = WIDTH / width
-        return cls(offset=CENTER - gain * 0.5 * float(lo + hi), gain=gain, units=units, span=None,
-                   span_source="")
+        keep = declared is not None and declared.known
+        return cls(offset=CENTER - gain * 0.5 * (lo + hi), gain=gain, units=declared.units if keep else units,
+                   span=declared.span if keep else None, span_source=declared.span_source if keep else "",
+                   band_range=(lo, lo + width))
+
+    def refutation(self, op: np.ndarray, *, moving: bool) -> str:
+        """Why OP cannot be in this frame's declared travel span, a sentence naming OP's observed range (``""``
+        when it can be, or no span is declared):
+        its robust range leaves [:data:`SPAN_LOW`, :data:`SPAN_HIGH`] % of the span, or, ``moving`` (OP moves
+        clearly beyond its noise), it covers less than :data:`SPAN_MIN_USED` % of it."""
+        if self.span is None:
+            return ""
+        lo, hi = robust_range(op)
+        a, b = self.span
+        pct_lo, pct_hi = (100.0 * (x - a) / (b - a) for x in (lo, hi))
+        said = f"OP ran from {lo:.4g} to {hi:.4g} (0.5th–99.5th percentile)"
+        span = f"the declared span {a:g}..{b:g} ({self.span_source})"
+        if pct_lo < SPAN_LOW or pct_hi > SPAN_HIGH:
+            why = f"{said}, {pct_lo:.4g}..{pct_hi:.4g} % of {span}, outside {SPAN_LOW:g}..{SPAN_HIGH:g} %"
+        elif moving and pct_hi - pct_lo < SPAN_MIN_USED:
+            why = (f"{said}, {pct_hi - pct_lo:.3g} % of {span}, less than {SPAN_MIN_USED:g} % while it moves "
+                   "clearly beyond its noise")
+        else:
+            return ""
+        return f"{why}: OP is not in those units"
 
     @property
     def known(self) -> bool:
@@ -85,6 +132,14 @@ class Frame:
     def identity(self) -> bool:
         return self.offset == 0.0 and self.gain == 1.0
 
+    @property
+    def stops(self) -> tuple[float, float]:
+        """Where the chain's characteristic and limit slots put 0 and 100 % travel, in the internal frame: the
+        span's images when it is known, else (0, 100) (the travel scale is then the internal one)."""
+        if self.span is None:
+            return 0.0, 100.0
+        return float(self.to_internal(self.span[0])), float(self.to_internal(self.span[1]))
+
     # -- into the frame and back ------------------------------------------------------------------------------
     def to_internal(self, op) -> np.ndarray:
         return self.offset + self.gain * np.asarray(op, dtype=float)
@@ -94,8 +149,14 @@ class Frame:
         return (np.asarray(u, dtype=float) - self.offset) / self.gain
 
     def op_level(self, u: float) -> float:
-        """An internal OP level (a saturation limit) in OP's units."""
+        """An internal OP level in OP's units."""
         return (float(u) - self.offset) / self.gain
+
+    def stop_level(self, v: float) -> float:
+        """A level on the travel scale of the chain's characteristic and limit slots (0 and 100 at
+        :attr:`stops`: a saturation limit) in OP's units."""
+        lo, hi = self.stops
+        return self.op_level(lo + float(v) * (hi - lo) / 100.0)
 
     def op_delta(self, du: float) -> float:
         """An internal OP difference (a band S, a jump J) in OP's units."""
@@ -107,16 +168,24 @@ class Frame:
             return None
         return 100.0 * float(delta) / (self.span[1] - self.span[0])
 
+    def band(self, delta: float) -> float | None:
+        """An OP difference in OP's units as a fraction of the OP band used (None when not made from data):
+        the same figure whatever OP's units."""
+        if self.band_range is None:
+            return None
+        return float(delta) / (self.band_range[1] - self.band_range[0])
+
     def convert(self, dims: dict[str, str], values: dict) -> dict:
         """Parameters from the internal frame to OP's units; ``dims`` says which are OP differences
-        (``"op"``) or OP levels (``"op_level"``); others pass through."""
+        (``"op"``) or levels on the chain's travel scale (``"op_level"``, see :meth:`stop_level`); others pass
+        through."""
         out = {}
         for k, v in values.items():
             d = dims.get(k, "")
             if v is None or d not in ("op", "op_level"):
                 out[k] = v
             elif isinstance(v, tuple):
-                out[k] = tuple(self.op_delta(x) if d == "op" else self.op_level(x) for x in v)
+                out[k] = tuple(self.op_delta(x) if d == "op" else self.stop_level(x) for x in v)
             else:
-                out[k] = self.op_delta(v) if d == "op" else self.op_level(v)
+                out[k] = self.op_delta(v) if d == "op" else self.stop_level(v)
         return out

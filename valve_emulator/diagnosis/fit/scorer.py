@@ -103,7 +103,8 @@ class Scorer:
                             valve_model=self.nominal.valve_model, rest_samples=self.nominal.rest_samples,
                             characteristic=self.nominal.characteristic,
                             tau_plant=max(st.taus, default=10.0 * self.p.dt), delay=st.delay,
-                            pv=self.p.pv, y_scale=self.p.y_scale, y_mean=self.p.y_mean, window=self.p.train)
+                            pv=self.p.pv, y_scale=self.p.y_scale, y_mean=self.p.y_mean, window=self.p.train,
+                            stops=self.p.stops)
 
     def chain(self, active: dict[str, Active], ctx: ChainContext, cand: Candidate | None = None,
               grid: np.ndarray | None = None) -> np.ndarray:

@@ -15,10 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
-from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
+from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, robust_range
+from valve_emulator.diagnosis.report.twin import Twin, twin
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["Diagnosis"]
@@ -28,9 +30,14 @@ def _sig(x: float) -> float:
     return float(f"{float(x):.6g}")
 
 
+#: The units of S and J as fractions of the OP band used.
+BAND = "fraction of the OP band"
+
+
 def _friction_json(f: Finding | None, frame: Frame) -> dict | None:
     """The valve-friction estimate: S and J, each with its 95 % interval and units (J = 0 for a deadband), in
-    OP's units and, when OP's travel span is known, in % of travel (``travel``; null otherwise)."""
+    OP's units, when OP's travel span is known in % of travel (``travel``; null otherwise), and as fractions of
+    the OP band used, OP's robust range (``band``: the same figures whatever OP's units)."""
     if f is None:
         return None
 
@@ -44,6 +51,8 @@ def _friction_json(f: Finding | None, frame: Frame) -> dict | None:
     out["travel"] = None if not frame.known else {
         "S": value("S", frame.travel, TRAVEL), "J": value("J", frame.travel, TRAVEL), "span": list(frame.span),
         "span_source": frame.span_source}
+    out["band"] = None if frame.band_range is None else {
+        "S": value("S", frame.band, BAND), "J": value("J", frame.band, BAND), "op_band": list(frame.band_range)}
     return out
 
 
@@ -56,13 +65,19 @@ class Diagnosis:
     recording : the recording diagnosed (on a uniform grid).
     explanation : the explain step's record (None when plant data could not support a model at all).
     assessment : the plant-data answer (None when a model was given).
-    notes : what was done to the data on the way in (reader notes, resampling).
+    notes : what was done to the data on the way in (reader notes, resampling, a refuted OP span).
+    caveats : ``(code, sentence)`` pairs that qualify any answer, after its own reasons (``op_units_refuted``).
+    model : the nominal model it was run against (None for plant data); the twin takes its controller.
+    pv_units : PV's engineering units, as the reader was told (for the twin).
     """
 
     recording: Recording
     explanation: Explanation | None
     assessment: Assessment | None = None
     notes: tuple[str, ...] = ()
+    caveats: tuple[tuple[Reason, str], ...] = ()
+    model: LoopConfig | None = None
+    pv_units: str = ""
 
     # -- the answer ---------------------------------------------------------------------------------------
     @property
@@ -104,19 +119,20 @@ class Diagnosis:
     @property
     def reasons(self) -> tuple[tuple[Reason, str], ...]:
         """``(code, sentence)`` pairs saying why: on plant data the assessment's; with a model, one per finding
-        (``linear`` when there is none)."""
+        (``linear`` when there is none); then the :attr:`caveats`."""
         if self.assessment is not None:
-            return self.assessment.reasons
+            return self.assessment.reasons + self.caveats
         if not self.findings:
-            return ((Reason.LINEAR, "no candidate physics improves the model significantly"),)
-        return tuple((Reason(f.physics), f.description) for f in self.findings)
+            return ((Reason.LINEAR, "no candidate physics improves the model significantly"),) + self.caveats
+        return tuple((Reason(f.physics), f.description) for f in self.findings) + self.caveats
 
     @property
     def frame(self) -> Frame:
-        """OP's units and travel span (with a model: % travel, the model's)."""
+        """OP's units and travel span (with a model: % travel, the model's), and the OP band used."""
         if self.assessment is not None and self.assessment.frame is not None:
             return self.assessment.frame
-        return Frame(span_source="model" if self.assessment is None else "assumed")
+        return Frame(span_source="model" if self.assessment is None else "assumed",
+                     band_range=robust_range(self.recording.op))
 
     @property
     def friction(self) -> Finding | None:
@@ -134,6 +150,16 @@ class Diagnosis:
             reason = "" if self.assessment is None else f" ({self.assessment.reason})"
             raise ValueError(f"{self.source}: no model was fitted: the data could not support one{reason}")
         return self.explanation.predict(op)
+
+    def twin(self, *, name: str | None = None) -> Twin:
+        """The loop this diagnosis found as a loop config, with a header saying where each number came from
+        (:mod:`~valve_emulator.diagnosis.report.twin`); ``Twin.text()`` is the YAML file."""
+        return twin(self, model=self.model, pv_units=self.pv_units, name=name)
+
+    def to_config(self, *, name: str | None = None) -> LoopConfig:
+        """The twin's :class:`~valve_emulator.config.LoopConfig`: what ``simulate`` and ``serve`` read
+        (see :meth:`twin`). Raises ValueError when no model was fitted."""
+        return self.twin(name=name).config
 
     # -- output ---------------------------------------------------------------------------------------------
     def to_json(self) -> dict:

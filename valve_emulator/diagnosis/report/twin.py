@@ -1,0 +1,349 @@
+r"""The twin: the loop a diagnosis found, written as a loop config that ``simulate`` and ``serve`` read.
+
+:func:`twin` maps a :class:`~valve_emulator.diagnosis.report.diagnosis.Diagnosis` to a
+:class:`~valve_emulator.config.LoopConfig` and a header saying where each number came from:
+
+valve
+    ``S``, ``J`` of the stiction (or deadband: ``J = 0``) finding, else the nominal valve's; the
+    characteristic found, else the nominal one; the valve model and rest criterion of the nominal valve. All in
+    % travel: in the diagnosis' frame (:mod:`~valve_emulator.diagnosis.fit.frame`), which is % travel when
+    OP's travel span is known and otherwise the unit-free frame (the recording's robust OP range on 30–70 %).
+    ``valve.op_range`` keeps the map — the recording's OP at 0 and 100 % of that travel — so a replay
+    (:mod:`~valve_emulator.simulation.replay`) feeds the recording's OP exactly as the diagnosis did.
+plant
+    The final model's linear part as a continuous transfer function (:mod:`~valve_emulator.diagnosis.fit.
+    continuous`), in PV units per % flow, with its dead time. A found actuator lag ``1/(τs + 1)`` joins the
+    plant's denominator: the simulator has no actuator element, and a lag commutes with a linear valve and
+    characteristic (exact then; with a sticky valve the lag moves from before the valve to after it).
+    The operating point ``pv0, u0`` is the fit's (offset, mean flow; for an integrator the balance flow from the
+    fitted trend), ``pv0`` then moved so the twin's open-loop replay has the fit's mean PV on the fit part.
+    ``noise`` is the RMS of the final model's residual on the fit part; ``pv_range`` the recorded PV's range
+    widened by a quarter of it on each side (so the default alarms, at 10 and 90 % of the range, lie 10 % of
+    the recorded span outside what was recorded); ``units`` the recording's PV units.
+controller
+    The model's controller (tuning, action, limits) when a model with one was given; else, when the recording
+    has a set point, a PI identified from it (:func:`identify_pi`); else a controller in **manual** holding
+    the first OP, tuned by the SIMC rules (Skogestad, *J. Process Control* 13 (2003) 291–309) for the twin's
+    own plant, so an operator can switch it to auto. A saturation found becomes its ``op_limits``. It starts at
+    the recording's first OP, with the recorded SP's median (PV's without one) as its set point.
+simulation, device
+    ``dt`` and ``device.tick`` are the recording's sample time, ``duration`` its length.
+
+An external oscillating disturbance found (a sinusoid added to PV) becomes ``plant.disturbance``: the sinusoid
+at the plant input that the plant turns into it (amplitude divided by the plant's gain at that frequency, phase
+less its phase). A quantised PV has no key in the loop config; the header says so when one was found.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from valve_emulator.config import (
+    ControllerConfig,
+    DisturbanceConfig,
+    LoopConfig,
+    PlantConfig,
+    SimulationConfig,
+    ValveConfig,
+)
+from valve_emulator.config.schema import CHARACTERISTICS, DeviceConfig
+from valve_emulator.config.writer import dump_loop
+from valve_emulator.diagnosis.fit.continuous import continuous_transfer_function
+from valve_emulator.diagnosis.fit.data import fit_percent, fold_windows
+from valve_emulator.diagnosis.fit.frame import Frame
+from valve_emulator.diagnosis.fit.predict import FittedLoop
+from valve_emulator.simulation.replay import replay_op
+
+__all__ = ["Twin", "twin", "identify_pi", "replay_fit", "PV_MARGIN"]
+
+#: ``pv_range`` is the recorded PV's range widened by this fraction of it on each side.
+PV_MARGIN = 0.25
+#: Fewest unsaturated samples, and least share of OP's variance explained, for an identified PI to be used.
+_PI_MIN_SAMPLES, _PI_MIN_R2 = 20, 0.9
+#: An identified integral time beyond this many record lengths counts as no integral action.
+_PI_MAX_TI = 100.0
+#: OP within this distance (% travel) of 0 or 100 counts as saturated for the PI identification.
+_PI_EDGE = 0.5
+
+
+@dataclass(frozen=True)
+class Twin:
+    """A twin's config and its provenance (one line per group of numbers, written as the YAML header)."""
+
+    config: LoopConfig
+    provenance: tuple[str, ...]
+
+    def text(self) -> str:
+        """The YAML file: the provenance as a ``#`` header, then every key of the loop."""
+        return dump_loop(self.config, header=self.provenance)
+
+
+def _g(x: float) -> str:
+    return f"{x:.4g}"
+
+
+def identify_pi(t: np.ndarray, sp: np.ndarray, pv: np.ndarray, op: np.ndarray
+                ) -> tuple[float, float | None, str] | None:
+    r"""``(kc, ti, action)`` of the PI that wrote ``op`` (% travel) from ``sp`` and ``pv``; None when the data
+    do not show one.
+
+    The ISA position form :math:`\mathrm{op} = b + k_c(e + \frac1{T_i}\int e)` in velocity form,
+    :math:`\Delta\mathrm{op}_k = k_c\,\Delta e_k + (k_c\Delta t/T_i)\,e_k`, fitted by least squares on the
+    samples where OP (now and before) is off its stops — the recorded PV is what the controller read, so the
+    regressors carry no error. A negative :math:`k_c` (for ``e = sp − pv``) is direct action; a wrong-signed
+    integral term, or an integral time beyond :data:`_PI_MAX_TI` record lengths, means no integral action.
+    Refused below :data:`_PI_MIN_R2` of Δop's variance explained.
+    """
+    dt = float(np.median(np.diff(t)))
+    e = np.asarray(sp, dtype=float) - np.asarray(pv, dtype=float)
+    op = np.asarray(op, dtype=float)
+    inside = (op > _PI_EDGE) & (op < 100.0 - _PI_EDGE)
+    use = inside[1:] & inside[:-1] & np.isfinite(e[1:]) & np.isfinite(e[:-1])
+    if use.sum() < _PI_MIN_SAMPLES:
+        return None
+    X = np.column_stack([np.diff(e), e[1:]])[use]
+    y = np.diff(op)[use]
+    if not np.any(y):
+        return None
+    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    r2 = 1.0 - float(np.sum((y - X @ coef) ** 2) / np.sum((y - y.mean()) ** 2))
+    a, b = float(coef[0]), float(coef[1])
+    if r2 < _PI_MIN_R2 or a == 0.0:
+        return None
+    ti = a * dt / b if b != 0.0 and (a > 0) == (b > 0) else None
+    if ti is not None and ti > _PI_MAX_TI * (t[-1] - t[0]):
+        ti = None   # an integral that would take ages to act is rounding, not a tuning
+    return abs(a), ti, "reverse" if a > 0 else "direct"
+
+
+def _simc(num: tuple[float, ...], den: tuple[float, ...], delay: float, taus: tuple[float, ...],
+          integrating: bool, dt: float) -> tuple[float, float, str]:
+    """SIMC PI for the plant: the slowest lag kept, the others and the dead time lumped into θ; λ = θ."""
+    slow = max(taus, default=0.0)
+    theta = max(delay + sum(taus) - slow, dt)
+    lam = theta
+    if integrating:
+        k = num[-1] / den[-2]                    # gain per second of the integrator
+        kc, ti = 1.0 / (abs(k) * (lam + theta)), 4.0 * (lam + theta)
+    else:
+        k = num[-1] / den[-1]
+        kc = max(slow, dt) / (abs(k) * (lam + theta))
+        ti = min(max(slow, dt), 4.0 * (lam + theta))
+    return kc, ti, "reverse" if k > 0 else "direct"
+
+
+def _op_range(frame: Frame) -> tuple[float, float]:
+    """The recording's OP at 0 and 100 % of the frame's travel."""
+    return frame.op_level(0.0), frame.op_level(100.0)
+
+
+def _plant(fitted: FittedLoop, lag: float | None) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    ctx, fit = fitted.ctx, fitted.linear
+    num, den = continuous_transfer_function(fit.structure, fit.taps, ctx.dt)
+    num = tuple(c * ctx.y_scale for c in num)
+    if lag:
+        den = tuple(float(c) for c in np.polymul(den, [lag, 1.0]))
+    return num, den
+
+
+def _operating_point(fitted: FittedLoop) -> tuple[float, float]:
+    """``(pv0, u0)``: PV at the operating-point flow, and that flow (see the module docstring)."""
+    fit, ctx = fitted.linear, fitted.ctx
+    if not fit.structure.integrating:
+        return fit.offset * ctx.y_scale + ctx.y_mean, fitted.level
+    # y = H(u - level) + offset + trend·k/N: the trend is the integrator fed by (level - u0).
+    u0 = fitted.level - fit.trend / (fitted.record_length * ctx.dt * fit.gain)
+    y0 = fit.predict(fitted.flow(fitted.op), ctx.dt)[0]
+    return float(y0 * ctx.y_scale + ctx.y_mean), float(u0)
+
+
+def _input_sine(params: np.ndarray, plant: PlantConfig) -> DisturbanceConfig:
+    r"""The input sinusoid (% flow) that ``plant`` turns into the output one found, ``A sin(ωt + φ)`` in PV units:
+    amplitude ``A/|G(jω)|`` and phase ``φ − arg G(jω)``, the dead time included (steady state; the phase counts
+    from the recording's first sample)."""
+    period, amplitude, phase = (float(x) for x in params[:3])
+    w = 2.0 * np.pi / period
+    g = np.polyval(plant.num, 1j * w) / np.polyval(plant.den, 1j * w) * np.exp(-1j * w * plant.delay)
+    return DisturbanceConfig(type="sine", amplitude=amplitude / abs(g), period=period,
+                             phase=float(np.angle(np.exp(1j * (phase - np.angle(g))))))
+
+
+def _slug(text: str) -> str:
+    stem = Path(text).stem if text else "recording"
+    return "twin_" + (re.sub(r"[^A-Za-z0-9]+", "_", stem).strip("_").lower() or "recording")
+
+
+def _finding_text(diagnosis, physics: str) -> str:
+    f = next((f for f in diagnosis.findings if f.physics == physics), None)
+    if f is None:
+        return ""
+    ivs = "; ".join(f"{k} {_g(a)}–{_g(b)}" for k, (a, b) in f.intervals.items())
+    return f" (95 % intervals in OP's units: {ivs})" if ivs else ""
+
+
+def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray) -> tuple[ValveConfig, list[str]]:
+    """The valve section (``op``: the recorded OP in the twin's travel) and its provenance."""
+    fitted, rec, frame = diagnosis.explanation.fitted, diagnosis.recording, diagnosis.frame
+    ctx, active = fitted.ctx, fitted.active
+    if frame.known:
+        lines = [f"valve.op_range: the recording's OP at 0 and 100 % travel ({frame.span_source}); OP, S and J "
+                 "are in % travel."]
+    else:
+        lo, hi = frame.to_internal(np.percentile(rec.op, [0.5, 99.5]))
+        lines = ["valve.op_range: OP's travel span is unknown; the twin's travel is the diagnosis' unit-free "
+                 f"frame (the recording's robust OP range on {_g(lo)}-{_g(hi)} %); op_range maps OP's units to it."]
+    found = active.get("valve")
+    if found is not None:
+        S = float(found.params[0])
+        J = float(found.params[1]) if found.name == "stiction" else 0.0
+        lines.append(f"valve.S, valve.J: {found.name} found by the diagnosis{_finding_text(diagnosis, found.name)}.")
+    else:
+        S, J = fitted.nominal_valve
+        lines.append("valve.S, valve.J: " + ("the model's valve (no valve friction found)." if model is not None
+                                             else "no valve friction found (a free valve)."))
+    char = active.get("characteristic")
+    kind, R = (CHARACTERISTICS[int(char.params[0])], float(char.params[1])) if char is not None \
+        else ctx.characteristic
+    lines.append("valve.characteristic: " + ("found by the diagnosis." if char is not None else
+                                             "the model's." if model is not None else "linear (assumed)."))
+    rest = model.valve.rest_time if model is not None else (ctx.rest_samples - 0.5) * ctx.dt
+    valve = ValveConfig(model=ctx.valve_model, S=S, J=J, rest_time=rest, op0=float(np.clip(op[0], 0.0, 100.0)),
+                        characteristic=kind, rangeability=R if R > 1.0 else 50.0, op_range=_op_range(frame),
+                        **({"ma_table": model.valve.ma_table} if model is not None else {}))
+    return valve, lines
+
+
+def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str) -> tuple[PlantConfig, list[str]]:
+    """The plant section (before the replay's operating-point shift) and its provenance."""
+    explanation, rec = diagnosis.explanation, diagnosis.recording
+    fitted = explanation.fitted
+    ctx, st, active = fitted.ctx, fitted.linear.structure, fitted.active
+    lag = active.get("actuator")
+    tau_a = float(lag.params[0]) if lag is not None else None
+    num, den = _plant(fitted, tau_a)
+    pv0, u0 = _operating_point(fitted)
+    w0 = ctx.window[0]
+    noise = float(np.sqrt(np.mean((explanation.traces.pv[w0:] - explanation.traces.pv_after[w0:]) ** 2)))
+    lo, hi = float(np.min(rec.pv)), float(np.max(rec.pv))
+    span = hi - lo if hi > lo else max(abs(hi), 1.0)
+    units = pv_units or (model.plant.units if model is not None else "")
+    plant = PlantConfig(num, den, delay=st.delay, pv0=pv0, u0=u0, units=units, noise=noise,
+                        pv_range=(lo - PV_MARGIN * span, hi + PV_MARGIN * span))
+    origin = "re-fitted by the diagnosis from the model's structure" if model is not None else \
+        "identified from the recording"
+    lines = [f"plant.num, den, delay: the final model's linear part, {origin} ({st.describe()}), as a continuous "
+             "transfer function in PV units per % flow"
+             + (f"; times the actuator lag 1/({_g(tau_a)}s+1) found by the diagnosis" if tau_a else "") + ".",
+             f"plant.pv0, u0: the fit's operating point; plant.noise: RMS residual of the final model ({_g(noise)}); "
+             f"pv_range: the recorded PV range widened by {PV_MARGIN:g} of it each side"
+             + (f"; units: {units}." if units else ".")]
+    out = active.get("output")
+    if out is not None and out.name == "disturbance":
+        plant = replace(plant, disturbance=_input_sine(out.params, plant))
+        lines.append("plant.disturbance: the external oscillating disturbance found (a sinusoid in PV), as the "
+                     "sinusoid at the plant input that the plant turns into it.")
+    elif out is not None:
+        lines.append(f"Left out: the {out.name} finding acts on the measured PV, which the loop config cannot "
+                     "express.")
+    return plant, lines
+
+
+def _controller(diagnosis, model: LoopConfig | None, op: np.ndarray, plant: PlantConfig
+                ) -> tuple[ControllerConfig, list[str]]:
+    """The controller section (``op``: the recorded OP in the twin's travel) and its provenance."""
+    rec, fitted = diagnosis.recording, diagnosis.explanation.fitted
+    st, lines = fitted.linear.structure, []
+    limits = (0.0, 100.0)
+    sat = fitted.active.get("limit")
+    if sat is not None:
+        limits = (max(0.0, float(sat.params[0])), min(100.0, float(sat.params[1])))
+        lines.append("controller.op_limits: the saturation found by the diagnosis.")
+    has_sp = rec.sp is not None and bool(np.all(np.isfinite(rec.sp)))
+    pi = identify_pi(rec.t, rec.sp, rec.pv, op) if has_sp else None
+    if model is not None and model.controller is not None:
+        c = model.controller
+        kc, ti, td, action, mode = c.kc, c.ti, c.td, c.action, "auto"
+        limits = (max(limits[0], c.op_limits[0]), min(limits[1], c.op_limits[1]))
+        lines.append("controller: the model's tuning and action.")
+    elif pi is not None:
+        (kc, ti, action), td, mode = pi, 0.0, "auto"
+        lines.append("controller: PI identified from the recorded SP, PV and OP (velocity form, least squares).")
+    else:
+        kc, ti, action = _simc(plant.num, plant.den, plant.delay, st.taus, st.integrating, fitted.ctx.dt)
+        td, mode = 0.0, "manual"
+        lines.append("controller: manual at the first OP (the recording shows no controller to copy); tuning by "
+                     "the SIMC rules for the twin's plant, for when it is switched to auto.")
+    sp = float(np.median(rec.sp if has_sp else rec.pv))   # the loop's usual set point (the served device's)
+    controller = ControllerConfig(kc, ti=ti, td=td, sp=sp, bias=float(np.clip(op[0], *limits)), action=action,
+                                  op_limits=limits, mode=mode)
+    return controller, lines
+
+
+def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name: str | None = None) -> Twin:
+    """The twin of ``diagnosis`` (see the module docstring).
+
+    Parameters
+    ----------
+    diagnosis : a :class:`~valve_emulator.diagnosis.report.diagnosis.Diagnosis` with a fitted model.
+    model : the nominal model the diagnosis was run against (its controller and valve model are used).
+    pv_units : PV's engineering units (default: the model's ``plant.units``).
+    name : the twin's name (default ``twin_<recording stem>``).
+
+    Raises
+    ------
+    ValueError
+        The diagnosis has no fitted model (plant data that could not support one).
+    """
+    explanation = diagnosis.explanation
+    if explanation is None or explanation.fitted is None:
+        reason = "" if diagnosis.assessment is None else f" ({diagnosis.assessment.reason})"
+        raise ValueError(f"{diagnosis.source}: no model was fitted, so there is no twin to write{reason}")
+    rec, dt = diagnosis.recording, explanation.fitted.ctx.dt
+    op = diagnosis.frame.to_internal(rec.op)
+    valve, valve_lines = _valve(diagnosis, model, op)
+    plant, plant_lines = _plant_section(diagnosis, model, pv_units)
+    controller, controller_lines = _controller(diagnosis, model, op, plant)
+    cfg = LoopConfig(name or _slug(diagnosis.source), description=f"twin of {diagnosis.source}", valve=valve,
+                     plant=plant, controller=controller,
+                     simulation=SimulationConfig(dt=dt, duration=max(float(rec.t[-1] - rec.t[0]), dt)),
+                     device=DeviceConfig(tick=dt))
+    head = [f"Twin of {diagnosis.source}, written by valve-emulator diagnose --twin: the loop the diagnosis found, "
+            "as a loop config.",
+            f"Answer: {diagnosis.answer}; held-out fit {_g(explanation.fit_before)} % -> "
+            f"{_g(explanation.fit_after)} % ({diagnosis.verdict}).",
+            *valve_lines, *plant_lines, *controller_lines,
+            f"simulation.dt, device.tick: the recording's sample time ({_g(dt)} s); duration: its length."]
+    return Twin(_replay_operating_point(cfg, explanation, rec), tuple(head))
+
+
+def _replay_operating_point(cfg: LoopConfig, explanation, rec) -> LoopConfig:
+    """``cfg`` with ``pv0`` moved so that its open-loop replay has the fit's mean PV on the fit part.
+
+    The fit's valve may start differently from the replay's (a start moving up or down at the first sample
+    instead of the mirrored pre-roll), and an integrating plant keeps any early difference of flow as a
+    permanent offset; a self-regulating one forgets it, and the shift is then only the fit's rounding.
+    """
+    w0, w1 = explanation.fitted.ctx.window
+    sim = replay_op(cfg, rec)
+    shift = float(np.mean(explanation.traces.pv_after[w0:w1] - sim.pv[w0:w1]))
+    return replace(cfg, plant=replace(cfg.plant, pv0=cfg.plant.pv0 + shift))
+
+
+def replay_fit(diagnosis, pv: np.ndarray) -> float:
+    """The fit (%) of a replayed PV against the recorded one, on the samples ``fit_after`` is measured on:
+    the held-out last 30 % (split validation) or the two held-out blocks pooled (two-fold)."""
+    explanation = diagnosis.explanation
+    y, pv = np.asarray(diagnosis.recording.pv, dtype=float), np.asarray(pv, dtype=float)
+    if explanation.plant.get("validation", "split") == "split":
+        a = explanation.traces.test_start
+        return fit_percent(y[a:], pv[a:])
+    err = dev = 0.0
+    for _, (a, b) in fold_windows(y.size, explanation.fitted.ctx.window[0]):
+        err += float(np.sum((y[a:b] - pv[a:b]) ** 2))
+        dev += float(np.sum((y[a:b] - np.mean(y[a:b])) ** 2))
+    return float("nan") if dev == 0.0 else 100.0 * (1.0 - math.sqrt(err / dev))
