@@ -40,7 +40,7 @@ def test_diagnose_writes_verdict_json_report_and_figure(files, tmp_path, capsys)
     assert "round 1: stiction" in captured.err  # progress on the terminal
     data = json.loads(out["json"].read_text(encoding="utf-8"))
     assert list(data) == ["answer", "strength", "reasons", "friction", "source", "fit_before", "fit_after",
-                          "findings", "verdict"]
+                          "findings", "verdict", "linear_part"]   # linear_part: with a model only
     assert data["answer"] == "stiction" and data["strength"] is None   # a model given: no load check
     assert [r["code"] for r in data["reasons"]] == ["stiction"] and data["friction"]["physics"] == "stiction"
     assert [f["physics"] for f in data["findings"]] == ["stiction"]

@@ -98,7 +98,7 @@ def test_to_json_round_trips_with_the_documented_keys(diagnosis):
     data = diagnosis.to_json()
     assert json.loads(json.dumps(data)) == data
     assert list(data) == ["answer", "strength", "reasons", "friction", "source", "fit_before", "fit_after",
-                          "findings", "verdict"]
+                          "findings", "verdict", "linear_part"]   # linear_part: with a model only
     assert set(data["findings"][0]) == {"physics", "parameters", "windows", "evidence"}
     assert diagnosis.report().startswith("# Diagnosis of ")
 

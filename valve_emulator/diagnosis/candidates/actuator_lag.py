@@ -56,6 +56,7 @@ class ActuatorLag(ChainCandidate):
     slot: ClassVar[str] = "actuator"
     param_names: ClassVar[tuple[str, ...]] = ("tau",)
     n_params: ClassVar[int] = 1
+    joint_with_poles: ClassVar[bool] = True
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         hi = max(30.0 * ctx.dt, 2.0 * ctx.tau_plant)

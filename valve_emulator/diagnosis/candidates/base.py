@@ -200,6 +200,10 @@ class ChainCandidate(Candidate):
     #: Indices of threshold parameters: their cost is flat-bottomed (piecewise constant at fine scale), so
     #: the search takes the middle of the flat bottom along each of them (see :meth:`line`).
     threshold_axes: ClassVar[tuple[int, ...]] = ()
+    #: The parameters are positive and the cost is smooth in them, and they trade off against the plant's poles
+    #: (an actuator lag against a plant time constant): the fitter polishes them jointly with the poles, on a
+    #: log scale (:meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.joint_polish`).
+    joint_with_poles: ClassVar[bool] = False
 
     @abstractmethod
     def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:

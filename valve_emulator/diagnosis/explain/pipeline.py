@@ -5,7 +5,8 @@ r"""``explain(recording, nominal)``: replay, locate, search the candidate librar
    data first and *that* is the nominal model.
 2. **Locate** the residual in time and operating conditions (:mod:`~valve_emulator.diagnosis.explain.locate`).
 3. **Search** (:mod:`~valve_emulator.diagnosis.explain.search`): add the most significant candidate physics,
-   round after round, the linear part re-fitted around each.
+   round after round, the linear part re-fitted around each; then, with a nominal model, hold its linear part
+   where the data do not demand a move (:mod:`~valve_emulator.diagnosis.explain.prior`).
 4. **Report** each accepted piece with its parameters, 95 % intervals from the cost surface, where it
    reduces the residual (windows) and why it was accepted (evidence; :mod:`~valve_emulator.diagnosis.explain.
    findings`); ``fit_after`` is the final model's held-out fit, and the final model is kept
@@ -35,6 +36,7 @@ from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.explain.findings import findings, param_text, stiction_surface
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
+from valve_emulator.diagnosis.explain.prior import dead_time_move, nominal_gain, settle
 from valve_emulator.diagnosis.explain.result import Explanation, RankRow, Traces
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Search
 from valve_emulator.diagnosis.fit.chain import run_chain
@@ -72,17 +74,12 @@ def _replay_nominal(problem: Problem, nominal: Nominal, scorer: Scorer) -> np.nd
     return y0 + X @ coef
 
 
-def _gain(num: Sequence[float], den: Sequence[float]) -> float:
-    den = np.trim_zeros(np.asarray(den, dtype=float), "b")  # an integrator's s drops out: gain per second
-    return float(num[-1] / den[-1])
-
-
 def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame) -> dict:
     st, fit = model.fit.structure, model.fit
     k = fit.gain * problem.y_scale * frame.gain
     # Per % of flow in % travel; per unit of OP otherwise (the frame's gain carries the map).
     per = "% flow" if frame.units == TRAVEL else ("OP unit" if frame.units == UNKNOWN_UNITS else frame.units)
-    nom_k = f"{_gain(nominal.num, nominal.den):.4g}" if nominal.given else "—"
+    nom_k = f"{nominal_gain(nominal.num, nominal.den):.4g}" if nominal.given else "—"
     taus = lambda s: ", ".join(f"{t:.4g}" for t in s.taus) or "—"  # noqa: E731
     yes_no = lambda flag: "yes" if flag else "no"  # noqa: E731
     return {f"gain, PV per {per}" + (" per s" if st.integrating else ""): (nom_k, f"{k:.4g}"),
@@ -101,8 +98,12 @@ def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib
         say("identifying the linear part from the data (FOPDT or IPDT)")
         nom = identify(problem)
     fitter = Fitter(Scorer(problem, nom, lib))
-    model, rounds = Search(fitter, progress=say).run()
-    return fitter.p, nom, fitter, model, rounds  # the scorer may have lengthened the burn-in
+    search = Search(fitter, progress=say)
+    model, rounds = search.run()
+    if nom.given:
+        say("testing whether the nominal linear part moves")
+    model, tests = settle(search, model)
+    return fitter.p, nom, fitter, model, rounds, tests  # the scorer may have lengthened the burn-in
 
 
 def explain(recording: Recording, nominal: LoopConfig | None = None, *,
@@ -138,16 +139,16 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     frame = frame or Frame()
     if nom is None:
         lib.pop("dead_time", None)  # without a nominal model the dead time is simply identified
-        problem, nom, fitter, model, rounds = _run(recording, None, None, lib, say, validation, frame.stops)
+        problem, nom, fitter, model, rounds, tests = _run(recording, None, None, lib, say, validation, frame.stops)
         st = model.fit.structure
         if st.integrating:
             say("the plant integrates: searching again on prefiltered PV")
             lam = prefilter_for(st.delay + sum(st.taus), dt)
-            problem, nom, fitter, model, rounds = _run(recording, None, lam, lib, say, validation, frame.stops)
+            problem, nom, fitter, model, rounds, tests = _run(recording, None, lam, lib, say, validation, frame.stops)
     else:
         st = nom.structure
         lam = prefilter_for(st.delay + sum(st.taus), dt) if st.integrating else None
-        problem, nom, fitter, model, rounds = _run(recording, nom, lam, lib, say, validation, frame.stops)
+        problem, nom, fitter, model, rounds, tests = _run(recording, nom, lam, lib, say, validation, frame.stops)
     base = rounds[0].baseline if rounds else model
     test_start = problem.test[0] if validation == "split" else int(round((1.0 - HELD_OUT) * problem.T))
     if nom.given:
@@ -164,6 +165,7 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
                      response_time=horizon, masks=masks)
     say("estimating parameter intervals")
     found = findings(fitter, problem, model, rounds, masks, horizon, nom, frame)
+    tests += dead_time_move(found, nom.delay, st.delay)
     ranking = tuple(RankRow(round=i + 1, option=o.label, parameters=param_text(o.model, o.added, frame),
                             delta_bic=rnd.baseline.bic - o.model.bic, heldout=o.model.heldout, chosen=o is rnd.chosen)
                     for i, rnd in enumerate(rounds) for o in rnd.options)
@@ -190,4 +192,5 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
                        linear=_linear_table(nom, model, problem, frame), ranking=ranking, traces=traces,
                        rule=RULE if validation == "split" else RULE_TWOFOLD, seconds=time.perf_counter() - start,
                        plant=plant, fitted=fitted,
-                       input_delta_bic=input_delta_bic(fitter.scorer, model) if validation == "twofold" else None)
+                       input_delta_bic=input_delta_bic(fitter.scorer, model) if validation == "twofold" else None,
+                       linear_tests=tests)

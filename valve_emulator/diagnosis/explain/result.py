@@ -3,8 +3,10 @@ r"""What the explain step found: findings, the JSON, the verdict sentence and th
 An :class:`Explanation` is a frozen record (the fitting machine is
 :class:`~valve_emulator.diagnosis.explain.search.Search`) that keeps the fitted model
 (:class:`~valve_emulator.diagnosis.fit.predict.FittedLoop`). :meth:`Explanation.to_json` returns exactly the
-keys ``fit_before``, ``fit_after``, ``findings`` (each ``physics``, ``parameters``, ``windows``, ``evidence``)
-and ``verdict``; everything else (intervals, rankings, the linear part) goes to :meth:`Explanation.report`.
+keys ``fit_before``, ``fit_after``, ``findings`` (each ``physics``, ``parameters``, ``windows``, ``evidence``),
+``verdict`` and, with a model, ``linear_part`` (whether each parameter of the nominal linear part moved:
+:class:`LinearMove`); everything else (intervals, rankings, the linear part's table) goes to
+:meth:`Explanation.report`.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 from valve_emulator.diagnosis.explain.locate import Located
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 
-__all__ = ["Finding", "RankRow", "Traces", "Explanation", "verdict"]
+__all__ = ["Finding", "LinearMove", "RankRow", "Traces", "Explanation", "verdict"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -51,6 +53,64 @@ class Finding:
     def to_json(self) -> dict:
         return {"physics": self.physics, "parameters": dict(self.parameters),
                 "windows": [[round(a, 6), round(b, 6)] for a, b in self.windows], "evidence": self.evidence}
+
+
+@dataclass(frozen=True, kw_only=True)
+class LinearMove:
+    """Whether one parameter of the nominal model's linear part moved (see
+    :mod:`~valve_emulator.diagnosis.explain.prior`).
+
+    Attributes
+    ----------
+    parameter : ``"gain"`` (PV per % flow; per second for an integrating plant), ``"time_constant"`` (s) or
+        ``"dead_time"`` (s).
+    index : which time constant (position in the nominal model's ascending list); None for the others.
+    nominal : the nominal model's value.
+    proposed : the value the data move it to when it is freed (the MAP estimate under the prior).
+    moved : whether the data demand the move (penalised BIC falls by at least 10); the final model then has
+        ``proposed``, else ``nominal``.
+    delta_bic : penalised BIC of the model with it held minus that with it moved (≥ 10 when moved).
+    fit_held, fit_moved : held-out free-run fit (%) with it held and with it moved.
+    """
+
+    parameter: str
+    index: int | None
+    nominal: float
+    proposed: float
+    moved: bool
+    delta_bic: float
+    fit_held: float
+    fit_moved: float
+
+    @property
+    def fitted(self) -> float:
+        """The value in the final model."""
+        return self.proposed if self.moved else self.nominal
+
+    @property
+    def label(self) -> str:
+        return {"gain": "gain", "dead_time": "dead time (s)"}.get(
+            self.parameter, f"time constant {(self.index or 0) + 1} (s)")
+
+    def sentence(self) -> str:
+        """One line for the report: from, to, and what the move bought (or why it was not made)."""
+        if self.moved:
+            return (f"{self.label} moved from {self.nominal:.4g} to {self.proposed:.4g}: penalised BIC "
+                    f"{self.delta_bic:.0f} lower, held-out fit {self.fit_held:.1f} % → {self.fit_moved:.1f} %")
+        return (f"{self.label} held at {self.nominal:.4g}: moving it to {self.proposed:.4g} lowers the penalised "
+                f"BIC by {self.delta_bic:.1f}, less than the 10 a move needs (held-out fit {self.fit_held:.1f} % "
+                f"held, {self.fit_moved:.1f} % moved)")
+
+    def to_json(self) -> dict:
+        return {"parameter": self.parameter, "index": self.index, "nominal": _num(self.nominal),
+                "fitted": _num(self.fitted), "proposed": _num(self.proposed), "moved": self.moved,
+                "delta_bic": round(self.delta_bic, 2), "fit_held": _num(self.fit_held, 2),
+                "fit_moved": _num(self.fit_moved, 2)}
+
+
+def _num(x: float, digits: int = 6) -> float | None:
+    """A JSON number (None for NaN, e.g. a held-out fit two-fold validation did not compute)."""
+    return None if x != x else round(float(x), digits)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -119,6 +179,9 @@ class Explanation:
     input_delta_bic : plant data only (two-fold validation): how much the final model explains PV under the
         drifting-load noise model, against that noise model alone
         (:func:`~valve_emulator.diagnosis.fit.load_check.input_delta_bic`); None with a nominal model.
+    linear_tests : with a nominal model, one :class:`LinearMove` per parameter of its linear part that was
+        tested (gain, time constants, and the dead time when the search freed it); :attr:`moved` are those
+        the data moved.
     """
 
     source: str
@@ -136,6 +199,12 @@ class Explanation:
     plant: dict = field(default_factory=dict)
     fitted: FittedLoop | None = None
     input_delta_bic: float | None = None
+    linear_tests: tuple[LinearMove, ...] = ()
+
+    @property
+    def moved(self) -> tuple[LinearMove, ...]:
+        """The parameters of the nominal linear part the data moved (empty without a model or when it held)."""
+        return tuple(m for m in self.linear_tests if m.moved)
 
     @property
     def verdict(self) -> str:
@@ -149,9 +218,13 @@ class Explanation:
         return self.fitted.predict(op)
 
     def to_json(self) -> dict:
-        """The JSON, exactly: ``fit_before``, ``fit_after``, ``findings``, ``verdict``."""
-        return {"fit_before": round(self.fit_before, 2), "fit_after": round(self.fit_after, 2),
-                "findings": [f.to_json() for f in self.findings], "verdict": self.verdict}
+        """The JSON: ``fit_before``, ``fit_after``, ``findings``, ``verdict``, and with a model ``linear_part``
+        (one :meth:`LinearMove.to_json` per parameter of the nominal linear part tested)."""
+        out = {"fit_before": round(self.fit_before, 2), "fit_after": round(self.fit_after, 2),
+               "findings": [f.to_json() for f in self.findings], "verdict": self.verdict}
+        if self.given:
+            out["linear_part"] = [m.to_json() for m in self.linear_tests]
+        return out
 
     def report(self, *, figure: str | None = None) -> str:
         """A Markdown report; ``figure`` is a path to link (relative to the report)."""
@@ -184,6 +257,10 @@ class Explanation:
                 for a in loc.alignments]
         out += ["", "## Linear part", "", "| | nominal | re-fitted |", "|---|---|---|"]
         out += [f"| {k} | {v[0]} | {v[1]} |" for k, v in self.linear.items()]
+        if self.given:
+            out += ["", "The nominal model is a prior: a parameter moves only when the penalised BIC falls by at "
+                    "least 10.", ""]
+            out += [f"- {m.sentence()}" for m in self.linear_tests] or ["- nothing to test"]
         out += ["", "## Candidate ranking", "", self.rule, "",
                 "| round | option | parameters | ΔBIC | held-out fit | chosen |", "|---|---|---|---|---|---|"]
         # Two-fold validation cross-validates only the options it compares; the others show "—".

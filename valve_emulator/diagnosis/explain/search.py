@@ -88,7 +88,7 @@ class Search:
             out.append(cand)
         return out
 
-    def _validated(self, model: Model) -> Model:
+    def validated(self, model: Model) -> Model:
         """``model`` with a held-out fit (two-fold validation computes it on demand)."""
         return model if self.scorer.p.validation == "split" else with_cv(self.scorer, model)
 
@@ -100,14 +100,14 @@ class Search:
             self.say(f"round {index}: {cand.name} ({c + 1}/{len(cands)})")
             options += self.fitter.evaluate(model, cand)
         options.sort(key=lambda o: o.model.bic)
-        model = self._validated(model)
+        model = self.validated(model)
         chosen = None
         for i, o in enumerate(options):
             if model.bic - o.model.bic < DELTA_BIC:
                 continue  # cannot count whatever its held-out fit (and needs no cross-validation)
             subs = [j for j, s in enumerate(options) if set(s.added) < set(o.added)]
             for j in [i, *subs]:
-                options[j] = replace(options[j], model=self._validated(options[j].model))
+                options[j] = replace(options[j], model=self.validated(options[j].model))
             o = options[i]
             if significant(o.model, model) and all(significant(o.model, options[j].model) for j in subs):
                 chosen = o
@@ -117,7 +117,7 @@ class Search:
     def run(self) -> tuple[Model, list[Round]]:
         """Base model, then rounds while an option is significant. Returns (final model, rounds)."""
         self.say("fitting the linear part around the nominal chain")
-        model = self._validated(self.fitter.base())
+        model = self.validated(self.fitter.base())
         rounds = []
         while self._candidates(model):
             rnd = self.round(model, len(rounds) + 1)
@@ -126,14 +126,16 @@ class Search:
                 break
             self.say(f"round {len(rounds)}: added {rnd.chosen.label} (BIC {model.bic - rnd.chosen.model.bic:.0f} "
                      f"lower, held-out fit {model.heldout:.1f} -> {rnd.chosen.model.heldout:.1f} %)")
-            model = self._validated(self._rerefine(rnd.chosen.model, rnd.chosen.added))
+            model = self.validated(self.rerefine(rnd.chosen.model, rnd.chosen.added))
         return model, rounds
 
-    def _rerefine(self, model: Model, just_added: tuple[str, ...]) -> Model:
+    def rerefine(self, model: Model, just_added: tuple[str, ...] = (), only: set[str] | None = None) -> Model:
         """Refine earlier-accepted grid physics again with the new one in place; keep it if BIC improves."""
         aim = self.scorer.aim(model)
         for a in model.active:
             if a.name in just_added or a.slot == "delay" or a.candidate.kind is not Kind.CHAIN:
+                continue
+            if only is not None and a.name not in only:
                 continue
             rest = replace(model, active=tuple(b for b in model.active if b is not a))
             active, fit, flow, _ = self.fitter.refine(rest, a.candidate, a.params, model.fit.structure,

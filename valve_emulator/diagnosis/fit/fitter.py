@@ -26,11 +26,12 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from scipy.optimize import minimize
 
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.diagnosis.fit.chain import Active
-from valve_emulator.diagnosis.fit.linear import LinearStructure
+from valve_emulator.diagnosis.fit.linear import LinearStructure, sse_one
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
 from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
 
@@ -38,6 +39,11 @@ __all__ = ["Fitter"]
 
 #: Pole hypotheses whose best coarse start is scanned and refined.
 _STARTS = 2
+#: Cost evaluations of a joint polish of a candidate's parameters with the poles (:meth:`Fitter.joint_polish`).
+_JOINT_EVALS = 200
+#: Refined starts further than this behind the best (in −2 log posterior) are not polished jointly: the valley
+#: along which a joint polish moves a start is shallower than that (a few units between the lag orders).
+_JOINT_MARGIN = 10.0
 #: Width of a "flat" cost bottom, in units of -2 log-likelihood (the 95 % point of chi-square, 1 dof).
 _FLAT = 3.84
 
@@ -117,8 +123,10 @@ class Fitter:
         other = self.scorer.model({}, self.scorer.polish(flow, best[1], free, aim), free, flow, target=aim.y)
         return other if other.bic < model.bic else model
 
-    def refine(self, model: Model, cand: Candidate, best: np.ndarray, st: LinearStructure, free: bool):
-        """Two passes of fine grid + polish around ``best``; returns (active, fit, flow, fine Surface)."""
+    def refine(self, model: Model, cand: Candidate, best: np.ndarray, st: LinearStructure, free: bool, *,
+               joint: bool = True):
+        """Two passes of fine grid + polish around ``best`` (then, for a candidate that trades off against the
+        poles and ``joint``, :meth:`joint_polish`); returns (active, fit, flow, fine Surface)."""
         active = model.by_slot()
         ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
         for _ in range(2):
@@ -132,6 +140,10 @@ class Fitter:
             fit = self.scorer.polish(flow, st0, free, aim)
             st = fit.structure
         fine = self.surface(cand.name, g, sse.min(axis=1))
+        if joint and self.trades_with_prior(cand):
+            best, st = self.joint_polish(active, ctx, cand, best, st, free, aim)
+            flow = self.scorer.chain(active, ctx, cand, best[None, :])[:, 0]
+            fit = self.scorer.polish(flow, st, free, aim)
         if cand.threshold_axes:
             best = self.centre(active, ctx, cand, best, st, aim)
             flow = self.scorer.chain(active, ctx, cand, best[None, :])[:, 0]
@@ -139,6 +151,43 @@ class Fitter:
         new_active = dict(active)
         new_active[cand.slot] = Active(cand, best)
         return new_active, fit, flow, fine
+
+    def trades_with_prior(self, cand: Candidate) -> bool:
+        """Whether ``cand`` trades off against the poles and a nominal model's prior must choose between the
+        fits (without a model there is no prior, and the two orderings of two lags are one answer)."""
+        return bool(getattr(cand, "joint_with_poles", False)) and self.nominal.given
+
+    def joint_polish(self, active, ctx, cand, best: np.ndarray, st: LinearStructure, free: bool, aim: Aim
+                     ) -> tuple[np.ndarray, LinearStructure]:
+        """Nelder–Mead on the candidate's parameters and the poles (and a free dead time) together.
+
+        The cost is the polish's, ``N ln SSE`` plus the prior on the poles (:meth:`Scorer.prior_penalty`), the
+        parameters and time constants on a log scale. Why jointly: an actuator lag and a plant time constant
+        trade off along a narrow diagonal valley (their sum and product are what the data fix), where the
+        refinement's alternation — the candidate's grid with the poles held, then the poles with the
+        candidate held — creeps and stops short of the bottom, leaving a cost difference between the two
+        orderings of the lags larger than the prior that should decide between them.
+        """
+        n, k, nt = self.p.n_fit, best.size, 0 if st.taus_held else len(st.taus)
+        lo_d, hi_d = 0.0, self.scorer.dmax
+
+        def make(x: np.ndarray) -> tuple[np.ndarray, LinearStructure]:
+            taus = tuple(float(np.exp(v)) for v in x[k:k + nt]) or st.taus
+            delay = float(np.clip(x[-1], lo_d, hi_d)) if free else st.delay
+            return np.exp(x[:k]), replace(st, taus=taus, delay=delay)
+
+        def cost(x: np.ndarray) -> float:
+            params, s = make(x)
+            flow = self.scorer.chain(active, ctx, cand, params[None, :])[:, 0]
+            sse = sse_one(flow, aim.y, self.p.train, s, self.p.dt, prefilter=self.scorer.lam, y_cost=aim.cost)
+            return n * np.log(max(sse, 1e-300)) + self.scorer.prior_penalty(s)
+
+        x0 = np.concatenate([np.log(np.maximum(best, 1e-12)), np.log(st.taus[:nt]), [st.delay] if free else []])
+        step = np.concatenate([np.full(k + nt, 0.1), [max(self.p.dt, 0.1 * st.delay)] if free else []])
+        simplex = np.vstack([x0] + [x0 + np.eye(x0.size)[i] * step[i] for i in range(x0.size)])
+        res = minimize(cost, x0, method="Nelder-Mead",
+                       options={"initial_simplex": simplex, "maxfev": _JOINT_EVALS, "xatol": 1e-2, "fatol": 0.05})
+        return make(res.x) if res.fun <= cost(x0) else (best, st)
 
     def centre(self, active, ctx, cand, best, st, aim: Aim) -> np.ndarray:
         """Move each threshold parameter to the middle of the flat bottom of its cost.
@@ -246,7 +295,7 @@ class Fitter:
         # against the poles (an actuator lag against the plant's time constant), and stiction's coarse
         # cost is rough — so the best start of each of the top pole hypotheses is scanned and refined, and
         # the choice is made afterwards.
-        ranked = {free: sorted(starts[free], key=lambda r: r[0])[:_STARTS] for free, _ in variants}
+        ranked = {free: self._ranked(starts[free], cand) for free, _ in variants}
         scanned = self.scan_surfaces(active, ctx, cand, scan, ranked, aim) if scan is not None else {}
         options = []
         for free, added in variants:
@@ -255,14 +304,63 @@ class Fitter:
                 scan_surface = scanned.get((free, i))
                 if scan_surface is not None:
                     p0 = scan[int(np.argmin(scan_surface.sse))]
-                new_active, fit, flow, fine = self.refine(model, cand, p0, st_b, free)
+                new_active, fit, flow, fine = self.refine(model, cand, p0, st_b, free, joint=False)
                 if free and not model.delay_free:
                     new_active["delay"] = Active(dead_time, np.array([fit.structure.delay]))
                 m = self.scorer.model(new_active, fit, free, flow, target=aim.y)
                 results.append((m.bic + self.scorer.prior_penalty(m.fit.structure), m, scan_surface, fine))
+            if self.trades_with_prior(cand):
+                results = self._joint_results(model, cand, free, results)
             _, m, scan_surface, fine = min(results, key=lambda r: r[0])
             options.append(Option(added=added, model=m, coarse=ranked[free][0][3], scan=scan_surface, fine=fine))
         return options
+
+    def _ranked(self, starts: list[tuple], cand: Candidate) -> list[tuple]:
+        """The :data:`_STARTS` best starts, and for a candidate that trades off against the poles the best one at
+        the nominal poles when it is not among them.
+
+        With a nominal model the prior's mode must then always be refined: two lags in series fit the data
+        equally well in either order (an actuator lag of 14 s before a 7.5 s plant is the same transfer function
+        as 7.5 s before 15 s), so which of the two the coarse grid happens to place better says nothing, and
+        only a start at the nominal poles lets the prior (:meth:`Scorer.prior_penalty`) choose between them.
+        """
+        ranked = sorted(starts, key=lambda r: r[0])
+        top = ranked[:_STARTS]
+        if self.trades_with_prior(cand) and self.nominal.structure.taus:
+            nominal = self.nominal.structure.taus
+            at_nominal = [r for r in ranked if r[2].taus == nominal]
+            if at_nominal and not any(r[2].taus == nominal for r in top):
+                top.append(at_nominal[0])
+        return top
+
+    def _joint_results(self, model: Model, cand: Candidate, free: bool, results: list[tuple]) -> list[tuple]:
+        """The refined starts within :data:`_JOINT_MARGIN` of the best polished again by :meth:`joint_polish`
+        (the others cannot overtake it), scored again: ``(bic + prior, model, scan surface, fine surface)``.
+
+        Only when the best start lowers the penalised BIC of ``model`` at all: an option that does not is far
+        from the fall of 10 that it would need to count, and which of its starts wins does not matter.
+        """
+        best = min(r[0] for r in results)
+        if best >= model.bic + self.scorer.prior_penalty(model.fit.structure):
+            return results
+        ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
+        out = []
+        for r in results:
+            if r[0] - best > _JOINT_MARGIN:
+                out.append(r)
+                continue
+            m = r[1]
+            active = m.by_slot()
+            params, st = self.joint_polish(model.by_slot(), ctx, cand, active[cand.slot].params, m.fit.structure,
+                                           free, aim)
+            flow = self.scorer.chain(model.by_slot(), ctx, cand, params[None, :])[:, 0]
+            fit = self.scorer.polish(flow, st, free, aim)
+            active[cand.slot] = Active(cand, params)
+            if "delay" in active and free and not model.delay_free:
+                active["delay"] = Active(active["delay"].candidate, np.array([fit.structure.delay]))
+            m = self.scorer.model(active, fit, free, flow, target=aim.y)
+            out.append((m.bic + self.scorer.prior_penalty(m.fit.structure), m, r[2], r[3]))
+        return out
 
     def scan_surfaces(self, active, ctx, cand, scan, ranked, aim: Aim) -> dict:
         """Scan surfaces for every (variant, start), merging starts that share their poles into one job.

@@ -57,11 +57,12 @@ __all__ = [
     "delay_grid_sse",
     "split_delay",
     "fit_one",
+    "sse_one",
     "polish",
 ]
 
-#: Width (1 σ, natural log) of the prior on re-fitted time constants: the nominal within a factor 1.5.
-PRIOR_WIDTH = float(np.log(1.5))
+#: Width (1 σ, natural log) of the prior on re-fitted time constants: the nominal trusted to within 25 %.
+PRIOR_WIDTH = float(np.log(1.25))
 
 
 @dataclass(frozen=True)
@@ -74,12 +75,18 @@ class LinearStructure:
     integrating : one pole at s = 0.
     fixed_poles : further continuous-time poles (complex pairs of a nominal model), kept as given.
     delay : dead time θ (s, >= 0); fractional multiples of ``dt`` are allowed.
+    taus_held : the time constants are the nominal model's, held (not refined by :func:`polish`, not counted
+        by BIC).
+    gain : a steady-state gain held at the nominal model's (sum of the taps, in the fit's units: scaled PV per
+        % flow, per second for an integrator), or None when the taps are fitted freely.
     """
 
     taus: tuple[float, ...] = ()
     integrating: bool = False
     fixed_poles: tuple[complex, ...] = ()
     delay: float = 0.0
+    taus_held: bool = False
+    gain: float | None = None
 
     @property
     def order(self) -> int:
@@ -90,8 +97,10 @@ class LinearStructure:
         return max(1, self.order)
 
     def n_params(self) -> int:
-        """Parameters of the linear part counted by BIC: taps, offset, trend, fitted time constants."""
-        return self.ntaps + 1 + int(self.integrating) + len(self.taus)
+        """Parameters of the linear part counted by BIC: taps, offset, trend, fitted time constants (a held
+        gain removes one tap, held time constants are not counted)."""
+        taus = 0 if self.taus_held else len(self.taus)
+        return self.ntaps - int(self.gain is not None) + 1 + int(self.integrating) + taus
 
     def denominator(self, dt: float) -> np.ndarray:
         """Coefficients ``[1, α1, …]`` of the stable part :math:`A_s(q)` in powers of :math:`q^{-1}`."""
@@ -284,8 +293,10 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
         extra = None if extra is None else highpass(extra, prefilter)
     x = _delayed_regressors(z, structure.delay / dt, structure.ntaps)
     T = u.shape[0]
-    cols = [x, np.ones((T, 1))]
     trend = structure.integrating and prefilter is None
+    if structure.gain is not None:
+        return _fit_held_gain(x, y, window, structure, trend, extra)
+    cols = [x, np.ones((T, 1))]
     if trend:
         cols.append((np.arange(T) / T)[:, None])
     if extra is not None:
@@ -302,6 +313,47 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
                      float(res @ res), w1 - w0)
 
 
+def _fit_held_gain(x: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
+                   trend: bool, extra: np.ndarray | None) -> LinearFit:
+    """:func:`fit_one` with the taps' sum held at ``structure.gain``: the first tap is ``g − Σ_{j≥1} b_j``, so
+    ``y − g x_0`` is fitted on ``x_j − x_0`` (j ≥ 1), the offsets and ``extra`` by least squares."""
+    T, g = x.shape[0], float(structure.gain)
+    cols = [x[:, 1:] - x[:, :1], np.ones((T, 1))]
+    if trend:
+        cols.append((np.arange(T) / T)[:, None])
+    if extra is not None:
+        cols.append(np.asarray(extra, dtype=float).reshape(T, -1))
+    X = np.hstack(cols)
+    w0, w1 = window
+    yw = y[w0:w1] - g * x[w0:w1, 0]
+    beta, *_ = np.linalg.lstsq(X[w0:w1], yw, rcond=None)
+    res = yw - X[w0:w1] @ beta
+    nt = structure.ntaps
+    rest = beta[:nt - 1]
+    taps = np.concatenate([[g - float(np.sum(rest))], rest])
+    return LinearFit(structure, taps, float(beta[nt - 1]), float(beta[nt]) if trend else 0.0, float(res @ res),
+                     w1 - w0)
+
+
+def sse_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], st: LinearStructure, dt: float, *,
+            prefilter: float | None = None, y_cost: np.ndarray | None = None,
+            extra: np.ndarray | None = None) -> float:
+    """The fit-part SSE of :func:`fit_one` (``y_cost``: ``y`` already in the cost domain, to save the prefilter).
+
+    Without extra regressors a compiled pass gives the same SSE as fit_one (from the normal equations instead
+    of the residual: equal to rounding) at a fraction of the cost of building the regressors. Not for an
+    integrator's unfiltered ramps, whose normal equations lose digits to cancellation, nor a held gain.
+    """
+    m, frac = split_delay(st.delay / dt)
+    if (extra is not None or window[0] < m + st.ntaps or (st.integrating and prefilter is None)
+            or st.gain is not None):
+        return fit_one(u, y, window, st, dt, prefilter=prefilter, extra=extra).sse
+    if y_cost is None:
+        y_cost = kernel_array(y if prefilter is None else highpass(y, prefilter))
+    return column_sse(kernel_array(u), st.denominator(dt), st.integrating, dt, prefilter, frac, y_cost,
+                      window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None))
+
+
 def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float,
            *, free_delay: bool, delay_bounds: tuple[float, float], prefilter: float | None = None,
            prior: tuple[float, ...] | None = None, max_evals: int = 200,
@@ -310,18 +362,19 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
 
     The taps and offsets are solved by least squares at every evaluation (variable projection), so the
     search has only ``len(taus) (+1)`` dimensions. Time constants are searched on a log scale and kept
-    within [dt/20, 1e3·record length]; the delay within ``delay_bounds`` (s).
+    within [dt/20, 1e3·record length]; the delay within ``delay_bounds`` (s). Time constants the structure
+    holds (``taus_held``) stay as they are.
 
     ``extra`` regressors are fitted jointly at every evaluation (see :func:`fit_one`).
 
-    ``prior`` (time constants of a nominal model, same count as ``structure.taus``) adds a weak
-    log-normal prior, ``Σ ((ln τ − ln τ_nom)/ln 1.5)²`` (:data:`PRIOR_WIDTH`), to ``N ln SSE`` (−2 log
-    posterior up to a constant).
+    ``prior`` (time constants of a nominal model, same count as ``structure.taus``) adds the
+    log-normal prior, ``Σ ((ln τ − ln τ_nom)/σ)²`` with σ = :data:`PRIOR_WIDTH` (ln 1.25), to ``N ln SSE``
+    (−2 log posterior up to a constant; :mod:`~valve_emulator.diagnosis.explain.prior`).
     The data dominate whenever they determine the poles; the prior only decides between near-equivalent
     solutions — notably an actuator lag in series with a re-fitted plant pole, where (6s+1)² and
     (4s+1)(8s+1) differ by one part in ten in the s² term — in favour of the plant the user believes in.
     """
-    taus0 = np.log(np.asarray(structure.taus, dtype=float))
+    taus0 = np.log(np.asarray(() if structure.taus_held else structure.taus, dtype=float))
     lo_tau, hi_tau = np.log(dt / 20.0), np.log(1e3 * dt * u.shape[0])
     lo_d, hi_d = delay_bounds
     use_prior = prior is not None and len(prior) == taus0.size and taus0.size > 0
@@ -337,17 +390,10 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     u1 = kernel_array(u)
 
     def sse(st: LinearStructure) -> float:
-        # Without extra regressors a compiled pass gives the same SSE as fit_one (from the normal equations
-        # instead of the residual: equal to rounding) at a fraction of the cost of building the regressors.
-        # Not for an integrator's unfiltered ramps, whose normal equations lose digits to cancellation.
-        m, frac = split_delay(st.delay / dt)
-        if extra is not None or window[0] < m + st.ntaps or (st.integrating and prefilter is None):
-            return fit(st).sse
-        return column_sse(u1, st.denominator(dt), st.integrating, dt, prefilter, frac, y_cost,
-                          window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None))
+        return sse_one(u1, y, window, st, dt, prefilter=prefilter, y_cost=y_cost, extra=extra)
 
     def make(p: np.ndarray) -> LinearStructure:
-        taus = tuple(float(np.exp(np.clip(v, lo_tau, hi_tau))) for v in p[:taus0.size])
+        taus = tuple(float(np.exp(np.clip(v, lo_tau, hi_tau))) for v in p[:taus0.size]) or structure.taus
         delay = float(np.clip(p[-1], lo_d, hi_d)) if free_delay else structure.delay
         return replace(structure, taus=taus, delay=delay)
 
