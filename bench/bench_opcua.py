@@ -78,8 +78,10 @@ def _clients(url: str, modbus_port: int, loops: list[str], clients: int, seconds
     async def main():
         counts, polled = [0] * clients, [0]
         ready = [asyncio.Event() for _ in range(clients)]
-        tasks = [asyncio.create_task(session(counts, i, ready[i])) for i in range(clients)]
-        await asyncio.wait_for(asyncio.gather(*(r.wait() for r in ready)), 600)
+        tasks = []
+        for i in range(clients):    # one at a time: a session and its subscription, then the next
+            tasks.append(asyncio.create_task(session(counts, i, ready[i])))
+            await asyncio.wait_for(ready[i].wait(), 600)
         tasks.append(asyncio.create_task(poll(polled)))
         await asyncio.sleep(2.0)                       # initial values and the first publishes settle
         start = list(counts)

@@ -245,3 +245,21 @@ def test_without_a_declared_span_the_twins_travel_stays_the_unit_free_frame():
     internal = [d.frame.gain * d.friction.parameters[k] for k in ("S", "J")]
     assert found == pytest.approx(internal, rel=0.01)
     assert replay_fit(d, replay_op(cfg, rec).pv) == pytest.approx(d.explanation.fit_after, abs=2.0)
+
+
+@pytest.mark.slow
+def test_the_twins_plant_says_which_nominal_parameter_moved_and_from_what_to_what():
+    """A loop whose nominal time constant is 30 % short: the twin's plant is the nominal one with the time
+    constant the data moved, and its header says so with both values; the exact nominal is held."""
+    from valve_emulator.benchmark.cases import Case, _loop, _steps
+
+    loop = _loop([2.0], [20.0, 1.0], 2.0, 0.5, 20.0, duration=2300.0, seed=5, sp_steps=_steps([2, -2] * 12, 100.0))
+    short = generate(Case("short tau", {}, loop, {"plant": {"den": [14.0, 1.0]}}, noise=0.02))
+    exact = generate(Case("exact", {}, loop, {}, noise=0.02))
+    twin = diagnose(short[0], short[1]).twin()
+    moved = next(line for line in twin.provenance if line.startswith("plant.num"))
+    assert "time constant 1 (s) moved from 14 to" in moved
+    den = twin.config.plant.den
+    assert den[-2] / den[-1] == pytest.approx(20.0, rel=0.15)     # the time constant of a first-order den
+    held = next(line for line in diagnose(exact[0], exact[1]).twin().provenance if line.startswith("plant.num"))
+    assert "held as a prior" in held

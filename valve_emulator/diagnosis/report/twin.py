@@ -272,10 +272,8 @@ def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: T
     units = pv_units or (model.plant.units if model is not None else "")
     plant = PlantConfig(num, den, delay=st.delay, pv0=pv0, u0=u0, units=units, noise=noise,
                         pv_range=(lo - PV_MARGIN * span, hi + PV_MARGIN * span))
-    origin = "re-fitted by the diagnosis from the model's structure" if model is not None else \
-        "identified from the recording"
-    lines = [f"plant.num, den, delay: the final model's linear part, {origin} ({st.describe()}), as a continuous "
-             "transfer function in PV units per % flow"
+    lines = [f"plant.num, den, delay: the final model's linear part, {_plant_origin(explanation, model)} "
+             f"({st.describe()}), as a continuous transfer function in PV units per % flow"
              + (f"; times the actuator lag 1/({_g(tau_a)}s+1) found by the diagnosis" if tau_a else "") + ".",
              f"plant.pv0, u0: the fit's operating point; plant.noise: RMS residual of the final model ({_g(noise)}); "
              f"pv_range: the recorded PV range widened by {PV_MARGIN:g} of it each side"
@@ -289,6 +287,21 @@ def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: T
         lines.append(f"Left out: the {out.name} finding acts on the measured PV, which the loop config cannot "
                      "express.")
     return plant, lines
+
+
+def _plant_origin(explanation, model: LoopConfig | None) -> str:
+    """Where the twin's linear plant comes from: the nominal model held as a prior, the parameters the data
+    moved (from, to), or, without a model, the identification from the recording."""
+    if model is None:
+        return "identified from the recording"
+    moved = explanation.moved
+    if not explanation.linear_tests:
+        return "re-fitted by the diagnosis from the model's structure"
+    if not moved:
+        return "the nominal model's, held as a prior (the data did not demand a move)"
+    changes = "; ".join(f"{m.label} moved from {_g(m.nominal)} to {_g(m.proposed)} (penalised BIC "
+                        f"{m.delta_bic:.0f} lower)" for m in moved)
+    return f"the nominal model's with what the data demanded: {changes}"
 
 
 def _controller(diagnosis, model: LoopConfig | None, op: np.ndarray, plant: PlantConfig
