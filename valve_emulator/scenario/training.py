@@ -168,6 +168,8 @@ def parse_training(data: Any) -> TrainingScenario:
             data = yaml.safe_load(data)
         except yaml.YAMLError as exc:
             raise ScenarioError(f"scenario: YAML syntax error: {exc}") from None
+        except RecursionError:
+            raise ScenarioError("scenario: YAML nested too deeply") from None
     m = _mapping(data, "scenario")
     for k in m:
         if k not in _TOP:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import ClassVar
 
 import numba
 import numpy as np
@@ -365,6 +366,12 @@ class LoopBank:
         return noise
 
     # -- snapshots --------------------------------------------------------------------------------------------
+    #: The fields of :meth:`state` that may hold a non-finite number, and what it means there. Every other
+    #: number in the state is finite, so a snapshot holding NaN or infinity elsewhere (a damaged or edited
+    #: file) is refused before it is restored rather than stopping the next step.
+    NON_FINITE_STATE: ClassVar[dict[str, str]] = {"_sp_next": "inf: no set-point step pending",
+                               "pv_stuck": "NaN: the transmitter is not stuck"}
+
     def _nested(self) -> tuple[type, ...]:
         return (PIDBank, PlantBank, DisturbanceBank, NoiseBank, type(self._dist._normals))
 
