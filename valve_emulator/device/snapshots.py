@@ -25,6 +25,7 @@ loops. A file that cannot be read does not stop the others from loading: the sto
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -101,9 +102,9 @@ class Snapshot:
             if isinstance(value, np.ndarray) and value.dtype.kind in "fc":
                 bad = np.flatnonzero(~np.isfinite(value))
                 if bad.size:
-                    raise SnapshotError(f"snapshot {self.label}: state field {path} holds "
-                                        f"{value.ravel()[bad[0]]!r} at [{bad[0]}]; only finite numbers are valid "
-                                        f"there", field="file")
+                    first = float(value.ravel()[bad[0]])
+                    raise SnapshotError(f"snapshot {self.label}: state field {path} holds {first!r} at "
+                                        f"[{bad[0]}]; only finite numbers are valid there", field="file")
             elif isinstance(value, float) and not math.isfinite(value):
                 raise SnapshotError(f"snapshot {self.label}: state field {path} is {value!r}; only a finite "
                                     f"number is valid there", field="file")
@@ -186,7 +187,7 @@ class SnapshotStore:
     def _read(self, path: Path) -> Snapshot:
         """Read ``path`` into the store; a broken file is recorded in :attr:`broken` and raised."""
         try:
-            snap = Snapshot.load(path)
+            snap = dataclasses.replace(Snapshot.load(path), name=path.stem)   # a renamed copy goes by its file
         except SnapshotError as exc:
             self.broken[path.stem] = str(exc)
             _log.error("snapshot file not loaded: %s", exc)
