@@ -127,7 +127,7 @@ class Emulator:
             raise RuntimeError(f"serve did not start: {first} {''.join(self.stderr)}")
         self.modbus, self.web = int(ports[0]), int(ports[1])
         # the master's end of the serial line, open for the whole run (socat ends when a side closes)
-        self.line = serial.Serial(str(self.tty), baudrate=BAUD, parity=serial.PARITY_EVEN, timeout=0.25)
+        self.line = serial.Serial(str(self.tty), baudrate=BAUD, parity=serial.PARITY_EVEN, timeout=0.1)
 
     @staticmethod
     def _collect(stream, sink) -> None:
@@ -384,11 +384,48 @@ def http_phase(emu: Emulator, sizes: Sizes) -> dict:
 # --- RTU -----------------------------------------------------------------------------------------------------
 
 GOOD = with_crc(struct.pack(">BBHH", 1, 3, address_of("S"), 2))   # S and J of unit 1: they do not move
-#: A master that gets no answer waits this long and asks again. On a pty the silence before the good request
-#: exists only in time: when the server's process is not scheduled for longer than SILENCE (this machine is
-#: shared), the burst and the request arrive in one read, as one frame with a bad CRC, and are rightly
-#: dropped. ``good_retried`` counts those; ``good_wrong`` counts wrong or missing answers after the retry.
+#: A master that gets no answer within the line's timeout (0.1 s) waits this long and asks again. On a pty the
+#: silence before the good request exists only in time: when socat or the server is not scheduled for longer
+#: than SILENCE (this machine is shared), the burst and the request arrive in one read, as one frame with a
+#: bad CRC, and are rightly dropped; and an answer can come after the timeout. ``good_retried`` counts the
+#: retries, ``good_late`` answers that came after it, ``good_wrong`` wrong or missing answers (1 s after the
+#: retry), ``answered_corrupted`` anything else the line carried back.
 RETRY = 0.02
+
+
+def _copies(data: bytes, answer: bytes) -> bool:
+    """Is ``data`` one or more copies of ``answer``?"""
+    return bool(data) and len(data) % len(answer) == 0 and data == answer * (len(data) // len(answer))
+
+
+def _ask_good(line: serial.Serial, expected: bytes, figures: dict) -> None:
+    """Send the good request and check its answer (see RETRY)."""
+    line.write(GOOD)
+    got = line.read(len(expected))
+    if got == expected:
+        return
+    figures["good_retried"] += 1
+    time.sleep(RETRY)
+    line.write(GOOD)
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline and not _copies(got, expected):
+        got += line.read(max(1, line.in_waiting))
+    figures["good_wrong"] += not _copies(got, expected)
+
+
+def _stray_bytes(line: serial.Serial, expected: bytes, figures: dict) -> None:
+    """Whatever came back after a burst of corrupted frames: a late answer to a good request, or a reply to
+    a corrupted frame (which must never happen)."""
+    if not line.in_waiting:
+        return
+    got = line.read(line.in_waiting)
+    time.sleep(RETRY)
+    got += line.read(line.in_waiting)
+    if _copies(got, expected):
+        figures["good_late"] += 1
+    else:
+        figures["answered_corrupted"] += 1
+        figures.setdefault("stray", []).append(got.hex()[:80])
 
 
 def corrupted_frames(rng: random.Random):
@@ -422,7 +459,7 @@ def _burst(frames, size: int) -> bytes:
 
 def rtu_phase(emu: Emulator, sizes: Sizes, *, max_burst: int = 64) -> dict:
     figures: dict = {"phase": "rtu", "frames": 0, "bytes": 0, "bursts": 0, "answered_corrupted": 0,
-                     "good_retried": 0, "good_wrong": 0}
+                     "good_retried": 0, "good_late": 0, "good_wrong": 0}
     rng = random.Random(11)
     frames = corrupted_frames(rng)
     line = emu.line
@@ -440,18 +477,8 @@ def rtu_phase(emu: Emulator, sizes: Sizes, *, max_burst: int = 64) -> dict:
             figures["frames"] += size
             figures["bytes"] += len(burst)
             figures["bursts"] += 1
-            if line.in_waiting:
-                figures["answered_corrupted"] += 1
-                line.reset_input_buffer()
-            line.write(GOOD)
-            answer = line.read(len(expected))
-            if answer != expected:   # see RETRY
-                figures["good_retried"] += 1
-                time.sleep(RETRY)
-                line.reset_input_buffer()
-                line.write(GOOD)
-                answer = line.read(len(expected))
-            figures["good_wrong"] += answer != expected
+            _stray_bytes(line, expected, figures)
+            _ask_good(line, expected, figures)
             time.sleep(SILENCE / 2)
     figures["good_ok"] = len(expected) == 9 and crc16(expected) == 0
     return figures
@@ -615,13 +642,17 @@ def normal_reads(emu: Emulator) -> dict:
 PHASES = {"http": http_phase, "rtu": rtu_phase, "snapshots": snapshot_phase, "hup": hup_phase}
 
 
-def run(sizes: Sizes, phases=tuple(PHASES), *, folder: Path | None = None) -> list[dict]:
+def run(sizes: Sizes, phases=tuple(PHASES), *, progress=lambda figures: None) -> list[dict]:
     """Start the emulator, run ``phases`` at ``sizes``, check it afterwards; one figures dict per phase plus
-    a last one (``phase: after``) with the crash check and the normal reads."""
+    a last one (``phase: after``) with the crash check and the normal reads. ``progress(figures)`` is called
+    as each phase ends."""
+    out = []
     with tempfile.TemporaryDirectory() as tmp:
-        emu = Emulator(Path(folder or tmp))
+        emu = Emulator(Path(tmp))
         try:
-            out = [PHASES[name](emu, sizes) for name in phases]
+            for name in phases:
+                out.append(PHASES[name](emu, sizes))
+                progress(out[-1])
             out.append({"phase": "after", "alive": emu.alive(), "crashes": len(emu.crashes()), **normal_reads(emu)})
         finally:
             emu.close()
@@ -636,9 +667,8 @@ def main(argv: list[str] | None = None) -> int:
     sizes = FULL if args.size == "full" else CI
     print(f"# hostile input, {args.size} size, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
     print(f"# {machine()}; load average {os.getloadavg()[0]:.1f} at the start")
-    results = run(sizes, tuple(args.phase or PHASES))
-    for figures in results:
-        print(json.dumps(figures))
+    results = run(sizes, tuple(args.phase or PHASES), progress=lambda f: print(json.dumps(f), flush=True))
+    print(json.dumps(results[-1]))
     rows = []
     for f in results[:-1]:
         rows.append((f["phase"], f["seconds"], f.get("requests", f.get("frames", f.get("files"))),
