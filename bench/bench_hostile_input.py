@@ -342,7 +342,7 @@ def http_phase(emu: Emulator, sizes: Sizes) -> dict:
     port = emu.web
     figures: dict = {"phase": "http"}
     before = _steady(port)
-    wrong_status, not_json, wrong_field, normal_failed, requests = 0, 0, 0, 0, 0
+    wrong_status, not_json, wrong_field, normal, normal_failed, requests = 0, 0, 0, 0, 0, 0
     with monitored(emu, figures):
         slow = _slow_connections(port, sizes.slow)
         t_slow = time.monotonic()
@@ -360,6 +360,7 @@ def http_phase(emu: Emulator, sizes: Sizes) -> dict:
             if (got, (answer or {}).get("field")) != (status, field):
                 figures.setdefault("unexpected", []).append((method, path[:60], got, answer))
             if k % 50 == 0:   # a normal client meanwhile
+                normal += 1
                 normal_failed += _request(port, "GET", "/api/state?view=trainee")[0] != 200
         for k in range(sizes.wrong_tokens):
             given = TOKEN[:-1] + chr(ord("A") + k % 26) if k % 2 else TOKEN[: k % len(TOKEN)]
@@ -371,12 +372,13 @@ def http_phase(emu: Emulator, sizes: Sizes) -> dict:
             if (got, (answer or {}).get("field")) != (401, "token"):
                 figures.setdefault("unexpected", []).append(("token", given, got, answer))
         time.sleep(max(0.0, sizes.slow_hold - (time.monotonic() - t_slow)))
+        normal += 1
         normal_failed += _request(port, "GET", "/api/state?view=trainee")[0] != 200
         figures["slow_closed_by_server"] = _closed_by_server(slow)
         for s in slow:
             s.close()
     figures.update(requests=requests, wrong_status=wrong_status, not_json=not_json, wrong_field=wrong_field,
-                   normal_failed=normal_failed, slow=sizes.slow, big_bodies=sizes.big_bodies,
+                   normal=normal, normal_failed=normal_failed, slow=sizes.slow, big_bodies=sizes.big_bodies,
                    unchanged=_steady(port) == before)
     return figures
 
