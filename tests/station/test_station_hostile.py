@@ -52,6 +52,7 @@ async def _refused(client, method, path, data, *, status, field, headers=JSON):
     ("/api/reveal", {"unit": {"a": 1}}, 400, "unit"),
     ("/api/snapshots", {"name": ["a"]}, 400, "name"),
     ("/api/scenario", {"yaml": "[" * 1200}, 400, "scenario"),   # was a 500 after seconds of parsing
+    ("/api/scenario", {"yaml": "name: x\n" + "#" * 70_000}, 400, "scenario"),   # over 64 kB
 ])
 async def test_values_of_the_wrong_type_or_beyond_any_register_are_refused_naming_the_field(
         station_for, path, body, status, field):
