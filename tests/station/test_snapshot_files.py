@@ -65,6 +65,7 @@ async def test_broken_snapshot_files_are_refused_naming_the_file_and_the_state_i
     with np.load(good) as data:
         x = data["bank:_plant/_x"]
     _rewrite(good, folder / "nan.npz", arrays={"bank:_plant/_x": np.full_like(x, np.nan)})
+    _rewrite(good, folder / "head.npz", arrays={"bank:_plant/_head": np.array([10**9])})   # was a segfault
     _rewrite(good, folder / "ramps.npz", header={"device": {**json.loads(str(np.load(good)["__header__"]))["device"],
                                                             "ramps": [{"index": 9, "quantity": "S"}]}})
     await _snapshot_of(_three_loops(), folder / "three.npz")
@@ -73,7 +74,8 @@ async def test_broken_snapshot_files_are_refused_naming_the_file_and_the_state_i
         "truncated": "not a readable snapshot file", "version": "snapshot format 2",
         "ticks": "'ticks' must be a whole number", "infinite": "Infinity is not a JSON number",
         "huge": "'time' is inf",
-        "nan": "state field _plant/_x holds nan", "ramps": "malfunction ramps do not fit",
+        "nan": "state field _plant/_x holds nan", "head": "_plant/_head = array([1000000000]) is outside 0..",
+        "ramps": "malfunction ramps do not fit",
         "three": "another configuration", "other": "another configuration",
     }
     srv.device.advance(7)
@@ -96,14 +98,18 @@ async def test_broken_snapshot_files_are_refused_naming_the_file_and_the_state_i
 
 
 @pytest.mark.parametrize("config", ["configs/plant_room.yaml", "station"])
-def test_only_the_declared_state_fields_hold_non_finite_numbers(config):
-    """The allowance :meth:`Snapshot.check_finite` relies on: every other number of a bank's state is finite,
-    at the start and after running (a stale list would refuse good snapshots)."""
-    cfg = station_config() if config == "station" else load_server(config)
+def test_only_the_declared_state_fields_hold_non_finite_numbers_or_change_their_integers(config):
+    """The allowances the restore checks rely on: every other number of a bank's state is finite, and every
+    other integer stays as the configuration set it, at the start and after running with noise and a set-point
+    change (a stale list would refuse good snapshots)."""
+    cfg = station_config(noise=0.05) if config == "station" else load_server(config)
     bank = LoopBank(cfg.loops, dt=cfg.device.tick)
-    for steps in (0, 300):
-        bank.run(steps) if steps else None
-        for path, value in bank.state().items():
-            if path in LoopBank.NON_FINITE_STATE or not isinstance(value, np.ndarray) or value.dtype.kind != "f":
-                continue
+    start = bank.state()
+    bank.set_sp(0, 1.0)
+    bank.run(300)
+    for path, value in bank.state().items():
+        if isinstance(value, np.ndarray) and value.dtype.kind == "f" and path not in LoopBank.NON_FINITE_STATE:
             assert np.isfinite(value).all(), path
+        integers = isinstance(value, np.ndarray) and value.dtype.kind in "iu" or type(value) is int
+        if integers and path in start and path not in bank.dynamic_int_state():
+            assert np.array_equal(value, start[path]), path

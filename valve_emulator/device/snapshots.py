@@ -14,8 +14,9 @@ carries the unit ids, the number of loops and the tick, and :meth:`Device.restor
 A file is checked completely when it is read, and again against the device before anything is restored;
 every refusal is a :class:`SnapshotError` naming the file and what is wrong: not a snapshot file (truncated,
 not a zip archive), another format version, a header field of the wrong type, a number that is NaN or
-infinite where the bank never holds one (:meth:`Snapshot.check_finite`), another configuration or number of
-loops. A file that cannot be read does not stop the others from loading: the store lists it under
+infinite where the bank never holds one (:meth:`Snapshot.check_finite`), an integer outside its range or
+unlike the configuration's (:meth:`Snapshot.check_integers`), another configuration or number of loops.
+A file that cannot be read does not stop the others from loading: the store lists it under
 :attr:`SnapshotStore.broken` and refuses to restore it, with the reason.
 
 :class:`BacktrackRing` takes a snapshot every ``interval`` simulated seconds and keeps the last ``size``
@@ -105,9 +106,27 @@ class Snapshot:
                     first = float(value.ravel()[bad[0]])
                     raise SnapshotError(f"snapshot {self.label}: state field {path} holds {first!r} at "
                                         f"[{bad[0]}]; only finite numbers are valid there", field="file")
-            elif isinstance(value, float) and not math.isfinite(value):
-                raise SnapshotError(f"snapshot {self.label}: state field {path} is {value!r}; only a finite "
-                                    f"number is valid there", field="file")
+            elif not _finite(value):
+                raise SnapshotError(f"snapshot {self.label}: state field {path} holds a NaN or infinity; only "
+                                    f"finite numbers are valid there", field="file")
+
+    def check_integers(self, current: Mapping[str, Any], dynamic: Mapping[str, tuple[int, int]]) -> None:
+        """Raise :class:`SnapshotError` naming the first integer field of the bank's state that is outside its
+        range (``dynamic``: path -> inclusive range, for the fields that change as the bank runs) or, for
+        every other integer field, differs from ``current`` (the device's own state: sizes, model codes,
+        delays are set by the configuration)."""
+        for path, value in self.bank.items():
+            if not _integers(value) or path not in current:
+                continue
+            if path in dynamic:
+                lo, hi = dynamic[path]
+                values = np.asarray(value)
+                if values.size and not (lo <= values.min() and values.max() <= hi):
+                    raise SnapshotError(f"snapshot {self.label}: state field {path} = {value!r} is outside "
+                                        f"{lo}..{hi}"[:300], field="file")
+            elif not np.array_equal(np.asarray(value), np.asarray(current[path])):
+                raise SnapshotError(f"snapshot {self.label}: state field {path} = {value!r} differs from this "
+                                    f"device's {current[path]!r}, which its configuration sets"[:300], field="file")
 
     def save(self, path: Path) -> None:
         """Write ``path`` (``.npz``): the bank's arrays plus one JSON header; atomic (write, then rename)."""
@@ -154,6 +173,22 @@ class Snapshot:
             raise SnapshotError(f"{path}: the bank's state does not decode ({exc})", field="file") from None
         return cls(name=header["name"], time=float(header["time"]), ticks=header["ticks"], bank=bank,
                    device=header["device"], created=float(header["created"]), source=path)
+
+
+def _integers(value: Any) -> bool:
+    """An integer or an array of integers (not booleans)?"""
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind in "iu"
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _finite(value: Any) -> bool:
+    """No NaN or infinity in ``value`` (a number, or lists of them such as a set-point schedule)."""
+    if isinstance(value, float):
+        return math.isfinite(value)
+    if isinstance(value, (list, tuple)):
+        return all(_finite(v) for v in value)
+    return True
 
 
 def _not_json(constant: str) -> Any:

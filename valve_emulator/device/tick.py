@@ -334,13 +334,16 @@ class Device:
         """Put ``snap`` back: the device continues as after the save; pending writes are dropped.
 
         Raises :class:`~valve_emulator.device.snapshots.SnapshotError` (nothing changed) for a snapshot of
-        another configuration, of another number of loops, or holding a NaN or infinity where the bank never
-        does (``NON_FINITE_STATE`` of the bank); every check runs before anything is written."""
+        another configuration, of another number of loops, holding a NaN or infinity where the bank never
+        does (``NON_FINITE_STATE`` of the bank), or an integer outside its range or unlike the configuration's
+        (``dynamic_int_state``); every check runs before anything is written."""
         if snap.device.get("config") != self._fingerprint():
             raise SnapshotError(f"snapshot {snap.label} was taken on another configuration "
                                 f"({snap.device.get('config')}); this device is {self._fingerprint()}",
                                 field="name")
         snap.check_finite(getattr(self.bank, "NON_FINITE_STATE", {}))
+        if hasattr(self.bank, "dynamic_int_state"):
+            snap.check_integers(self.bank.state(), self.bank.dynamic_int_state())
         ramps = snap.device.get("ramps", [])
         if self.malfunctions is not None:
             try:
