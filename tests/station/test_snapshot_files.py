@@ -66,6 +66,9 @@ async def test_broken_snapshot_files_are_refused_naming_the_file_and_the_state_i
         x = data["bank:_plant/_x"]
     _rewrite(good, folder / "nan.npz", arrays={"bank:_plant/_x": np.full_like(x, np.nan)})
     _rewrite(good, folder / "head.npz", arrays={"bank:_plant/_head": np.array([10**9])})   # was a segfault
+    bank = json.loads(json.loads(str(np.load(good)["__header__"]))["bank"])
+    _rewrite(good, folder / "counter.npz", header={"bank": json.dumps({**bank, "k": "many"})})
+    _rewrite(good, folder / "steps.npz", header={"bank": json.dumps({**bank, "_sp_steps": [[["x", 1]]]})})
     _rewrite(good, folder / "ramps.npz", header={"device": {**json.loads(str(np.load(good)["__header__"]))["device"],
                                                             "ramps": [{"index": 9, "quantity": "S"}]}})
     await _snapshot_of(_three_loops(), folder / "three.npz")
@@ -75,6 +78,7 @@ async def test_broken_snapshot_files_are_refused_naming_the_file_and_the_state_i
         "ticks": "'ticks' must be a whole number", "infinite": "Infinity is not a JSON number",
         "huge": "'time' is inf",
         "nan": "state field _plant/_x holds nan", "head": "_plant/_head = array([1000000000]) is outside 0..",
+        "counter": "state field k: saved 'many' is not of the kind of", "steps": "state field _sp_steps: saved",
         "ramps": "malfunction ramps do not fit",
         "three": "another configuration", "other": "another configuration",
     }
