@@ -16,9 +16,10 @@ reads the tick register over Modbus TCP every 0.2 s and counts ticks per one-sec
 - ``rtu``: frames with a bad CRC, truncated, for a unit not served here, longer than any frame, random bytes,
   in bursts (1 frame, or up to 64 back to back without a silence) each followed by the 3.5-character silence
   and a good request: nothing may answer a corrupted frame, the good request must get the right answer.
-- ``snapshots``: files truncated, of another format version, with NaN or infinite numbers, of a device with
-  another number of loops or other units, dropped into the snapshot folder: each restore must be refused
-  (409) naming the file and what is wrong, and simulated time must not jump.
+- ``snapshots``: files truncated, of another format version, with NaN or infinite numbers, a ring-buffer
+  index out of range, of a device with another number of loops or other units, dropped into the snapshot
+  folder: each restore must be refused (409) naming the file and what is wrong, and simulated time must not
+  jump.
 - ``hup``: 10 clients (5 Modbus TCP, 5 HTTP) poll while the config file is replaced by broken versions and
   SIGHUP is sent: the error must name the file, line and key, no request may fail, the running config stays.
 
@@ -508,6 +509,7 @@ def broken_snapshots(good: Path, folder: Path) -> dict[str, str]:
         head = json.loads(str(data["__header__"]))
     _rewrite(good, folder / "nan.npz", arrays={"bank:_plant/_x": np.full_like(x, np.nan)})
     _rewrite(good, folder / "inf.npz", arrays={"bank:_plant/_x": np.full_like(x, np.inf)})
+    _rewrite(good, folder / "head.npz", arrays={"bank:_plant/_head": np.array([10**9])})
     config = head["device"]["config"]
     more = {**config, "units": [*config["units"], 3], "n": config["n"] + 1}
     _rewrite(good, folder / "loops.npz", header={"device": {**head["device"], "config": more}})
@@ -515,8 +517,8 @@ def broken_snapshots(good: Path, folder: Path) -> dict[str, str]:
                                                             "config": {**config, "units": [7, 8]}}})
     return {"truncated": "not a readable snapshot file", "version": "snapshot format 2",
             "infinite": "'time' is inf", "nan": "state field _plant/_x holds nan",
-            "inf": "state field _plant/_x holds inf", "loops": "another configuration",
-            "units": "another configuration"}
+            "inf": "state field _plant/_x holds inf", "head": "state field _plant/_head",
+            "loops": "another configuration", "units": "another configuration"}
 
 
 def snapshot_phase(emu: Emulator, sizes: Sizes) -> dict:

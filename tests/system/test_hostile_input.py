@@ -45,7 +45,7 @@ def test_corrupted_rtu_frames_get_no_reply_and_the_next_good_one_the_right_answe
 
 def test_broken_snapshot_files_are_refused_naming_the_file_and_time_does_not_jump(figures):
     f = figures["snapshots"]
-    assert f["refused"] == f["files"] == 7 and f["wrong"] == 0, f.get("answers")
+    assert f["refused"] == f["files"] == 8 and f["wrong"] == 0, f.get("answers")
     assert f["time_jumped"] == 0 and f["unchanged"]
     _on_schedule(f)
 
