@@ -293,6 +293,7 @@ ERRORS = [
     ("valve:\n  S: 1\n  S: 2\n" + VALID_PLANT, ["duplicate key valve.S (first given on line 2)"], 3),
     ("valve:\n  S: [1, 2\n" + VALID_PLANT, ["YAML syntax error"], 3),
     ("valve: {S: 1}\n  bad: indent\n", ["YAML syntax error"], 2),
+    ("valve: " + "[" * 5000 + "\n", ["YAML nested too deeply"], None),   # was a RecursionError
     ("", ["the file is empty"], None),
     ("- 1\n- 2\n", ["configuration must be a mapping, got list"], None),
     ("loops: []\n", ["loops makes this a multi-loop (server) file; load it with load_server"], 1),

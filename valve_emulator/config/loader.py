@@ -155,6 +155,8 @@ def _read(path: str | os.PathLike[str]) -> tuple[Any, _Context]:
                           line=mark.line + 1 if mark else None) from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"YAML error: {exc}", source=ctx.source) from None
+    except RecursionError:
+        raise ConfigError("YAML nested too deeply", source=ctx.source) from None
     finally:
         loader.dispose()
     return data, ctx

@@ -43,12 +43,13 @@ from valve_emulator.device.registers import (
     CommFault,
     DataType,
     RegisterError,
+    RegisterValueError,
     Scaling,
     address_of,
     decode_write,
     register,
 )
-from valve_emulator.device.registers.codec import decode_value
+from valve_emulator.device.registers.codec import decode_value, write_range
 
 __all__ = ["Kind", "Malfunction", "MalfunctionError", "MalfunctionBank", "parse_malfunction", "register_word"]
 
@@ -56,16 +57,21 @@ __all__ = ["Kind", "Malfunction", "MalfunctionError", "MalfunctionBank", "parse_
 def register_word(name: str, value: float, scaling: Scaling, index: int) -> int:
     """The word a client would write to the linear 16-bit register ``name`` for the physical ``value``.
 
-    Unlike the read encoding this does not clip to the register's range: an out-of-range value gives an
-    out-of-range word, which :func:`~valve_emulator.device.registers.decode_write` then refuses with the
-    register map's own message (the raw value is only bounded to what one word can carry).
+    Unlike the read encoding this does not clip to the register's range: an out-of-range value that one word
+    can carry gives an out-of-range word, which :func:`~valve_emulator.device.registers.decode_write` then
+    refuses with the register map's own message. A value no word can carry (``1e308``, or ``-1`` for an
+    unsigned register) raises :class:`~valve_emulator.device.registers.RegisterValueError` here, naming the
+    register and its range in physical units: clipping it to the word would turn it into a valid write.
     """
     reg = register(name)
     v0, v1 = decode_value(reg, 0, scaling, index), decode_value(reg, 1, scaling, index)
-    raw = round((value - v0) / (v1 - v0))
-    if reg.type is DataType.INT16:
-        return min(max(raw, -32768), 32767) & 0xFFFF
-    return min(max(raw, 0), 65535)
+    raw = (value - v0) / (v1 - v0)
+    word_lo, word_hi = (-32768, 32767) if reg.type is DataType.INT16 else (0, 65535)
+    if not word_lo - 0.5 <= raw < word_hi + 0.5:   # also False for a NaN
+        lo, hi = (decode_value(reg, r, scaling, index) for r in write_range(reg, scaling, index))
+        raise RegisterValueError(f"register {reg.name}: {value:g} out of range {lo:g}..{hi:g}", register=reg.name,
+                                 allowed=write_range(reg, scaling, index))
+    return round(raw) & 0xFFFF
 
 
 class Kind(StrEnum):
@@ -192,6 +198,9 @@ def _check_comm(params: Mapping[str, float]) -> None:
                                    field=key)
 
 
+_QUANTITIES = ("S", "J", "load", "noise", "bias")
+
+
 @dataclass(kw_only=True)
 class _Ramp:
     index: int
@@ -256,7 +265,7 @@ class MalfunctionBank:
         elif m.kind is Kind.CLEAR:
             if self.comm is not None:
                 self.comm.set(m.unit, fault=int(CommFault.NONE), delay_ms=0)
-            for q in ("S", "J", "load", "noise", "bias"):
+            for q in _QUANTITIES:
                 self._ramps.pop((i, q), None)
             b.set_valve(i, S=float(self._base["S"][i]), J=float(self._base["J"][i]))
             b.set_noise(i, float(self._base["noise"][i]))
@@ -300,5 +309,22 @@ class MalfunctionBank:
     def state(self) -> list[dict[str, Any]]:
         return [asdict(r) for r in self._ramps.values()]
 
-    def set_state(self, ramps: list[dict[str, Any]]) -> None:
-        self._ramps = {(int(r["index"]), r["quantity"]): _Ramp(**r) for r in ramps}
+    def set_state(self, ramps: list[Any]) -> None:
+        """Put back ramps of :meth:`state` (or checked by :meth:`parse_state`)."""
+        self._ramps = {(r.index, r.quantity): r for r in self.parse_state(ramps, n=self.bank.n)}
+
+    @staticmethod
+    def parse_state(ramps: list[Any], *, n: int) -> list[_Ramp]:
+        """Ramps of :meth:`state` (dicts, e.g. read from a snapshot file) checked for a bank of ``n`` loops:
+        ``ValueError``/``TypeError``/``KeyError`` naming the entry if one does not fit."""
+        out = []
+        for k, r in enumerate(ramps):
+            ramp = r if isinstance(r, _Ramp) else _Ramp(**r)
+            numbers_ok = all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                             for x in (ramp.start, ramp.target, ramp.t0, ramp.duration))
+            if not (isinstance(ramp.index, int) and 0 <= ramp.index < n and ramp.quantity in _QUANTITIES
+                    and numbers_ok):
+                raise ValueError(f"ramps[{k}] = {r!r}: index 0..{n - 1}, quantity one of "
+                                 f"{', '.join(_QUANTITIES)} and finite numbers expected")
+            out.append(ramp)
+        return out

@@ -13,6 +13,8 @@
   is in, as libmodbus and most devices do; any other frame ends with the t3.5 silence. (Waiting for the
   silence would add t3.5 to every answer: at 115200 baud that alone costs a third of the line's rate.)
 - A frame with a bad CRC is discarded without a reply (§2.5.1.2), and counted (FC8 sub-function 0x0C).
+  So is a frame longer than 256 bytes, the longest the specification allows (§2.5.1): the serial link keeps
+  at most that much of it, however long the line chatters without a silence.
   A frame for an address not served here is not answered (another slave on the bus may own it).
 - Address 0 is broadcast (§2.1): a write is carried out by every unit served here, and nobody answers;
   a broadcast read is ignored.
@@ -211,8 +213,19 @@ class RtuSerialLink:
         if not data:
             return
         now = self._loop.time()
+        if self._timer is not None and now - self._last >= self.settings.t35:
+            # the end-of-frame timer is due but the loop ran this reader first (a busy loop): the silence
+            # has passed, so the frame before it ends here, and these bytes start the next one
+            self._timer.cancel()
+            self._end_of_frame()
         if self._buf and now - self._last > self.settings.t15:
             self._broken = True   # a silence inside the frame: it is discarded when it ends (§2.5.1.1)
+        if len(self._buf) + len(data) > _MAX_FRAME:
+            # longer than any RTU frame (256 bytes, §2.5.1): noise, discarded when the silence comes. Only
+            # the tail is kept, so a line that never falls silent cannot make the buffer grow.
+            self._broken = True
+            self._buf.clear()
+            data = data[-_MAX_FRAME:]
         self._buf += data
         self._last = now
         if self._timer is not None:

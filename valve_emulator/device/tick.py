@@ -387,17 +387,29 @@ class Device:
         """Put ``snap`` back: the device continues as after the save; pending writes are dropped.
 
         Raises :class:`~valve_emulator.device.snapshots.SnapshotError` (nothing changed) for a snapshot of
-        another configuration."""
+        another configuration, of another number of loops, holding a NaN or infinity where the bank never
+        does (``NON_FINITE_STATE`` of the bank), or an integer outside its range or unlike the configuration's
+        (``dynamic_int_state``); every check runs before anything is written."""
         if snap.device.get("config") != self._fingerprint():
-            raise SnapshotError(f"snapshot {snap.name!r} was taken on another configuration "
+            raise SnapshotError(f"snapshot {snap.label} was taken on another configuration "
                                 f"({snap.device.get('config')}); this device is {self._fingerprint()}",
                                 field="name")
+        snap.check_finite(getattr(self.bank, "NON_FINITE_STATE", {}))
+        if hasattr(self.bank, "dynamic_int_state"):
+            snap.check_integers(self.bank.state(), self.bank.dynamic_int_state())
+        ramps = snap.device.get("ramps", [])
+        if self.malfunctions is not None:
+            try:
+                ramps = self.malfunctions.parse_state(ramps, n=self.bank.n)
+            except (TypeError, ValueError, KeyError) as exc:
+                raise SnapshotError(f"snapshot {snap.label}: malfunction ramps do not fit this device: {exc}",
+                                    field="file") from None
         try:
             self.bank.set_state(snap.bank)
         except ValueError as exc:   # StateMismatch: checked before anything was written
-            raise SnapshotError(f"snapshot {snap.name!r} does not fit this device: {exc}", field="name") from exc
+            raise SnapshotError(f"snapshot {snap.label} does not fit this device: {exc}", field="name") from exc
         if self.malfunctions is not None:
-            self.malfunctions.set_state(snap.device.get("ramps", []))
+            self.malfunctions.set_state(ramps)
         self._pending.clear()
         self.ticks = int(snap.device["ticks"])
         self._refresh()

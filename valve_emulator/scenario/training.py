@@ -161,13 +161,36 @@ def _trigger(value: Any, key: str, hints: dict[str, str]) -> Trigger:
                    action=_action(m.get("do"), f"{key}.do", hints))
 
 
+#: Limits on scenario YAML text, far above any lesson's (a few kB, nested three or four deep). PyYAML's
+#: pure-Python parser takes time quadratic in the nesting of flow collections (``[[[[...``: 2 s for 3,000),
+#: and the station parses in its event loop, so text beyond them is refused before parsing.
+MAX_YAML_CHARS = 64 * 1024
+MAX_FLOW_DEPTH = 64
+
+
+def _check_yaml_text(text: str) -> None:
+    """Refuse YAML text longer than :data:`MAX_YAML_CHARS` or nesting ``[``/``{`` deeper than
+    :data:`MAX_FLOW_DEPTH` (counted with brackets inside quotes too: a lesson never comes near)."""
+    if len(text) > MAX_YAML_CHARS:
+        raise ScenarioError(f"scenario: YAML text of {len(text)} characters; at most {MAX_YAML_CHARS}")
+    depth = deepest = 0
+    for opened in (ch in "[{" for ch in text if ch in "[]{}"):
+        depth = depth + 1 if opened else max(0, depth - 1)
+        deepest = max(deepest, depth)
+        if deepest > MAX_FLOW_DEPTH:
+            raise ScenarioError(f"scenario: YAML nested too deeply (more than {MAX_FLOW_DEPTH} levels of [ or {{)")
+
+
 def parse_training(data: Any) -> TrainingScenario:
     """Check a training scenario mapping (or YAML text); see the module docstring."""
     if isinstance(data, str):
+        _check_yaml_text(data)
         try:
             data = yaml.safe_load(data)
         except yaml.YAMLError as exc:
             raise ScenarioError(f"scenario: YAML syntax error: {exc}") from None
+        except RecursionError:
+            raise ScenarioError("scenario: YAML nested too deeply") from None
     m = _mapping(data, "scenario")
     for k in m:
         if k not in _TOP:

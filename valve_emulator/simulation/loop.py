@@ -21,12 +21,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import ClassVar
 
 import numba
 import numpy as np
 
 from valve_emulator.config import LoopConfig
 from valve_emulator.physics.controller import PIDBank, pid_step_kernel
+from valve_emulator.physics.disturbance import BLOCK as NORMALS_BLOCK
 from valve_emulator.physics.disturbance import DisturbanceBank, NoiseBank
 from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_functions_to_zoh
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, Characteristic, LookupTable
@@ -390,6 +392,20 @@ class LoopBank:
         self.pv = self._plant.pv.copy()
 
     # -- snapshots --------------------------------------------------------------------------------------------
+    #: The fields of :meth:`state` that may hold a non-finite number, and what it means there. Every other
+    #: number in the state is finite, so a snapshot holding NaN or infinity elsewhere (a damaged or edited
+    #: file) is refused before it is restored rather than stopping the next step.
+    NON_FINITE_STATE: ClassVar[dict[str, str]] = {"_sp_next": "inf: no set-point step pending",
+                               "pv_stuck": "NaN: the transmitter is not stuck"}
+
+    def dynamic_int_state(self) -> dict[str, tuple[int, int]]:
+        """The integer fields of :meth:`state` that change as the bank runs, each with its valid range
+        (inclusive). Every other integer field is set by the configuration, so a snapshot must hold the bank's
+        own value there. The compiled step indexes its arrays with these without bounds checks: an edited
+        snapshot with a ring head of 10**9 would crash the process, so restores check them first."""
+        return {"k": (0, 2**62), "_plant/_head": (0, self._plant._buf.shape[1] - 1),
+                "_dist/_normals/_pos": (0, NORMALS_BLOCK), "_noise/_normals/_pos": (0, NORMALS_BLOCK)}
+
     def _nested(self) -> tuple[type, ...]:
         return (PIDBank, PlantBank, DisturbanceBank, NoiseBank, type(self._dist._normals))
 

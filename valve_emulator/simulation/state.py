@@ -98,6 +98,9 @@ def restore(obj: Any, state: Mapping[str, Any], nested: tuple[type, ...],
                                                   or now.dtype != value.dtype):
                 raise StateMismatch(f"state field {path}: saved {getattr(value, 'shape', value)!r} does not fit "
                                     f"{getattr(now, 'shape', now)!r}", path=path)
+            if not isinstance(value, np.ndarray) and not _fits(now, value):
+                raise StateMismatch(f"state field {path}: saved {value!r:.80} is not of the kind of "
+                                    f"{now!r:.80}", path=path)
         elif not any(path.startswith(m + "/") for m in make):
             raise StateMismatch(f"state field {path} does not exist here (another configuration?)", path=path)
     for m, build in make.items():
@@ -128,6 +131,46 @@ def restore(obj: Any, state: Mapping[str, Any], nested: tuple[type, ...],
                 raise StateMismatch(f"state field {path}: saved None, here {type(target).__name__}", path=path)
         else:
             setattr(owner, attr, copy.deepcopy(value))
+
+
+def _fits(now: Any, value: Any) -> bool:
+    """Can ``value`` (e.g. read from a file) stand where the object holds ``now`` (a captured value)?
+
+    Same kind of number (an int may stand for a float, nothing for a bool); a generator state that a bit
+    generator of the same kind accepts; a list of the same length with numbers (or None) at its leaves. Checked before
+    anything is written, so a damaged snapshot is refused whole instead of failing halfway or in the next step.
+    """
+    if isinstance(now, np.ndarray):
+        return False
+    if isinstance(now, bool) or isinstance(value, bool):
+        return type(now) is type(value)
+    if isinstance(now, int):
+        return type(value) is int
+    if isinstance(now, float):
+        return type(value) in (int, float)
+    if isinstance(now, dict) and _GEN in now:
+        return isinstance(value, dict) and _GEN in value and _generator_accepts(now[_GEN], value[_GEN])
+    if isinstance(now, list):
+        return isinstance(value, list) and len(value) == len(now) and _numbers_at_leaves(value)
+    return True
+
+
+def _numbers_at_leaves(value: Any) -> bool:
+    if isinstance(value, list):
+        return all(_numbers_at_leaves(v) for v in value)
+    return value is None or isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _generator_accepts(now: Mapping[str, Any], saved: Any) -> bool:
+    """Does a fresh bit generator of ``now``'s kind accept the ``saved`` state?"""
+    kind = getattr(np.random, str(now.get("bit_generator")), None)
+    if not (isinstance(saved, dict) and saved.get("bit_generator") == now.get("bit_generator") and kind):
+        return False
+    try:
+        kind().state = saved
+    except (TypeError, ValueError, KeyError, OverflowError):
+        return False
+    return True
 
 
 def _resolve(obj: Any, path: str) -> Any:

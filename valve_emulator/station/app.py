@@ -17,6 +17,14 @@ Every ``POST``/``DELETE`` must carry ``Content-Type: application/json`` (a page 
 that without a CORS preflight, which this server never grants) and a JSON object body (``{}`` when there is
 nothing to say). A refused call answers ``{"error": message, "field": name}`` with a 4xx status and changes
 nothing; refusals are logged at WARNING once per client address, route and field, like refused Modbus writes.
+aiohttp's own refusals -- an unknown path (404, field ``path``), a method the route does not take (405,
+``method``), a body over :data:`MAX_BODY` bytes (413, ``body``) -- get the same JSON form.
+
+Hostile clients: a body is JSON text of at most :data:`MAX_BODY` bytes that must arrive within
+:data:`BODY_TIMEOUT` seconds (408 otherwise), without ``NaN``/``Infinity`` (not JSON) and nested no deeper
+than Python's parser can take (400, ``body``). A connection that has not completed a request line and headers
+is closed after :data:`IDLE_TIMEOUT` seconds, so slow or half-open connections do not pile up; none of them
+delays the tick, which runs in the same event loop and never waits for a client.
 """
 
 from __future__ import annotations
@@ -35,7 +43,7 @@ from aiohttp import web
 
 from valve_emulator.station.core import Station, StationError
 
-__all__ = ["make_app", "start_station", "is_loopback", "STATION_KEY"]
+__all__ = ["make_app", "start_station", "is_loopback", "STATION_KEY", "MAX_BODY", "BODY_TIMEOUT", "IDLE_TIMEOUT"]
 
 _log = logging.getLogger("valve_emulator.station")
 STATION_KEY = web.AppKey("station", Station)
@@ -44,6 +52,15 @@ _REFUSED = web.AppKey("refused", set)
 _STREAMS = web.AppKey("streams", set)
 _COOKIE = "station_token"
 _STATIC = ("index.html", "instructor.html", "station.js", "station.css", "report.html")
+#: Largest request body accepted (bytes): the biggest legitimate one, a scenario's YAML, is a few kB.
+MAX_BODY = 1 << 20
+#: Seconds a request body may take to arrive once its headers are in.
+BODY_TIMEOUT = 10.0
+#: Seconds a connection may stay without a complete request (aiohttp's keep-alive timeout, which also runs
+#: from the moment a connection opens).
+IDLE_TIMEOUT = 15.0
+#: aiohttp's refusals as the API's error field
+_HTTP_FIELD = {404: "path", 405: "method", 413: "body"}
 
 
 def is_loopback(host: str) -> bool:
@@ -74,8 +91,9 @@ def _instructor(request: web.Request) -> bool:
 
 
 def _refuse(request: web.Request, exc: StationError) -> web.Response:
-    key = (_client(request), request.method, request.match_info.route.resource.canonical
-           if request.match_info.route.resource else request.path, exc.field)
+    resource = request.match_info.route.resource
+    # an unknown path is logged under one key, not its own: a client making up paths must not grow the set
+    key = (_client(request), request.method, resource.canonical if resource else "(no route)", exc.field)
     seen = request.app[_REFUSED]
     if key not in seen:
         seen.add(key)
@@ -104,14 +122,39 @@ def _api(*, instructor: bool = False) -> Callable[[Handler], Handler]:
     return wrap
 
 
+@web.middleware
+async def _json_errors(request: web.Request, handler: Handler) -> web.StreamResponse:
+    """aiohttp's own 4xx refusals (unknown path, wrong method, body too large) as the API's JSON errors."""
+    try:
+        return await handler(request)
+    except web.HTTPException as exc:
+        if exc.status < 400 or exc.status >= 500:
+            raise
+        field = _HTTP_FIELD.get(exc.status, "request")
+        message = {"path": f"no such page or API call: {request.method} {request.path}",
+                   "method": f"{request.path} does not take {request.method}",
+                   "body": f"request body: larger than {MAX_BODY} bytes"}.get(field, exc.text or exc.reason)
+        return _refuse(request, StationError(message, field=field, status=exc.status))
+
+
+def _not_json(constant: str) -> Any:
+    raise ValueError(f"{constant} is not a JSON number")
+
+
 async def _body(request: web.Request) -> dict[str, Any]:
-    raw = await request.read()
+    try:
+        raw = await asyncio.wait_for(request.read(), BODY_TIMEOUT)
+    except TimeoutError:
+        raise StationError(f"request body: not complete after {BODY_TIMEOUT:g} s", field="body",
+                           status=408) from None
     if not raw.strip():
         return {}
     try:
-        body = json.loads(raw)
+        body = json.loads(raw, parse_constant=_not_json)
     except (ValueError, UnicodeDecodeError) as exc:
         raise StationError(f"request body: not valid JSON ({exc})", field="body") from None
+    except RecursionError:
+        raise StationError("request body: JSON nested too deeply", field="body") from None
     if not isinstance(body, dict):
         raise StationError(f"request body: a JSON object is expected, got {type(body).__name__}", field="body")
     return body
@@ -157,7 +200,7 @@ def _clean(x: Any) -> Any:
 
 def make_app(station: Station, *, token: str | None = None) -> web.Application:
     """The aiohttp application of ``station`` (see the module docstring)."""
-    app = web.Application(client_max_size=1 << 20)
+    app = web.Application(client_max_size=MAX_BODY, middlewares=[_json_errors])
     app[STATION_KEY], app[_TOKEN], app[_REFUSED], app[_STREAMS] = station, token, set(), set()
     st = station
     r = app.router
@@ -376,16 +419,18 @@ def make_app(station: Station, *, token: str | None = None) -> web.Application:
     return app
 
 
-async def start_station(station: Station, *, host: str, port: int,
-                        token: str | None = None) -> tuple[web.AppRunner, int]:
+async def start_station(station: Station, *, host: str, port: int, token: str | None = None,
+                        idle_timeout: float = IDLE_TIMEOUT) -> tuple[web.AppRunner, int]:
     """Serve ``station`` on ``host:port`` (0: a free port) in the running loop; returns the runner (call
-    ``await runner.cleanup()`` to stop) and the bound port. Refuses a non-loopback host without a token."""
+    ``await runner.cleanup()`` to stop) and the bound port. Refuses a non-loopback host without a token.
+    ``idle_timeout``: seconds a connection may stay without a complete request."""
     if token is None and not is_loopback(host):
         raise ValueError(f"--web on {host} (not loopback) needs --web-token: the instructor API would be open "
                          f"to anyone who reaches the port")
     if token is not None and len(token) < 8:
         raise ValueError("--web-token must be at least 8 characters")
-    runner = web.AppRunner(make_app(station, token=token), access_log=None, shutdown_timeout=1.0)
+    runner = web.AppRunner(make_app(station, token=token), access_log=None, shutdown_timeout=1.0,
+                           keepalive_timeout=idle_timeout)
     await runner.setup()
     site = web.TCPSite(runner, host, port)
     await site.start()

@@ -65,6 +65,14 @@ def _number(body: Mapping[str, Any], key: str, *, lo: float = -math.inf, hi: flo
     return float(value)
 
 
+def _checked_name(name: Any) -> str:
+    """``name`` if it is a valid snapshot name; a path trick (``../x``, ``/etc``, a NUL) is a 400 naming it."""
+    try:
+        return check_name(name)
+    except SnapshotError as exc:
+        raise StationError(str(exc), field=exc.field) from None
+
+
 class Station:
     """The station over ``device`` (see the module docstring).
 
@@ -131,7 +139,9 @@ class Station:
     def index_of(self, unit: Any) -> int:
         if isinstance(unit, str) and unit.isdigit():
             unit = int(unit)
-        if isinstance(unit, bool) or not isinstance(unit, int) or unit not in self.device.unit_index:
+        if isinstance(unit, bool) or not isinstance(unit, int):
+            raise StationError(f"field 'unit' must be a unit id (a whole number), got {unit!r}"[:200], field="unit")
+        if unit not in self.device.unit_index:
             raise StationError(f"field 'unit': no loop at unit {unit!r}", field="unit", status=404)
         return self.device.unit_index[unit]
 
@@ -200,8 +210,8 @@ class Station:
     def save_snapshot(self, body: Mapping[str, Any]) -> dict[str, Any]:
         if "name" not in body:
             raise StationError("field 'name' is required", field="name")
+        name = _checked_name(body["name"])
         try:
-            name = check_name(body["name"])
             snap = self.device.snapshot(name)
             self.snapshots.put(snap)
         except SnapshotError as exc:
@@ -214,9 +224,11 @@ class Station:
 
     def list_snapshots(self) -> dict[str, Any]:
         return {"snapshots": [s.summary() for s in self.snapshots],
+                "broken": [{"name": name, "error": why} for name, why in sorted(self.snapshots.broken.items())],
                 "backtrack": [s.summary() for s in self.backtrack] if self.backtrack is not None else []}
 
     def _find(self, name: str):
+        _checked_name(name)
         try:
             return self.snapshots.get(name)
         except SnapshotNotFound:
@@ -226,6 +238,8 @@ class Station:
                 except SnapshotNotFound:
                     pass
             raise StationError(f"no snapshot named {name!r}", field="name", status=404) from None
+        except SnapshotError as exc:   # its file is broken: the message names the file and what is wrong
+            raise StationError(str(exc), field=exc.field, status=409) from None
 
     def restore_snapshot(self, name: str) -> dict[str, Any]:
         snap = self._find(name)
@@ -240,6 +254,7 @@ class Station:
         return snap.summary()
 
     def delete_snapshot(self, name: str) -> None:
+        _checked_name(name)
         try:
             self.snapshots.delete(name)
         except SnapshotNotFound:
@@ -288,9 +303,10 @@ class Station:
         else:
             value = _number(body, key)
             name, action = ("sp", "sp") if key == "sp" else ("op_pct", "op")
-            word = register_word(name, value, self.device.scaling, index)
         t = float(self.bank.sample_time)
         try:
+            if key != "mode":   # a value no register word can carry is refused here, with the map's text
+                word = register_word(name, value, self.device.scaling, index)
             self.device.write(index, address_of(name), [word])
         except RegisterError as exc:
             self.evaluation.action(Action(who=who, unit=self.device.units[index], action=action, value=value,
