@@ -245,3 +245,16 @@ def test_beyond_loopback_needs_a_secure_policy_and_users(tmp_path):
     OpcUaSecurity().check("127.0.0.1")
     OpcUaSecurity().check("::1")
     assert math.isfinite(1.0)
+
+
+async def test_starting_opcua_beside_a_running_device_costs_no_overrun(config):
+    """Building the address space keeps the event loop busy for a while: the tick waits (frozen) instead of
+    running late, and runs on afterwards."""
+    async with EmulatorServer(config, port=0, time_scale=1.0) as srv:
+        await srv.device.wait_for_tick(2)
+        overruns = srv.device.overruns
+        async with OpcUaServer(srv.device, loops=config.loops, port=0):
+            assert not srv.device.frozen
+            ticks = srv.device.ticks
+            await srv.device.wait_for_tick(ticks + 3)
+        assert srv.device.overruns == overruns

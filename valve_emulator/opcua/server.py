@@ -595,6 +595,19 @@ class OpcUaServer:
     # --- lifecycle -------------------------------------------------------------------------------------
 
     async def start(self) -> None:
+        """Build the address space and listen. A running device is frozen meanwhile (building a large address
+        space keeps the event loop busy for seconds) and runs on afterwards, so the build costs no overrun and
+        the simulated time simply waits for it."""
+        pause = self.device.running and not self.device.frozen
+        if pause:
+            await self.device.freeze()
+        try:
+            await self._start()
+        finally:
+            if pause:
+                await self.device.resume()
+
+    async def _start(self) -> None:
         for logger in _asyncua_loggers():
             logger.addFilter(self._log_filter)
         sec = self.security
