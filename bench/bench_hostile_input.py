@@ -489,7 +489,9 @@ def rtu_phase(emu: Emulator, sizes: Sizes, *, max_burst: int = 64) -> dict:
 
 # --- snapshot files ----------------------------------------------------------------------------------------
 
-def _rewrite(src: Path, dst: Path, *, header=None, arrays=None, edit=lambda text: text) -> None:
+def rewrite_snapshot(src: Path, dst: Path, *, header=None, arrays=None, edit=lambda text: text) -> None:
+    """A copy of snapshot file ``src`` at ``dst`` with header fields and arrays replaced, the header's JSON
+    text passed through ``edit`` (also used by tests/station/test_snapshot_files.py)."""
     with np.load(src) as data:
         head = json.loads(str(data["__header__"]))
         saved = {k: data[k] for k in data.files if k != "__header__"}
@@ -502,18 +504,19 @@ def _rewrite(src: Path, dst: Path, *, header=None, arrays=None, edit=lambda text
 def broken_snapshots(good: Path, folder: Path) -> dict[str, str]:
     """Write broken copies of ``good`` into ``folder``: name -> what the refusal must say."""
     (folder / "truncated.npz").write_bytes(good.read_bytes()[: good.stat().st_size // 2])
-    _rewrite(good, folder / "version.npz", header={"format": 2})
-    _rewrite(good, folder / "infinite.npz", header={"time": 12345.5}, edit=lambda t: t.replace("12345.5", "1e999"))
+    rewrite_snapshot(good, folder / "version.npz", header={"format": 2})
+    rewrite_snapshot(good, folder / "infinite.npz", header={"time": 12345.5},
+                     edit=lambda t: t.replace("12345.5", "1e999"))
     with np.load(good) as data:
         x = data["bank:_plant/_x"]
         head = json.loads(str(data["__header__"]))
-    _rewrite(good, folder / "nan.npz", arrays={"bank:_plant/_x": np.full_like(x, np.nan)})
-    _rewrite(good, folder / "inf.npz", arrays={"bank:_plant/_x": np.full_like(x, np.inf)})
-    _rewrite(good, folder / "head.npz", arrays={"bank:_plant/_head": np.array([10**9])})
+    rewrite_snapshot(good, folder / "nan.npz", arrays={"bank:_plant/_x": np.full_like(x, np.nan)})
+    rewrite_snapshot(good, folder / "inf.npz", arrays={"bank:_plant/_x": np.full_like(x, np.inf)})
+    rewrite_snapshot(good, folder / "head.npz", arrays={"bank:_plant/_head": np.array([10**9])})
     config = head["device"]["config"]
     more = {**config, "units": [*config["units"], 3], "n": config["n"] + 1}
-    _rewrite(good, folder / "loops.npz", header={"device": {**head["device"], "config": more}})
-    _rewrite(good, folder / "units.npz", header={"device": {**head["device"],
+    rewrite_snapshot(good, folder / "loops.npz", header={"device": {**head["device"], "config": more}})
+    rewrite_snapshot(good, folder / "units.npz", header={"device": {**head["device"],
                                                             "config": {**config, "units": [7, 8]}}})
     return {"truncated": "not a readable snapshot file", "version": "snapshot format 2",
             "infinite": "'time' is inf", "nan": "state field _plant/_x holds nan",

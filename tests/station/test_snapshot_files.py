@@ -2,6 +2,8 @@
 the file and what is wrong; the running state is unchanged."""
 
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,19 +14,10 @@ from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.snapshots import SnapshotStore
 from valve_emulator.simulation.loop import LoopBank
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
+from bench_hostile_input import rewrite_snapshot  # noqa: E402
+
 pytestmark = pytest.mark.usefixtures("no_task_leak")
-
-
-def _rewrite(src, dst, *, header=None, arrays=None, edit=lambda text: text):
-    """A copy of snapshot file ``src`` at ``dst`` with header fields and arrays replaced, the header's JSON
-    text passed through ``edit``."""
-    with np.load(src) as data:
-        head = json.loads(str(data["__header__"]))
-        saved = {k: data[k] for k in data.files if k != "__header__"}
-    head.update(header or {})
-    saved.update(arrays or {})
-    with dst.open("wb") as f:
-        np.savez(f, __header__=np.array(edit(json.dumps(head))), **saved)
 
 
 async def _snapshot_of(config, path):
@@ -58,19 +51,21 @@ async def test_broken_snapshot_files_are_refused_naming_the_file_and_the_state_i
     assert (await client.post("/api/snapshots", data=json.dumps({"name": "good"}), headers=JSON)).status == 201
     good = folder / "good.npz"
     (folder / "truncated.npz").write_bytes(good.read_bytes()[: good.stat().st_size // 2])
-    _rewrite(good, folder / "version.npz", header={"format": 2})
-    _rewrite(good, folder / "ticks.npz", header={"ticks": "many"})
-    _rewrite(good, folder / "infinite.npz", header={"time": 1e400})     # json writes Infinity
-    _rewrite(good, folder / "huge.npz", header={"time": 12345.5}, edit=lambda text: text.replace("12345.5", "1e400"))
+    rewrite_snapshot(good, folder / "version.npz", header={"format": 2})
+    rewrite_snapshot(good, folder / "ticks.npz", header={"ticks": "many"})
+    rewrite_snapshot(good, folder / "infinite.npz", header={"time": 1e400})     # json writes Infinity
+    rewrite_snapshot(good, folder / "huge.npz", header={"time": 12345.5},
+                     edit=lambda text: text.replace("12345.5", "1e400"))
     with np.load(good) as data:
         x = data["bank:_plant/_x"]
-    _rewrite(good, folder / "nan.npz", arrays={"bank:_plant/_x": np.full_like(x, np.nan)})
-    _rewrite(good, folder / "head.npz", arrays={"bank:_plant/_head": np.array([10**9])})   # was a segfault
+    rewrite_snapshot(good, folder / "nan.npz", arrays={"bank:_plant/_x": np.full_like(x, np.nan)})
+    rewrite_snapshot(good, folder / "head.npz", arrays={"bank:_plant/_head": np.array([10**9])})   # was a segfault
     bank = json.loads(json.loads(str(np.load(good)["__header__"]))["bank"])
-    _rewrite(good, folder / "counter.npz", header={"bank": json.dumps({**bank, "k": "many"})})
-    _rewrite(good, folder / "steps.npz", header={"bank": json.dumps({**bank, "_sp_steps": [[["x", 1]]]})})
-    _rewrite(good, folder / "ramps.npz", header={"device": {**json.loads(str(np.load(good)["__header__"]))["device"],
-                                                            "ramps": [{"index": 9, "quantity": "S"}]}})
+    rewrite_snapshot(good, folder / "counter.npz", header={"bank": json.dumps({**bank, "k": "many"})})
+    rewrite_snapshot(good, folder / "steps.npz", header={"bank": json.dumps({**bank, "_sp_steps": [[["x", 1]]]})})
+    device = json.loads(str(np.load(good)["__header__"]))["device"]
+    ramps = [{"index": 9, "quantity": "S"}]
+    rewrite_snapshot(good, folder / "ramps.npz", header={"device": {**device, "ramps": ramps}})
     await _snapshot_of(_three_loops(), folder / "three.npz")
     await _snapshot_of(_other_units(), folder / "other.npz")
     expected = {   # name -> what the error must say besides the file's path
