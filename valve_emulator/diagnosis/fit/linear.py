@@ -292,16 +292,10 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
         z, y = highpass(z, prefilter), highpass(y, prefilter)
         extra = None if extra is None else highpass(extra, prefilter)
     x = _delayed_regressors(z, structure.delay / dt, structure.ntaps)
-    T = u.shape[0]
     trend = structure.integrating and prefilter is None
     if structure.gain is not None:
         return _fit_held_gain(x, y, window, structure, trend, extra)
-    cols = [x, np.ones((T, 1))]
-    if trend:
-        cols.append((np.arange(T) / T)[:, None])
-    if extra is not None:
-        cols.append(np.asarray(extra, dtype=float).reshape(T, -1))
-    X = np.hstack(cols)
+    X = _regressors(x, trend, extra)
     w0, w1 = window
     Xw, yw = kernel_array(X[w0:w1]), kernel_array(y[w0:w1])
     G, b = normal_equations(Xw, yw)
@@ -313,17 +307,23 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
                      float(res @ res), w1 - w0)
 
 
-def _fit_held_gain(x: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
-                   trend: bool, extra: np.ndarray | None) -> LinearFit:
-    """:func:`fit_one` with the taps' sum held at ``structure.gain``: the first tap is ``g − Σ_{j≥1} b_j``, so
-    ``y − g x_0`` is fitted on ``x_j − x_0`` (j ≥ 1), the offsets and ``extra`` by least squares."""
-    T, g = x.shape[0], float(structure.gain)
-    cols = [x[:, 1:] - x[:, :1], np.ones((T, 1))]
+def _regressors(taps: np.ndarray, trend: bool, extra: np.ndarray | None) -> np.ndarray:
+    """The least-squares columns: ``taps``, an offset, a ramp over the record when ``trend``, and ``extra``."""
+    T = taps.shape[0]
+    cols = [taps, np.ones((T, 1))]
     if trend:
         cols.append((np.arange(T) / T)[:, None])
     if extra is not None:
         cols.append(np.asarray(extra, dtype=float).reshape(T, -1))
-    X = np.hstack(cols)
+    return np.hstack(cols)
+
+
+def _fit_held_gain(x: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
+                   trend: bool, extra: np.ndarray | None) -> LinearFit:
+    """:func:`fit_one` with the taps' sum held at ``structure.gain``: the first tap is ``g − Σ_{j≥1} b_j``, so
+    ``y − g x_0`` is fitted on ``x_j − x_0`` (j ≥ 1), the offsets and ``extra`` by least squares."""
+    g = float(structure.gain)
+    X = _regressors(x[:, 1:] - x[:, :1], trend, extra)
     w0, w1 = window
     yw = y[w0:w1] - g * x[w0:w1, 0]
     beta, *_ = np.linalg.lstsq(X[w0:w1], yw, rcond=None)
