@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import asyncio
 import os
-import shutil
 from collections.abc import Callable
 
 import numpy as np
 import pytest
+from required import tool
 
 _HERE = os.path.dirname(os.path.abspath(__file__))
 # The testing kit's fixtures (valve_emulator, valve_emulator_factory): its pytest11 entry point loads them once the
@@ -42,12 +42,7 @@ async def no_task_leak():
 @pytest.fixture
 def mbpoll() -> str:
     """Path of the mbpoll binary; missing: fail on CI (``CI`` set), skip elsewhere."""
-    path = shutil.which("mbpoll")
-    if path is None:
-        if os.environ.get("CI"):
-            pytest.fail("mbpoll is required on CI (apt-get install mbpoll)")
-        pytest.skip("mbpoll not installed")
-    return path
+    return tool("mbpoll", "apt-get install mbpoll")
 
 
 class FakeClock:

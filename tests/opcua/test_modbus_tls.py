@@ -2,13 +2,12 @@
 Clients: pymodbus' TLS client and ``openssl s_client`` (Debian's openssl)."""
 
 import asyncio
-import os
-import shutil
 import ssl
 import subprocess
 
 import pytest
 from pymodbus.client import AsyncModbusTlsClient
+from required import tool
 
 from valve_emulator.device.certs import modbus_certificate
 from valve_emulator.device.registers import address_of
@@ -119,10 +118,7 @@ async def tls_thread_server(config, pki):
 
 
 def test_openssl_gets_a_session_only_with_a_certificate_and_tls_1_2_or_later(tls_thread_server, pki):
-    if shutil.which("openssl") is None:   # like mbpoll: required on CI, skipped elsewhere
-        if os.environ.get("CI"):
-            pytest.fail("openssl is required on CI (apt-get install openssl)")
-        pytest.skip("openssl not installed")
+    tool("openssl", "apt-get install openssl")
     srv = tls_thread_server
     port = srv.tls_port
     operator = ("-cert", str(pki / "client-operator.pem"), "-key", str(pki / "client-operator-key.pem"))

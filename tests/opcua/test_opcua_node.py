@@ -5,12 +5,11 @@ and Basic256Sha256 Sign&Encrypt with a user name."""
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
 from pathlib import Path
 
 import pytest
+from required import node_with
 
 from valve_emulator.cli import main
 from valve_emulator.opcua import hash_password
@@ -24,16 +23,8 @@ LOOP = "Unit1.concentration_undershoot"
 @pytest.fixture(scope="module")
 def node() -> str:
     """The node binary with node-opcua-client installed in tests/opcua/node (``npm ci`` there, which
-    ``.ci/run`` does); missing: fail on CI (``CI`` set), skip elsewhere, like mbpoll."""
-    path = shutil.which("node")
-    problem = ("node is not installed" if path is None else
-               f"node-opcua-client is not installed: run `npm ci` in {NODE_DIR}"
-               if not (NODE_DIR / "node_modules" / "node-opcua-client").is_dir() else None)
-    if problem is not None:
-        if os.environ.get("CI"):
-            pytest.fail(f"{problem} (required on CI)")
-        pytest.skip(problem)
-    return path
+    ``.ci/run`` does)."""
+    return node_with(NODE_DIR, "node-opcua-client")
 
 
 def run_node_client(node: str, url: str, *args: str) -> dict:

@@ -1,12 +1,11 @@
 """Hostile input on every interface, at CI size: the stress of ``bench/bench_hostile_input.py`` (which prints
 the full-size figures) run against one ``valve-emulator serve`` process, phase by phase."""
 
-import os
-import shutil
 import sys
 from pathlib import Path
 
 import pytest
+from required import tool
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 from bench_hostile_input import CI, run  # noqa: E402
@@ -15,10 +14,7 @@ from bench_hostile_input import CI, run  # noqa: E402
 @pytest.fixture(scope="module")
 def figures():
     """One run of every phase at CI size: ``{phase: figures}``."""
-    if shutil.which("socat") is None:
-        if os.environ.get("CI"):
-            pytest.fail("socat is required on CI (.ci/run installs it)")
-        pytest.skip("socat not installed")
+    tool("socat", "apt-get install socat")
     return {f["phase"]: f for f in run(CI)}
 
 

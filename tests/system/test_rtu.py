@@ -6,14 +6,13 @@ without a reply; a pymodbus client configured with the RTU framer talks to ``fra
 """
 
 import asyncio
-import os
-import shutil
 import struct
 import subprocess
 import time
 
 import pytest
 import serial
+from required import tool
 
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import COMM_BASE, address_of
@@ -32,11 +31,7 @@ def _config(**device):
 @pytest.fixture
 def pty_pair(tmp_path):
     """Two linked pseudo terminals ``(server end, client end)`` made by socat (stopped after the test)."""
-    socat = shutil.which("socat")
-    if socat is None:
-        if os.environ.get("CI"):
-            pytest.fail("socat is required on CI (.ci/run installs it)")
-        pytest.skip("socat not installed")
+    socat = tool("socat", "apt-get install socat")
     a, b = tmp_path / "ttyA", tmp_path / "ttyB"
     proc = subprocess.Popen([socat, f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from required import need
 
 CHROMEDRIVER = "/usr/bin/chromedriver"
 CONFIG = {"device": {"tick": 0.1, "instructor_writes": True}, "loops": [
@@ -26,10 +27,8 @@ CONFIG = {"device": {"tick": 0.1, "instructor_writes": True}, "loops": [
 
 
 def _browser_or_fail():
-    if not (os.path.exists(CHROMEDRIVER) and shutil.which("chromium")):
-        if os.environ.get("CI"):
-            pytest.fail("chromium and chromium-driver are required on CI (apt-get install chromium chromium-driver)")
-        pytest.skip("chromium / chromium-driver not installed")
+    need(None if os.path.exists(CHROMEDRIVER) and shutil.which("chromium") else
+         "chromium / chromium-driver not installed (apt-get install chromium chromium-driver)")
     webdriver = pytest.importorskip("selenium.webdriver")
     opts = webdriver.ChromeOptions()
     for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
 from pathlib import Path
 
 import pytest
+from required import node_with
 
 NODE_DIR = Path(__file__).resolve().parents[1] / "node"
 #: A loop without stiction, so the PI settles: first order, gain 3, 10 s lag, 5 s dead time.
@@ -23,17 +22,8 @@ loops:
 
 @pytest.fixture
 def node() -> str:
-    """The node binary with tests/node's packages installed (``npm ci`` there, which ``.ci/run`` does);
-    missing: fail on CI (``CI`` set), skip elsewhere, like mbpoll."""
-    path = shutil.which("node")
-    problem = ("node is not installed" if path is None else
-               "tests/node has no node_modules: run `npm ci` in tests/node"
-               if not (NODE_DIR / "node_modules" / "modbus-serial").is_dir() else None)
-    if problem is not None:
-        if os.environ.get("CI"):
-            pytest.fail(f"{problem} (required on CI)")
-        pytest.skip(problem)
-    return path
+    """The node binary with tests/node's packages installed (``npm ci`` there, which ``.ci/run`` does)."""
+    return node_with(NODE_DIR, "modbus-serial")
 
 
 def _run(node: str, port: int) -> dict:
