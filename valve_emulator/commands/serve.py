@@ -149,7 +149,7 @@ def _check(args: argparse.Namespace) -> None:
     if args.backtrack < 0 or not math.isfinite(args.backtrack):
         raise ValueError(f"--backtrack must be >= 0 s, got {args.backtrack}")
     if args.web is not None and args.web_token is None:
-        from valve_emulator.station.app import is_loopback
+        from valve_emulator.device.guard import is_loopback
 
         if not is_loopback(args.host):
             raise ValueError(f"--web on --host {args.host} needs --web-token: bound beyond loopback the instructor "

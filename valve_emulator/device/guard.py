@@ -34,9 +34,20 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["ConnectionGuard", "LogLimiter", "RefusalLog", "Slot", "binds_all_interfaces"]
+__all__ = ["ConnectionGuard", "LogLimiter", "RefusalLog", "Slot", "binds_all_interfaces", "is_loopback"]
 
 _log = logging.getLogger("valve_emulator.device.server")  # one logger for everything about connections
+
+
+def is_loopback(host: str) -> bool:
+    """``True`` for ``localhost`` and loopback addresses (127.0.0.0/8, ::1): where a server may listen without
+    authentication (the station without a token, OPC UA with policy None)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def binds_all_interfaces(host: str | None) -> bool:

@@ -52,11 +52,11 @@ from typing import Any
 from asyncua import Server, ua
 from asyncua.server.address_space import AttributeService
 
-from valve_emulator.device.guard import binds_all_interfaces
+from valve_emulator.device.guard import is_loopback
 from valve_emulator.device.registers import (
-    CDAB,
     REGISTERS,
     RW_INSTRUCTOR,
+    Conversion,
     DataType,
     R,
     Register,
@@ -117,7 +117,7 @@ def _variables() -> tuple[Variable, ...]:
         first = showing[0]
         read = next((r for r in showing if r.type is DataType.FLOAT32), first)
         write = next((r for r in showing if r.access is not R), None)
-        analog = read.type is DataType.FLOAT32 or (first.scale > 1 and first.conversion.value != "bits")
+        analog = read.type is DataType.FLOAT32 or (first.scale > 1 and first.conversion is not Conversion.BITS)
         out.append(Variable(name=first.name.removesuffix("_pct"), read=read, write=write,
                             units=read.units if read.type is DataType.FLOAT32 else first.units, analog=analog))
     return tuple(out)
@@ -163,25 +163,12 @@ class OpcUaSecurity:
         if secure and (self.certificate is None or self.private_key is None):
             raise OpcUaError(f"opcua: policy {secure[0]} needs a certificate and a private key "
                              "(make them with 'valve-emulator certs --opcua DIR')")
-        if _loopback(host):
+        if is_loopback(host):
             return
         if "None" in self.policies or not secure or not self.users:
             raise OpcUaError(f"opcua: refusing to listen on {host!r} (beyond loopback) without security: configure "
                              f"a secure policy ({', '.join(SECURE_POLICIES)}, Sign&Encrypt), a certificate and a "
                              "users file, and drop policy None")
-
-
-def _loopback(host: str) -> bool:
-    import ipaddress
-
-    if host == "localhost":
-        return True
-    if binds_all_interfaces(host):
-        return False
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 class _SharedDataValue(ua.DataValue):
@@ -304,11 +291,9 @@ class OpcUaServer:
     def value(self, index: int, var: Variable) -> float | int:
         """The variable's value now, from the register image, in engineering units."""
         words = self._words(index, var.read)
-        order = self.device.scaling.word_order
-        if var.read.type is DataType.FLOAT32:
-            return float(from_words(words, DataType.FLOAT32, "CDAB" if order is CDAB else "ABCD"))
-        if var.read.width == 2:
-            return int(from_words(words, var.read.type, "CDAB" if order is CDAB else "ABCD"))
+        if var.read.width == 2:   # float32, or a counter, in the device's word order
+            value = from_words(words, var.read.type, self.device.scaling.word_order)
+            return float(value) if var.read.type is DataType.FLOAT32 else int(value)
         raw = words[0] - 65536 if var.read.type is DataType.INT16 and words[0] >= 32768 else words[0]
         value = decode_value(var.read, raw, self.device.scaling, index)
         if var.analog:

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import asyncio
 import hmac
-import ipaddress
 import json
 import logging
 import math
@@ -41,9 +40,10 @@ from typing import Any
 
 from aiohttp import web
 
+from valve_emulator.device.guard import is_loopback
 from valve_emulator.station.core import Station, StationError
 
-__all__ = ["make_app", "start_station", "is_loopback", "STATION_KEY", "MAX_BODY", "BODY_TIMEOUT", "IDLE_TIMEOUT"]
+__all__ = ["make_app", "start_station", "STATION_KEY", "MAX_BODY", "BODY_TIMEOUT", "IDLE_TIMEOUT"]
 
 _log = logging.getLogger("valve_emulator.station")
 STATION_KEY = web.AppKey("station", Station)
@@ -61,16 +61,6 @@ BODY_TIMEOUT = 10.0
 IDLE_TIMEOUT = 15.0
 #: aiohttp's refusals as the API's error field
 _HTTP_FIELD = {404: "path", 405: "method", 413: "body"}
-
-
-def is_loopback(host: str) -> bool:
-    """``True`` for ``localhost`` and loopback addresses (127.0.0.0/8, ::1)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def _static(name: str) -> str:
