@@ -21,10 +21,27 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 pytest_plugins = ["valve_emulator.testing.plugin", "pytester"]
 
 
+# Test modules that assert wall-clock timing (tick rates, lateness and overruns while clients load the device).
+# They are marked ``realtime``: .ci/run runs every other test in two processes (pytest-xdist) and then these on
+# their own, so that no other test shares the machine's two cores with them. A single test elsewhere that times
+# the tick carries the marker itself.
+_REALTIME = {
+    "system/test_device_closed_loop.py",
+    "system/test_hostile_input.py",
+    "system/test_robustness_flood.py",
+    "system/test_robustness_fuzz.py",
+    "system/test_clients_e2e.py",
+    "opcua/test_opcua_hostile.py",
+}
+
+
 def pytest_collection_modifyitems(items):
     for item in items:
-        if os.path.relpath(str(item.path), _HERE).split(os.sep)[0] == "system":
+        where = os.path.relpath(str(item.path), _HERE)
+        if where.split(os.sep)[0] == "system":
             item.add_marker(pytest.mark.slow)
+        if where.replace(os.sep, "/") in _REALTIME:
+            item.add_marker(pytest.mark.realtime)
 
 
 @pytest.fixture

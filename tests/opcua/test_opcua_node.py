@@ -41,8 +41,10 @@ def _check(seen: dict) -> None:
     assert isinstance(seen["pv"], (int, float))   # JSON drops the .0 of a Double
     assert seen["write_op"] == "Good" and seen["op"] == pytest.approx(61.5)
     assert seen["write_pv"] == "BadNotWritable"
-    times = seen["notifications"]
+    times = seen["time_notifications"]
     assert len(times) >= 5 and times == sorted(times) and times[-1] > times[0]   # time-scale 10: ~20 s in 2 s
+    pvs = seen["pv_notifications"]   # OP went to 61.5 % from the initial 50 %: the valve slips and PV follows
+    assert len(pvs) >= 2 and len(set(pvs)) >= 2, pvs
 
 
 def test_node_opcua_anonymous_on_loopback(node):

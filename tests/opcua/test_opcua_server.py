@@ -247,6 +247,7 @@ def test_beyond_loopback_needs_a_secure_policy_and_users(tmp_path):
     assert math.isfinite(1.0)
 
 
+@pytest.mark.realtime
 async def test_starting_opcua_beside_a_running_device_costs_no_overrun(config):
     """Building the address space keeps the event loop busy for a while: the tick waits (frozen) instead of
     running late, and runs on afterwards."""

@@ -42,10 +42,13 @@ try {
     requestedPublishingInterval: 100, requestedLifetimeCount: 100, requestedMaxKeepAliveCount: 10,
     maxNotificationsPerPublish: 100, publishingEnabled: true, priority: 1,
   });
-  const item = ClientMonitoredItem.create(subscription, { nodeId: `${loop}.time`, attributeId: AttributeIds.Value },
-    { samplingInterval: 100, discardOldest: true, queueSize: 10 }, TimestampsToReturn.Both);
-  out.notifications = [];
-  item.on("changed", (dv) => out.notifications.push(dv.value.value));
+  // PV (moving towards the written OP's steady state) and the simulated time (changing at every tick)
+  for (const name of ["pv", "time"]) {
+    const item = ClientMonitoredItem.create(subscription, { nodeId: `${loop}.${name}`, attributeId: AttributeIds.Value },
+      { samplingInterval: 100, discardOldest: true, queueSize: 10 }, TimestampsToReturn.Both);
+    out[`${name}_notifications`] = [];
+    item.on("changed", (dv) => out[`${name}_notifications`].push(dv.value.value));
+  }
   await new Promise((resolve) => setTimeout(resolve, 2000));
   await subscription.terminate();
   await session.close();
