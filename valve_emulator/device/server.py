@@ -368,8 +368,34 @@ class EmulatorServer:
         ``peer`` (the client's address) names the client when a refused write is logged; ``client`` (its
         ``ip:port``) names it in :attr:`traffic`.
         """
+        if len(frame) == 12 and (frame[7] == 3 or frame[7] == 4) and self.traffic is None:
+            answer = self._read_fast(frame)
+            if answer is not None:
+                return answer
         tid, unit = (frame[0] << 8) | frame[1], frame[6]
         return self._framer.encode(self.answer(unit, frame[7:], instructor, peer=peer, client=client), unit, tid)
+
+    def _read_fast(self, frame: bytes) -> bytes | None:
+        """The answer frame to a well-formed FC3 / FC4 read of mapped registers, straight from the register
+        image's bytes; ``None`` for anything else (the general path then answers it, exceptions included).
+
+        The same answer as the general path, without decoding into pymodbus objects and encoding back: a
+        10-register read is most of what SCADA pollers send, and this halves its cost in Python.
+        """
+        region = self._regions.get(frame[6])
+        address, count = (frame[8] << 8) | frame[9], (frame[10] << 8) | frame[11]
+        if region is None or address >= COMM_BASE or not 1 <= count <= 125:
+            return None
+        start, blocks = region
+        try:
+            check_read(_READS[frame[7]], address, count, blocks=blocks)
+        except RegisterError:
+            return None
+        self.requests += 1
+        n, start = 2 * count, start + 2 * address
+        # MBAP: transaction and protocol id as sent, length = unit + function + byte count + data.
+        head = frame[:4] + (n + 3).to_bytes(2, "big") + bytes((frame[6], frame[7], n))
+        return head + self.device.image[start:start + n]
 
     def handle_faulted(self, frame: bytes, instructor: bool, state: CommState, *, peer: str = "",
                        client: str = "") -> bytes | None:
