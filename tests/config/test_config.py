@@ -219,6 +219,25 @@ def test_fleet_expansion_deterministic_and_within_ranges(tmp_path):
     assert all(lp.valve.J == 2.0 and lp.plant.delay == 1.0 for lp in only_s.loops[1:])
 
 
+def test_fleet_loops_equal_the_same_loops_built_with_every_check(tmp_path):
+    # the fleet derives its loops without running the checks again (they are valid by construction); each
+    # must equal, field for field, the loop dataclasses.replace builds from the base with every check run
+    cfg = fleet(tmp_path)
+    base = cfg.loops[1]
+    for lp in cfg.loops[1:]:
+        valve = dataclasses.replace(base.valve, S=lp.valve.S, J=lp.valve.J, seed_form=None)
+        plant = dataclasses.replace(base.plant, num=lp.plant.num, delay=lp.plant.delay)
+        device = dataclasses.replace(base.device, unit=lp.device.unit, block=lp.device.block)
+        checked = dataclasses.replace(base, name=lp.name, valve=valve, plant=plant, device=device)
+        assert lp == checked and type(lp) is LoopConfig
+
+
+def test_a_fleet_whose_ranges_allow_a_bad_loop_is_refused_as_before(tmp_path):
+    # a gain so large that the plant's coefficients overflow: a corner of the ranges is checked and refused
+    with pytest.raises(ConfigError, match="finite"):
+        fleet(tmp_path, vary="{gain: [1.0, 1.0e+308]}")
+
+
 def test_fleet_without_vary_keeps_the_base(tmp_path):
     lp = fleet(tmp_path, vary="{}").loops[5]
     assert (lp.valve.S, lp.valve.J, lp.valve.seed_form, lp.plant.num) == (4.0, 2.0, (4.0, 1.0), (2.0, 1.0))

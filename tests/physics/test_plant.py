@@ -358,3 +358,34 @@ def test_bad_noise_parameters_raise_naming_them():
         NoiseBank([0.1, -0.1], 1)
     with pytest.raises(ValueError, match="^seed"):
         NoiseBank(0.1, 1.5)
+
+
+def test_plants_given_as_lists_are_discretised_bit_for_bit_as_when_given_as_arrays():
+    # Tuples and lists of numbers take a batched check (10^5 plants of a fleet), arrays the per-plant one:
+    # the same normalised coefficients, delay split and matrices, to the last bit, for plants of orders 0..3,
+    # integrating ones, integer coefficients, leading zeros, whole and fractional delays.
+    rnd = np.random.default_rng(7)
+    plants = []
+    while len(plants) < 400:
+        p = int(rnd.integers(0, 4))
+        den = [float(rnd.uniform(0.5, 20))] + [float(rnd.uniform(0.1, 5)) for _ in range(p)]
+        if p and rnd.random() < 0.2:
+            den[-1] = 0.0   # integrating
+        num = [float(rnd.uniform(-5, 5)) for _ in range(int(rnd.integers(1, p + 2)))]
+        if rnd.random() < 0.2:
+            num = [int(10 * c) or 1 for c in num]
+        if rnd.random() < 0.1:
+            num = [0.0] + num   # a leading zero: the per-plant path strips it
+        delay = float(rnd.choice([0.0, 1.0, 0.3, 0.30000000001, rnd.uniform(0, 20)]))
+        dt = float(rnd.choice([0.1, 1.0, 0.05]))
+        plants.append((tuple(num) if rnd.random() < 0.5 else num, den, delay, dt))
+    as_lists = transfer_functions_to_zoh(plants)
+    as_arrays = transfer_functions_to_zoh([(np.array(n, float), np.array(d), t, h) for n, d, t, h in plants])
+    for a, b in zip(as_lists, as_arrays):
+        for field in ("A", "B0", "B1", "C", "x_rest"):
+            assert np.array_equal(getattr(a, field), getattr(b, field)), field
+            assert not getattr(a, field).flags.writeable
+        assert (a.D, a.m, a.dt, a.frac, a.integrating) == (b.D, b.m, b.dt, b.frac, b.integrating)
+    # and one bad plant among good ones is reported with its index, as before
+    with pytest.raises(ValueError, match="plant 2: num has non-finite"):
+        transfer_functions_to_zoh(plants[:2] + [((1.0, float("nan")), (1.0, 1.0), 0.0, 1.0)])

@@ -16,6 +16,7 @@ Single-loop files have the sections ``valve, plant, controller, simulation, devi
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import random
 from collections.abc import Callable, Mapping
@@ -41,6 +42,7 @@ from valve_emulator.config.schema import (
     TlsConfig,
     ValveConfig,
     choice,
+    derive,
     integer,
     real,
     sequence,
@@ -313,21 +315,34 @@ def _fleet(ctx: _Context, value: Any, device: DeviceConfig, used: set[int]) -> l
         worst = dataclasses.replace(base.plant, delay=ranges["delay"][1])
         _check_discretisation(ctx, worst, base.simulation.dt, "fleet.vary")
     streams = {k: random.Random(f"valve_emulator.fleet/{seed}/{k}") for k in ranges}
+    last = count - 1
+    # Every draw lies in the box of the ranges, and every check a loop's values must pass is a bound on one
+    # value (S, J, delay >= 0, finite coefficients) or a type, so a loop built at each corner of the box
+    # with every check (dataclasses.replace) proves them all; the loops themselves are derived unchecked.
+    for corner in itertools.product(*([(k, lo), (k, hi)] for k, (lo, hi) in ranges.items())):
+        _fleet_loop(dataclasses.replace, base, device, dict(corner), free[last // per_unit],
+                    min(per_unit, count) - 1, per_unit)
+    order = [(q, *ranges[q], streams[q].random) for q in KEYS["fleet.vary"] if q in ranges]
     loops = []
     for k in range(count):
-        unit, block = free[k // per_unit], k % per_unit
-        draw = {q: streams[q].uniform(*ranges[q]) for q in KEYS["fleet.vary"] if q in ranges}
-        valve, plant = base.valve, base.plant
-        if "S" in draw or "J" in draw:  # the typed 2003-paper form no longer describes this valve
-            valve = dataclasses.replace(valve, S=draw.get("S", valve.S), J=draw.get("J", valve.J),
-                                        seed_form=None)
-        if "gain" in draw or "delay" in draw:
-            plant = dataclasses.replace(plant, num=tuple(c * draw.get("gain", 1.0) for c in plant.num),
-                                        delay=draw.get("delay", plant.delay))
-        name = f"{base.name}_{unit:03d}" + (f"_{block:04d}" if per_unit > 1 else "")
-        loops.append(dataclasses.replace(base, name=name, valve=valve, plant=plant,
-                                         device=dataclasses.replace(device, unit=unit, block=block)))
+        # random.uniform(lo, hi) is lo + (hi - lo) * random(), spelled out: the same draws, a call less each
+        draw = {q: lo + (hi - lo) * rnd() for q, lo, hi, rnd in order}
+        loops.append(_fleet_loop(derive, base, device, draw, free[k // per_unit], k % per_unit, per_unit))
     return loops
+
+
+def _fleet_loop(build, base: LoopConfig, device: DeviceConfig, draw: dict[str, float], unit: int, block: int,
+                per_unit: int) -> LoopConfig:
+    """Fleet loop with the varied quantities ``draw`` at ``(unit, block)``; ``build`` is ``dataclasses.replace``
+    (checked) or :func:`~valve_emulator.config.schema.derive` (not checked again)."""
+    valve, plant = base.valve, base.plant
+    if "S" in draw or "J" in draw:  # the typed 2003-paper form no longer describes this valve
+        valve = build(valve, S=draw.get("S", valve.S), J=draw.get("J", valve.J), seed_form=None)
+    if "gain" in draw or "delay" in draw:
+        plant = build(plant, num=tuple(c * draw.get("gain", 1.0) for c in plant.num),
+                      delay=draw.get("delay", plant.delay))
+    name = f"{base.name}_{unit:03d}" + (f"_{block:04d}" if per_unit > 1 else "")
+    return build(base, name=name, valve=valve, plant=plant, device=build(device, unit=unit, block=block))
 
 
 def _server(ctx: _Context, data: Any, default_name: str) -> ServerConfig:

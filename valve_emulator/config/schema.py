@@ -20,7 +20,7 @@ from __future__ import annotations
 import ipaddress
 import math
 import numbers
-from dataclasses import KW_ONLY, dataclass
+from dataclasses import KW_ONLY, dataclass, fields
 from enum import StrEnum
 from typing import Any
 
@@ -213,6 +213,30 @@ def _set(obj: Any, **values: Any) -> None:
     """Store normalised values on a frozen instance (only ever called from ``__post_init__``)."""
     for name, value in values.items():
         object.__setattr__(obj, name, value)
+
+
+_SLOTS: dict[type, tuple[frozenset[str], tuple]] = {}
+
+
+def derive(obj: Any, **changes: Any) -> Any:
+    """A copy of the validated, frozen configuration object ``obj`` with ``changes``, *not* checked again.
+
+    Only for values valid by construction: the fleet's loops, whose draws come from ranges whose corners were
+    built (and so checked) with :func:`dataclasses.replace`. ``replace`` runs every ``__post_init__`` check
+    again, which was most of the time of expanding a 100,000-loop fleet. The fields are copied through their
+    slot descriptors (the configuration classes are frozen dataclasses with slots).
+    """
+    cls = type(obj)
+    known = _SLOTS.get(cls)
+    if known is None:
+        names = tuple(f.name for f in fields(cls))
+        known = _SLOTS[cls] = (frozenset(names), tuple((n, cls.__dict__[n]) for n in names))
+    if not changes.keys() <= known[0]:
+        raise TypeError(f"{cls.__name__} has no field(s) {sorted(changes.keys() - known[0])}")
+    new = object.__new__(cls)
+    for name, slot in known[1]:
+        slot.__set__(new, changes[name] if name in changes else slot.__get__(obj))
+    return new
 
 
 # --- the configuration objects ------------------------------------------------------------------------

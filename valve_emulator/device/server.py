@@ -213,7 +213,8 @@ class EmulatorServer:
                                      frame_timeout=dev.frame_timeout, error_rate=dev.error_rate)
         self.refusals = RefusalLog(_log)
         self._apply_access(config)
-        self._identities = {lp.device.unit: Identity.of_loop(lp) for lp in reversed(config.loops)}  # block 0 wins
+        # a unit's identity is its block 0 loop's (every unit has one: ServerConfig checks for gaps)
+        self._identities = {lp.device.unit: Identity.of_loop(lp) for lp in config.loops if lp.device.block == 0}
         self.diagnostics = DiagnosticCounters(self)
         self.comm = CommFaults({unit: blocks for unit, (_, blocks) in self._regions.items()})
         if self.device.malfunctions is not None:   # the instructor's comm malfunction acts on these

@@ -132,7 +132,7 @@ class LoopBank:
         # valve: stiction state machines and characteristics
         self._S = np.array([v.S for v in valves], dtype=float)
         self._J = np.array([v.J for v in valves], dtype=float)
-        self._R = np.array([rest_samples_for(v.rest_time, self.dt) for v in valves], dtype=float)
+        self._R = np.array(_shared(rest_samples_for, [(v.rest_time, self.dt) for v in valves]), dtype=float)
         self._codes = np.array([MODELS.index(v.model) for v in valves], dtype=np.int64)
         self._vstate = np.zeros((n, NSTATE))
         self._char_kind = np.array([CHARACTERISTICS.index(v.characteristic) for v in valves], dtype=np.int64)
@@ -164,7 +164,7 @@ class LoopBank:
         initial_state(self._vstate, op_init, np.array([v.initial_direction for v in valves], dtype=float),
                       self._S, self._J, self._codes)
         mv0 = self._vstate[:, MV]
-        flow0 = np.array([ch.flow(m) for ch, m in zip(self.characteristics, mv0)], dtype=float)
+        flow0 = _flows(self.characteristics, mv0)
         # The exact discretisation (three matrix exponentials) dominates building a large bank: loops with the
         # same transfer function and delay share one (same inputs, same result: nothing is approximated), and
         # the distinct ones are discretised in batches of one order.
@@ -509,6 +509,18 @@ class LoopBank:
             rows["sp"][j], rows["pv"][j], rows["op"][j] = self._sp, self.pv, self.op
             rows["mv"][j], rows["flow"][j], stuck[j] = self._vstate[:, MV], self.flow, self.stuck
         return {"t": times, **rows, "stuck": stuck}
+
+
+def _flows(characteristics: list[Characteristic], travel: np.ndarray) -> np.ndarray:
+    """``characteristics[i].flow(travel[i])`` for every loop: the linear ones (a fleet's usual case) in one
+    expression, the others one by one (a power of an array may differ from that of a scalar in the last bit)."""
+    linear = np.array([ch.kind == "linear" for ch in characteristics], dtype=bool)
+    flow = np.empty(travel.size)
+    if linear.any():
+        flow[linear] = Characteristic("linear").flow(travel[linear])
+    for i in np.flatnonzero(~linear).tolist():
+        flow[i] = characteristics[i].flow(travel[i])
+    return flow
 
 
 def _shared(make, args: list[tuple]) -> list:

@@ -74,11 +74,19 @@ class Scaling:
             object.__setattr__(self, name, value)
         object.__setattr__(self, "pv_units", tuple(self.pv_units) or ("",) * n)
         default = LookupTable(DEFAULT_MA_TABLE)
+        # Units that share a table (the usual case: every unit the default one) are converted together.
+        groups: dict[tuple, list[int]] = {}
+        for i, t in enumerate(self.tables):
+            groups.setdefault(t.points, []).append(i)
         # The default table is linear: convert those units in one vectorised expression each tick.
-        object.__setattr__(self, "_custom", tuple(i for i, t in enumerate(self.tables) if t != default))
+        object.__setattr__(self, "_custom", tuple(sorted(i for points, idx in groups.items()
+                                                         if points != default.points for i in idx)))
         op_raw = _raw_range(lim[:, 0], lim[:, 1], _OP_SCALE)
         object.__setattr__(self, "op_raw_range", op_raw.astype(np.int64))
-        ma = np.sort(np.array([t.to_ma(row) for t, row in zip(self.tables, lim)]).reshape(n, 2), axis=1)
+        ma = np.empty((n, 2))
+        for idx in groups.values():
+            ma[idx] = self.tables[idx[0]].to_ma(lim[idx])
+        ma = np.sort(ma, axis=1)
         ma_raw = _raw_range(ma[:, 0], ma[:, 1], _MA_SCALE)
         object.__setattr__(self, "ma_raw_range", np.clip(ma_raw, 0, 65535).astype(np.int64))
 
@@ -102,7 +110,9 @@ class Scaling:
         """Scalings of a ``ServerConfig`` (one unit per loop, in ``config.loops`` order)."""
         loops = config.loops
         rng = np.array([lp.plant.pv_range for lp in loops], dtype=float).reshape(len(loops), 2)
-        tables = tuple(LookupTable(tuple(map(tuple, lp.valve.ma_table))) for lp in loops)
+        made: dict[tuple, LookupTable] = {}   # loops with the same table share one (checked once)
+        tables = tuple(made[t] if t in made else made.setdefault(t, LookupTable(tuple(map(tuple, t))))
+                       for t in (lp.valve.ma_table for lp in loops))
         limits = [lp.controller.op_limits if lp.controller is not None else (0.0, 100.0) for lp in loops]
         return cls(rng[:, 0].copy(), rng[:, 1].copy(), np.array([lp.controller is not None for lp in loops]),
                    tables, config.device.word_order, tuple(lp.plant.units for lp in loops),
