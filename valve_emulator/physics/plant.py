@@ -366,6 +366,9 @@ def plant_step_kernel(u, u0, pv0, A, B0, B1, C, D, m, buf, head, x, ud, pv, work
     if h == L:
         h = 0
     head[0] = h
+    if p == 1:
+        _first_order_step(u, u0, pv0, A, B0, B1, C, D, m, buf, h, x, ud, pv)
+        return -1
     for i in range(n):
         buf[i, h] = u[i] - u0[i]
         j = h - m[i]
@@ -390,6 +393,28 @@ def plant_step_kernel(u, u0, pv0, A, B0, B1, C, D, m, buf, head, x, ud, pv, work
         ud[i] = unew
         pv[i] = pv0[i] + y
     return -1
+
+
+@numba.njit(cache=True, inline="always")
+def _first_order_step(u, u0, pv0, A, B0, B1, C, D, m, buf, h, x, ud, pv):  # pragma: no cover - compiled
+    """:func:`plant_step_kernel`'s loop for a bank of order 1 (every plant first order or a pure gain, the
+    usual fleet): the same operations in the same order, without the loops over the state (a quarter of the
+    plant's time per tick at 10^5 loops)."""
+    L = buf.shape[1]
+    for i in range(u.shape[0]):
+        buf[i, h] = u[i] - u0[i]
+        j = h - m[i]
+        if j < 0:
+            j += L
+        k = j - 1
+        if k < 0:
+            k += L
+        unew = buf[i, j]
+        uold = buf[i, k]
+        s = B1[i, 0] * unew + B0[i, 0] * uold + A[i, 0, 0] * x[i, 0]
+        x[i, 0] = s
+        ud[i] = unew
+        pv[i] = pv0[i] + (D[i] * unew + C[i, 0] * s)
 
 
 class PlantBank:
