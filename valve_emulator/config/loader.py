@@ -339,8 +339,8 @@ def _fleet_loop(build, base: LoopConfig, device: DeviceConfig, draw: dict[str, f
     if "S" in draw or "J" in draw:  # the typed 2003-paper form no longer describes this valve
         valve = build(valve, S=draw.get("S", valve.S), J=draw.get("J", valve.J), seed_form=None)
     if "gain" in draw or "delay" in draw:
-        plant = build(plant, num=tuple(c * draw.get("gain", 1.0) for c in plant.num),
-                      delay=draw.get("delay", plant.delay))
+        gain = draw.get("gain", 1.0)
+        plant = build(plant, num=tuple([c * gain for c in plant.num]), delay=draw.get("delay", plant.delay))
     name = f"{base.name}_{unit:03d}" + (f"_{block:04d}" if per_unit > 1 else "")
     return build(base, name=name, valve=valve, plant=plant, device=build(device, unit=unit, block=block))
 
