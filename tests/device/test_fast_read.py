@@ -55,10 +55,11 @@ def _general(srv):
     """``frame -> answer`` by the general path (the fast path switched off for the call)."""
     def answer(frame):
         fast, srv._read_fast = srv._read_fast, lambda frame: None
+        known, srv._reads = srv._reads, {}   # and nothing remembered
         try:
             return srv.handle(frame, False)
         finally:
-            srv._read_fast = fast
+            srv._read_fast, srv._reads = fast, known
     return answer
 
 
@@ -70,6 +71,10 @@ async def test_every_read_gets_the_general_paths_bytes_and_counts(fake_bank_cls)
             requests, exceptions = srv.requests, srv.exceptions
             got = srv.handle(frame, False)
             counted = (srv.requests - requests, srv.exceptions - exceptions)
+            # the same read again, from another transaction: a valid one is answered from the reads remembered
+            again = frame[:1] + bytes((frame[1] ^ 0xFF,)) + frame[2:]
+            assert srv.handle(again, False) == again[:2] + got[2:]
+            assert srv.requests - requests == 2 * counted[0]
             fast_hits += srv._read_fast(frame) is not None
             requests, exceptions = srv.requests, srv.exceptions
             want = general(frame)
@@ -77,6 +82,7 @@ async def test_every_read_gets_the_general_paths_bytes_and_counts(fake_bank_cls)
             assert counted == (srv.requests - requests, srv.exceptions - exceptions), frame.hex()
         # the random reads exercise both paths, the fast one for a good share of them
         assert 500 < fast_hits < 3000, fast_hits
+        assert 0 < len(srv._reads) <= fast_hits   # only valid reads are remembered
 
 
 async def test_frames_sent_alone_and_pipelined_get_the_same_answers(fake_bank_cls):
