@@ -370,15 +370,7 @@ def plant_step_kernel(u, u0, pv0, A, B0, B1, C, D, m, buf, head, x, ud, pv, work
         _first_order_step(u, u0, pv0, A, B0, B1, C, D, m, buf, h, x, ud, pv)
         return -1
     for i in range(n):
-        buf[i, h] = u[i] - u0[i]
-        j = h - m[i]
-        if j < 0:
-            j += L
-        k = j - 1
-        if k < 0:
-            k += L
-        unew = buf[i, j]
-        uold = buf[i, k]
+        unew, uold = _delayed(buf, i, h, u[i] - u0[i], m[i])
         # Padded rows/columns are exact zeros, so a padded plant adds only +0.0 terms in the same
         # order as its unpadded self: bank results equal single-plant results bit for bit.
         for r in range(p):
@@ -396,21 +388,27 @@ def plant_step_kernel(u, u0, pv0, A, B0, B1, C, D, m, buf, head, x, ud, pv, work
 
 
 @numba.njit(cache=True, inline="always")
+def _delayed(buf, i, h, du, m):  # pragma: no cover - compiled
+    """Write plant ``i``'s input deviation ``du`` at the ring's head ``h``; return its inputs ``m`` and
+    ``m + 1`` samples ago (the newer and older input of the fractional delay)."""
+    L = buf.shape[1]
+    buf[i, h] = du
+    j = h - m
+    if j < 0:
+        j += L
+    k = j - 1
+    if k < 0:
+        k += L
+    return buf[i, j], buf[i, k]
+
+
+@numba.njit(cache=True, inline="always")
 def _first_order_step(u, u0, pv0, A, B0, B1, C, D, m, buf, h, x, ud, pv):  # pragma: no cover - compiled
     """:func:`plant_step_kernel`'s loop for a bank of order 1 (every plant first order or a pure gain, the
     usual fleet): the same operations in the same order, without the loops over the state (a quarter of the
     plant's time per tick at 10^5 loops)."""
-    L = buf.shape[1]
     for i in range(u.shape[0]):
-        buf[i, h] = u[i] - u0[i]
-        j = h - m[i]
-        if j < 0:
-            j += L
-        k = j - 1
-        if k < 0:
-            k += L
-        unew = buf[i, j]
-        uold = buf[i, k]
+        unew, uold = _delayed(buf, i, h, u[i] - u0[i], m[i])
         s = B1[i, 0] * unew + B0[i, 0] * uold + A[i, 0, 0] * x[i, 0]
         x[i, 0] = s
         ud[i] = unew
