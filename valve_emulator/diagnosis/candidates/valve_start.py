@@ -104,7 +104,13 @@ def sync_burn_in(mv: np.ndarray, n_starts: int = len(STARTS)) -> int:
     """
     T = mv.shape[0]
     groups = mv.reshape(T, -1, n_starts)
-    differ = (np.ptp(groups, axis=2) > 1e-9)
+    # The spread of each group (np.ptp over its few columns, taken column by column: numpy's reduction over
+    # an axis of length 3 took 29 ms at 10^4 samples × 40 groups, this 2 ms; the same maximum, minimum, difference).
+    top, bottom = groups[:, :, 0].copy(), groups[:, :, 0].copy()
+    for j in range(1, n_starts):
+        np.maximum(top, groups[:, :, j], out=top)
+        np.minimum(bottom, groups[:, :, j], out=bottom)
+    differ = top - bottom > 1e-9
     last = np.where(differ.any(axis=0), T - 1 - np.argmax(differ[::-1], axis=0), -1)
     merged = last < T - 1 - T // 10
     return int(np.percentile(last[merged] + 1, 90)) if merged.any() else 0
