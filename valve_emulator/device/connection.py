@@ -72,8 +72,8 @@ class TurnBudget:
 
     The refill is armed by a connection that waits and by a spend that leaves half the budget or less, not by
     every spend: iterations that serve a frame or two (the usual case) then cost one extra callback per
-    ``frames / 2`` frames instead of one each, and a connection only waits when an iteration really has more
-    frames than the budget.
+    ``frames / 2`` frames instead of one each. Still no iteration answers more than ``frames`` frames, and a
+    connection waits only in an iteration that has answered at least half of them.
     """
 
     def __init__(self, frames: int = FRAMES_PER_ITERATION) -> None:
