@@ -192,16 +192,24 @@ class ModbusConnection(asyncio.Protocol):
         if (n < 8 or frame[2] or frame[3] or n != 6 + ((frame[4] << 8) | frame[5]) or n > 260 or turns.left <= 0
                 or server.comm.active or self.transport.is_closing()):
             return False
-        slot, errors0 = self.slot, server.exceptions
-        answer = server.handle(frame, self.instructor, peer=self.peer_ip, client=slot.peer)
-        turns.spend(1)
+        errors0 = server.exceptions
+        self._sent(1, server.handle(frame, self.instructor, peer=self.peer_ip, client=self.slot.peer), errors0,
+                   partial=False)
+        if server.exceptions != errors0:
+            self._sync_reading()   # the error budget may have run out
+        return True
+
+    def _sent(self, frames: int, data: bytes, errors0: int, *, partial: bool) -> None:
+        """Send ``data``, the answers to ``frames`` frames just served, and book them: the turn budget, the slot's
+        deadlines (``partial``: a partial frame is left in the buffer, its deadline runs from now) and the error
+        budget for the exception answers among them (``server.exceptions`` was ``errors0`` before them)."""
+        server, slot = self.server, self.slot
+        server.turns.spend(frames)
         slot.last_request = now = server.guard.clock()
-        slot.partial_since = None
-        self.transport.write(answer)
+        slot.partial_since = now if partial else None
+        self.transport.write(data)
         if server.exceptions != errors0:
             self._spend(server.exceptions - errors0, now)
-            self._sync_reading()
-        return True
 
     def eof_received(self) -> bool:
         self._eof = True
@@ -249,16 +257,9 @@ class ModbusConnection(asyncio.Protocol):
                 answers.append(answer)
         del buf[:pos]
         if frames:
-            turns.spend(frames)
-        now = server.guard.clock()
-        if frames:
-            slot.last_request = now
-            slot.partial_since = now if buf else None  # the deadline runs from the current frame's start
-            transport.write(b"".join(answers))
+            self._sent(frames, b"".join(answers), errors0, partial=bool(buf))
         elif buf and slot.partial_since is None:
-            slot.partial_since = now
-        if server.exceptions != errors0:
-            self._spend(server.exceptions - errors0, now)
+            slot.partial_since = server.guard.clock()
         self._backlog = frames == limit and _complete(buf) and self._delayed is None
         if self._backlog:
             self._schedule()
