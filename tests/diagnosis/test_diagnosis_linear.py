@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from valve_emulator.diagnosis.fit.linear import (
+    PRIOR_WIDTH,
     LinearStructure,
+    _prior_term,
     delay_grid_sse,
     filter_inputs,
     fit_one,
@@ -149,3 +151,26 @@ def test_polish_prior_decides_between_equivalent_pole_sets():
     st = LinearStructure(taus=(3.0, 9.0), delay=2.0)
     fit = polish(u, y, WINDOW, st, DT, free_delay=False, delay_bounds=(0, 10), prior=(4.0, 8.0))
     assert sorted(fit.structure.taus) == pytest.approx([4.0, 8.0], rel=0.02)
+
+
+def test_the_denominator_is_numpys_polynomial_of_the_poles_bit_for_bit():
+    # The polish asks for thousands of denominators, built without np.poly's overhead; the search's answers
+    # stay the same only if every coefficient is the same double.
+    rng = np.random.default_rng(7)
+    for _ in range(3000):
+        taus = tuple(float(t) for t in np.exp(rng.uniform(-3.0, 8.0, rng.integers(1, 5))))
+        dt = float(rng.choice([0.05, 0.1, 1.0, 2.5]))
+        fixed = () if rng.random() < 0.7 else (complex(-0.1, 0.3), complex(-0.1, -0.3))
+        poles = [np.exp(-dt / t) for t in taus] + [np.exp(p * dt) for p in fixed]
+        got = LinearStructure(taus=taus, fixed_poles=fixed).denominator(dt)
+        assert np.array_equal(got, np.real(np.poly(poles))), (taus, dt, fixed)
+    assert np.array_equal(LinearStructure().denominator(1.0), np.ones(1))
+
+
+def test_the_polish_prior_term_is_numpys_sum_bit_for_bit():
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 3):
+        for _ in range(2000):
+            x, prior = rng.normal(2.0, 1.5, n), rng.normal(2.0, 1.5, n)
+            want = float(np.sum(((np.sort(x) - np.sort(prior)) / PRIOR_WIDTH) ** 2))
+            assert _prior_term(x, sorted(prior.tolist())) == want

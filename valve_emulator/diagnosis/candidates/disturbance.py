@@ -26,6 +26,7 @@ linear part fitted without the cycle is biased by it, so the residual need not s
 
 from __future__ import annotations
 
+import functools
 from typing import ClassVar
 
 import numpy as np
@@ -46,8 +47,17 @@ def _window(ctx: ChainContext) -> tuple[int, int]:
 
 
 def _basis(P: float, ctx: ChainContext) -> tuple[np.ndarray, np.ndarray]:
-    w = 2.0 * np.pi * ctx.dt / P * np.arange(ctx.op.shape[0])
-    return np.sin(w), np.cos(w)
+    return _sinusoids(float(P), float(ctx.dt), int(ctx.op.shape[0]))
+
+
+@functools.lru_cache(maxsize=8)
+def _sinusoids(P: float, dt: float, T: int) -> tuple[np.ndarray, np.ndarray]:
+    """sin ωk and cos ωk, ω = 2π dt / P, over T samples (read-only): a backfit asks for the same period's
+    basis three times per evaluation (adjust, regressors, predict)."""
+    w = 2.0 * np.pi * dt / P * np.arange(T)
+    s, c = np.sin(w), np.cos(w)
+    s.flags.writeable = c.flags.writeable = False
+    return s, c
 
 
 def _peaks(x: np.ndarray, dt: float) -> np.ndarray:

@@ -159,13 +159,13 @@ def _grid_columns(u, c_lo, c_hi, filtered, alpha, integ, dt, highpass, lam, frac
         hiPK = np.zeros((nlag, nb))
         X = np.zeros((nlag, nb))              # X[i] = sum_k z_{k - dmin - i} y_k
         tile0 = w0                            # first sample whose cross terms are not yet in X
-        for k in range(T + 1):
+        for k in range(w1 + 1):   # samples after the window are never used (only the mean reads all T)
             # Keep the running sums (over indices < k) where the Gram entries will need them.
             if lo0 <= k < lo0 + nlag:
                 _keep(k - lo0, P, P1, PK, loP, loP1, loPK)
             if hi0 <= k < hi0 + nlag:
                 _keep(k - hi0, P, P1, PK, hiP, hiP1, hiPK)
-            if k == T:
+            if k == w1:
                 break
             # One stage at a time over the block's columns: branch-free inner loops, and row indices rather
             # than row views (a view costs two atomic reference-count updates, more than the loop it serves).
