@@ -38,9 +38,23 @@ literal ``"choudhury"`` chart additionally puts MV at 0/100 whenever OP is outsi
 
 Implementation: every model keeps its state in one ``(n, NSTATE)`` float array, one row per valve, and one
 numba kernel, :func:`stiction_step_kernel` ``(u, S, J, R, codes, state)``, advances ``n`` valves (of any mix
-of models, ``codes`` indexing :data:`MODELS`) one sample in place. The same kernel serves one valve over a
-long array (:func:`simulate`), many candidate valves at once (:func:`simulate_many`), the emulator's tick
-(:class:`StictionBank`) and the loop kernel of :mod:`valve_emulator.simulation.loop`.
+of models, ``codes`` indexing :data:`MODELS`) one sample in place. It serves the loop kernel of
+:mod:`valve_emulator.simulation.loop` and small groups of the diagnosis' candidate valves.
+
+:class:`StictionBank` (and through it :func:`simulate`, :func:`simulate_many` and the emulator's tick) holds
+valves of one model, and from :data:`VECTOR_MIN` valves on steps them with a second formulation of the same
+state machines (:func:`step_same_model`). With a random OP the branches of a state machine go one way or the
+other at random, and a mispredicted branch costs more than the whole update of a valve; so there each update
+computes both outcomes and selects one, which LLVM compiles to blends, and the bank keeps its state
+column-major (``order="F"``), each column contiguous, so that the loop over valves becomes vector code. The
+selects keep exactly the floating-point expressions of the branches, in the same order and without
+``fastmath`` (which would allow reassociation and fused multiply-adds), so both formulations give the same
+state bit for bit; ``tests/physics/test_stiction_bank_kernel.py`` holds them to it. A few valves, and one
+valve over a long array (:func:`simulate`), keep the branches: they do not fill a vector, and on a smooth OP
+the branches are well predicted. The diagnosis steps its grids of candidate valves (hundreds of one model on
+one OP) with the same :func:`step_same_model` on column-major state; :func:`stiction_step_kernel` keeps the
+branches for the loop kernel, whose state is row-major, where the loop does not vectorise and the selects
+alone are slower than the branches.
 """
 
 from __future__ import annotations
@@ -64,6 +78,8 @@ __all__ = [
     "rest_samples_for",
     "validate_parameters",
     "stiction_step_kernel",
+    "step_same_model",
+    "VECTOR_MIN",
     "initial_state",
     "NSTATE",
 ]
@@ -188,6 +204,109 @@ def stiction_step_kernel(u, S, J, R, codes, st):  # pragma: no cover - compiled
         _valve(i, u[i], S[i], J[i], R[i], codes[i], st)
 
 
+# --- One model for every valve: the same state machines as selects (see the module docstring) -------------
+# Each ``_*_update`` takes and returns the state as scalars: an array handed to an inlined function inside the
+# loop leaves reference-counting calls in the loop, and LLVM does not vectorise a loop that calls. Every
+# ``a if c else b`` below has two operands without side effects, both computed, so that LLVM can make it a
+# select (a blend in the vector loop) rather than a branch; conditions combine with ``&`` and ``|``, which do
+# not short-circuit, for the same reason.
+
+#: A bank of fewer valves takes the branching per-valve loop. LLVM checks at run time that the arrays do not
+#: overlap and enters the vector loop only above a trip count that pays for those checks (about 40 valves with
+#: AVX-512); below it the selects run one valve at a time, slower than branches, which on a smooth OP are
+#: well predicted. At 64 valves the selects beat the branches on smooth and on random OP for every model.
+VECTOR_MIN: Final = 64
+_CHOUDHURY, _KANO, _HE = (MODELS.index(m) for m in ("choudhury", "kano", "he"))
+
+
+@numba.njit(cache=True, inline="always")
+def _kano_update(u_raw, S, J, R, mv, u_prev, ref, d, flag, still):  # pragma: no cover - compiled
+    """:func:`_kano_valve` as selects; returns the new ``(MV, U_PREV, REF, DIR, FLAG, STILL, STUCK)``."""
+    u = _clip(u_raw)
+    du = u - u_prev
+    still = still + 1.0 if du == 0.0 else 0.0
+    half = 0.5 * (S - J)
+    stop = (flag == 0.0) & ((du * d < 0.0) | (still >= R))     # moving, and a reversal or R still samples
+    ref = u_prev if stop else ref
+    stopped = stop | (flag != 0.0)
+    rev = stopped & (-d * (u - ref) > S)                        # overcomes deadband + stickband backwards
+    jump = rev | (stopped & (d * (u - ref) > J))                # ... or the slip jump forwards: it moves
+    held = stopped & (not jump)
+    d = -d if rev else d
+    mv = mv if held else _clip(u - d * half)
+    flag = 0.0 if jump else (1.0 if stop else flag)
+    return mv, u, ref, d, flag, still, 1.0 if held else 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _choudhury_update(x, S, J, mv, u_prev, ref, slope, flag):  # pragma: no cover - compiled
+    """:func:`_choudhury_valve` as selects; returns the new ``(MV, U_PREV, REF, DIR, FLAG, STUCK)``."""
+    sat = (x < 0.0) | (x > 100.0)                               # saturated: the valve sits on its stop
+    x = _clip(x) if sat else x
+    v = x - u_prev
+    sv = np.sign(v)
+    turn = (not sat) & (sv != slope)                            # the slope changed sign or became zero: sticks
+    band = J if flag == 1.0 else S
+    go = (not sat) & (not turn) & (abs(x - ref) > band)
+    mv = x if sat else (_clip(x - sv * 0.5 * (S - J)) if go else mv)
+    ref = x if sat else (u_prev if turn else ref)
+    flag = 1.0 if turn & (v == 0.0) else (0.0 if go else flag)
+    return mv, x, ref, sv, flag, 0.0 if sat | go else 1.0
+
+
+@numba.njit(cache=True, inline="always")
+def _he_update(u_raw, S, J, mv, u_prev, ref):  # pragma: no cover - compiled
+    """:func:`_he_valve` as selects; returns the new ``(MV, U_PREV, REF, STUCK)``."""
+    u = _clip(u_raw)
+    fs = 0.5 * (S + J)
+    fd = 0.5 * (S - J)
+    tmp = ref + (u - u_prev)
+    slip = abs(tmp) > fs
+    ref = np.sign(tmp) * fd if slip else tmp
+    mv = _clip(u - ref) if slip else mv
+    return mv, u, ref, 0.0 if slip else 1.0
+
+
+@numba.njit(cache=True)
+def _kano_columns(u, S, J, R, st):  # pragma: no cover - compiled
+    for i in range(u.shape[0]):
+        st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG], st[i, STILL], st[i, STUCK] = \
+            _kano_update(u[i], S[i], J[i], R[i], st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG],
+                         st[i, STILL])
+
+
+@numba.njit(cache=True)
+def _choudhury_columns(u, S, J, st):  # pragma: no cover - compiled
+    for i in range(u.shape[0]):
+        st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG], st[i, STUCK] = \
+            _choudhury_update(u[i], S[i], J[i], st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG])
+
+
+@numba.njit(cache=True)
+def _he_columns(u, S, J, st):  # pragma: no cover - compiled
+    for i in range(u.shape[0]):
+        st[i, MV], st[i, U_PREV], st[i, REF], st[i, STUCK] = \
+            _he_update(u[i], S[i], J[i], st[i, MV], st[i, U_PREV], st[i, REF])
+
+
+@numba.njit(cache=True)
+def step_same_model(u, S, J, R, code, st):  # pragma: no cover - compiled
+    """Advance valves that all use model ``code`` one sample: the same state as :func:`stiction_step_kernel`."""
+    if code == _KANO:
+        _kano_columns(u, S, J, R, st)
+    elif code == _CHOUDHURY:
+        _choudhury_columns(u, S, J, st)
+    else:
+        _he_columns(u, S, J, st)
+
+
+@numba.njit(cache=True)
+def _run_same_model(op, S, J, R, code, st, out):  # pragma: no cover - compiled
+    for k in range(op.shape[0]):
+        step_same_model(op[k, :st.shape[0]], S, J, R, code, st)
+        for i in range(st.shape[0]):
+            out[k, i] = st[i, MV]
+
 
 def seed_to_2005(s: float, j: float) -> tuple[float, float]:
     """Convert the 2003 paper's ``(s, j)`` to the 2005 convention ``(S, J)``.
@@ -275,11 +394,14 @@ class StictionBank:
         validate_parameters(S, J, model, np.asarray(rest_samples))
         self.n = int(n)
         self.model = model
-        self._codes = np.full(self.n, MODELS.index(model), dtype=np.int64)
+        self._code = MODELS.index(model)
+        self._codes = np.full(self.n, self._code, dtype=np.int64)
         self._S = vector("S", S, self.n)
         self._J = vector("J", J, self.n)
         self._R = vector("rest_samples", rest_samples, self.n, dtype=np.int64).astype(float)
-        self._state = np.zeros((self.n, NSTATE))
+        # Column-major for the vector loop (see the module docstring), which needs a few valves to pay off.
+        self._selects = self.n >= VECTOR_MIN
+        self._state = np.zeros((self.n, NSTATE), order="F" if self._selects else "C")
         self.reset(0.0)
 
     def reset(self, op0: ArrayLike, direction: ArrayLike = 1) -> None:
@@ -292,7 +414,10 @@ class StictionBank:
         u = np.asarray(op, dtype=float)
         if u.ndim == 0:
             u = np.full(self.n, float(u))
-        stiction_step_kernel(u, self._S, self._J, self._R, self._codes, self._state)
+        if self._selects:
+            step_same_model(u, self._S, self._J, self._R, self._code, self._state)
+        else:
+            stiction_step_kernel(u, self._S, self._J, self._R, self._codes, self._state)
         return self._state[:, MV]
 
     def set_parameters(self, *, S: ArrayLike | None = None, J: ArrayLike | None = None,
@@ -330,7 +455,10 @@ class StictionBank:
         """Step through ``op`` of shape ``(T, n)``; return MV of shape ``(T, n)``; state carries on."""
         op = np.ascontiguousarray(op, dtype=float)
         out = np.empty_like(op)
-        _run(op, self._S, self._J, self._R, self._codes, self._state, out)
+        if self._selects:
+            _run_same_model(op, self._S, self._J, self._R, self._code, self._state, out)
+        else:
+            _run(op, self._S, self._J, self._R, self._codes, self._state, out)
         return out
 
 

@@ -31,7 +31,15 @@ import numpy as np
 from valve_emulator.diagnosis._threads import run_split, workers_for
 from valve_emulator.diagnosis.candidates.base import ChainContext
 from valve_emulator.physics._arrays import kernel_array
-from valve_emulator.physics.stiction import MODELS, MV, NSTATE, initial_state, stiction_step_kernel
+from valve_emulator.physics.stiction import (
+    MODELS,
+    MV,
+    NSTATE,
+    VECTOR_MIN,
+    initial_state,
+    step_same_model,
+    stiction_step_kernel,
+)
 
 __all__ = ["PRE_ROLL", "STARTS", "valve_output", "sync_burn_in"]
 
@@ -49,14 +57,22 @@ def _pre_roll(T: int) -> int:
 def _run_valves(op, K, first, cols, S, J, R, codes, state, out):  # pragma: no cover - compiled
     # The physics layer's step kernel in a compiled time loop over the record, from sample `first`: K for
     # valves that start at OP(0), 0 for valves that first run through the mirrored pre-roll (op[K], ..., op[1]).
-    # Valve i reads OP column cols[i] and writes MV column cols[i] of out (T, n).
+    # Valve i reads OP column cols[i] and writes MV column cols[i] of out (T, n). The state is column-major, and
+    # a group of at least VECTOR_MIN valves of one model takes the physics layer's vector formulation of the
+    # same state machines (bit for bit the same state; see valve_emulator.physics.stiction).
     m = cols.shape[0]
     u = np.empty(m)
+    same = m >= VECTOR_MIN
+    for i in range(m):
+        same = same and codes[i] == codes[0]
     for kk in range(first, K + op.shape[0]):
         k = K - kk if kk < K else kk - K
         for i in range(m):
             u[i] = min(max(op[k, cols[i] if op.shape[1] > 1 else 0], 0.0), 100.0)
-        stiction_step_kernel(u, S, J, R, codes, state)
+        if same:
+            step_same_model(u, S, J, R, codes[0], state)
+        else:
+            stiction_step_kernel(u, S, J, R, codes, state)
         if kk >= K:
             for i in range(m):
                 out[kk - K, cols[i]] = state[i, MV]
@@ -88,7 +104,7 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
 
         def run(a: int, b: int, group=group, k0=k0) -> None:
             i = group[a:b]
-            _run_valves(x2, K, k0, i, S[i], J[i], R[i], codes[i], state[i], out)
+            _run_valves(x2, K, k0, i, S[i], J[i], R[i], codes[i], np.asfortranarray(state[i]), out)
 
         # The valves are independent: a large group runs in parallel threads (the kernel releases the GIL).
         workers = workers_for(group.size)
