@@ -174,3 +174,22 @@ def test_the_polish_prior_term_is_numpys_sum_bit_for_bit():
             x, prior = rng.normal(2.0, 1.5, n), rng.normal(2.0, 1.5, n)
             want = float(np.sum(((np.sort(x) - np.sort(prior)) / PRIOR_WIDTH) ** 2))
             assert _prior_term(x, sorted(prior.tolist())) == want
+
+
+@pytest.mark.parametrize("structure, lam", [
+    (LinearStructure(taus=(8.0,)), None),
+    (LinearStructure(taus=(12.0, 3.0)), None),
+    (LinearStructure(integrating=True), None),
+    (LinearStructure(taus=(5.0,), integrating=True), 0.95),
+])
+def test_a_dead_time_scored_alone_is_its_column_of_the_dead_time_grid_bit_for_bit(structure, lam):
+    # The search takes a held dead time's SSE from the grid's column when the grid has been scored anyway.
+    rng = np.random.default_rng(11)
+    u = np.column_stack([_input(s) for s in range(5)]) + rng.normal(size=(T, 5))
+    y = _plant_output(u[:, 0], [1.5], [8.0, 1.0], 4.0) + rng.normal(0.0, 0.1, T)
+    y = y if lam is None else highpass(y, lam)
+    delays = np.arange(0, 21)
+    grid = input_grid_sse(u, y, WINDOW, delays, structure, DT, prefilter=lam)
+    for d in (0, 4, 13, 20):
+        alone = input_grid_sse(u, y, WINDOW, np.array([d]), structure, DT, prefilter=lam)
+        assert np.array_equal(alone[:, 0], grid[:, d])

@@ -31,7 +31,7 @@ from scipy.optimize import minimize
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.diagnosis.fit.chain import Active
-from valve_emulator.diagnosis.fit.linear import LinearStructure, sse_one
+from valve_emulator.diagnosis.fit.linear import LinearStructure, split_delay, sse_one
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
 from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
 
@@ -283,8 +283,12 @@ class Fitter:
         starts: dict[bool, list[tuple]] = {free: [] for free, _ in variants}
         for st in self.pole_set(model):
             penalty = self.scorer.prior_penalty(st)
-            for free, _ in variants:
-                sse, delays = self.scorer.sse_flows(flows, st, self.p.delays if free else None, aim)
+            grid_delays = None
+            for free, _ in sorted(variants, key=lambda v: not v[0]):   # θ free first: its columns may serve θ held
+                if free:
+                    sse, delays = grid_delays = self.scorer.sse_flows(flows, st, self.p.delays, aim)
+                else:
+                    sse, delays = self._held_delay(flows, st, aim, grid_delays)
                 flat = sse.min(axis=1)
                 i = int(np.argmin(flat))
                 score = self.p.n_fit * np.log(max(flat[i], 1e-300)) + penalty
@@ -314,6 +318,19 @@ class Fitter:
             _, m, scan_surface, fine = min(results, key=lambda r: r[0])
             options.append(Option(added=added, model=m, coarse=ranked[free][0][3], scan=scan_surface, fine=fine))
         return options
+
+    def _held_delay(self, flows: np.ndarray, st: LinearStructure, aim: Aim, grid: tuple | None) -> tuple:
+        """SSE (n, 1) of ``flows`` at the structure's own dead time: the column of the dead-time grid's result
+        ``grid`` when that dead time is a whole number of samples on the grid (the one-pass fit computes every
+        dead time's normal equations from the same running sums, so the column is the same numbers), else a
+        pass of its own."""
+        if grid is not None:
+            m, frac = split_delay(st.delay / self.p.dt)
+            sse, delays = grid
+            hit = np.flatnonzero(delays == m)
+            if frac == 0.0 and hit.size:
+                return sse[:, hit[:1]], delays[hit[:1]]
+        return self.scorer.sse_flows(flows, st, None, aim)
 
     def _ranked(self, starts: list[tuple], cand: Candidate) -> list[tuple]:
         """The :data:`_STARTS` best starts, and for a candidate that trades off against the poles the best one at
