@@ -224,3 +224,20 @@ def test_non_finite_op_names_the_sample(bad, name):
 def test_bad_parameters_name_the_parameter(kwargs, name):
     with pytest.raises(ValueError, match=name):
         simulate(np.full(10, 50.0), **kwargs)
+
+
+@pytest.mark.parametrize("n", [3, 64, 200])
+def test_a_bank_refuses_op_of_the_wrong_length_and_keeps_its_state(n):
+    # The compiled step has no bounds checks: an op longer than the bank would write past its state.
+    bank = StictionBank(n, S=4.0, J=1.0)
+    bank.reset(50.0)
+    bank.step(np.full(n, 60.0))
+    before = bank.mv
+    for bad in (np.full(n + 1, 70.0), np.full(n - 1, 70.0), np.full((1, n), 70.0)):
+        with pytest.raises(ValueError, match=rf"op must be a scalar or have shape \({n},\)"):
+            bank.step(bad)
+    for bad in (np.full((5, n + 1), 70.0), np.full((5, n - 1), 70.0), np.full(5 * n, 70.0)):
+        with pytest.raises(ValueError, match=rf"op must have shape \(T, {n}\)"):
+            bank.run(bad)
+    assert np.array_equal(bank.mv, before)
+    assert np.array_equal(bank.step(70.0), bank.mv)   # a scalar still drives every valve

@@ -414,6 +414,8 @@ class StictionBank:
         u = np.asarray(op, dtype=float)
         if u.ndim == 0:
             u = np.full(self.n, float(u))
+        elif u.shape != (self.n,):   # the compiled step does not check bounds: a longer op would write past the state
+            raise ValueError(f"op must be a scalar or have shape ({self.n},), got shape {u.shape}")
         if self._selects:
             step_same_model(u, self._S, self._J, self._R, self._code, self._state)
         else:
@@ -454,6 +456,8 @@ class StictionBank:
     def run(self, op: np.ndarray) -> np.ndarray:
         """Step through ``op`` of shape ``(T, n)``; return MV of shape ``(T, n)``; state carries on."""
         op = np.ascontiguousarray(op, dtype=float)
+        if op.ndim != 2 or op.shape[1] != self.n:
+            raise ValueError(f"op must have shape (T, {self.n}), got shape {op.shape}")
         out = np.empty_like(op)
         if self._selects:
             _run_same_model(op, self._S, self._J, self._R, self._code, self._state, out)
