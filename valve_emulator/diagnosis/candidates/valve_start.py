@@ -54,21 +54,26 @@ def _pre_roll(T: int) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def _run_valves(op, K, first, cols, S, J, R, codes, state, out):  # pragma: no cover - compiled
-    # The physics layer's step kernel in a compiled time loop over the record, from sample `first`: K for
-    # valves that start at OP(0), 0 for valves that first run through the mirrored pre-roll (op[K], ..., op[1]).
-    # Valve i reads OP column cols[i] and writes MV column cols[i] of out (T, n). The state is column-major, and
-    # a group of at least VECTOR_MIN valves of one model takes the physics layer's vector formulation of the
-    # same state machines (bit for bit the same state; see valve_emulator.physics.stiction).
+def _run_valves(op, K, first, last, cols, S, J, R, codes, state, out):  # pragma: no cover - compiled
+    # The physics layer's step kernel in a compiled time loop over samples first..last-1 of the record preceded
+    # by its mirrored pre-roll: sample kk < K is op[K - kk] (op[K], ..., op[1]), sample kk >= K is op[kk - K].
+    # Valve i reads OP column cols[i] and, from kk = K on, writes MV column cols[i] of out (T, n). The state is
+    # column-major, and at least VECTOR_MIN valves of one model take the physics layer's vector formulation of
+    # the same state machines (bit for bit the same state; see valve_emulator.physics.stiction).
     m = cols.shape[0]
     u = np.empty(m)
     same = m >= VECTOR_MIN
     for i in range(m):
         same = same and codes[i] == codes[0]
-    for kk in range(first, K + op.shape[0]):
+    for kk in range(first, last):
         k = K - kk if kk < K else kk - K
-        for i in range(m):
-            u[i] = min(max(op[k, cols[i] if op.shape[1] > 1 else 0], 0.0), 100.0)
+        if op.shape[1] > 1:
+            for i in range(m):
+                u[i] = min(max(op[k, cols[i]], 0.0), 100.0)
+        else:
+            v = min(max(op[k, 0], 0.0), 100.0)
+            for i in range(m):
+                u[i] = v
         if same:
             step_same_model(u, S, J, R, codes[0], state)
         else:
@@ -100,15 +105,22 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
     out = np.empty((T, n))
     R = np.full(n, float(ctx.rest_samples))
     x2 = kernel_array(x2)
-    for group, k0 in ((np.flatnonzero(pre), 0), (np.flatnonzero(~pre), K)):
 
-        def run(a: int, b: int, group=group, k0=k0) -> None:
-            i = group[a:b]
-            _run_valves(x2, K, k0, i, S[i], J[i], R[i], codes[i], np.asfortranarray(state[i]), out)
-
+    def run(group: np.ndarray, kk0: int, kk1: int) -> None:
         # The valves are independent: a large group runs in parallel threads (the kernel releases the GIL).
+        def part(a: int, b: int) -> None:
+            i = group[a:b]
+            st = np.asfortranarray(state[i])
+            _run_valves(x2, K, kk0, kk1, i, S[i], J[i], R[i], codes[i], st, out)
+            state[i] = st
+
         workers = workers_for(group.size)
-        run_split(run, [group.size * w // workers for w in range(workers + 1)])
+        run_split(part, [group.size * w // workers for w in range(workers + 1)])
+
+    # The pre-roll valves first run through the mirrored pre-roll; then every valve runs through the record
+    # together, in column order (whole vectors, and each sample's MV written as one contiguous row).
+    run(np.flatnonzero(pre), 0, K)
+    run(np.arange(n), K, K + T)
     return out
 
 
