@@ -272,7 +272,7 @@ def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, t
     r = np.zeros(q)
     beta = np.zeros(q)
     x = np.zeros(q)
-    yy = 0.0
+    yy = g00 = g01 = g11 = r0 = r1 = 0.0
     for k in range(w1):
         if k < start:
             s = u[0] - mean
@@ -297,7 +297,18 @@ def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, t
                 s = (1.0 - frac) * h + frac * hprev
             hprev = h
         Z[k & mask] = s
-        if k >= w0:
+        if k >= w0 and q == 2:
+            # One tap and the offset (a first-order plant, the common case): the same sums in registers. The
+            # offset's regressor is 1, and x·1 is x exactly, so these are the general branch's numbers.
+            x0 = Z[(k - m) & mask]
+            yk = y[k]
+            yy += yk * yk
+            g00 += x0 * x0
+            g01 += x0
+            g11 += 1.0
+            r0 += x0 * yk
+            r1 += yk
+        elif k >= w0:
             for i in range(ntaps):
                 x[i] = Z[(k - m - i) & mask]
             x[ntaps] = 1.0
@@ -309,6 +320,8 @@ def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, t
                 r[i] += x[i] * yk
                 for jj in range(i, q):
                     G[i, jj] += x[i] * x[jj]
+    if q == 2:
+        G[0, 0], G[0, 1], G[1, 1], r[0], r[1] = g00, g01, g11, r0, r1
     return _solve_sse(G, r, yy, q, beta)
 
 
