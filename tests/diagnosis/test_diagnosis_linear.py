@@ -8,13 +8,13 @@ import pytest
 from valve_emulator.diagnosis.fit.linear import (
     PRIOR_WIDTH,
     LinearStructure,
-    _prior_term,
     delay_grid_sse,
     filter_inputs,
     fit_one,
     highpass,
     input_grid_sse,
     polish,
+    prior_term,
 )
 from valve_emulator.diagnosis.fit.linear_kernels import column_sse
 from valve_emulator.physics.plant import PlantBank, transfer_function_to_zoh
@@ -173,7 +173,7 @@ def test_the_polish_prior_term_is_numpys_sum_bit_for_bit():
         for _ in range(2000):
             x, prior = rng.normal(2.0, 1.5, n), rng.normal(2.0, 1.5, n)
             want = float(np.sum(((np.sort(x) - np.sort(prior)) / PRIOR_WIDTH) ** 2))
-            assert _prior_term(x, sorted(prior.tolist())) == want
+            assert prior_term(x, sorted(prior.tolist())) == want
 
 
 @pytest.mark.parametrize("structure, lam", [

@@ -303,7 +303,7 @@ def step_same_model(u, S, J, R, code, st):  # pragma: no cover - compiled
 @numba.njit(cache=True)
 def _run_same_model(op, S, J, R, code, st, out):  # pragma: no cover - compiled
     for k in range(op.shape[0]):
-        step_same_model(op[k, :st.shape[0]], S, J, R, code, st)
+        step_same_model(op[k], S, J, R, code, st)   # run() checked that op has one column per valve
         for i in range(st.shape[0]):
             out[k, i] = st[i, MV]
 

@@ -50,10 +50,11 @@ def _basis(P: float, ctx: ChainContext) -> tuple[np.ndarray, np.ndarray]:
     return _sinusoids(float(P), float(ctx.dt), int(ctx.op.shape[0]))
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=2)
 def _sinusoids(P: float, dt: float, T: int) -> tuple[np.ndarray, np.ndarray]:
     """sin ωk and cos ωk, ω = 2π dt / P, over T samples (read-only): a backfit asks for the same period's
-    basis three times per evaluation (adjust, regressors, predict)."""
+    basis three times in a row (adjust, regressors, predict). Two entries catch those repeats; a larger cache
+    caught few more and kept more record-length arrays alive after the diagnosis."""
     w = 2.0 * np.pi * dt / P * np.arange(T)
     s, c = np.sin(w), np.cos(w)
     s.flags.writeable = c.flags.writeable = False

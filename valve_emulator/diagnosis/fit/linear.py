@@ -50,6 +50,7 @@ from valve_emulator.physics._arrays import kernel_array
 
 __all__ = [
     "PRIOR_WIDTH",
+    "prior_term",
     "LinearStructure",
     "LinearFit",
     "highpass",
@@ -367,8 +368,10 @@ def sse_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], st: LinearStr
                       window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None))
 
 
-def _prior_term(log_taus: np.ndarray, prior_sorted: list[float]) -> float:
-    """``Σ ((sort(ln τ) − sort(ln τ_nom)) / σ)²`` as numpy sums it (pairwise; one or two terms: in order)."""
+def prior_term(log_taus: np.ndarray, prior_sorted: list[float]) -> float:
+    """The prior on the time constants, ``Σ ((sort(ln τ) − sort(ln τ_nom)) / σ)²`` with σ = :data:`PRIOR_WIDTH`,
+    summed as numpy sums it (pairwise; one or two terms: in order), from ``ln τ`` and the sorted ``ln τ_nom``.
+    A polish evaluates it hundreds of times, so one or two terms are summed in scalars."""
     if len(prior_sorted) > 2:
         return float(np.sum(((np.sort(log_taus) - np.array(prior_sorted)) / PRIOR_WIDTH) ** 2))
     terms = []
@@ -432,7 +435,7 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     def cost(p: np.ndarray) -> float:
         c = n * np.log(max(sse(make(p)), 1e-300))
         if use_prior:
-            c += _prior_term(p[:nt], prior_sorted)
+            c += prior_term(p[:nt], prior_sorted)
         return c
 
     x0 = np.concatenate([taus0, [structure.delay] if free_delay else []])

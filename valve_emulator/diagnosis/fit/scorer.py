@@ -38,13 +38,13 @@ from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
 from valve_emulator.diagnosis.fit.chain import Active, run_chain
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.linear import (
-    PRIOR_WIDTH,
     LinearFit,
     LinearStructure,
     fit_one,
     highpass,
     input_grid_sse,
     polish,
+    prior_term,
     split_delay,
 )
 from valve_emulator.diagnosis.fit.nominal import Nominal, bic
@@ -86,6 +86,7 @@ class Scorer:
         self.dmax = float(problem.delays.max()) * problem.dt
         self.lam = problem.prefilter
         self.prior = nominal.structure.taus if nominal.given else None
+        self._prior_sorted = sorted(np.log(self.prior).tolist()) if self.prior else None
         #: Scores derived from a model that later stages ask for again (see ``load_check.load_bic``), by the
         #: model's ``id`` with the model itself kept, so that an id is never reused while it is remembered.
         self.memo: dict[int, tuple[Model, object]] = {}
@@ -154,8 +155,7 @@ class Scorer:
         """The weak prior of :func:`~valve_emulator.diagnosis.fit.linear.polish`, for comparing pole sets."""
         if self.prior is None or len(self.prior) != len(st.taus) or not st.taus:
             return 0.0
-        d = np.sort(np.log(st.taus)) - np.sort(np.log(self.prior))
-        return float(np.sum((d / PRIOR_WIDTH) ** 2))
+        return prior_term(np.log(st.taus), self._prior_sorted)
 
     def polish(self, flow: np.ndarray, st: LinearStructure, free: bool, aim: Aim) -> LinearFit:
         """The linear part driven by ``flow`` polished from ``st`` (a free dead time too when ``free``)."""
