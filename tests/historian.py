@@ -30,3 +30,22 @@ def simulate(num, den, delay, kc, ti, *, S=0.0, J=0.0, dt=1.0, duration=1300.0, 
     if quantum:
         pv = quantum * np.round(pv / quantum)
     return Recording(run.t[k:] - run.t[k], run.sp[k:], run.op[k:], None, pv, source=name)
+
+
+def flow_limited_loop(limit: float, op_hi: float, sps, T: int = 3200, seed: int = 0):
+    """A PI loop (anti-windup by conditional integration, output clamped to 0..op_hi %) on 1/(10s+1) whose flow
+    cannot exceed ``limit`` % travel; SP steps (PV units = % flow) some of which ask for more than the limit."""
+    rng = np.random.default_rng(seed)
+    a, kc, ti = np.exp(-1.0 / 10.0), 0.8, 12.0
+    sp = np.repeat(np.asarray(sps, dtype=float), T // len(sps))
+    pv, op = np.zeros(sp.size), np.zeros(sp.size)
+    x, integ = 40.0, 40.0 / kc
+    for k in range(sp.size):
+        pv[k] = x + rng.normal(0.0, 0.2)
+        e = sp[k] - pv[k]
+        u = kc * (e + integ / ti)
+        if 0.0 < u < op_hi or (u >= op_hi and e < 0) or (u <= 0.0 and e > 0):
+            integ += e
+        op[k] = min(max(kc * (e + integ / ti), 0.0), op_hi)
+        x = a * x + (1.0 - a) * min(op[k], limit)
+    return sp, op, pv

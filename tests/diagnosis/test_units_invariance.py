@@ -13,10 +13,9 @@ from functools import cache
 
 import numpy as np
 import pytest
-from historian import STEPS_300, simulate
+from historian import STEPS_300, flow_limited_loop, simulate
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_real_data_parts import _flow_limited_loop
 
 import valve_emulator as ve
 from valve_emulator.diagnosis.answers import Answer, Reason
@@ -183,7 +182,7 @@ def test_a_model_whose_op_is_percent_says_when_the_recording_s_op_cannot_be():
 def test_a_declared_span_puts_the_flow_limit_where_it_is_in_travel():
     """The search runs in OP's unit-free frame; a kept span places the travel stops there: the flow limit at 70 %
     travel of a loop exported in mA (4–20 mA given) is found at 15.2 mA."""
-    sp, op, pv = _flow_limited_loop(70.0, 90.0, (40, 60, 35, 85, 45, 30, 55, 40))
+    sp, op, pv = flow_limited_loop(70.0, 90.0, (40, 60, 35, 85, 45, 30, 55, 40))
     d = ve.diagnose({"t": np.arange(op.size, dtype=float), "op": 4.0 + 0.16 * op, "pv": pv, "sp": sp},
                     op_range=(4.0, 20.0))
     found = {f.physics: f for f in d.findings}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from historian import flow_limited_loop
 
 from valve_emulator.diagnosis.assess.adequacy import EXCITATION, adequacy, longest_constant_run, op_noise
 from valve_emulator.diagnosis.assess.decision import assess, op_flat_at_extreme
@@ -113,29 +114,10 @@ def test_saturation_clips_the_flow_at_its_limit_and_its_grid_stays_inside_the_da
     assert sat.parameters(np.array([0.0, 72.5])) == {"lo": None, "hi": 72.5}
 
 
-def _flow_limited_loop(limit: float, op_hi: float, sps, T: int = 3200, seed: int = 0):
-    """A PI loop (anti-windup by conditional integration, output clamped to 0..op_hi %) on 1/(10s+1) whose flow
-    cannot exceed ``limit`` % travel; SP steps (PV units = % flow) some of which ask for more than the limit."""
-    rng = np.random.default_rng(seed)
-    a, kc, ti = np.exp(-1.0 / 10.0), 0.8, 12.0
-    sp = np.repeat(np.asarray(sps, dtype=float), T // len(sps))
-    pv, op = np.zeros(sp.size), np.zeros(sp.size)
-    x, integ = 40.0, 40.0 / kc
-    for k in range(sp.size):
-        pv[k] = x + rng.normal(0.0, 0.2)
-        e = sp[k] - pv[k]
-        u = kc * (e + integ / ti)
-        if 0.0 < u < op_hi or (u >= op_hi and e < 0) or (u <= 0.0 and e > 0):
-            integ += e
-        op[k] = min(max(kc * (e + integ / ti), 0.0), op_hi)
-        x = a * x + (1.0 - a) * min(op[k], limit)
-    return sp, op, pv
-
-
 @pytest.mark.parametrize("scale, offset", [(0.16, 4.0), (1.0, 0.0), (276.48, 0.0), (0.01, -0.5)])
 def test_op_flat_at_an_extreme_is_told_in_any_units(scale, offset):
-    _, clamped, _ = _flow_limited_loop(70.0, 90.0, (40, 60, 35, 85, 45, 30, 55, 40))
-    _, free, _ = _flow_limited_loop(100.0, 100.0, (40, 55, 35, 52, 45, 30))
+    _, clamped, _ = flow_limited_loop(70.0, 90.0, (40, 60, 35, 85, 45, 30, 55, 40))
+    _, free, _ = flow_limited_loop(100.0, 100.0, (40, 55, 35, 52, 45, 30))
     assert op_flat_at_extreme(offset + scale * clamped)
     assert op_flat_at_extreme(offset - scale * clamped)   # held at the low limit (a reverse-acting export)
     assert not op_flat_at_extreme(offset + scale * free)
@@ -147,13 +129,13 @@ def test_saturation_is_searched_without_a_span_once_op_sits_flat_at_an_extreme()
     # OP exported in mA (4-20 mA, span not given): the flow limit at 70 % travel is found, in mA, because the
     # controller output sat at its 90 % clamp; the same kind of loop that never reaches a limit is not offered
     # saturation at all (no span, no flat extreme).
-    sp, op, pv = _flow_limited_loop(70.0, 90.0, (40, 60, 35, 85, 45, 30, 55, 40))
+    sp, op, pv = flow_limited_loop(70.0, 90.0, (40, 60, 35, 85, 45, 30, 55, 40))
     a = assess(_rec(4.0 + 0.16 * op, pv, sp=sp))
     found = {f.physics: f for f in a.explanation.findings}
     assert "saturation" in found, a.reason
     assert found["saturation"].parameters["hi"] == pytest.approx(4.0 + 0.16 * 70.0, abs=0.16 * 2.0)
     assert "OP units" in found["saturation"].description and "% travel" not in found["saturation"].description
-    sp, op, pv = _flow_limited_loop(100.0, 100.0, (40, 55, 35, 52, 45, 30))
+    sp, op, pv = flow_limited_loop(100.0, 100.0, (40, 55, 35, 52, 45, 30))
     b = assess(_rec(4.0 + 0.16 * op, pv, sp=sp))
     assert "saturation" not in {r.option for r in b.explanation.ranking}
 
