@@ -24,7 +24,7 @@ from dataclasses import KW_ONLY, dataclass, fields
 from enum import StrEnum
 from typing import Any
 
-from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_MA_TABLE
+from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_MA_TABLE, DEFAULT_RANGEABILITY
 from valve_emulator.physics.stiction import MODELS, seed_to_2005
 
 __all__ = [
@@ -262,7 +262,7 @@ class ValveConfig:
     initial_direction: int = 1     # +1 | -1: at rest as if it had just moved this way
     op0: float = 50.0              # % travel in 0..100, OP held before any write / without controller
     characteristic: str = "linear"  # inherent flow characteristic: linear | equal_percentage | quick_opening
-    rangeability: float = 50.0     # R > 1, used by equal_percentage
+    rangeability: float = DEFAULT_RANGEABILITY  # R > 1, used by equal_percentage
     ma_table: tuple[tuple[float, float], ...] = DEFAULT_MA_TABLE  # (mA, % travel) points, >= 2
     op_range: tuple[float, float] = (0.0, 100.0)  # a recording's OP at 0 and 100 % travel, in its own units
                                                   # (lo < hi); maps a replayed recording's OP to travel

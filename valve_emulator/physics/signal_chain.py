@@ -83,12 +83,18 @@ def saturate(pct: ArrayLike, lo: float = 0.0, hi: float = 100.0) -> np.ndarray:
     return np.clip(np.asarray(pct, dtype=float), lo, hi)
 
 
+#: Rangeability of an equal-percentage valve when none is given: the flow at the lowest controllable travel is
+#: 1/R of full flow. Valve handbooks give 20–50 for equal-percentage globe valves; 50 is the figure textbooks
+#: draw the characteristic with, and the default everywhere in this package (config, diagnosis, twin).
+DEFAULT_RANGEABILITY = 50.0
+
+
 @dataclass(frozen=True)
 class Characteristic:
     """Inherent flow characteristic: flow % as a function of travel %."""
 
     kind: str = "linear"
-    rangeability: float = 50.0
+    rangeability: float = DEFAULT_RANGEABILITY
 
     def __post_init__(self) -> None:
         if self.kind not in CHARACTERISTICS:

@@ -37,6 +37,8 @@ from typing import ClassVar, Final
 
 import numpy as np
 
+from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
+
 __all__ = ["SLOTS", "KINDS", "Kind", "Candidate", "ChainCandidate", "DelayCandidate", "OutputCandidate",
            "LoopCandidate", "ChainContext", "register", "registry", "get"]
 
@@ -89,7 +91,7 @@ class ChainContext:
     op_span: float
     valve_model: str = "kano"
     rest_samples: int = 1
-    characteristic: tuple[str, float] = ("linear", 50.0)
+    characteristic: tuple[str, float] = ("linear", DEFAULT_RANGEABILITY)
     tau_plant: float = 10.0
     delay: float = 0.0
     pv: np.ndarray | None = None

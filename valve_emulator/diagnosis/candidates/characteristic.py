@@ -17,7 +17,7 @@ from typing import ClassVar
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
-from valve_emulator.physics.signal_chain import CHARACTERISTICS, Characteristic
+from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_RANGEABILITY, Characteristic
 
 __all__ = ["FlowCharacteristic", "R_GRID"]
 
@@ -27,7 +27,7 @@ _EQP = CHARACTERISTICS.index("equal_percentage")
 
 
 def _curve(p: np.ndarray) -> Characteristic:
-    return Characteristic(CHARACTERISTICS[int(p[0])], p[1] if p[1] > 1 else 50.0)
+    return Characteristic(CHARACTERISTICS[int(p[0])], p[1] if p[1] > 1 else DEFAULT_RANGEABILITY)
 
 
 class FlowCharacteristic(ChainCandidate):

@@ -37,8 +37,9 @@ def _coarse(span: float) -> float:
     return max(0.2, span / 12.0)
 
 
-def _scan_steps(span: float) -> tuple[float, float]:
-    """(S step, J step) of the global scan: S fine, J coarse."""
+def scan_steps(span: float) -> tuple[float, float]:
+    """(S step, J step) of the global scan over a travel span: S fine (span/160, at least 0.01), J coarse
+    (span/16, at least 0.1). The interval profile of a stiction finding steps S by the same S step."""
     return max(0.01, span / 160.0), max(0.1, span / 16.0)
 
 
@@ -63,11 +64,11 @@ class Stiction(ChainCandidate):
         return _grid(np.arange(1, max(2, int(np.floor(ctx.op_span / h)) + 1)) * h, h)
 
     def scan(self, ctx: ChainContext) -> np.ndarray:
-        hS, hJ = _scan_steps(ctx.op_span)
+        hS, hJ = scan_steps(ctx.op_span)
         return _grid(np.arange(1, max(2, int(np.floor(ctx.op_span / hS)) + 1)) * hS, hJ)
 
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
-        hS, hJ = _scan_steps(ctx.op_span)
+        hS, hJ = scan_steps(ctx.op_span)
         S0, J0, _ = best
         S = S0 + hS / 4.0 * np.arange(-8, 9)
         J = J0 + hJ / 6.0 * np.arange(-9, 10)
@@ -89,7 +90,7 @@ class Stiction(ChainCandidate):
         return sync_burn_in(self.apply(ctx.op, self.grid(ctx), ctx))
 
     def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
-        h = _scan_steps(ctx.op_span)[axis] / (80.0 if axis == 0 else 60.0)
+        h = scan_steps(ctx.op_span)[axis] / (80.0 if axis == 0 else 60.0)
         rows = np.repeat(best[None, :], 81, axis=0)
         rows[:, axis] = best[axis] + h * np.arange(-40, 41)
         return rows[rows[:, axis] >= (1e-9 if axis == 0 else 0.0)]

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from valve_emulator.diagnosis.candidates import get
+from valve_emulator.diagnosis.candidates.stiction import scan_steps
 from valve_emulator.diagnosis.explain.locate import Located, locate
 from valve_emulator.diagnosis.explain.result import Finding
 from valve_emulator.diagnosis.explain.search import Model, Round
@@ -101,7 +102,7 @@ def _slip_interval(scorer: Scorer, model: Model, act, n: float) -> tuple[float, 
     """
     stc = scorer.library.get("stiction") or get("stiction")
     S0, start = float(act.params[0]), float(act.params[-1])
-    hS = max(0.01, scorer.p.op_span / 160.0)
+    hS = scan_steps(scorer.p.op_span)[0]
     S = S0 + hS * np.arange(-4, 5)
     S = S[S > 0]
     J = np.linspace(0.0, max(S0, 1e-3), 25)

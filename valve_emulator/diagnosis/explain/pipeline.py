@@ -47,6 +47,7 @@ from valve_emulator.diagnosis.fit.load_check import input_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.diagnosis.fit.scorer import Scorer
+from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["explain", "RULE", "RULE_TWOFOLD"]
@@ -171,7 +172,7 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
                     for i, rnd in enumerate(rounds) for o in rnd.options)
     ctx = fitter.scorer.ctx(model)
     valve_only = {k: v for k, v in model.by_slot().items() if k in ("actuator", "valve")}
-    mv = run_chain(problem.op, valve_only, replace(ctx, characteristic=("linear", 50.0)),
+    mv = run_chain(problem.op, valve_only, replace(ctx, characteristic=("linear", DEFAULT_RANGEABILITY)),
                    nominal_valve=(nom.S, nom.J))[:, 0]
     surface, surface_best = stiction_surface(rounds, problem.n_fit)
     if surface is not None and not frame.identity:

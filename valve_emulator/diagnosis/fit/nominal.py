@@ -33,6 +33,7 @@ from valve_emulator.diagnosis.fit.linear import (
     polish,
 )
 from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_function_to_zoh
+from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.physics.stiction import rest_samples_for
 
 __all__ = ["Nominal", "nominal_from_config", "identify", "replay_plant", "bic"]
@@ -65,7 +66,7 @@ class Nominal:
     rest_samples: int = 1
     S: float = 0.0
     J: float = 0.0
-    characteristic: tuple[str, float] = ("linear", 50.0)
+    characteristic: tuple[str, float] = ("linear", DEFAULT_RANGEABILITY)
     alternates: tuple[LinearStructure, ...] = field(default=())
 
     @property

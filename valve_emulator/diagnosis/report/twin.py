@@ -60,6 +60,7 @@ from valve_emulator.diagnosis.fit.continuous import continuous_transfer_function
 from valve_emulator.diagnosis.fit.data import fit_percent, fold_windows
 from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.fit.predict import FittedLoop
+from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.simulation.replay import replay_op
 
 __all__ = ["Twin", "TwinTravel", "twin", "identify_pi", "replay_fit", "PV_MARGIN"]
@@ -250,7 +251,8 @@ def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray, travel: TwinTrav
                                              "the model's." if model is not None else "linear (assumed)."))
     rest = model.valve.rest_time if model is not None else (ctx.rest_samples - 0.5) * ctx.dt
     valve = ValveConfig(model=ctx.valve_model, S=S, J=J, rest_time=rest, op0=float(np.clip(op[0], 0.0, 100.0)),
-                        characteristic=kind, rangeability=R if R > 1.0 else 50.0, op_range=travel.op_range(frame),
+                        characteristic=kind, rangeability=R if R > 1.0 else DEFAULT_RANGEABILITY,
+                        op_range=travel.op_range(frame),
                         **({"ma_table": model.valve.ma_table} if model is not None else {}))
     return valve, lines
 
