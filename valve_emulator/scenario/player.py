@@ -55,6 +55,7 @@ __all__ = [
     "WriteRefused",
     "check_registers_carry",
     "due_ticks",
+    "follow",
     "play",
     "play_on_device",
     "probe",
@@ -126,15 +127,18 @@ def apply_on_device(device: Any, event: Event) -> None:
 
 
 class DevicePlayer:
-    """Plays a scenario's events on a device in this process: call :meth:`on_tick` after each tick (or add it
-    to the device's ``on_tick``). ``apply`` defaults to :func:`apply_on_device`; the station passes its own,
-    which logs the malfunction and releases hints."""
+    """Plays a scenario's events on a device in this process: :meth:`on_tick` applies the events due by a tick.
+
+    ``apply`` carries an event out (the station's logs the malfunction and releases hints; :func:`follow` uses
+    :func:`apply_on_device`); ``on_applied`` hears of each :class:`Applied`.
+    """
 
     def __init__(self, events: Sequence[Event], dt: float, *, start_tick: int,
                  apply: Callable[[Event], None], on_applied: Callable[[Applied], None] | None = None) -> None:
         self.timeline = Timeline(events, dt, start_tick=start_tick)
         self.apply, self.on_applied = apply, on_applied
         self.applied: list[Applied] = []
+        self._device: Any = None
 
     @property
     def finished(self) -> bool:
@@ -150,29 +154,46 @@ class DevicePlayer:
             if self.on_applied is not None:
                 self.on_applied(done)
 
+    def _hook(self, device: Any) -> None:
+        self.on_tick(device.ticks)
+        if self.finished:   # an idle hook would keep a fast device from batching its ticks
+            self.detach()
 
-async def play_on_device(scenario: Scenario, device: Any, *, on_applied: Callable[[Applied], None] | None = None,
-                         stop: asyncio.Event | None = None) -> list[Applied]:
-    """Play ``scenario`` on a running device in this process from its current tick, until the scenario's
-    ``duration`` has run (or ``stop`` is set). Events due at the start apply before the first tick."""
+    def attach(self, device: Any) -> None:
+        """Apply the events due now, and the others after their ticks from the device's ``on_tick``."""
+        self.on_tick(device.ticks)
+        if not self.finished:
+            self._device = device
+            device.on_tick.append(self._hook)
+
+    def detach(self) -> None:
+        if self._device is not None:
+            self._device.on_tick.remove(self._hook)
+            self._device = None
+
+
+def follow(scenario: Scenario, device: Any, *, on_applied: Callable[[Applied], None] | None = None) -> DevicePlayer:
+    """Start playing ``scenario`` on a device in this process from its current tick (attached to its
+    ``on_tick``). Before the device's first tick, events at ``t = 0`` act from the first sample on."""
     player = DevicePlayer(scenario.events, scenario.dt, start_tick=device.ticks,
                           apply=lambda event: apply_on_device(device, event), on_applied=on_applied)
+    player.attach(device)
+    return player
 
-    def hook(dev: Any) -> None:
-        player.on_tick(dev.ticks)
-        if player.finished:   # an idle hook would keep a fast device from batching its ticks
-            device.on_tick.remove(hook)
 
-    player.on_tick(device.ticks)
-    if not player.finished:
-        device.on_tick.append(hook)
+async def play_on_device(scenario: Scenario, device: Any, *, player: DevicePlayer | None = None,
+                         on_applied: Callable[[Applied], None] | None = None,
+                         stop: asyncio.Event | None = None) -> list[Applied]:
+    """Play ``scenario`` on a running device in this process until its ``duration`` has run (or ``stop`` is
+    set); ``player`` is one :func:`follow` started earlier (e.g. before the device's first tick), else one
+    starts now. Returns what was applied."""
+    player = player if player is not None else follow(scenario, device, on_applied=on_applied)
     end = device.wait_for_tick(player.timeline.start_tick + scenario.tick_of(scenario.duration))
     waits = [asyncio.ensure_future(end)] + ([asyncio.ensure_future(stop.wait())] if stop is not None else [])
     try:
         await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
     finally:
-        if hook in device.on_tick:
-            device.on_tick.remove(hook)
+        player.detach()
         for w in waits:
             w.cancel()
         await asyncio.gather(*waits, return_exceptions=True)
