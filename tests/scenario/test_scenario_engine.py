@@ -180,6 +180,16 @@ def test_events_act_from_the_sample_after_their_due_tick():
     assert player.finished and device.on_tick == []   # done: the device may batch its ticks again
 
 
+def test_a_player_that_finishes_inside_a_tick_leaves_the_other_callbacks_of_that_tick_alone():
+    sc = scenario("- {at: 0.5, malfunction: {kind: seize}}\n")
+    device = Device.from_config(sc.config, time_scale=0)
+    follow(sc, device)
+    seen = []
+    device.on_tick.append(lambda dev: seen.append(dev.ticks))   # after the player's hook, like a recorder
+    device.advance(8)
+    assert seen == list(range(1, 9))
+
+
 OLD_FORM = """\
 - {at: 1.0, event: stiction, S: 3.5, J: 1.25}
 - {at: 2.0, event: sp, value: 2.0}

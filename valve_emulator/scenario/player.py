@@ -167,8 +167,10 @@ class DevicePlayer:
             device.on_tick.append(self._hook)
 
     def detach(self) -> None:
+        """Stop following the device. A new list, not a removal: the device may be iterating over its
+        ``on_tick`` right now (this player's own hook ends it there), and would skip the next callback."""
         if self._device is not None:
-            self._device.on_tick.remove(self._hook)
+            self._device.on_tick = [cb for cb in self._device.on_tick if cb != self._hook]
             self._device = None
 
 
