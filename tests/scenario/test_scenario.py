@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from valve_emulator.cli import main as cli_main
-from valve_emulator.device.registers import Scaling, address_of, decode_write
 from valve_emulator.device.malfunctions import Kind
+from valve_emulator.device.registers import Scaling, address_of, decode_write
 from valve_emulator.scenario import (
     EVENT_KINDS,
     ScenarioError,

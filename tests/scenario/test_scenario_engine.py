@@ -9,9 +9,8 @@ import asyncio
 import textwrap
 from collections.abc import Sequence
 
-import pytest
-
 import numpy as np
+import pytest
 
 from valve_emulator.device.registers import COMM_BASE, MAP_VERSION, N_REGISTERS, Status
 from valve_emulator.device.tick import Device
