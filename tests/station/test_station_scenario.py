@@ -100,13 +100,15 @@ async def test_a_bad_scenario_is_refused_naming_the_key(station_for, text, words
 
 async def test_the_station_plays_the_player_s_event_form_and_lines_for_the_instructor(station_for):
     srv, station, client = await station_for()
-    text = "unit: 1\nevents:\n  - {at: 0.5, event: seize}\n  - {at: 0.5, say: look at MV now}\n"
+    text = ("unit: 1\nevents:\n  - {at: 0, malfunction: {kind: load, flow: 1.0}}\n  - {at: 0.5, event: seize}\n"
+            "  - {at: 0.5, say: look at MV now}\n")
     assert (await _post(client, "/api/scenario", {"yaml": text})).status == 200
     assert (await _post(client, "/api/scenario/start")).status == 200
+    assert station.bank.load[0] == 1.0                 # at 0 s: before the first tick of the scenario
     srv.device.advance(4)
     assert not station.bank.frozen[0]
     srv.device.advance(1)                             # tick 5 has run: the seize acts from the sample at 0.5 s
     assert station.bank.frozen[0]
     assert [n["text"] for n in station.notes[-2:]] == ["event at 0.5 s: seize on unit 1",
                                                             "event at 0.5 s: look at MV now"]
-    assert station.scenario.describe()["fired"] == ["event 0", "event 1"]
+    assert station.scenario.describe()["fired"] == ["event 0", "event 1", "event 2"]

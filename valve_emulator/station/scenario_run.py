@@ -87,17 +87,21 @@ class ScenarioRun:
                 "hints": [{"id": k, "text": v, "released": k in self.released} for k, v in sc.hints.items()]}
 
     def start(self, station: Any) -> None:
+        """A new session: the scenario's limits, then its events from now on (those at 0 s at once)."""
         station.reset_session()
         self.t0 = float(station.bank.sample_time)
         self.running = True
-        self.player = DevicePlayer(self.scenario.events, station.bank.dt, start_tick=station.device.ticks,
-                                   apply=lambda event: self._do(station, event.action, float(station.bank.sample_time),
-                                                                event.say or f"event at {event.at:g} s"))
         self.fired, self.released, self._outside_since = [], [], {}
         for unit, (lo, hi) in self.scenario.limits.items():
             i = station.device.unit_index[unit]
             station.lim_lo[i], station.lim_hi[i] = lo, hi
         station.notes.append({"time": self.t0, "text": f"scenario {self.scenario.name} started"})
+
+        def apply(event: Event) -> None:
+            self._do(station, event.action, float(station.bank.sample_time), event.say or f"event at {event.at:g} s")
+
+        self.player = DevicePlayer(self.scenario.events, station.bank.dt, start_tick=station.device.ticks, apply=apply)
+        self.player.on_tick(station.device.ticks)
 
     def stop(self, station: Any) -> None:
         self.running = False
