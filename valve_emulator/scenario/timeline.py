@@ -335,7 +335,7 @@ def _register_write(value: Any, key: str, ctx: _Context) -> RegisterWrite:
     return RegisterWrite(unit, index, name, x, word)
 
 
-#: the actions of an event or a trigger: name -> parser of its argument
+#: the actions of an event or a trigger (what each takes: the module docstring)
 _ACTIONS: Final = ("malfunction", "sp", "write", "say", "hint")
 
 
