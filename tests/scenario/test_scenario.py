@@ -9,8 +9,16 @@ from pathlib import Path
 import pytest
 
 from valve_emulator.cli import main as cli_main
+from valve_emulator.device.malfunctions import Kind
 from valve_emulator.device.registers import Scaling, address_of, decode_write
-from valve_emulator.scenario import EVENT_TYPES, ScenarioError, load_scenario, parse_scenario
+from valve_emulator.scenario import (
+    EVENT_KINDS,
+    ScenarioError,
+    check_registers_carry,
+    load_scenario,
+    parse_scenario,
+    register_writes,
+)
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "configs" / "scenarios"
 
@@ -29,7 +37,7 @@ def scenario(events: str, device: str = DEVICE):
                           source="s.yaml")
 
 
-def test_each_event_type_writes_the_documented_registers():
+def test_each_old_event_type_is_the_malfunction_or_register_write_it_always_was():
     sc = scenario("""\
         - {at: 0, event: stiction, S: 3.5, J: 1.25}
         - {at: 1, event: load, flow: -2.5}
@@ -42,40 +50,72 @@ def test_each_event_type_writes_the_documented_registers():
         - {at: 8, event: comm, fault: busy, delay_ms: 40}
         """)
     assert sc.unit == 3 and sc.dt == 0.1 and sc.loop.controller is not None
-    writes = [ev.writes for ev in sc.events]
-    assert writes == [
-        (("S", 350), ("J", 125)),
-        (("load", (-250) & 0xFFFF),),
-        (("noise", 150),),
-        (("fault", 1),),
-        (("fault", 0),),
-        (("sp", 7500),),                                   # 5.0 on -10..10 is 75 % of the range
-        (("S", 500), ("J", 200), ("load", 0), ("noise", 250), ("fault", 0)),   # noise 0.5 = 2.5 % of 20
-        (("kc", 250),),
-        (("comm_fault", 2), ("comm_delay_ms", 40)),
+    assert [ev.describe() for ev in sc.events] == [
+        "stiction S=3.5 J=1.25", "load flow=-2.5",
+        "noise std=0.3",                                   # 1.5 % of the range -10..10, now in PV units
+        "seize", "release", "sp value=5", "clear", "write register=kc value=0.25", "comm fault=2 delay_ms=40"]
+    # over Modbus they write what the old player wrote (clear also ends a communication fault)
+    assert [register_writes(ev, sc) for ev in sc.events] == [
+        [("S", 350), ("J", 125)],
+        [("load", (-250) & 0xFFFF)],
+        [("noise", 150)],
+        [("fault", 1)],
+        [("fault", 0)],
+        [("sp", 7500)],                                    # 5.0 on -10..10 is 75 % of the range
+        [("S", 500), ("J", 200), ("load", 0), ("noise", 250), ("fault", 0), ("comm_fault", 0),
+         ("comm_delay_ms", 0)],                            # noise 0.5 = 2.5 % of 20
+        [("kc", 250)],
+        [("comm_fault", 2), ("comm_delay_ms", 40)],
     ]
     assert sc.events[6].say == "back to normal"
-    assert [ev.kind for ev in sc.events] == list(EVENT_TYPES)
-    assert sc.events[0].describe() == "stiction S=3.5 J=1.25"
     assert (sc.tick_of(0.24), sc.tick_of(0.26)) == (2, 3)   # the nearest tick
     assert sc.tick_of(60.0) == 600
+
+
+def test_the_old_event_form_and_the_malfunction_form_parse_to_the_same_faults():
+    old = scenario("""\
+        - {at: 1, event: stiction, S: 3.5, J: 1.25}
+        - {at: 2, event: noise, std: 1.5}
+        - {at: 3, event: normal}
+        - {at: 4, event: comm, fault: bad_crc, duration: 2}
+        """)
+    new = scenario("""\
+        - {at: 1, malfunction: {kind: stiction, S: 3.5, J: 1.25}}
+        - {at: 2, malfunction: {kind: noise, std: 0.3}}
+        - {at: 3, malfunction: {kind: clear}}
+        - {at: 4, malfunction: {kind: comm, fault: 5, delay_ms: 0}}
+        - {at: 6, malfunction: {unit: 3, kind: comm, fault: 0, delay_ms: 0}}
+        """)
+    assert [(ev.at, ev.action) for ev in old.events] == [(ev.at, ev.action) for ev in new.events]
+
+
+def test_every_fault_kind_is_a_scenario_event_in_both_forms():
+    for kind in Kind:
+        params = {"stiction": ", S: 1.0", "load": ", flow: 1.0", "noise": ", std: 0.1", "sensor_drift": ", bias: 0.5",
+                  "comm": ", fault: 0"}.get(kind.value, "")
+        old = scenario(f"- {{at: 1, event: {kind.value}{params}}}\n")
+        new = scenario(f"- {{at: 1, malfunction: {{kind: {kind.value}{params}}}}}\n")
+        assert old.events[0].kind == new.events[0].kind == kind.value
+    assert set(EVENT_KINDS) == {k.value for k in Kind} | {"normal", "sp", "write"}
 
 
 def test_the_words_are_what_the_device_decodes_back():
     sc = scenario("- {at: 1, event: load, flow: -2.5}\n- {at: 2, event: noise, std: 1.5}\n")
     scaling = Scaling.from_config(sc.config)
-    (name, raw), = sc.events[0].writes
+    (name, raw), = register_writes(sc.events[0], sc)
     assert decode_write(address_of(name), [raw], scaling, 0, instructor=True) == [("load", -2.5)]
-    (name, raw), = sc.events[1].writes
+    (name, raw), = register_writes(sc.events[1], sc)
     assert decode_write(address_of(name), [raw], scaling, 0, instructor=True) == [("noise", pytest.approx(0.3))]
 
 
-def test_server_config_allows_instructor_writes_from_this_host_only():
-    sc = scenario("- {at: 1, event: seize}\n")
-    assert not sc.config.device.instructor_writes
-    cfg = sc.server_config()
-    assert cfg.device.instructor_writes and cfg.device.instructor_hosts == ("127.0.0.1",)
-    assert cfg.loops[0].device.unit == 3 and cfg.loops[0].device.instructor_writes
+def test_ramps_and_sensor_faults_are_refused_over_modbus_naming_the_line():
+    sc = scenario("- {at: 1, event: seize}\n- {at: 2, malfunction: {kind: load, flow: 2.0, ramp: 10}}\n")
+    with pytest.raises(ScenarioError, match=r"^s\.yaml:9: load flow=2 ramp=10: the device's registers carry no "
+                                            r"ramps .* \(without --attach\)"):
+        check_registers_carry(sc)
+    with pytest.raises(ScenarioError, match=r"^s\.yaml:8: sensor_drift bias=1: the device's registers"):
+        check_registers_carry(scenario("- {at: 1, malfunction: {kind: sensor_drift, bias: 1.0}}\n"))
+    check_registers_carry(scenario("- {at: 1, malfunction: {kind: load, flow: 2.0}}\n"))
 
 
 @pytest.mark.parametrize("events, line, message", [
@@ -83,14 +123,20 @@ def test_server_config_allows_instructor_writes_from_this_host_only():
     ("- {at: 5, event: seize}\n- {at: 4, event: release}\n", 9, r"time goes backwards: 4 s after 5 s \(line 8\)"),
     ("- {at: 1, event: write, register: valve_gain, value: 3}\n", 8, "the device has no register 'valve_gain'"),
     ("- {at: 1, event: write, register: mv_pct, value: 3}\n", 8, "register mv_pct .* is read-only"),
-    ("- {at: 1, event: stiction, S: 2, Q: 1}\n", 8, r"events\[0\]\.Q: unknown key for a stiction event"),
-    ("- {at: 1, event: stiction}\n", 8, "needs S, J or both"),
-    ("- {at: 1, event: load}\n", 8, "a load event needs 'flow'"),
+    ("- {at: 1, event: stiction, S: 2, Q: 1}\n", 8, r"events\[0\]\.Q: field 'Q' is not a parameter of stiction"),
+    ("- {at: 1, event: stiction}\n", 8, "stiction needs field 'S' or 'J'"),
+    ("- {at: 1, event: load}\n", 8, r"events\[0\]\.flow: field 'flow' is required for load"),
+    ("- {at: 1, event: normal, S: 1}\n", 8, r"events\[0\]\.S: unknown key for a normal event"),
+    ("- {at: 1, malfunction: {kind: warp}}\n", 8, r"events\[0\]\.malfunction\.kind: .*unknown malfunction 'warp'"),
+    ("- {at: 1, malfunction: {kind: noise, std: 50}}\n", 8, r"malfunction\.std: .*register noise: 25000 out of"),
+    ("- {at: 1, malfunction: {kind: seize, unit: 4}}\n", 8, r"malfunction\.unit: field 'unit': no loop at unit 4"),
+    ("- {at: 1, sp: 1.0, malfunction: {kind: seize}}\n", 8, r"events\[0\]: needs exactly one of malfunction"),
+    ("- {at: 1, hint: look}\n", 8, r"events\[0\]\.hint: no hint with id 'look'"),
     ("- {at: 1, event: load, flow: 200}\n", 8, "register load: 20000 out of range -10000..10000"),
     ("- {at: 1, event: sp, value: 50}\n", 8, "register sp: 30000 out of range 0..10000"),
     ("- {at: -1, event: seize}\n", 8, r"events\[0\]\.at: must be >= 0"),
     ("- {at: 101, event: seize}\n", 8, "after the end of the scenario"),
-    ("- {at: 1, event: noise, std: fast}\n", 8, "std: must be a finite number"),
+    ("- {at: 1, event: noise, std: fast}\n", 8, r"events\[0\]\.std: field 'std' must be a finite number"),
 ])
 def test_bad_events_are_rejected_naming_the_line(events, line, message):
     with pytest.raises(ScenarioError, match=rf"^s\.yaml:{line}: .*{message}"):
@@ -138,7 +184,7 @@ def test_shipped_scenarios_load_and_say_what_to_conclude(path):
 def test_at_least_three_shipped_scenarios_cover_every_fault():
     kinds = {ev.kind for p in SCENARIOS.glob("*.yaml") for ev in load_scenario(p).events}
     assert len(list(SCENARIOS.glob("*.yaml"))) >= 3
-    assert {"stiction", "load", "noise", "seize", "release", "sp", "normal"} <= kinds
+    assert {"stiction", "load", "noise", "seize", "release", "sp", "clear"} <= kinds
 
 
 def test_cli_rejects_a_bad_scenario_before_starting_anything(tmp_path, monkeypatch, capsys):

@@ -1,6 +1,7 @@
-"""The scenario engine without Modbus: a fake register channel and a simulated clock record what the player
-writes and when, so a known timeline gives known ticks, and the checks made before the first event are seen
-to change nothing."""
+"""The scenario engine: on a device in this process, events act from the sample after their due tick, and the
+old event form gives the device the same state over time as the malfunction form; over the registers, a fake
+channel and a simulated clock record what the player writes and when, and the checks made before the first
+event are seen to change nothing."""
 
 from __future__ import annotations
 
@@ -8,17 +9,23 @@ import asyncio
 import textwrap
 from collections.abc import Sequence
 
+import numpy as np
 import pytest
 
-from valve_emulator.device.registers import MAP_VERSION, N_REGISTERS, Status
+from valve_emulator.device.registers import COMM_BASE, MAP_VERSION, N_REGISTERS, Status
+from valve_emulator.device.tick import Device
 from valve_emulator.scenario import (
     DeviceMismatch,
+    DevicePlayer,
     WriteRefused,
     due_ticks,
+    follow,
     parse_scenario,
     play,
     probe,
+    register_writes,
 )
+from valve_emulator.scenario.player import write_groups
 
 DEVICE = """\
 device:
@@ -78,8 +85,9 @@ class FakeDevice:
 
 
 def test_due_ticks_are_the_nearest_ticks_after_the_start():
-    assert [(due, ev.kind) for due, ev in due_ticks(scenario(), start_tick=100)] == [
-        (100, "sp"), (110, "stiction"), (126, "seize"), (160, "normal")]
+    sc = scenario()
+    assert [(due, ev.kind) for due, ev in due_ticks(sc.events, sc.dt, start_tick=100)] == [
+        (100, "sp"), (110, "stiction"), (126, "seize"), (160, "clear")]
 
 
 async def test_play_writes_each_event_at_its_due_tick_in_contiguous_runs():
@@ -87,11 +95,12 @@ async def test_play_writes_each_event_at_its_due_tick_in_contiguous_runs():
     seen = []
     applied = await play(scenario(), dev, dev, start_tick=100, on_applied=seen.append)
     # sp 5.0 on pv_range -10..10 is 75 % -> 7500 at sp (5); S, J are adjacent (10, 11); normal restores
-    # S 5 %, J 2 % and noise 0.5 of a range of 20 = 2.5 % -> 250, with load and fault 0 (28, 29, 30)
+    # S 5 %, J 2 % and noise 0.5 of a range of 20 = 2.5 % -> 250, with load and fault 0 (28, 29, 30), and no
+    # communication fault (the unit registers)
     assert dev.writes == [(100, 5, [7500]), (110, 10, [350, 125]), (126, 30, [1]),
-                          (160, 10, [500, 200]), (160, 28, [0, 250, 0])]
+                          (160, 10, [500, 200]), (160, 28, [0, 250, 0]), (160, COMM_BASE, [0, 0])]
     assert [(a.event.kind, a.due, a.tick, a.late) for a in applied] == [
-        ("sp", 0, 0, 0), ("stiction", 10, 10, 0), ("seize", 26, 26, 0), ("normal", 60, 60, 0)]
+        ("sp", 0, 0, 0), ("stiction", 10, 10, 0), ("seize", 26, 26, 0), ("clear", 60, 60, 0)]
     assert seen == applied
     assert dev.waits[-1] == 1100   # then it waits for the end of the scenario: 100 s after the start
     assert seen[1].line(0.1) == '[t =      1.0 s] stiction S=3.5 J=1.25 -- "the packing binds"'
@@ -139,3 +148,82 @@ async def test_probe_names_the_device_that_does_not_fit_and_writes_nothing(devic
         await probe(scenario(), dev)
     assert exc.value.where == "fake:502 unit 3" and isinstance(exc.value, ValueError)
     assert dev.writes == [] and dev.words == before
+
+
+# --- on a device in this process ------------------------------------------------------------------------
+
+def _states(device: Device, ticks: int) -> list[np.ndarray]:
+    """The loop's state in each of ``ticks`` samples -- PV, MV, OP and the S, J, load, noise and seizure the
+    sample was computed with -- recorded after each tick, before the scenario acts."""
+    out = []
+
+    def record(dev: Device) -> None:
+        b = dev.bank
+        out.append(np.array([b.pv[0], b.mv[0], b.op[0], b.S[0], b.J[0], b.load[0], b.noise_std[0], b.frozen[0]]))
+
+    device.on_tick.insert(0, record)
+    device.advance(ticks)
+    device.on_tick.remove(record)
+    return out
+
+
+def test_events_act_from_the_sample_after_their_due_tick():
+    sc = scenario("- {at: 0, malfunction: {kind: seize}}\n- {at: 1.04, malfunction: {kind: stiction, S: 3.5}}\n")
+    device = Device.from_config(sc.config, time_scale=0)
+    seen = []
+    player = follow(sc, device, on_applied=seen.append)
+    assert device.bank.frozen[0]                      # due at tick 0: on before the first sample
+    states = _states(device, 12)                      # samples 1..12: due at tick 10, acts from sample 11 on
+    assert [s[3] for s in states[:10]] == [5.0] * 10 and [s[3] for s in states[10:]] == [3.5] * 2
+    assert [(a.event.kind, a.due, a.tick) for a in seen] == [("seize", 0, 0), ("stiction", 10, 10)]
+    assert player.finished and device.on_tick == []   # done: the device may batch its ticks again
+
+
+def test_a_player_that_finishes_inside_a_tick_leaves_the_other_callbacks_of_that_tick_alone():
+    sc = scenario("- {at: 0.5, malfunction: {kind: seize}}\n")
+    device = Device.from_config(sc.config, time_scale=0)
+    follow(sc, device)
+    seen = []
+    device.on_tick.append(lambda dev: seen.append(dev.ticks))   # after the player's hook, like a recorder
+    device.advance(8)
+    assert seen == list(range(1, 9))
+
+
+OLD_FORM = """\
+- {at: 1.0, event: stiction, S: 3.5, J: 1.25}
+- {at: 2.0, event: sp, value: 2.0}
+- {at: 8.0, event: load, flow: -2.5}
+- {at: 9.0, event: noise, std: 1.5}
+- {at: 12.0, event: seize}
+- {at: 15.0, event: release}
+- {at: 20.0, event: normal}
+"""
+NEW_FORM = """\
+- {at: 1.0, malfunction: {kind: stiction, S: 3.5, J: 1.25}}
+- {at: 2.0, sp: 2.0}
+- {at: 8.0, malfunction: {kind: load, flow: -2.5}}
+- {at: 9.0, malfunction: {kind: noise, std: 0.3}}
+- {at: 12.0, malfunction: {kind: seize}}
+- {at: 15.0, malfunction: {kind: release}}
+- {at: 20.0, malfunction: {kind: clear}}
+"""
+
+
+def test_the_old_event_form_played_as_register_writes_and_the_malfunction_form_give_the_same_device_state():
+    """The old player wrote the registers of each ``event:``; the engine now injects the malfunction. Both
+    devices go through the same states, sample for sample, for every fault the old form had."""
+    old, new = scenario(OLD_FORM), scenario(NEW_FORM)
+    by_registers = Device.from_config(old.config, time_scale=0)
+
+    def write_registers(event):   # the loop's registers (the unit's communication registers are the server's)
+        loop_writes = [(name, word) for name, word in register_writes(event, old) if not name.startswith("comm_")]
+        for address, words in write_groups(loop_writes):
+            by_registers.write(0, address, words, instructor=True)
+
+    DevicePlayer(old.events, old.dt, start_tick=0, apply=write_registers).attach(by_registers)
+    injected = Device.from_config(new.config, time_scale=0)
+    follow(new, injected)
+    a, b = _states(by_registers, 300), _states(injected, 300)
+    assert np.array_equal(np.array(a), np.array(b))
+    assert a[130][7] == 1.0 and a[130][3:7].tolist() == [3.5, 1.25, -2.5, pytest.approx(0.3)]   # all on at 13 s
+    assert a[-1][3:8].tolist() == [5.0, 2.0, 0.0, 0.5, 0.0]   # cleared: the configuration again

@@ -45,7 +45,7 @@ async def test_events_ramp_and_triggers_fire_on_their_conditions(station_for):
     t0 = station.scenario.t0
     dev.advance(11)   # the event at 1.0 s: a load ramp to 2 % over 2 s
     assert 0.0 <= station.bank.load[0] < 2.0
-    dev.advance(22)   # the ramp starts at the next sample (1.1 s) and ends 2 s later
+    dev.advance(22)   # the ramp acts from the sample at 1.0 s and ends 2 s later
     assert station.bank.load[0] == 2.0
     # PV leaves the band [-0.5, 0.5] some time after the load (dead time 10 s); the trigger waits 3 s more
     first_out = None
@@ -64,11 +64,10 @@ async def test_events_ramp_and_triggers_fire_on_their_conditions(station_for):
     await _post(client, "/api/loops/1", {"mode": "manual"})
     dev.advance(1)
     assert "went_manual" in station.scenario.fired
-    # 30 s after the malfunction (injected at 1.0 s): the seize, not a tick earlier
-    while station.bank.sample_time < t0 + 1.0 + 30.0 - 0.05:
+    # 30 s after the malfunction (acting from the sample at 1.0 s): the seize, acting from the sample at 31.0 s
+    while station.bank.t < t0 + 1.0 + 30.0 - 0.05:     # bank.t: the time of the next sample
         assert not station.bank.frozen[0]
         dev.advance(1)
-    dev.advance(1)
     assert station.bank.frozen[0] and "late" in station.scenario.fired
     report = await (await client.get("/api/report")).json()
     assert report["score"]["rules"]["iae"] == 2.0 and report["hints_released"]
@@ -82,7 +81,11 @@ async def test_events_ramp_and_triggers_fire_on_their_conditions(station_for):
     ("events: [{at: -1, say: x}]", "events[0].at"),
     ("triggers: [{id: a, when: {boiling: {unit: 1}}, do: {say: x}}]", "unknown condition"),
     ("triggers: [{id: a, when: {manual: {unit: 1}}, do: {hint: nope}}]", "no hint with id 'nope'"),
-    ("events: [{at: 1, malfunction: {unit: 1, kind: stiction, S: 500}}]", "events[0].malfunction: field 'S'"),
+    ("events: [{at: 1, malfunction: {unit: 1, kind: stiction, S: 500}}]", "events[0].malfunction.S: field 'S'"),
+    ("unit: 1\nevents: [{at: 1, event: stiction, S: 500}]", "events[0].S: field 'S'"),
+    ("events: [{at: 1, event: seize}]", "events[0]: which loop? the device has units [1, 2]"),
+    ("events: [{at: 1, malfunction: {unit: 7, kind: seize}}]", "malfunction.unit: field 'unit': no loop at unit 7"),
+    ("device: ../etc/loop.yaml", "device: the station plays a scenario on its own device"),
     ("limits: {9: [0, 1]}", "unit 9"),
     ("colour: red", "unknown key"),
 ])
@@ -93,3 +96,19 @@ async def test_a_bad_scenario_is_refused_naming_the_key(station_for, text, words
     body = await resp.json()
     assert words in body["error"] and body["field"] == "scenario"
     assert station.scenario is None
+
+
+async def test_the_station_plays_the_player_s_event_form_and_lines_for_the_instructor(station_for):
+    srv, station, client = await station_for()
+    text = ("unit: 1\nevents:\n  - {at: 0, malfunction: {kind: load, flow: 1.0}}\n  - {at: 0.5, event: seize}\n"
+            "  - {at: 0.5, say: look at MV now}\n")
+    assert (await _post(client, "/api/scenario", {"yaml": text})).status == 200
+    assert (await _post(client, "/api/scenario/start")).status == 200
+    assert station.bank.load[0] == 1.0                 # at 0 s: before the first tick of the scenario
+    srv.device.advance(4)
+    assert not station.bank.frozen[0]
+    srv.device.advance(1)                             # tick 5 has run: the seize acts from the sample at 0.5 s
+    assert station.bank.frozen[0]
+    assert [n["text"] for n in station.notes[-2:]] == ["event at 0.5 s: seize on unit 1",
+                                                            "event at 0.5 s: look at MV now"]
+    assert station.scenario.describe()["fired"] == ["event 0", "event 1", "event 2"]

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from valve_emulator.config import loop_from_mapping, server_from_mapping
-from valve_emulator.scenario.training import parse_training
+from valve_emulator.scenario import DeviceShape, parse_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -67,8 +67,12 @@ def test_yaml_snippets_are_valid(path, line, src):
     assert isinstance(data, dict), f"{path.name}:{line}: not a mapping"
     if "apiVersion" in data:
         assert data["kind"] and data["spec"]
-    elif "triggers" in data or "scoring" in data or "hints" in data:
-        parse_training(data)
+    elif "events" in data and "device" in data:
+        parse_scenario(src, source=f"{path.name}:{line}", base=ROOT)
+    elif "events" in data:   # a station's scenario: checked against a two-loop device like the station's
+        two_loops = server_from_mapping({"loops": [{"unit": 1, "plant": {"num": [1.0], "den": [1.0, 1.0]}},
+                                                   {"unit": 2, "plant": {"num": [1.0], "den": [1.0, 1.0]}}]})
+        parse_scenario(src, source=f"{path.name}:{line}", device=DeviceShape.of_config(two_loops))
     elif "loops" in data or "fleet" in data:
         server_from_mapping(data, source=f"{path.name}:{line}")
     else:

@@ -10,7 +10,8 @@ Each is a ``valve-emulator`` sub-command and ``python -m valve_emulator.clients.
 - :mod:`valve_emulator.clients.monitor` -- ``valve-emulator monitor``: the instructor's live terminal view:
   values, valve state, scrolling trend
 - :mod:`valve_emulator.clients.scenario` -- ``valve-emulator scenario``: plays an operator-training scenario
-  through the device's registers (the Modbus front end of :mod:`valve_emulator.scenario.player`)
+  on an emulator it starts, or on a running one through its registers (the front end of
+  :mod:`valve_emulator.scenario.player`)
 
 Shared parts: :mod:`valve_emulator.clients._modbus` (register specs, grouped reads, the connection),
 :mod:`valve_emulator.clients._channels` (what a recorder/monitor reads), :mod:`valve_emulator.clients._schedule`

@@ -1,23 +1,23 @@
-"""The scenario player's Modbus front end: plays an operator-training timeline on an emulator through its registers.
+"""The scenario player's front end: plays a scenario's timeline on an emulator, started here or attached over Modbus.
 
 ``valve-emulator scenario SCENARIO.yaml`` (or ``python -m valve_emulator.clients.scenario``) checks the scenario
-(:mod:`valve_emulator.scenario`), then either starts an emulator of the scenario's device config (with
-instructor writes allowed from this host) or attaches to a running one (``--attach HOST:PORT``), and
-applies each event at its simulated time by writing the device's own registers -- the same way a field
-fault would show -- optionally recording the run (``--record REC.csv``).
+(:mod:`valve_emulator.scenario`), then either starts an emulator of the scenario's device config and plays the
+events on it in this process, or attaches to a running one (``--attach HOST:PORT``) and plays them by writing
+its registers -- the same way an instructor's Modbus client would -- optionally recording the run
+(``--record REC.csv``).
 
-The engine -- due ticks, the check of the device before the first event, applying events -- is
-:mod:`valve_emulator.scenario.player`; this module gives it a Modbus channel (:class:`LinkChannel`) and a
-clock, and owns the flags.
+The engine -- due ticks, applying events, the check of an attached device before the first event -- is
+:mod:`valve_emulator.scenario.player`; this module gives it a Modbus channel (:class:`LinkChannel`) and a clock
+when attached, and owns the flags.
 
-Timing: an event at ``at`` seconds is due at tick ``round(at / tick)`` counted from the start of the
-scenario. With an emulator started here the scenario starts at the device's tick 0 (so a recording's
-``t`` equals the scenario's time) and the player waits on the device's tick counter directly
-(:class:`~valve_emulator.scenario.player.DeviceClock`); attached, the scenario starts at the device tick
-found on connecting and the player polls the ``tick`` register (:class:`ModbusClock`). Each write is a
-read/write request (function code 23) that also returns the tick at which the device accepted it; the
-change takes effect from that tick's sample on, and the log shows it. Events at ``t = 0`` land as soon as
-the player is connected, typically a tick or two after the start.
+Timing: an event at ``at`` seconds is due at tick ``round(at / tick)`` counted from the start of the scenario.
+With an emulator started here the scenario starts at the device's tick 0 (so a recording's ``t`` equals the
+scenario's time) and each event is applied right after its due tick has run, on the device itself
+(:func:`~valve_emulator.scenario.player.play_on_device`): every fault kind, ramps included, exactly on time.
+Attached, the scenario starts at the device tick found on connecting and the player polls the ``tick``
+register (:class:`ModbusClock`); each write is a read/write request (function code 23) that also returns the
+tick at which the device accepted it, and the log shows it. Over Modbus only what the register map carries can
+be played: no ramps, no sensor faults (refused, naming the line, before anything is written).
 """
 
 from __future__ import annotations
@@ -40,12 +40,13 @@ from valve_emulator.device.record import TickRecorder
 from valve_emulator.device.registers import address_of
 from valve_emulator.scenario import (
     Applied,
-    Clock,
-    DeviceClock,
     Scenario,
     WriteRefused,
+    check_registers_carry,
+    follow,
     load_scenario,
     play,
+    play_on_device,
     probe,
 )
 
@@ -166,32 +167,33 @@ async def run_scenario(scenario: Scenario, *, attach: tuple[str, int] | None = N
                 summary = await task
                 say(f"recorded {summary.line()}")
 
-    async def session(target: tuple[str, int], clock_for: Callable[[LinkChannel], Clock],
-                      server: Any = None) -> list[Applied]:
+    async def attached(target: tuple[str, int]) -> list[Applied]:
+        check_registers_carry(scenario)
         link = Link(*target, scenario.unit, timeout=2.0)
         channel = LinkChannel(link, word_order=word_order)
         try:
             await link.connect()
-            tick = await probe(scenario, channel)
-            start = 0 if server is not None else tick   # a started emulator: scenario time = device time
-            async with recording(target, start, server):
-                return await play(scenario, channel, clock_for(channel), start_tick=start, on_applied=on_applied,
-                                  stop=stop)
+            start = await probe(scenario, channel)
+            clock = ModbusClock(channel, ticks_per_second=scale / scenario.dt, stop=stop)
+            async with recording(target, start, None):
+                return await play(scenario, channel, clock, start_tick=start, on_applied=on_applied, stop=stop)
         finally:
             link.close()
 
     if attach is not None:
-        return await session(attach, lambda channel: ModbusClock(channel, ticks_per_second=scale / scenario.dt,
-                                                                  stop=stop))
+        return await attached(attach)
 
     from valve_emulator.device.server import EmulatorServer
 
-    async with EmulatorServer(scenario.server_config(), host=host, port=port, time_scale=scale) as srv:
+    server = EmulatorServer(scenario.config, host=host, port=port, time_scale=scale)
+    player = follow(scenario, server.device, on_applied=on_applied)   # before the first tick: t = 0 is exact
+    async with server as srv:
         say(f"{PROG}: {scenario.name}: emulator on {host}:{srv.port} unit {scenario.unit}, time-scale "
             f"{scale:g}, {scenario.duration:g} s simulated ({scenario.duration / scale:.0f} s wall)")
         if ready is not None:
             ready(srv)
-        return await session((host, srv.port), lambda channel: DeviceClock(srv.device, stop=stop), server=srv)
+        async with recording((host, srv.port), 0, srv):
+            return await play_on_device(scenario, srv.device, player=player, stop=stop)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -228,6 +230,9 @@ def run(args: argparse.Namespace) -> int:
           f"({scenario.loop.name})")
     if scenario.description:
         print("\n".join("  " + line for line in scenario.description.splitlines()))
+    if scenario.triggers or scenario.hints:
+        print(f"  ({len(scenario.triggers)} triggers and {len(scenario.hints)} hints are the instructor station's; "
+              "this player plays the timed events)")
     if args.check:
         for ev in scenario.events:
             print(f"  {ev.at:8.1f} s  {ev.describe()}" + (f' -- "{ev.say}"' if ev.say else ""))

@@ -1,7 +1,7 @@
-"""``valve-emulator scenario SCENARIO.yaml``: play an operator-training timeline on an emulator.
+"""``valve-emulator scenario SCENARIO.yaml``: play a scenario's timed faults on an emulator (docs/scenarios.md).
 
-The player is a Modbus client, :mod:`valve_emulator.clients.scenario` (its flags, its ``run``); it is imported
-only when this command runs, so that the other commands do not load pymodbus's client.
+The player's front end is :mod:`valve_emulator.clients.scenario` (its flags, its ``run``); it is imported only
+when this command runs, so that the other commands do not load pymodbus's client.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 
 NAME = "scenario"
-HELP = "play an operator-training scenario (stiction, load, noise, seized valve, set point) on an emulator"
+HELP = "play an operator-training scenario (timed malfunctions, set points) on an emulator"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

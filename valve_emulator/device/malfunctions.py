@@ -1,5 +1,9 @@
 """Instructor malfunctions: faults injected into one loop at once or ramped over a simulated duration.
 
+:class:`Kind` and :data:`KINDS` are the one list of fault kinds: the station's ``POST /api/malfunctions``,
+the scenario files' ``malfunction:`` events (:mod:`valve_emulator.scenario`) and the testing kit's
+``inject(kind, ...)`` all take these names and parameters, checked here.
+
 A malfunction request is a mapping ``{"unit", "kind", ...parameters, "ramp": seconds}`` (the HTTP API's body,
 a scenario's event). :func:`parse_malfunction` checks it completely -- the kind, every parameter's presence,
 type and range -- before anything changes, and raises :class:`MalfunctionError` naming the field. The value
@@ -18,6 +22,8 @@ load            ``flow`` (% flow, -100..100)           load disturbance step (or
 noise           ``std`` (PV units)                     PV measurement noise
 sensor_stuck    ``value`` (PV units; default: now)     the transmitter shows ``value`` whatever PV does
 sensor_drift    ``bias`` (PV units, finite)            the transmitter reads ``bias`` off
+comm            ``fault`` (0..5 or a CommFault name),  the unit's communication faults (its
+                ``delay_ms`` (0..10000; either/both)   ``comm_fault``, ``comm_delay_ms``)
 clear           --                                     all of the above back to the loop's config
 ==============  =====================================  ==========================================
 
@@ -50,8 +56,10 @@ from valve_emulator.device.registers import (
     register,
 )
 from valve_emulator.device.registers.codec import decode_value, write_range
+from valve_emulator.errors import UserError
 
-__all__ = ["Kind", "Malfunction", "MalfunctionError", "MalfunctionBank", "parse_malfunction", "register_word"]
+__all__ = ["KINDS", "REGISTER_OF", "FaultKind", "Kind", "Malfunction", "MalfunctionBank", "MalfunctionError",
+           "parse_malfunction", "register_word"]
 
 
 def register_word(name: str, value: float, scaling: Scaling, index: int) -> int:
@@ -75,6 +83,8 @@ def register_word(name: str, value: float, scaling: Scaling, index: int) -> int:
 
 
 class Kind(StrEnum):
+    """The fault kinds: the one list the station, the scenario files and the testing kit's ``inject`` use."""
+
     STICTION = "stiction"
     SEIZE = "seize"
     RELEASE = "release"
@@ -86,24 +96,41 @@ class Kind(StrEnum):
     CLEAR = "clear"
 
 
-#: kind -> (required parameters, optional parameters)
-PARAMETERS: dict[Kind, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    Kind.STICTION: ((), ("S", "J")),
-    Kind.SEIZE: ((), ()),
-    Kind.RELEASE: ((), ()),
-    Kind.LOAD: (("flow",), ()),
-    Kind.NOISE: (("std",), ()),
-    Kind.SENSOR_STUCK: ((), ("value",)),
-    Kind.SENSOR_DRIFT: (("bias",), ()),
-    Kind.COMM: ((), ("fault", "delay_ms")),
-    Kind.CLEAR: ((), ()),
+@dataclass(frozen=True)
+class FaultKind:
+    """What a fault kind takes: its parameters (``one_of``: at least one of the optional ones is needed),
+    whether it may ramp, and the register each parameter is checked against (and written to over Modbus)."""
+
+    required: tuple[str, ...] = ()
+    optional: tuple[str, ...] = ()
+    one_of: bool = False
+    ramped: bool = False
+
+    @property
+    def parameters(self) -> tuple[str, ...]:
+        return self.required + self.optional
+
+
+#: Every fault kind and its parameters (the table of the module docstring). A new kind is a row here, a
+#: branch in :meth:`MalfunctionBank.inject` and, if the register map carries it, one in the scenario's
+#: register form (:func:`valve_emulator.scenario.player.register_writes`).
+KINDS: dict[Kind, FaultKind] = {
+    Kind.STICTION: FaultKind(optional=("S", "J"), one_of=True, ramped=True),
+    Kind.SEIZE: FaultKind(),
+    Kind.RELEASE: FaultKind(),
+    Kind.LOAD: FaultKind(required=("flow",), ramped=True),
+    Kind.NOISE: FaultKind(required=("std",), ramped=True),
+    Kind.SENSOR_STUCK: FaultKind(optional=("value",)),
+    Kind.SENSOR_DRIFT: FaultKind(required=("bias",), ramped=True),
+    Kind.COMM: FaultKind(optional=("fault", "delay_ms"), one_of=True),
+    Kind.CLEAR: FaultKind(),
 }
-_RAMPED = {Kind.STICTION, Kind.LOAD, Kind.NOISE, Kind.SENSOR_DRIFT}
 #: parameter -> register that carries it (range checked by the register map)
-_REGISTER = {"S": "S", "J": "J", "flow": "load", "std": "noise"}
+REGISTER_OF = {"S": "S", "J": "J", "flow": "load", "std": "noise", "fault": "comm_fault",
+               "delay_ms": "comm_delay_ms"}
 
 
-class MalfunctionError(ValueError):
+class MalfunctionError(UserError):
     """A malfunction request that cannot be applied; ``field`` names the offending key."""
 
     def __init__(self, message: str, *, field: str) -> None:
@@ -152,32 +179,32 @@ def parse_malfunction(body: Any, *, unit_index: Mapping[int, int], scaling: Scal
     except (ValueError, TypeError):
         raise MalfunctionError(f"field 'kind': unknown malfunction {body['kind']!r}; one of "
                                f"{', '.join(k.value for k in Kind)}", field="kind") from None
-    required, optional = PARAMETERS[kind]
-    known = {"unit", "kind", "ramp", *required, *optional}
+    spec = KINDS[kind]
     for key in body:
-        if key not in known:
+        if key not in ("unit", "kind", "ramp", *spec.parameters):
             raise MalfunctionError(f"field {key!r} is not a parameter of {kind.value} (it takes "
-                                   f"{', '.join(required + optional) or 'none'}, and ramp)", field=key)
-    for key in required:
+                                   f"{', '.join(spec.parameters) or 'none'}, and ramp)", field=key)
+    for key in spec.required:
         if key not in body:
             raise MalfunctionError(f"field {key!r} is required for {kind.value}", field=key)
-    if kind is Kind.STICTION and not ({"S", "J"} & set(body)):
-        raise MalfunctionError("stiction needs field 'S' or 'J' (or both)", field="S")
-    if kind is Kind.COMM and not ({"fault", "delay_ms"} & set(body)):
-        raise MalfunctionError("comm needs field 'fault' or 'delay_ms' (or both)", field="fault")
-    params = {key: _number(body, key) for key in required + optional if key in body}
+    if spec.one_of and not set(spec.optional) & set(body):
+        first, second = spec.optional
+        raise MalfunctionError(f"{kind.value} needs field {first!r} or {second!r} (or both)", field=first)
+    params = {key: _number(body, key) if key != "fault" else _comm_fault(body[key])
+              for key in spec.parameters if key in body}
     if kind is Kind.COMM:
         _check_comm(params)
     ramp = _number(body, "ramp") if "ramp" in body else 0.0
     if ramp < 0:
         raise MalfunctionError(f"field 'ramp' must be >= 0 s, got {ramp!r}", field="ramp")
-    if ramp > 0 and kind not in _RAMPED:
+    if ramp > 0 and not spec.ramped:
+        ramped = sorted(k.value for k, s in KINDS.items() if s.ramped)
         raise MalfunctionError(f"field 'ramp': {kind.value} happens at once; ramps are for "
-                               f"{', '.join(sorted(k.value for k in _RAMPED))}", field="ramp")
+                               f"{', '.join(ramped)}", field="ramp")
     index = unit_index[unit]
     for key, value in params.items():
-        reg_name = _REGISTER.get(key)
-        if reg_name is None:
+        reg_name = REGISTER_OF.get(key)
+        if reg_name is None or kind is Kind.COMM:   # comm: checked above, with the fault's names
             continue
         try:
             word = register_word(reg_name, value, scaling, index)
@@ -185,6 +212,17 @@ def parse_malfunction(body: Any, *, unit_index: Mapping[int, int], scaling: Scal
         except RegisterError as exc:
             raise MalfunctionError(f"field {key!r}: {exc}", field=key) from None
     return Malfunction(unit=unit, index=index, kind=kind, params=params, ramp=ramp)
+
+
+def _comm_fault(value: Any) -> float:
+    """A ``fault`` given as its number or as the name of a :class:`CommFault` (``busy``)."""
+    names = {f.name.lower(): float(f) for f in CommFault}
+    if isinstance(value, str):
+        if value not in names:
+            raise MalfunctionError(f"field 'fault' must be 0..{max(CommFault)} or one of {', '.join(names)}, "
+                                   f"got {value!r}", field="fault")
+        return names[value]
+    return _number({"fault": value}, "fault")
 
 
 def _check_comm(params: Mapping[str, float]) -> None:

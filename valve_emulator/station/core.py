@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from valve_emulator.device.malfunctions import MalfunctionError, parse_malfunction, register_word
+from valve_emulator.device.malfunctions import Malfunction, MalfunctionError, parse_malfunction, register_word
 from valve_emulator.device.registers import RegisterError, address_of
 from valve_emulator.device.snapshots import BacktrackRing, SnapshotError, SnapshotNotFound, SnapshotStore, check_name
 from valve_emulator.station.evaluation import Action, Evaluation, trend_png
@@ -264,8 +264,16 @@ class Station:
     # --- malfunctions, reveal, hints --------------------------------------------------------------------
 
     def malfunction(self, body: Any) -> dict[str, Any]:
+        """Check a malfunction request (``POST /api/malfunctions``) and :meth:`inject` it."""
         try:
             m = parse_malfunction(body, unit_index=self.device.unit_index, scaling=self.device.scaling)
+        except MalfunctionError as exc:
+            raise StationError(str(exc), field=exc.field) from None
+        return self.inject(m)
+
+    def inject(self, m: Malfunction) -> dict[str, Any]:
+        """Apply a checked malfunction now and log it as the instructor's (the evaluation times the response)."""
+        try:
             self.device.inject(m)
         except MalfunctionError as exc:
             raise StationError(str(exc), field=exc.field) from None

@@ -28,16 +28,18 @@ from typing import Any
 
 import numpy as np
 
+from valve_emulator.device.malfunctions import Kind
+
 __all__ = ["Action", "Evaluation", "CORRECT_ACTIONS", "TREND_LOOPS", "Trend"]
 
-#: malfunction kind -> the trainee actions that count as a correct response
-CORRECT_ACTIONS: dict[str, frozenset[str]] = {
-    "stiction": frozenset({"manual"}),
-    "seize": frozenset({"manual"}),
-    "sensor_stuck": frozenset({"manual"}),
-    "sensor_drift": frozenset({"manual"}),
-    "load": frozenset({"manual", "auto", "op", "sp"}),
-    "noise": frozenset({"manual", "ack"}),
+#: malfunction kind -> the trainee actions that count as a correct response (kinds without one are not timed)
+CORRECT_ACTIONS: dict[Kind, frozenset[str]] = {
+    Kind.STICTION: frozenset({"manual"}),
+    Kind.SEIZE: frozenset({"manual"}),
+    Kind.SENSOR_STUCK: frozenset({"manual"}),
+    Kind.SENSOR_DRIFT: frozenset({"manual"}),
+    Kind.LOAD: frozenset({"manual", "auto", "op", "sp"}),
+    Kind.NOISE: frozenset({"manual", "ack"}),
 }
 TREND_LOOPS = 16
 

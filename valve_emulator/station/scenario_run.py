@@ -1,27 +1,40 @@
-"""A training scenario (:mod:`valve_emulator.scenario.training`) played by the station, tick by tick.
+"""A scenario (:mod:`valve_emulator.scenario`) played by the station, tick by tick.
 
-Loaded with ``POST /api/scenario {"yaml": text}`` (or ``{"scenario": mapping}``): every malfunction in it is
-checked against the device first (:func:`~valve_emulator.device.malfunctions.parse_malfunction`), so a bad
-scenario is refused whole. ``start`` resets the evaluation (a new session), applies the scenario's limits,
-and from then on the station calls :meth:`ScenarioRun.on_tick` after every tick: due events fire, and each
-trigger is tested on its condition:
+Loaded with ``POST /api/scenario {"yaml": text}`` (or ``{"scenario": mapping}``) and checked whole against the
+station's device by the one scenario parser (:func:`~valve_emulator.scenario.parse_scenario`): a bad scenario
+is refused naming the key. ``start`` resets the evaluation (a new session), applies the scenario's limits, and
+from then on the station calls :meth:`ScenarioRun.on_tick` after every tick: the scenario engine
+(:class:`~valve_emulator.scenario.DevicePlayer`) applies the events due, and each trigger is tested on its
+condition:
 
 - ``pv_outside``: PV outside ``band`` for ``for`` simulated seconds without interruption;
 - ``manual``: the trainee's action log has an accepted switch of the unit to manual since the start;
 - ``acknowledged``: the trainee acknowledged an alarm of the unit since the start;
 - ``since_malfunction``: ``after`` simulated seconds have passed since a malfunction on the unit.
 
-A trigger fires once. Its action is a malfunction, a line for the instructor (``say``) or a hint released
-to the trainee (which costs points in the score).
+A trigger fires once. Events and triggers do the same actions: a malfunction (logged as the instructor's, so
+the evaluation times the trainee's response), a set point or register write, a line for the instructor
+(``say``) or a hint released to the trainee (which costs points in the score).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from valve_emulator.device.malfunctions import MalfunctionError, parse_malfunction
-from valve_emulator.scenario.timeline import ScenarioError
-from valve_emulator.scenario.training import Condition, TrainingScenario, parse_training
+from valve_emulator.device.malfunctions import Kind, Malfunction
+from valve_emulator.scenario import (
+    Condition,
+    DevicePlayer,
+    DeviceShape,
+    Event,
+    Hint,
+    Say,
+    Scenario,
+    ScenarioError,
+    parse_scenario,
+)
+from valve_emulator.scenario.player import apply_on_device
+from valve_emulator.scenario.timeline import describe
 from valve_emulator.station.core import StationError
 
 __all__ = ["ScenarioRun", "load_run"]
@@ -34,33 +47,26 @@ def load_run(station: Any, body: dict[str, Any]) -> ScenarioRun:
     data = body["yaml"] if "yaml" in body else body["scenario"]
     if "yaml" in body and not isinstance(data, str):
         raise StationError("field 'yaml' must be text", field="yaml")
+    device = station.device
     try:
-        sc = parse_training(data)
+        sc = parse_scenario(data, source="scenario", device=DeviceShape(device.unit_index, device.scaling))
     except ScenarioError as exc:
         raise StationError(str(exc), field="scenario") from None
-    actions = [(f"events[{i}]", e.action) for i, e in enumerate(sc.events)]
-    actions += [(f"triggers[{i}].do", t.action) for i, t in enumerate(sc.triggers)]
-    for key, action in actions:
-        if "malfunction" in action:
-            try:
-                parse_malfunction(action["malfunction"], unit_index=station.device.unit_index,
-                                  scaling=station.device.scaling)
-            except MalfunctionError as exc:
-                raise StationError(f"scenario: {key}.malfunction: {exc}", field="scenario") from None
-    for unit in list(sc.limits) + [t.unit for t in sc.triggers]:
-        if unit not in station.device.unit_index:
-            raise StationError(f"scenario: unit {unit} is not on this device", field="scenario")
+    actions = [e.action for e in sc.events] + [t.action for t in sc.triggers]
+    comm = any(isinstance(a, Malfunction) and a.kind is Kind.COMM for a in actions)
+    if comm and getattr(device.malfunctions, "comm", None) is None:
+        raise StationError("scenario: a comm malfunction needs the device served over Modbus", field="scenario")
     return ScenarioRun(sc)
 
 
 class ScenarioRun:
     """The state of one scenario on the station (see the module docstring)."""
 
-    def __init__(self, scenario: TrainingScenario) -> None:
+    def __init__(self, scenario: Scenario) -> None:
         self.scenario = scenario
         self.running = False
         self.t0 = 0.0
-        self.next_event = 0
+        self.player: DevicePlayer | None = None
         self.fired: list[str] = []
         self.released: list[str] = []
         self._outside_since: dict[str, float] = {}
@@ -74,21 +80,28 @@ class ScenarioRun:
         return self.scenario.expert
 
     def describe(self) -> dict[str, Any]:
-        sc = self.scenario
+        sc, played = self.scenario, self.player.timeline.played if self.player is not None else 0
         return {"name": sc.name, "notes": sc.notes, "running": self.running, "start": self.t0,
-                "events": len(sc.events), "fired": [f"event {i}" for i in range(self.next_event)],
+                "events": len(sc.events), "fired": [f"event {i}" for i in range(played)],
                 "triggers": [t.id for t in sc.triggers], "triggers_fired": list(self.fired),
                 "hints": [{"id": k, "text": v, "released": k in self.released} for k, v in sc.hints.items()]}
 
     def start(self, station: Any) -> None:
+        """A new session: the scenario's limits, then its events from now on (those at 0 s at once)."""
         station.reset_session()
         self.t0 = float(station.bank.sample_time)
-        self.running, self.next_event = True, 0
+        self.running = True
         self.fired, self.released, self._outside_since = [], [], {}
         for unit, (lo, hi) in self.scenario.limits.items():
             i = station.device.unit_index[unit]
             station.lim_lo[i], station.lim_hi[i] = lo, hi
         station.notes.append({"time": self.t0, "text": f"scenario {self.scenario.name} started"})
+
+        def apply(event: Event) -> None:
+            self._do(station, event.action, float(station.bank.sample_time), event.say or f"event at {event.at:g} s")
+
+        self.player = DevicePlayer(self.scenario.events, station.bank.dt, start_tick=station.device.ticks, apply=apply)
+        self.player.on_tick(station.device.ticks)
 
     def stop(self, station: Any) -> None:
         self.running = False
@@ -103,27 +116,23 @@ class ScenarioRun:
             station.evaluation.hints_released.append(self.scenario.hints[hint_id])
         return {"id": hint_id, "released": True}
 
-    def _do(self, station: Any, action: dict[str, Any], t: float, why: str) -> None:
-        if "malfunction" in action:
-            station.malfunction(action["malfunction"])
-            text = f"{why}: malfunction {action['malfunction'].get('kind')} on unit {action['malfunction'].get('unit')}"
-        elif "hint" in action:
-            self.release_hint(station, action["hint"])
-            text = f"{why}: hint {action['hint']} released"
-        else:
-            text = f"{why}: {action['say']}"
-        station.notes.append({"time": t, "text": text})
+    def _do(self, station: Any, action: Any, t: float, why: str) -> None:
+        """Carry out an event's or a trigger's action and note it for the instructor."""
+        if isinstance(action, Malfunction):
+            station.inject(action)
+        elif isinstance(action, Hint):
+            self.release_hint(station, action.id)
+        elif not isinstance(action, Say):
+            apply_on_device(station.device, Event(0.0, action))
+        text = action.text if isinstance(action, Say) else (
+            f"hint {action.id} released" if isinstance(action, Hint) else f"{describe(action)} on unit {action.unit}")
+        station.notes.append({"time": t, "text": f"{why}: {text}"})
 
     def on_tick(self, station: Any, t: float) -> None:
         if not self.running:
             return
-        sc, rel = self.scenario, t - self.t0
-        half = 0.5 * station.bank.dt
-        while self.next_event < len(sc.events) and sc.events[self.next_event].at <= rel + half:
-            event = sc.events[self.next_event]
-            self.next_event += 1
-            self._do(station, event.action, t, event.say or f"event at {event.at:g} s")
-        for trig in sc.triggers:
+        self.player.on_tick(station.device.ticks)
+        for trig in self.scenario.triggers:
             if trig.id not in self.fired and self._holds(station, trig, t):
                 self.fired.append(trig.id)
                 self._do(station, trig.action, t, f"trigger {trig.id}")

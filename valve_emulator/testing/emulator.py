@@ -165,7 +165,8 @@ class Emulator:
     def inject(self, kind: str, loop: int = 0, /, *, ramp: float = 0.0, **params: Any) -> dict[str, Any]:
         """Inject the instructor station's malfunction ``kind`` into loop ``loop``:
         ``emu.inject("stiction", S=8.0, J=4.0, ramp=60.0)``, ``emu.inject("load", flow=10.0)``,
-        ``emu.inject("seize")``, ``emu.inject("clear")`` (kinds and parameters: docs/station.md). Ramps run in
+        ``emu.inject("seize")``, ``emu.inject("clear")`` (kinds and parameters: the one list,
+        :data:`valve_emulator.device.malfunctions.KINDS`; docs/scenarios.md). Ramps run in
         simulated seconds. ``MalfunctionError`` naming the field when the request is wrong."""
         body = {"unit": self.units[self._index(loop)], "kind": kind, **params, "ramp": ramp}
         return self._call(self._inject, body)
