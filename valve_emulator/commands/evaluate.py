@@ -23,6 +23,9 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from pathlib import Path
 
+from valve_emulator.commands._files import user_files
+from valve_emulator.errors import UserError
+
 NAME = "evaluate"
 HELP = ("assess every window of a labelled set of plant recordings, with the comparison detectors, and score "
         "them per window and per valve")
@@ -97,14 +100,19 @@ def _write_report(path: Path, section: str, source: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with user_files({"": Path(args.set), "--report": args.report, "--figures": args.figures, "--json": args.json}):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from valve_emulator.benchmark.evaluation import Evaluation
     from valve_emulator.benchmark.labelled import read_index
 
     if args.jobs < 1:
-        raise ValueError(f"--jobs must be a whole number >= 1, got {args.jobs}")
+        raise UserError(f"--jobs must be a whole number >= 1, got {args.jobs}")
     for flag, p in (("--report", args.report), ("--json", args.json)):
         if p is not None and not p.parent.is_dir():
-            raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
+            raise UserError(f"{flag} {p}: folder {p.parent} does not exist")
     items = read_index(args.set)
     start = time.perf_counter()
 
