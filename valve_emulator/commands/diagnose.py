@@ -16,7 +16,7 @@ grid — OP held, PV interpolated — and the output says so; a real gap (more t
 :data:`~valve_emulator.recordings.resample.MAX_GAP` samples) is refused.
 
 Given a folder or several files, it diagnoses each recording as plant data
-(:mod:`valve_emulator.diagnosis.sweep`): one line per recording with a progress bar as they finish, then a
+(:mod:`valve_emulator.batch.sweep`): one line per recording with a progress bar as they finish, then a
 count per answer; ``--csv`` and ``--json`` write the summary table (answers, reason codes, S, J, fits).
 ``--jobs N`` uses N processes of this machine, ``--scheduler ADDRESS`` an existing Dask distributed cluster.
 
@@ -92,7 +92,7 @@ def _line(row: dict) -> str:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from valve_emulator.diagnosis.sweep import SweepTable, sweep
+    from valve_emulator.batch.sweep import SweepTable, sweep
 
     if any(p is not None for p in (args.model, args.report, args.plot, args.twin)):
         raise UserError("a sweep (a folder or several files) diagnoses plant data: --model, --report, --plot and "

@@ -19,8 +19,6 @@ import json
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
 from pathlib import Path
 
 from valve_emulator.commands._files import user_files
@@ -47,26 +45,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_all(items, jobs: int, say) -> list[dict]:
+    from valve_emulator.batch.pool import run_ordered
     from valve_emulator.benchmark.labelled import run_window
-    from valve_emulator.diagnosis.sweep import init_worker
 
-    results: list[dict | None] = [None] * len(items)
+    finished = 0
 
-    def done(i: int, r: dict) -> None:
-        results[i] = r
-        n = sum(x is not None for x in results)
-        say(f"{n}/{len(items)} {r['name']}: {r['decision']}")
+    def done(_: int, r: dict) -> None:
+        nonlocal finished
+        finished += 1
+        say(f"{finished}/{len(items)} {r['name']}: {r['decision']}")
 
-    if jobs == 1:
-        for i, item in enumerate(items):
-            done(i, run_window(item))
-    else:
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
-                                 initializer=init_worker) as pool:
-            futures = {pool.submit(run_window, item): i for i, item in enumerate(items)}
-            for fut in as_completed(futures):
-                done(futures[fut], fut.result())
-    return [r for r in results if r is not None]
+    return run_ordered(run_window, items, jobs=jobs, done=done)
 
 
 def _figures(ev, folder: Path, report: Path | None, say) -> None:
