@@ -20,4 +20,4 @@ subprocess.run([sys.executable, "-m", "valve_emulator", "evaluate", sys.argv[1],
 print(f"evaluate --jobs 2: {time.perf_counter() - t:.1f} s wall")
 PY
 stamp "11.3 plant sweep"
-python bench/bench_hostile_input.py;                                        stamp "11.4 hostile input"
+python bench/bench_interfaces_under_attack.py;                              stamp "11.4 hostile input"

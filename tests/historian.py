@@ -5,26 +5,22 @@ from __future__ import annotations
 
 import numpy as np
 
+from valve_emulator.benchmark.cases import loop_mapping, setpoint_steps
 from valve_emulator.config import loop_from_mapping
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.simulation.loop import simulate_loop
 
-STEPS_150 = [(200 + 150 * i, float(v)) for i, v in enumerate([2, -2, 3, 0, -3, 1, 2, -1] * 2)]
-STEPS_300 = [(200 + 300 * i, float(v)) for i, v in enumerate([2, -2, 3, 0, -3, 1, 2, -1] * 2)]
+STEPS_150 = setpoint_steps([2, -2, 3, 0, -3, 1, 2, -1] * 2, 150.0, start=200.0)
+STEPS_300 = setpoint_steps([2, -2, 3, 0, -3, 1, 2, -1] * 2, 300.0, start=200.0)
 
 
 def simulate(num, den, delay, kc, ti, *, S=0.0, J=0.0, dt=1.0, duration=1300.0, sp_steps=(), disturbance=None,
              noise=0.05, seed=1, cut=200.0, quantum=None, name="synthetic") -> Recording:
-    """A closed loop of the project's simulator, as a historian would keep it (t, sp, op, pv)."""
-    plant = {"num": list(num), "den": list(den), "delay": delay, "pv0": 0.0, "noise": noise}
-    if disturbance:
-        plant["disturbance"] = disturbance
-    cfg = loop_from_mapping({
-        "name": name, "valve": {"S": S, "J": J}, "plant": plant,
-        "controller": {"kc": kc, "ti": ti, "sp": 0.0, "bias": 50.0,
-                       "sp_steps": [list(s) for s in sp_steps] or [[10.0, 1.0]]},
-        "simulation": {"dt": dt, "duration": duration, "seed": seed}})
-    run = simulate_loop(cfg)
+    """A closed loop of the project's simulator (:func:`~valve_emulator.benchmark.cases.loop_mapping`), as a
+    historian would keep it (t, sp, op, pv): the first ``cut`` s dropped, PV rounded to ``quantum``."""
+    run = simulate_loop(loop_from_mapping(loop_mapping(
+        num, den, delay, kc, ti, S=S, J=J, dt=dt, duration=duration, sp_steps=sp_steps, disturbance=disturbance,
+        noise=noise, seed=seed, name=name)))
     k = int(round(cut / run.dt))
     pv = run.pv[k:]
     if quantum:

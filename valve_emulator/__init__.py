@@ -6,6 +6,9 @@ The public surface, imported on first use so that ``import valve_emulator`` stay
 >>> rec = ve.read_recording("FIC101.csv").recording
 >>> d = ve.diagnose(rec, model=ve.load_loop("loop.yaml"))
 >>> d.answer, d.fit_before, d.fit_after, d.predict(rec.op)
+
+Every error about something the caller gave (a config, a recording, a flag) is a :class:`UserError`
+(:class:`ConfigError`, :class:`RecordingError` ... derive from it); anything else that escapes is a bug.
 """
 
 from __future__ import annotations
@@ -22,22 +25,23 @@ _EXPORTS = {
     "diagnose": "valve_emulator.diagnosis.api",
     "Diagnosis": "valve_emulator.diagnosis.report.diagnosis",
     "Answer": "valve_emulator.diagnosis.answers",
+    "Strength": "valve_emulator.diagnosis.answers",
     "Recording": "valve_emulator.recordings",
     "RecordingError": "valve_emulator.recordings",
     "read_recording": "valve_emulator.recordings",
     "simulate_loop": "valve_emulator.simulation.loop",
     "load_loop": "valve_emulator.config",
-    "load_config": "valve_emulator.config",
     "LoopConfig": "valve_emulator.config",
+    "ConfigError": "valve_emulator.config",
+    "UserError": "valve_emulator.errors",
 }
-_ALIASES = {"load_config": "load_loop"}
 
 __all__ = ["__version__", *sorted(_EXPORTS)]
 
 
 def __getattr__(name: str):
     if name in _EXPORTS:
-        value = getattr(importlib.import_module(_EXPORTS[name]), _ALIASES.get(name, name))
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
         globals()[name] = value
         return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -147,7 +147,9 @@ def test_bad_arguments_are_named(case, diagnosis):
 
 def test_import_stays_light_and_exports_the_public_surface():
     code = ("import sys, valve_emulator as ve; assert 'numpy' not in sys.modules, 'numpy imported'; "
-            "names = ['diagnose', 'Diagnosis', 'Recording', 'read_recording', 'simulate_loop', 'load_config', "
-            "'load_loop', '__version__']; assert set(names) <= set(dir(ve)), 'missing exports'")
+            "names = ['diagnose', 'Diagnosis', 'Recording', 'read_recording', 'simulate_loop', 'load_loop', "
+            "'Strength', 'UserError', 'ConfigError', '__version__']; "
+            "assert set(names) <= set(dir(ve)), 'missing exports'")
     subprocess.run([sys.executable, "-c", code], check=True)
-    assert ve.load_config is ve.load_loop and ve.Recording.__name__ == "Recording"
+    assert ve.Recording.__name__ == "Recording" and issubclass(ve.ConfigError, ve.UserError)
+    assert not hasattr(ve, "load_config")

@@ -2,20 +2,16 @@
 the file and what is wrong; the running state is unchanged."""
 
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from hostile_input import rewrite_snapshot
 from station_helpers import JSON, PLANT, station_config
 
 from valve_emulator.config import load_server, server_from_mapping
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.snapshots import SnapshotStore
 from valve_emulator.simulation.loop import LoopBank
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
-from bench_hostile_input import rewrite_snapshot  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 

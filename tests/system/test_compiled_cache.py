@@ -104,7 +104,7 @@ def test_a_read_only_install_caches_outside_the_package(tmp_path):
 FIRST_USE = """
 import json, sys
 from valve_emulator.cli import main
-from valve_emulator.commands._config import load_server_or_default
+from valve_emulator.device.runtime import load_server_or_default
 from valve_emulator.commands.compile import kernel_cache_stats
 from valve_emulator.device.tick import Device
 

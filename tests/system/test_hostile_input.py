@@ -1,14 +1,10 @@
-"""Hostile input on every interface, at CI size: the stress of ``bench/bench_hostile_input.py`` (which prints
-the full-size figures) run against one ``valve-emulator serve`` process, phase by phase."""
-
-import sys
-from pathlib import Path
+"""Hostile input on every interface, at CI size: the stress of ``tests/hostile_input.py`` (which
+``bench/bench_interfaces_under_attack.py`` runs at full size) against one ``valve-emulator serve`` process,
+phase by phase."""
 
 import pytest
+from hostile_input import CI, run
 from required import tool
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
-from bench_hostile_input import CI, run  # noqa: E402
 
 
 @pytest.fixture(scope="module")

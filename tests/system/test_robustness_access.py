@@ -9,11 +9,11 @@ import struct
 
 import pytest
 
-from valve_emulator.commands.serve import apply_overrides
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.guard import RefusalLog, binds_all_interfaces
 from valve_emulator.device.pdu import malformed, register_names, write_target
 from valve_emulator.device.registers import N_REGISTERS, address_of
+from valve_emulator.device.runtime import apply_overrides
 from valve_emulator.device.server import EmulatorServer
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from valve_emulator.commands.serve import reload_config
 from valve_emulator.config import load_server
 from valve_emulator.device.record import EXTRA_COLUMNS, TickRecorder, recording_paths
+from valve_emulator.device.runtime import reload_config
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.recordings.recording import read_csv
 

@@ -23,10 +23,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from valve_emulator.config import LoopConfig, loop_from_mapping
+from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.simulation.loop import simulate_loop
 
-__all__ = ["Case", "CASES", "generate", "nominal_mapping"]
+__all__ = ["Case", "CASES", "generate", "loop_mapping", "nominal_mapping", "setpoint_steps"]
 
 
 @dataclass(frozen=True)
@@ -54,13 +55,20 @@ class Case:
     cut: float = 300.0
 
 
-def _loop(num, den, delay, kc, ti, *, S=0.0, J=0.0, dt=1.0, duration=3300.0, sp_steps=(), disturbance=None,
-          characteristic="linear", rangeability=50.0, bias=50.0, seed=1) -> dict:
+def loop_mapping(num, den, delay, kc, ti, *, S=0.0, J=0.0, dt=1.0, duration=3300.0, sp_steps=(), disturbance=None,
+                 characteristic="linear", rangeability=DEFAULT_RANGEABILITY, bias=50.0, seed=1, noise=None,
+                 name="case") -> dict:
+    """A closed loop in the loop-config schema (what a YAML file holds): plant ``num/den`` with dead time
+    ``delay`` (s), a PI controller ``kc``, ``ti`` (s) around OP ``bias`` stepping its set point at ``sp_steps``
+    (``[(t, sp), ...]``; default one step to 1 at 10 s), a valve with stiction ``S``, ``J`` (% travel);
+    ``noise``: PV measurement noise (standard deviation, PV units; default none)."""
     plant = {"num": list(num), "den": list(den), "delay": delay, "pv0": 0.0}
     if disturbance:
         plant["disturbance"] = disturbance
+    if noise is not None:
+        plant["noise"] = noise
     return {
-        "name": "case",
+        "name": name,
         "valve": {"S": S, "J": J, "characteristic": characteristic, "rangeability": rangeability},
         "plant": plant,
         "controller": {"kc": kc, "ti": ti, "sp": 0.0, "bias": bias,
@@ -69,7 +77,8 @@ def _loop(num, den, delay, kc, ti, *, S=0.0, J=0.0, dt=1.0, duration=3300.0, sp_
     }
 
 
-def _steps(levels, period, start=100.0) -> list[tuple[float, float]]:
+def setpoint_steps(levels, period, start=100.0) -> list[tuple[float, float]]:
+    """Set-point steps ``[(t, level), ...]``: ``levels`` one after the other, every ``period`` s from ``start``."""
     return [(start + i * period, float(v)) for i, v in enumerate(levels)]
 
 
@@ -78,37 +87,37 @@ _CONC = ([3.0], [10.0, 1.0], 10.0)     # Table 1 concentration loop of the 2003 
 #: The proof table: every effect the diagnosis names, several plants, tunings and parameter values.
 CASES: tuple[Case, ...] = (
     Case("stiction, undershoot", {"stiction": {"S": 5.0, "J": 2.0}},
-         _loop(*_CONC, 0.2, 10.0, S=5.0, J=2.0, duration=10300.0), {"valve": {"S": 0.0, "J": 0.0}}),
+         loop_mapping(*_CONC, 0.2, 10.0, S=5.0, J=2.0, duration=10300.0), {"valve": {"S": 0.0, "J": 0.0}}),
     Case("stiction, no offset", {"stiction": {"S": 3.0, "J": 3.0}},
-         _loop([1.5], [20.0, 1.0], 5.0, 0.6, 25.0, S=3.0, J=3.0, duration=5300.0),
+         loop_mapping([1.5], [20.0, 1.0], 5.0, 0.6, 25.0, S=3.0, J=3.0, duration=5300.0),
          {"valve": {"S": 0.0, "J": 0.0}}),
     Case("stiction, overshoot", {"stiction": {"S": 5.0, "J": 7.0}},
-         _loop(*_CONC, 0.2, 10.0, S=5.0, J=7.0, duration=5300.0), {"valve": {"S": 0.0, "J": 0.0}}),
+         loop_mapping(*_CONC, 0.2, 10.0, S=5.0, J=7.0, duration=5300.0), {"valve": {"S": 0.0, "J": 0.0}}),
     Case("stiction, level loop", {"stiction": {"S": 3.0, "J": 1.5}},
-         _loop([1.0], [1.0, 0.0], 0.0, 0.4, 2.0, S=3.0, J=1.5, dt=0.2, duration=1260.0),
+         loop_mapping([1.0], [1.0, 0.0], 0.0, 0.4, 2.0, S=3.0, J=1.5, dt=0.2, duration=1260.0),
          {"valve": {"S": 0.0, "J": 0.0}}, cut=60.0),
     Case("pure deadband, level loop", {"deadband": {"S": 3.0}},
-         _loop([1.0], [1.0, 0.0], 0.0, 0.4, 2.0, S=3.0, J=0.0, dt=0.2, duration=1260.0),
+         loop_mapping([1.0], [1.0, 0.0], 0.0, 0.4, 2.0, S=3.0, J=0.0, dt=0.2, duration=1260.0),
          {"valve": {"S": 0.0, "J": 0.0}}, cut=60.0),
     Case("stiction + dead time off by 2 samples", {"stiction": {"S": 5.0, "J": 2.0}, "dead_time": {"theta": 12.0}},
-         _loop([3.0], [10.0, 1.0], 12.0, 0.2, 10.0, S=5.0, J=2.0, duration=5300.0),
+         loop_mapping([3.0], [10.0, 1.0], 12.0, 0.2, 10.0, S=5.0, J=2.0, duration=5300.0),
          {"valve": {"S": 0.0, "J": 0.0}, "plant": {"delay": 10.0}}),
     Case("dead-time error", {"dead_time": {"theta": 8.0}},
-         _loop([1.5], [20.0, 1.0], 8.0, 0.8, 20.0, duration=4300.0,
-               sp_steps=_steps([2, -2, 4, 0, -3, 1, 3, -1] * 3, 170.0)),
+         loop_mapping([1.5], [20.0, 1.0], 8.0, 0.8, 20.0, duration=4300.0,
+               sp_steps=setpoint_steps([2, -2, 4, 0, -3, 1, 3, -1] * 3, 170.0)),
          {"plant": {"delay": 5.0}}, noise=0.03),
     Case("equal-percentage characteristic", {"characteristic": {"type": "equal_percentage", "R": 30.0}},
-         _loop([2.0], [15.0, 1.0], 3.0, 0.3, 15.0, duration=4300.0, characteristic="equal_percentage",
+         loop_mapping([2.0], [15.0, 1.0], 3.0, 0.3, 15.0, duration=4300.0, characteristic="equal_percentage",
                rangeability=30.0, bias=30.0,
-               sp_steps=_steps([-25, 25, -10, 40, -30, 10, 30, -20] * 3, 170.0)),
+               sp_steps=setpoint_steps([-25, 25, -10, 40, -30, 10, 30, -20] * 3, 170.0)),
          {"valve": {"characteristic": "linear"}}, noise=0.02),
     Case("actuator lag", {"actuator_lag": {"tau": 4.0}},
-         _loop([1.0], [8.0, 1.0], 2.0, 1.5, 8.0, duration=4300.0,
-               sp_steps=_steps([3, -3, 5, 0, -4, 2, 4, -1] * 3, 170.0)),
+         loop_mapping([1.0], [8.0, 1.0], 2.0, 1.5, 8.0, duration=4300.0,
+               sp_steps=setpoint_steps([3, -3, 5, 0, -4, 2, 4, -1] * 3, 170.0)),
          {}, noise=0.03, lag=4.0),
     Case("control (nothing left out)", {},
-         _loop([2.0], [12.0, 1.0], 4.0, 0.5, 12.0, duration=4300.0,
-               sp_steps=_steps([3, -3, 5, 0, -4, 2, 4, -1] * 3, 170.0)),
+         loop_mapping([2.0], [12.0, 1.0], 4.0, 0.5, 12.0, duration=4300.0,
+               sp_steps=setpoint_steps([3, -3, 5, 0, -4, 2, 4, -1] * 3, 170.0)),
          {}, noise=0.03),
 )
 

@@ -35,6 +35,7 @@ from pathlib import Path
 from valve_emulator.detectors import DETECTORS, Decision, run_detectors
 from valve_emulator.diagnosis.answers import Answer, Reason
 from valve_emulator.diagnosis.assess.decision import assess_uniform
+from valve_emulator.errors import UserError
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Item", "read_index", "run_window", "parse_label", "INTEGRATING_TYPES"]
@@ -65,8 +66,8 @@ def parse_label(text: str, where: str) -> bool:
         return True
     if key in _NEGATIVE:
         return False
-    raise ValueError(f"{where}: label {text!r} is neither stiction ({', '.join(sorted(_POSITIVE))}) nor "
-                     f"no stiction ({', '.join(sorted(_NEGATIVE))})")
+    raise UserError(f"{where}: label {text!r} is neither stiction ({', '.join(sorted(_POSITIVE))}) nor "
+                    f"no stiction ({', '.join(sorted(_NEGATIVE))})")
 
 
 def _from_index(path: Path) -> list[Item]:
@@ -74,33 +75,33 @@ def _from_index(path: Path) -> list[Item]:
     with open(path, encoding="utf-8-sig", newline="") as fh:
         rows = list(csv.reader(fh))
     if not rows:
-        raise ValueError(f"{path}: line 1: the index is empty; expected a header with file,label[,tag,loop_type]")
+        raise UserError(f"{path}: line 1: the index is empty; expected a header with file,label[,tag,loop_type]")
     head = [c.strip().lower() for c in rows[0]]
     for need in ("file", "label"):
         if need not in head:
-            raise ValueError(f"{path}: line 1: the index has no {need!r} column (columns: {', '.join(head)}); "
-                             "expected a header with file,label[,tag,loop_type]")
+            raise UserError(f"{path}: line 1: the index has no {need!r} column (columns: {', '.join(head)}); "
+                            "expected a header with file,label[,tag,loop_type]")
     col = {k: head.index(k) for k in ("file", "label", "tag", "loop_type", "stick1") if k in head}
     items = []
     for n, row in enumerate(rows[1:], start=2):
         if not any(c.strip() for c in row):
             continue
         if len(row) < len(head):
-            raise ValueError(f"{path}: line {n}: {len(row)} cells, the header has {len(head)}")
+            raise UserError(f"{path}: line {n}: {len(row)} cells, the header has {len(head)}")
         name = row[col["file"]].strip()
         file = base / name
         if not file.is_file():
-            raise ValueError(f"{path}: line {n}: file {name!r} not found in {base}")
+            raise UserError(f"{path}: line {n}: file {name!r} not found in {base}")
         index = row[col["stick1"]].strip() if "stick1" in col else ""
         try:
             index_value = float(index) if index else None
         except ValueError:
-            raise ValueError(f"{path}: line {n}: stick1 {index!r} is not a number") from None
+            raise UserError(f"{path}: line {n}: stick1 {index!r} is not a number") from None
         items.append(Item(str(file), parse_label(row[col["label"]], f"{path}: line {n}"),
                           row[col["tag"]].strip() if "tag" in col else "",
                           row[col["loop_type"]].strip() if "loop_type" in col else "", name, index_value))
     if not items:
-        raise ValueError(f"{path}: the index lists no files")
+        raise UserError(f"{path}: the index lists no files")
     return items
 
 
@@ -113,12 +114,12 @@ def _from_folders(folder: Path) -> list[Item]:
         elif "stic" in low:
             label = True
         else:
-            raise ValueError(f"{folder}: sub-folder {sub.name!r} says neither stiction nor no stiction; name it "
-                             "like 'stiction_data' / 'non-stiction_data', or give an index.csv")
+            raise UserError(f"{folder}: sub-folder {sub.name!r} says neither stiction nor no stiction; name it "
+                            "like 'stiction_data' / 'non-stiction_data', or give an index.csv")
         for f in sorted(p for p in sub.iterdir() if p.is_file() and not p.name.startswith(".")):
             items.append(Item(str(f), label, name=f"{sub.name}/{f.name}"))
     if not items:
-        raise ValueError(f"{folder}: no index.csv and no recordings in labelled sub-folders")
+        raise UserError(f"{folder}: no index.csv and no recordings in labelled sub-folders")
     return items
 
 
@@ -137,7 +138,7 @@ def read_index(path: str | os.PathLike) -> list[Item]:
     if p.is_dir():
         return _from_index(p / "index.csv") if (p / "index.csv").is_file() else _from_folders(p)
     if not p.exists():
-        raise ValueError(f"{p}: no such file or folder; expected a labelled set's index.csv or its folder")
+        raise UserError(f"{p}: no such file or folder; expected a labelled set's index.csv or its folder")
     return _from_index(p)
 
 
@@ -160,7 +161,7 @@ def run_window(item: Item) -> dict:
         out["tag"] = item.tag or loaded.tag or Path(item.path).stem
         rec, _ = regularize(loaded.recording)
         a = assess_uniform(rec)
-    except (ValueError, OSError) as exc:
+    except (UserError, OSError) as exc:   # an unreadable or unusable file; anything else is a bug
         out.update(error=str(exc), decision=str(Answer.CANNOT_TELL), cause="", reason=f"unusable file: {exc}",
                    detectors={n: {"decision": str(Decision.UNDETERMINED), "reason": "unusable file"}
                               for n in DETECTORS},

@@ -15,6 +15,9 @@ import getpass
 import sys
 from pathlib import Path
 
+from valve_emulator.commands._files import user_files
+from valve_emulator.errors import UserError
+
 NAME = "certs"
 HELP = "make OPC UA and Modbus/TLS certificates (with role extensions) and password hashes for a users file"
 
@@ -32,17 +35,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with user_files({"--opcua": args.opcua, "--modbus": args.modbus}):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     if not (args.opcua or args.modbus or args.hash_password):
-        raise ValueError("certs: give --opcua DIR, --modbus DIR or --hash-password")
+        raise UserError("certs: give --opcua DIR, --modbus DIR or --hash-password")
     if args.modbus_role and not args.modbus:
-        raise ValueError("--modbus-role needs --modbus DIR")
+        raise UserError("--modbus-role needs --modbus DIR")
     hosts = tuple(args.host or ("localhost", "127.0.0.1"))
     if args.hash_password:
         from valve_emulator.opcua.users import hash_password
 
         password = getpass.getpass("password: ") if sys.stdin.isatty() else sys.stdin.readline().rstrip("\n")
         if not password:
-            raise ValueError("--hash-password: an empty password")
+            raise UserError("--hash-password: an empty password")
         print(hash_password(password))
     if args.opcua:
         from valve_emulator.device.certs import opcua_certificate
@@ -58,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"Modbus/TLS: CA {ca}, server certificate {server}")
         for role in args.modbus_role or ("operator", "instructor"):
             if not role or any(c in role for c in "/\\\0"):
-                raise ValueError(f"--modbus-role {role!r}: a role is a plain word such as operator or instructor")
+                raise UserError(f"--modbus-role {role!r}: a role is a plain word such as operator or instructor")
             cert, _ = modbus_certificate(args.modbus, f"client-{role}", role=role)
             print(f"Modbus/TLS: client certificate {cert} with role {role!r}")
     return 0

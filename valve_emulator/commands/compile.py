@@ -48,7 +48,7 @@ def _simulate() -> None:
     """The default device's first loop, simulated offline for a minute, and the valve alone on a ramp."""
     import numpy as np
 
-    from valve_emulator.commands._config import load_server_or_default
+    from valve_emulator.device.runtime import load_server_or_default
     from valve_emulator.physics import stiction
     from valve_emulator.simulation.loop import simulate_loop
 
@@ -58,7 +58,7 @@ def _simulate() -> None:
 
 def _serve() -> None:
     """The default device (its loop bank and register image), advanced a few ticks without a network."""
-    from valve_emulator.commands._config import load_server_or_default
+    from valve_emulator.device.runtime import load_server_or_default
     from valve_emulator.device.tick import Device
 
     Device.from_config(load_server_or_default(None), time_scale=0.0).advance(3)

@@ -16,7 +16,7 @@ grid — OP held, PV interpolated — and the output says so; a real gap (more t
 :data:`~valve_emulator.recordings.resample.MAX_GAP` samples) is refused.
 
 Given a folder or several files, it diagnoses each recording as plant data
-(:mod:`valve_emulator.diagnosis.sweep`): one line per recording with a progress bar as they finish, then a
+(:mod:`valve_emulator.batch.sweep`): one line per recording with a progress bar as they finish, then a
 count per answer; ``--csv`` and ``--json`` write the summary table (answers, reason codes, S, J, fits).
 ``--jobs N`` uses N processes of this machine, ``--scheduler ADDRESS`` an existing Dask distributed cluster.
 
@@ -37,7 +37,9 @@ import sys
 import time
 from pathlib import Path
 
+from valve_emulator.commands._files import user_files
 from valve_emulator.commands._reader import add_reader_arguments, reader_options
+from valve_emulator.errors import UserError
 
 NAME = "diagnose"
 HELP = ("find what a recording's model leaves out (with --model), or whether a plant loop's valve sticks (without): "
@@ -90,13 +92,13 @@ def _line(row: dict) -> str:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from valve_emulator.diagnosis.sweep import SweepTable, sweep
+    from valve_emulator.batch.sweep import SweepTable, sweep
 
     if any(p is not None for p in (args.model, args.report, args.plot, args.twin)):
-        raise ValueError("a sweep (a folder or several files) diagnoses plant data: --model, --report, --plot and "
-                         "--twin apply to one file")
+        raise UserError("a sweep (a folder or several files) diagnoses plant data: --model, --report, --plot and "
+                        "--twin apply to one file")
     if args.scheduler is not None and args.jobs != 1:
-        raise ValueError("--jobs and --scheduler exclude each other (the cluster decides how many at once)")
+        raise UserError("--jobs and --scheduler exclude each other (the cluster decides how many at once)")
     options = {k: v for k, v in reader_options(args).items() if v is not None}
     if args.op_range is not None:
         options["op_range"] = tuple(args.op_range)
@@ -119,23 +121,30 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    files = {"": args.recording[0] if len(args.recording) == 1 else None, "--model": args.model, "--json": args.json,
+             "--report": args.report, "--plot": args.plot, "--csv": args.csv, "--twin": args.twin}
+    with user_files(files):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from valve_emulator.config import load_loop
     from valve_emulator.diagnosis.api import diagnose
 
     for flag, p in (("--json", args.json), ("--report", args.report), ("--plot", args.plot), ("--csv", args.csv),
                     ("--twin", args.twin)):
         if p is not None and not p.parent.is_dir():
-            raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
+            raise UserError(f"{flag} {p}: folder {p.parent} does not exist")
     if args.jobs < 1:
-        raise ValueError(f"--jobs must be at least 1, got {args.jobs}")
+        raise UserError(f"--jobs must be at least 1, got {args.jobs}")
     if len(args.recording) > 1 or args.recording[0].is_dir():
         return _sweep(args)
     if args.jobs != 1 or args.scheduler is not None or args.csv is not None:
-        raise ValueError("--jobs, --scheduler and --csv apply to a sweep (a folder or several files)")
+        raise UserError("--jobs, --scheduler and --csv apply to a sweep (a folder or several files)")
     args.recording = args.recording[0]
     nominal = load_loop(args.model) if args.model is not None else None
     if nominal is not None and args.op_range is not None:
-        raise ValueError("--op-range applies only to plant data (without --model): a model's OP is % travel")
+        raise UserError("--op-range applies only to plant data (without --model): a model's OP is % travel")
     extra = {} if args.op_range is None else {"op_range": tuple(args.op_range)}
     d = diagnose(args.recording, nominal, progress=_progress(args.quiet), **extra, **reader_options(args))
     twin = d.twin().text() if args.twin else None   # before anything is written: no model, no twin

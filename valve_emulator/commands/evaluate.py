@@ -19,9 +19,10 @@ import json
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
 from pathlib import Path
+
+from valve_emulator.commands._files import user_files
+from valve_emulator.errors import UserError
 
 NAME = "evaluate"
 HELP = ("assess every window of a labelled set of plant recordings, with the comparison detectors, and score "
@@ -44,26 +45,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_all(items, jobs: int, say) -> list[dict]:
+    from valve_emulator.batch.pool import run_ordered
     from valve_emulator.benchmark.labelled import run_window
-    from valve_emulator.diagnosis.sweep import init_worker
 
-    results: list[dict | None] = [None] * len(items)
+    finished = 0
 
-    def done(i: int, r: dict) -> None:
-        results[i] = r
-        n = sum(x is not None for x in results)
-        say(f"{n}/{len(items)} {r['name']}: {r['decision']}")
+    def done(_: int, r: dict) -> None:
+        nonlocal finished
+        finished += 1
+        say(f"{finished}/{len(items)} {r['name']}: {r['decision']}")
 
-    if jobs == 1:
-        for i, item in enumerate(items):
-            done(i, run_window(item))
-    else:
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"),
-                                 initializer=init_worker) as pool:
-            futures = {pool.submit(run_window, item): i for i, item in enumerate(items)}
-            for fut in as_completed(futures):
-                done(futures[fut], fut.result())
-    return [r for r in results if r is not None]
+    return run_ordered(run_window, items, jobs=jobs, done=done)
 
 
 def _figures(ev, folder: Path, report: Path | None, say) -> None:
@@ -97,14 +89,19 @@ def _write_report(path: Path, section: str, source: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with user_files({"": Path(args.set), "--report": args.report, "--figures": args.figures, "--json": args.json}):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from valve_emulator.benchmark.evaluation import Evaluation
     from valve_emulator.benchmark.labelled import read_index
 
     if args.jobs < 1:
-        raise ValueError(f"--jobs must be a whole number >= 1, got {args.jobs}")
+        raise UserError(f"--jobs must be a whole number >= 1, got {args.jobs}")
     for flag, p in (("--report", args.report), ("--json", args.json)):
         if p is not None and not p.parent.is_dir():
-            raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
+            raise UserError(f"{flag} {p}: folder {p.parent} does not exist")
     items = read_index(args.set)
     start = time.perf_counter()
 

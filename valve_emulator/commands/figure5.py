@@ -6,6 +6,7 @@ import argparse
 import csv
 from pathlib import Path
 
+from valve_emulator.commands._files import user_files
 from valve_emulator.physics.stiction import DEFAULT_MODEL, MODELS
 
 NAME = "figure5"
@@ -18,6 +19,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with user_files({"--out": args.out}):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from valve_emulator.simulation.figure5 import figure5_data
     from valve_emulator.simulation.figures import plot_open_loop_rows
 

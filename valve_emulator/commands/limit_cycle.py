@@ -6,6 +6,8 @@ import argparse
 import math
 from pathlib import Path
 
+from valve_emulator.errors import UserError
+
 NAME = "limit-cycle"
 HELP = "predict the limit cycle with the describing function and compare with simulation"
 
@@ -22,7 +24,7 @@ def compare(cfg, duration=None) -> dict:
     from valve_emulator.simulation.loop import simulate_loop
 
     if cfg.controller is None:
-        raise ValueError(f"{cfg.source or cfg.name}: controller is required for a limit-cycle prediction")
+        raise UserError(f"{cfg.source or cfg.name}: controller is required for a limit-cycle prediction")
     gain = float(Characteristic(cfg.valve.characteristic, cfg.valve.rangeability).gain(cfg.controller.bias))
     pred = predict_limit_cycle(cfg.valve.S, cfg.valve.J, cfg.controller, cfg.plant, characteristic_gain=gain)
     rec = simulate_loop(cfg, duration)

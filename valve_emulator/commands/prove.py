@@ -15,6 +15,9 @@ import sys
 import time
 from pathlib import Path
 
+from valve_emulator.commands._files import user_files
+from valve_emulator.errors import UserError
+
 NAME = "prove"
 HELP = "run the diagnosis on concealed simulated recordings with a known truth and write DIR/proof.md"
 
@@ -28,13 +31,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with user_files({"--out": args.out}):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from valve_emulator.benchmark.proof import CASES, proof_markdown, run_case, slug, table_text
 
     cases = [c for c in CASES if not args.case or any(s in c.name for s in args.case)]
     if not cases:
-        raise ValueError(f"--case {args.case} matches none of: {', '.join(c.name for c in CASES)}")
+        raise UserError(f"--case {args.case} matches none of: {', '.join(c.name for c in CASES)}")
     if args.duration is not None and not args.duration > 0:
-        raise ValueError(f"--duration must be > 0 s, got {args.duration}")
+        raise UserError(f"--duration must be > 0 s, got {args.duration}")
     figures = args.out / "proof"
     figures.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()

@@ -18,8 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from valve_emulator.commands._config import load_server_or_default
     from valve_emulator.device.registers import format_registers, registers_table
+    from valve_emulator.device.runtime import load_server_or_default
 
     cfg = load_server_or_default(args.config)
     sys.stdout.write(format_registers(registers_table(cfg), args.format))

@@ -33,24 +33,18 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import dataclasses
-import gc
+import contextlib
 import logging
 import math
-import queue
-import re
-import signal
-import subprocess
-import sys
-import threading
-import time
+from collections.abc import AsyncIterator
 from pathlib import Path
+
+from valve_emulator.commands._files import user_files
+from valve_emulator.device.runtime import Attach, apply_overrides, opening, serve
+from valve_emulator.errors import UserError
 
 NAME = "serve"
 HELP = "serve the valve and process as a Modbus TCP (and RTU) device on a real-time tick"
-
-_log = logging.getLogger("valve_emulator.serve")
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", type=Path, nargs="?", metavar="CONFIG",
@@ -122,60 +116,60 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _check(args: argparse.Namespace) -> None:
     if not (0 <= args.port <= 65535):
-        raise ValueError(f"--port must be 0..65535, got {args.port}")
+        raise UserError(f"--port must be 0..65535, got {args.port}")
     if not (math.isfinite(args.time_scale) and args.time_scale > 0):
-        raise ValueError(f"--time-scale must be a finite number > 0, got {args.time_scale}")
+        raise UserError(f"--time-scale must be a finite number > 0, got {args.time_scale}")
     if args.lockstep and args.time_scale != 1.0:
-        raise ValueError("--lockstep and --time-scale: in lockstep the client's step writes are the clock")
+        raise UserError("--lockstep and --time-scale: in lockstep the client's step writes are the clock")
     if args.lockstep and args.processes > 1:
-        raise ValueError("--lockstep with --processes: each process would have its own clock; use one process")
+        raise UserError("--lockstep with --processes: each process would have its own clock; use one process")
     if args.max_connections is not None and not 1 <= args.max_connections <= 65535:
-        raise ValueError(f"--max-connections must be 1..65535, got {args.max_connections}")
+        raise UserError(f"--max-connections must be 1..65535, got {args.max_connections}")
     if args.record_unit and args.record is None:
-        raise ValueError("--record-unit needs --record FILE.csv")
+        raise UserError("--record-unit needs --record FILE.csv")
     if args.processes < 1:
-        raise ValueError(f"--processes must be >= 1, got {args.processes}")
+        raise UserError(f"--processes must be >= 1, got {args.processes}")
     if args.process_index is not None and not 0 <= args.process_index < args.processes:
-        raise ValueError(f"--process-index must be 0..{args.processes - 1} for --processes {args.processes}, "
-                         f"got {args.process_index}")
+        raise UserError(f"--process-index must be 0..{args.processes - 1} for --processes {args.processes}, "
+                        f"got {args.process_index}")
     if args.processes > 1 and args.process_index is None and args.record is not None:
-        raise ValueError("--record with --processes: record in each process (--process-index) instead")
+        raise UserError("--record with --processes: record in each process (--process-index) instead")
     if args.web is not None and not 0 <= args.web <= 65535:
-        raise ValueError(f"--web must be a port 0..65535, got {args.web}")
+        raise UserError(f"--web must be a port 0..65535, got {args.web}")
     if args.web is None and (args.web_token or args.snapshots):
-        raise ValueError("--web-token and --snapshots need --web PORT")
+        raise UserError("--web-token and --snapshots need --web PORT")
     if args.web is not None and args.processes > 1:
-        raise ValueError("--web with --processes: the station serves one process's device; use --processes 1")
+        raise UserError("--web with --processes: the station serves one process's device; use --processes 1")
     if args.backtrack < 0 or not math.isfinite(args.backtrack):
-        raise ValueError(f"--backtrack must be >= 0 s, got {args.backtrack}")
+        raise UserError(f"--backtrack must be >= 0 s, got {args.backtrack}")
     if args.web is not None and args.web_token is None:
         from valve_emulator.device.guard import is_loopback
 
         if not is_loopback(args.host):
-            raise ValueError(f"--web on --host {args.host} needs --web-token: bound beyond loopback the instructor "
-                             f"page and API must ask for a token")
+            raise UserError(f"--web on --host {args.host} needs --web-token: bound beyond loopback the instructor "
+                            f"page and API must ask for a token")
     if args.rtu is None and (args.baud, args.parity, args.stopbits) != (19200, "E", 1):
-        raise ValueError("--baud, --parity and --stopbits set up the serial line of --rtu DEVICE; give --rtu")
+        raise UserError("--baud, --parity and --stopbits set up the serial line of --rtu DEVICE; give --rtu")
     if args.rtu is not None and args.processes > 1:
-        raise ValueError("--rtu serves one serial line from one process; it cannot be combined with --processes")
+        raise UserError("--rtu serves one serial line from one process; it cannot be combined with --processes")
     _check_secure(args)
     if args.port and args.port + args.processes - 1 > 65535:
-        raise ValueError(f"--port {args.port} + --processes {args.processes} runs past port 65535")
+        raise UserError(f"--port {args.port} + --processes {args.processes} runs past port 65535")
 
 
 def _check_secure(args: argparse.Namespace) -> None:
     """The OPC UA and Modbus/TLS flags: ports in range, the files each needs, one process."""
     for flag, port in (("--opcua", args.opcua), ("--tls-port", args.tls_port)):
         if port is not None and not 0 <= port <= 65535:
-            raise ValueError(f"{flag} must be a port 0..65535, got {port}")
+            raise UserError(f"{flag} must be a port 0..65535, got {port}")
         if port is not None and args.processes > 1:
-            raise ValueError(f"{flag} with --processes: it serves one process's loops; use --processes 1")
+            raise UserError(f"{flag} with --processes: it serves one process's loops; use --processes 1")
     if args.opcua_policy:
         from valve_emulator.config.schema import OPCUA_POLICIES
 
         for policy in args.opcua_policy:
             if policy not in OPCUA_POLICIES:
-                raise ValueError(f"--opcua-policy {policy!r}: one of {', '.join(OPCUA_POLICIES)}")
+                raise UserError(f"--opcua-policy {policy!r}: one of {', '.join(OPCUA_POLICIES)}")
 
 
 def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
@@ -191,7 +185,7 @@ def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object
     cert, key = args.opcua_cert or sec.certificate, args.opcua_key or sec.private_key
     for what, path in (("certificate", cert), ("private key", key)):
         if path is not None and not Path(path).is_file():
-            raise ValueError(f"opcua {what} {path}: no such file")
+            raise UserError(f"opcua {what} {path}: no such file")
     security = OpcUaSecurity(policies=tuple(args.opcua_policy or sec.policies),
                              certificate=Path(cert) if cert else None, private_key=Path(key) if key else None,
                              users=load_users(users_path) if users_path is not None else None)
@@ -211,192 +205,73 @@ def tls_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
                                 args.tls_ca or sec.ca)
 
 
-def apply_overrides(config, *, read_only: bool = False, max_connections: int | None = None,
-                    lockstep: bool = False):
-    """``config`` with the command line's ``--read-only`` / ``--max-connections`` / ``--lockstep`` in every device
-    section."""
-    changes = {k: v for k, v in (("read_only", read_only or None), ("max_connections", max_connections),
-                                 ("lockstep", lockstep or None)) if v is not None}
-    return with_device(config, **changes) if changes else config
+def _services(args: argparse.Namespace, config, *, opcua: int | None, security) -> Attach | None:
+    """The instructor station (``--web``) and OPC UA (``--opcua``) beside the Modbus server, sharing one
+    :class:`~valve_emulator.station.core.Station` (the HTTP pages and the OPC UA methods act on the same one);
+    None when neither is asked for."""
+    if args.web is None and opcua is None:
+        return None
 
+    @contextlib.asynccontextmanager
+    async def attach(srv) -> AsyncIterator[None]:
+        from valve_emulator.device.snapshots import BacktrackRing, SnapshotStore
+        from valve_emulator.station.core import Station
 
-def with_device(config, **changes):
-    """``config`` with ``changes`` to the device settings of the server and of every loop."""
-    loops = tuple(dataclasses.replace(lp, device=dataclasses.replace(lp.device, **changes)) for lp in config.loops)
-    return dataclasses.replace(config, device=dataclasses.replace(config.device, **changes), loops=loops)
-
-
-def reload_config(server, path: Path | None, *, read_only: bool = False,
-                  max_connections: int | None = None, process: tuple[int, int] | None = None) -> bool:
-    """Re-read ``path`` and apply its live settings to ``server``; ``False`` (logged, nothing changed) if bad.
-
-    ``process = (index, count)``: the server runs that slice of the file (``--process-index``).
-    """
-    from valve_emulator.config import load_server
-    from valve_emulator.config.layout import server_slice
-
-    if path is None:
-        _log.warning("config reload: no config file (serving the embedded default device); nothing to reload")
-        return False
-    try:
-        config = load_server(path)
-        if process is not None:
-            config = server_slice(config, *process)
-        config = apply_overrides(config, read_only=read_only, max_connections=max_connections,
-                                 lockstep=server.config.device.lockstep)   # --lockstep outlives a reload
-    except (ValueError, OSError) as exc:  # ConfigError is a ValueError and names file, line and key
-        _log.error("config reload failed, keeping the running config: %s", exc)
-        return False
-    restart = server.reconfigure(config)
-    later = f"; needs a restart to apply: {', '.join(restart)}" if restart else ""
-    print(f"valve-emulator: reloaded {path}{later}", flush=True)
-    return True
-
-
-def describe_units(config) -> str:
-    """The unit ids of ``config`` for the "listening" line: each with its loop's name, or a summary for fleets."""
-    from valve_emulator.config.layout import unit_ranges
-
-    units = list(dict.fromkeys(lp.device.unit for lp in config.loops))
-    n = len(config.loops)
-    if n == len(units) and n <= 32:
-        return ", ".join(f"{lp.device.unit} ({lp.name})" for lp in config.loops)
-    per_unit = max(lp.device.block for lp in config.loops) + 1
-    return f"{unit_ranges(units)} ({n:,} loops" + (f", up to {per_unit} per unit)" if per_unit > 1 else ")")
-
-
-async def serve(config, *, host: str, port: int, time_scale: float, ready=None, config_path: Path | None = None,
-                record: Path | None = None, record_units=None, read_only: bool = False,
-                max_connections: int | None = None, process: tuple[int, int] | None = None,
-                web: int | None = None, web_token: str | None = None, snapshots: Path | None = None,
-                backtrack: float = 60.0, rtu: str | None = None, serial=None, framer: str = "socket",
-                opcua: int | None = None, opcua_security=None, tls_port: int | None = None,
-                tls_context=None) -> None:
-    """Serve until SIGINT/SIGTERM (or cancellation); ``ready(server)`` is called once listening.
-
-    ``web``: also serve the instructor station on that port (:func:`start_web`).
-    ``rtu`` (a serial device) with ``serial`` (:class:`~valve_emulator.device.rtu.SerialSettings`) serves the
-    units on that line too; ``framer="rtu"`` makes the TCP port speak RTU frames.
-
-    ``opcua`` (a port) also serves the loops over OPC UA with ``opcua_security``; ``tls_port`` with
-    ``tls_context`` (:func:`~valve_emulator.device.tls.server_context`) serves Modbus/TCP Security.
-
-    SIGHUP reloads ``config_path`` (:func:`reload_config`); ``record`` records ``record_units`` (default
-    all) with :class:`~valve_emulator.device.record.TickRecorder`. ``process = (index, count)`` names the
-    slice this server runs (``config`` is already that slice).
-    """
-    from valve_emulator.device.guard import binds_all_interfaces
-    from valve_emulator.device.record import TickRecorder
-    from valve_emulator.device.registers import STEP_ADDRESS
-    from valve_emulator.device.server import EmulatorServer
-
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    handlers = {signal.SIGINT: stop.set, signal.SIGTERM: stop.set}
-    for sig, handler in handlers.items():
-        try:
-            loop.add_signal_handler(sig, handler)
-        except (NotImplementedError, RuntimeError):  # not the main thread / not supported
-            pass
-    try:
-        async with EmulatorServer(config, host=host, port=port, time_scale=time_scale, framer=framer) as srv:
-            if rtu is not None:
-                srv.open_serial(rtu, serial)
-            hup = getattr(signal, "SIGHUP", None)
-            if hup is not None:  # installed before the "listening" line, which tells a supervisor we are up
-                handlers[hup] = lambda: reload_config(srv, config_path, read_only=read_only,
-                                                      max_connections=max_connections, process=process)
-                try:
-                    loop.add_signal_handler(hup, handlers[hup])
-                except (NotImplementedError, RuntimeError):
-                    pass
-            who = f"process {process[0]}/{process[1]} " if process is not None else ""
-            rtu_note = "" if framer == "socket" else "; the TCP port speaks RTU frames (RTU over TCP)"
-            if rtu is not None:
-                rtu_note += f"; Modbus RTU on {rtu} at {srv.serial_links[0].settings}"
-            clock = (f"lockstep (no tick until a client writes step, holding {STEP_ADDRESS})" if srv.device.lockstep
-                     else f"time-scale {time_scale:g}")
-            print(f"valve-emulator: {who}listening on {host}:{srv.port}, unit ids {describe_units(config)}; "
-                  f"tick {config.device.tick:g} s, {clock}{rtu_note}; Ctrl-C stops", flush=True)
-            if binds_all_interfaces(host):
-                print("valve-emulator: WARNING: bound to all interfaces. Modbus TCP has no authentication: "
-                      "anyone who can reach this port can move the valve. Use an isolated network.",
-                      file=sys.stderr, flush=True)
-            if tls_port is not None:
-                bound = await srv.open_tls(tls_context, port=tls_port)
-                print(f"valve-emulator: Modbus/TCP Security (TLS, client certificates) on {host}:{bound}", flush=True)
-            station_runner = opcua_server = station = None
-            if web is not None or opcua is not None:
-                station = make_station(srv, snapshots=snapshots, backtrack=backtrack)
-            if web is not None:
-                station_runner = await start_web(station, host=host, port=web, token=web_token)
+        station = Station(srv.device, snapshots=SnapshotStore(args.snapshots),
+                          backtrack=BacktrackRing(args.backtrack, 30) if args.backtrack > 0 else None)
+        async with contextlib.AsyncExitStack() as stack:
+            if args.web is not None:
+                stack.push_async_callback(await _start_web(station, args))
             if opcua is not None:
-                opcua_server = await start_opcua(srv, station, config, host=host, port=opcua,
-                                                 security=opcua_security)
-            recorder = TickRecorder(srv.device, record, units=record_units) if record is not None else None
-            if recorder is not None:
-                await recorder.start()
-                print(f"valve-emulator: recording to {', '.join(str(p) for p in recorder.paths.values())}",
-                      flush=True)
-            # Everything built so far (modules, compiled kernels, config) lives as long as the process: keep
-            # it out of the cyclic GC, whose full passes over it would delay the tick by tens of ms.
-            gc.freeze()
-            try:
-                if ready is not None:
-                    ready(srv)
-                await stop.wait()
-            finally:
-                if recorder is not None:
-                    await recorder.stop()
-                if opcua_server is not None:
-                    await opcua_server.stop()
-                if station_runner is not None:
-                    await station_runner.cleanup()
-    finally:
-        for sig in handlers:
-            try:
-                loop.remove_signal_handler(sig)
-            except (NotImplementedError, RuntimeError):
-                pass
+                stack.push_async_callback(await _start_opcua(srv, station, config, args, port=opcua,
+                                                             security=security))
+            yield
+
+    return attach
 
 
-def make_station(srv, *, snapshots: Path | None, backtrack: float):
-    """The instructor station over ``srv``'s device, shared by the HTTP pages and the OPC UA methods."""
-    from valve_emulator.device.snapshots import BacktrackRing, SnapshotStore
-    from valve_emulator.station.core import Station
-
-    return Station(srv.device, snapshots=SnapshotStore(snapshots),
-                   backtrack=BacktrackRing(backtrack, 30) if backtrack > 0 else None)
-
-
-async def start_opcua(srv, station, config, *, host: str, port: int, security):
-    """Start the OPC UA server over ``srv``'s device (methods through ``station``); print its URL; return it."""
-    from valve_emulator.opcua import OpcUaServer
-
-    server = OpcUaServer(srv.device, loops=config.loops, host=host, port=port, security=security, station=station)
-    await server.start()
-    print(f"valve-emulator: OPC UA at {server.url} (policies {', '.join(server.security.policies)})", flush=True)
-    return server
-
-
-async def start_web(station, *, host: str, port: int, token: str | None):
-    """Start the instructor ``station``'s HTTP pages on ``host:port``; print its URL; return its runner."""
+async def _start_web(station, args: argparse.Namespace):
+    """Start the instructor ``station``'s HTTP pages on ``--host``:``--web``; print its URL; return its stop."""
     from valve_emulator.station.app import start_station
 
-    runner, bound = await start_station(station, host=host, port=port, token=token)
-    where = f"[{host}]" if ":" in host else host
+    with opening(f"--web {args.web} on {args.host}"):
+        runner, bound = await start_station(station, host=args.host, port=args.web, token=args.web_token)
+    where = f"[{args.host}]" if ":" in args.host else args.host
     print(f"valve-emulator: instructor station at http://{where}:{bound}/ (trainee) and "
           f"http://{where}:{bound}/instructor", flush=True)
-    return runner
+    return runner.cleanup
+
+
+async def _start_opcua(srv, station, config, args: argparse.Namespace, *, port: int, security):
+    """Start the OPC UA server over ``srv``'s device (methods through ``station``); print its URL; return its
+    stop."""
+    from valve_emulator.opcua import OpcUaServer
+
+    server = OpcUaServer(srv.device, loops=config.loops, host=args.host, port=port, security=security,
+                         station=station)
+    with opening(f"--opcua {port} on {args.host}"):
+        await server.start()
+    print(f"valve-emulator: OPC UA at {server.url} (policies {', '.join(server.security.policies)})", flush=True)
+    return server.stop
 
 
 def run(args: argparse.Namespace) -> int:
-    from valve_emulator.commands._config import load_server_or_default
-    from valve_emulator.config.layout import server_slice
-
     _check(args)
     if args.processes > 1 and args.process_index is None:
+        from valve_emulator.commands._processes import run_processes
+
         return run_processes(args)
+    files = {"": args.config, "--record": args.record, "--snapshots": args.snapshots,
+             "--opcua-cert": args.opcua_cert, "--opcua-key": args.opcua_key, "--opcua-users": args.opcua_users,
+             "--tls-cert": args.tls_cert, "--tls-key": args.tls_key, "--tls-ca": args.tls_ca}
+    with user_files(files):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from valve_emulator.config.layout import server_slice
+    from valve_emulator.device.runtime import load_server_or_default
+
     process = None if args.process_index is None else (args.process_index, args.processes)
     fmt = "%(asctime)s %(levelname)s %(name)s: %(message)s"
     if process is not None:
@@ -409,16 +284,16 @@ def run(args: argparse.Namespace) -> int:
                           lockstep=args.lockstep)
     units = [lp.device.unit for lp in cfg.loops]
     if args.record is not None and any(lp.device.block for lp in cfg.loops):
-        raise ValueError("--record: recording needs one loop per unit id; this config puts several loops behind "
-                         "a unit (fleet.loops_per_unit > 1)")
+        raise UserError("--record: recording needs one loop per unit id; this config puts several loops behind "
+                        "a unit (fleet.loops_per_unit > 1)")
     for u in args.record_unit or ():
         if u not in units:
-            raise ValueError(f"--record-unit {u}: the device has units {units}")
+            raise UserError(f"--record-unit {u}: the device has units {units}")
     if args.uvloop:
         try:
             import uvloop
         except ImportError as exc:
-            raise ValueError("--uvloop needs the uvloop package: pip install uvloop") from exc
+            raise UserError("--uvloop needs the uvloop package: pip install uvloop") from exc
         runner = uvloop.run
     else:
         runner = asyncio.run
@@ -432,115 +307,8 @@ def run(args: argparse.Namespace) -> int:
     tls_port, tls_context = tls_settings(args, cfg)
     runner(serve(cfg, host=args.host, port=port, time_scale=args.time_scale, config_path=args.config,
                  record=args.record, record_units=args.record_unit, read_only=args.read_only,
-                 max_connections=args.max_connections, process=process, web=args.web,
-                 web_token=args.web_token, snapshots=args.snapshots, backtrack=args.backtrack,
-                 rtu=args.rtu, serial=serial, framer=args.framer, opcua=opcua_port,
-                 opcua_security=security, tls_port=tls_port, tls_context=tls_context))
+                 max_connections=args.max_connections, process=process, rtu=args.rtu, serial=serial,
+                 framer=args.framer, tls_port=tls_port, tls_context=tls_context,
+                 attach=_services(args, cfg, opcua=opcua_port, security=security)))
     print("valve-emulator: stopped", flush=True)
     return 0
-
-
-# --- several processes started by this one ----------------------------------------------------------------
-
-_LISTENING = re.compile(r"listening on (\S+):(\d+),")
-#: Seconds the parent gives its processes to stop before it kills them (the whole stop stays under 1 s).
-STOP_GRACE = 0.8
-
-
-def _child_argv(args: argparse.Namespace, index: int) -> list[str]:
-    argv = [sys.executable, "-m", "valve_emulator", "serve", str(args.config), "--processes", str(args.processes),
-            "--process-index", str(index), "--host", args.host, "--port", str(args.port),
-            "--time-scale", repr(args.time_scale), "--log-level", args.log_level]
-    if args.uvloop:
-        argv.append("--uvloop")
-    if args.read_only:
-        argv.append("--read-only")
-    if args.max_connections is not None:
-        argv += ["--max-connections", str(args.max_connections)]
-    return argv
-
-
-def run_processes(args: argparse.Namespace) -> int:
-    """Start ``args.processes`` slices as child processes, print the layout, supervise and stop them."""
-    from valve_emulator.commands._config import load_server_or_default
-    from valve_emulator.config.layout import partition
-
-    if args.config is None:
-        raise ValueError("--processes needs a CONFIG with at least that many unit ids")
-    config = load_server_or_default(args.config)   # fail here, once, rather than in N children
-    slices = partition(config, args.processes)
-    total, tick = len(config.loops), config.device.tick
-    del config
-    events: queue.Queue = queue.Queue()
-    procs = [subprocess.Popen(_child_argv(args, i), stdout=subprocess.PIPE, text=True, bufsize=1)
-             for i in range(args.processes)]
-
-    def relay(i: int, proc: subprocess.Popen) -> None:
-        listening = False
-        for line in proc.stdout:
-            m = None if listening else _LISTENING.search(line)
-            if m:
-                listening = True
-                events.put(("ready", i, (m.group(1), int(m.group(2)))))
-            else:
-                print(f"[process {i}] {line}", end="", flush=True)
-        events.put(("exit", i, None))
-
-    relays = [threading.Thread(target=relay, args=(i, proc), daemon=True, name=f"serve-relay-{i}")
-              for i, proc in enumerate(procs)]
-    for thread in relays:
-        thread.start()
-    forwarded = (signal.SIGINT, signal.SIGTERM) + ((signal.SIGHUP,) if hasattr(signal, "SIGHUP") else ())
-    previous = {sig: signal.signal(sig, lambda sig, _frame: events.put(("signal", sig, None))) for sig in forwarded}
-    hup = getattr(signal, "SIGHUP", None)
-    ready: dict[int, tuple[str, int]] = {}
-    status = 0
-    try:
-        while True:
-            try:
-                kind, i, info = events.get(timeout=0.5)   # a timeout keeps the signal handlers responsive
-            except queue.Empty:
-                continue
-            if kind == "ready":
-                ready[i] = info
-                if len(ready) == len(procs):
-                    print(f"valve-emulator: {len(procs)} processes serve {total:,} loops; tick {tick:g} s, "
-                          f"time-scale {args.time_scale:g}; Ctrl-C stops", flush=True)
-                    for p, part in enumerate(slices):
-                        host, port = ready[p]
-                        print(f"valve-emulator: process {p} (pid {procs[p].pid}) listening on {host}:{port}, "
-                              f"{part.describe()}", flush=True)
-            elif kind == "signal" and i == hup:   # reload: each process re-reads the file itself
-                for proc in procs:
-                    if proc.poll() is None:
-                        proc.send_signal(i)
-            elif kind == "signal":
-                break
-            else:  # a process ended although nobody asked it to
-                code = procs[i].wait()
-                print(f"valve-emulator: process {i} exited with status {code}; stopping the others",
-                      file=sys.stderr, flush=True)
-                status = 1
-                break
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        _stop_all(procs)
-        for thread in relays:   # let the processes' last lines out before ours
-            thread.join(timeout=0.1)
-    print("valve-emulator: stopped", flush=True)
-    return status
-
-
-def _stop_all(procs: list[subprocess.Popen]) -> None:
-    """SIGTERM every running child, wait up to :data:`STOP_GRACE` s in total, then kill the rest."""
-    for proc in procs:
-        if proc.poll() is None:
-            proc.terminate()
-    deadline = time.monotonic() + STOP_GRACE
-    for proc in procs:
-        try:
-            proc.wait(timeout=max(deadline - time.monotonic(), 0.0))
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()

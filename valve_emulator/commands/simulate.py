@@ -14,7 +14,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from valve_emulator.commands._files import user_files
 from valve_emulator.commands._reader import add_reader_arguments, reader_options
+from valve_emulator.errors import UserError
 
 NAME = "simulate"
 HELP = "simulate one loop offline (deterministic) and write the standard recording CSV; or replay a recording"
@@ -54,20 +56,25 @@ def _replay(cfg, args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    with user_files({"--out": args.out, "--plot": args.plot, "--replay": args.replay}):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from valve_emulator.config import load_loop
     from valve_emulator.recordings.recording import write_csv
     from valve_emulator.simulation.loop import simulate_loop
 
     cfg = load_loop(args.config)
     if args.duration is not None and not args.duration > 0:
-        raise ValueError(f"--duration must be > 0 s, got {args.duration}")
+        raise UserError(f"--duration must be > 0 s, got {args.duration}")
     if args.replay_sp and args.replay is None:
-        raise ValueError("--replay-sp needs --replay REC (the recording whose set point drives the loop)")
+        raise UserError("--replay-sp needs --replay REC (the recording whose set point drives the loop)")
     if args.replay is not None and args.duration is not None:
-        raise ValueError("--duration does not apply to --replay (the recording sets the length)")
+        raise UserError("--duration does not apply to --replay (the recording sets the length)")
     for flag, p in (("--out", args.out), ("--plot", args.plot)):
         if p is not None and not p.parent.is_dir():
-            raise ValueError(f"{flag} {p}: folder {p.parent} does not exist")
+            raise UserError(f"{flag} {p}: folder {p.parent} does not exist")
     if args.replay is not None:
         rec, how = _replay(cfg, args)
     else:

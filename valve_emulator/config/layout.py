@@ -18,6 +18,7 @@ import dataclasses
 from collections.abc import Sequence
 
 from valve_emulator.config.schema import ServerConfig
+from valve_emulator.errors import UserError
 
 __all__ = ["Slice", "partition", "server_slice", "unit_ranges"]
 
@@ -39,14 +40,14 @@ def partition(config: ServerConfig, parts: int) -> list[Slice]:
     """Split ``config``'s loops into ``parts`` slices of whole units (module docstring); ``ValueError``
     when there are fewer units than parts."""
     if isinstance(parts, bool) or not isinstance(parts, int) or parts < 1:
-        raise ValueError(f"processes must be an integer >= 1, got {parts!r}")
+        raise UserError(f"processes must be an integer >= 1, got {parts!r}")
     members: dict[int, list[int]] = {}
     for i, loop in enumerate(config.loops):
         members.setdefault(loop.device.unit, []).append(i)
     units = list(members)
     if parts > len(units):
-        raise ValueError(f"processes ({parts}) must be <= the number of unit ids in the config ({len(units)}): "
-                         f"each process serves whole units")
+        raise UserError(f"processes ({parts}) must be <= the number of unit ids in the config ({len(units)}): "
+                        f"each process serves whole units")
     n = len(config.loops)
     slices, u, done = [], 0, 0
     for p in range(parts):
@@ -68,7 +69,7 @@ def server_slice(config: ServerConfig, index: int, parts: int) -> ServerConfig:
     """The server configuration of slice ``index`` (0-based) of ``parts``: the same device settings,
     only that slice's loops (at their unchanged unit ids and blocks)."""
     if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < parts:
-        raise ValueError(f"process index must be 0..{parts - 1} for {parts} processes, got {index!r}")
+        raise UserError(f"process index must be 0..{parts - 1} for {parts} processes, got {index!r}")
     part = partition(config, parts)[index]
     return dataclasses.replace(config, loops=tuple(config.loops[i] for i in part.loops))
 

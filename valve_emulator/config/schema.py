@@ -24,6 +24,7 @@ from dataclasses import KW_ONLY, dataclass, fields
 from enum import StrEnum
 from typing import Any
 
+from valve_emulator.errors import UserError
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_MA_TABLE, DEFAULT_RANGEABILITY
 from valve_emulator.physics.stiction import MODELS, seed_to_2005
 
@@ -91,7 +92,7 @@ KEYS: dict[str, tuple[str, ...]] = {
 }
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError):
     """A configuration value, key or file is wrong.
 
     ``str(err)`` reads ``"<source>:<line>: <message>"`` (``line`` when known), where the message names

@@ -39,6 +39,7 @@ from typing import Any, Final
 
 from valve_emulator.device.pdu import BIT_WRITE_FUNCTIONS, WRITE_FUNCTIONS
 from valve_emulator.device.registers import CommFault
+from valve_emulator.errors import UserError
 
 __all__ = ["PARITIES", "STREAM_GAP", "RtuResponder", "RtuSerialLink", "RtuStreamConnection", "SerialSettings", "crc16",
            "request_length", "with_crc"]
@@ -85,11 +86,11 @@ class SerialSettings:
 
     def __post_init__(self) -> None:
         if not (isinstance(self.baud, int) and 300 <= self.baud <= 4_000_000):
-            raise ValueError(f"baud must be an integer 300..4000000, got {self.baud!r}")
+            raise UserError(f"baud must be an integer 300..4000000, got {self.baud!r}")
         if self.parity not in PARITIES:
-            raise ValueError(f"parity must be one of {', '.join(PARITIES)}, got {self.parity!r}")
+            raise UserError(f"parity must be one of {', '.join(PARITIES)}, got {self.parity!r}")
         if self.stopbits not in (1, 2):
-            raise ValueError(f"stopbits must be 1 or 2, got {self.stopbits!r}")
+            raise UserError(f"stopbits must be 1 or 2, got {self.stopbits!r}")
 
     @property
     def bits_per_char(self) -> int:

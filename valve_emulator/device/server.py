@@ -108,6 +108,7 @@ from valve_emulator.device.registers.bits import COILS, BitTable, bit_values, ch
 from valve_emulator.device.rtu import RtuSerialLink, RtuStreamConnection, SerialSettings
 from valve_emulator.device.tick import Device
 from valve_emulator.device.traffic import TrafficLog, request_span
+from valve_emulator.errors import UserError
 
 __all__ = ["EmulatorServer", "LIVE_DEVICE_KEYS"]
 
@@ -205,8 +206,8 @@ class EmulatorServer:
         self.port = port
         if config.device.lockstep:
             if config.device.read_only:
-                raise ValueError("device.lockstep with device.read_only (--read-only): the device would refuse the "
-                                 "step writes that are its clock")
+                raise UserError("device.lockstep with device.read_only (--read-only): the device would refuse the "
+                                "step writes that are its clock")
             time_scale = 0.0
         self.device = Device.from_config(config, bank=bank, time_scale=time_scale, clock=clock, sleep=sleep,
                                          jitter_size=jitter_size)

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from valve_emulator.errors import UserError
 from valve_emulator.simulation.state import join, split
 
 __all__ = ["Snapshot", "SnapshotError", "SnapshotNotFound", "SnapshotStore", "BacktrackRing", "check_name"]
@@ -50,7 +51,7 @@ _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")
 _FORMAT = 1
 
 
-class SnapshotError(ValueError):
+class SnapshotError(UserError):
     """A snapshot that cannot be stored or restored; ``field`` names what is wrong (``name``, ``units`` ...)."""
 
     def __init__(self, message: str, *, field: str = "name") -> None:

@@ -23,6 +23,7 @@ from cryptography import x509
 from cryptography.x509.oid import ObjectIdentifier
 
 from valve_emulator.device.connection import ModbusConnection
+from valve_emulator.errors import UserError
 
 __all__ = ["ROLE_OID", "INSTRUCTOR", "OPERATOR", "server_context", "role_of", "TlsModbusConnection"]
 
@@ -35,22 +36,22 @@ OPERATOR = "operator"
 def server_context(cert: Path | str, key: Path | str, ca: Path | str) -> ssl.SSLContext:
     """A server-side TLS context: TLS 1.2 or later, a client certificate signed by ``ca`` required.
 
-    ``ValueError`` naming the file when a certificate, key or CA cannot be loaded."""
+    ``UserError`` naming the file when a certificate, key or CA cannot be loaded."""
     ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     ctx.minimum_version = ssl.TLSVersion.TLSv1_2
     ctx.verify_mode = ssl.CERT_REQUIRED
     for what, path in (("--tls-cert", cert), ("--tls-key", key), ("--tls-ca", ca)):
         if not Path(path).is_file():
-            raise ValueError(f"{what} {path}: no such file")
+            raise UserError(f"{what} {path}: no such file")
     try:
         ctx.load_cert_chain(str(cert), str(key))
     except (ssl.SSLError, OSError) as exc:
-        raise ValueError(f"--tls-cert {cert} / --tls-key {key}: cannot load the server certificate and key: "
-                         f"{exc}") from None
+        raise UserError(f"--tls-cert {cert} / --tls-key {key}: cannot load the server certificate and key: "
+                        f"{exc}") from None
     try:
         ctx.load_verify_locations(cafile=str(ca))
     except (ssl.SSLError, OSError) as exc:
-        raise ValueError(f"--tls-ca {ca}: cannot load the CA certificate: {exc}") from None
+        raise UserError(f"--tls-ca {ca}: cannot load the CA certificate: {exc}") from None
     return ctx
 
 

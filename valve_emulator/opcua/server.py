@@ -68,6 +68,7 @@ from valve_emulator.device.registers import (
     from_words,
 )
 from valve_emulator.device.registers.codec import decode_value
+from valve_emulator.errors import UserError
 from valve_emulator.opcua.users import RoleRuleset, StationUser, UsersFile
 
 __all__ = ["OpcUaServer", "OpcUaSecurity", "NAMESPACE", "VARIABLES", "BITS", "OpcUaError"]
@@ -83,7 +84,7 @@ PUBLISH_BUDGET = 0.3
 SECURE_POLICIES = ("Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
 
 
-class OpcUaError(ValueError):
+class OpcUaError(UserError):
     """A server that must not start as configured (e.g. bound beyond loopback without security)."""
 
 

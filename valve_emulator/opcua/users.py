@@ -32,6 +32,8 @@ import yaml
 from asyncua import ua
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
 
+from valve_emulator.errors import UserError
+
 __all__ = ["Role", "StationUser", "UsersFile", "UsersError", "RoleRuleset", "hash_password", "check_password",
            "load_users"]
 
@@ -45,7 +47,7 @@ class Role(StrEnum):
     INSTRUCTOR = "instructor"
 
 
-class UsersError(ValueError):
+class UsersError(UserError):
     """A users file that cannot be used: the message names the file and the key."""
 
 

@@ -6,10 +6,12 @@ are kept as attributes, so a caller can point at the cell without parsing the me
 
 from __future__ import annotations
 
+from valve_emulator.errors import UserError
+
 __all__ = ["RecordingError", "ReaderError", "RecordingWarning"]
 
 
-class RecordingError(ValueError):
+class RecordingError(UserError):
     """A recording file or object that cannot be used; the message names file, line and column.
 
     Attributes

@@ -1,7 +1,8 @@
 """Figures in the style of the 2003 paper: time trends beside MV-OP (and PV-OP) phase plots.
 
-Only this module (and the diagnosis plots) import matplotlib; the Agg backend is used so figures can be made
-on a machine without a screen.
+Only this module (and the diagnosis plots) import matplotlib. Each figure is a
+:class:`matplotlib.figure.Figure` of its own, written straight to a file: it needs no screen, and pyplot's state
+and the caller's backend (a notebook's) are left alone.
 """
 
 from __future__ import annotations
@@ -9,13 +10,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from valve_emulator.recordings.recording import Recording  # noqa: E402
+from valve_emulator.recordings.recording import Recording
 
 __all__ = ["plot_open_loop_rows", "plot_closed_loop"]
 
@@ -28,8 +26,8 @@ def plot_open_loop_rows(t: np.ndarray, op: np.ndarray, rows: Sequence[tuple[str,
                         path: str | Path, *, title: str = "") -> Path:
     """One row per case: OP and MV against time (left), MV against OP (right): the layout of
     Figure 5 of Choudhury, Thornhill & Shah (2003)."""
-    fig, axes = plt.subplots(len(rows), 2, figsize=(10, 2.1 * len(rows)), gridspec_kw={"width_ratios": [2.2, 1]},
-                             squeeze=False)
+    fig = Figure(figsize=(10, 2.1 * len(rows)))
+    axes = fig.subplots(len(rows), 2, gridspec_kw={"width_ratios": [2.2, 1]}, squeeze=False)
     for (label, mv), (ax_t, ax_xy) in zip(rows, axes):
         ax_t.plot(t, op, **_OP_STYLE)
         ax_t.plot(t, mv, **_MV_STYLE)
@@ -48,7 +46,6 @@ def plot_open_loop_rows(t: np.ndarray, op: np.ndarray, rows: Sequence[tuple[str,
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
@@ -62,7 +59,8 @@ def plot_closed_loop(rec: Recording, path: str | Path, *, title: str = "", last:
     span = t[-1] - t[0]
     t0 = t[-1] - (span / 3 if last is None else last)
     sel = t >= t0
-    fig, axes = plt.subplots(2, 2, figsize=(11, 6), gridspec_kw={"width_ratios": [2.2, 1]})
+    fig = Figure(figsize=(11, 6))
+    axes = fig.subplots(2, 2, gridspec_kw={"width_ratios": [2.2, 1]})
     (a_op, a_mvop), (a_pv, a_pvop) = axes
     a_op.plot(t[sel], rec.op[sel], **_OP_STYLE)
     if np.isfinite(rec.mv).any():
@@ -88,5 +86,4 @@ def plot_closed_loop(rec: Recording, path: str | Path, *, title: str = "", last:
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path

@@ -32,13 +32,15 @@ from typing import Any
 
 import numpy as np
 
+from valve_emulator.errors import UserError
+
 __all__ = ["StateMismatch", "capture", "restore", "split", "join"]
 
 _GEN = "__generator__"
 _NONE = "__none__"
 
 
-class StateMismatch(ValueError):
+class StateMismatch(UserError):
     """A captured state that does not fit the object (another config): ``path`` names the field."""
 
     def __init__(self, message: str, *, path: str) -> None:

@@ -41,6 +41,7 @@ from typing import Any
 from aiohttp import web
 
 from valve_emulator.device.guard import is_loopback
+from valve_emulator.errors import UserError
 from valve_emulator.station.core import Station, StationError
 
 __all__ = ["make_app", "start_station", "STATION_KEY", "MAX_BODY", "BODY_TIMEOUT", "IDLE_TIMEOUT"]
@@ -415,10 +416,10 @@ async def start_station(station: Station, *, host: str, port: int, token: str | 
     ``await runner.cleanup()`` to stop) and the bound port. Refuses a non-loopback host without a token.
     ``idle_timeout``: seconds a connection may stay without a complete request."""
     if token is None and not is_loopback(host):
-        raise ValueError(f"--web on {host} (not loopback) needs --web-token: the instructor API would be open "
-                         f"to anyone who reaches the port")
+        raise UserError(f"--web on {host} (not loopback) needs --web-token: the instructor API would be open "
+                        f"to anyone who reaches the port")
     if token is not None and len(token) < 8:
-        raise ValueError("--web-token must be at least 8 characters")
+        raise UserError("--web-token must be at least 8 characters")
     runner = web.AppRunner(make_app(station, token=token), access_log=None, shutdown_timeout=1.0,
                            keepalive_timeout=idle_timeout)
     await runner.setup()

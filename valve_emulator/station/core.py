@@ -32,6 +32,7 @@ import numpy as np
 from valve_emulator.device.malfunctions import Malfunction, MalfunctionError, parse_malfunction, register_word
 from valve_emulator.device.registers import RegisterError, address_of
 from valve_emulator.device.snapshots import BacktrackRing, SnapshotError, SnapshotNotFound, SnapshotStore, check_name
+from valve_emulator.errors import UserError
 from valve_emulator.station.evaluation import Action, Evaluation, trend_png
 
 __all__ = ["Alarm", "Station", "StationError"]
@@ -39,7 +40,7 @@ __all__ = ["Alarm", "Station", "StationError"]
 _log = logging.getLogger("valve_emulator.station")
 
 
-class StationError(Exception):
+class StationError(UserError):
     """A refused request: ``status`` (HTTP), ``field`` (the offending input) and the message."""
 
     def __init__(self, message: str, *, field: str, status: int = 400) -> None:

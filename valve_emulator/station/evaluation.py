@@ -171,10 +171,7 @@ def _compare(report: dict[str, Any], expert: dict[str, Any]) -> dict[str, Any]:
 
 def trend_png(series: dict[str, np.ndarray], *, title: str, show_mv: bool) -> bytes:
     """A PNG of PV and SP (top) and OP (and MV) (bottom) against simulated time."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # a figure of its own: no pyplot state, the process' backend untouched
 
     fig = Figure(figsize=(7, 3.6), dpi=90)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)

@@ -58,8 +58,8 @@ _T = TypeVar("_T")
 def load_config(config: Any = None) -> Any:
     """A ``ServerConfig`` from ``None`` (the embedded default device), a YAML path, a mapping (as in a YAML
     file) or a ``ServerConfig`` itself. ``ConfigError`` naming the file and key when it is wrong."""
-    from valve_emulator.commands._config import load_server_or_default
     from valve_emulator.config import server_from_mapping
+    from valve_emulator.device.runtime import load_server_or_default
 
     if config is None or isinstance(config, str | Path):
         return load_server_or_default(None if config is None else Path(config))
@@ -93,7 +93,7 @@ class Emulator:
             raise ValueError("clock 'real' with a config that sets device.lockstep: in lockstep the clock is "
                              "manual (leave clock at 'manual')")
         if instructor and not cfg.device.instructor_writes:
-            from valve_emulator.commands.serve import with_device
+            from valve_emulator.device.runtime import with_device
 
             cfg = with_device(cfg, instructor_writes=True)
         self.config = cfg

@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 
 import valve_emulator as ve
-from valve_emulator.benchmark.cases import Case, _loop, _steps, generate
+from valve_emulator.benchmark.cases import Case, generate, loop_mapping, setpoint_steps
 from valve_emulator.diagnosis.candidates import get
 
 
 def _case(lag: float) -> Case:
     return Case(f"actuator lag {lag:g} s", {"actuator_lag": {"tau": lag}},
-                _loop([1.0], [10.0, 1.0], 2.0, 1.2, 10.0, duration=2300.0,
-                      sp_steps=_steps([3, -3, 5, 0, -4, 2, 4, -1] * 2, 170.0)), {}, noise=0.03, lag=lag)
+                loop_mapping([1.0], [10.0, 1.0], 2.0, 1.2, 10.0, duration=2300.0,
+                             sp_steps=setpoint_steps([3, -3, 5, 0, -4, 2, 4, -1] * 2, 170.0)),
+                {}, noise=0.03, lag=lag)
 
 
 @pytest.mark.slow

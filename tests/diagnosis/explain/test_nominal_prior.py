@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import valve_emulator as ve
-from valve_emulator.benchmark.cases import Case, _loop, _steps, generate
+from valve_emulator.benchmark.cases import Case, generate, loop_mapping, setpoint_steps
 from valve_emulator.diagnosis.fit.linear import LinearStructure, filter_inputs, fit_one
 from valve_emulator.diagnosis.report.schema import schema
 
@@ -50,8 +50,8 @@ def _draw(rng: np.random.Generator, off: float = 1.0) -> tuple[Case, float, floa
     n = int(duration / half) + 2
     square = bool(rng.integers(2))
     levels = [2, -2] * (n // 2 + 1) if square else list(rng.choice([-5, -4, -3, -2, -1, 1, 2, 3, 4, 5], size=n))
-    loop = _loop([gain], [tau, 1.0], theta, kc, ti, duration=duration, seed=int(rng.integers(1 << 30)),
-                 sp_steps=_steps(levels, half))
+    loop = loop_mapping([gain], [tau, 1.0], theta, kc, ti, duration=duration, seed=int(rng.integers(1 << 30)),
+                        sp_steps=setpoint_steps(levels, half))
     nominal = {"plant": {"den": [tau * off, 1.0]}} if off != 1.0 else {}
     return Case("drawn loop", {"actuator_lag": {"tau": lag}}, loop, nominal, noise=noise, lag=lag), lag, tau
 
@@ -70,7 +70,8 @@ def test_the_issue_example_names_the_actuator_lag_and_the_plant_keeps_its_time_c
     """Issue 23's loop: lag 6 s before 2/(10s+1)·e^{-2s}, PI 0.3 / 10 s, square wave ±2 of period 300 s, 2 %
     noise, the exact nominal model. It reported a lag of 10.7 s and moved the plant to 4.9 s."""
     case = Case("issue 23 example", {"actuator_lag": {"tau": 6.0}},
-                _loop([2.0], [10.0, 1.0], 2.0, 0.3, 10.0, duration=3300.0, sp_steps=_steps([2, -2] * 12, 150.0)),
+                loop_mapping([2.0], [10.0, 1.0], 2.0, 0.3, 10.0, duration=3300.0,
+                             sp_steps=setpoint_steps([2, -2] * 12, 150.0)),
                 {}, noise=0.02, lag=6.0)
     d = _diagnose(case)
     assert [f.physics for f in d.findings] == ["actuator_lag"], d.verdict

@@ -251,9 +251,10 @@ def test_without_a_declared_span_the_twins_travel_stays_the_unit_free_frame():
 def test_the_twins_plant_says_which_nominal_parameter_moved_and_from_what_to_what():
     """A loop whose nominal time constant is 30 % short: the twin's plant is the nominal one with the time
     constant the data moved, and its header says so with both values; the exact nominal is held."""
-    from valve_emulator.benchmark.cases import Case, _loop, _steps
+    from valve_emulator.benchmark.cases import Case, loop_mapping, setpoint_steps
 
-    loop = _loop([2.0], [20.0, 1.0], 2.0, 0.5, 20.0, duration=2300.0, seed=5, sp_steps=_steps([2, -2] * 12, 100.0))
+    loop = loop_mapping([2.0], [20.0, 1.0], 2.0, 0.5, 20.0, duration=2300.0, seed=5,
+                        sp_steps=setpoint_steps([2, -2] * 12, 100.0))
     short = generate(Case("short tau", {}, loop, {"plant": {"den": [14.0, 1.0]}}, noise=0.02))
     exact = generate(Case("exact", {}, loop, {}, noise=0.02))
     twin = diagnose(short[0], short[1]).twin()

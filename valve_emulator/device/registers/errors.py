@@ -6,10 +6,12 @@ The errors are ``ValueError`` subclasses that carry the refused request as attri
 
 from __future__ import annotations
 
+from valve_emulator.errors import UserError
+
 __all__ = ["RegisterAccessError", "RegisterAddressError", "RegisterError", "RegisterValueError"]
 
 
-class RegisterError(ValueError):
+class RegisterError(UserError):
     """A request the register map refuses; the message names the register.
 
     Attributes

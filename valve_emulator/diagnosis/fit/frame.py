@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from valve_emulator.errors import UserError
+
 __all__ = ["Frame", "CENTER", "WIDTH", "TRAVEL", "UNKNOWN_UNITS", "SPAN_LOW", "SPAN_HIGH", "SPAN_MIN_USED"]
 
 #: Internal coordinate of OP's robust midpoint.
@@ -83,7 +85,7 @@ class Frame:
         The plant-data search runs in :meth:`unit_free` of it; the model path in it (the identity for OP in %)."""
         lo, hi = float(span[0]), float(span[1])
         if not hi > lo:
-            raise ValueError(f"op range: the value at 100 % travel ({hi:g}) must exceed the one at 0 % ({lo:g})")
+            raise UserError(f"op range: the value at 100 % travel ({hi:g}) must exceed the one at 0 % ({lo:g})")
         gain = 100.0 / (hi - lo)
         label = units or (TRAVEL if (lo, hi) == (0.0, 100.0) else UNKNOWN_UNITS)
         return cls(offset=-lo * gain, gain=gain, units=label, span=(lo, hi), span_source=source)

@@ -32,6 +32,7 @@ from valve_emulator.diagnosis.fit.linear import (
     input_grid_sse,
     polish,
 )
+from valve_emulator.errors import UserError
 from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_function_to_zoh
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.physics.stiction import rest_samples_for
@@ -87,7 +88,7 @@ def nominal_from_config(cfg: LoopConfig, dt: float) -> Nominal:
 
     Raises
     ------
-    ValueError
+    UserError
         A plant the linear part cannot represent: more than one pole at the origin, or an unstable pole.
     """
     den = np.trim_zeros(np.asarray(cfg.plant.den, dtype=float), "f")
@@ -96,12 +97,12 @@ def nominal_from_config(cfg: LoopConfig, dt: float) -> Nominal:
         den = den[:-1]
         zeros += 1
     if zeros > 1:
-        raise ValueError(f"{cfg.source or cfg.name}: plant.den has {zeros} poles at s = 0; the diagnosis "
-                         "handles at most one integrator")
+        raise UserError(f"{cfg.source or cfg.name}: plant.den has {zeros} poles at s = 0; the diagnosis "
+                        "handles at most one integrator")
     roots = np.roots(den) if den.size > 1 else np.array([])
     if np.any(np.real(roots) >= 0):
-        raise ValueError(f"{cfg.source or cfg.name}: plant.den has an unstable pole "
-                         f"{roots[np.real(roots) >= 0][0]:.4g}; the diagnosis needs a stable plant")
+        raise UserError(f"{cfg.source or cfg.name}: plant.den has an unstable pole "
+                        f"{roots[np.real(roots) >= 0][0]:.4g}; the diagnosis needs a stable plant")
     real = roots[np.abs(np.imag(roots)) < 1e-9 * np.maximum(1.0, np.abs(roots))]
     cplx = roots[np.abs(np.imag(roots)) >= 1e-9 * np.maximum(1.0, np.abs(roots))]
     structure = LinearStructure(taus=tuple(sorted(float(-1.0 / np.real(r)) for r in real)),

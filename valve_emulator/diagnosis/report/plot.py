@@ -1,4 +1,5 @@
-r"""The diagnosis figure (PNG, matplotlib's Agg backend; nothing is shown on screen).
+r"""The diagnosis figure (PNG; drawn on a :class:`matplotlib.figure.Figure` of its own, so it needs no display
+and leaves pyplot and the caller's backend alone).
 
 Four panels:
 
@@ -14,17 +15,13 @@ from __future__ import annotations
 
 import os
 
-import matplotlib
+import numpy as np
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")  # a file-only backend: works without a display, in tests and on servers
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.colors import LogNorm  # noqa: E402
-
-from valve_emulator.detectors.base import oscillation  # noqa: E402
-from valve_emulator.diagnosis.explain.result import Explanation  # noqa: E402
-from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame  # noqa: E402
+from valve_emulator.detectors.base import oscillation
+from valve_emulator.diagnosis.explain.result import Explanation
+from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame
 
 __all__ = ["op_units", "plot_diagnosis"]
 
@@ -51,7 +48,8 @@ def _shown(period: float | None, cycles: int, otherwise: int) -> int:
 def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
     """Write the four-panel figure of ``d`` to ``path`` (PNG)."""
     tr = d.traces
-    fig, axes = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
+    fig = Figure(figsize=(13, 8.5), constrained_layout=True)
+    axes = fig.subplots(2, 2)
     fig.suptitle(d.verdict, fontsize=10)
 
     ax = axes[0, 0]
@@ -112,4 +110,3 @@ def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
         ax.set(title="Stiction cost surface over (S, J)" + ("" if accepted else " — stiction not accepted"),
                xlabel=f"S ({units})", ylabel=f"J ({units})", ylim=(J[0], J[-1]))
     fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -1,4 +1,5 @@
-r"""One loop's assessment as a figure (PNG, matplotlib's Agg backend): the data, and why the answer is what it is.
+r"""One loop's assessment as a figure (PNG, on a :class:`matplotlib.figure.Figure` of its own: no display, no
+pyplot state): the data, and why the answer is what it is.
 
 Three panels:
 
@@ -16,24 +17,20 @@ from __future__ import annotations
 import os
 import textwrap
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")  # a file-only backend: works without a display, in tests and on servers
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from valve_emulator.diagnosis.answers import Reason  # noqa: E402
-from valve_emulator.diagnosis.assess.result import Assessment  # noqa: E402
-from valve_emulator.diagnosis.report.plot import op_units  # noqa: E402
-from valve_emulator.recordings.recording import Recording  # noqa: E402
+from valve_emulator.diagnosis.answers import Reason
+from valve_emulator.diagnosis.assess.result import Assessment
+from valve_emulator.diagnosis.report.plot import op_units
+from valve_emulator.recordings.recording import Recording
 
 __all__ = ["plot_loop"]
 
 
 def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: str = "") -> None:
     """Write the three-panel figure of ``a`` (on recording ``rec``) to ``path``."""
-    fig = plt.figure(figsize=(13, 8.5), constrained_layout=True)
+    fig = Figure(figsize=(13, 8.5), constrained_layout=True)
     grid = fig.add_gridspec(2, 2, height_ratios=(1.0, 1.1))
     head = (title + "\n" if title else "") + "\n".join(textwrap.wrap(a.statement, 150))
     fig.suptitle(head, fontsize=9)
@@ -80,4 +77,3 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
         ax.set(xlabel="t (s)", ylabel="PV", title="Replay of the recorded OP (fits cross-validated)")
         ax.legend(fontsize=8, loc="best")
     fig.savefig(path, dpi=90)
-    plt.close(fig)

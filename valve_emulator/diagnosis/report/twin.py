@@ -60,6 +60,7 @@ from valve_emulator.diagnosis.fit.continuous import continuous_transfer_function
 from valve_emulator.diagnosis.fit.data import fit_percent, fold_windows
 from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.fit.predict import FittedLoop
+from valve_emulator.errors import UserError
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.simulation.replay import replay_op
 
@@ -349,13 +350,13 @@ def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name
 
     Raises
     ------
-    ValueError
+    UserError
         The diagnosis has no fitted model (plant data that could not support one).
     """
     explanation = diagnosis.explanation
     if explanation is None or explanation.fitted is None:
         reason = "" if diagnosis.assessment is None else f" ({diagnosis.assessment.reason})"
-        raise ValueError(f"{diagnosis.source}: no model was fitted, so there is no twin to write{reason}")
+        raise UserError(f"{diagnosis.source}: no model was fitted, so there is no twin to write{reason}")
     rec, dt = diagnosis.recording, explanation.fitted.ctx.dt
     travel = TwinTravel(diagnosis.frame.stops)
     op = travel.level(diagnosis.frame.to_internal(rec.op))

@@ -7,7 +7,7 @@ import distributed  # the optional extra valve_emulator[cluster]: CI installs it
 import pytest
 from historian import STEPS_300, simulate
 
-from valve_emulator.diagnosis.sweep import recordings_in, sweep
+from valve_emulator.batch.sweep import recordings_in, sweep
 from valve_emulator.recordings.recording import write_csv
 
 

@@ -4,10 +4,10 @@ r"""A plant-wide sweep: the plant-data diagnosis of many recordings, on one mach
 files in it, :func:`recordings_in`) and returns one flat row per recording (:func:`diagnose_file`): the
 answer, its strength and reason codes, S and J in OP's units, as fractions of the OP band used, and in % travel
 when the span is known, the held-out fits, the time, and the whole JSON document. It runs them one after the
-other, in ``jobs`` worker processes of this machine, or on an existing Dask distributed cluster
-(``scheduler``: its address, or a ``distributed`` client or cluster object; the optional extra
-``valve_emulator[cluster]``). A file that cannot be read or diagnosed is a row with its ``error``, not the end
-of the sweep.
+other, in ``jobs`` worker processes of this machine (:func:`~valve_emulator.batch.pool.run_ordered`), or on an
+existing Dask distributed cluster (``scheduler``: its address, or a ``distributed`` client or cluster object; the
+optional extra ``valve_emulator[cluster]``). A file that cannot be read or diagnosed is a row with its
+``error``, not the end of the sweep.
 
 :class:`SweepTable` writes the rows as CSV (one line per recording) and JSON.
 """
@@ -19,12 +19,14 @@ import io
 import os
 import time
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
-from multiprocessing import get_context
+from functools import partial
 from pathlib import Path
 
-__all__ = ["RECORDING_SUFFIXES", "recordings_in", "diagnose_file", "sweep", "SweepTable", "init_worker", "COLUMNS"]
+from valve_emulator.batch.pool import run_ordered
+from valve_emulator.errors import UserError
+
+__all__ = ["RECORDING_SUFFIXES", "recordings_in", "diagnose_file", "sweep", "SweepTable", "COLUMNS"]
 
 #: File suffixes a folder's recordings may have (others, e.g. reports and figures, are skipped).
 RECORDING_SUFFIXES = (".csv", ".txt", ".tsv", ".dat")
@@ -33,17 +35,9 @@ COLUMNS = ("file", "answer", "strength", "reasons", "S", "J", "units", "S_band",
            "fit_before", "fit_after", "seconds", "error")
 
 
-def init_worker() -> None:
-    """Worker-process initialiser: single-threaded compiled kernels, so N workers use N cores without
-    oversubscribing them."""
-    import numba
-
-    numba.set_num_threads(1)
-
-
 def recordings_in(paths: Iterable[str | os.PathLike]) -> list[Path]:
     """The recording files named by ``paths``: files as given, folders as their recording files (sorted, hidden
-    files and other suffixes skipped). Raises ValueError for a path that does not exist or an empty result."""
+    files and other suffixes skipped). Raises UserError for a path that does not exist or an empty result."""
     out: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
@@ -52,9 +46,9 @@ def recordings_in(paths: Iterable[str | os.PathLike]) -> list[Path]:
         elif p.is_file():
             out.append(p)
         else:
-            raise ValueError(f"{p}: no such file or folder")
+            raise UserError(f"{p}: no such file or folder")
     if not out:
-        raise ValueError(f"no recording files ({', '.join(RECORDING_SUFFIXES)}) in {', '.join(map(str, paths))}")
+        raise UserError(f"no recording files ({', '.join(RECORDING_SUFFIXES)}) in {', '.join(map(str, paths))}")
     return out
 
 
@@ -77,7 +71,7 @@ def diagnose_file(path: str | os.PathLike, options: dict | None = None) -> dict:
     row["file"] = str(path)
     try:
         doc = diagnose(path, **(options or {})).to_json()
-    except (ValueError, OSError) as exc:
+    except (UserError, OSError) as exc:   # an unreadable or unusable file; anything else is a bug
         row.update(error=str(exc), seconds=round(time.perf_counter() - start, 2), document=None)
         return row
     row.update(answer=doc["answer"], strength=doc["strength"], reasons=" ".join(r["code"] for r in doc["reasons"]),
@@ -95,7 +89,7 @@ def _dask_results(files: Sequence[Path], options: dict, scheduler):
         from distributed import Client
         from distributed import as_completed as dask_completed
     except ModuleNotFoundError as exc:  # the optional extra is missing
-        raise ValueError("--scheduler needs Dask distributed: pip install 'valve_emulator[cluster]'") from exc
+        raise UserError("--scheduler needs Dask distributed: pip install 'valve_emulator[cluster]'") from exc
     client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
     try:
         futures = {client.submit(diagnose_file, str(f), options, pure=False): i for i, f in enumerate(files)}
@@ -113,28 +107,23 @@ def sweep(paths: Iterable[str | os.PathLike], *, jobs: int = 1, scheduler=None,
     ``progress(done, total, row)`` is called as each recording finishes (in completion order).
     """
     if jobs < 1:
-        raise ValueError(f"jobs must be at least 1, got {jobs}")
+        raise UserError(f"jobs must be at least 1, got {jobs}")
     files = recordings_in(paths)
-    rows: list[dict | None] = [None] * len(files)
+    finished = 0
 
-    def done(i: int, row: dict) -> None:
-        rows[i] = row
+    def done(_: int, row: dict) -> None:
+        nonlocal finished
+        finished += 1
         if progress is not None:
-            progress(sum(r is not None for r in rows), len(files), row)
+            progress(finished, len(files), row)
 
-    if scheduler is not None:
-        for i, row in _dask_results(files, options, scheduler):
-            done(i, row)
-    elif jobs == 1 or len(files) == 1:
-        for i, f in enumerate(files):
-            done(i, diagnose_file(f, options))
-    else:
-        with ProcessPoolExecutor(max_workers=min(jobs, len(files)), mp_context=get_context("spawn"),
-                                 initializer=init_worker) as pool:
-            futures = {pool.submit(diagnose_file, str(f), options): i for i, f in enumerate(files)}
-            for fut in as_completed(futures):
-                done(futures[fut], fut.result())
-    return [r for r in rows if r is not None]
+    if scheduler is None:
+        return run_ordered(partial(diagnose_file, options=options), [str(f) for f in files], jobs=jobs, done=done)
+    rows: list[dict] = [{}] * len(files)
+    for i, row in _dask_results(files, options, scheduler):
+        rows[i] = row
+        done(i, row)
+    return rows
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,9 @@
 """Hostile input on every interface of one running emulator: HTTP station, RTU serial line, snapshot files,
 SIGHUP with a broken config. Zero crashes, the tick on schedule, normal reads correct afterwards.
 
-Run: ``python bench/bench_hostile_input.py [--size full|ci]`` (full: about ten minutes).
+The stress is run at full size by ``python bench/bench_interfaces_under_attack.py [--size full|ci]`` (about
+ten minutes; it prints the figures) and at :data:`CI` size by ``tests/system/test_hostile_input.py``, which
+asserts them; :func:`rewrite_snapshot` also makes the broken files of ``tests/station/test_snapshot_files.py``.
 
 ``valve-emulator serve`` runs as a user starts it (its own process; a two-loop config, tick 0.1 s, time-scale
 1, ``--web`` with a token, ``--snapshots``, ``--rtu`` on one end of a ``socat`` pty pair at 4,000,000 baud, the
@@ -23,15 +25,12 @@ reads the tick register over Modbus TCP every 0.2 s and counts ticks per one-sec
 - ``hup``: 10 clients (5 Modbus TCP, 5 HTTP) poll while the config file is replaced by broken versions and
   SIGHUP is sent: the error must name the file, line and key, no request may fail, the running config stays.
 
-:func:`run` is also what ``tests/system/test_hostile_input.py`` calls, with :data:`CI` sizes.
 """
 
 from __future__ import annotations
 
-import argparse
 import http.client
 import json
-import os
 import queue
 import random
 import re
@@ -51,11 +50,8 @@ from pathlib import Path
 import numpy as np
 import serial
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine, table  # noqa: E402
-
-from valve_emulator.device.registers import address_of  # noqa: E402
-from valve_emulator.device.rtu import crc16, request_length, with_crc  # noqa: E402
+from valve_emulator.device.registers import address_of
+from valve_emulator.device.rtu import crc16, request_length, with_crc
 
 TOKEN = "hostile-bench-token"
 BAUD = 4_000_000
@@ -491,7 +487,7 @@ def rtu_phase(emu: Emulator, sizes: Sizes, *, max_burst: int = 64) -> dict:
 
 def rewrite_snapshot(src: Path, dst: Path, *, header=None, arrays=None, edit=lambda text: text) -> None:
     """A copy of snapshot file ``src`` at ``dst`` with header fields and arrays replaced, the header's JSON
-    text passed through ``edit`` (also used by tests/station/test_snapshot_files.py)."""
+    text passed through ``edit``."""
     with np.load(src) as data:
         head = json.loads(str(data["__header__"]))
         saved = {k: data[k] for k in data.files if k != "__header__"}
@@ -664,29 +660,3 @@ def run(sizes: Sizes, phases=tuple(PHASES), *, progress=lambda figures: None) ->
         finally:
             emu.close()
     return out
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", choices=("full", "ci"), default="full")
-    ap.add_argument("--phase", action="append", choices=tuple(PHASES), help="run only these (repeatable)")
-    args = ap.parse_args(argv)
-    sizes = FULL if args.size == "full" else CI
-    print(f"# hostile input, {args.size} size, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
-    print(f"# {machine()}; load average {os.getloadavg()[0]:.1f} at the start")
-    results = run(sizes, tuple(args.phase or PHASES), progress=lambda f: print(json.dumps(f), flush=True))
-    print(json.dumps(results[-1]))
-    rows = []
-    for f in results[:-1]:
-        rows.append((f["phase"], f["seconds"], f.get("requests", f.get("frames", f.get("files"))),
-                     f"{f['tick_min']:.2f}..{f['tick_max']:.2f}", f["tick_off"], f"{f['tick_windows']}"))
-    print(table(rows, ("phase", "s", "requests/frames/files", "ticks/s (min..max)", "windows outside 9..11",
-                       "windows")))
-    after = results[-1]
-    print(f"after: alive {after['alive']}, crashes {after['crashes']}, reads correct: Modbus {after['modbus_ok']}, "
-          f"HTTP {after['http_ok']}, RTU {after['rtu_ok']}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,6 +1,6 @@
 """Normal clients' throughput while hostile connections send garbage.
 
-Run: ``python bench/bench_hostile.py [--seconds 3] [--rounds 5] [--normal 4] [--hostile 50]``.
+Run: ``python bench/bench_modbus_under_garbage.py [--seconds 3] [--rounds 5] [--normal 4] [--hostile 50]``.
 
 The emulator (one loop, time-scale 1, 100 ms tick) runs in its own process. Normal clients (this process,
 raw sockets, one outstanding 10-register read each, as fast as answers come) are measured alternately

@@ -1,0 +1,215 @@
+"""The device as a server process: what ``valve-emulator serve`` runs once its flags are parsed.
+
+- :func:`load_server_or_default`: a server config file, or the embedded default device;
+- :func:`apply_overrides` / :func:`with_device`: a config with the command line's device settings
+  (``--read-only``, ``--max-connections``, ``--lockstep``, instructor writes) in every device section;
+- :func:`reload_config`: re-read the config file on SIGHUP and apply its live settings to a running server;
+- :func:`serve`: Modbus TCP (and optionally Modbus RTU on a serial line and Modbus/TCP Security) until
+  SIGINT/SIGTERM, with a tick recorder and the services the caller attaches (the instructor station, OPC UA:
+  they live above this layer).
+
+The lines :func:`serve` prints on stdout (``listening on HOST:PORT, ...``, ``reloaded ...``) are what a
+supervisor (``serve --processes N``, a test, an orchestrator) reads to know the server is up.
+A port in use or a serial device that cannot be opened is a :class:`~valve_emulator.errors.UserError`
+naming the interface and address.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import gc
+import logging
+import signal
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import AbstractAsyncContextManager, AsyncExitStack
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from valve_emulator.errors import UserError
+
+__all__ = ["DEFAULT_DEVICE", "Attach", "apply_overrides", "describe_units", "load_server_or_default", "opening",
+           "reload_config", "serve", "with_device"]
+
+_log = logging.getLogger("valve_emulator.serve")
+
+#: Services that run beside the Modbus server for as long as it runs: ``attach(server)`` is entered once the
+#: server listens and left before it stops (e.g. the instructor station's HTTP pages, an OPC UA server).
+Attach = Callable[[Any], AbstractAsyncContextManager[Any]]
+#: The embedded device served without a CONFIG (package data ``valve_emulator/data``).
+DEFAULT_DEVICE = "default_device.yaml"
+
+
+def load_server_or_default(path: Path | None):
+    """``load_server(path)``, or the embedded default device when ``path`` is None."""
+    from valve_emulator.config import load_server
+
+    if path is not None:
+        return load_server(path)
+    with resources.as_file(resources.files("valve_emulator.data") / DEFAULT_DEVICE) as p:
+        return load_server(p)
+
+
+def with_device(config, **changes):
+    """``config`` with ``changes`` to the device settings of the server and of every loop."""
+    loops = tuple(dataclasses.replace(lp, device=dataclasses.replace(lp.device, **changes)) for lp in config.loops)
+    return dataclasses.replace(config, device=dataclasses.replace(config.device, **changes), loops=loops)
+
+
+def apply_overrides(config, *, read_only: bool = False, max_connections: int | None = None,
+                    lockstep: bool = False):
+    """``config`` with the command line's ``--read-only`` / ``--max-connections`` / ``--lockstep`` in every device
+    section (a flag left at its default changes nothing)."""
+    changes = {k: v for k, v in (("read_only", read_only or None), ("max_connections", max_connections),
+                                 ("lockstep", lockstep or None)) if v is not None}
+    return with_device(config, **changes) if changes else config
+
+
+def reload_config(server, path: Path | None, *, read_only: bool = False,
+                  max_connections: int | None = None, process: tuple[int, int] | None = None) -> bool:
+    """Re-read ``path`` and apply its live settings to ``server``; ``False`` (logged, nothing changed) if bad.
+
+    ``process = (index, count)``: the server runs that slice of the file (``--process-index``).
+    """
+    from valve_emulator.config import load_server
+    from valve_emulator.config.layout import server_slice
+
+    if path is None:
+        _log.warning("config reload: no config file (serving the embedded default device); nothing to reload")
+        return False
+    try:
+        config = load_server(path)
+        if process is not None:
+            config = server_slice(config, *process)
+        config = apply_overrides(config, read_only=read_only, max_connections=max_connections,
+                                 lockstep=server.config.device.lockstep)   # --lockstep outlives a reload
+    except UserError as exc:  # ConfigError names file, line and key
+        _log.error("config reload failed, keeping the running config: %s", exc)
+        return False
+    restart = server.reconfigure(config)
+    later = f"; needs a restart to apply: {', '.join(restart)}" if restart else ""
+    print(f"valve-emulator: reloaded {path}{later}", flush=True)
+    return True
+
+
+def describe_units(config) -> str:
+    """The unit ids of ``config`` for the "listening" line: each with its loop's name, or a summary for fleets."""
+    from valve_emulator.config.layout import unit_ranges
+
+    units = list(dict.fromkeys(lp.device.unit for lp in config.loops))
+    n = len(config.loops)
+    if n == len(units) and n <= 32:
+        return ", ".join(f"{lp.device.unit} ({lp.name})" for lp in config.loops)
+    per_unit = max(lp.device.block for lp in config.loops) + 1
+    return f"{unit_ranges(units)} ({n:,} loops" + (f", up to {per_unit} per unit)" if per_unit > 1 else ")")
+
+
+@contextlib.contextmanager
+def opening(what: str) -> Iterator[None]:
+    """Run the block that opens ``what`` (a port, a serial device); an ``OSError`` (address in use, no such
+    device, no permission) becomes a ``UserError`` naming it."""
+    try:
+        yield
+    except OSError as exc:
+        raise UserError(f"{what}: {exc.strerror or exc}") from exc
+
+
+class _Signals:
+    """SIGINT/SIGTERM set ``stop``; :meth:`on` adds a handler; every handler is removed on exit. Where the loop
+    cannot take signal handlers (not the main thread, Windows) nothing is installed."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, stop: asyncio.Event) -> None:
+        self.loop = loop
+        self.installed: list[int] = []
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self.on(sig, stop.set)
+
+    def on(self, sig: int, handler: Callable[[], Any]) -> None:
+        try:
+            self.loop.add_signal_handler(sig, handler)
+            self.installed.append(sig)
+        except (NotImplementedError, RuntimeError):  # not the main thread / not supported
+            pass
+
+    def remove(self) -> None:
+        for sig in self.installed:
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                self.loop.remove_signal_handler(sig)
+
+
+def _listening_line(srv, config, *, host: str, time_scale: float, process, rtu: str | None, framer: str) -> str:
+    from valve_emulator.device.registers import STEP_ADDRESS
+
+    who = f"process {process[0]}/{process[1]} " if process is not None else ""
+    rtu_note = "" if framer == "socket" else "; the TCP port speaks RTU frames (RTU over TCP)"
+    if rtu is not None:
+        rtu_note += f"; Modbus RTU on {rtu} at {srv.serial_links[0].settings}"
+    clock = (f"lockstep (no tick until a client writes step, holding {STEP_ADDRESS})" if srv.device.lockstep
+             else f"time-scale {time_scale:g}")
+    return (f"valve-emulator: {who}listening on {host}:{srv.port}, unit ids {describe_units(config)}; "
+            f"tick {config.device.tick:g} s, {clock}{rtu_note}; Ctrl-C stops")
+
+
+async def serve(config, *, host: str, port: int, time_scale: float, ready=None, config_path: Path | None = None,
+                record: Path | None = None, record_units=None, read_only: bool = False,
+                max_connections: int | None = None, process: tuple[int, int] | None = None,
+                rtu: str | None = None, serial=None, framer: str = "socket", tls_port: int | None = None,
+                tls_context=None, attach: Attach | None = None) -> None:
+    """Serve until SIGINT/SIGTERM (or cancellation); ``ready(server)`` is called once listening.
+
+    ``rtu`` (a serial device) with ``serial`` (:class:`~valve_emulator.device.rtu.SerialSettings`) serves the
+    units on that line too; ``framer="rtu"`` makes the TCP port speak RTU frames. ``tls_port`` with
+    ``tls_context`` (:func:`~valve_emulator.device.tls.server_context`) serves Modbus/TCP Security.
+    ``attach(server)`` (:data:`Attach`) runs the caller's services beside it.
+
+    SIGHUP reloads ``config_path`` (:func:`reload_config`); ``record`` records ``record_units`` (default
+    all) with :class:`~valve_emulator.device.record.TickRecorder`. ``process = (index, count)`` names the
+    slice this server runs (``config`` is already that slice).
+    """
+    from valve_emulator.device.guard import binds_all_interfaces
+    from valve_emulator.device.record import TickRecorder
+    from valve_emulator.device.server import EmulatorServer
+
+    stop = asyncio.Event()
+    signals = _Signals(asyncio.get_running_loop(), stop)
+    try:
+        async with AsyncExitStack() as stack:
+            with opening(f"Modbus TCP on {host}:{port}"):
+                srv = await stack.enter_async_context(
+                    EmulatorServer(config, host=host, port=port, time_scale=time_scale, framer=framer))
+            if rtu is not None:
+                with opening(f"Modbus RTU on {rtu}"):
+                    srv.open_serial(rtu, serial)
+            hup = getattr(signal, "SIGHUP", None)
+            if hup is not None:  # installed before the "listening" line, which tells a supervisor we are up
+                signals.on(hup, lambda: reload_config(srv, config_path, read_only=read_only,
+                                                      max_connections=max_connections, process=process))
+            print(_listening_line(srv, config, host=host, time_scale=time_scale, process=process, rtu=rtu,
+                                  framer=framer), flush=True)
+            if binds_all_interfaces(host):
+                print("valve-emulator: WARNING: bound to all interfaces. Modbus TCP has no authentication: "
+                      "anyone who can reach this port can move the valve. Use an isolated network.",
+                      file=sys.stderr, flush=True)
+            if tls_port is not None:
+                with opening(f"Modbus/TCP Security on {host}:{tls_port}"):
+                    bound = await srv.open_tls(tls_context, port=tls_port)
+                print(f"valve-emulator: Modbus/TCP Security (TLS, client certificates) on {host}:{bound}", flush=True)
+            if attach is not None:
+                await stack.enter_async_context(attach(srv))
+            if record is not None:
+                recorder = TickRecorder(srv.device, record, units=record_units)
+                await recorder.start()
+                stack.push_async_callback(recorder.stop)
+                print(f"valve-emulator: recording to {', '.join(str(p) for p in recorder.paths.values())}",
+                      flush=True)
+            # Everything built so far (modules, compiled kernels, config) lives as long as the process: keep
+            # it out of the cyclic GC, whose full passes over it would delay the tick by tens of ms.
+            gc.freeze()
+            if ready is not None:
+                ready(srv)
+            await stop.wait()
+    finally:
+        signals.remove()
