@@ -106,6 +106,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--opcua-users", type=Path, metavar="USERS.yaml",
                    help="users with hashed passwords and a role each (operator, instructor); without it anonymous "
                         "clients are operators")
+    g.add_argument("--opcua-history", metavar="DURATION",
+                   help="keep the last DURATION (600, 600s, 10m, 2h) of every loop's PV, OP, SP and MV for OPC UA "
+                        "HistoryRead (in memory, asyncua's SQLite history)")
     g.add_argument("--tls-port", type=int, metavar="PORT",
                    help="also serve Modbus/TCP Security (TLS, mutual authentication, roles) on this port "
                         "(802 by convention; 0 picks a free port)")
@@ -199,6 +202,17 @@ def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object
     return port, security
 
 
+def opcua_history_seconds(args: argparse.Namespace, opcua_port: int | None) -> float | None:
+    """``--opcua-history`` in seconds (None without it); it needs OPC UA."""
+    if args.opcua_history is None:
+        return None
+    if opcua_port is None:
+        raise ValueError("--opcua-history needs OPC UA: give --opcua PORT (or the config's opcua.port)")
+    from valve_emulator.opcua.history import history_seconds
+
+    return history_seconds(args.opcua_history)
+
+
 def tls_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
     """The Modbus/TCP Security port and its TLS context: the flags over the config's ``tls`` section."""
     sec = config.tls
@@ -271,14 +285,15 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                 web: int | None = None, web_token: str | None = None, snapshots: Path | None = None,
                 backtrack: float = 60.0, rtu: str | None = None, serial=None, framer: str = "socket",
                 opcua: int | None = None, opcua_security=None, tls_port: int | None = None,
-                tls_context=None) -> None:
+                tls_context=None, opcua_history: float | None = None) -> None:
     """Serve until SIGINT/SIGTERM (or cancellation); ``ready(server)`` is called once listening.
 
     ``web``: also serve the instructor station on that port (:func:`start_web`).
     ``rtu`` (a serial device) with ``serial`` (:class:`~valve_emulator.device.rtu.SerialSettings`) serves the
     units on that line too; ``framer="rtu"`` makes the TCP port speak RTU frames.
 
-    ``opcua`` (a port) also serves the loops over OPC UA with ``opcua_security``; ``tls_port`` with
+    ``opcua`` (a port) also serves the loops over OPC UA with ``opcua_security`` (and ``opcua_history``
+    seconds of history); ``tls_port`` with
     ``tls_context`` (:func:`~valve_emulator.device.tls.server_context`) serves Modbus/TCP Security.
 
     SIGHUP reloads ``config_path`` (:func:`reload_config`); ``record`` records ``record_units`` (default
@@ -332,7 +347,7 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                 station_runner = await start_web(station, host=host, port=web, token=web_token)
             if opcua is not None:
                 opcua_server = await start_opcua(srv, station, config, host=host, port=opcua,
-                                                 security=opcua_security)
+                                                 security=opcua_security, history=opcua_history)
             recorder = TickRecorder(srv.device, record, units=record_units) if record is not None else None
             if recorder is not None:
                 await recorder.start()
@@ -369,11 +384,12 @@ def make_station(srv, *, snapshots: Path | None, backtrack: float):
                    backtrack=BacktrackRing(backtrack, 30) if backtrack > 0 else None)
 
 
-async def start_opcua(srv, station, config, *, host: str, port: int, security):
+async def start_opcua(srv, station, config, *, host: str, port: int, security, history: float | None = None):
     """Start the OPC UA server over ``srv``'s device (methods through ``station``); print its URL; return it."""
     from valve_emulator.opcua import OpcUaServer
 
-    server = OpcUaServer(srv.device, loops=config.loops, host=host, port=port, security=security, station=station)
+    server = OpcUaServer(srv.device, loops=config.loops, host=host, port=port, security=security, station=station,
+                         history=history)
     await server.start()
     print(f"valve-emulator: OPC UA at {server.url} (policies {', '.join(server.security.policies)})", flush=True)
     return server
@@ -429,13 +445,14 @@ def run(args: argparse.Namespace) -> int:
 
         serial = SerialSettings(baud=args.baud, parity=args.parity, stopbits=args.stopbits)
     opcua_port, security = opcua_settings(args, cfg)
+    opcua_history = opcua_history_seconds(args, opcua_port)
     tls_port, tls_context = tls_settings(args, cfg)
     runner(serve(cfg, host=args.host, port=port, time_scale=args.time_scale, config_path=args.config,
                  record=args.record, record_units=args.record_unit, read_only=args.read_only,
                  max_connections=args.max_connections, process=process, web=args.web,
                  web_token=args.web_token, snapshots=args.snapshots, backtrack=args.backtrack,
                  rtu=args.rtu, serial=serial, framer=args.framer, opcua=opcua_port,
-                 opcua_security=security, tls_port=tls_port, tls_context=tls_context))
+                 opcua_security=security, tls_port=tls_port, tls_context=tls_context, opcua_history=opcua_history))
     print("valve-emulator: stopped", flush=True)
     return 0
 

@@ -72,6 +72,7 @@ from valve_emulator.device.registers import (
     from_words,
 )
 from valve_emulator.device.registers.codec import decode_value
+from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
 from valve_emulator.opcua.units import eu_information
 from valve_emulator.opcua.users import RoleRuleset, StationUser, UsersFile
 
@@ -299,11 +300,17 @@ class OpcUaServer:
     security : :class:`OpcUaSecurity` (default: policy None, anonymous operators; loopback only).
     station : an instructor station (``station.core.Station``) whose actions the methods call; None: no
         methods.
+    history : keep the last ``history`` seconds of every loop's PV, OP, SP and MV for HistoryRead
+        (:mod:`~valve_emulator.opcua.history`), in SQLite at ``history_path`` (default in memory); None: none.
     """
 
     def __init__(self, device: Any, *, loops: Sequence[Any], host: str = "127.0.0.1", port: int = 0,
-                 security: OpcUaSecurity | None = None, station: Any = None) -> None:
+                 security: OpcUaSecurity | None = None, station: Any = None, history: float | None = None,
+                 history_path: str = ":memory:") -> None:
         self.device, self.loops, self.host, self.port = device, list(loops), host, int(port)
+        #: seconds of PV, OP, SP and MV kept for HistoryRead (None: no history), in SQLite at history_path
+        self.history, self.history_path = history, history_path
+        self._historized: list[ua.NodeId] = []
         self.security = security or OpcUaSecurity()
         self.security.check(host)
         self.station = station
@@ -445,8 +452,10 @@ class OpcUaServer:
         return item
 
     def _variable_item(self, parent: ua.NodeId, name: str, value: Any, variant: ua.VariantType, typedef: int, *,
-                       writable: bool = False, datatype: int | None = None, prop: bool = False) -> ua.AddNodesItem:
-        """A variable (or, ``prop``, a property) ``name`` of ``parent``; node id ``<parent id>.<name>``."""
+                       writable: bool = False, datatype: int | None = None, prop: bool = False,
+                       historizing: bool = False) -> ua.AddNodesItem:
+        """A variable (or, ``prop``, a property) ``name`` of ``parent``; node id ``<parent id>.<name>``;
+        ``historizing``: its history may be read (HistoryRead)."""
         item = ua.AddNodesItem()
         item.RequestedNewNodeId = self._node_id(f"{parent.Identifier}.{name}")
         item.BrowseName = ua.QualifiedName(name, 0 if prop else self.ns)
@@ -460,6 +469,9 @@ class OpcUaServer:
         attrs.Value = ua.Variant(value, variant)
         attrs.ValueRank = ua.ValueRank.Scalar
         access = ua.AccessLevel.CurrentRead.mask | (ua.AccessLevel.CurrentWrite.mask if writable else 0)
+        if historizing:
+            access |= ua.AccessLevel.HistoryRead.mask
+            attrs.Historizing = True
         attrs.AccessLevel = attrs.UserAccessLevel = access
         item.NodeAttributes = attrs
         return item
@@ -514,9 +526,12 @@ class OpcUaServer:
         obj = self._object_item(unit, f"{unit.Identifier}.{name}", name, loop_type)
         items = [obj]
         for var in VARIABLES:
+            historizing = self.history is not None and var.name in HISTORIZED
             node = self._variable_item(obj.RequestedNewNodeId, var.name, self.value(index, var), var.variant,
-                                       self._typedef(var), writable=var.write is not None)
+                                       self._typedef(var), writable=var.write is not None, historizing=historizing)
             items.append(node)
+            if historizing:
+                self._historized.append(node.RequestedNewNodeId)
             self.targets[node.RequestedNewNodeId] = (index, var)
             self._readers[node.RequestedNewNodeId] = self._reader(index, var, self._eu_range(loop, var)
                                                                   if var.analog else None)
@@ -725,6 +740,9 @@ class OpcUaServer:
         await self._add_methods(root)
         self._track_monitored_items()
         await server.start()
+        if self.history is not None:
+            await historize(server, self._historized, self.history, self.history_path)
+        refuse_unhistorized(server, set(self._historized))
         self.port = int(server.bserver.port)
         self._publisher = asyncio.get_running_loop().create_task(self._publish(), name="valve-emulator-opcua")
         _log.info("OPC UA on %s:%d", self.host, self.port)
