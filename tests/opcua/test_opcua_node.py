@@ -1,6 +1,6 @@
 """node-opcua-client (from the npm registry, installed by .ci/run into tests/opcua/node) against
-``valve-emulator serve --opcua``: browse, read, write OP, a refused write, a subscription; anonymous on loopback
-and Basic256Sha256 Sign&Encrypt with a user name."""
+``valve-emulator serve --opcua``: browse, read, units, status, write OP, a refused write, a subscription with its
+timestamps; anonymous on loopback and Basic256Sha256 Sign&Encrypt with a user name."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 from required import node_with
 
+import valve_emulator
 from valve_emulator.cli import main
 from valve_emulator.opcua import hash_password
 
@@ -18,6 +19,8 @@ from .test_opcua_interop import start_serve, stop
 
 NODE_DIR = Path(__file__).parent / "node"
 LOOP = "Unit1.concentration_undershoot"
+DEFAULT_DEVICE = Path(valve_emulator.__file__).parent / "data" / "default_device.yaml"
+CEFACT = "http://www.opcfoundation.org/UA/units/un/cefact"
 
 
 @pytest.fixture(scope="module")
@@ -43,17 +46,45 @@ def _check(seen: dict) -> None:
     assert seen["write_pv"] == "BadNotWritable"
     times = seen["time_notifications"]
     assert len(times) >= 5 and times == sorted(times) and times[-1] > times[0]   # time-scale 10: ~20 s in 2 s
+    # whole ticks of 0.1 s, as doubles: a float32 would be off by up to 1e-6 (1.2999999523 for 1.3)
+    assert all(abs(t * 10 - round(t * 10)) < 1e-9 for t in times), times
     pvs = seen["pv_notifications"]   # OP went to 61.5 % from the initial 50 %: the valve slips and PV follows
     assert len(pvs) >= 2 and len(set(pvs)) >= 2, pvs
+    # each notification is stamped with the wall-clock time of its tick (the simulated clock, 10 times faster,
+    # would run ahead), sent after it and received within the publishing interval and the tick period
+    for source, server, received in seen["time_stamps"]:
+        assert source <= server + 1 and server <= received + 50 and received - source < 1000, seen["time_stamps"]
+    assert seen["units"]["op"] == {"namespaceUri": CEFACT, "unitId": 20529, "displayName": "%"}   # P1 percent
+    assert seen["units"]["time"]["unitId"] == 5457219   # SEC second
 
 
 def test_node_opcua_anonymous_on_loopback(node):
     proc, url, _ = start_serve("--opcua", "0")
     try:
-        _check(run_node_client(node, url))
+        seen = run_node_client(node, url)
     finally:
         err = stop(proc)
     assert "Traceback" not in err, err[-2000:]
+    _check(seen)
+    assert seen["units"]["pv"] is None   # the default device's PV has no units: no EngineeringUnits at all
+
+
+def test_node_opcua_reads_unece_pv_units_and_an_uncertain_pv_outside_its_range(node, tmp_path):
+    """A loop in kg/h whose PV starts at 0, below its range 1..10: node-opcua reads the UNECE unit E93 and the
+    Uncertain status OPC UA gives a value outside its EURange."""
+    config = DEFAULT_DEVICE.read_text().replace("pv_range: [-10.0, 10.0]", 'pv_range: [1.0, 10.0]\n  units: "kg/h"')
+    assert 'units: "kg/h"' in config
+    (tmp_path / "plant.yaml").write_text(config)
+    proc, url, _ = start_serve(str(tmp_path / "plant.yaml"), "--opcua", "0")
+    try:
+        seen = run_node_client(node, url)
+    finally:
+        err = stop(proc)
+    assert "Traceback" not in err, err[-2000:]
+    _check(seen)
+    assert seen["units"]["pv"] == {"namespaceUri": CEFACT, "unitId": 4536627, "displayName": "kg/h"}   # E93
+    assert seen["pv"] < 1.0 and seen["pv_status"] == "UncertainEngineeringUnitsExceeded"
+    assert seen["pv_statuses"][0] == "UncertainEngineeringUnitsExceeded"
 
 
 def test_node_opcua_basic256sha256_with_a_user(node, tmp_path):

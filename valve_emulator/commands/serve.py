@@ -100,6 +100,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--opcua-users", type=Path, metavar="USERS.yaml",
                    help="users with hashed passwords and a role each (operator, instructor); without it anonymous "
                         "clients are operators")
+    g.add_argument("--opcua-history", metavar="DURATION",
+                   help="keep the last DURATION (600, 600s, 10m, 2h) of every loop's PV, OP, SP and MV for OPC UA "
+                        "HistoryRead (in memory, asyncua's SQLite history)")
     g.add_argument("--tls-port", type=int, metavar="PORT",
                    help="also serve Modbus/TCP Security (TLS, mutual authentication, roles) on this port "
                         "(802 by convention; 0 picks a free port)")
@@ -193,6 +196,17 @@ def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object
     return port, security
 
 
+def opcua_history_seconds(args: argparse.Namespace, opcua_port: int | None) -> float | None:
+    """``--opcua-history`` in seconds (None without it); it needs OPC UA."""
+    if args.opcua_history is None:
+        return None
+    if opcua_port is None:
+        raise UserError("--opcua-history needs OPC UA: give --opcua PORT (or the config's opcua.port)")
+    from valve_emulator.opcua.history import history_seconds
+
+    return history_seconds(args.opcua_history)
+
+
 def tls_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
     """The Modbus/TCP Security port and its TLS context: the flags over the config's ``tls`` section."""
     sec = config.tls
@@ -247,8 +261,9 @@ async def _start_opcua(srv, station, config, args: argparse.Namespace, *, port: 
     stop."""
     from valve_emulator.opcua import OpcUaServer
 
+    history = opcua_history_seconds(args, port)
     server = OpcUaServer(srv.device, loops=config.loops, host=args.host, port=port, security=security,
-                         station=station)
+                         station=station, history=history)
     with opening(f"--opcua {port} on {args.host}"):
         await server.start()
     print(f"valve-emulator: OPC UA at {server.url} (policies {', '.join(server.security.policies)})", flush=True)
@@ -304,6 +319,7 @@ def _run(args: argparse.Namespace) -> int:
 
         serial = SerialSettings(baud=args.baud, parity=args.parity, stopbits=args.stopbits)
     opcua_port, security = opcua_settings(args, cfg)
+    opcua_history_seconds(args, opcua_port)  # refuse a bad --opcua-history before anything starts
     tls_port, tls_context = tls_settings(args, cfg)
     runner(serve(cfg, host=args.host, port=port, time_scale=args.time_scale, config_path=args.config,
                  record=args.record, record_units=args.record_unit, read_only=args.read_only,

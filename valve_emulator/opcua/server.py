@@ -11,9 +11,9 @@ Address space (namespace ``urn:valve-emulator``)::
         │                                     InjectMalfunction (instructors only)
         └── Unit1                             one object per Modbus unit id
             └── FIC101   (LoopType)           one object per loop; the type is defined once under
-                ├── op, mv, flow, S, J, load  ObjectTypes/BaseObjectType/LoopType
-                ├── pv, sp, noise             AnalogItemType, Double, engineering units, EURange
-                ├── kc, ti, td, time          AnalogItemType, Double
+                ├── op, mv, flow, S, J, load  ObjectTypes/BaseObjectType/LoopType; AnalogItemType, Double,
+                ├── pv, sp, noise             EngineeringUnits, EURange
+                ├── kc, ti, td, time          AnalogItemType, Double, EngineeringUnits
                 ├── mode, status, fault, map_version, tick, overruns    BaseDataVariableType (integers)
                 └── stuck, moving, sat_low, sat_high, seized            TwoStateDiscreteType (Boolean)
 
@@ -30,9 +30,12 @@ Writes answer:
 - ``BadUserAccessDenied``: an instructor variable written by an operator;
 - ``BadOutOfRange``: a value the register refuses (the Modbus ``0x03``); ``BadTypeMismatch``: not a number.
 
-Values are read at request time from the register image (so a read sees a write at once, as over Modbus);
-subscriptions are fed after every tick with the values that changed. ``SourceTimestamp`` is the simulated
-time: the wall-clock time the server started plus the simulated seconds.
+Values are read at request time from the register image (so a read sees a write at once, as over Modbus),
+float32 registers as the double the tick computed (:meth:`OpcUaServer.value`); subscriptions are fed after
+every tick with the values that changed. Each analog item has EngineeringUnits with its UNECE code
+(:mod:`~valve_emulator.opcua.units`) and, where it has one, an EURange; a value outside it is
+``UncertainEngineeringUnitsExceeded``. ``SourceTimestamp`` is the wall-clock time of the tick that made the
+value (:class:`TickClock`), ``ServerTimestamp`` the time it was read or sent.
 """
 
 from __future__ import annotations
@@ -45,10 +48,11 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from asyncua import Server, ua
 from asyncua.server.address_space import AttributeService
 
@@ -69,6 +73,8 @@ from valve_emulator.device.registers import (
 )
 from valve_emulator.device.registers.codec import decode_value
 from valve_emulator.errors import UserError
+from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
+from valve_emulator.opcua.units import eu_information
 from valve_emulator.opcua.users import RoleRuleset, StationUser, UsersFile
 
 __all__ = ["OpcUaServer", "OpcUaSecurity", "NAMESPACE", "VARIABLES", "BITS", "OpcUaError"]
@@ -88,15 +94,20 @@ class OpcUaError(UserError):
     """A server that must not start as configured (e.g. bound beyond loopback without security)."""
 
 
+#: The unit text of a variable in its loop's PV units (``plant.units``).
+PV_UNITS = "PV units"
+_PERCENT_UNITS = ("% travel", "% flow")
+
+
 @dataclass(frozen=True)
 class Variable:
-    """One OPC UA variable of a loop: ``name`` (BrowseName), the register it is read from and the one it is
-    written through (None: read-only), its units (``PV units`` resolves to the loop's) and data type."""
+    """One OPC UA variable of a loop: ``name`` (BrowseName), the quantity's 16-bit register (``first``), the
+    register it is read from and the one it is written through (None: read-only), and its data type."""
 
     name: str
+    first: Register
     read: Register
     write: Register | None
-    units: str
     analog: bool
 
     @property
@@ -109,6 +120,23 @@ class Variable:
     def instructor(self) -> bool:
         return self.write is not None and self.write.access is RW_INSTRUCTOR
 
+    @property
+    def units(self) -> str:
+        """The unit the value is served in: :data:`PV_UNITS` for a PV-scaled quantity, else the register's
+        unit without its remark (``ti``'s "s (0 = no integral)" is in "s")."""
+        if self.first.conversion in (Conversion.PV_RANGE, Conversion.PV_SPAN) or self.read.units == PV_UNITS:
+            return PV_UNITS
+        units = self.read.units if self.read.type is DataType.FLOAT32 else self.first.units
+        return units.split(" (")[0]
+
+    @property
+    def percent_range(self) -> tuple[float, float] | None:
+        """The range of a % travel or % flow quantity: what its 16-bit register takes (written) or shows."""
+        if self.units not in _PERCENT_UNITS:
+            return None
+        lo, hi = self.first.write if self.first.access is not R else self.first.read_range
+        return lo / self.first.scale, hi / self.first.scale
+
 
 def _variables() -> tuple[Variable, ...]:
     """One :class:`Variable` per quantity of the register map, in the map's order."""
@@ -119,8 +147,7 @@ def _variables() -> tuple[Variable, ...]:
         read = next((r for r in showing if r.type is DataType.FLOAT32), first)
         write = next((r for r in showing if r.access is not R), None)
         analog = read.type is DataType.FLOAT32 or (first.scale > 1 and first.conversion is not Conversion.BITS)
-        out.append(Variable(name=first.name.removesuffix("_pct"), read=read, write=write,
-                            units=read.units if read.type is DataType.FLOAT32 else first.units, analog=analog))
+        out.append(Variable(name=first.name.removesuffix("_pct"), first=first, read=read, write=write, analog=analog))
     return tuple(out)
 
 
@@ -135,11 +162,6 @@ BITS: dict[str, tuple[Status, str, str]] = {
     "seized": (Status.SEIZED, "seized", "free"),
 }
 _STATUS = next(v for v in VARIABLES if v.name == "status")
-
-# UNECE codes (OPC UA Part 8, EUInformation) of the units the map uses.
-_UNECE = {"%": (20529, "%"), "% travel": (20529, "%"), "% flow": (20529, "%"), "s": (21315, "s"), "mA": (4747521, "mA"),
-          "m": (5067858, "m"), "bar": (4342098, "bar"), "degC": (4408652, "°C"), "kg/h": (4933448, "kg/h")}
-
 
 @dataclass(frozen=True)
 class OpcUaSecurity:
@@ -170,6 +192,32 @@ class OpcUaSecurity:
             raise OpcUaError(f"opcua: refusing to listen on {host!r} (beyond loopback) without security: configure "
                              f"a secure policy ({', '.join(SECURE_POLICIES)}, Sign&Encrypt), a certificate and a "
                              "users file, and drop policy None")
+
+
+_GOOD = ua.StatusCode(ua.StatusCodes.Good)
+#: The status of an analog value outside its EURange (OPC UA Part 8: the value is outside the range defined for it).
+_EU_EXCEEDED = ua.StatusCode(ua.StatusCodes.UncertainEngineeringUnitsExceeded)
+
+
+class TickClock:
+    """The wall-clock time of the tick that made the values served now: the SourceTimestamp.
+
+    A tick is stamped when the server first sees it -- the publisher waits for every tick and wakes right after
+    it, and a read between the two stamps it itself -- so the stamp is the tick's time to within the event
+    loop's latency, without a callback in the tick (``Device.on_tick`` would keep ``Device.advance`` from
+    running quiet ticks as one compiled call). A restored snapshot counts as a new tick."""
+
+    def __init__(self, device: Any) -> None:
+        self.device = device
+        self._seen: tuple[int, float] | None = None
+        self._at = datetime.now(UTC)
+
+    def stamp(self) -> datetime:
+        """When the current tick ran (the first time this clock saw it)."""
+        seen = (self.device.ticks, float(self.device.bank.sample_time))
+        if seen != self._seen:
+            self._seen, self._at = seen, datetime.now(UTC)
+        return self._at
 
 
 class _SharedDataValue(ua.DataValue):
@@ -253,11 +301,17 @@ class OpcUaServer:
     security : :class:`OpcUaSecurity` (default: policy None, anonymous operators; loopback only).
     station : an instructor station (``station.core.Station``) whose actions the methods call; None: no
         methods.
+    history : keep the last ``history`` seconds of every loop's PV, OP, SP and MV for HistoryRead
+        (:mod:`~valve_emulator.opcua.history`), in SQLite at ``history_path`` (default in memory); None: none.
     """
 
     def __init__(self, device: Any, *, loops: Sequence[Any], host: str = "127.0.0.1", port: int = 0,
-                 security: OpcUaSecurity | None = None, station: Any = None) -> None:
+                 security: OpcUaSecurity | None = None, station: Any = None, history: float | None = None,
+                 history_path: str = ":memory:") -> None:
         self.device, self.loops, self.host, self.port = device, list(loops), host, int(port)
+        #: seconds of PV, OP, SP and MV kept for HistoryRead (None: no history), in SQLite at history_path
+        self.history, self.history_path = history, history_path
+        self._historized: list[ua.NodeId] = []
         self.security = security or OpcUaSecurity()
         self.security.check(host)
         self.station = station
@@ -269,7 +323,8 @@ class OpcUaServer:
         self.node_ids: set[ua.NodeId] = set()
         self._monitored: list[tuple[Any, int, Callable[[int], ua.DataValue]]] = []
         self._sent: dict[int, Any] = {}
-        self._epoch = datetime.now(UTC)
+        #: when the tick that made the served values ran (their SourceTimestamp)
+        self.tick_clock = TickClock(device)
         self._publisher: asyncio.Task | None = None
         self._log_filter = RepeatFilter()
         self._active: list[tuple[Any, int, Callable[[], ua.DataValue]]] = []
@@ -290,26 +345,57 @@ class OpcUaServer:
         return [int.from_bytes(raw[k:k + 2], "big") for k in range(0, len(raw), 2)]
 
     def value(self, index: int, var: Variable) -> float | int:
-        """The variable's value now, from the register image, in engineering units."""
+        """The variable's value now, in engineering units: the register image's (so a write shows at once), as
+        the double the tick computed where the image holds it as float32 (see :meth:`_double`)."""
         words = self._words(index, var.read)
         if var.read.width == 2:   # float32, or a counter, in the device's word order
             value = from_words(words, var.read.type, self.device.scaling.word_order)
-            return float(value) if var.read.type is DataType.FLOAT32 else int(value)
+            return self._double(index, var, value) if var.read.type is DataType.FLOAT32 else int(value)
         raw = words[0] - 65536 if var.read.type is DataType.INT16 and words[0] >= 32768 else words[0]
         value = decode_value(var.read, raw, self.device.scaling, index)
         if var.analog:
             return float(value) if math.isfinite(value) else 0.0
         return int(value)
 
-    def _timestamp(self) -> datetime:
-        return self._epoch + timedelta(seconds=float(self.device.bank.sample_time))
+    def _double(self, index: int, var: Variable, image: float) -> float:
+        """A float32 register's value as a double without float32 artefacts (``time`` 1.3, not 1.2999999523).
 
-    def _data_value(self, value: Any, variant: ua.VariantType) -> ua.DataValue:
-        return _SharedDataValue(Value=ua.Variant(value, variant), SourceTimestamp=self._timestamp(),
-                                ServerTimestamp=datetime.now(UTC))
+        The tick encodes the bank's doubles as float32; where the bank's double still encodes to the image's
+        float32 it is the value, at full precision. Where they differ a write has changed the image since the
+        tick: then the shortest decimal that reads back as that float32 (the written 61.3, not 61.29999924)."""
+        single = np.float32(image)
+        computed = self._computed(index, var.first.quantity)
+        if computed is not None and np.float32(computed) == single:
+            return computed
+        return float(str(single))
 
-    def _reader(self, index: int, var: Variable) -> Callable[..., ua.DataValue]:
-        return lambda *_: self._data_value(self.value(index, var), var.variant)
+    def _computed(self, index: int, quantity: str) -> float | None:
+        """The double the last tick computed for a quantity the register image holds as float32."""
+        bank = self.device.bank
+        if quantity == "time":
+            return float(bank.sample_time)
+        if quantity == "sp" and not bank.has_controller[index]:
+            return 0.0   # the controller's registers read 0 on a loop without one
+        values = getattr(bank, quantity, None)
+        return None if values is None else float(values[index])
+
+    def _data_value(self, value: Any, variant: ua.VariantType, status: ua.StatusCode | None = None) -> ua.DataValue:
+        """The DataValue of a read or a notification: SourceTimestamp the tick that made the value, ServerTimestamp
+        now."""
+        return _SharedDataValue(Value=ua.Variant(value, variant), StatusCode=status or _GOOD,
+                                SourceTimestamp=self.tick_clock.stamp(), ServerTimestamp=datetime.now(UTC))
+
+    def _reader(self, index: int, var: Variable, eu_range: tuple[float, float] | None) -> Callable[..., ua.DataValue]:
+        """The reader of an analog or integer variable; a value outside ``eu_range`` is Uncertain."""
+        if eu_range is None:
+            return lambda *_: self._data_value(self.value(index, var), var.variant)
+        lo, hi = eu_range
+
+        def read(*_: Any) -> ua.DataValue:
+            value = self.value(index, var)
+            return self._data_value(value, var.variant, None if lo <= value <= hi else _EU_EXCEEDED)
+
+        return read
 
     def _bit_reader(self, index: int, bit: Status) -> Callable[..., ua.DataValue]:
         return lambda *_: self._data_value(bool(int(self.value(index, _STATUS)) & int(bit)), ua.VariantType.Boolean)
@@ -367,8 +453,10 @@ class OpcUaServer:
         return item
 
     def _variable_item(self, parent: ua.NodeId, name: str, value: Any, variant: ua.VariantType, typedef: int, *,
-                       writable: bool = False, datatype: int | None = None, prop: bool = False) -> ua.AddNodesItem:
-        """A variable (or, ``prop``, a property) ``name`` of ``parent``; node id ``<parent id>.<name>``."""
+                       writable: bool = False, datatype: int | None = None, prop: bool = False,
+                       historizing: bool = False) -> ua.AddNodesItem:
+        """A variable (or, ``prop``, a property) ``name`` of ``parent``; node id ``<parent id>.<name>``;
+        ``historizing``: its history may be read (HistoryRead)."""
         item = ua.AddNodesItem()
         item.RequestedNewNodeId = self._node_id(f"{parent.Identifier}.{name}")
         item.BrowseName = ua.QualifiedName(name, 0 if prop else self.ns)
@@ -382,6 +470,9 @@ class OpcUaServer:
         attrs.Value = ua.Variant(value, variant)
         attrs.ValueRank = ua.ValueRank.Scalar
         access = ua.AccessLevel.CurrentRead.mask | (ua.AccessLevel.CurrentWrite.mask if writable else 0)
+        if historizing:
+            access |= ua.AccessLevel.HistoryRead.mask
+            attrs.Historizing = True
         attrs.AccessLevel = attrs.UserAccessLevel = access
         item.NodeAttributes = attrs
         return item
@@ -394,17 +485,24 @@ class OpcUaServer:
                 result.StatusCode.check()
                 self.node_ids.add(result.AddedNodeId)
 
-    def _eu_range(self, loop: Any, var: Variable) -> tuple[float, float] | None:
-        if "PV" in var.units or "pv_range" in var.units:
-            return tuple(map(float, loop.plant.pv_range))
-        if "%" in var.units:
-            return (0.0, 100.0)
-        return None
+    @staticmethod
+    def _eu_range(loop: Any, var: Variable) -> tuple[float, float] | None:
+        """The EURange: ``plant.pv_range`` for PV and SP, 0 .. its span for a width in PV units (noise), the
+        register's range for a % travel / % flow quantity; None for the others (tuning, time)."""
+        lo, hi = map(float, loop.plant.pv_range)
+        if var.first.conversion is Conversion.PV_SPAN:
+            return 0.0, hi - lo
+        if var.units == PV_UNITS:
+            return lo, hi
+        return var.percent_range
 
-    def _units(self, loop: Any, var: Variable) -> str:
-        if "PV units" in var.units or var.name == "noise":
-            return str(loop.plant.units)
-        return var.units
+    @staticmethod
+    def _units(loop: Any, var: Variable) -> str:
+        """The variable's unit text: the loop's PV units in place of "PV units" ("% per PV unit" for kc)."""
+        pv_units = str(loop.plant.units).strip()
+        if var.units == PV_UNITS:
+            return pv_units
+        return var.units.replace("PV unit", pv_units) if pv_units else var.units
 
     @staticmethod
     def _typedef(var: Variable) -> int:
@@ -429,24 +527,17 @@ class OpcUaServer:
         obj = self._object_item(unit, f"{unit.Identifier}.{name}", name, loop_type)
         items = [obj]
         for var in VARIABLES:
+            historizing = self.history is not None and var.name in HISTORIZED
             node = self._variable_item(obj.RequestedNewNodeId, var.name, self.value(index, var), var.variant,
-                                       self._typedef(var), writable=var.write is not None)
+                                       self._typedef(var), writable=var.write is not None, historizing=historizing)
             items.append(node)
+            if historizing:
+                self._historized.append(node.RequestedNewNodeId)
             self.targets[node.RequestedNewNodeId] = (index, var)
-            self._readers[node.RequestedNewNodeId] = self._reader(index, var)
+            self._readers[node.RequestedNewNodeId] = self._reader(index, var, self._eu_range(loop, var)
+                                                                  if var.analog else None)
             if var.analog:
-                rng = self._eu_range(loop, var)
-                if rng is not None:
-                    items.append(self._variable_item(node.RequestedNewNodeId, "EURange", ua.Range(Low=rng[0],
-                                                     High=rng[1]), ua.VariantType.ExtensionObject, 0,
-                                                     datatype=ua.ObjectIds.Range, prop=True))
-                units = self._units(loop, var)
-                code, symbol = _UNECE.get(units, (-1, units))
-                eu = ua.EUInformation(NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact", UnitId=code,
-                                      DisplayName=ua.LocalizedText(symbol), Description=ua.LocalizedText(units))
-                items.append(self._variable_item(node.RequestedNewNodeId, "EngineeringUnits", eu,
-                                                 ua.VariantType.ExtensionObject, 0, datatype=ua.ObjectIds.EUInformation,
-                                                 prop=True))
+                items += self._analog_properties(node.RequestedNewNodeId, loop, var)
         for bit_name, (bit, true_state, false_state) in BITS.items():
             node = self._variable_item(obj.RequestedNewNodeId, bit_name, False, ua.VariantType.Boolean,
                                        ua.ObjectIds.TwoStateDiscreteType)
@@ -455,6 +546,20 @@ class OpcUaServer:
             for prop, text in (("TrueState", true_state), ("FalseState", false_state)):
                 items.append(self._variable_item(node.RequestedNewNodeId, prop, ua.LocalizedText(text),
                                                  ua.VariantType.LocalizedText, 0, prop=True))
+        return items
+
+    def _analog_properties(self, node: ua.NodeId, loop: Any, var: Variable) -> list[ua.AddNodesItem]:
+        """EURange (where the variable has one) and EngineeringUnits (where it has units) of an analog item."""
+        items = []
+        rng = self._eu_range(loop, var)
+        if rng is not None:
+            items.append(self._variable_item(node, "EURange", ua.Range(Low=rng[0], High=rng[1]),
+                                             ua.VariantType.ExtensionObject, 0, datatype=ua.ObjectIds.Range,
+                                             prop=True))
+        eu = eu_information(self._units(loop, var), own_namespace=NAMESPACE)
+        if eu is not None:
+            items.append(self._variable_item(node, "EngineeringUnits", eu, ua.VariantType.ExtensionObject, 0,
+                                             datatype=ua.ObjectIds.EUInformation, prop=True))
         return items
 
     def _serve_values(self) -> None:
@@ -535,6 +640,7 @@ class OpcUaServer:
         clock = time.perf_counter
         while True:
             seen = await device.wait_for_tick(seen + 1)
+            self.tick_clock.stamp()   # the tick just ran: its time is now
             if self._dirty:
                 self._dirty, at = False, 0
                 self._active = [entry for entry in self._monitored if entry[0].datachange_callbacks]
@@ -635,6 +741,9 @@ class OpcUaServer:
         await self._add_methods(root)
         self._track_monitored_items()
         await server.start()
+        if self.history is not None:
+            await historize(server, self._historized, self.history, self.history_path)
+        refuse_unhistorized(server, set(self._historized))
         self.port = int(server.bserver.port)
         self._publisher = asyncio.get_running_loop().create_task(self._publish(), name="valve-emulator-opcua")
         _log.info("OPC UA on %s:%d", self.host, self.port)

@@ -1,6 +1,7 @@
 // An OPC UA client written independently of the emulator (node-opcua), run by tests/opcua/test_opcua_node.py:
-// browse a loop, read PV, write OP (the loop has no controller, so OP is the operator's), subscribe to PV,
-// optionally over Basic256Sha256 Sign&Encrypt with a user name. Prints one JSON line with what it saw.
+// browse a loop, read PV (its status) and the EngineeringUnits of PV, OP and time, write OP (the loop has no
+// controller, so OP is the operator's), subscribe to PV and time (values, statuses, timestamps), optionally over
+// Basic256Sha256 Sign&Encrypt with a user name. Prints one JSON line with what it saw.
 //   node client.mjs URL LOOP_PATH [--secure USER PASSWORD]
 import {
   AttributeIds, ClientMonitoredItem, ClientSubscription, DataType, MessageSecurityMode, OPCUAClient,
@@ -28,6 +29,14 @@ try {
   out.children = browsed.references.map((r) => r.browseName.name);
   const pv = await session.read({ nodeId: `${loop}.pv`, attributeId: AttributeIds.Value });
   out.pv = pv.value.value;
+  out.pv_status = pv.statusCode.name;
+  // the EngineeringUnits property of some analog items, found by browsing as a SCADA does
+  out.units = {};
+  for (const name of ["pv", "op", "time"]) {
+    const ref = (await session.browse(`${loop}.${name}`)).references.find((r) => r.browseName.name === "EngineeringUnits");
+    const eu = ref ? (await session.read({ nodeId: ref.nodeId, attributeId: AttributeIds.Value })).value.value : null;
+    out.units[name] = eu && { namespaceUri: eu.namespaceUri, unitId: eu.unitId, displayName: eu.displayName.text };
+  }
   const written = await session.write({
     nodeId: `${loop}.op`, attributeId: AttributeIds.Value, value: { value: { dataType: DataType.Double, value: 61.5 } },
   });
@@ -47,7 +56,13 @@ try {
     const item = ClientMonitoredItem.create(subscription, { nodeId: `${loop}.${name}`, attributeId: AttributeIds.Value },
       { samplingInterval: 100, discardOldest: true, queueSize: 10 }, TimestampsToReturn.Both);
     out[`${name}_notifications`] = [];
-    item.on("changed", (dv) => out[`${name}_notifications`].push(dv.value.value));
+    out[`${name}_statuses`] = [];
+    out[`${name}_stamps`] = [];   // [SourceTimestamp, ServerTimestamp, received], ms since the epoch
+    item.on("changed", (dv) => {
+      out[`${name}_notifications`].push(dv.value.value);
+      out[`${name}_statuses`].push(dv.statusCode.name);
+      out[`${name}_stamps`].push([dv.sourceTimestamp.getTime(), dv.serverTimestamp.getTime(), Date.now()]);
+    });
   }
   await new Promise((resolve) => setTimeout(resolve, 2000));
   await subscription.terminate();
