@@ -14,6 +14,7 @@ from valve_emulator.clients._modbus import Link, Point, Reader, parse_point
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import N_REGISTERS
 from valve_emulator.device.server import EmulatorServer
+from valve_emulator.errors import UserError
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 
@@ -33,7 +34,7 @@ def test_parse_register_names_and_addresses():
     ("holding:1:uint16:0", "nonzero"), ("holding:1:bit16", "bit0..bit15"), ("hr:65535:float32", "past address"),
 ])
 def test_bad_specs_name_the_flag(text, message):
-    with pytest.raises(ValueError, match=rf"--thing: .*{message}"):
+    with pytest.raises(UserError, match=rf"--thing: .*{message}"):
         parse_point(text, what="--thing")
 
 
@@ -60,9 +61,9 @@ def test_scaled_int16_round_trips(raw):
 
 
 def test_encode_refuses_what_the_type_cannot_hold():
-    with pytest.raises(ValueError, match="outside uint16"):
+    with pytest.raises(UserError, match="outside uint16"):
         parse_point("op_pct").encode(700.0)
-    with pytest.raises(ValueError, match="only holding registers"):
+    with pytest.raises(UserError, match="only holding registers"):
         parse_point("input:2").encode(1.0)
 
 
@@ -73,7 +74,7 @@ def test_channels_from_flags():
                                           "--no-extras"]))
     assert ch.sp == 2.5 and ch.mv is None and list(ch.extras) == ["valve"] and ch.status is None
     assert set(emulator_channels().points()) >= {"t", "sp", "op", "mv", "pv", "status", "extra:stuck"}
-    with pytest.raises(ValueError, match="--extra: 'op' is a standard column"):
+    with pytest.raises(UserError, match="--extra: 'op' is a standard column"):
         channels_from_args(p.parse_args(["--extra", "op=hr:0"]))
 
 

@@ -19,6 +19,7 @@ from valve_emulator.clients.pi_controller import (
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import address_of
 from valve_emulator.device.server import EmulatorServer
+from valve_emulator.errors import UserError
 from valve_emulator.physics.controller import PID
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
@@ -72,7 +73,7 @@ def test_settings_merge_defaults_file_and_flags(tmp_path):
 def test_bad_settings_name_the_setting(tmp_path, capsys, text, flags, message):
     f = tmp_path / "plc.yaml"
     f.write_text(text)
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(UserError, match=message):
         settings_from_args(build_parser().parse_args(["--config", str(f), *flags]))
     assert main(["--config", str(f), *flags]) == 2
     assert "pi_controller: error:" in capsys.readouterr().err

@@ -107,7 +107,7 @@ def test_bad_flags_and_no_device(tmp_path, capsys):
     assert main(["--out", str(out), "--pv", "coils:3"]) == 2
     assert "--pv: 'coils:3'" in capsys.readouterr().err
     assert main(["--out", str(out), "--period", "0"]) == 2
-    assert main(["--out", str(out), "--step", "1", "--time", "none"]) == 1
+    assert main(["--out", str(out), "--step", "1", "--time", "none"]) == 2     # a bad flag combination
     assert "needs the --time channel" in capsys.readouterr().err
     port = free_port()
     assert main(["--out", str(out), "--port", str(port), "--timeout", "0.5"]) == 1

@@ -31,6 +31,7 @@ from typing import Final
 
 from valve_emulator.clients._modbus import Point, Reader, parse_point
 from valve_emulator.device.registers import Status
+from valve_emulator.errors import UserError
 
 __all__ = ["EXTRAS", "Channels", "add_channel_arguments", "channels_from_args", "emulator_channels"]
 
@@ -111,7 +112,7 @@ def _optional(text: str, what: str) -> Point | None:
 
 
 def channels_from_args(args: argparse.Namespace) -> Channels:
-    """Channels from the flags of :func:`add_channel_arguments`; ``ValueError`` naming the flag."""
+    """Channels from the flags of :func:`add_channel_arguments`; ``UserError`` naming the flag."""
     sp: Point | float | None
     try:
         sp = float(args.sp)
@@ -119,7 +120,7 @@ def channels_from_args(args: argparse.Namespace) -> Channels:
         sp = _optional(args.sp, "--sp")
     else:
         if not math.isfinite(sp):
-            raise ValueError(f"--sp: a constant set point must be finite, got {args.sp!r}")
+            raise UserError(f"--sp: a constant set point must be finite, got {args.sp!r}")
     extras: dict[str, Point] = {}
     if not args.no_extras:
         extras.update({k: parse_point(v, what=f"extra {k}") for k, v in EXTRAS.items()})
@@ -127,12 +128,12 @@ def channels_from_args(args: argparse.Namespace) -> Channels:
         name, sep, spec = item.partition("=")
         name = name.strip()
         if not sep or not name or any(c in name for c in ',"\r\n'):
-            raise ValueError(f"--extra: expected NAME=SPEC with a plain column name, got {item!r}")
+            raise UserError(f"--extra: expected NAME=SPEC with a plain column name, got {item!r}")
         if name in CORE_DEFAULTS:
-            raise ValueError(f"--extra: {name!r} is a standard column; use --{name if name != 't' else 'time'}")
+            raise UserError(f"--extra: {name!r} is a standard column; use --{name if name != 't' else 'time'}")
         extras[name] = parse_point(spec, what=f"--extra {name}")
     if args.max_gap < 0:
-        raise ValueError(f"--max-gap must be >= 0, got {args.max_gap}")
+        raise UserError(f"--max-gap must be >= 0, got {args.max_gap}")
     # The emulator's status word is read along with its defaults (sp served? valve stuck or seized?).
     emulator = args.sp == CORE_DEFAULTS["sp"] or not args.no_extras
     return Channels(t=_optional(args.time, "--time"), sp=sp, op=parse_point(args.op, what="--op"),

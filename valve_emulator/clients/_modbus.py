@@ -49,6 +49,7 @@ from valve_emulator.device.registers import (
     from_words,
     to_words,
 )
+from valve_emulator.errors import UserError
 
 __all__ = [
     "ABCD",
@@ -58,7 +59,7 @@ __all__ = [
     "Point",
     "Reader",
     "Link",
-    "DeviceError",
+    "DeviceError", "DeviceTimeError",
     "parse_point",
     "add_connection_arguments",
     "check_connection_arguments",
@@ -70,6 +71,10 @@ _TABLES: Final = {"holding": "holding", "hr": "holding", "input": "input", "ir":
 _EXCEPTIONS: Final = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                       4: "server device failure", 6: "server busy", 10: "gateway path unavailable",
                       11: "gateway target device failed to respond"}
+
+
+class DeviceTimeError(OSError):
+    """The device's time went backwards under a recording (it restarted)."""
 
 
 class DeviceError(OSError):
@@ -112,21 +117,21 @@ class Point:
         return (float(raw) - self.offset) / self.scale
 
     def encode(self, value: float, word_order: str = ABCD) -> list[int]:
-        """Raw words for ``value``; ``ValueError`` naming the point when it does not fit the type."""
+        """Raw words for ``value``; ``UserError`` naming the point when it does not fit the type."""
         if self.bit is not None or self.table != "holding":
-            raise ValueError(f"{self.text or self}: only holding registers (not bits) can be written")
+            raise UserError(f"{self.text or self}: only holding registers (not bits) can be written")
         raw: float = value * self.scale + self.offset
         limits = DataType(self.type).raw_range
         if limits is not None:
             raw = int(round(raw))
             lo, hi = limits
             if not lo <= raw <= hi:
-                raise ValueError(f"{self.text}: {value!r} gives raw {raw}, outside {self.type} {lo}..{hi}")
+                raise UserError(f"{self.text}: {value!r} gives raw {raw}, outside {self.type} {lo}..{hi}")
         return to_words(raw, self.type, word_order)
 
 
 def parse_point(text: str, *, what: str = "register") -> Point:
-    """Parse a SPEC (module docstring); ``ValueError`` naming ``what`` and the text when it is wrong."""
+    """Parse a SPEC (module docstring); ``UserError`` naming ``what`` and the text when it is wrong."""
     spec = text.strip()
     named = {r.name: r for r in REGISTERS}
     if spec in named:
@@ -135,36 +140,36 @@ def parse_point(text: str, *, what: str = "register") -> Point:
     bad = (f"{what}: {text!r} is neither a register of the emulator's map ({', '.join(named)}) nor "
            "TABLE:ADDRESS[:TYPE[:SCALE[:OFFSET]]] / TABLE:ADDRESS:bitN with TABLE holding|hr|input|ir")
     if len(parts) < 2 or parts[0].lower() not in _TABLES:
-        raise ValueError(bad)
+        raise UserError(bad)
     table = _TABLES[parts[0].lower()]
     try:
         address = int(parts[1], 0)
     except ValueError:
-        raise ValueError(f"{what}: address {parts[1]!r} in {text!r} is not an integer") from None
+        raise UserError(f"{what}: address {parts[1]!r} in {text!r} is not an integer") from None
     if not 0 <= address <= 0xFFFF:
-        raise ValueError(f"{what}: address {address} in {text!r} is outside 0..65535")
+        raise UserError(f"{what}: address {address} in {text!r} is outside 0..65535")
     if len(parts) == 3 and parts[2].lower().startswith("bit"):
         try:
             bit = int(parts[2][3:])
         except ValueError:
             bit = -1
         if not 0 <= bit <= 15:
-            raise ValueError(f"{what}: {parts[2]!r} in {text!r} must be bit0..bit15")
+            raise UserError(f"{what}: {parts[2]!r} in {text!r} must be bit0..bit15")
         return Point(table, address, "uint16", 1.0, 0.0, bit, spec)
     kind = parts[2].lower() if len(parts) > 2 and parts[2] else "uint16"
     if kind not in TYPES:
-        raise ValueError(f"{what}: type {kind!r} in {text!r} must be one of {', '.join(TYPES)}")
+        raise UserError(f"{what}: type {kind!r} in {text!r} must be one of {', '.join(TYPES)}")
     if len(parts) > 5:
-        raise ValueError(bad)
+        raise UserError(bad)
     try:
         scale = float(parts[3]) if len(parts) > 3 and parts[3] else 1.0
         offset = float(parts[4]) if len(parts) > 4 and parts[4] else 0.0
     except ValueError:
-        raise ValueError(f"{what}: scale/offset in {text!r} must be numbers") from None
+        raise UserError(f"{what}: scale/offset in {text!r} must be numbers") from None
     if not (math.isfinite(scale) and scale != 0 and math.isfinite(offset)):
-        raise ValueError(f"{what}: scale must be finite and nonzero, offset finite, in {text!r}")
+        raise UserError(f"{what}: scale must be finite and nonzero, offset finite, in {text!r}")
     if address + TYPES[kind][0] > 0x10000:
-        raise ValueError(f"{what}: {text!r} runs past address 65535")
+        raise UserError(f"{what}: {text!r} runs past address 65535")
     return Point(table, address, kind, scale, offset, None, spec)
 
 
@@ -262,9 +267,9 @@ class Reader:
         try:
             order = WordOrder(word_order)
         except ValueError:
-            raise ValueError(f"word order must be ABCD or CDAB, got {word_order!r}") from None
+            raise UserError(f"word order must be ABCD or CDAB, got {word_order!r}") from None
         if max_gap < 0:
-            raise ValueError(f"max_gap must be >= 0, got {max_gap}")
+            raise UserError(f"max_gap must be >= 0, got {max_gap}")
         self.points = dict(points)
         self.word_order = order
         self.max_gap = max_gap
@@ -308,10 +313,10 @@ def add_connection_arguments(p: argparse.ArgumentParser, *, defaults: bool = Tru
 
 
 def check_connection_arguments(args: argparse.Namespace) -> None:
-    """``ValueError`` naming the flag for an impossible connection setting."""
+    """``UserError`` naming the flag for an impossible connection setting."""
     if not 0 <= args.port <= 65535:
-        raise ValueError(f"--port must be 0..65535, got {args.port}")
+        raise UserError(f"--port must be 0..65535, got {args.port}")
     if not 0 <= args.unit <= 255:
-        raise ValueError(f"--unit must be 0..255, got {args.unit}")
+        raise UserError(f"--unit must be 0..255, got {args.unit}")
     if not (math.isfinite(args.timeout) and args.timeout > 0):
-        raise ValueError(f"--timeout must be > 0 s, got {args.timeout}")
+        raise UserError(f"--timeout must be > 0 s, got {args.timeout}")

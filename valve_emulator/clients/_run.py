@@ -9,6 +9,8 @@ import sys
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
+from valve_emulator.errors import UserError
+
 __all__ = ["client_main", "pause", "run_until_stopped"]
 
 T = TypeVar("T")
@@ -53,17 +55,21 @@ def client_main(prog: str, args: argparse.Namespace, options: Callable[[argparse
                 body: Callable[[Any, asyncio.Event], Awaitable[Any]]) -> int:
     """The shared ``main`` of the clients: settings from the flags, then run until done or stopped.
 
-    Exit codes: 0 done (also after Ctrl-C / SIGTERM), 1 the device failed (connection, Modbus error),
-    2 bad settings. Errors are one line on stderr, prefixed with ``prog``.
+    Exit codes: 0 done (also after Ctrl-C / SIGTERM), 1 the device failed (connection, Modbus exception, a
+    device that restarted under a recording: an ``OSError``), 2 bad settings (a :class:`UserError`). Errors are
+    one line on stderr, prefixed with ``prog``; anything else is a bug and shows its traceback.
     """
     try:
         opts = options(args)
-    except ValueError as exc:
+    except UserError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     try:
         run_until_stopped(lambda stop: body(opts, stop))
-    except (OSError, ValueError) as exc:
+    except UserError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 1
     return 0

@@ -41,6 +41,7 @@ from valve_emulator.clients._modbus import (
 )
 from valve_emulator.clients._run import client_main, pause
 from valve_emulator.device.registers import Status
+from valve_emulator.errors import UserError
 
 __all__ = [
     "MonitorOptions",
@@ -246,13 +247,13 @@ def build_parser() -> argparse.ArgumentParser:
 def options_from_args(args: argparse.Namespace, *, tty: bool) -> MonitorOptions:
     check_connection_arguments(args)
     if not (math.isfinite(args.period) and args.period > 0):
-        raise ValueError(f"--period must be > 0 s, got {args.period}")
+        raise UserError(f"--period must be > 0 s, got {args.period}")
     if args.duration is not None and not args.duration > 0:
-        raise ValueError(f"--duration must be > 0 s, got {args.duration}")
+        raise UserError(f"--duration must be > 0 s, got {args.duration}")
     if args.width < 10 or args.rows < 1:
-        raise ValueError(f"--width must be >= 10 and --rows >= 1, got {args.width} and {args.rows}")
+        raise UserError(f"--width must be >= 10 and --rows >= 1, got {args.width} and {args.rows}")
     if args.pv_range is not None and not args.pv_range[0] < args.pv_range[1]:
-        raise ValueError(f"--pv-range must be LO HI with LO < HI, got {args.pv_range}")
+        raise UserError(f"--pv-range must be LO HI with LO < HI, got {args.pv_range}")
     return MonitorOptions(channels=channels_from_args(args), host=args.host, port=args.port, unit=args.unit,
                           timeout=args.timeout, word_order=args.word_order, period=args.period,
                           duration=args.duration, once=args.once, plain=args.plain or not tty, width=args.width,

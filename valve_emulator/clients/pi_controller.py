@@ -56,6 +56,7 @@ from valve_emulator.clients._modbus import (
 )
 from valve_emulator.clients._run import client_main, pause
 from valve_emulator.clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.errors import UserError
 from valve_emulator.physics.controller import PID
 
 __all__ = [
@@ -130,7 +131,7 @@ class ControllerSettings:
         if self.duration is not None and not self.duration > 0:
             raise bad("duration", f"must be > 0 s, got {self.duration!r}")
         if self.sp is not None and self.sp_register is not None:
-            raise ValueError("give either sp (a fixed set point) or sp-register, not both")
+            raise UserError("give either sp (a fixed set point) or sp-register, not both")
         for key in ("pv", "op", "sp_register", "device_time"):
             if getattr(self, key) is not None:
                 parse_point(getattr(self, key), what=key.replace("_", "-"))
@@ -273,23 +274,23 @@ def _from_file(path: Path) -> dict[str, Any]:
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except OSError as exc:
-        raise ValueError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        raise UserError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not valid YAML: {exc}") from None
+        raise UserError(f"{path}: not valid YAML: {exc}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping of settings, got {type(data).__name__}")
+        raise UserError(f"{path}: expected a mapping of settings, got {type(data).__name__}")
     for key in data:
         if key not in _KEYS:
-            raise ValueError(f"{path}: unknown key {key!r} (allowed: {', '.join(_KEYS)})")
+            raise UserError(f"{path}: unknown key {key!r} (allowed: {', '.join(_KEYS)})")
     if isinstance(data.get("op_limits"), list):
         data["op_limits"] = tuple(data["op_limits"])
     return data
 
 
 def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
-    """Defaults < ``--config`` file < flags; ``ValueError`` naming the setting (and the file)."""
+    """Defaults < ``--config`` file < flags; ``UserError`` naming the setting (and the file)."""
     values: dict[str, Any] = _from_file(args.config) if args.config is not None else {}
     for key in _KEYS:
         flag = getattr(args, key, None)
@@ -301,7 +302,7 @@ def settings_from_args(args: argparse.Namespace) -> ControllerSettings:
         settings = ControllerSettings(**values)
     except (TypeError, ValueError) as exc:
         where = f"{args.config}: " if args.config is not None else ""
-        raise ValueError(f"{where}{exc}") from None
+        raise UserError(f"{where}{exc}") from None
     check_connection_arguments(argparse.Namespace(port=settings.port, unit=settings.unit, timeout=settings.timeout))
     return settings
 

@@ -49,12 +49,14 @@ from valve_emulator.clients._modbus import (
     ABCD,
     DEFAULT_PORT,
     DeviceError,
+    DeviceTimeError,
     Link,
     add_connection_arguments,
     check_connection_arguments,
 )
 from valve_emulator.clients._run import client_main, pause
 from valve_emulator.clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.errors import UserError
 from valve_emulator.recordings.recording import CsvRecordingWriter
 
 __all__ = [
@@ -124,7 +126,7 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
     """
     ch = opts.channels
     if opts.step is not None and ch.t is None:
-        raise ValueError("--step samples the device's time grid: it needs the --time channel")
+        raise UserError("--step samples the device's time grid: it needs the --time channel")
     reader = ch.reader(word_order=opts.word_order, max_gap=opts.max_gap)
     link = Link(opts.host, opts.port, opts.unit, timeout=opts.timeout)
     summary = RecordSummary(opts.out)
@@ -157,7 +159,7 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
                     summary.rows += 1
                     summary.t_last = last_t = t
                 elif t < last_t and ch.t is not None:
-                    raise ValueError(f"device time went back from {last_t!r} to {t!r} s (device restarted?); "
+                    raise DeviceTimeError(f"device time went back from {last_t!r} to {t!r} s (device restarted?); "
                                      f"{opts.out} holds everything up to then")
                 else:
                     summary.repeats += 1   # the device has not ticked since the last row
@@ -219,16 +221,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def options_from_args(args: argparse.Namespace) -> RecorderOptions:
-    """Checked options; ``ValueError`` naming the flag."""
+    """Checked options; ``UserError`` naming the flag."""
     check_connection_arguments(args)
     if not (math.isfinite(args.period) and args.period > 0):
-        raise ValueError(f"--period must be > 0 s, got {args.period}")
+        raise UserError(f"--period must be > 0 s, got {args.period}")
     if args.duration is not None and not args.duration > 0:
-        raise ValueError(f"--duration must be > 0 s, got {args.duration}")
+        raise UserError(f"--duration must be > 0 s, got {args.duration}")
     if args.step is not None and not (math.isfinite(args.step) and args.step > 0):
-        raise ValueError(f"--step must be > 0 s, got {args.step}")
+        raise UserError(f"--step must be > 0 s, got {args.step}")
     if args.until is not None and not math.isfinite(args.until):
-        raise ValueError(f"--until must be a finite time, got {args.until}")
+        raise UserError(f"--until must be a finite time, got {args.until}")
     return RecorderOptions(out=args.out, channels=channels_from_args(args), host=args.host, port=args.port,
                            unit=args.unit, timeout=args.timeout, word_order=args.word_order, period=args.period,
                            step=args.step,

@@ -38,6 +38,7 @@ from valve_emulator.clients._run import pause, run_until_stopped
 from valve_emulator.clients.recorder import RecorderOptions, record
 from valve_emulator.device.record import TickRecorder
 from valve_emulator.device.registers import address_of
+from valve_emulator.errors import UserError
 from valve_emulator.scenario import (
     Applied,
     Scenario,
@@ -212,7 +213,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _attach(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     if not sep or not host or not port.isdigit() or not 0 < int(port) <= 65535:
-        raise ValueError(f"--attach must be HOST:PORT, got {text!r}")
+        raise UserError(f"--attach must be HOST:PORT, got {text!r}")
     return host, int(port)
 
 
@@ -221,11 +222,11 @@ def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)   # everything is checked before anything starts
     attach = _attach(args.attach) if args.attach else None
     if args.time_scale is not None and not (math.isfinite(args.time_scale) and args.time_scale > 0):
-        raise ValueError(f"--time-scale must be a finite number > 0, got {args.time_scale}")
+        raise UserError(f"--time-scale must be a finite number > 0, got {args.time_scale}")
     if args.record_step is not None and not args.record_step > 0:
-        raise ValueError(f"--record-step must be > 0 s, got {args.record_step}")
+        raise UserError(f"--record-step must be > 0 s, got {args.record_step}")
     if not 0 <= args.port <= 65535:
-        raise ValueError(f"--port must be 0..65535, got {args.port}")
+        raise UserError(f"--port must be 0..65535, got {args.port}")
     print(f"{scenario.name}: {len(scenario.events)} events over {scenario.duration:g} s on unit {scenario.unit} "
           f"({scenario.loop.name})")
     if scenario.description:
