@@ -73,7 +73,7 @@ class _ReasonCode(StrEnum):
 
 
 #: The reason codes that are no physics: why the data could not decide, or what qualifies the answer.
-_VERDICTS = {
+_OTHER_CODES = {
     "weak_evidence": "the friction does not survive a drifting-load noise model",
     "linear": "a linear valve and plant explain the loop",
     "small_band": "a band fits, but inside OP's own noise",
@@ -88,7 +88,7 @@ _VERDICTS = {
     "op_units_refuted": "OP's declared travel span does not fit OP: it was dropped",
 }
 
-Reason = _ReasonCode("Reason", [(code.upper(), code) for code in (*registry(), *_VERDICTS)], module=__name__)
+Reason = _ReasonCode("Reason", [(code.upper(), code) for code in (*registry(), *_OTHER_CODES)], module=__name__)
 Reason.__doc__ = """Why a loop got its answer: the codes of the JSON's ``reasons`` (each paired with a sentence).
 
 The physics of the findings come first, one code per registered candidate, named after it (valve friction,
@@ -96,4 +96,4 @@ The physics of the findings come first, one code per registered candidate, named
 a candidate registered later joins when first looked up, ``Reason("its_name")``); then the codes that say
 why the data could not decide or what qualifies the answer:
 
-""" + "\n".join(f"``{code}``\n    {meaning}." for code, meaning in _VERDICTS.items())
+""" + "\n".join(f"``{code}``\n    {meaning}." for code, meaning in _OTHER_CODES.items())

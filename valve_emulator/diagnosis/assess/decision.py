@@ -44,8 +44,9 @@ run on each loop:
      windows). When the halves that are answered agree, the answer is theirs, with the figures of the half
      whose model predicts held-out PV best and the reason ``part_of_record`` (a ``no response`` half counts as
      answered); when they disagree or neither is answered, the answer stays ``cannot tell``.
-   * otherwise ``no stiction``, with the cause: the first accepted non-valve candidate (an external
-     disturbance, a quantised PV, saturation, a flow characteristic, an actuator lag), or, for a loop that
+   * otherwise ``no stiction``, with the cause: the first accepted non-valve candidate in the order of their
+     :attr:`~valve_emulator.diagnosis.candidates.base.Candidate.cause_rank` (an external disturbance, a
+     quantised PV, saturation, a flow characteristic, an actuator lag, a dead time), or, for a loop that
      cycles regularly, aggressive ``tuning`` when :meth:`~valve_emulator.diagnosis.candidates.tuning.Tuning.
      assess` finds it, or "the linear model explains the loop". An accepted disturbance is the cause of a
      regular cycle only when it has the cycle's period (within the tuning test's tolerance); one at another
