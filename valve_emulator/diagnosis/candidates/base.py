@@ -78,7 +78,7 @@ class TwinRole(StrEnum):
 
     VALVE_BAND = "valve.S, valve.J"
     CHARACTERISTIC = "valve.characteristic, valve.rangeability"
-    ACTUATOR_LAG = "plant.num, plant.den"
+    ACTUATOR_LAG = "plant.den"
     DEAD_TIME = "plant.delay"
     OP_LIMITS = "controller.op_limits"
     DISTURBANCE = "plant.disturbance"

@@ -270,19 +270,19 @@ def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray, travel: TwinTrav
         lines = ["valve.op_range: OP's travel span is unknown; the twin's travel is the diagnosis' unit-free "
                  f"frame (the recording's robust OP range on {_g(lo)}-{_g(hi)} %); op_range maps OP's units to it."]
     found = _in_role(fitted, TwinRole.VALVE_BAND)
-    other = fitted.active.get("valve") if found is None else None   # a valve model without keys in the config
     if found is not None:
         band = _named(found)
         S, J = travel.delta(band["S"]), travel.delta(band.get("J", 0.0))
         lines.append(f"valve.S, valve.J: {found.name} found by the diagnosis{_finding_text(diagnosis, found.name)}.")
-    elif other is not None:
-        S, J = (travel.delta(x) for x in fitted.nominal_valve)
-        lines.append("valve.S, valve.J: " + ("the model's valve" if model is not None else "a free valve")
-                     + f" (the {other.name} found has no keys in the loop config).")
     else:
         S, J = (travel.delta(x) for x in fitted.nominal_valve)
-        lines.append("valve.S, valve.J: " + ("the model's valve (no valve friction found)." if model is not None
-                                             else "no valve friction found (a free valve)."))
+        keyless = fitted.active.get("valve")   # a valve model the loop config has no keys for
+        if keyless is not None:
+            lines.append("valve.S, valve.J: " + ("the model's valve" if model is not None else "a free valve")
+                         + f" (the {keyless.name} found has no keys in the loop config).")
+        else:
+            lines.append("valve.S, valve.J: " + ("the model's valve (no valve friction found)." if model is not None
+                                                 else "no valve friction found (a free valve)."))
     char = _in_role(fitted, TwinRole.CHARACTERISTIC)
     kind, R = ctx.characteristic
     if char is not None:
