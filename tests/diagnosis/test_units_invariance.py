@@ -52,7 +52,7 @@ def _mapped(name: str, a: float, b: float, c: float, d: float):
 
 
 def _findings(a):
-    return () if a.diagnosis is None else a.diagnosis.findings
+    return () if a.explanation is None else a.explanation.findings
 
 
 def _assert_same(name: str, a: float, b: float, c: float = 1.0, d: float = 0.0):

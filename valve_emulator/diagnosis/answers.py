@@ -2,7 +2,8 @@
 
 :class:`Answer` is the answer to *is this valve sticky?*; :class:`Strength` qualifies a stiction answer by
 whether its evidence survives a drifting-load noise model (see :mod:`~valve_emulator.diagnosis.fit.load_check`);
-:class:`Reason` names why, one short code per cause (each with a sentence in the output). All are
+:class:`Reason` names why, one short code per cause (each with a sentence in the output): one per registered
+candidate physics, then the codes that are no physics. All are
 :class:`str` enums, so ``Answer.NO_STICTION == "no_stiction"``; :attr:`Answer.words` is the phrase the verdict
 sentences use ("no stiction").
 """
@@ -10,6 +11,8 @@ sentences use ("no stiction").
 from __future__ import annotations
 
 from enum import StrEnum
+
+from valve_emulator.diagnosis.candidates import registry
 
 __all__ = ["Answer", "Strength", "Reason", "VALVE_FRICTION"]
 
@@ -55,32 +58,42 @@ class Strength(StrEnum):
     WEAK = "weak"
 
 
-class Reason(StrEnum):
-    """Why a loop got its answer: the codes of the JSON's ``reasons`` (each paired with a sentence).
+class _ReasonCode(StrEnum):
+    """The behaviour of :class:`Reason`, whose members are made below from the registry."""
 
-    Valve friction (``stiction``, ``deadband``) and what imitates it (``disturbance``, ``tuning``,
-    ``quantization``, ``saturation``, ``characteristic``, ``actuator_lag``, ``dead_time``) are the physics of
-    the findings; the others say why the data could not decide or what qualifies the answer.
-    """
+    @classmethod
+    def _missing_(cls, value: object) -> _ReasonCode | None:
+        """A candidate registered after this module was imported (``valve_emulator.diagnosis.register``) is a
+        reason code too: its name joins as a member, the same object on every later lookup."""
+        if not (isinstance(value, str) and value in registry()):
+            return None
+        member = str.__new__(cls, value)
+        member._name_, member._value_ = value.upper(), value
+        return cls._value2member_map_.setdefault(value, member)
 
-    STICTION = "stiction"
-    DEADBAND = "deadband"
-    WEAK_EVIDENCE = "weak_evidence"          # the friction does not survive a drifting-load noise model
-    DISTURBANCE = "disturbance"
-    TUNING = "tuning"
-    QUANTIZATION = "quantization"
-    SATURATION = "saturation"
-    CHARACTERISTIC = "characteristic"
-    ACTUATOR_LAG = "actuator_lag"
-    DEAD_TIME = "dead_time"
-    LINEAR = "linear"                        # a linear valve and plant explain the loop
-    SMALL_BAND = "small_band"                # a band fits, but inside OP's own noise
-    TOO_SHORT = "too_short"
-    FLAT_PV = "flat_pv"                      # PV flat while OP barely moves
-    NO_RESPONSE = "no_response"              # PV flat while OP travels far
-    FLAT_OP = "flat_op"
-    NO_EXCITATION = "no_excitation"
-    NOT_EXPLAINED = "not_explained"          # no model predicts held-out PV better than its mean
-    UNINFORMATIVE = "uninformative"          # the fit part carries no information
-    PART_OF_RECORD = "part_of_record"        # answered on one half: one linear model explains neither whole
-    OP_UNITS_REFUTED = "op_units_refuted"    # OP's declared travel span does not fit OP: it was dropped
+
+#: The reason codes that are no physics: why the data could not decide, or what qualifies the answer.
+_OTHER_CODES = {
+    "weak_evidence": "the friction does not survive a drifting-load noise model",
+    "linear": "a linear valve and plant explain the loop",
+    "small_band": "a band fits, but inside OP's own noise",
+    "too_short": "the record is too short",
+    "flat_pv": "PV flat while OP barely moves",
+    "no_response": "PV flat while OP travels far",
+    "flat_op": "OP flat: the valve was never asked to move",
+    "no_excitation": "no oscillation and no excitation",
+    "not_explained": "no model predicts held-out PV better than their mean",
+    "uninformative": "the fit part carries no information",
+    "part_of_record": "answered on one half: one linear model explains neither whole",
+    "op_units_refuted": "OP's declared travel span does not fit OP: it was dropped",
+}
+
+Reason = _ReasonCode("Reason", [(code.upper(), code) for code in (*registry(), *_OTHER_CODES)], module=__name__)
+Reason.__doc__ = """Why a loop got its answer: the codes of the JSON's ``reasons`` (each paired with a sentence).
+
+The physics of the findings come first, one code per registered candidate, named after it (valve friction,
+``stiction`` and ``deadband``, and what imitates it: ``disturbance``, ``tuning``, ``quantization``, ...;
+a candidate registered later joins when first looked up, ``Reason("its_name")``); then the codes that say
+why the data could not decide or what qualifies the answer:
+
+""" + "\n".join(f"``{code}``\n    {meaning}." for code, meaning in _OTHER_CODES.items())

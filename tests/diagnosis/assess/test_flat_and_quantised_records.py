@@ -36,7 +36,7 @@ def _flat_pv_record(op: np.ndarray) -> Recording:
 def test_a_flat_pv_while_op_travels_twenty_percent_is_the_answer_no_response():
     op = 40.0 + 20.0 * (np.arange(800) // 100 % 2) + 0.2 * RNG.normal(size=800)   # OP travels 20 % and back
     a = assess(_flat_pv_record(op))
-    assert a.decision is Answer.NO_RESPONSE and a.decision.needs_attention and a.diagnosis is None
+    assert a.decision is Answer.NO_RESPONSE and a.decision.needs_attention and a.explanation is None
     assert [c for c, _ in a.reasons] == [Reason.NO_RESPONSE]
     assert "inspect it" in a.reason and a.statement.startswith("no response: PV is flat")
     assert "seized valve" in a.reason and "closed block valve" in a.reason and "dead transmitter" in a.reason

@@ -25,7 +25,7 @@ def test_quantised_pv_is_not_called_stiction_and_is_named():
     a = assess(rec)
     assert a.decision == "no_stiction", a.verdict
     assert a.cause == "quantization"
-    ranking = {r.option for r in a.diagnosis.ranking if r.round == 1}
+    ranking = {r.option for r in a.explanation.ranking if r.round == 1}
     assert {"stiction", "quantization"} <= ranking  # they competed in the same ranking
 
 
@@ -37,7 +37,7 @@ def test_external_sinusoidal_disturbance_with_a_linear_valve_is_not_stiction():
     a = assess(rec)
     assert a.decision == "no_stiction", a.verdict
     assert a.cause == "disturbance"
-    dist = next(f for f in a.diagnosis.findings if f.physics == "disturbance")
+    dist = next(f for f in a.explanation.findings if f.physics == "disturbance")
     assert dist.parameters["period"] == pytest.approx(180.0, rel=0.05)
 
 
@@ -57,7 +57,7 @@ def test_stiction_in_an_integrating_loop_is_found_with_s_and_j():
     rec = simulate([1.0], [1.0, 0.0], 0.0, 0.4, 2.0, S=3.0, J=1.5, dt=0.2, duration=200.0, noise=0.02, cut=60.0)
     a = assess(rec)
     assert a.decision == "stiction", a.verdict
-    assert a.diagnosis.plant["integrating"]
+    assert a.explanation.plant["integrating"]
     assert pytest.approx(3.0, rel=0.15) == a.S and pytest.approx(1.5, rel=0.35) == a.J
     lo, hi = a.intervals["S"]
     assert lo <= a.S <= hi and hi - lo > 0

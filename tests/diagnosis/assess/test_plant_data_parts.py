@@ -7,9 +7,10 @@ import pytest
 from historian import flow_limited_loop
 
 from valve_emulator.diagnosis.assess.adequacy import EXCITATION, adequacy, longest_constant_run, op_noise
-from valve_emulator.diagnosis.assess.decision import assess, op_flat_at_extreme
+from valve_emulator.diagnosis.assess.decision import assess
 from valve_emulator.diagnosis.candidates import KINDS, SLOTS, ChainContext, get, registry
 from valve_emulator.diagnosis.candidates.quantization import on_few_levels, quantum
+from valve_emulator.diagnosis.candidates.saturation import op_flat_at_extreme
 from valve_emulator.diagnosis.candidates.tuning import identify_pi, loop_response
 from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.diagnosis.fit.linear import LinearStructure
@@ -28,7 +29,7 @@ def _rec(op, pv, *, dt=1.0, sp=None, t=None, name="r") -> Recording:
 
 def test_too_short_a_record_cannot_tell_and_says_how_many_samples():
     a = assess(_rec(50 + RNG.normal(size=150), RNG.normal(size=150)))
-    assert a.decision == "cannot_tell" and a.diagnosis is None
+    assert a.decision == "cannot_tell" and a.explanation is None
     assert "150 samples" in a.reason and "at least 200" in a.reason
 
 
@@ -98,7 +99,7 @@ def test_the_new_candidates_are_registered_with_their_kinds():
                 "disturbance": ("output", "output"), "tuning": ("loop", "loop")}
     for name, (slot, kind) in expected.items():
         cand = lib[name]
-        assert cand.slot == slot and cand.category == kind and slot in SLOTS and slot in KINDS[kind]
+        assert cand.slot == slot and cand.kind == kind and slot in SLOTS and slot in KINDS[kind]
 
 
 def test_saturation_clips_the_flow_at_its_limit_and_its_grid_stays_inside_the_data():

@@ -115,4 +115,4 @@ def test_a_half_whose_pv_stops_responding_answers_no_response_for_the_record():
     a = assess(Recording(np.arange(2.0 * n), None, op, None, pv, source="seizes halfway"))
     assert a.decision is Answer.NO_RESPONSE, a.reason
     assert _codes(a) == [Reason.NO_RESPONSE, Reason.PART_OF_RECORD]
-    assert a.notes == (f"answered on samples {n}–{2 * n - 1} of {2 * n}",) and a.diagnosis is None
+    assert a.notes == (f"answered on samples {n}–{2 * n - 1} of {2 * n}",) and a.explanation is None

@@ -7,7 +7,7 @@ from typing import ClassVar
 import numpy as np
 import pytest
 
-from valve_emulator.diagnosis.candidates import SLOTS, Candidate, ChainContext, get, register, registry
+from valve_emulator.diagnosis.candidates import SLOTS, Candidate, ChainContext, TwinRole, get, register, registry
 from valve_emulator.diagnosis.candidates.actuator_lag import first_order_lag
 from valve_emulator.diagnosis.candidates.stiction import stiction_kind
 from valve_emulator.diagnosis.candidates.valve_start import PRE_ROLL, STARTS, sync_burn_in, valve_output
@@ -201,3 +201,57 @@ def test_a_grid_of_valves_replays_each_valve_as_it_would_alone(model, n, shared_
     for i in range(n):
         alone = valve_output(op if shared_op else op[:, i], S[i:i + 1], J[i:i + 1], start[i:i + 1], ctx)
         assert np.array_equal(together[:, i], alone[:, 0]), i
+
+
+def test_importing_the_package_registers_every_candidate_its_modules_define():
+    """No list of modules is kept by hand: in a fresh interpreter, importing the package alone fills the library
+    with each candidate class that a module of the package defines."""
+    import importlib
+    import inspect
+    import pkgutil
+    import subprocess
+    import sys
+
+    from valve_emulator.diagnosis import candidates
+
+    fresh = subprocess.run([sys.executable, "-c", "from valve_emulator.diagnosis.candidates import registry; "
+                            "print(' '.join(registry()))"], capture_output=True, text=True, check=True)
+    defined = set()
+    for info in pkgutil.iter_modules(candidates.__path__):
+        module = importlib.import_module(f"{candidates.__name__}.{info.name}")
+        defined |= {cls.name for _, cls in inspect.getmembers(module, inspect.isclass)
+                    if issubclass(cls, Candidate) and not inspect.isabstract(cls) and cls.__module__ == module.__name__}
+    assert len(defined) >= 9 and set(fresh.stdout.split()) == defined
+
+
+def _toy(slot: str, params: tuple[str, ...], role, name: str = "toy_declared"):
+    class Toy(Candidate):
+        def grid(self, ctx):
+            return np.zeros((1, len(params)))
+
+        def refine(self, ctx, best):
+            return best[None, :]
+
+        def apply(self, x, p, ctx):
+            return x
+
+        def parameters(self, p):
+            return {}
+
+        def describe(self, p, nominal=None, units=" %"):
+            return "a toy"
+
+    Toy.name, Toy.slot, Toy.param_names, Toy.n_params, Toy.twin_role = name, slot, params, len(params), role
+    return Toy()
+
+
+@pytest.mark.parametrize("slot, params, role, name, message", [
+    ("actuator", ("S",), TwinRole.VALVE_BAND, "toy_declared", "twin role VALVE_BAND needs slot 'valve'"),
+    ("valve", ("band",), TwinRole.VALVE_BAND, "toy_declared", "the parameters S"),
+    ("limit", ("lo",), TwinRole.OP_LIMITS, "toy_declared", "the parameters lo, hi"),
+    ("valve", ("S",), None, "Toy Band", "lower-case identifier"),
+])
+def test_registration_refuses_a_declaration_the_package_could_not_act_on(slot, params, role, name, message):
+    with pytest.raises(ValueError, match=message):
+        register(_toy(slot, params, role, name))
+    assert name not in registry()

@@ -9,10 +9,12 @@ import jsonschema
 import numpy as np
 import pytest
 from historian import STEPS_300, simulate
+from stroke_rate import TOY, StrokeRate
 
 import valve_emulator as ve
 from valve_emulator.benchmark.cases import CASES, generate
 from valve_emulator.cli import main
+from valve_emulator.diagnosis.candidates import base, register
 from valve_emulator.diagnosis.report.schema import SCHEMA_PATH, schema
 
 RNG = np.random.default_rng(14)
@@ -87,3 +89,15 @@ def test_the_schema_rejects_a_broken_document(breakage):
     breakage(doc)
     with pytest.raises(jsonschema.ValidationError):
         _validate(doc)
+
+
+def test_the_schema_takes_its_vocabulary_from_the_candidates_registered(monkeypatch):
+    """A reason code of a candidate registered later is refused before its registration and valid after."""
+    doc = ve.diagnose(PLANT["linear"]()).to_json()
+    doc["reasons"].append({"code": TOY, "sentence": "a valve stroking slowly"})
+    with pytest.raises(jsonschema.ValidationError, match=TOY):
+        _validate(doc)
+    monkeypatch.setattr(base, "_REGISTRY", dict(base._REGISTRY))
+    register(StrokeRate())
+    _validate(doc)
+    assert TOY in schema()["$defs"]["physics"]["enum"]

@@ -11,11 +11,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from stroke_rate import TOY, StrokeRate, slow_valve
 
 from valve_emulator.benchmark.cases import CASES, generate
 from valve_emulator.config import loop_from_mapping
 from valve_emulator.config.loader import load_loop
 from valve_emulator.diagnosis.api import diagnose
+from valve_emulator.diagnosis.candidates import base, register
 from valve_emulator.diagnosis.fit.continuous import continuous_transfer_function
 from valve_emulator.diagnosis.fit.linear import LinearStructure, fit_one
 from valve_emulator.diagnosis.fit.nominal import Nominal, replay_plant
@@ -264,3 +266,18 @@ def test_the_twins_plant_says_which_nominal_parameter_moved_and_from_what_to_wha
     assert den[-2] / den[-1] == pytest.approx(20.0, rel=0.15)     # the time constant of a first-order den
     held = next(line for line in diagnose(exact[0], exact[1]).twin().provenance if line.startswith("plant.num"))
     assert "held as a prior" in held
+
+
+def test_the_twin_leaves_out_a_valve_model_it_has_no_keys_for(monkeypatch):
+    """A new valve model without a twin role is not written as a deadband: the valve keeps the model's S and J,
+    and the header says what the twin lacks."""
+    monkeypatch.setattr(base, "_REGISTRY", dict(base._REGISTRY))
+    register(StrokeRate())
+    rec, model = slow_valve()
+    d = diagnose(rec, model, candidates=[TOY])
+    assert [f.physics for f in d.findings] == [TOY]
+    twin = d.twin()
+    assert (twin.config.valve.S, twin.config.valve.J) == (model.valve.S, model.valve.J) == (0.0, 0.0)
+    assert f"Left out: the {TOY} finding (valve slot) has no keys in the loop config, so the twin lacks it." \
+        in twin.provenance
+    assert loop_from_mapping(__import__("yaml").safe_load(twin.text())).valve == twin.config.valve

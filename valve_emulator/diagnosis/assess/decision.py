@@ -44,8 +44,9 @@ run on each loop:
      windows). When the halves that are answered agree, the answer is theirs, with the figures of the half
      whose model predicts held-out PV best and the reason ``part_of_record`` (a ``no response`` half counts as
      answered); when they disagree or neither is answered, the answer stays ``cannot tell``.
-   * otherwise ``no stiction``, with the cause: the first accepted non-valve candidate (an external
-     disturbance, a quantised PV, saturation, a flow characteristic, an actuator lag), or, for a loop that
+   * otherwise ``no stiction``, with the cause: the first accepted non-valve candidate in the order of their
+     :attr:`~valve_emulator.diagnosis.candidates.base.Candidate.cause_rank` (an external disturbance, a
+     quantised PV, saturation, a flow characteristic, an actuator lag, a dead time), or, for a loop that
      cycles regularly, aggressive ``tuning`` when :meth:`~valve_emulator.diagnosis.candidates.tuning.Tuning.
      assess` finds it, or "the linear model explains the loop". An accepted disturbance is the cause of a
      regular cycle only when it has the cycle's period (within the tuning test's tolerance); one at another
@@ -56,7 +57,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -73,50 +74,56 @@ from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
-__all__ = ["Assessment", "assess", "assess_uniform", "DECISIONS", "NOISE_BANDS", "MIN_FIT", "VALVE_PHYSICS",
-           "op_flat_at_extreme"]
+__all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT"]
 
-#: The four answers.
-DECISIONS = tuple(Answer)
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
 #: Least cross-validated fit (%) of the final model for a "no stiction" answer.
 MIN_FIT = 0.0
-#: Findings that are valve friction (the 2005 model's stiction, and its J = 0 case).
-VALVE_PHYSICS = VALVE_FRICTION
-#: Findings that are reason codes of their own (every physics of the vocabulary).
-_FINDING_REASONS = frozenset(str(r) for r in Reason)
-#: Candidates that need OP's travel stops (0 and 100 %): searched only when the travel span is known —
-#: saturation also when OP demonstrably sits flat at an extreme (:func:`op_flat_at_extreme`).
-NEEDS_SPAN = ("saturation", "characteristic")
-#: OP "flat at an extreme": one unbroken run of at least this share of the record (and
-#: :data:`FLAT_EXTREME_MIN` samples) exactly at OP's highest or lowest value — a controller output held at
-#: its limit repeats one value, where a moving or noisy OP touches its extreme for a sample or two.
-FLAT_EXTREME_SHARE = 0.05
-FLAT_EXTREME_MIN = 10
-#: Order in which other findings name the cause of a "no stiction" answer.
-_CAUSES = ("disturbance", "quantization", "saturation", "characteristic", "actuator_lag", "dead_time")
 
 
-def op_flat_at_extreme(op: np.ndarray) -> bool:
-    """Whether OP sits flat at its highest or lowest value for one run of :data:`FLAT_EXTREME_SHARE` of the
-    record (at least :data:`FLAT_EXTREME_MIN` samples): there OP is at a limit, so a flow limit (saturation)
-    can be told from the data even when the travel span is not known. Independent of OP's units."""
-    op = np.asarray(op, dtype=float)
-    span = float(np.ptp(op)) if op.size else 0.0
-    if not span > 0.0:
-        return False
-    need = max(FLAT_EXTREME_MIN, int(np.ceil(FLAT_EXTREME_SHARE * op.size)))
-    tol = 1e-9 * span  # the same value, up to the rounding of a unit conversion
-    for at in (op >= op.max() - tol, op <= op.min() + tol):
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], at.astype(np.int8), [0]])))
-        if edges.size and int(np.max(edges[1::2] - edges[::2])) >= need:
-            return True
-    return False
+@dataclass(frozen=True)
+class Decision:
+    """What the rule of step 4 decides for one explained loop.
+
+    Attributes
+    ----------
+    answer : the :class:`~valve_emulator.diagnosis.answers.Answer`.
+    cause : the physics behind it (``stiction``, ``disturbance``, ``tuning``, ``linear``, ...; ``""`` for
+        "cannot tell").
+    reason : the one sentence after the answer.
+    reasons : ``(code, sentence)`` pairs: the answer's own first, then what qualifies it (a weak evidence, a
+        band inside OP noise).
+    S, J, intervals : the valve band and jump, and their 95 % intervals, for a stiction answer.
+    tuning : the loop's tuning judgement, when it was made.
+    """
+
+    answer: Answer
+    cause: str
+    reason: str
+    reasons: tuple[tuple[Reason, str], ...]
+    S: float | None = None
+    J: float | None = None
+    intervals: dict = field(default_factory=dict)
+    tuning: TuningAssessment | None = None
+
+
+def _searched(op: np.ndarray, frame: Frame) -> list[str]:
+    """The candidates searched on plant data: all, except those that need OP's travel span when it is unknown
+    and OP does not place them itself (:attr:`~valve_emulator.diagnosis.candidates.base.Candidate.needs_span`)."""
+    return [name for name, cand in registry().items()
+            if frame.known or not cand.needs_span or cand.shows_without_span(op)]
+
+
+def _causes(findings: tuple[Finding, ...]) -> list[Finding]:
+    """The findings that can name the cause of a "no stiction" answer, by their candidates'
+    :attr:`~valve_emulator.diagnosis.candidates.base.Candidate.cause_rank`."""
+    causes = [f for f in findings if get(f.physics).cause_rank is not None]
+    return sorted(causes, key=lambda f: get(f.physics).cause_rank)
 
 
 def _valve(findings: tuple[Finding, ...]) -> Finding | None:
-    return next((f for f in findings if f.physics in VALVE_PHYSICS), None)
+    return next((f for f in findings if f.physics in VALVE_FRICTION), None)
 
 
 def _same_period(a: float, b: float) -> bool:
@@ -155,64 +162,72 @@ def _amount(x: float, frame: Frame) -> str:
     return f"{x:.3g} {frame.units}" + ("" if pct is None else f" ({pct:.3g} % travel)")
 
 
-def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: Frame) -> dict:
+def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: Frame) -> Decision:
+    """Step 4's rule (see the module docstring) on an explained loop."""
     valve = _valve(d.findings)
     fits = f"held-out fit {d.fit_before:.0f} % → {d.fit_after:.0f} %"
     small = ""
     if valve is not None:
         S = float(valve.parameters["S"])
-        J = float(valve.parameters.get("J", 0.0))
-        ivs = {k: v for k, v in valve.intervals.items() if k in ("S", "J")}
         if NOISE_BANDS * noise <= S:
-            iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
-            kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
-            reason = (f"{kind}, S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)} ({iv}); "
-                      f"{fits}{_load_text(valve)}")
-            reasons = [(Reason(valve.physics), reason)]
-            if valve.load_delta_bic is not None and valve.load_delta_bic < DELTA_BIC:
-                reasons.append((Reason.WEAK_EVIDENCE, _load_text(valve).removeprefix("; weak evidence: ")))
-            return dict(decision=Answer.STICTION, cause=valve.physics, S=S, J=J, intervals=ivs, reason=reason,
-                        reasons=reasons)
+            return _stiction(valve, S, fits, frame)
         small = (f"a valve band S ≈ {_amount(S, frame)} fits, but it is below {NOISE_BANDS:g} OP noise σ "
-                 f"({_amount(NOISE_BANDS * noise, frame)}), where the noise moves such a valve either way; ")
-    pre = [(Reason.SMALL_BAND, small.rstrip("; "))] if small else []
+                 f"({_amount(NOISE_BANDS * noise, frame)}), where the noise moves such a valve either way")
+
+    def because(answer: Answer, cause: str, own: tuple[tuple[Reason, str], ...], reason: str,
+                tuning: TuningAssessment | None = None) -> Decision:
+        """The decision with the small band, when one fits, before its reason and after its own reasons."""
+        if not small:
+            return Decision(answer, cause, reason, own, tuning=tuning)
+        return Decision(answer, cause, f"{small}; {reason}", own + ((Reason.SMALL_BAND, small),), tuning=tuning)
+
     load = d.input_delta_bic
     if not d.fit_after >= MIN_FIT:
         if load is None or not load >= DELTA_BIC:
             also = "" if load is None else (f", nor, under a drifting-load noise model, does it explain PV better "
                                             f"than the load alone (ΔBIC {load:.1f} < {DELTA_BIC:g})")
-            return dict(decision=Answer.CANNOT_TELL, cause="", reasons=[(Reason.NOT_EXPLAINED, "the best model "
-                        f"found predicts held-out PV worse than their mean{also}")] + pre,
-                        reason=f"{small}no valve friction that could matter improves the model, but the best model "
-                               f"found predicts held-out PV worse than their mean (cross-validated fit "
-                               f"{d.fit_after:.0f} % < {MIN_FIT:g} %){also}: the loop is not explained, so neither "
-                               "is the absence of stiction shown")
+            return because(Answer.CANNOT_TELL, "", ((Reason.NOT_EXPLAINED, "the best model found predicts "
+                                                     f"held-out PV worse than their mean{also}"),),
+                           "no valve friction that could matter improves the model, but the best model found "
+                           f"predicts held-out PV worse than their mean (cross-validated fit {d.fit_after:.0f} % "
+                           f"< {MIN_FIT:g} %){also}: the loop is not explained, so neither is the absence of "
+                           "stiction shown")
         fits += (f"; a free run misses a drifting load, but under a drifting-load noise model the model explains "
                  f"PV (ΔBIC {load:.1f} against the load alone)")
     tune = _tuning(rec, d, ad.facts)
-    ranked = sorted((f for f in d.findings if f.physics in _CAUSES), key=lambda f: _CAUSES.index(f.physics))
+    ranked = _causes(d.findings)
     cycle = ad.facts.get("period", float("nan")) if ad.facts.get("oscillating") else float("nan")
     dist = next((f for f in ranked if f.physics == "disturbance"), None)
     if dist is not None and (not np.isfinite(cycle) or _same_period(dist.parameters["period"], cycle)):
-        return dict(decision=Answer.NO_STICTION, cause="disturbance", tuning=tune,
-                    reasons=[(Reason.DISTURBANCE, dist.description)] + pre,
-                    reason=f"{small}{dist.description}, not the valve; {fits}")
+        return because(Answer.NO_STICTION, "disturbance", ((Reason.DISTURBANCE, dist.description),),
+                       f"{dist.description}, not the valve; {fits}", tune)
     if tune is not None and tune.aggressive:
         also = f"; also {ranked[0].description}" if ranked else ""
-        return dict(decision=Answer.NO_STICTION, cause="tuning", tuning=tune,
-                    reasons=[(Reason.TUNING, f"the loop cycles through its own controller: {tune.reason}")] + pre,
-                    reason=f"{small}the loop cycles through its own controller (aggressive tuning): {tune.reason}; "
-                           f"no valve nonlinearity explains it{also}; {fits}")
+        return because(Answer.NO_STICTION, "tuning",
+                       ((Reason.TUNING, f"the loop cycles through its own controller: {tune.reason}"),),
+                       f"the loop cycles through its own controller (aggressive tuning): {tune.reason}; no valve "
+                       f"nonlinearity explains it{also}; {fits}", tune)
     if ranked:
-        return dict(decision=Answer.NO_STICTION, cause=ranked[0].physics, tuning=tune,
-                    reasons=[(Reason(ranked[0].physics), ranked[0].description)] + pre,
-                    reason=f"{small}{ranked[0].description}; no valve friction that could matter; {fits}")
+        return because(Answer.NO_STICTION, ranked[0].physics, ((Reason(ranked[0].physics), ranked[0].description),),
+                       f"{ranked[0].description}; no valve friction that could matter; {fits}", tune)
     if small:
-        return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune, reason=f"{small}{fits}", reasons=pre)
-    return dict(decision=Answer.NO_STICTION, cause="linear", tuning=tune,
-                reasons=[(Reason.LINEAR, "a linear valve and plant explain the loop")],
-                reason=f"a linear valve and plant explain the loop: no candidate physics improves the model "
-                       f"significantly; {fits}")
+        return because(Answer.NO_STICTION, "linear", (), fits, tune)
+    return Decision(Answer.NO_STICTION, "linear", "a linear valve and plant explain the loop: no candidate physics "
+                    f"improves the model significantly; {fits}",
+                    ((Reason.LINEAR, "a linear valve and plant explain the loop"),), tuning=tune)
+
+
+def _stiction(valve: Finding, S: float, fits: str, frame: Frame) -> Decision:
+    """The stiction answer for valve friction whose band is beyond OP noise."""
+    J = float(valve.parameters.get("J", 0.0))
+    ivs = {k: v for k, v in valve.intervals.items() if k in ("S", "J")}
+    iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
+    kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
+    reason = f"{kind}, S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)} ({iv}); {fits}{_load_text(valve)}"
+    reasons = ((Reason(valve.physics), reason),)
+    if valve.load_delta_bic is not None and valve.load_delta_bic < DELTA_BIC:
+        reasons += ((Reason.WEAK_EVIDENCE, _load_text(valve).removeprefix("; weak evidence: ")),)
+    return Decision(Answer.STICTION, valve.physics, reason, reasons, S=S, J=J, intervals=ivs)
 
 
 def assess(recording: Recording, *, progress: Callable[[str], None] | None = None) -> Assessment:
@@ -293,20 +308,19 @@ def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str
     noise = op_noise(rec.op)
     frame = Frame.unit_free(rec.op, declared=frame)   # the search never sees OP's units; a span is kept aside
     inner = replace(rec, op=frame.to_internal(rec.op), mv=None if rec.mv is None else frame.to_internal(rec.mv))
-    flat_extreme = op_flat_at_extreme(rec.op)
-    names = [n for n in registry() if frame.known or n not in NEEDS_SPAN or (n == "saturation" and flat_extreme)]
     try:
-        d = explain(inner, None, candidates=names, progress=progress, frame=frame)
+        d = explain(inner, None, candidates=_searched(rec.op, frame), progress=progress, frame=frame)
     except UninformativeData as exc:  # e.g. PV constant over the fit part: the data cannot decide
         return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=exc.reason, adequacy=ad,
                           reasons=((Reason.UNINFORMATIVE, exc.reason),), notes=notes, op_noise=noise,
                           seconds=time.perf_counter() - start)
-    out = _decide(rec, d, ad, noise, frame)
-    named = {code for code, _ in out["reasons"]}
-    out["reasons"] = tuple(out["reasons"]) + tuple((Reason(f.physics), f.description) for f in d.findings
-                                                   if f.physics not in named and f.physics in _FINDING_REASONS)
+    decided = _decide(rec, d, ad, noise, frame)
+    named = {code for code, _ in decided.reasons}
+    others = tuple((Reason(f.physics), f.description) for f in d.findings if f.physics not in named)
     valve = _valve(d.findings)
-    band = None if valve is None else float(valve.parameters["S"])
-    load = None if valve is None else valve.load_delta_bic
-    return Assessment(source=src, explanation=d, adequacy=ad, notes=notes, op_noise=noise, band=band,
-                      load_delta_bic=load, frame=frame, seconds=time.perf_counter() - start, **out)
+    return Assessment(source=src, decision=decided.answer, cause=decided.cause, reason=decided.reason,
+                      reasons=decided.reasons + others, S=decided.S, J=decided.J, intervals=decided.intervals,
+                      tuning=decided.tuning, explanation=d, adequacy=ad, notes=notes, op_noise=noise,
+                      band=None if valve is None else float(valve.parameters["S"]),
+                      load_delta_bic=None if valve is None else valve.load_delta_bic, frame=frame,
+                      seconds=time.perf_counter() - start)

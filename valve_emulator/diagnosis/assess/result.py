@@ -67,11 +67,6 @@ class Assessment:
     seconds: float = 0.0
 
     @property
-    def diagnosis(self) -> Explanation | None:
-        """Another name for :attr:`explanation`."""
-        return self.explanation
-
-    @property
     def codes(self) -> tuple[Reason, ...]:
         """The codes of :attr:`reasons`, in order."""
         return tuple(code for code, _ in self.reasons)
@@ -84,9 +79,9 @@ class Assessment:
     @property
     def verdict(self) -> str:
         """The diagnosis' verdict (what the identified model leaves out), then the answer."""
-        if self.diagnosis is None:
+        if self.explanation is None:
             return self.statement
-        return f"{self.diagnosis.verdict} — answer: {self.statement}"
+        return f"{self.explanation.verdict} — answer: {self.statement}"
 
     @property
     def stiction(self) -> bool:
@@ -108,15 +103,15 @@ class Assessment:
 
     def to_json(self) -> dict:
         """The diagnosis JSON (``fit_before``, ``fit_after``, ``findings``, ``verdict``) with this verdict."""
-        if self.diagnosis is None:
+        if self.explanation is None:
             return {"fit_before": None, "fit_after": None, "findings": [], "verdict": self.verdict}
-        data = self.diagnosis.to_json()
+        data = self.explanation.to_json()
         data["verdict"] = self.verdict
         return data
 
     def summary(self) -> dict:
         """A flat record for tables: decision, cause, S, J and intervals, fits, time."""
-        d = self.diagnosis
+        d = self.explanation
         iv = {f"{k}_95": [round(a, 4), round(b, 4)] for k, (a, b) in self.intervals.items()}
         return {"decision": str(self.decision), "cause": self.cause, "reason": self.reason,
                 "S": None if self.S is None else round(self.S, 4), "J": None if self.J is None else round(self.J, 4),
@@ -131,7 +126,7 @@ class Assessment:
         head += [f"- note: {n}" for n in self.notes]
         if self.tuning is not None:
             head.append(f"- tuning: {self.tuning.reason}")
-        if self.diagnosis is None:
+        if self.explanation is None:
             return "\n".join(head) + "\n"
-        body = self.diagnosis.report(figure=figure).split("\n", 1)[1]
+        body = self.explanation.report(figure=figure).split("\n", 1)[1]
         return "\n".join(head) + "\n" + body

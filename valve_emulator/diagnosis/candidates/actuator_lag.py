@@ -20,7 +20,7 @@ from typing import ClassVar
 import numba
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
 
 __all__ = ["ActuatorLag", "first_order_lag"]
 
@@ -57,6 +57,8 @@ class ActuatorLag(ChainCandidate):
     param_names: ClassVar[tuple[str, ...]] = ("tau",)
     n_params: ClassVar[int] = 1
     joint_with_poles: ClassVar[bool] = True
+    cause_rank: ClassVar[int | None] = 50
+    twin_role: ClassVar[TwinRole | None] = TwinRole.ACTUATOR_LAG
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         hi = max(30.0 * ctx.dt, 2.0 * ctx.tau_plant)

@@ -25,7 +25,13 @@ depends on its *kind* (:class:`Kind`), i.e. where it acts; each kind has its own
     explains a cycle through the loop itself, not the OP → PV path (aggressive ``tuning``): it adds nothing
     to the replayed model, so it is not searched; :meth:`~LoopCandidate.assess` judges it on the final model.
 
-New candidates subclass the base of their kind in their own module and call :func:`register`.
+Besides what it computes, a candidate declares what the rest of the package does with a finding of it:
+:attr:`~Candidate.cause_rank` (where it ranks among the causes of a "no stiction" answer),
+:attr:`~Candidate.needs_span` (whether plant data must know OP's travel span to search it) and
+:attr:`~Candidate.twin_role` (what it becomes in the twin's loop config, :class:`TwinRole`). A new candidate is
+one module in this package: it subclasses the base of its kind and calls :func:`register`; the package imports
+every module in it (see its ``__init__``), and the reason codes
+(:class:`~valve_emulator.diagnosis.answers.Reason`) and the JSON Schema take its name from :func:`registry`.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ import numpy as np
 
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 
-__all__ = ["SLOTS", "KINDS", "Kind", "Candidate", "ChainCandidate", "DelayCandidate", "OutputCandidate",
+__all__ = ["SLOTS", "KINDS", "Kind", "TwinRole", "Candidate", "ChainCandidate", "DelayCandidate", "OutputCandidate",
            "LoopCandidate", "ChainContext", "register", "registry", "get"]
 
 #: Positions, in signal order. At most one candidate per slot is active in a model.
@@ -58,6 +64,43 @@ class Kind(StrEnum):
 #: The slots each kind may occupy (keyed by the kind's word).
 KINDS: Final = {Kind.CHAIN.value: ("actuator", "valve", "characteristic", "limit"), Kind.DELAY.value: ("delay",),
                 Kind.OUTPUT.value: ("output",), Kind.LOOP.value: ("loop",)}
+
+
+class TwinRole(StrEnum):
+    """What a finding becomes in the twin, the loop config ``diagnose --twin`` writes
+    (:mod:`~valve_emulator.diagnosis.report.twin`); its value names the keys it writes.
+
+    Each role sits in one slot and reads the finding's parameters by name (:attr:`slot`, :attr:`reads`): the
+    twin of a valve band takes ``S``, and ``J`` when the candidate has one (0 otherwise: a deadband). A candidate
+    without a role (``twin_role = None``: a quantised PV, a new valve model the loop config has no keys for)
+    is left out of the twin, and the twin's header says so.
+    """
+
+    VALVE_BAND = "valve.S, valve.J"
+    CHARACTERISTIC = "valve.characteristic, valve.rangeability"
+    ACTUATOR_LAG = "plant.den"
+    DEAD_TIME = "plant.delay"
+    OP_LIMITS = "controller.op_limits"
+    DISTURBANCE = "plant.disturbance"
+
+    @property
+    def slot(self) -> str:
+        """The slot a candidate with this role sits in."""
+        return _TWIN_SLOTS[self]
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        """The parameter names the twin reads (``J`` of a valve band is optional)."""
+        return _TWIN_READS[self]
+
+
+_TWIN_SLOTS: Final = {TwinRole.VALVE_BAND: "valve", TwinRole.CHARACTERISTIC: "characteristic",
+                      TwinRole.ACTUATOR_LAG: "actuator", TwinRole.DEAD_TIME: "delay", TwinRole.OP_LIMITS: "limit",
+                      TwinRole.DISTURBANCE: "output"}
+_TWIN_READS: Final = {TwinRole.VALVE_BAND: ("S",), TwinRole.CHARACTERISTIC: ("kind", "R"),
+                      TwinRole.ACTUATOR_LAG: ("tau",), TwinRole.DEAD_TIME: (), TwinRole.OP_LIMITS: ("lo", "hi"),
+                      TwinRole.DISTURBANCE: ("period", "amplitude", "phase")}
+
 #: What a candidate of each kind must implement besides the common methods.
 _REQUIRED: Final = {Kind.CHAIN: ("apply",), Kind.DELAY: (), Kind.OUTPUT: ("adjust", "predict", "simulate"),
                     Kind.LOOP: ("assess",)}
@@ -127,6 +170,12 @@ class Candidate(ABC):
         labels) need no conversion.
     n_params : parameters counted by BIC (may differ from ``len(param_names)`` when a name is a label,
         e.g. the characteristic's type).
+    cause_rank : where a finding of it ranks among the causes of a "no stiction" answer on plant data, lowest
+        first (:mod:`~valve_emulator.diagnosis.assess.decision`); None (the default): it never names that
+        cause (valve friction is the stiction answer itself; ``tuning`` is judged on its own).
+    needs_span : it acts on travel levels (0 and 100 % at the travel stops), so plant data search it only when
+        OP's travel span is known, or when :meth:`shows_without_span` says OP places it anyway.
+    twin_role : what a finding of it becomes in the twin (:class:`TwinRole`); None: the twin leaves it out.
     """
 
     name: ClassVar[str]
@@ -134,6 +183,9 @@ class Candidate(ABC):
     param_names: ClassVar[tuple[str, ...]]
     n_params: ClassVar[int]
     dims: ClassVar[dict[str, str]] = {}
+    cause_rank: ClassVar[int | None] = None
+    needs_span: ClassVar[bool] = False
+    twin_role: ClassVar[TwinRole | None] = None
 
     @abstractmethod
     def grid(self, ctx: ChainContext) -> np.ndarray:
@@ -170,6 +222,11 @@ class Candidate(ABC):
         """Whether the data can show this physics at all (e.g. a quantiser needs a PV on few levels)."""
         return True
 
+    def shows_without_span(self, op: np.ndarray) -> bool:
+        """For a candidate that :attr:`needs_span`: whether the recorded OP (in its own units) places it even
+        though the travel span is unknown (default: no)."""
+        return False
+
     def identity(self) -> np.ndarray | None:
         """Parameter vector that leaves the signal unchanged (None when there is none)."""
         return None
@@ -188,11 +245,6 @@ class Candidate(ABC):
     def kind(self) -> Kind:
         """The candidate's kind, from its slot (:data:`KINDS`)."""
         return next(Kind(k) for k, slots in KINDS.items() if self.slot in slots)
-
-    @property
-    def category(self) -> Kind:
-        """Another name for :attr:`kind`."""
-        return self.kind
 
 
 class ChainCandidate(Candidate):
@@ -223,6 +275,8 @@ class ChainCandidate(Candidate):
 
 class DelayCandidate(Candidate):
     """The dead time: its parameter is the linear part's own, searched inside every linear fit."""
+
+    twin_role: ClassVar[TwinRole | None] = TwinRole.DEAD_TIME
 
 
 class OutputCandidate(Candidate):
@@ -264,15 +318,27 @@ _REGISTRY: dict[str, Candidate] = {}
 
 
 def register(candidate: Candidate) -> Candidate:
-    """Add a candidate instance to the library under its ``name`` (the last registration wins)."""
+    """Add a candidate instance to the library under its ``name`` (the last registration wins).
+
+    Raises ValueError for a declaration the package could not act on: a name that is no lower-case identifier
+    (it is a reason code and a JSON word), an unknown slot, a method its kind needs, or a twin role in another
+    slot or reading a parameter the candidate does not have.
+    """
+    name = candidate.name
+    if not (isinstance(name, str) and name.isidentifier() and name == name.lower()):
+        raise ValueError(f"candidate {name!r}: its name must be a lower-case identifier (a reason code)")
     if candidate.slot not in SLOTS:
-        raise ValueError(f"candidate {candidate.name!r}: slot must be one of {', '.join(SLOTS)}, "
-                         f"got {candidate.slot!r}")
+        raise ValueError(f"candidate {name!r}: slot must be one of {', '.join(SLOTS)}, got {candidate.slot!r}")
     missing = [m for m in _REQUIRED[candidate.kind] if not callable(getattr(candidate, m, None))]
     if missing:
-        raise ValueError(f"candidate {candidate.name!r}: a {candidate.kind} candidate (slot {candidate.slot!r}) "
+        raise ValueError(f"candidate {name!r}: a {candidate.kind} candidate (slot {candidate.slot!r}) "
                          f"must implement {', '.join(missing)}")
-    _REGISTRY[candidate.name] = candidate
+    role = candidate.twin_role
+    if role is not None and (role.slot != candidate.slot or not set(role.reads) <= set(candidate.param_names)):
+        raise ValueError(f"candidate {name!r}: twin role {role.name} needs slot {role.slot!r} and the parameters "
+                         f"{', '.join(role.reads) or '(none)'}; it has slot {candidate.slot!r} and "
+                         f"{', '.join(candidate.param_names)}")
+    _REGISTRY[name] = candidate
     return candidate
 
 

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_RANGEABILITY, Characteristic
 
 __all__ = ["FlowCharacteristic", "R_GRID"]
@@ -35,6 +35,9 @@ class FlowCharacteristic(ChainCandidate):
     slot: ClassVar[str] = "characteristic"
     param_names: ClassVar[tuple[str, ...]] = ("kind", "R")
     n_params: ClassVar[int] = 1
+    cause_rank: ClassVar[int | None] = 40
+    needs_span: ClassVar[bool] = True   # a curve over travel: where 0 and 100 % lie must be known
+    twin_role: ClassVar[TwinRole | None] = TwinRole.CHARACTERISTIC
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         nominal_kind, nominal_r = ctx.characteristic

@@ -23,6 +23,7 @@ class DeadTime(DelayCandidate):
     slot: ClassVar[str] = "delay"
     param_names: ClassVar[tuple[str, ...]] = ("theta",)
     n_params: ClassVar[int] = 1
+    cause_rank: ClassVar[int | None] = 60
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         return np.array([[ctx.delay]])

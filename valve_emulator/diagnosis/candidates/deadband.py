@@ -12,7 +12,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
 from valve_emulator.diagnosis.candidates.valve_start import STARTS, sync_burn_in, valve_output
 
 __all__ = ["Deadband"]
@@ -28,6 +28,7 @@ class Deadband(ChainCandidate):
     param_names: ClassVar[tuple[str, ...]] = ("S", "start")
     n_params: ClassVar[int] = 1
     dims: ClassVar[dict[str, str]] = {"S": "op"}
+    twin_role: ClassVar[TwinRole | None] = TwinRole.VALVE_BAND
     threshold_axes: ClassVar[tuple[int, ...]] = (0,)
 
     def grid(self, ctx: ChainContext) -> np.ndarray:

@@ -31,7 +31,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import ChainContext, OutputCandidate, register
+from valve_emulator.diagnosis.candidates.base import ChainContext, OutputCandidate, TwinRole, register
 
 __all__ = ["Disturbance", "N_PEAKS", "MIN_CYCLES"]
 
@@ -83,6 +83,8 @@ class Disturbance(OutputCandidate):
     slot: ClassVar[str] = "output"
     param_names: ClassVar[tuple[str, ...]] = ("period", "amplitude", "phase")
     n_params: ClassVar[int] = 3
+    cause_rank: ClassVar[int | None] = 10
+    twin_role: ClassVar[TwinRole | None] = TwinRole.DISTURBANCE
 
     def applicable(self, ctx: ChainContext) -> bool:
         w0, w1 = _window(ctx)

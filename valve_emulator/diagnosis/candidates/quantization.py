@@ -64,6 +64,7 @@ class Quantization(OutputCandidate):
     slot: ClassVar[str] = "output"
     param_names: ClassVar[tuple[str, ...]] = ("q",)
     n_params: ClassVar[int] = 1
+    cause_rank: ClassVar[int | None] = 20   # no twin role: the loop config has no measured-PV quantiser
 
     def applicable(self, ctx: ChainContext) -> bool:
         return ctx.pv is not None and on_few_levels(ctx.pv)

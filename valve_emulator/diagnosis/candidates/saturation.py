@@ -9,8 +9,8 @@ valve. The model clips the chain signal after the characteristic,
 
 with one active limit (``lo`` = ℓ or ``hi`` = h; the other one at the travel stop, 0 or 100 %), so one
 parameter for BIC. On plant data it is a candidate only where OP's travel span is known or OP demonstrably sits
-flat at an extreme (:func:`~valve_emulator.diagnosis.assess.decision.op_flat_at_extreme`). Its signature: the
-residual of a model without it lives where OP sits beyond the limit.
+flat at an extreme (:func:`op_flat_at_extreme`). Its signature: the residual of a model without it lives where
+OP sits beyond the limit.
 
 Limits are levels on the travel scale (0 and 100 % at the travel stops,
 :meth:`~valve_emulator.diagnosis.candidates.base.ChainContext.travel`). Grid: each side at the 2nd … 40th
@@ -25,12 +25,34 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
 
-__all__ = ["Saturation", "PERCENTILES"]
+__all__ = ["Saturation", "PERCENTILES", "op_flat_at_extreme", "FLAT_EXTREME_SHARE", "FLAT_EXTREME_MIN"]
 
 #: Percentiles of OP tried as a lower limit (and 100 − p as an upper one).
 PERCENTILES = (2.0, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0)
+#: OP "flat at an extreme": one unbroken run of at least this share of the record (and
+#: :data:`FLAT_EXTREME_MIN` samples) exactly at OP's highest or lowest value — a controller output held at
+#: its limit repeats one value, where a moving or noisy OP touches its extreme for a sample or two.
+FLAT_EXTREME_SHARE = 0.05
+FLAT_EXTREME_MIN = 10
+
+
+def op_flat_at_extreme(op: np.ndarray) -> bool:
+    """Whether OP sits flat at its highest or lowest value for one run of :data:`FLAT_EXTREME_SHARE` of the
+    record (at least :data:`FLAT_EXTREME_MIN` samples): there OP is at a limit, so a flow limit (saturation)
+    can be told from the data even when the travel span is not known. Independent of OP's units."""
+    op = np.asarray(op, dtype=float)
+    span = float(np.ptp(op)) if op.size else 0.0
+    if not span > 0.0:
+        return False
+    need = max(FLAT_EXTREME_MIN, int(np.ceil(FLAT_EXTREME_SHARE * op.size)))
+    tol = 1e-9 * span  # the same value, up to the rounding of a unit conversion
+    for at in (op >= op.max() - tol, op <= op.min() + tol):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], at.astype(np.int8), [0]])))
+        if edges.size and int(np.max(edges[1::2] - edges[::2])) >= need:
+            return True
+    return False
 
 
 class Saturation(ChainCandidate):
@@ -39,6 +61,13 @@ class Saturation(ChainCandidate):
     param_names: ClassVar[tuple[str, ...]] = ("lo", "hi")
     n_params: ClassVar[int] = 1
     dims: ClassVar[dict[str, str]] = {"lo": "op_level", "hi": "op_level"}
+    cause_rank: ClassVar[int | None] = 30
+    needs_span: ClassVar[bool] = True   # limits are travel levels
+    twin_role: ClassVar[TwinRole | None] = TwinRole.OP_LIMITS
+
+    def shows_without_span(self, op: np.ndarray) -> bool:
+        """OP held flat at an extreme (:func:`op_flat_at_extreme`) is a limit the data place themselves."""
+        return op_flat_at_extreme(op)
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         op = np.clip(ctx.travel(ctx.op), 0.0, 100.0)

@@ -21,7 +21,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
 from valve_emulator.diagnosis.candidates.valve_start import STARTS, sync_burn_in, valve_output
 
 __all__ = ["Stiction", "stiction_kind"]
@@ -57,6 +57,7 @@ class Stiction(ChainCandidate):
     param_names: ClassVar[tuple[str, ...]] = ("S", "J", "start")
     n_params: ClassVar[int] = 2
     dims: ClassVar[dict[str, str]] = {"S": "op", "J": "op"}
+    twin_role: ClassVar[TwinRole | None] = TwinRole.VALVE_BAND
     threshold_axes: ClassVar[tuple[int, ...]] = (0, 1)
 
     def grid(self, ctx: ChainContext) -> np.ndarray:

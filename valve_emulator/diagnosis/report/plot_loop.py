@@ -46,8 +46,8 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
         ax2.plot(rec.t, rec.sp, color="k", ls="--", lw=0.7, label="SP")
     ax2.set_ylabel("PV")
     handles = ax.get_lines() + ax2.get_lines()
-    if a.diagnosis is not None and Reason.PART_OF_RECORD in a.codes:
-        t = a.diagnosis.traces.t
+    if a.explanation is not None and Reason.PART_OF_RECORD in a.codes:
+        t = a.explanation.traces.t
         handles.append(ax.axvspan(t[0], t[-1], color="tab:green", alpha=0.08, label="the part answered"))
     ax.legend(handles, [h.get_label() for h in handles], fontsize=8, loc="upper left")
     ax.set_title("The recording", fontsize=10)
@@ -58,7 +58,7 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
     ax.set(xlabel=op_label, ylabel="PV", title="PV against OP")
 
     ax = fig.add_subplot(grid[1, 1])
-    d = a.diagnosis
+    d = a.explanation
     if d is None:
         ax.text(0.5, 0.5, "\n".join(textwrap.wrap(f"no model: {a.reason}", 60)), ha="center", va="center",
                 transform=ax.transAxes, fontsize=9)

@@ -34,7 +34,13 @@ simulation, device
 
 An external oscillating disturbance found (a sinusoid added to PV) becomes ``plant.disturbance``: the sinusoid
 at the plant input that the plant turns into it (amplitude divided by the plant's gain at that frequency, phase
-less its phase). A quantised PV has no key in the loop config; the header says so when one was found.
+less its phase).
+
+Which finding goes where is what its candidate declares, its
+:attr:`~valve_emulator.diagnosis.candidates.base.Candidate.twin_role`
+(:class:`~valve_emulator.diagnosis.candidates.base.TwinRole`), read here by role and by parameter name, never by
+the candidate's name. A finding without a role (a quantised PV, a valve model the loop config has no keys for)
+is left out, and the header says so.
 """
 
 from __future__ import annotations
@@ -56,6 +62,8 @@ from valve_emulator.config import (
 )
 from valve_emulator.config.schema import CHARACTERISTICS, DeviceConfig
 from valve_emulator.config.writer import dump_loop
+from valve_emulator.diagnosis.candidates import SLOTS, TwinRole
+from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.continuous import continuous_transfer_function
 from valve_emulator.diagnosis.fit.data import fit_percent, fold_windows
 from valve_emulator.diagnosis.fit.frame import Frame
@@ -200,11 +208,37 @@ def _operating_point(fitted: FittedLoop, travel: TwinTravel) -> tuple[float, flo
     return float(y0 * ctx.y_scale + ctx.y_mean), travel.level(u0)
 
 
-def _input_sine(params: np.ndarray, plant: PlantConfig) -> DisturbanceConfig:
+def _in_role(fitted: FittedLoop, role: TwinRole) -> Active | None:
+    """The physics of the fitted model that the twin writes in ``role`` (None: none)."""
+    found = fitted.active.get(role.slot)
+    return found if found is not None and found.candidate.twin_role is role else None
+
+
+def _named(found: Active) -> dict[str, float]:
+    """A finding's parameters by name."""
+    return {name: float(x) for name, x in zip(found.candidate.param_names, found.params)}
+
+
+def _left_out(fitted: FittedLoop) -> list[str]:
+    """A header line for each finding of the model whose candidate has no twin role, in signal order."""
+    lines = []
+    for found in sorted(fitted.active.values(), key=lambda a: SLOTS.index(a.slot)):
+        if found.candidate.twin_role is not None:
+            continue
+        if found.slot == "output":
+            lines.append(f"Left out: the {found.name} finding acts on the measured PV, which the loop config "
+                         "cannot express.")
+        else:
+            lines.append(f"Left out: the {found.name} finding ({found.slot} slot) has no keys in the loop config, "
+                         "so the twin lacks it.")
+    return lines
+
+
+def _input_sine(params: dict[str, float], plant: PlantConfig) -> DisturbanceConfig:
     r"""The input sinusoid (% flow) that ``plant`` turns into the output one found, ``A sin(ωt + φ)`` in PV units:
     amplitude ``A/|G(jω)|`` and phase ``φ − arg G(jω)``, the dead time included (steady state; the phase counts
     from the recording's first sample)."""
-    period, amplitude, phase = (float(x) for x in params[:3])
+    period, amplitude, phase = params["period"], params["amplitude"], params["phase"]
     w = 2.0 * np.pi / period
     g = np.polyval(plant.num, 1j * w) / np.polyval(plant.den, 1j * w) * np.exp(-1j * w * plant.delay)
     return DisturbanceConfig(type="sine", amplitude=amplitude / abs(g), period=period,
@@ -228,7 +262,7 @@ def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray, travel: TwinTrav
            ) -> tuple[ValveConfig, list[str]]:
     """The valve section (``op``: the recorded OP in the twin's travel) and its provenance."""
     fitted, rec, frame = diagnosis.explanation.fitted, diagnosis.recording, diagnosis.frame
-    ctx, active = fitted.ctx, fitted.active
+    ctx = fitted.ctx
     if frame.known:
         lines = [f"valve.op_range: the recording's OP at 0 and 100 % travel ({frame.span_source}); OP, S, J, "
                  "plant.u0 and the plant's input are in % travel."]
@@ -236,18 +270,25 @@ def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray, travel: TwinTrav
         lo, hi = frame.to_internal(np.percentile(rec.op, [0.5, 99.5]))
         lines = ["valve.op_range: OP's travel span is unknown; the twin's travel is the diagnosis' unit-free "
                  f"frame (the recording's robust OP range on {_g(lo)}-{_g(hi)} %); op_range maps OP's units to it."]
-    found = active.get("valve")
+    found = _in_role(fitted, TwinRole.VALVE_BAND)
     if found is not None:
-        S = travel.delta(found.params[0])
-        J = travel.delta(found.params[1]) if found.name == "stiction" else 0.0
+        band = _named(found)
+        S, J = travel.delta(band["S"]), travel.delta(band.get("J", 0.0))
         lines.append(f"valve.S, valve.J: {found.name} found by the diagnosis{_finding_text(diagnosis, found.name)}.")
     else:
         S, J = (travel.delta(x) for x in fitted.nominal_valve)
-        lines.append("valve.S, valve.J: " + ("the model's valve (no valve friction found)." if model is not None
-                                             else "no valve friction found (a free valve)."))
-    char = active.get("characteristic")
-    kind, R = (CHARACTERISTICS[int(char.params[0])], float(char.params[1])) if char is not None \
-        else ctx.characteristic
+        keyless = fitted.active.get("valve")   # a valve model the loop config has no keys for
+        if keyless is not None:
+            lines.append("valve.S, valve.J: " + ("the model's valve" if model is not None else "a free valve")
+                         + f" (the {keyless.name} found has no keys in the loop config).")
+        else:
+            lines.append("valve.S, valve.J: " + ("the model's valve (no valve friction found)." if model is not None
+                                                 else "no valve friction found (a free valve)."))
+    char = _in_role(fitted, TwinRole.CHARACTERISTIC)
+    kind, R = ctx.characteristic
+    if char is not None:
+        curve = _named(char)
+        kind, R = CHARACTERISTICS[int(curve["kind"])], curve["R"]
     lines.append("valve.characteristic: " + ("found by the diagnosis." if char is not None else
                                              "the model's." if model is not None else "linear (assumed)."))
     rest = model.valve.rest_time if model is not None else (ctx.rest_samples - 0.5) * ctx.dt
@@ -263,9 +304,9 @@ def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: T
     """The plant section (before the replay's operating-point shift) and its provenance."""
     explanation, rec = diagnosis.explanation, diagnosis.recording
     fitted = explanation.fitted
-    ctx, st, active = fitted.ctx, fitted.linear.structure, fitted.active
-    lag = active.get("actuator")
-    tau_a = float(lag.params[0]) if lag is not None else None
+    ctx, st = fitted.ctx, fitted.linear.structure
+    lag = _in_role(fitted, TwinRole.ACTUATOR_LAG)
+    tau_a = _named(lag)["tau"] if lag is not None else None
     num, den = _plant(fitted, tau_a, travel)
     pv0, u0 = _operating_point(fitted, travel)
     w0 = ctx.window[0]
@@ -281,15 +322,12 @@ def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: T
              f"plant.pv0, u0: the fit's operating point; plant.noise: RMS residual of the final model ({_g(noise)}); "
              f"pv_range: the recorded PV range widened by {PV_MARGIN:g} of it each side"
              + (f"; units: {units}." if units else ".")]
-    out = active.get("output")
-    if out is not None and out.name == "disturbance":
-        plant = replace(plant, disturbance=_input_sine(out.params, plant))
+    sine = _in_role(fitted, TwinRole.DISTURBANCE)
+    if sine is not None:
+        plant = replace(plant, disturbance=_input_sine(_named(sine), plant))
         lines.append("plant.disturbance: the external oscillating disturbance found (a sinusoid in PV), as the "
                      "sinusoid at the plant input that the plant turns into it.")
-    elif out is not None:
-        lines.append(f"Left out: the {out.name} finding acts on the measured PV, which the loop config cannot "
-                     "express.")
-    return plant, lines
+    return plant, lines + _left_out(fitted)
 
 
 def _plant_origin(explanation, model: LoopConfig | None) -> str:
@@ -313,9 +351,10 @@ def _controller(diagnosis, model: LoopConfig | None, op: np.ndarray, plant: Plan
     rec, fitted = diagnosis.recording, diagnosis.explanation.fitted
     st, lines = fitted.linear.structure, []
     limits = (0.0, 100.0)
-    sat = fitted.active.get("limit")
+    sat = _in_role(fitted, TwinRole.OP_LIMITS)
     if sat is not None:
-        limits = (max(0.0, float(sat.params[0])), min(100.0, float(sat.params[1])))
+        flow = _named(sat)
+        limits = (max(0.0, flow["lo"]), min(100.0, flow["hi"]))
         lines.append("controller.op_limits: the saturation found by the diagnosis.")
     has_sp = rec.sp is not None and bool(np.all(np.isfinite(rec.sp)))
     pi = identify_pi(rec.t, rec.sp, rec.pv, op) if has_sp else None
@@ -391,7 +430,8 @@ def _replay_operating_point(cfg: LoopConfig, explanation, rec) -> LoopConfig:
 
 def replay_fit(diagnosis, pv: np.ndarray) -> float:
     """The fit (%) of a replayed PV against the recorded one, on the samples ``fit_after`` is measured on:
-    the held-out last 30 % (split validation) or the two held-out blocks pooled (two-fold)."""
+    the held-out last :data:`~valve_emulator.diagnosis.fit.data.HELD_OUT` of the record (split validation) or the
+    two held-out blocks pooled (two-fold)."""
     explanation = diagnosis.explanation
     y, pv = np.asarray(diagnosis.recording.pv, dtype=float), np.asarray(pv, dtype=float)
     if explanation.plant.get("validation", "split") == "split":
