@@ -266,6 +266,8 @@ class KarnoppFriction:
         if t < self.onset:
             self.x, self.v, self.stuck = u, 0.0, True
             return u
+        if self.stuck and abs(u - self.x) <= self.fs:
+            return self.x                             # held by static friction for the whole step
         w2, c, dh = self.w * self.w, 2.0 * self.w, h / self.inner
         for _ in range(self.inner):
             force = u - self.x
@@ -333,26 +335,39 @@ def _stem(valve: Valve, u0: float, dt: float) -> tuple[Callable[[float, float, f
 # --- the plant: RK4 over a delayed, piecewise-linear input ---------------------------------------------------
 
 class PlantState:
-    """States (x₁, y): x₁ the first lag's output (or the input itself), y the PV deviation."""
+    """States z = (x₁, y): x₁ the first lag's output (the input itself without one), y the PV deviation;
+    ż = A z + B u. One RK4 step of length h is linear in z and in the input at its start, middle and end, so
+    its matrices are worked out once (the classical RK4 formula applied to unit vectors) and each step is a
+    few multiplications."""
 
-    def __init__(self, plant: Plant):
-        self.K, self.tau1, self.tau = plant.gain, plant.first_lag, plant.tau
-        self.integrating = plant.integrating
+    def __init__(self, plant: Plant, h: float):
+        tau1 = plant.first_lag
+        # ẏ = K·x₁ (integrating) or (K·x₁ − y)/τ; without a first lag x₁ is the input u
+        drive, leak = (plant.gain, 0.0) if plant.integrating else (plant.gain / plant.tau, 1.0 / plant.tau)
+        if tau1:
+            A, B = np.array([[-1.0 / tau1, 0.0], [drive, -leak]]), np.array([1.0 / tau1, 0.0])
+        else:
+            A, B = np.array([[0.0, 0.0], [0.0, -leak]]), np.array([0.0, drive])
+        M = np.column_stack([_rk4(A, B, e, h, 0.0, 0.0, 0.0) for e in np.eye(2)])
+        inputs = [_rk4(A, B, np.zeros(2), h, *e) for e in np.eye(3)]
+        self.m = [float(v) for v in M.ravel()]
+        self.b = [[float(v) for v in col] for col in inputs]   # start, middle, end
         self.x1, self.y = 0.0, 0.0
 
-    def _rates(self, x1: float, y: float, u: float) -> tuple[float, float]:
-        dx1 = (u - x1) / self.tau1 if self.tau1 else 0.0
-        drive = self.K * (x1 if self.tau1 else u)
-        return dx1, (drive if self.integrating else (drive - y) / self.tau)
-
-    def step(self, h: float, u_start: float, u_mid: float, u_end: float) -> None:
+    def step(self, u_start: float, u_mid: float, u_end: float) -> None:
+        (m00, m01, m10, m11), (b0, bm, b1) = self.m, self.b
         x1, y = self.x1, self.y
-        a1, b1 = self._rates(x1, y, u_start)
-        a2, b2 = self._rates(x1 + h / 2 * a1, y + h / 2 * b1, u_mid)
-        a3, b3 = self._rates(x1 + h / 2 * a2, y + h / 2 * b2, u_mid)
-        a4, b4 = self._rates(x1 + h * a3, y + h * b3, u_end)
-        self.x1 = x1 + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
-        self.y = y + h / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
+        self.x1 = m00 * x1 + m01 * y + b0[0] * u_start + bm[0] * u_mid + b1[0] * u_end
+        self.y = m10 * x1 + m11 * y + b0[1] * u_start + bm[1] * u_mid + b1[1] * u_end
+
+
+def _rk4(A: np.ndarray, B: np.ndarray, z: np.ndarray, h: float, u0: float, um: float, u1: float) -> np.ndarray:
+    """One classical Runge–Kutta step of ż = A z + B u, the input given at the step's start, middle and end."""
+    k1 = A @ z + B * u0
+    k2 = A @ (z + h / 2 * k1) + B * um
+    k3 = A @ (z + h / 2 * k2) + B * um
+    k4 = A @ (z + h * k3) + B * u1
+    return z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
 class DelayLine:
@@ -360,7 +375,7 @@ class DelayLine:
     input before the start is the starting value, 0)."""
 
     def __init__(self, n: int, h: float, delay: float):
-        self.values, self.h, self.lag, self.n = np.zeros(n), h, delay / h, 0
+        self.values, self.h, self.lag, self.n = [0.0] * n, h, delay / h, 0   # a list: fast to index
 
     def push(self, value: float) -> None:
         self.values[self.n] = value
@@ -399,8 +414,8 @@ def _load_series(loads: tuple[Load, ...], t: np.ndarray, rng: np.random.Generato
 
 
 class PI:
-    """Positional PI with anti-windup: the integral does not grow while OP is at a limit and the error pushes
-    it further."""
+    """Positional PI with anti-windup: at a limit, with the error pushing further, the integral grows only up
+    to where OP reaches the limit (never beyond), so OP leaves the limit as soon as the error turns."""
 
     def __init__(self, c: Controller, bias: float, dt: float):
         self.c, self.bias, self.dt, self.integral = c, bias, dt, 0.0
@@ -411,9 +426,11 @@ class PI:
         e = self.sign * (sp - pv)
         integral = self.integral + e * self.dt / self.c.ti
         raw = self.bias + self.c.kc * (e + integral)
-        if (raw > hi and e > 0) or (raw < lo and e < 0):
-            integral = self.integral
-            raw = self.bias + self.c.kc * (e + integral)
+        if raw > hi and e > 0:
+            integral = max(self.integral, (hi - self.bias) / self.c.kc - e)
+        elif raw < lo and e < 0:
+            integral = min(self.integral, (lo - self.bias) / self.c.kc - e)
+        raw = self.bias + self.c.kc * (e + integral)
         self.integral = integral
         return min(max(raw, lo), hi)
 
@@ -444,7 +461,7 @@ def simulate(loop: Loop, *, record_mv: bool = False) -> tuple[Recording, dict]:
     sp = set_point(loop, t)
     stem, x0 = _stem(loop.valve, loop.op0, dt)
     u_eq = loop.valve.flow(x0)   # the plant starts at rest at the stem's starting travel
-    plant, line = PlantState(loop.plant), DelayLine(n * m + 1, h, loop.plant.delay)
+    plant, line = PlantState(loop.plant, h), DelayLine(n * m + 1, h, loop.plant.delay)
     pi = PI(loop.controller, loop.op0, dt) if loop.controller and loop.manual_op is None else None
     op, pv, mv = np.empty(n), np.empty(n), np.empty(n)
     q = loop.measurement.quantum
@@ -463,7 +480,7 @@ def simulate(loop: Loop, *, record_mv: bool = False) -> tuple[Recording, dict]:
             line.push(loop.valve.flow(x) - u_eq + load[i])
             if i + 1 >= n * m:
                 break
-            plant.step(h, line.at(i), line.at(i + 0.5), line.at(i + 1))
+            plant.step(line.at(i), line.at(i + 0.5), line.at(i + 1))
     recording = Recording(t=t, sp=sp, op=op, mv=mv if record_mv else None, pv=pv, source="independent")
     truth = {"sticky": loop.valve.sticky and loop.valve.S >= MATERIAL_S, "S": loop.valve.S if loop.valve.sticky
              else 0.0, "J": loop.valve.J if loop.valve.sticky else 0.0, "valve": asdict(loop.valve),
