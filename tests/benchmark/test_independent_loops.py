@@ -5,6 +5,8 @@ from __future__ import annotations
 import ast
 import inspect
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -204,3 +206,32 @@ def test_the_simulator_shares_no_code_with_the_searched_model():
         a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     package = {m for m in imported if m and m.startswith("valve_emulator")}
     assert package == {"valve_emulator.recordings"}
+
+
+def _document(answer, S=None, J=None, interval=0.1, codes=(), physics=()):
+    value = lambda x: {"value": x, "interval": [x * (1 - interval), x * (1 + interval)], "units": "% travel"}  # noqa: E731
+    friction = None if S is None else {
+        "physics": "stiction" if J else "deadband", "S": value(S), "J": value(J),
+        "travel": {"S": value(S), "J": value(J)}, "band": {"S": {"value": S / 10.0}, "J": {"value": J / 10.0}}}
+    return {"answer": answer, "friction": friction, "reasons": [{"code": c, "sentence": ""} for c in codes],
+            "findings": [{"physics": p} for p in physics]}
+
+
+def test_the_benchmark_scores_answers_intervals_edges_and_disagreements_against_the_truth():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
+    from bench_unseen_loops import score
+
+    sticky = {"expected": "stiction", "tuning": False, "S": 4.0, "J": 2.0}
+    row = score(_document("stiction", 4.2, 1.9, codes=["stiction"], physics=["stiction"]), sticky)
+    assert row["correct"] and row["S_cov"] and row["J_cov"] and not row["edge"] and not row["disagree"]
+    assert row["S_err"] == pytest.approx(0.05) and row["J_err"] == pytest.approx(0.05)
+    row = score(_document("stiction", 5.0, 1.0, interval=0.05, physics=["stiction"]), sticky)
+    assert not row["S_cov"] and not row["J_cov"]
+    assert score(_document("stiction", 4.0, 0.0, interval=0.5, physics=["deadband"]), sticky)["edge"]   # ±40 % box
+    healthy = {"expected": "no_stiction", "tuning": False, "S": 0.0, "J": 0.0}
+    row = score(_document("no_stiction", physics=["stiction"]), healthy)
+    assert row["correct"] and row["disagree"]
+    tuned = {**healthy, "tuning": True}
+    assert not score(_document("no_stiction", codes=["linear"]), tuned)["correct"]
+    assert score(_document("no_stiction", codes=["tuning"]), tuned)["correct"]
+    assert not score(_document("cannot_tell"), healthy)["correct"]
