@@ -43,7 +43,7 @@ from scipy.signal import lfilter
 from valve_emulator.recordings import Recording
 
 __all__ = ["FAMILIES", "MATERIAL_S", "Controller", "Load", "Loop", "Measurement", "Plant", "Valve", "draw",
-           "loop_margins", "simulate"]
+           "loop_margins", "nominal_mapping", "simulate"]
 
 #: Friction below this S (% travel) is not what a loop's owner calls a sticky valve: a family whose valve has
 #: less is expected to be answered "no stiction".
