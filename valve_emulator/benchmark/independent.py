@@ -313,6 +313,9 @@ class Lag:
 
 
 def _friction(valve: Valve, u0: float, dt: float) -> DataDrivenFriction | KarnoppFriction | Pass:
+    """The valve's friction element, at rest with its input at ``u0``; a Karnopp stem swings with a period of
+    half a sample (it settles well within one), a data-driven valve comes to rest after 1.5 samples of a held
+    input unless told otherwise."""
     if not valve.sticky:
         return Pass(u0)
     if valve.friction == "karnopp":
@@ -436,6 +439,7 @@ class PI:
 
 
 def set_point(loop: Loop, t: np.ndarray) -> np.ndarray:
+    """The set point at the sample times: ``sp0`` (or the plant's ``pv0``), then each step from its time on."""
     sp = np.full(t.size, loop.plant.pv0 if loop.sp0 is None else loop.sp0)
     for when, value in loop.controller.sp_steps if loop.controller else ():
         sp[t >= when] = value
@@ -450,7 +454,9 @@ def simulate(loop: Loop, *, record_mv: bool = False) -> tuple[Recording, dict]:
     At sample k: PV is measured (noise, quantisation); OP is the controller's answer to the PV measured at
     k−1 (``op0`` at k = 0), or ``manual_op[k]``; OP is then held while valve and plant run ``substeps``
     fixed steps to the next sample. ``mv`` is the stem travel at the sample instant, after the valve has
-    seen that sample's OP. The truth always holds the stem travel (``mv``) and the load.
+    seen that sample's OP. The truth: ``sticky`` (friction of at least :data:`MATERIAL_S`), ``S`` and ``J``
+    (0 for a healthy valve), every parameter of the loop (``valve``, ``plant``, ``controller``, ``load``,
+    ``measurement``, ``dt``), and per sample the stem travel ``mv`` and the load ``load_series``.
     """
     n, m, dt = loop.samples, loop.substeps, loop.dt
     h = dt / m
@@ -704,6 +710,4 @@ def draw(family: str, rng: np.random.Generator) -> tuple[Recording, dict, dict]:
     loop = replace(loop, seed=int(rng.integers(2**31)))
     recording, truth = simulate(loop)
     truth = {**truth, "family": family, "tuning": False, **extra}
-    recording = Recording(t=recording.t, sp=recording.sp, op=recording.op, mv=None, pv=recording.pv,
-                          source=f"independent:{family}")
-    return recording, truth, nominal_mapping(loop, family)
+    return replace(recording, source=f"independent:{family}"), truth, nominal_mapping(loop, family)
