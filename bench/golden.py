@@ -155,7 +155,7 @@ def run(out: Path, plant: Path | None, cases_from: Path | None) -> int:
 def _diff(a, b, where: str, out: list[str]) -> None:
     if isinstance(a, dict) and isinstance(b, dict):
         for key in sorted(set(a) | set(b)):
-            if key in ("seconds",):  # wall time
+            if key in ("seconds", "source"):  # wall time; where the case file was
                 continue
             if key not in a or key not in b:
                 # a key only in the newer output is an addition, not a change of behaviour
