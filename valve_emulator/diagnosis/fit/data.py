@@ -35,7 +35,7 @@ __all__ = ["Problem", "prepare", "prefilter_for", "folds", "fold_windows", "held
 HELD_OUT = 0.3
 #: Fewest samples the diagnosis accepts whatever the model (burn-in, fit part and held-out part).
 MIN_SAMPLES = 200
-#: How the held-out fit is measured: one split (last 30 % held out) or two blocked folds.
+#: How the held-out fit is measured: one split (the last :data:`HELD_OUT` held out) or two blocked folds.
 VALIDATIONS = ("split", "twofold")
 #: Burn-in bounds, as fractions of the record.
 _BURN_MIN, _BURN_MAX = 0.05, 0.25
@@ -179,7 +179,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     nominal_delay : the nominal model's dead time (s), which centres the dead-time grid; None = no model.
     settle_time : the nominal plant's settling time (s), a lower bound for the burn-in.
     prefilter, stops : see :class:`Problem`.
-    validation : ``"split"`` (hold out the last 30 %) or ``"twofold"`` (fit on all, cross-validate).
+    validation : ``"split"`` (hold out the last :data:`HELD_OUT`) or ``"twofold"`` (fit on all, cross-validate).
 
     Raises
     ------
