@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from valve_emulator.benchmark.cases import CASES, Case, generate
 from valve_emulator.diagnosis.explain.pipeline import RULE, explain
 from valve_emulator.diagnosis.explain.result import Explanation
+from valve_emulator.diagnosis.fit.data import HELD_OUT
 from valve_emulator.diagnosis.report.diagnosis import Diagnosis
 from valve_emulator.diagnosis.report.twin import replay_fit
 from valve_emulator.simulation.replay import replay_op
@@ -111,7 +112,7 @@ def proof_markdown(results: list[CaseResult], *, figure_prefix: str = "proof/", 
         "The diagnosis sees only `t, op, pv`: no valve position, no set point, PV measurement noise inside the "
         "loop (its standard deviation is the stated fraction of the PV amplitude), and the first part of the run "
         "cut so the record starts mid-cycle. It is run against the nominal model (`--model`), which lacks the "
-        "effect. Fit is the free-run fit on the held-out last 30 %: "
+        f"effect. Fit is the free-run fit on the held-out last {100 * HELD_OUT:g} %: "
         "100·(1 − ‖y − ŷ‖/‖y − ȳ‖); *before* is the nominal model as given (only its operating point fitted). "
         "*Twin replay* is the same fit for the twin (`diagnose --twin`: the loop found, as a loop config) driven "
         "by the recorded OP (`simulate --replay`).",

@@ -40,7 +40,7 @@ def _replay(cfg, args: argparse.Namespace):
     """The replayed recording and the line to print about it."""
     import numpy as np
 
-    from valve_emulator.diagnosis.fit.data import HELD_OUT, fit_percent
+    from valve_emulator.diagnosis.fit.data import HELD_OUT, fit_percent, held_out_start
     from valve_emulator.recordings import read_recording
     from valve_emulator.simulation.replay import replay_op, replay_sp
 
@@ -50,7 +50,7 @@ def _replay(cfg, args: argparse.Namespace):
         sim = replay_sp(cfg, rec)
         return sim, f"closed loop on the recorded SP of {args.replay}"
     sim = replay_op(cfg, rec)
-    a = int(round((1.0 - HELD_OUT) * len(rec)))
+    a = held_out_start(len(rec))
     fit = fit_percent(np.asarray(rec.pv[a:]), sim.pv[a:])
     return sim, f"open loop on the recorded OP of {args.replay}; PV fit {fit:.1f} % on the last {HELD_OUT:.0%}"
 

@@ -18,6 +18,7 @@ from valve_emulator.diagnosis.candidates.stiction import scan_steps
 from valve_emulator.diagnosis.explain.locate import Located, locate
 from valve_emulator.diagnosis.explain.result import Finding
 from valve_emulator.diagnosis.explain.search import Model, Round
+from valve_emulator.diagnosis.fit.cost import relative_cost
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
@@ -54,7 +55,7 @@ def stiction_surface(rounds: list[Round], n: int):
         return None, None
     P, sse = pick.scan.params, pick.scan.sse
     S, J = np.unique(P[:, 0]), np.unique(P[:, 1])
-    cost = n * np.log(np.maximum(sse, 1e-300) / max(sse.min(), 1e-300))
+    cost = relative_cost(sse, n)
     grid = np.full((J.size, S.size), np.nan)
     iS, iJ = np.searchsorted(S, P[:, 0]), np.searchsorted(J, P[:, 1])
     for a, b, c in zip(iJ, iS, cost):

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -37,28 +37,36 @@ from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.explain.findings import findings, param_text, stiction_surface
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
 from valve_emulator.diagnosis.explain.prior import dead_time_move, nominal_gain, settle
-from valve_emulator.diagnosis.explain.result import Explanation, RankRow, Traces
-from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Search
+from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, RankRow, Traces
+from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
 from valve_emulator.diagnosis.fit.chain import run_chain
-from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent, prefilter_for, prepare
+from valve_emulator.diagnosis.fit.data import (
+    HELD_OUT,
+    Problem,
+    fit_percent,
+    held_out_start,
+    prefilter_for,
+    prepare,
+    with_burn_in,
+)
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame
 from valve_emulator.diagnosis.fit.load_check import input_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
-from valve_emulator.diagnosis.fit.scorer import Scorer
+from valve_emulator.diagnosis.fit.scorer import Scorer, library_burn_in
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["explain", "RULE", "RULE_TWOFOLD"]
 
 RULE = (f"An addition counts when BIC (N ln σ̂² + k ln N on the fit part) falls by at least {DELTA_BIC:g} and the "
-        f"free-run fit on the held-out last 30 % rises by at least {DELTA_FIT:g} points, against the current "
-        "model and against each of its own sub-options; the lowest-BIC option that counts is added.")
+        f"free-run fit on the held-out last {100 * HELD_OUT:g} % rises by at least {DELTA_FIT:g} points, against the "
+        "current model and against each of its own sub-options; the lowest-BIC option that counts is added.")
 #: The rule without a nominal model (``validation="twofold"``).
 RULE_TWOFOLD = (f"An addition counts when BIC with an AR(1) error model (N ln σ̂²_w + (k + 1) ln N on the whole "
                 f"record after the burn-in, σ̂_w the prewhitened residual) falls by at least {DELTA_BIC:g} and the "
-                f"free-run fit cross-validated on two blocks (first and last 30 %) rises by at least "
+                f"free-run fit cross-validated on two blocks (first and last {100 * HELD_OUT:g} %) rises by at least "
                 f"{DELTA_FIT:g} points, against the current model and against each of its own sub-options; the "
                 "lowest-BIC option that counts is added.")
 
@@ -89,22 +97,115 @@ def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame
             "integrating": (yes_no(nominal.structure.integrating) if nominal.given else "—", yes_no(st.integrating))}
 
 
-def _run(recording: Recording, nom: Nominal | None, prefilter: float | None, lib: dict, say, validation: str,
-         stops: tuple[float, float]):
-    """Prepare, (identify,) search: one pass in one cost domain."""
+@dataclass(frozen=True, eq=False)
+class Searched:
+    """One search in one cost domain: the problem as scored (burn-in lengthened for the candidates), the
+    nominal model (identified when none was given), the fitter, the final model, the rounds and the tests of
+    the nominal linear part."""
+
+    problem: Problem
+    nominal: Nominal
+    fitter: Fitter
+    model: Model
+    rounds: list[Round]
+    tests: tuple[LinearMove, ...]
+
+
+def _prepared(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
+              validation: str, stops: tuple[float, float]) -> tuple[Problem, Nominal]:
+    """The recording checked and split, the nominal model (identified from the data without one) and the
+    fit part started after every candidate's burn-in."""
     problem = prepare(recording, nominal_delay=nom.delay if nom else None,
                       settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter, validation=validation,
                       stops=stops)
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
         nom = identify(problem)
+    return with_burn_in(problem, library_burn_in(problem, nom, lib)), nom
+
+
+def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
+                 validation: str, stops: tuple[float, float]) -> Searched:
+    """Prepare, (identify,) search, settle the nominal linear part: one pass in one cost domain."""
+    problem, nom = _prepared(recording, nom, lib, say, prefilter=prefilter, validation=validation, stops=stops)
     fitter = Fitter(Scorer(problem, nom, lib))
     search = Search(fitter, progress=say)
     model, rounds = search.run()
     if nom.given:
         say("testing whether the nominal linear part moves")
     model, tests = settle(search, model)
-    return fitter.p, nom, fitter, model, rounds, tests  # the scorer may have lengthened the burn-in
+    return Searched(problem=problem, nominal=nom, fitter=fitter, model=model, rounds=rounds, tests=tests)
+
+
+def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, validation: str,
+            stops: tuple[float, float]) -> Searched:
+    """The search in the right cost domain (see the module docstring): a nominal integrating plant's on
+    prefiltered PV; without a model on PV, and once more prefiltered when the result integrates."""
+    dt = recording.dt if len(recording) >= 2 else 1.0
+    if nom is not None:
+        st = nom.structure
+        lam = prefilter_for(st.delay + sum(st.taus), dt) if st.integrating else None
+        return _search_once(recording, nom, lib, say, prefilter=lam, validation=validation, stops=stops)
+    lib = {k: v for k, v in lib.items() if k != "dead_time"}  # without a nominal model the dead time is identified
+    out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops)
+    st = out.model.fit.structure
+    if st.integrating:
+        say("the plant integrates: searching again on prefiltered PV")
+        lam = prefilter_for(st.delay + sum(st.taus), dt)
+        out = _search_once(recording, None, lib, say, prefilter=lam, validation=validation, stops=stops)
+    return out
+
+
+def _before(s: Searched, base: Model) -> tuple[np.ndarray, float, int]:
+    """PV of the model the diagnosis starts from (the nominal replay, or the identified base model), its
+    held-out fit and where the held-out part starts."""
+    problem = s.problem
+    test_start = problem.test[0] if problem.validation == "split" else held_out_start(problem.T)
+    if not s.nominal.given:
+        return problem.to_pv(base.y_hat), base.heldout, test_start
+    pv_before = _replay_nominal(problem, s.nominal, s.fitter.scorer)
+    return pv_before, fit_percent(problem.pv[test_start:], pv_before[test_start:]), test_start
+
+
+def _response_horizon(problem: Problem, model: Model) -> float:
+    """How long the final model takes to answer an OP move (s): dead time plus twice the time constants, at
+    least ten samples; residuals are located and windows measured on this scale."""
+    st = model.fit.structure
+    return max(st.delay + 2.0 * sum(st.taus), 10.0 * problem.dt)
+
+
+def _ranking(rounds: list[Round], frame: Frame) -> tuple[RankRow, ...]:
+    """Every option of every round, in the order tried, with its ΔBIC against the round's baseline."""
+    return tuple(RankRow(round=i + 1, option=o.label, parameters=param_text(o.model, o.added, frame),
+                         delta_bic=rnd.baseline.bic - o.model.bic, heldout=o.model.heldout, chosen=o is rnd.chosen)
+                 for i, rnd in enumerate(rounds) for o in rnd.options)
+
+
+def _traces(s: Searched, base: Model, pv_before: np.ndarray, test_start: int, frame: Frame) -> Traces:
+    """The signals of the figure, OP and flow in OP's units: recorded, nominal, base and final PV, the valve's
+    position alone (linear characteristic) and the stiction scan's ΔBIC surface."""
+    problem, model, nom = s.problem, s.model, s.nominal
+    ctx = s.fitter.scorer.ctx(model)
+    valve_only = {k: v for k, v in model.by_slot().items() if k in ("actuator", "valve")}
+    mv = run_chain(problem.op, valve_only, replace(ctx, characteristic=("linear", DEFAULT_RANGEABILITY)),
+                   nominal_valve=(nom.S, nom.J))[:, 0]
+    surface, surface_best = stiction_surface(s.rounds, problem.n_fit)
+    if surface is not None and not frame.identity:
+        surface = (surface[0] / frame.gain, surface[1] / frame.gain, surface[2])
+        surface_best = (surface_best[0] / frame.gain, surface_best[1] / frame.gain)
+    back = frame.from_internal
+    return Traces(t=problem.t, op=back(problem.op), pv=problem.pv, pv_before=pv_before,
+                  pv_base=problem.to_pv(base.y_hat), pv_after=problem.to_pv(model.y_hat),
+                  mv_after=back(mv), flow_after=back(model.flow),
+                  test_start=test_start, surface=surface, surface_best=surface_best)
+
+
+def _fitted(s: Searched, frame: Frame) -> FittedLoop:
+    """The final model as a loop that replays any OP."""
+    problem, model, nom = s.problem, s.model, s.nominal
+    return FittedLoop(active=model.by_slot(), nominal_valve=(nom.S, nom.J), ctx=s.fitter.scorer.ctx(None),
+                      linear=model.fit, level=float(np.mean(model.flow)), record_length=problem.T, op=problem.op,
+                      frame=None if frame.identity else frame)
 
 
 def explain(recording: Recording, nominal: LoopConfig | None = None, *,
@@ -136,62 +237,27 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     lib = registry() if candidates is None else {n: get(n) for n in candidates}
     validation = validation or ("split" if nominal is not None else "twofold")
     dt = recording.dt if len(recording) >= 2 else 1.0
-    nom = nominal_from_config(nominal, dt) if nominal is not None else None
     frame = frame or Frame()
-    if nom is None:
-        lib.pop("dead_time", None)  # without a nominal model the dead time is simply identified
-        problem, nom, fitter, model, rounds, tests = _run(recording, None, None, lib, say, validation, frame.stops)
-        st = model.fit.structure
-        if st.integrating:
-            say("the plant integrates: searching again on prefiltered PV")
-            lam = prefilter_for(st.delay + sum(st.taus), dt)
-            problem, nom, fitter, model, rounds, tests = _run(recording, None, lam, lib, say, validation, frame.stops)
-    else:
-        st = nom.structure
-        lam = prefilter_for(st.delay + sum(st.taus), dt) if st.integrating else None
-        problem, nom, fitter, model, rounds, tests = _run(recording, nom, lam, lib, say, validation, frame.stops)
+    s = _search(recording, nominal_from_config(nominal, dt) if nominal is not None else None, lib, say,
+                validation=validation, stops=frame.stops)
+    problem, nom, model, rounds = s.problem, s.nominal, s.model, s.rounds
     base = rounds[0].baseline if rounds else model
-    test_start = problem.test[0] if validation == "split" else int(round((1.0 - HELD_OUT) * problem.T))
-    if nom.given:
-        pv_before = _replay_nominal(problem, nom, fitter.scorer)
-        fit_before = fit_percent(problem.pv[test_start:], pv_before[test_start:])
-    else:
-        pv_before = problem.to_pv(base.y_hat)
-        fit_before = base.heldout
-    st = model.fit.structure
-    horizon = max(st.delay + 2.0 * sum(st.taus), 10.0 * problem.dt)
-    w = max(3, int(round(horizon / problem.dt / 2)))
-    masks = condition_masks(problem.op, w=w, horizon=max(2, int(round(horizon / problem.dt))))
+    pv_before, fit_before, test_start = _before(s, base)
+    horizon = _response_horizon(problem, model)
+    masks = condition_masks(problem.op, w=max(3, int(round(horizon / problem.dt / 2))),
+                            horizon=max(2, int(round(horizon / problem.dt))))
     located = locate(problem.t, problem.op, (problem.pv - pv_before) ** 2, dt=problem.dt,
                      response_time=horizon, masks=masks)
     say("estimating parameter intervals")
-    found = findings(fitter, problem, model, rounds, masks, horizon, nom, frame)
-    tests += dead_time_move(found, nom.delay, st.delay)
-    ranking = tuple(RankRow(round=i + 1, option=o.label, parameters=param_text(o.model, o.added, frame),
-                            delta_bic=rnd.baseline.bic - o.model.bic, heldout=o.model.heldout, chosen=o is rnd.chosen)
-                    for i, rnd in enumerate(rounds) for o in rnd.options)
-    ctx = fitter.scorer.ctx(model)
-    valve_only = {k: v for k, v in model.by_slot().items() if k in ("actuator", "valve")}
-    mv = run_chain(problem.op, valve_only, replace(ctx, characteristic=("linear", DEFAULT_RANGEABILITY)),
-                   nominal_valve=(nom.S, nom.J))[:, 0]
-    surface, surface_best = stiction_surface(rounds, problem.n_fit)
-    if surface is not None and not frame.identity:
-        surface = (surface[0] / frame.gain, surface[1] / frame.gain, surface[2])
-        surface_best = (surface_best[0] / frame.gain, surface_best[1] / frame.gain)
-    back = frame.from_internal
-    traces = Traces(t=problem.t, op=back(problem.op), pv=problem.pv, pv_before=pv_before,
-                    pv_base=problem.to_pv(base.y_hat), pv_after=problem.to_pv(model.y_hat),
-                    mv_after=back(mv), flow_after=back(model.flow),
-                    test_start=test_start, surface=surface, surface_best=surface_best)
+    found = findings(s.fitter, problem, model, rounds, masks, horizon, nom, frame)
+    st = model.fit.structure
     plant = {"gain": model.fit.gain * problem.y_scale * frame.gain, "taus": tuple(st.taus), "delay": st.delay,
              "integrating": st.integrating, "validation": problem.validation}
-    fitted = FittedLoop(active=model.by_slot(), nominal_valve=(nom.S, nom.J), ctx=fitter.scorer.ctx(None),
-                        linear=model.fit, level=float(np.mean(model.flow)), record_length=problem.T, op=problem.op,
-                        frame=None if frame.identity else frame)
     return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=base.heldout,
                        fit_after=model.heldout, findings=found, located=located,
-                       linear=_linear_table(nom, model, problem, frame), ranking=ranking, traces=traces,
+                       linear=_linear_table(nom, model, problem, frame), ranking=_ranking(rounds, frame),
+                       traces=_traces(s, base, pv_before, test_start, frame),
                        rule=RULE if validation == "split" else RULE_TWOFOLD, seconds=time.perf_counter() - start,
-                       plant=plant, fitted=fitted,
-                       input_delta_bic=input_delta_bic(fitter.scorer, model) if validation == "twofold" else None,
-                       linear_tests=tests)
+                       plant=plant, fitted=_fitted(s, frame),
+                       input_delta_bic=input_delta_bic(s.fitter.scorer, model) if validation == "twofold" else None,
+                       linear_tests=s.tests + dead_time_move(found, nom.delay, st.delay))

@@ -138,11 +138,11 @@ class Search:
             if only is not None and a.name not in only:
                 continue
             rest = replace(model, active=tuple(b for b in model.active if b is not a))
-            active, fit, flow, _ = self.fitter.refine(rest, a.candidate, a.params, model.fit.structure,
-                                                model.delay_free)
+            refined = self.fitter.refine(rest, a.candidate, a.params, model.fit.structure, model.delay_free)
+            active = dict(refined.active)
             if "delay" in model.by_slot():
                 active["delay"] = model.by_slot()["delay"]
-            new = self.scorer.model(active, fit, model.delay_free, flow, target=aim.y)
+            new = self.scorer.model(active, refined.fit, model.delay_free, refined.flow, target=aim.y)
             if new.bic < model.bic:
                 model = new
         return model

@@ -1,6 +1,7 @@
 """Fitting one model to one recording: *how well does this chain of physics replay the recorded PV?*
 
-Bottom up: :mod:`.data` (checks; burn-in, fit and held-out parts), :mod:`.linear` and :mod:`.linear_kernels`
+Bottom up: :mod:`.data` (checks; burn-in, fit and held-out parts), :mod:`.cost` (N ln SSE, BIC, the cost
+relative to a surface's minimum), :mod:`.linear` and :mod:`.linear_kernels`
 (the linear part: batched output-error fits, compiled), :mod:`.nominal` (the starting model: the user's loop
 or one identified from the data), :mod:`.chain` (OP → actuator → valve → characteristic → limit → flow),
 :mod:`.records` (a fitted model, a cost surface, an option), :mod:`.scorer` (parameter grids through the chain

@@ -4,7 +4,8 @@ The record of ``T`` samples is split as
 
 ====================  ======================================================================
 ``[0, w0)``           burn-in: room for the longest dead time tried, the plant's initial transient and
-                      the valve's unknown initial state (never scored)
+                      the valve's unknown initial state (never scored; :func:`prepare` sets it from the
+                      record and the nominal model, :func:`with_burn_in` lengthens it for the candidates)
 ``[w0, w1)``          fit part: every parameter is fitted here and BIC is computed here
 ``[w1, T)``           held-out part, the last :data:`HELD_OUT` of the record: the free-run fit reported
                       as ``fit_before``/``fit_after`` is measured here only
@@ -21,23 +22,25 @@ the offset regressor absorbs any constant, and BIC differences do not depend on 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from valve_emulator.recordings.recording import Recording, RecordingError
 
-__all__ = ["Problem", "prepare", "prefilter_for", "folds", "fold_windows", "HELD_OUT", "MIN_SAMPLES", "VALIDATIONS",
-           "fit_percent", "UninformativeData"]
+__all__ = ["Problem", "prepare", "prefilter_for", "folds", "fold_windows", "held_out_start", "HELD_OUT", "MIN_SAMPLES",
+           "VALIDATIONS", "fit_percent", "UninformativeData", "with_burn_in", "BURN_CAP"]
 
 #: Fraction of the record, at its end, held out from fitting.
 HELD_OUT = 0.3
 #: Fewest samples the diagnosis accepts whatever the model (burn-in, fit part and held-out part).
 MIN_SAMPLES = 200
-#: How the held-out fit is measured: one split (last 30 % held out) or two blocked folds.
+#: How the held-out fit is measured: one split (the last :data:`HELD_OUT` held out) or two blocked folds.
 VALIDATIONS = ("split", "twofold")
 #: Burn-in bounds, as fractions of the record.
 _BURN_MIN, _BURN_MAX = 0.05, 0.25
+#: Longest burn-in (fraction of the record) that candidates' initial states may claim (:func:`with_burn_in`).
+BURN_CAP = 0.35
 
 
 class UninformativeData(RecordingError):
@@ -57,6 +60,11 @@ class UninformativeData(RecordingError):
     def __init__(self, source: str, reason: str, *, line: int | None = None, column: str | None = None) -> None:
         super().__init__(f"{source}: {reason}")
         self.source, self.reason, self.line, self.column = source, reason, line, column
+
+
+def held_out_start(T: int) -> int:
+    """First sample of the held-out part, the last :data:`HELD_OUT` of a record of ``T`` samples."""
+    return int(round((1.0 - HELD_OUT) * T))
 
 
 def fit_percent(y: np.ndarray, y_hat: np.ndarray) -> float:
@@ -146,7 +154,7 @@ def folds(problem: Problem) -> tuple[tuple[tuple[int, int], tuple[int, int]], ..
 
 def fold_windows(T: int, w0: int) -> tuple[tuple[tuple[int, int], tuple[int, int]], ...]:
     """:func:`folds` of a record of ``T`` samples whose burn-in ends at ``w0``."""
-    a = int(round((1.0 - HELD_OUT) * T))
+    a = held_out_start(T)
     b = max(w0 + 1, int(round(HELD_OUT * T)))
     return ((w0, a), (a, T)), ((b, T), (w0, b))
 
@@ -171,7 +179,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     nominal_delay : the nominal model's dead time (s), which centres the dead-time grid; None = no model.
     settle_time : the nominal plant's settling time (s), a lower bound for the burn-in.
     prefilter, stops : see :class:`Problem`.
-    validation : ``"split"`` (hold out the last 30 %) or ``"twofold"`` (fit on all, cross-validate).
+    validation : ``"split"`` (hold out the last :data:`HELD_OUT`) or ``"twofold"`` (fit on all, cross-validate).
 
     Raises
     ------
@@ -200,7 +208,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
         i = int(np.flatnonzero(np.abs(steps - dt) > 0.01 * dt)[0]) + 1
         raise RecordingError(f"{src}: line {i + 2}: sample step {steps[i - 1]!r} s differs from the median "
                              f"{dt!r} s by more than 1 %; the diagnosis needs uniform sampling")
-    w1 = int(round((1.0 - HELD_OUT) * T)) if validation == "split" else T
+    w1 = held_out_start(T) if validation == "split" else T
     burn = max(int(delays.max()) + 4, int(np.ceil(settle_time / dt)), int(_BURN_MIN * T))
     w0 = min(burn, int(_BURN_MAX * T))
     for name, col in (("op", rec.op), ("pv", rec.pv)):
@@ -218,3 +226,13 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     return Problem(t=t, op=op, pv=pv, y=y, y_mean=y_mean, y_scale=y_scale, dt=float(dt), train=(w0, w1),
                    delays=delays, op_span=float(max(hi - lo, 1e-6)), prefilter=prefilter, source=src,
                    validation=validation, stops=stops)
+
+
+def with_burn_in(problem: Problem, burn: int) -> Problem:
+    """``problem`` with its fit part starting after ``burn`` samples (at most :data:`BURN_CAP` of the record),
+    when that is later than it starts: every candidate's unknown initial state is forgotten before a model is
+    scored (``burn`` from :func:`~valve_emulator.diagnosis.fit.scorer.library_burn_in`)."""
+    w0, w1 = problem.train
+    if burn <= w0:
+        return problem
+    return replace(problem, train=(min(burn, int(BURN_CAP * problem.T)), w1))

@@ -23,7 +23,7 @@ then the best is polished. ``loop`` candidates are not searched.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import minimize
@@ -31,11 +31,12 @@ from scipy.optimize import minimize
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.diagnosis.fit.chain import Active
-from valve_emulator.diagnosis.fit.linear import LinearStructure, split_delay, sse_one
+from valve_emulator.diagnosis.fit.cost import log_sse, relative_cost
+from valve_emulator.diagnosis.fit.linear import LinearFit, LinearStructure, split_delay, sse_one
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
 from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
 
-__all__ = ["Fitter"]
+__all__ = ["Fitter", "Refined", "Result", "Start", "Variant"]
 
 #: Pole hypotheses whose best coarse start is scanned and refined.
 _STARTS = 2
@@ -46,6 +47,50 @@ _JOINT_EVALS = 200
 _JOINT_MARGIN = 10.0
 #: Width of a "flat" cost bottom, in units of -2 log-likelihood (the 95 % point of chi-square, 1 dof).
 _FLAT = 3.84
+
+
+@dataclass(frozen=True, eq=False)
+class Variant:
+    """One way a candidate is added: with the dead time held or ``free``; ``added`` names the option."""
+
+    free: bool
+    added: tuple[str, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class Start:
+    """Where a refinement starts: the best coarse row for one pole hypothesis.
+
+    ``score`` is ``N ln SSE`` plus the prior on the poles, ``params`` the coarse grid's best row, ``structure``
+    the pole hypothesis (its dead time the best of the grid when free), ``coarse`` the coarse surface.
+    """
+
+    score: float
+    params: np.ndarray
+    structure: LinearStructure
+    coarse: Surface
+
+
+@dataclass(frozen=True, eq=False)
+class Refined:
+    """A candidate refined into a model: the physics in place by slot, the linear fit, the chain's output
+    and the fine grid's surface."""
+
+    active: dict[str, Active]
+    fit: LinearFit
+    flow: np.ndarray
+    fine: Surface
+
+
+@dataclass(frozen=True, eq=False)
+class Result:
+    """What one start ended as: its penalised score (BIC plus the prior on the poles), the model and the
+    surfaces it was found on (``scan`` None for a candidate without a scan)."""
+
+    score: float
+    model: Model
+    scan: Surface | None
+    fine: Surface
 
 
 class Fitter:
@@ -124,9 +169,10 @@ class Fitter:
         return other if other.bic < model.bic else model
 
     def refine(self, model: Model, cand: Candidate, best: np.ndarray, st: LinearStructure, free: bool, *,
-               joint: bool = True):
+               joint: bool = True) -> Refined:
         """Two passes of fine grid + polish around ``best`` (then, for a candidate that trades off against the
-        poles and ``joint``, :meth:`joint_polish`); returns (active, fit, flow, fine Surface)."""
+        poles and ``joint``, :meth:`joint_polish`), threshold parameters centred: ``cand`` refined into
+        ``model``."""
         active = model.by_slot()
         ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
         for _ in range(2):
@@ -150,7 +196,7 @@ class Fitter:
             fit = self.scorer.polish(flow, st, free, aim)
         new_active = dict(active)
         new_active[cand.slot] = Active(cand, best)
-        return new_active, fit, flow, fine
+        return Refined(active=new_active, fit=fit, flow=flow, fine=fine)
 
     def trades_with_prior(self, cand: Candidate) -> bool:
         """Whether ``cand`` trades off against the poles and a nominal model's prior must choose between the
@@ -180,7 +226,7 @@ class Fitter:
             params, s = make(x)
             flow = self.scorer.chain(active, ctx, cand, params[None, :])[:, 0]
             sse = sse_one(flow, aim.y, self.p.train, s, self.p.dt, prefilter=self.scorer.lam, y_cost=aim.cost)
-            return n * np.log(max(sse, 1e-300)) + self.scorer.prior_penalty(s)
+            return log_sse(sse, n) + self.scorer.prior_penalty(s)
 
         x0 = np.concatenate([np.log(np.maximum(best, 1e-12)), np.log(st.taus[:nt]), [st.delay] if free else []])
         step = np.concatenate([np.full(k + nt, 0.1), [max(self.p.dt, 0.1 * st.delay)] if free else []])
@@ -201,7 +247,7 @@ class Fitter:
         for axis in cand.threshold_axes:
             rows = cand.line(ctx, best, axis)
             sse, _ = self.scorer.sse_grid(active, ctx, cand, rows, st, None, aim)
-            cost = self.p.n_fit * np.log(np.maximum(sse[:, 0], 1e-300) / max(sse[:, 0].min(), 1e-300))
+            cost = relative_cost(sse[:, 0], self.p.n_fit)
             i = int(np.argmin(cost))
             lo = hi = i
             while lo > 0 and cost[lo - 1] <= _FLAT:
@@ -249,7 +295,7 @@ class Fitter:
         best = None
         for st in self.pole_set(model):
             s_top = self.output_sse(model, cand, top, st, delays)
-            score = self.p.n_fit * np.log(max(float(s_top.min()), 1e-300)) + self.scorer.prior_penalty(st)
+            score = log_sse(float(s_top.min()), self.p.n_fit) + self.scorer.prior_penalty(st)
             if best is None or score < best[0]:
                 best = (score, st, top[int(np.argmin(s_top))])
         _, st, row0 = best
@@ -273,51 +319,72 @@ class Fitter:
         if cand.slot == "delay":
             return [self.delay_option(model, cand)]
         ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
-        active = model.by_slot()
+        variants = self.variants(model, cand)
+        starts = self.coarse_starts(model, cand, variants, aim)
+        # The coarse winner can be an artefact of grid placement — a continuous parameter trades off
+        # against the poles (an actuator lag against the plant's time constant), and stiction's coarse
+        # cost is rough — so the best start of each of the top pole hypotheses is scanned and refined, and
+        # the choice is made afterwards.
+        ranked = {v.free: self._ranked(starts[v.free], cand) for v in variants}
+        scan = cand.scan(ctx)
+        scanned = self.scan_surfaces(model.by_slot(), ctx, cand, scan, ranked, aim) if scan is not None else {}
+        options = []
+        for v in variants:
+            results = []
+            for i, start in enumerate(ranked[v.free]):
+                scan_surface = scanned.get((v.free, i))
+                p0 = start.params if scan_surface is None else scan[int(np.argmin(scan_surface.sse))]
+                results.append(self._result(model, cand, p0, start.structure, v.free, aim, scan_surface))
+            if self.trades_with_prior(cand):
+                results = self._joint_results(model, cand, v.free, results)
+            best = min(results, key=lambda r: r.score)
+            options.append(Option(added=v.added, model=best.model, coarse=ranked[v.free][0].coarse, scan=best.scan,
+                                  fine=best.fine))
+        return options
+
+    def variants(self, model: Model, cand: Candidate) -> list[Variant]:
+        """The dead time as ``model`` has it, and — while the nominal dead time is still trusted and the library
+        has ``dead_time`` — freed together with ``cand``."""
+        out = [Variant(model.delay_free, (cand.name,))]
         dead_time = self.library.get("dead_time")
-        variants = [(model.delay_free, (cand.name,))]
         if not model.delay_free and dead_time is not None:
-            variants.append((True, (cand.name, dead_time.name)))
+            out.append(Variant(True, (cand.name, dead_time.name)))
+        return out
+
+    def coarse_starts(self, model: Model, cand: Candidate, variants: list[Variant], aim: Aim
+                      ) -> dict[bool, list[Start]]:
+        """Stage 1: the candidate's coarse grid through the chain once, scored for every pole hypothesis and
+        every variant; the best row of each is a :class:`Start`, by variant (θ free or held)."""
+        ctx = self.scorer.ctx(model)
         grid = cand.grid(ctx)
-        flows = self.scorer.chain(active, ctx, cand, grid)
-        starts: dict[bool, list[tuple]] = {free: [] for free, _ in variants}
+        flows = self.scorer.chain(model.by_slot(), ctx, cand, grid)
+        starts: dict[bool, list[Start]] = {v.free: [] for v in variants}
         for st in self.pole_set(model):
             penalty = self.scorer.prior_penalty(st)
             grid_delays = None
-            for free, _ in sorted(variants, key=lambda v: not v[0]):   # θ free first: its columns may serve θ held
-                if free:
+            for v in sorted(variants, key=lambda v: not v.free):   # θ free first: its columns may serve θ held
+                if v.free:
                     sse, delays = grid_delays = self.scorer.sse_flows(flows, st, self.p.delays, aim)
                 else:
                     sse, delays = self._held_delay(flows, st, aim, grid_delays)
                 flat = sse.min(axis=1)
                 i = int(np.argmin(flat))
-                score = self.p.n_fit * np.log(max(flat[i], 1e-300)) + penalty
-                st_b = replace(st, delay=float(delays[int(np.argmin(sse[i]))]) * self.p.dt) if free else st
-                starts[free].append((score, grid[i], st_b, self.surface(cand.name, grid, flat)))
-        scan = cand.scan(ctx)
-        # The coarse winner can be an artefact of grid placement — a continuous parameter trades off
-        # against the poles (an actuator lag against the plant's time constant), and stiction's coarse
-        # cost is rough — so the best start of each of the top pole hypotheses is scanned and refined, and
-        # the choice is made afterwards.
-        ranked = {free: self._ranked(starts[free], cand) for free, _ in variants}
-        scanned = self.scan_surfaces(active, ctx, cand, scan, ranked, aim) if scan is not None else {}
-        options = []
-        for free, added in variants:
-            results = []
-            for i, (_, p0, st_b, _) in enumerate(ranked[free]):
-                scan_surface = scanned.get((free, i))
-                if scan_surface is not None:
-                    p0 = scan[int(np.argmin(scan_surface.sse))]
-                new_active, fit, flow, fine = self.refine(model, cand, p0, st_b, free, joint=False)
-                if free and not model.delay_free:
-                    new_active["delay"] = Active(dead_time, np.array([fit.structure.delay]))
-                m = self.scorer.model(new_active, fit, free, flow, target=aim.y)
-                results.append((m.bic + self.scorer.prior_penalty(m.fit.structure), m, scan_surface, fine))
-            if self.trades_with_prior(cand):
-                results = self._joint_results(model, cand, free, results)
-            _, m, scan_surface, fine = min(results, key=lambda r: r[0])
-            options.append(Option(added=added, model=m, coarse=ranked[free][0][3], scan=scan_surface, fine=fine))
-        return options
+                score = log_sse(flat[i], self.p.n_fit) + penalty
+                st_b = replace(st, delay=float(delays[int(np.argmin(sse[i]))]) * self.p.dt) if v.free else st
+                starts[v.free].append(Start(score=score, params=grid[i], structure=st_b,
+                                            coarse=self.surface(cand.name, grid, flat)))
+        return starts
+
+    def _result(self, model: Model, cand: Candidate, p0: np.ndarray, st: LinearStructure, free: bool, aim: Aim,
+                scan: Surface | None) -> Result:
+        """Stage 3 from one start: ``cand`` refined into ``model`` from ``p0`` and scored (a dead time freed
+        with it becomes the ``dead_time`` candidate of the model)."""
+        r = self.refine(model, cand, p0, st, free, joint=False)
+        active = dict(r.active)
+        if free and not model.delay_free:
+            active["delay"] = Active(self.library["dead_time"], np.array([r.fit.structure.delay]))
+        m = self.scorer.model(active, r.fit, free, r.flow, target=aim.y)
+        return Result(score=m.bic + self.scorer.prior_penalty(m.fit.structure), model=m, scan=scan, fine=r.fine)
 
     def _held_delay(self, flows: np.ndarray, st: LinearStructure, aim: Aim, grid: tuple | None) -> tuple:
         """SSE (n, 1) of ``flows`` at the structure's own dead time: the column of the dead-time grid's result
@@ -332,7 +399,7 @@ class Fitter:
                 return sse[:, hit[:1]], delays[hit[:1]]
         return self.scorer.sse_flows(flows, st, None, aim)
 
-    def _ranked(self, starts: list[tuple], cand: Candidate) -> list[tuple]:
+    def _ranked(self, starts: list[Start], cand: Candidate) -> list[Start]:
         """The :data:`_STARTS` best starts, and for a candidate that trades off against the poles the best one at
         the nominal poles when it is not among them.
 
@@ -341,32 +408,32 @@ class Fitter:
         as 7.5 s before 15 s), so which of the two the coarse grid happens to place better says nothing, and
         only a start at the nominal poles lets the prior (:meth:`Scorer.prior_penalty`) choose between them.
         """
-        ranked = sorted(starts, key=lambda r: r[0])
+        ranked = sorted(starts, key=lambda r: r.score)
         top = ranked[:_STARTS]
         if self.trades_with_prior(cand) and self.nominal.structure.taus:
             nominal = self.nominal.structure.taus
-            at_nominal = [r for r in ranked if r[2].taus == nominal]
-            if at_nominal and not any(r[2].taus == nominal for r in top):
+            at_nominal = [r for r in ranked if r.structure.taus == nominal]
+            if at_nominal and not any(r.structure.taus == nominal for r in top):
                 top.append(at_nominal[0])
         return top
 
-    def _joint_results(self, model: Model, cand: Candidate, free: bool, results: list[tuple]) -> list[tuple]:
+    def _joint_results(self, model: Model, cand: Candidate, free: bool, results: list[Result]) -> list[Result]:
         """The refined starts within :data:`_JOINT_MARGIN` of the best polished again by :meth:`joint_polish`
-        (the others cannot overtake it), scored again: ``(bic + prior, model, scan surface, fine surface)``.
+        (the others cannot overtake it), scored again.
 
         Only when the best start lowers the penalised BIC of ``model`` at all: an option that does not is far
         from the fall of 10 that it would need to count, and which of its starts wins does not matter.
         """
-        best = min(r[0] for r in results)
+        best = min(r.score for r in results)
         if best >= model.bic + self.scorer.prior_penalty(model.fit.structure):
             return results
         ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
         out = []
         for r in results:
-            if r[0] - best > _JOINT_MARGIN:
+            if r.score - best > _JOINT_MARGIN:
                 out.append(r)
                 continue
-            m = r[1]
+            m = r.model
             active = m.by_slot()
             params, st = self.joint_polish(model.by_slot(), ctx, cand, active[cand.slot].params, m.fit.structure,
                                            free, aim)
@@ -376,11 +443,14 @@ class Fitter:
             if "delay" in active and free and not model.delay_free:
                 active["delay"] = Active(active["delay"].candidate, np.array([fit.structure.delay]))
             m = self.scorer.model(active, fit, free, flow, target=aim.y)
-            out.append((m.bic + self.scorer.prior_penalty(m.fit.structure), m, r[2], r[3]))
+            out.append(Result(score=m.bic + self.scorer.prior_penalty(m.fit.structure), model=m, scan=r.scan,
+                              fine=r.fine))
         return out
 
-    def scan_surfaces(self, active, ctx, cand, scan, ranked, aim: Aim) -> dict:
-        """Scan surfaces for every (variant, start), merging starts that share their poles into one job.
+    def scan_surfaces(self, active, ctx, cand, scan, ranked: dict[bool, list[Start]], aim: Aim
+                      ) -> dict[tuple[bool, int], Surface]:
+        """Stage 2: the scan's surface for every (θ free, start index), merging starts that share their poles
+        into one job.
 
         A θ-free start needs the integer delays near its coarse best; a θ-fixed start its own delay (its
         column, when that delay is a whole number of samples; a separate job otherwise).
@@ -388,7 +458,7 @@ class Fitter:
         jobs: dict[tuple, set] = {}
         need = {}
         for free, starts in ranked.items():
-            for i, (_, _, st_b, _) in enumerate(starts):
+            for i, st_b in enumerate(s.structure for s in starts):
                 key = (st_b.taus, st_b.integrating, st_b.fixed_poles)
                 ds = st_b.delay / self.p.dt
                 if free:

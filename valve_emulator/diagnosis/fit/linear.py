@@ -45,6 +45,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.signal import lfilter
 
+from valve_emulator.diagnosis.fit.cost import log_sse
 from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_sse, grid_sse, normal_equations
 from valve_emulator.physics._arrays import kernel_array
 
@@ -433,7 +434,7 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
         return LinearStructure(taus, st0.integrating, st0.fixed_poles, delay, st0.taus_held, st0.gain)
 
     def cost(p: np.ndarray) -> float:
-        c = n * np.log(max(sse(make(p)), 1e-300))
+        c = log_sse(sse(make(p)), n)
         if use_prior:
             c += prior_term(p[:nt], prior_sorted)
         return c

@@ -12,6 +12,10 @@ How the normal equations of all dead times come from one pass: the Gram entries
 :math:`w_1`), so only those runs are kept; the cross terms :math:`\sum_k z_{k-d-i} y_k` need the last
 ``dmax + taps`` filtered values, kept in a ring buffer. The work is (delays + taps − 1)·T per column.
 
+The pass, per block of :data:`_BLOCK` columns (:func:`_grid_block`), makes each sample of z (all-pole part,
+integrator, prefilter, fractional delay), adds it to the running sums and, every :data:`_TILE` samples, to the
+cross terms; then :func:`_solve_column` assembles and solves each column's normal equations for every dead time.
+
 The kernel is serial and releases the GIL; :func:`grid_sse` splits the columns over
 ``numba.get_num_threads()`` Python threads. A single-threaded compiled function compiles in a fraction of the
 time of a ``parallel=True`` one, and this is the kernel a fresh install compiles first.
@@ -35,7 +39,7 @@ __all__ = ["RIDGE", "column_sse", "grid_sse", "normal_equations"]
 RIDGE = 1e-10
 # Columns processed together in the time loop (one row of the ring buffer stays in a cache line or two).
 _BLOCK = 128
-# Samples whose cross terms with the output are accumulated together (see _grid_columns).
+# Samples whose cross terms with the output are accumulated together (see _add_cross_terms).
 _TILE = 16
 
 @numba.njit(cache=True, nogil=True)
@@ -104,23 +108,8 @@ def _keep(row, P, P1, PK, keepP, keepP1, keepPK):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _grid_columns(u, c_lo, c_hi, filtered, alpha, integ, dt, highpass, lam, frac, y, w0, w1, delays, ntaps, trend,
-                  sse):  # pragma: no cover - compiled
-    # u (T, n) time-major, columns innermost. Columns c_lo..c_hi-1 are scored, _BLOCK at a time.
-    # filtered: u already holds the regressor source z (no filter, no prefilter, no fractional delay).
-    T = u.shape[0]
-    nd = delays.shape[0]
-    dmin, dmax = delays[0], delays[0]
-    for di in range(nd):
-        dmin = min(dmin, delays[di])
-        dmax = max(dmax, delays[di])
-    nlag = dmax - dmin + ntaps
-    q = ntaps + 1 + trend
-    p, gain, start, rring, rmask = _filter_setup(alpha, T)
-    ring, mask = _ring(dmax + ntaps + _TILE)   # the tile of samples whose cross terms are pending, and its lags
-    lo0 = w0 - dmax - (ntaps - 1)   # first index of the run of running sums kept near w0
-    hi0 = w1 - dmax - (ntaps - 1)   # ... and near w1
-    # Window sums of y and of the trend t = k/T: yy, sum y, sum t y, sum t², sum t.
+def _window_sums(y, w0, w1, T):  # pragma: no cover - compiled
+    """Sums over the fit window of y and of the trend t = k/T: (Σy², Σy, Σty, Σt², Σt)."""
     yy = sy = ty = tt = st = 0.0
     for k in range(w0, w1):
         t = k / T
@@ -129,129 +118,202 @@ def _grid_columns(u, c_lo, c_hi, filtered, alpha, integ, dt, highpass, lam, frac
         ty += t * y[k]
         tt += t * t
         st += t
-    nw = w1 - w0
+    return yy, sy, ty, tt, st
+
+
+@numba.njit(cache=True, nogil=True)
+def _column_means(u, b0, nb):  # pragma: no cover - compiled
+    """Mean over all T samples of columns b0..b0+nb-1 of ``u``."""
+    T = u.shape[0]
+    mean = np.zeros(nb)
+    for k in range(T):
+        for j in range(nb):
+            mean[j] += u[k, b0 + j]
+    for j in range(nb):
+        mean[j] /= T
+    return mean
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, beta, out):  # pragma: no cover - compiled
+    """SSE of column ``j`` for every dead time into ``out``: its normal equations from the running sums kept
+    near w0 (``lo``) and w1 (``hi``), the cross terms ``X`` and the window ``sums``, solved."""
+    _, w0, w1, delays, ntaps, trend = fit
+    yy, sy, ty, tt, st = sums
+    loP, loP1, loPK = lo
+    hiP, hiP1, hiPK = hi
+    q = ntaps + 1 + trend
+    for di in range(delays.shape[0]):
+        d = delays[di]
+        for i in range(ntaps):
+            o = dmax - d + ntaps - 1 - i     # a0 - lo0 = a1 - hi0, with a0 = w0 - d - i, a1 = w1 - d - i
+            for jj in range(i, ntaps):
+                G[i, jj] = hiP[jj - i, o, j] - loP[jj - i, o, j]
+            G[i, ntaps] = hiP1[o, j] - loP1[o, j]
+            if trend:
+                # sum_k (k/T) z[k-s] = sum_m (m+s) z[m] / T
+                s_ = d + i
+                G[i, ntaps + 1] = (hiPK[o, j] - loPK[o, j] + s_ * (hiP1[o, j] - loP1[o, j])) / T
+            r[i] = X[d - dmin + i, j]
+        G[ntaps, ntaps] = w1 - w0
+        r[ntaps] = sy
+        if trend:
+            G[ntaps, ntaps + 1] = st
+            G[ntaps + 1, ntaps + 1] = tt
+            r[ntaps + 1] = ty
+        out[di] = _solve_sse(G, r, yy, q, beta)
+
+
+@numba.njit(cache=True, nogil=True)
+def _kept_run(ntaps, nlag, nb):  # pragma: no cover - compiled
+    """Room for a run of ``nlag`` copies of the running sums (P_l, Σz, Σkz) of ``nb`` columns."""
+    return np.zeros((ntaps, nlag, nb)), np.zeros((nlag, nb)), np.zeros((nlag, nb))
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse):  # pragma: no cover - compiled
+    """Score columns b0..b0+nb-1 of ``u`` into rows of ``sse``: one pass over time, then one solve per column
+    and dead time (``rring``: rows of the all-pole part's ring).
+
+    The steps of the pass over time are inner functions, which numba inlines: a compiled function called with
+    array arguments costs two atomic reference-count updates per array and call, more than one sample's work
+    for a single column. Each step works one stage at a time over the block's columns (branch-free inner
+    loops) and indexes rows rather than taking row views (a view costs the same updates).
+    """
+    y, w0, w1, delays, ntaps, trend = fit
+    alpha, p, gain, start, rmask, integ, dt, highpass, lam, frac = filt
+    T = u.shape[0]
+    dmin, dmax = delays.min(), delays.max()
+    nlag = dmax - dmin + ntaps
+    ring, mask = _ring(dmax + ntaps + _TILE)   # the tile of samples whose cross terms are pending, and its lags
+    lo0 = w0 - dmax - (ntaps - 1)   # first index of the run of running sums kept near w0
+    hi0 = w1 - dmax - (ntaps - 1)   # ... and near w1
+    mean = np.zeros(nb) if filtered else _column_means(u, b0, nb)
+    Z = np.zeros((ring, nb))              # the last `ring` values of z
+    R = np.zeros((rring, nb))             # the last values of the all-pole filter's output
+    acc = np.zeros(nb)                    # integrator
+    v0 = np.zeros(nb)                     # prefilter: its input at k = 0 (it starts at rest there)
+    hstate = np.zeros(nb)                 # prefilter: transposed direct-form state
+    hprev = np.zeros(nb)                  # prefiltered value at k - 1 (fractional delay)
+    P = np.zeros((ntaps, nb))             # running sums P_l(k) = sum_{i<k} z_i z_{i-l}
+    P1 = np.zeros(nb)                     # sum_{i<k} z_i
+    PK = np.zeros(nb)                     # sum_{i<k} i z_i
+    loP, loP1, loPK = _kept_run(ntaps, nlag, nb)
+    hiP, hiP1, hiPK = _kept_run(ntaps, nlag, nb)
+    X = np.zeros((nlag, nb))              # X[i] = sum_k z_{k - dmin - i} y_k
+
+    def all_pole(k, kz):
+        """Unit DC gain, strictly causal; at rest at the first input."""
+        kr = k & rmask
+        if k < start:
+            for j in range(nb):
+                R[kr, j] = u[0, b0 + j] - mean[j]
+        else:
+            for j in range(nb):
+                R[kr, j] = gain * (u[k - 1, b0 + j] - mean[j])
+            for i in range(1, p + 1):
+                ki = (k - i) & rmask
+                ai = alpha[i]
+                for j in range(nb):
+                    R[kr, j] -= ai * R[ki, j]
+        for j in range(nb):
+            Z[kz, j] = R[kr, j]
+
+    def integrate(kz):
+        for j in range(nb):
+            acc[j] += dt * Z[kz, j]
+            Z[kz, j] = acc[j]
+
+    def prefilter(k, kz):
+        """(1 - q^-1)/(1 - lam q^-1) of z - z_0, transposed direct form (as scipy's lfilter)."""
+        if k == 0:
+            for j in range(nb):
+                v0[j] = Z[kz, j]
+        for j in range(nb):
+            x = Z[kz, j] - v0[j]
+            h = x + hstate[j]
+            hstate[j] = -x + lam * h
+            Z[kz, j] = h
+
+    def fractional_delay(k, kz):
+        for j in range(nb):
+            h = Z[kz, j]
+            if k > 0:
+                Z[kz, j] = (1.0 - frac) * h + frac * hprev[j]
+            hprev[j] = h
+
+    def add_running_sums(k, kz):
+        for j in range(nb):
+            P1[j] += Z[kz, j]
+            PK[j] += k * Z[kz, j]
+        for tap in range(min(ntaps, k + 1)):
+            kt = (k - tap) & mask
+            for j in range(nb):
+                P[tap, j] += Z[kz, j] * Z[kt, j]
+
+    def add_cross_terms(k0, k1):
+        """Samples k0..k1, lag outermost: one row of X stays in the first-level cache while the tile's rows of
+        the ring stream past (same summation order as sample by sample)."""
+        if nb == 1:  # one column: no inner loop to set up per (lag, sample)
+            for kk in range(k0, k1 + 1):
+                yk = y[kk]
+                for i in range(nlag):
+                    X[i, 0] += Z[(kk - dmin - i) & mask, 0] * yk
+        else:
+            for i in range(nlag):
+                for kk in range(k0, k1 + 1):
+                    yk = y[kk]
+                    ki = (kk - dmin - i) & mask
+                    for j in range(nb):
+                        X[i, j] += Z[ki, j] * yk
+
+    tile0 = w0                            # first sample whose cross terms are not yet in X
+    for k in range(w1 + 1):   # samples after the window are never used (only the mean reads all T)
+        # Keep the running sums (over indices < k) where the Gram entries will need them.
+        if lo0 <= k < lo0 + nlag:
+            _keep(k - lo0, P, P1, PK, loP, loP1, loPK)
+        if hi0 <= k < hi0 + nlag:
+            _keep(k - hi0, P, P1, PK, hiP, hiP1, hiPK)
+        if k == w1:
+            break
+        kz = k & mask
+        if filtered:
+            for j in range(nb):
+                Z[kz, j] = u[k, b0 + j]
+        else:
+            all_pole(k, kz)
+            if integ:
+                integrate(kz)
+            if highpass:
+                prefilter(k, kz)
+            if frac > 0.0:
+                fractional_delay(k, kz)
+        add_running_sums(k, kz)
+        if w0 <= k < w1 and (k - tile0 + 1 == _TILE or k == w1 - 1):
+            add_cross_terms(tile0, k)
+            tile0 = k + 1
+    q = ntaps + 1 + trend
     G = np.zeros((q, q))
     r = np.zeros(q)
     beta = np.zeros(q)
+    lo, hi = (loP, loP1, loPK), (hiP, hiP1, hiPK)
+    for j in range(nb):
+        _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, beta, sse[b0 + j])
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_columns(u, c_lo, c_hi, filtered, stages, fit, sse):  # pragma: no cover - compiled
+    """Fill rows c_lo..c_hi-1 of ``sse`` (n, nd), :data:`_BLOCK` columns of ``u`` (T, n; time-major, columns
+    innermost) at a time. ``filtered``: ``u`` already holds the regressor source z; otherwise the filter
+    ``stages`` ``(alpha, integ, dt, highpass, lam, frac)`` make it (see :func:`grid_sse`). ``fit`` is
+    ``(y, w0, w1, delays, ntaps, trend)``."""
+    T = u.shape[0]
+    alpha, integ, dt, highpass, lam, frac = stages
+    p, gain, start, rring, rmask = _filter_setup(alpha, T)
+    filt = (alpha, p, gain, start, rmask, integ, dt, highpass, lam, frac)
+    sums = _window_sums(fit[0], fit[1], fit[2], T)
     for b0 in range(c_lo, c_hi, _BLOCK):
-        nb = min(_BLOCK, c_hi - b0)
-        mean = np.zeros(nb)
-        if not filtered:
-            for k in range(T):
-                for j in range(nb):
-                    mean[j] += u[k, b0 + j]
-            for j in range(nb):
-                mean[j] /= T
-        Z = np.zeros((ring, nb))              # the last `ring` values of z
-        R = np.zeros((rring, nb))             # the last values of the all-pole filter's output
-        acc = np.zeros(nb)                    # integrator
-        v0 = np.zeros(nb)                     # prefilter: its input at k = 0 (it starts at rest there)
-        hstate = np.zeros(nb)                 # prefilter: transposed direct-form state
-        hprev = np.zeros(nb)                  # prefiltered value at k - 1 (fractional delay)
-        P = np.zeros((ntaps, nb))             # running sums P_l(k) = sum_{i<k} z_i z_{i-l}
-        P1 = np.zeros(nb)                     # sum_{i<k} z_i
-        PK = np.zeros(nb)                     # sum_{i<k} i z_i
-        loP = np.zeros((ntaps, nlag, nb))
-        loP1 = np.zeros((nlag, nb))
-        loPK = np.zeros((nlag, nb))
-        hiP = np.zeros((ntaps, nlag, nb))
-        hiP1 = np.zeros((nlag, nb))
-        hiPK = np.zeros((nlag, nb))
-        X = np.zeros((nlag, nb))              # X[i] = sum_k z_{k - dmin - i} y_k
-        tile0 = w0                            # first sample whose cross terms are not yet in X
-        for k in range(w1 + 1):   # samples after the window are never used (only the mean reads all T)
-            # Keep the running sums (over indices < k) where the Gram entries will need them.
-            if lo0 <= k < lo0 + nlag:
-                _keep(k - lo0, P, P1, PK, loP, loP1, loPK)
-            if hi0 <= k < hi0 + nlag:
-                _keep(k - hi0, P, P1, PK, hiP, hiP1, hiPK)
-            if k == w1:
-                break
-            # One stage at a time over the block's columns: branch-free inner loops, and row indices rather
-            # than row views (a view costs two atomic reference-count updates, more than the loop it serves).
-            kz = k & mask
-            if filtered:
-                for j in range(nb):
-                    Z[kz, j] = u[k, b0 + j]
-            else:
-                # All-pole part, unit DC gain, strictly causal; at rest at the first input.
-                kr = k & rmask
-                if k < start:
-                    for j in range(nb):
-                        R[kr, j] = u[0, b0 + j] - mean[j]
-                else:
-                    for j in range(nb):
-                        R[kr, j] = gain * (u[k - 1, b0 + j] - mean[j])
-                    for i in range(1, p + 1):
-                        ki = (k - i) & rmask
-                        ai = alpha[i]
-                        for j in range(nb):
-                            R[kr, j] -= ai * R[ki, j]
-                for j in range(nb):
-                    Z[kz, j] = R[kr, j]
-                if integ:
-                    for j in range(nb):
-                        acc[j] += dt * Z[kz, j]
-                        Z[kz, j] = acc[j]
-                if highpass:
-                    # (1 - q^-1)/(1 - lam q^-1) of z - z_0, transposed direct form (as scipy's lfilter).
-                    if k == 0:
-                        for j in range(nb):
-                            v0[j] = Z[kz, j]
-                    for j in range(nb):
-                        x = Z[kz, j] - v0[j]
-                        h = x + hstate[j]
-                        hstate[j] = -x + lam * h
-                        Z[kz, j] = h
-                if frac > 0.0:
-                    for j in range(nb):
-                        h = Z[kz, j]
-                        if k > 0:
-                            Z[kz, j] = (1.0 - frac) * h + frac * hprev[j]
-                        hprev[j] = h
-            for j in range(nb):
-                P1[j] += Z[kz, j]
-                PK[j] += k * Z[kz, j]
-            for tap in range(min(ntaps, k + 1)):
-                kt = (k - tap) & mask
-                for j in range(nb):
-                    P[tap, j] += Z[kz, j] * Z[kt, j]
-            if w0 <= k < w1 and (k - tile0 + 1 == _TILE or k == w1 - 1):
-                # Cross terms for the samples tile0..k, lag outermost: one row of X stays in the first-level
-                # cache while the tile's rows of the ring stream past (same summation order as sample by sample).
-                if nb == 1:  # one column: no inner loop to set up per (lag, sample)
-                    for kk in range(tile0, k + 1):
-                        yk = y[kk]
-                        for i in range(nlag):
-                            X[i, 0] += Z[(kk - dmin - i) & mask, 0] * yk
-                else:
-                    for i in range(nlag):
-                        for kk in range(tile0, k + 1):
-                            yk = y[kk]
-                            ki = (kk - dmin - i) & mask
-                            for j in range(nb):
-                                X[i, j] += Z[ki, j] * yk
-                tile0 = k + 1
-        for j in range(nb):
-            for di in range(nd):
-                d = delays[di]
-                for i in range(ntaps):
-                    o = dmax - d + ntaps - 1 - i     # a0 - lo0 = a1 - hi0, with a0 = w0 - d - i, a1 = w1 - d - i
-                    for jj in range(i, ntaps):
-                        G[i, jj] = hiP[jj - i, o, j] - loP[jj - i, o, j]
-                    G[i, ntaps] = hiP1[o, j] - loP1[o, j]
-                    if trend:
-                        # sum_k (k/T) z[k-s] = sum_m (m+s) z[m] / T
-                        s_ = d + i
-                        G[i, ntaps + 1] = (hiPK[o, j] - loPK[o, j] + s_ * (hiP1[o, j] - loP1[o, j])) / T
-                    r[i] = X[d - dmin + i, j]
-                G[ntaps, ntaps] = nw
-                r[ntaps] = sy
-                if trend:
-                    G[ntaps, ntaps + 1] = st
-                    G[ntaps + 1, ntaps + 1] = tt
-                    r[ntaps + 1] = ty
-                sse[b0 + j, di] = _solve_sse(G, r, yy, q, beta)
+        _grid_block(u, b0, min(_BLOCK, c_hi - b0), filtered, filt, rring, fit, sums, sse)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -347,14 +409,14 @@ def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=N
     """
     u = kernel_array(u)
     alpha = np.ones(1) if alpha is None else kernel_array(alpha)
-    args = (bool(filtered), alpha, bool(integ), float(dt), lam is not None, float(lam or 0.0), float(frac),
-            kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend), sse)
+    stages = (alpha, bool(integ), float(dt), lam is not None, float(lam or 0.0), float(frac))
+    fit = (kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend))
     n = u.shape[1]
     workers = workers_for(n)
     # Whole blocks per worker, as even as the block size allows.
     cuts = [min(n, _BLOCK * round(n * w / workers / _BLOCK)) for w in range(workers + 1)]
     cuts[-1] = n
-    run_split(lambda a, b: _grid_columns(u, a, b, *args), cuts)
+    run_split(lambda a, b: _grid_columns(u, a, b, bool(filtered), stages, fit, sse), cuts)
 
 
 @numba.njit(cache=True)

@@ -37,8 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from valve_emulator.diagnosis.fit.cost import bic
 from valve_emulator.diagnosis.fit.linear import LinearStructure, highpass, polish
-from valve_emulator.diagnosis.fit.nominal import bic
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.scorer import Scorer
 

@@ -24,6 +24,7 @@ import numba
 import numpy as np
 
 from valve_emulator.config import LoopConfig
+from valve_emulator.diagnosis.fit.cost import bic
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.linear import (
     LinearFit,
@@ -37,12 +38,7 @@ from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.physics.stiction import rest_samples_for
 
-__all__ = ["Nominal", "nominal_from_config", "identify", "replay_plant", "bic"]
-
-
-def bic(sse: float, n: int, k: int) -> float:
-    """Bayesian information criterion of a Gaussian least-squares fit: ``n ln(sse/n) + k ln n``."""
-    return float(n * np.log(max(sse, 1e-300) / n) + k * np.log(n))
+__all__ = ["Nominal", "nominal_from_config", "identify", "replay_plant"]
 
 
 @dataclass(frozen=True)

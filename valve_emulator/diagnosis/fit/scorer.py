@@ -9,7 +9,9 @@ and solving the least-squares problems of all rows and all dead times in one com
 It also owns the choices that must be the same for every model of a problem:
 
 * the scored samples: the fit part starts after the largest burn-in the candidates claim (a valve's unknown
-  initial state must be forgotten before it is scored; capped at :data:`_BURN_CAP` of the record);
+  initial state must be forgotten before it is scored; capped at
+  :data:`~valve_emulator.diagnosis.fit.data.BURN_CAP` of the record): :func:`library_burn_in`, applied to the
+  problem before a scorer is made;
 * the cost domain: PV, or high-pass prefiltered PV for an integrating plant
   (:func:`~valve_emulator.diagnosis.fit.linear.highpass`);
 * the weak prior that ties re-fitted time constants to the nominal ones
@@ -30,12 +32,13 @@ It also owns the choices that must be the same for every model of a problem:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
 from valve_emulator.diagnosis.fit.chain import Active, run_chain
+from valve_emulator.diagnosis.fit.cost import bic
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.linear import (
     LinearFit,
@@ -47,13 +50,11 @@ from valve_emulator.diagnosis.fit.linear import (
     prior_term,
     split_delay,
 )
-from valve_emulator.diagnosis.fit.nominal import Nominal, bic
+from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Model
 
-__all__ = ["Aim", "Scorer"]
+__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in"]
 
-#: Longest burn-in (fraction of the record) that candidates' initial states may claim.
-_BURN_CAP = 0.35
 #: Grid rows pushed through the chain at once. Bounds memory (20 MB per array at 10^4 samples) and keeps each
 #: array under glibc's 32 MB mmap ceiling, so freed chunks are reused instead of page-faulted in afresh.
 _CHUNK = 256
@@ -72,16 +73,33 @@ class Aim:
     cost: np.ndarray
 
 
+def chain_context(problem: Problem, nominal: Nominal, structure: LinearStructure) -> ChainContext:
+    """What every candidate of ``problem`` sees: the data, the nominal valve and the linear part ``structure``."""
+    return ChainContext(dt=problem.dt, op=problem.op, op_span=problem.op_span,
+                        valve_model=nominal.valve_model, rest_samples=nominal.rest_samples,
+                        characteristic=nominal.characteristic,
+                        tau_plant=max(structure.taus, default=10.0 * problem.dt), delay=structure.delay,
+                        pv=problem.pv, y_scale=problem.y_scale, y_mean=problem.y_mean, window=problem.train,
+                        stops=problem.stops)
+
+
+def library_burn_in(problem: Problem, nominal: Nominal, library: dict[str, Candidate]) -> int:
+    """The largest burn-in the candidates of ``library`` claim on ``problem`` (samples; 0 for none), which
+    :func:`~valve_emulator.diagnosis.fit.data.with_burn_in` turns into the problem every model is scored on."""
+    ctx = chain_context(problem, nominal, nominal.structure)
+    return max((c.burn_in(ctx) for c in library.values()), default=0)
+
+
 class Scorer:
-    """Grid scoring for one problem (see the module docstring)."""
+    """Grid scoring for one problem (see the module docstring).
+
+    ``problem`` is scored as given: its fit part already starts after the library's burn-in
+    (:func:`library_burn_in`, :func:`~valve_emulator.diagnosis.fit.data.with_burn_in`).
+    """
 
     def __init__(self, problem: Problem, nominal: Nominal, library: dict[str, Candidate]) -> None:
         self.p = problem
         self.nominal = nominal
-        burn = max((c.burn_in(self.ctx(None)) for c in library.values()), default=0)
-        w0, w1 = problem.train
-        if burn > w0:  # start scoring once every candidate's unknown initial state is forgotten
-            self.p = replace(problem, train=(min(burn, int(_BURN_CAP * problem.T)), w1))
         self.library = library
         self.dmax = float(problem.delays.max()) * problem.dt
         self.lam = problem.prefilter
@@ -99,13 +117,7 @@ class Scorer:
 
     def ctx(self, model: Model | None) -> ChainContext:
         """The chain context of ``model`` (its linear part; the nominal one for None)."""
-        st = model.fit.structure if model else self.nominal.structure
-        return ChainContext(dt=self.p.dt, op=self.p.op, op_span=self.p.op_span,
-                            valve_model=self.nominal.valve_model, rest_samples=self.nominal.rest_samples,
-                            characteristic=self.nominal.characteristic,
-                            tau_plant=max(st.taus, default=10.0 * self.p.dt), delay=st.delay,
-                            pv=self.p.pv, y_scale=self.p.y_scale, y_mean=self.p.y_mean, window=self.p.train,
-                            stops=self.p.stops)
+        return chain_context(self.p, self.nominal, model.fit.structure if model else self.nominal.structure)
 
     def chain(self, active: dict[str, Active], ctx: ChainContext, cand: Candidate | None = None,
               grid: np.ndarray | None = None) -> np.ndarray:

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
+from valve_emulator.diagnosis.fit.cost import relative_cost
+
 __all__ = ["LEVEL", "intervals"]
 
 #: Confidence level of the reported intervals.
@@ -33,8 +35,7 @@ def intervals(params: np.ndarray, sse: np.ndarray, n: int, names: tuple[str, ...
     axes : columns of ``params`` to report (default: the first ``len(names)``).
     """
     axes = tuple(range(len(names))) if axes is None else axes
-    cost = n * np.log(np.maximum(sse, 1e-300) / max(float(np.min(sse)), 1e-300))
-    inside = cost <= chi2.ppf(LEVEL, k)
+    inside = relative_cost(sse, n) <= chi2.ppf(LEVEL, k)
     out = {}
     for name, ax in zip(names, axes):
         values = np.unique(params[:, ax])

@@ -1,0 +1,88 @@
+"""The scorer's bookkeeping: the samples every model is scored on, what BIC counts, the prior between pole sets
+and the dead times searched near a value."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from valve_emulator.diagnosis.candidates.base import Kind
+from valve_emulator.diagnosis.fit.chain import Active
+from valve_emulator.diagnosis.fit.cost import bic
+from valve_emulator.diagnosis.fit.data import BURN_CAP, fit_percent, held_out_start, prepare, with_burn_in
+from valve_emulator.diagnosis.fit.linear import PRIOR_WIDTH, LinearStructure, fit_one
+from valve_emulator.diagnosis.fit.nominal import Nominal
+from valve_emulator.diagnosis.fit.scorer import Scorer, library_burn_in
+from valve_emulator.recordings.recording import Recording
+
+T = 1000
+NOMINAL = Nominal(structure=LinearStructure(taus=(10.0,), delay=2.0), given=True, num=(2.0,), den=(10.0, 1.0))
+
+
+def _problem():
+    """A first-order plant (10 s, gain 2, dead time 2 s) driven by a random staircase, a little noise."""
+    rng = np.random.default_rng(3)
+    op = np.repeat(rng.uniform(30.0, 70.0, T // 25), 25)
+    a = np.exp(-0.1)
+    pv = lfilter([0.0, 0.0, 0.0, 2.0 * (1.0 - a)], [1.0, -a], op - 50.0) + rng.normal(0.0, 0.05, T)
+    rec = Recording(np.arange(T, dtype=float), None, op, None, pv, source="mem.csv")
+    return prepare(rec, nominal_delay=2.0, settle_time=40.0)
+
+
+def _claims(n: int):
+    """A candidate that claims ``n`` samples of burn-in (and records the window it was asked on)."""
+    asked = []
+    return SimpleNamespace(burn_in=lambda ctx: asked.append(ctx.window) or n, asked=asked)
+
+
+def test_the_fit_part_starts_after_the_longest_burn_in_a_candidate_claims():
+    problem = _problem()
+    w0, w1 = problem.train
+    assert w1 == held_out_start(T)
+    short, long_ = _claims(w0 - 10), _claims(w0 + 100)
+    burn = library_burn_in(problem, NOMINAL, {"a": short, "b": long_})
+    assert burn == w0 + 100 and short.asked == [(w0, w1)]
+    later = with_burn_in(problem, burn)
+    assert later.train == (w0 + 100, w1) and later.y is problem.y   # the scaling is the prepared one
+    assert with_burn_in(problem, w0 - 10) is problem
+
+
+def test_a_burn_in_claim_is_capped_at_a_fixed_share_of_the_record():
+    problem = _problem()
+    assert with_burn_in(problem, T).train == (int(BURN_CAP * T), problem.train[1])
+
+
+def test_bic_counts_the_linear_part_a_free_dead_time_and_each_candidates_parameters_once():
+    problem = _problem()
+    scorer = Scorer(problem, NOMINAL, {})
+    flow = problem.op.copy()
+    fit = fit_one(flow, problem.y, problem.train, NOMINAL.structure, problem.dt)
+    held = scorer.model({}, fit, False, flow, target=problem.y)
+    assert held.k == fit.structure.n_params()
+    assert held.bic == bic(fit.sse, fit.n, held.k)
+    assert held.heldout == fit_percent(problem.y[problem.test[0]:], held.y_hat[problem.test[0]:]) > 90.0
+    valve = Active(SimpleNamespace(name="stiction", slot="valve", kind=Kind.CHAIN, n_params=3), np.zeros(3))
+    dead_time = Active(SimpleNamespace(name="dead_time", slot="delay", kind=Kind.DELAY, n_params=1), np.zeros(1))
+    freed = scorer.model({"valve": valve, "delay": dead_time}, fit, True, flow, target=problem.y)
+    assert freed.k == held.k + 1 + 3     # the dead time once (as freed), the valve's three parameters
+    assert freed.by_slot()["delay"].params.tolist() == [fit.structure.delay]   # the fitted dead time
+
+
+def test_the_prior_between_pole_sets_is_the_squared_log_distance_to_the_nominal_poles_in_widths():
+    scorer = Scorer(_problem(), NOMINAL, {})
+    assert scorer.prior_penalty(LinearStructure(taus=(10.0 * np.exp(2 * PRIOR_WIDTH),))) == pytest.approx(4.0)
+    assert scorer.prior_penalty(LinearStructure(taus=(10.0,))) == 0.0
+    assert scorer.prior_penalty(LinearStructure(taus=(5.0, 10.0))) == 0.0   # another order: not comparable
+    identified = Nominal(structure=NOMINAL.structure, given=False)
+    assert Scorer(_problem(), identified, {}).prior_penalty(LinearStructure(taus=(40.0,))) == 0.0
+
+
+def test_dead_times_near_a_value_stay_on_the_problems_grid():
+    problem = _problem()
+    scorer = Scorer(problem, NOMINAL, {})
+    lo, hi = int(problem.delays.min()), int(problem.delays.max())
+    assert scorer.near(3.0, 2).tolist() == [max(lo, 1), 2, 3, 4, 5]
+    assert scorer.near(float(hi), 3).max() == hi and scorer.near(0.0, 3).min() == lo
