@@ -1,4 +1,4 @@
-"""Issue 4 over the wire: mbpoll sees stiction, external PI closes the loop, the tick keeps time, and the
+"""The sticky loop over the wire: mbpoll sees stiction, external PI closes the loop, the tick keeps time, and the
 valve behaves the same whatever the ratio of tick to controller scan (the rest criterion)."""
 
 from __future__ import annotations

@@ -35,7 +35,7 @@ VOCABULARY = {
 }
 
 
-def test_registry_holds_the_issue_vocabulary_with_json_parameter_keys():
+def test_registry_holds_every_physics_with_its_json_parameter_keys():
     lib = registry()
     assert set(VOCABULARY) <= set(lib)
     for name, (slot, keys) in VOCABULARY.items():

@@ -1,4 +1,4 @@
-"""Issue 6, must show: stiction concealed in closed-loop OP/PV with PV noise is found, fitted and explains the data.
+"""Stiction concealed in closed-loop OP/PV with PV noise is found, fitted and explains the data.
 
 Every recording here is a closed loop simulated with a sticky valve; the diagnosis sees only ``t, op, pv``
 (no valve position, no set point), PV measurement noise of 5 % of the PV amplitude inside the loop, and a

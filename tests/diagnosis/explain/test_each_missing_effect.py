@@ -1,4 +1,4 @@
-"""Issue 6, must show: every other effect of the proof table is named correctly; the control gets no finding.
+"""Every other effect of the proof table is named correctly; the control gets no finding.
 
 Closed loops with one piece of physics left out of the nominal model, concealed as in ``prove`` (only
 ``t, op, pv``, PV noise inside the loop, the record starting mid-run), at about 60 % of the proof's lengths.

@@ -1,4 +1,4 @@
-"""The nominal model is a prior (issue 23 §2): an actuator lag the model leaves out is found as the actuator's
+"""The nominal model is a prior: an actuator lag the model leaves out is found as the actuator's
 and the plant keeps the nominal time constant; the linear part moves only when the data demand it, and the
 answer says which parameter moved, from what to what, and what the move bought.
 
@@ -66,10 +66,10 @@ def _found_lag(d) -> float:
 
 
 @pytest.mark.slow
-def test_the_issue_example_names_the_actuator_lag_and_the_plant_keeps_its_time_constant():
-    """Issue 23's loop: lag 6 s before 2/(10s+1)·e^{-2s}, PI 0.3 / 10 s, square wave ±2 of period 300 s, 2 %
+def test_a_lag_before_a_first_order_plant_is_the_actuators_and_the_plant_keeps_its_time_constant():
+    """A lag of 6 s before 2/(10s+1)·e^{-2s}, PI 0.3 / 10 s, square wave ±2 of period 300 s, 2 %
     noise, the exact nominal model. It reported a lag of 10.7 s and moved the plant to 4.9 s."""
-    case = Case("issue 23 example", {"actuator_lag": {"tau": 6.0}},
+    case = Case("lag before a first-order plant", {"actuator_lag": {"tau": 6.0}},
                 loop_mapping([2.0], [10.0, 1.0], 2.0, 0.3, 10.0, duration=3300.0,
                              sp_steps=setpoint_steps([2, -2] * 12, 150.0)),
                 {}, noise=0.02, lag=6.0)
