@@ -63,6 +63,7 @@ from valve_emulator.config import (
 from valve_emulator.config.schema import CHARACTERISTICS, DeviceConfig
 from valve_emulator.config.writer import dump_loop
 from valve_emulator.diagnosis.candidates import SLOTS, TwinRole
+from valve_emulator.diagnosis.candidates.valve_start import PRE_ROLL
 from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.continuous import continuous_transfer_function
 from valve_emulator.diagnosis.fit.data import fit_percent, fold_windows
@@ -70,7 +71,7 @@ from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.errors import UserError
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
-from valve_emulator.simulation.replay import replay_op
+from valve_emulator.simulation.replay import op_travel, pre_rolled, replay_op
 
 __all__ = ["Twin", "TwinTravel", "twin", "identify_pi", "replay_fit", "PV_MARGIN"]
 
@@ -80,6 +81,8 @@ PV_MARGIN = 0.25
 _PI_MIN_SAMPLES, _PI_MIN_R2 = 20, 0.9
 #: An identified integral time beyond this many record lengths counts as no integral action.
 _PI_MAX_TI = 100.0
+#: How far behind OP(0) (beyond J) a valve started moving is put at rest: the fit's value.
+_START_EPS = 1e-6
 #: OP within this distance (% travel) of 0 or 100 counts as saturated for the PI identification.
 _PI_EDGE = 0.5
 
@@ -406,13 +409,64 @@ def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name
                      plant=plant, controller=controller,
                      simulation=SimulationConfig(dt=dt, duration=max(float(rec.t[-1] - rec.t[0]), dt)),
                      device=DeviceConfig(tick=dt))
+    cfg, start_lines = _with_start(cfg, explanation.fitted, rec, travel)
     head = [f"Twin of {diagnosis.source}, written by valve-emulator diagnose --twin: the loop the diagnosis found, "
             "as a loop config.",
             f"Answer: {diagnosis.answer}; held-out fit {_g(explanation.fit_before)} % -> "
             f"{_g(explanation.fit_after)} % ({diagnosis.verdict}).",
-            *valve_lines, *plant_lines, *controller_lines,
+            *valve_lines, *plant_lines, *controller_lines, *start_lines,
             f"simulation.dt, device.tick: the recording's sample time ({_g(dt)} s); duration: its length."]
     return Twin(_replay_operating_point(cfg, explanation, rec), tuple(head))
+
+
+@dataclass(frozen=True)
+class ValveStart:
+    """A valve's state at the recording's first sample, before it reads OP(0), in the twin's travel: its position
+    ``mv``, the direction it last moved in, and whether it is stuck there (else still moving)."""
+
+    mv: float
+    direction: int
+    stuck: bool
+
+
+def _fitted_start(fitted: FittedLoop) -> int | None:
+    """The start the fit chose for its valve, ``+1``/``−1`` (moving up/down at OP(0): see
+    :mod:`~valve_emulator.diagnosis.candidates.valve_start`), or None for the mirrored pre-roll (the nominal
+    valve's start too)."""
+    found = _in_role(fitted, TwinRole.VALVE_BAND)
+    start = _named(found).get("start", PRE_ROLL) if found is not None else PRE_ROLL
+    return None if start == PRE_ROLL else int(start)
+
+
+def _valve_start(cfg: LoopConfig, fitted: FittedLoop, op: np.ndarray, travel: TwinTravel) -> ValveStart:
+    """The state the fit's valve starts the record in (``op``: the recorded OP in the twin's travel).
+
+    A start moving up or down is the valve at rest ``J + ε`` behind OP(0) in the fit's frame, so that OP(0)
+    moves it; the pre-roll start is whatever the twin's valve reaches through the mirrored pre-roll, which runs
+    the same state machine on the same OP as the fit's.
+    """
+    d = _fitted_start(fitted)
+    if d is None:
+        bank = pre_rolled(cfg, op)
+        return ValveStart(float(bank.mv[0]), int(bank.direction[0]), bool(bank.stuck[0]))
+    v = cfg.valve
+    J = v.J / travel.ratio                                          # the fit's frame
+    rest = travel.level(float(np.clip(fitted.op[0] - d * (J + _START_EPS), 0.0, 100.0)))
+    return ValveStart(float(np.clip(rest - d * 0.5 * (v.S - v.J), 0.0, 100.0)), d, True)
+
+
+def _with_start(cfg: LoopConfig, fitted: FittedLoop, rec, travel: TwinTravel) -> tuple[LoopConfig, list[str]]:
+    """``cfg`` carrying the state the fit started the record in: the valve's (``mv0``, ``stuck0``,
+    ``initial_direction``) and the plant at rest for the fit's first flow (``rest_flow``), so that a replay
+    or a served twin starts where the recording starts."""
+    op = np.clip(op_travel(cfg, rec.op), *cfg.controller.op_limits)
+    start = _valve_start(cfg, fitted, op, travel)
+    flow = travel.level(float(fitted.flow(fitted.op)[0]))
+    valve = replace(cfg.valve, mv0=start.mv, stuck0=start.stuck, initial_direction=start.direction)
+    line = (f"valve.mv0, stuck0, initial_direction; plant.rest_flow: the state the diagnosis' fit starts the "
+            f"record in (the valve at {_g(start.mv)} %, {'stuck' if start.stuck else 'moving'}, last moving "
+            f"{'up' if start.direction > 0 else 'down'}; the plant at rest for {_g(flow)} % flow).")
+    return replace(cfg, valve=valve, plant=replace(cfg.plant, rest_flow=flow)), [line]
 
 
 def _replay_operating_point(cfg: LoopConfig, explanation, rec) -> LoopConfig:
