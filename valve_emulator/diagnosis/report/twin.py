@@ -237,15 +237,19 @@ def _left_out(fitted: FittedLoop) -> list[str]:
     return lines
 
 
-def _input_sine(params: dict[str, float], plant: PlantConfig) -> DisturbanceConfig:
+def _input_sine(params: dict[str, float], plant: PlantConfig, dt: float) -> DisturbanceConfig:
     r"""The input sinusoid (% flow) that ``plant`` turns into the output one found, ``A sin(ωt + φ)`` in PV units:
     amplitude ``A/|G(jω)|`` and phase ``φ − arg G(jω)``, the dead time included (steady state; the phase counts
-    from the recording's first sample)."""
+    from the recording's first sample). The simulator holds the disturbance's value at each sample over the
+    sample interval, which delays it by ``Δt/2`` and scales it by ``sinc(ωΔt/2)``; the sinusoid written leads by
+    as much and is larger by as much, so that the held one is the input found."""
     period, amplitude, phase = params["period"], params["amplitude"], params["phase"]
     w = 2.0 * np.pi / period
     g = np.polyval(plant.num, 1j * w) / np.polyval(plant.den, 1j * w) * np.exp(-1j * w * plant.delay)
-    return DisturbanceConfig(type="sine", amplitude=amplitude / abs(g), period=period,
-                             phase=float(np.angle(np.exp(1j * (phase - np.angle(g))))))
+    half = 0.5 * w * dt
+    hold = np.sin(half) / half if half > 0.0 else 1.0
+    return DisturbanceConfig(type="sine", amplitude=amplitude / (abs(g) * hold), period=period,
+                             phase=float(np.angle(np.exp(1j * (phase - np.angle(g) + half)))))
 
 
 def _slug(text: str) -> str:
@@ -327,7 +331,7 @@ def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: T
              + (f"; units: {units}." if units else ".")]
     sine = _in_role(fitted, TwinRole.DISTURBANCE)
     if sine is not None:
-        plant = replace(plant, disturbance=_input_sine(_named(sine), plant))
+        plant = replace(plant, disturbance=_input_sine(_named(sine), plant, ctx.dt))
         lines.append("plant.disturbance: the external oscillating disturbance found (a sinusoid in PV), as the "
                      "sinusoid at the plant input that the plant turns into it.")
     return plant, lines + _left_out(fitted)
@@ -456,17 +460,44 @@ def _valve_start(cfg: LoopConfig, fitted: FittedLoop, op: np.ndarray, travel: Tw
 
 
 def _with_start(cfg: LoopConfig, fitted: FittedLoop, rec, travel: TwinTravel) -> tuple[LoopConfig, list[str]]:
-    """``cfg`` carrying the state the fit started the record in: the valve's (``mv0``, ``stuck0``,
-    ``initial_direction``) and the plant at rest for the fit's first flow (``rest_flow``), so that a replay
-    or a served twin starts where the recording starts."""
+    """``cfg`` carrying the state the recording starts in: the fit's valve (``mv0``, ``stuck0``,
+    ``initial_direction``) and the plant at rest (``rest_flow``), so that a replay or a served twin starts
+    where the recording starts."""
     op = np.clip(op_travel(cfg, rec.op), *cfg.controller.op_limits)
     start = _valve_start(cfg, fitted, op, travel)
-    flow = travel.level(float(fitted.flow(fitted.op)[0]))
     valve = replace(cfg.valve, mv0=start.mv, stuck0=start.stuck, initial_direction=start.direction)
-    line = (f"valve.mv0, stuck0, initial_direction; plant.rest_flow: the state the diagnosis' fit starts the "
-            f"record in (the valve at {_g(start.mv)} %, {'stuck' if start.stuck else 'moving'}, last moving "
-            f"{'up' if start.direction > 0 else 'down'}; the plant at rest for {_g(flow)} % flow).")
-    return replace(cfg, valve=valve, plant=replace(cfg.plant, rest_flow=flow)), [line]
+    cfg = replace(cfg, valve=valve)
+    flow = travel.level(float(fitted.flow(fitted.op)[0]))
+    fitted_rest = fitted.linear.structure.integrating
+    if not fitted_rest:
+        flow = _rest_flow(cfg, rec, flow)
+    line = (f"valve.mv0, stuck0, initial_direction: the state the diagnosis' fit starts the valve in (at "
+            f"{_g(start.mv)} %, {'stuck' if start.stuck else 'moving'}, last moving "
+            f"{'up' if start.direction > 0 else 'down'}); plant.rest_flow: the plant starts at rest for "
+            f"{_g(flow)} % flow, " + ("the fit's first flow." if fitted_rest else
+                                      "the flow whose rest best replays the recording's start."))
+    return replace(cfg, plant=replace(cfg.plant, rest_flow=flow)), [line]
+
+
+def _rest_flow(cfg: LoopConfig, rec, guess: float) -> float:
+    """The flow a self-regulating plant starts at rest for, so that the open-loop replay of ``cfg`` best fits
+    the recorded PV (least squares).
+
+    A recording starts mid-swing; a plant at rest for the first flow (the fit's start) begins at that flow's
+    steady PV, which may lie anywhere in the swing. The replayed PV is affine in the rest flow, its effect
+    fading as the plant forgets its initial state, so one more replay gives its sensitivity and the best value
+    in closed form (a constant absorbs the operating point, which :func:`_replay_operating_point` sets).
+    """
+    def run(flow: float) -> np.ndarray:
+        return replay_op(replace(cfg, plant=replace(cfg.plant, rest_flow=flow)), rec).pv
+
+    base = run(guess)
+    sens = run(guess + 1.0) - base
+    if not np.any(sens):
+        return guess
+    X = np.column_stack([sens, np.ones(sens.size)])
+    coef, *_ = np.linalg.lstsq(X, np.asarray(rec.pv, dtype=float) - base, rcond=None)
+    return float(guess + coef[0])
 
 
 def _replay_operating_point(cfg: LoopConfig, explanation, rec) -> LoopConfig:
