@@ -99,13 +99,17 @@ def test_the_twin_carries_the_found_physics_in_travel_units():
 @pytest.mark.parametrize("name, duration", [("stiction, undershoot", 1500.0), ("stiction, level loop", 400.0)])
 def test_the_closed_loop_replay_keeps_the_limit_cycle(name, duration):
     """Acceptance: the twin in closed loop on the recorded SP cycles with the recording's period and PV amplitude,
-    each within 20 %."""
+    each within 20 %. The measurement noise decides when a sticky valve slips, so a short record's cycle varies
+    from one noise realisation to the next: the twin's median over three noise seeds is compared."""
     rec, _, d = diagnosed(name, duration)
-    sim = replay_sp(d.to_config(), rec)
-    want, got = measure_limit_cycle(rec.t, rec.pv), measure_limit_cycle(sim.t, sim.pv)
-    assert want.sustained and got.sustained
-    assert got.period == pytest.approx(want.period, rel=0.2)
-    assert got.amplitude == pytest.approx(want.amplitude, rel=0.2)
+    cfg = d.to_config()
+    want = measure_limit_cycle(rec.t, rec.pv)
+    runs = [replay_sp(dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, seed=seed)), rec)
+            for seed in range(3)]
+    got = [measure_limit_cycle(sim.t, sim.pv) for sim in runs]
+    assert want.sustained and all(g.sustained for g in got)
+    assert np.median([g.period for g in got]) == pytest.approx(want.period, rel=0.2)
+    assert np.median([g.amplitude for g in got]) == pytest.approx(want.amplitude, rel=0.2)
 
 
 @pytest.mark.parametrize("kc, ti, action", [(0.4, 2.0, "reverse"), (1.3, 25.0, "direct"), (0.7, None, "reverse")])
