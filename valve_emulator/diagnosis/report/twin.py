@@ -81,6 +81,8 @@ PV_MARGIN = 0.25
 _PI_MIN_SAMPLES, _PI_MIN_R2 = 20, 0.9
 #: An identified integral time beyond this many record lengths counts as no integral action.
 _PI_MAX_TI = 100.0
+#: A self-regulating twin's plant starts at the PV recorded over this many first seconds.
+START_WINDOW = 1.0
 #: How far behind OP(0) (beyond J) a valve started moving is put at rest: the fit's value.
 _START_EPS = 1e-6
 #: OP within this distance (% travel) of 0 or 100 counts as saturated for the PI identification.
@@ -475,29 +477,31 @@ def _with_start(cfg: LoopConfig, fitted: FittedLoop, rec, travel: TwinTravel) ->
             f"{_g(start.mv)} %, {'stuck' if start.stuck else 'moving'}, last moving "
             f"{'up' if start.direction > 0 else 'down'}); plant.rest_flow: the plant starts at rest for "
             f"{_g(flow)} % flow, " + ("the fit's first flow." if fitted_rest else
-                                      "the flow whose rest best replays the recording's start."))
+                                      "the flow whose rest starts at the recorded PV."))
     return replace(cfg, plant=replace(cfg.plant, rest_flow=flow)), [line]
 
 
 def _rest_flow(cfg: LoopConfig, rec, guess: float) -> float:
-    """The flow a self-regulating plant starts at rest for, so that the open-loop replay of ``cfg`` best fits
-    the recorded PV (least squares).
+    """The flow a self-regulating plant starts at rest for, so that the open-loop replay of ``cfg`` starts at
+    the recorded PV: least squares over the recording's first :data:`START_WINDOW` seconds (at least two
+    samples).
 
     A recording starts mid-swing; a plant at rest for the first flow (the fit's start) begins at that flow's
-    steady PV, which may lie anywhere in the swing. The replayed PV is affine in the rest flow, its effect
-    fading as the plant forgets its initial state, so one more replay gives its sensitivity and the best value
-    in closed form (a constant absorbs the operating point, which :func:`_replay_operating_point` sets).
+    steady PV, which may lie anywhere in the swing. The replayed PV is affine in the rest flow, so one more
+    replay gives its sensitivity and the best value in closed form. The operating point is the fit's
+    (:func:`_replay_operating_point` then moves ``pv0`` by the fit part's mean, where the start is forgotten).
     """
     def run(flow: float) -> np.ndarray:
         return replay_op(replace(cfg, plant=replace(cfg.plant, rest_flow=flow)), rec).pv
 
+    dt = cfg.simulation.dt
+    n = min(len(rec), max(2, int(math.ceil(START_WINDOW / dt - 1e-9)) + 1))
     base = run(guess)
-    sens = run(guess + 1.0) - base
+    sens = (run(guess + 1.0) - base)[:n]
     if not np.any(sens):
         return guess
-    X = np.column_stack([sens, np.ones(sens.size)])
-    coef, *_ = np.linalg.lstsq(X, np.asarray(rec.pv, dtype=float) - base, rcond=None)
-    return float(guess + coef[0])
+    err = np.asarray(rec.pv[:n], dtype=float) - base[:n]
+    return float(guess + np.dot(sens, err) / np.dot(sens, sens))
 
 
 def _replay_operating_point(cfg: LoopConfig, explanation, rec) -> LoopConfig:
