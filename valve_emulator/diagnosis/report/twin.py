@@ -83,6 +83,8 @@ _PI_MIN_SAMPLES, _PI_MIN_R2 = 20, 0.9
 _PI_MAX_TI = 100.0
 #: A self-regulating twin's plant starts at the PV recorded over this many first seconds.
 START_WINDOW = 1.0
+#: ... when what its start leaves at the fit part is at most this share of its effect at the start.
+_FORGOTTEN = 0.02
 #: How far behind OP(0) (beyond J) a valve started moving is put at rest: the fit's value.
 _START_EPS = 1e-6
 #: OP within this distance (% travel) of 0 or 100 counts as saturated for the PI identification.
@@ -469,27 +471,28 @@ def _with_start(cfg: LoopConfig, fitted: FittedLoop, rec, travel: TwinTravel) ->
     start = _valve_start(cfg, fitted, op, travel)
     valve = replace(cfg.valve, mv0=start.mv, stuck0=start.stuck, initial_direction=start.direction)
     cfg = replace(cfg, valve=valve)
-    flow = travel.level(float(fitted.flow(fitted.op)[0]))
-    fitted_rest = fitted.linear.structure.integrating
-    if not fitted_rest:
-        flow = _rest_flow(cfg, rec, flow)
+    first = travel.level(float(fitted.flow(fitted.op)[0]))
+    moved = None if fitted.linear.structure.integrating else _rest_flow(cfg, rec, first, fitted.ctx.window[0])
+    flow = first if moved is None else moved
     line = (f"valve.mv0, stuck0, initial_direction: the state the diagnosis' fit starts the valve in (at "
             f"{_g(start.mv)} %, {'stuck' if start.stuck else 'moving'}, last moving "
             f"{'up' if start.direction > 0 else 'down'}); plant.rest_flow: the plant starts at rest for "
-            f"{_g(flow)} % flow, " + ("the fit's first flow." if fitted_rest else
+            f"{_g(flow)} % flow, " + ("the fit's first flow." if moved is None else
                                       "the flow whose rest starts at the recorded PV."))
     return replace(cfg, plant=replace(cfg.plant, rest_flow=flow)), [line]
 
 
-def _rest_flow(cfg: LoopConfig, rec, guess: float) -> float:
+def _rest_flow(cfg: LoopConfig, rec, guess: float, fit_start: int) -> float | None:
     """The flow a self-regulating plant starts at rest for, so that the open-loop replay of ``cfg`` starts at
     the recorded PV: least squares over the recording's first :data:`START_WINDOW` seconds (at least two
     samples).
 
     A recording starts mid-swing; a plant at rest for the first flow (the fit's start) begins at that flow's
     steady PV, which may lie anywhere in the swing. The replayed PV is affine in the rest flow, so one more
-    replay gives its sensitivity and the best value in closed form. The operating point is the fit's
-    (:func:`_replay_operating_point` then moves ``pv0`` by the fit part's mean, where the start is forgotten).
+    replay gives its sensitivity and the best value in closed form. Only a plant that has forgotten its start
+    by the fit part (sample ``fit_start``; :data:`_FORGOTTEN`) starts elsewhere than at the fit's ``guess``, so
+    the fit part replays as the fit; :func:`_replay_operating_point` then moves ``pv0`` by that part's mean.
+    None: the start stays the fit's.
     """
     def run(flow: float) -> np.ndarray:
         return replay_op(replace(cfg, plant=replace(cfg.plant, rest_flow=flow)), rec).pv
@@ -497,11 +500,11 @@ def _rest_flow(cfg: LoopConfig, rec, guess: float) -> float:
     dt = cfg.simulation.dt
     n = min(len(rec), max(2, int(math.ceil(START_WINDOW / dt - 1e-9)) + 1))
     base = run(guess)
-    sens = (run(guess + 1.0) - base)[:n]
-    if not np.any(sens):
-        return guess
+    sens = run(guess + 1.0) - base
+    if not np.any(sens[:n]) or np.max(np.abs(sens[fit_start:])) > _FORGOTTEN * np.max(np.abs(sens[:n])):
+        return None   # the plant remembers its start into the fit part: the fit's start is the one it fitted
     err = np.asarray(rec.pv[:n], dtype=float) - base[:n]
-    return float(guess + np.dot(sens, err) / np.dot(sens, sens))
+    return float(guess + np.dot(sens[:n], err) / np.dot(sens[:n], sens[:n]))
 
 
 def _replay_operating_point(cfg: LoopConfig, explanation, rec) -> LoopConfig:
