@@ -100,14 +100,14 @@ def test_the_open_loop_replay_fits_as_well_as_the_diagnosis(name, duration):
 
 #: Independent closed loops whose every finding the loop config can express (no quantised PV, no flow limit
 #: behind a sticky valve): (family, seed, with the nominal model).
-UNSEEN = [(family, seed, given) for family in ("flow_sticky", "healthy_flow", "level_sticky", "slow_noisy_valve")
-          for seed in range(3) for given in (True, False)]
+UNSEEN = [(family, seed, with_model) for family in ("flow_sticky", "healthy_flow", "level_sticky", "slow_noisy_valve")
+          for seed in range(3) for with_model in (True, False)]
 
 
 @functools.cache
-def unseen(family: str, seed: int, given: bool):
+def unseen(family: str, seed: int, with_model: bool):
     rec, _, mapping = draw(family, np.random.default_rng(seed))
-    return rec, diagnose(rec, loop_from_mapping(mapping) if given else None)
+    return rec, diagnose(rec, loop_from_mapping(mapping) if with_model else None)
 
 
 @pytest.mark.slow
@@ -116,10 +116,10 @@ def test_twins_of_loops_the_package_did_not_simulate_replay_the_whole_record_as_
     lag in either order): the twin's open-loop replay fits the whole record at least as well as the diagnosis'
     prediction, less 2 points, in at least 90 % of the loops (24 diagnoses, about 3 minutes)."""
     results = []
-    for family, seed, given in UNSEEN:
-        rec, d = unseen(family, seed, given)
+    for family, seed, with_model in UNSEEN:
+        rec, d = unseen(family, seed, with_model)
         diagnosis, replay = whole_record_fits(d, rec, d.to_config())
-        results.append((family, seed, given, round(diagnosis, 1), round(replay, 1)))
+        results.append((family, seed, with_model, round(diagnosis, 1), round(replay, 1)))
     bad = [r for r in results if r[4] < r[3] - 2.0]
     assert len(bad) <= 0.1 * len(results), bad
 
