@@ -29,6 +29,12 @@ controller
     the first OP, tuned by the SIMC rules (Skogestad, *J. Process Control* 13 (2003) 291–309) for the twin's
     own plant, so an operator can switch it to auto. A saturation found becomes its ``op_limits``. It starts at
     the recording's first OP, with the recorded SP's median (PV's without one) as its set point.
+the start
+    ``valve.mv0``, ``stuck0``, ``initial_direction`` and ``plant.rest_flow`` carry the state the recording
+    starts in, so that ``simulate TWIN --replay REC`` matches from the first sample and ``serve TWIN`` starts at
+    the recording's operating point: the valve where the fit's valve starts the record (the start the fit chose,
+    :mod:`~valve_emulator.diagnosis.candidates.valve_start`), a self-regulating plant at rest at the PV recorded
+    over the first second (:func:`_rest_flow`), an integrating one at rest for the fit's first flow.
 simulation, device
     ``dt`` and ``device.tick`` are the recording's sample time, ``duration`` its length.
 
