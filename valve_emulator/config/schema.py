@@ -67,9 +67,9 @@ _DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts"
 #: multi-loop file). Anything else is an error naming the key.
 KEYS: dict[str, tuple[str, ...]] = {
     "": _LOOP_SECTIONS + ("device",),
-    "valve": ("model", "S", "J", "seed_s", "seed_j", "rest_time", "initial_direction", "op0",
+    "valve": ("model", "S", "J", "seed_s", "seed_j", "rest_time", "initial_direction", "op0", "mv0", "stuck0",
               "characteristic", "rangeability", "ma_table", "op_range"),
-    "plant": ("num", "den", "delay", "fopdt", "integrator", "pv0", "u0", "pv_range", "units",
+    "plant": ("num", "den", "delay", "fopdt", "integrator", "pv0", "u0", "rest_flow", "pv_range", "units",
               "disturbance", "noise", "alarms"),
     "plant.fopdt": ("gain", "tau", "delay"),
     "plant.integrator": ("gain", "delay"),
@@ -262,6 +262,9 @@ class ValveConfig:
     rest_time: float = 0.5         # s >= 0, OP unchanged this long -> valve at rest (kano only)
     initial_direction: int = 1     # +1 | -1: at rest as if it had just moved this way
     op0: float = 50.0              # % travel in 0..100, OP held before any write / without controller
+    mv0: float | None = None       # % travel in 0..100, the valve's position at the start (last moved in
+                                   # initial_direction); None: at rest at its initial OP, OP − d(S − J)/2
+    stuck0: bool = True            # at the start the valve is stuck (True) or still moving (False)
     characteristic: str = "linear"  # inherent flow characteristic: linear | equal_percentage | quick_opening
     rangeability: float = DEFAULT_RANGEABILITY  # R > 1, used by equal_percentage
     ma_table: tuple[tuple[float, float], ...] = DEFAULT_MA_TABLE  # (mA, % travel) points, >= 2
@@ -277,6 +280,7 @@ class ValveConfig:
                               key="initial_direction")
         _set(self, initial_direction=int(self.initial_direction),
              op0=real(self.op0, "op0", ge=0, le=100),
+             mv0=real(self.mv0, "mv0", ge=0, le=100, none_ok=True), stuck0=boolean(self.stuck0, "stuck0"),
              characteristic=choice(self.characteristic, "characteristic", CHARACTERISTICS),
              rangeability=real(self.rangeability, "rangeability", gt=1))
         _set(self, ma_table=_ma_table(self.ma_table), op_range=interval(self.op_range, "op_range"))
@@ -345,6 +349,7 @@ class PlantConfig:
     delay: float = 0.0                  # s >= 0, dead time
     pv0: float = 0.0                    # PV at the operating point, engineering units
     u0: float | None = None             # operating-point flow %, None = the valve's initial flow
+    rest_flow: float | None = None      # % flow the plant starts at rest for, None = the valve's initial flow
     pv_range: tuple[float, float] | None = None  # (lo, hi) for scaled registers; None -> pv0 ± 100
     units: str = ""                     # PV engineering units, e.g. "kg/m3"
     disturbance: DisturbanceConfig = DisturbanceConfig()
@@ -367,7 +372,8 @@ class PlantConfig:
             raise ConfigError("{key} must be a DisturbanceConfig", key="disturbance")
         alarms = None if self.alarms is None else interval(self.alarms, "alarms")
         _set(self, num=num, den=den, delay=real(self.delay, "delay", ge=0), pv0=pv0,
-             u0=real(self.u0, "u0", none_ok=True), pv_range=pv_range, units=text(self.units, "units"),
+             u0=real(self.u0, "u0", none_ok=True), rest_flow=real(self.rest_flow, "rest_flow", none_ok=True),
+             pv_range=pv_range, units=text(self.units, "units"),
              noise=real(self.noise, "noise", ge=0), alarms=alarms)
 
     @property

@@ -30,8 +30,8 @@ def _valve(cfg: LoopConfig) -> dict:
         out["seed_s"], out["seed_j"] = v.seed_form
     else:
         out["S"], out["J"] = v.S, v.J
-    out.update(rest_time=v.rest_time, initial_direction=v.initial_direction, op0=v.op0,
-               characteristic=v.characteristic, rangeability=v.rangeability,
+    out.update(rest_time=v.rest_time, initial_direction=v.initial_direction, op0=v.op0, mv0=v.mv0,
+               stuck0=v.stuck0, characteristic=v.characteristic, rangeability=v.rangeability,
                ma_table=[list(row) for row in v.ma_table], op_range=list(v.op_range))
     return out
 
@@ -44,8 +44,8 @@ def _disturbance(d: DisturbanceConfig) -> dict:
 def _plant(cfg: LoopConfig) -> dict:
     p = cfg.plant
     out = {"num": list(p.num), "den": list(p.den), "delay": p.delay, "pv0": p.pv0, "u0": p.u0,
-           "pv_range": list(p.pv_range), "units": p.units, "disturbance": _disturbance(p.disturbance),
-           "noise": p.noise}
+           "rest_flow": p.rest_flow, "pv_range": list(p.pv_range), "units": p.units,
+           "disturbance": _disturbance(p.disturbance), "noise": p.noise}
     if p.alarms is not None:
         out["alarms"] = list(p.alarms)
     return out

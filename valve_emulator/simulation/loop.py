@@ -15,6 +15,11 @@ Order inside one sample k, for every loop at once (see ``docs/design.md``):
 The initial state is an equilibrium: the valve at rest at its initial OP (controller bias, or ``valve.op0``
 without a controller), the plant's operating-point flow ``u0`` equal to the valve's initial flow unless the
 config sets it, so PV starts at ``pv0`` and nothing moves until something is changed.
+
+A config may instead carry the state a recording starts in (a twin's, :mod:`valve_emulator.diagnosis.report.twin`):
+``valve.mv0`` and ``valve.stuck0`` put the valve at that position, stuck or still moving in
+``valve.initial_direction``, and ``plant.rest_flow`` starts the plant at rest for that flow instead of the
+valve's. Without those keys the loop starts exactly as before.
 """
 
 from __future__ import annotations
@@ -26,16 +31,20 @@ from typing import ClassVar
 import numba
 import numpy as np
 
-from valve_emulator.config import LoopConfig
+from valve_emulator.config import LoopConfig, ValveConfig
 from valve_emulator.physics.controller import PIDBank, pid_step_kernel
 from valve_emulator.physics.disturbance import BLOCK as NORMALS_BLOCK
 from valve_emulator.physics.disturbance import DisturbanceBank, NoiseBank
 from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_functions_to_zoh
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, Characteristic, LookupTable
 from valve_emulator.physics.stiction import (
+    DIR,
+    FLAG,
     MODELS,
     MV,
     NSTATE,
+    REF,
+    STILL,
     STUCK,
     U_PREV,
     initial_state,
@@ -163,6 +172,9 @@ class LoopBank:
         # valve at rest at its initial OP; plant in equilibrium at the resulting flow
         initial_state(self._vstate, op_init, np.array([v.initial_direction for v in valves], dtype=float),
                       self._S, self._J, self._codes)
+        for i, v in enumerate(valves):
+            if v.mv0 is not None or not v.stuck0:
+                _place_valve(self._vstate[i], v, self._S[i], self._J[i])
         mv0 = self._vstate[:, MV]
         flow0 = _flows(self.characteristics, mv0)
         # The exact discretisation (three matrix exponentials) dominates building a large bank: loops with the
@@ -172,7 +184,9 @@ class LoopBank:
                                                            for c in loops])
         u0 = np.array([c.plant.u0 if c.plant.u0 is not None else f for c, f in zip(loops, flow0)])
         self._plant = PlantBank(plants, u0=u0, pv0=[c.plant.pv0 for c in loops])
-        self._plant.reset(flow0)
+        rest = [c.plant.rest_flow for c in loops]
+        self._plant.reset(flow0 if all(r is None for r in rest) else
+                          np.array([f if r is None else r for r, f in zip(rest, flow0)]))
 
         # set points, modes
         self._sp = np.array([c.sp if c else c_l.plant.pv0 for c, c_l in zip(ctrls, loops)], dtype=float)
@@ -227,6 +241,16 @@ class LoopBank:
     @property
     def mv(self) -> np.ndarray:
         return self._vstate[:, MV].copy()
+
+    @property
+    def direction(self) -> np.ndarray:
+        """The direction each valve last moved in (+1 opening, −1 closing; +1 before any move): the meaning of
+        ``valve.initial_direction``, so that ``mv``, ``stuck`` and this are a start ``valve.mv0``,
+        ``valve.stuck0`` and ``valve.initial_direction`` reproduce."""
+        st = self._vstate
+        lag = np.sign((st[:, U_PREV] - st[:, MV]) * (self._S - self._J))   # OP − MV = d(S − J)/2 (Choudhury, He)
+        d = np.where(self._codes == MODELS.index("kano"), st[:, DIR], lag)
+        return np.where(d == 0.0, 1, d).astype(int)
 
     @property
     def sp(self) -> np.ndarray:
@@ -509,6 +533,31 @@ class LoopBank:
             rows["sp"][j], rows["pv"][j], rows["op"][j] = self._sp, self.pv, self.op
             rows["mv"][j], rows["flow"][j], stuck[j] = self._vstate[:, MV], self.flow, self.stuck
         return {"t": times, **rows, "stuck": stuck}
+
+
+def _place_valve(state: np.ndarray, valve: ValveConfig, S: float, J: float) -> None:
+    """Put one valve's state row (:data:`~valve_emulator.physics.stiction.NSTATE` values) at ``valve.mv0`` (when
+    set; else where :func:`~valve_emulator.physics.stiction.initial_state` put it), having last moved in
+    ``valve.initial_direction``, stuck or still moving by ``valve.stuck0``.
+
+    Stuck, it is the state :func:`~valve_emulator.physics.stiction.initial_state` gives a valve at rest at the OP
+    ``mv0 + d(S − J)/2`` (where it stopped); moving, the valve follows OP at that offset, so OP going on in
+    direction ``d`` moves it at once (the Kano and Choudhury machines) instead of after J.
+    """
+    d = float(valve.initial_direction)
+    half = 0.5 * (S - J)
+    mv = state[MV] if valve.mv0 is None else valve.mv0
+    u = min(max(mv + d * half, 0.0), 100.0)
+    model = valve.model
+    state[MV], state[U_PREV], state[STILL] = mv, u, 0.0
+    state[STUCK] = 1.0 if valve.stuck0 else 0.0
+    if model == "he":
+        state[REF] = u - mv                     # the residual OP − MV
+    elif model == "kano":
+        state[REF], state[DIR], state[FLAG] = u, d, 1.0 if valve.stuck0 else 0.0
+    else:                                       # choudhury: stuck at u, or sliding with slope d
+        state[REF] = u if valve.stuck0 else u - d * S
+        state[DIR], state[FLAG] = (0.0, 1.0) if valve.stuck0 else (d, 0.0)
 
 
 def _flows(characteristics: list[Characteristic], travel: np.ndarray) -> np.ndarray:

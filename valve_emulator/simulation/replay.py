@@ -16,6 +16,9 @@ swings little more than S. So the open-loop replay starts as the diagnosis' defa
 (:mod:`valve_emulator.diagnosis.candidates.valve_start`): the loop first runs through the record's first fifth
 (at least 100 samples) mirrored in time, ``OP[K], …, OP[1]``, which joins the record at ``OP[0]``; by then the
 valve is in a state a valve cycling on this OP reaches; the plant then starts at rest, as the fit's does.
+A loop that carries the state its recording starts in (a twin's ``valve.mv0``, ``valve.stuck0``,
+``valve.initial_direction`` and ``plant.rest_flow``, the state the diagnosis' fit started in) starts there
+instead, with no pre-roll, and so matches the recording from its first sample.
 The closed-loop replay starts the same way and follows the recorded OP over that same first fifth (the loop
 is then where the recording is, mid-cycle), then hands the valve to the controller, which continues bumplessly
 from there: a loop started at rest with PV at SP could sit on a stuck valve for a long time before its first
@@ -33,7 +36,7 @@ from valve_emulator.config import DisturbanceConfig, LoopConfig
 from valve_emulator.recordings.recording import Recording, RecordingError
 from valve_emulator.simulation.loop import LoopBank
 
-__all__ = ["op_travel", "pre_roll_length", "replay_op", "replay_sp"]
+__all__ = ["carries_start", "op_travel", "pre_roll_length", "pre_rolled", "replay_op", "replay_sp"]
 
 _EPS = 1e-6   # % travel: a valve put at rest J + this below OP slips at the first sample that rises
 
@@ -70,13 +73,31 @@ def pre_roll_length(T: int) -> int:
     return min(T - 1, max(100, T // 5))
 
 
+def carries_start(config: LoopConfig) -> bool:
+    """True when ``config`` carries the state its recording starts in (``valve.mv0``, a twin's): a replay then
+    starts there instead of after the mirrored pre-roll."""
+    return config.valve.mv0 is not None
+
+
 def _lead_in(config: LoopConfig, op: np.ndarray) -> LoopBank:
+    """A bank of ``config`` at the recording's first sample, the valve following the external OP: in the state
+    the config carries (:func:`carries_start`), else after the mirrored pre-roll of ``op`` (% travel) with the
+    plant at rest for the flow that left it."""
+    if carries_start(config):
+        bank = LoopBank([config])
+        bank.follow_external(True)
+        return bank
+    return pre_rolled(config, op)
+
+
+def pre_rolled(config: LoopConfig, op: np.ndarray) -> LoopBank:
     """A bank of ``config`` whose valve has run through the mirrored pre-roll of ``op`` (% travel) and whose
-    plant is at rest for the flow that left it; the valve follows the external OP."""
+    plant is at rest for the flow that left it; the valve follows the external OP. Its ``mv``, ``stuck`` and
+    ``direction`` are the valve's state at the recording's first sample."""
     K = pre_roll_length(op.size)
     rolled = op[K:0:-1]
     start = float(np.clip(rolled[0] - config.valve.J - _EPS, 0.0, 100.0))   # about to move up at OP[K]
-    valve = dataclasses.replace(config.valve, op0=start, initial_direction=1)
+    valve = dataclasses.replace(config.valve, op0=start, initial_direction=1, mv0=None, stuck0=True)
     controller = config.controller and dataclasses.replace(config.controller, bias=start, sp_steps=())
     plant = dataclasses.replace(config.plant, disturbance=_delayed(config.plant.disturbance, K * config.simulation.dt))
     bank = LoopBank([dataclasses.replace(config, valve=valve, plant=plant, controller=controller)])

@@ -14,11 +14,14 @@ from hypothesis import strategies as st
 from stroke_rate import TOY, StrokeRate, slow_valve
 
 from valve_emulator.benchmark.cases import CASES, generate
+from valve_emulator.benchmark.independent import draw
 from valve_emulator.config import loop_from_mapping
 from valve_emulator.config.loader import load_loop
+from valve_emulator.config.writer import write_loop
 from valve_emulator.diagnosis.api import diagnose
 from valve_emulator.diagnosis.candidates import base, register
 from valve_emulator.diagnosis.fit.continuous import continuous_transfer_function
+from valve_emulator.diagnosis.fit.data import fit_percent
 from valve_emulator.diagnosis.fit.linear import LinearStructure, fit_one
 from valve_emulator.diagnosis.fit.nominal import Nominal, replay_plant
 from valve_emulator.diagnosis.report.twin import identify_pi, replay_fit
@@ -70,19 +73,85 @@ def test_the_fitted_linear_part_comes_back_as_the_true_transfer_function(num, de
     np.testing.assert_allclose(got_num, want, rtol=1e-5, atol=1e-5)
 
 
+def whole_record_fits(d, rec: Recording, cfg) -> tuple[float, float]:
+    """``(diagnosis, twin)``: the whole-record fit (%) of the diagnosis' prediction on the recorded OP and of the
+    twin's open-loop replay, every sample from the first."""
+    return fit_percent(rec.pv, d.predict(rec.op)), fit_percent(rec.pv, replay_op(cfg, rec).pv)
+
+
 @pytest.mark.parametrize("name, duration", [
-    ("stiction, undershoot", 1500.0), ("stiction, level loop", 400.0), ("actuator lag", 1200.0),
-    ("equal-percentage characteristic", 1200.0)])
+    ("stiction, undershoot", 1500.0), ("stiction, no offset", 1500.0), ("stiction, overshoot", 1500.0),
+    ("stiction, level loop", 400.0), ("actuator lag", 1200.0), ("equal-percentage characteristic", 1200.0)])
 def test_the_open_loop_replay_fits_as_well_as_the_diagnosis(name, duration):
     """Acceptance: the twin, written and read back, driven by the recorded OP, fits the held-out part within
-    2 points of ``fit_after`` (the same samples; the twin is the fitted model, so it should)."""
+    2 points of ``fit_after`` (the same samples; the twin is the fitted model, so it should), and the whole
+    record from its first sample at least as well as the diagnosis' own prediction, less 2 points: the twin
+    starts in the state the fit started in (a sticky valve started elsewhere can stay stuck for long)."""
     rec, _, d = diagnosed(name, duration)
     twin = d.twin()
     cfg = loop_from_mapping(__import__("yaml").safe_load(twin.text()))
     assert cfg == dataclasses.replace(twin.config, source="<mapping>")
     fit = replay_fit(d, replay_op(cfg, rec).pv)
     assert abs(fit - d.fit_after) <= 2.0, (fit, d.fit_after)
+    diagnosis, replay = whole_record_fits(d, rec, cfg)
+    assert replay >= diagnosis - 2.0, (replay, diagnosis)
     assert set(BY_NAME[name].truth) <= {f.physics for f in d.findings}   # the concealed physics was found
+
+
+#: Independent closed loops whose every finding the loop config can express (no quantised PV, no flow limit
+#: behind a sticky valve): (family, seed, with the nominal model).
+UNSEEN = [(family, seed, with_model) for family in ("flow_sticky", "healthy_flow", "level_sticky", "slow_noisy_valve")
+          for seed in range(3) for with_model in (True, False)]
+
+
+@functools.cache
+def unseen(family: str, seed: int, with_model: bool):
+    rec, _, mapping = draw(family, np.random.default_rng(seed))
+    return rec, diagnose(rec, loop_from_mapping(mapping) if with_model else None)
+
+
+@pytest.mark.slow
+def test_twins_of_loops_the_package_did_not_simulate_replay_the_whole_record_as_their_diagnosis():
+    """Recordings of the independent simulator (continuous plants, the controller a sample late, friction and
+    lag in either order): the twin's open-loop replay fits the whole record at least as well as the diagnosis'
+    prediction, less 2 points, in at least 90 % of the loops (24 diagnoses, about 3 minutes)."""
+    results = []
+    for family, seed, with_model in UNSEEN:
+        rec, d = unseen(family, seed, with_model)
+        diagnosis, replay = whole_record_fits(d, rec, d.to_config())
+        results.append((family, seed, with_model, round(diagnosis, 1), round(replay, 1)))
+    bad = [r for r in results if r[4] < r[3] - 2.0]
+    assert len(bad) <= 0.1 * len(results), bad
+
+
+def served_pv_after(cfg, seconds: float, tmp_path) -> float:
+    """PV of the twin served by the emulated device (Modbus TCP, the testing kit's manual clock), ``seconds``
+    after it starts."""
+    from valve_emulator.testing import Emulator
+
+    path = tmp_path / "twin.yaml"
+    write_loop(cfg, path)
+    with Emulator(str(path), clock="manual") as emu:
+        emu.advance(seconds)
+        return emu.state()["pv_f32"]
+
+
+@pytest.mark.parametrize("source", [("case", "stiction, undershoot", 1500.0), ("case", "stiction, overshoot", 1500.0),
+                                    ("unseen", "flow_sticky", 0), ("unseen", "healthy_flow", 1)],
+                         ids=lambda s: f"{s[1]}")
+def test_a_served_twin_starts_at_the_recordings_operating_point(source, tmp_path):
+    """``serve TWIN``: one second after start the device's PV lies in the recording's first second (widened by
+    the twin's noise, which the served twin leaves out here so that the start is what is tested)."""
+    kind, name, arg = source
+    if kind == "case":
+        rec, _, d = diagnosed(name, arg)
+    else:
+        rec, d = unseen(name, arg, True)
+    cfg = d.to_config()
+    quiet = dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, noise=0.0))
+    pv = served_pv_after(quiet, 1.0, tmp_path)
+    first = rec.pv[rec.t - rec.t[0] <= 1.0 + 1e-9]
+    assert first.min() - cfg.plant.noise <= pv <= first.max() + cfg.plant.noise, (pv, first, cfg.plant.noise)
 
 
 def test_the_twin_carries_the_found_physics_in_travel_units():
@@ -99,13 +168,17 @@ def test_the_twin_carries_the_found_physics_in_travel_units():
 @pytest.mark.parametrize("name, duration", [("stiction, undershoot", 1500.0), ("stiction, level loop", 400.0)])
 def test_the_closed_loop_replay_keeps_the_limit_cycle(name, duration):
     """Acceptance: the twin in closed loop on the recorded SP cycles with the recording's period and PV amplitude,
-    each within 20 %."""
+    each within 20 %. The measurement noise decides when a sticky valve slips, so a short record's cycle varies
+    from one noise realisation to the next: the twin's median over three noise seeds is compared."""
     rec, _, d = diagnosed(name, duration)
-    sim = replay_sp(d.to_config(), rec)
-    want, got = measure_limit_cycle(rec.t, rec.pv), measure_limit_cycle(sim.t, sim.pv)
-    assert want.sustained and got.sustained
-    assert got.period == pytest.approx(want.period, rel=0.2)
-    assert got.amplitude == pytest.approx(want.amplitude, rel=0.2)
+    cfg = d.to_config()
+    want = measure_limit_cycle(rec.t, rec.pv)
+    runs = [replay_sp(dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, seed=seed)), rec)
+            for seed in range(3)]
+    got = [measure_limit_cycle(sim.t, sim.pv) for sim in runs]
+    assert want.sustained and all(g.sustained for g in got)
+    assert np.median([g.period for g in got]) == pytest.approx(want.period, rel=0.2)
+    assert np.median([g.amplitude for g in got]) == pytest.approx(want.amplitude, rel=0.2)
 
 
 @pytest.mark.parametrize("kc, ti, action", [(0.4, 2.0, "reverse"), (1.3, 25.0, "direct"), (0.7, None, "reverse")])

@@ -29,6 +29,12 @@ controller
     the first OP, tuned by the SIMC rules (Skogestad, *J. Process Control* 13 (2003) 291–309) for the twin's
     own plant, so an operator can switch it to auto. A saturation found becomes its ``op_limits``. It starts at
     the recording's first OP, with the recorded SP's median (PV's without one) as its set point.
+the start
+    ``valve.mv0``, ``stuck0``, ``initial_direction`` and ``plant.rest_flow`` carry the state the recording
+    starts in, so that ``simulate TWIN --replay REC`` matches from the first sample and ``serve TWIN`` starts at
+    the recording's operating point: the valve where the fit's valve starts the record (the start the fit chose,
+    :mod:`~valve_emulator.diagnosis.candidates.valve_start`), a self-regulating plant at rest at the PV recorded
+    over the first second (:func:`_rest_flow`), an integrating one at rest for the fit's first flow.
 simulation, device
     ``dt`` and ``device.tick`` are the recording's sample time, ``duration`` its length.
 
@@ -63,6 +69,7 @@ from valve_emulator.config import (
 from valve_emulator.config.schema import CHARACTERISTICS, DeviceConfig
 from valve_emulator.config.writer import dump_loop
 from valve_emulator.diagnosis.candidates import SLOTS, TwinRole
+from valve_emulator.diagnosis.candidates.valve_start import PRE_ROLL
 from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.continuous import continuous_transfer_function
 from valve_emulator.diagnosis.fit.data import fit_percent, fold_windows
@@ -70,7 +77,7 @@ from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.errors import UserError
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
-from valve_emulator.simulation.replay import replay_op
+from valve_emulator.simulation.replay import op_travel, pre_rolled, replay_op
 
 __all__ = ["Twin", "TwinTravel", "twin", "identify_pi", "replay_fit", "PV_MARGIN"]
 
@@ -80,6 +87,12 @@ PV_MARGIN = 0.25
 _PI_MIN_SAMPLES, _PI_MIN_R2 = 20, 0.9
 #: An identified integral time beyond this many record lengths counts as no integral action.
 _PI_MAX_TI = 100.0
+#: A self-regulating twin's plant starts at the PV recorded over this many first seconds.
+START_WINDOW = 1.0
+#: ... when what its start leaves at the fit part is at most this share of its effect at the start.
+_FORGOTTEN = 0.02
+#: How far behind OP(0) (beyond J) a valve started moving is put at rest: the fit's value.
+_START_EPS = 1e-6
 #: OP within this distance (% travel) of 0 or 100 counts as saturated for the PI identification.
 _PI_EDGE = 0.5
 
@@ -234,15 +247,19 @@ def _left_out(fitted: FittedLoop) -> list[str]:
     return lines
 
 
-def _input_sine(params: dict[str, float], plant: PlantConfig) -> DisturbanceConfig:
+def _input_sine(params: dict[str, float], plant: PlantConfig, dt: float) -> DisturbanceConfig:
     r"""The input sinusoid (% flow) that ``plant`` turns into the output one found, ``A sin(ωt + φ)`` in PV units:
     amplitude ``A/|G(jω)|`` and phase ``φ − arg G(jω)``, the dead time included (steady state; the phase counts
-    from the recording's first sample)."""
+    from the recording's first sample). The simulator holds the disturbance's value at each sample over the
+    sample interval, which delays it by ``Δt/2`` and scales it by ``sinc(ωΔt/2)``; the sinusoid written leads by
+    as much and is larger by as much, so that the held one is the input found."""
     period, amplitude, phase = params["period"], params["amplitude"], params["phase"]
     w = 2.0 * np.pi / period
     g = np.polyval(plant.num, 1j * w) / np.polyval(plant.den, 1j * w) * np.exp(-1j * w * plant.delay)
-    return DisturbanceConfig(type="sine", amplitude=amplitude / abs(g), period=period,
-                             phase=float(np.angle(np.exp(1j * (phase - np.angle(g))))))
+    half = 0.5 * w * dt
+    hold = np.sin(half) / half if half > 0.0 else 1.0
+    return DisturbanceConfig(type="sine", amplitude=amplitude / (abs(g) * hold), period=period,
+                             phase=float(np.angle(np.exp(1j * (phase - np.angle(g) + half)))))
 
 
 def _slug(text: str) -> str:
@@ -324,7 +341,7 @@ def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: T
              + (f"; units: {units}." if units else ".")]
     sine = _in_role(fitted, TwinRole.DISTURBANCE)
     if sine is not None:
-        plant = replace(plant, disturbance=_input_sine(_named(sine), plant))
+        plant = replace(plant, disturbance=_input_sine(_named(sine), plant, ctx.dt))
         lines.append("plant.disturbance: the external oscillating disturbance found (a sinusoid in PV), as the "
                      "sinusoid at the plant input that the plant turns into it.")
     return plant, lines + _left_out(fitted)
@@ -406,13 +423,94 @@ def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name
                      plant=plant, controller=controller,
                      simulation=SimulationConfig(dt=dt, duration=max(float(rec.t[-1] - rec.t[0]), dt)),
                      device=DeviceConfig(tick=dt))
+    cfg, start_lines = _with_start(cfg, explanation.fitted, rec, travel)
     head = [f"Twin of {diagnosis.source}, written by valve-emulator diagnose --twin: the loop the diagnosis found, "
             "as a loop config.",
             f"Answer: {diagnosis.answer}; held-out fit {_g(explanation.fit_before)} % -> "
             f"{_g(explanation.fit_after)} % ({diagnosis.verdict}).",
-            *valve_lines, *plant_lines, *controller_lines,
+            *valve_lines, *plant_lines, *controller_lines, *start_lines,
             f"simulation.dt, device.tick: the recording's sample time ({_g(dt)} s); duration: its length."]
     return Twin(_replay_operating_point(cfg, explanation, rec), tuple(head))
+
+
+@dataclass(frozen=True)
+class ValveStart:
+    """A valve's state at the recording's first sample, before it reads OP(0), in the twin's travel: its position
+    ``mv``, the direction it last moved in, and whether it is stuck there (else still moving)."""
+
+    mv: float
+    direction: int
+    stuck: bool
+
+
+def _fitted_start(fitted: FittedLoop) -> int | None:
+    """The start the fit chose for its valve, ``+1``/``−1`` (moving up/down at OP(0): see
+    :mod:`~valve_emulator.diagnosis.candidates.valve_start`), or None for the mirrored pre-roll (the nominal
+    valve's start too)."""
+    found = _in_role(fitted, TwinRole.VALVE_BAND)
+    start = _named(found).get("start", PRE_ROLL) if found is not None else PRE_ROLL
+    return None if start == PRE_ROLL else int(start)
+
+
+def _valve_start(cfg: LoopConfig, fitted: FittedLoop, op: np.ndarray, travel: TwinTravel) -> ValveStart:
+    """The state the fit's valve starts the record in (``op``: the recorded OP in the twin's travel).
+
+    A start moving up or down is the valve at rest ``J + ε`` behind OP(0) in the fit's frame, so that OP(0)
+    moves it; the pre-roll start is whatever the twin's valve reaches through the mirrored pre-roll, which runs
+    the same state machine on the same OP as the fit's.
+    """
+    d = _fitted_start(fitted)
+    if d is None:
+        bank = pre_rolled(cfg, op)
+        return ValveStart(float(bank.mv[0]), int(bank.direction[0]), bool(bank.stuck[0]))
+    v = cfg.valve
+    J = v.J / travel.ratio                                          # the fit's frame
+    rest = travel.level(float(np.clip(fitted.op[0] - d * (J + _START_EPS), 0.0, 100.0)))
+    return ValveStart(float(np.clip(rest - d * 0.5 * (v.S - v.J), 0.0, 100.0)), d, True)
+
+
+def _with_start(cfg: LoopConfig, fitted: FittedLoop, rec, travel: TwinTravel) -> tuple[LoopConfig, list[str]]:
+    """``cfg`` carrying the state the recording starts in: the fit's valve (``mv0``, ``stuck0``,
+    ``initial_direction``) and the plant at rest (``rest_flow``), so that a replay or a served twin starts
+    where the recording starts."""
+    op = np.clip(op_travel(cfg, rec.op), *cfg.controller.op_limits)
+    start = _valve_start(cfg, fitted, op, travel)
+    valve = replace(cfg.valve, mv0=start.mv, stuck0=start.stuck, initial_direction=start.direction)
+    cfg = replace(cfg, valve=valve)
+    first = travel.level(float(fitted.flow(fitted.op)[0]))
+    moved = None if fitted.linear.structure.integrating else _rest_flow(cfg, rec, first, fitted.ctx.window[0])
+    flow = first if moved is None else moved
+    line = (f"valve.mv0, stuck0, initial_direction: the state the diagnosis' fit starts the valve in (at "
+            f"{_g(start.mv)} %, {'stuck' if start.stuck else 'moving'}, last moving "
+            f"{'up' if start.direction > 0 else 'down'}); plant.rest_flow: the plant starts at rest for "
+            f"{_g(flow)} % flow, " + ("the fit's first flow." if moved is None else
+                                      "the flow whose rest starts at the recorded PV."))
+    return replace(cfg, plant=replace(cfg.plant, rest_flow=flow)), [line]
+
+
+def _rest_flow(cfg: LoopConfig, rec, guess: float, fit_start: int) -> float | None:
+    """The flow a self-regulating plant starts at rest for, so that the open-loop replay of ``cfg`` starts at
+    the recorded PV: least squares over the recording's first :data:`START_WINDOW` seconds (at least two
+    samples).
+
+    A recording starts mid-swing; a plant at rest for the first flow (the fit's start) begins at that flow's
+    steady PV, which may lie anywhere in the swing. The replayed PV is affine in the rest flow, so one more
+    replay gives its sensitivity and the best value in closed form. Only a plant that has forgotten its start
+    by the fit part (sample ``fit_start``; :data:`_FORGOTTEN`) starts elsewhere than at the fit's ``guess``, so
+    the fit part replays as the fit; :func:`_replay_operating_point` then moves ``pv0`` by that part's mean.
+    None: the start stays the fit's.
+    """
+    def run(flow: float) -> np.ndarray:
+        return replay_op(replace(cfg, plant=replace(cfg.plant, rest_flow=flow)), rec).pv
+
+    dt = cfg.simulation.dt
+    n = min(len(rec), max(2, int(math.ceil(START_WINDOW / dt - 1e-9)) + 1))
+    base = run(guess)
+    sens = run(guess + 1.0) - base
+    if not np.any(sens[:n]) or np.max(np.abs(sens[fit_start:])) > _FORGOTTEN * np.max(np.abs(sens[:n])):
+        return None   # the plant remembers its start into the fit part: the fit's start is the one it fitted
+    err = np.asarray(rec.pv[:n], dtype=float) - base[:n]
+    return float(guess + np.dot(sens[:n], err) / np.dot(sens[:n], sens[:n]))
 
 
 def _replay_operating_point(cfg: LoopConfig, explanation, rec) -> LoopConfig:
