@@ -6,10 +6,10 @@ Flow through the valve is ``f(MV)`` on the travel x ∈ [0, 1] (ISA-75.11; Choud
 depends on the operating point: the residual of a linear-valve model correlates with the OP *level*.
 
 Parameters: ``kind`` (index into ``CHARACTERISTICS``; a label) and ``R``; one parameter for BIC. The grid
-holds every kind except the nominal one, and equal percentage at R ∈ {3 … 150} (log-spaced) unless the
-nominal is that very curve; :meth:`refine` searches R on a finer log grid, never beyond the grid's ends
-(:data:`R_MAX`: no valve is steeper than that, and an R above it says only "steeper than any valve", so it is
-a bound, :meth:`bounds`, not a value).
+holds every kind except the nominal one, and equal percentage at R ∈ {3 … 400} (log-spaced) unless the
+nominal is that very curve; :meth:`refine` searches R on a finer log grid, never beyond the grid's ends. The
+top, :data:`R_MAX`, is steeper than any valve's inherent curve (catalogues give 20–100); an estimate there
+says only "at least that steep", so it is declared a search edge (:meth:`bounds`) and reported as a bound.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_RANGEAB
 __all__ = ["FlowCharacteristic", "R_GRID", "R_MAX", "R_MIN"]
 
 #: Rangeabilities tried by the coarse grid.
-R_GRID = (3.0, 5.0, 8.0, 12.0, 20.0, 30.0, 50.0, 80.0, 150.0)
+R_GRID = (3.0, 5.0, 8.0, 12.0, 20.0, 30.0, 50.0, 80.0, 150.0, 250.0, 400.0)
 #: The steepest equal-percentage curve searched (the top of the grid).
 R_MAX = R_GRID[-1]
 #: The flattest one: R → 1 is the linear curve, itself a candidate, so this end is a limit of the physics.

@@ -4,8 +4,10 @@ For each candidate a round of the search accepted, :func:`findings` compares the
 model without it (the round's baseline, or the sub-option without it for a pair): the improvement of the
 squared residual is located in time (:func:`~valve_emulator.diagnosis.explain.locate.locate`), the cost
 surface is profiled around the final value for the intervals
-(:func:`~valve_emulator.diagnosis.fit.uncertainty.intervals`, with an effective sample size when the residual
-is autocorrelated), and on plant data a valve finding is scored again under a drifting-load noise model
+(:func:`~valve_emulator.diagnosis.fit.uncertainty.intervals`, with the residual's effective sample size, and
+on a grid stretched about the estimate while the 95 % region reaches its edge), an estimate on an edge of
+the range searched (:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`) is reported as a
+bound ("R ≥ 150"), not as a value, and on plant data a valve finding is scored again under a drifting-load noise model
 (:mod:`~valve_emulator.diagnosis.fit.load_check`).
 """
 
@@ -14,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from valve_emulator.diagnosis.candidates import get
+from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.candidates.stiction import scan_steps
 from valve_emulator.diagnosis.explain.locate import Located, locate
 from valve_emulator.diagnosis.explain.result import Finding
@@ -24,10 +27,17 @@ from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
 from valve_emulator.diagnosis.fit.load_check import load_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal
+from valve_emulator.diagnosis.fit.records import Surface
 from valve_emulator.diagnosis.fit.scorer import Scorer
-from valve_emulator.diagnosis.fit.uncertainty import intervals
+from valve_emulator.diagnosis.fit.uncertainty import effective_fraction, intervals, touches_edge
 
 __all__ = ["findings", "param_text", "stiction_surface"]
+
+#: Factor by which a profile grid is stretched about the estimate when the 95 % region reaches its edge, and
+#: how many times at most (±40 % becomes ±80 %, then ±160 %).
+_STRETCH, _STRETCHES = 2.0, 2
+#: Relative distance from a declared search edge within which an estimate sits on it.
+_ON_EDGE = 1e-3
 
 
 def param_text(model: Model, added: tuple[str, ...], frame: Frame | None = None) -> str:
@@ -64,6 +74,15 @@ def stiction_surface(rounds: list[Round], n: int):
     return (S, J, grid), (float(best[0]), float(best[1]))
 
 
+def _interval_text(name: str, lo: float, hi: float) -> str:
+    """``"S 2.1–2.6"``, or a one-sided bound (``"R ≥ 150"``) for an interval open on one side."""
+    if np.isinf(hi):
+        return f"{name} ≥ {lo:.4g}"
+    if np.isinf(lo):
+        return f"{name} ≤ {hi:.4g}"
+    return f"{name} {lo:.4g}–{hi:.4g}"
+
+
 def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located, load: float | None = None) -> str:
     text = (f"against the model without it, BIC falls by {delta_bic:.0f} and the held-out fit rises from "
             f"{f0:.1f} % to {f1:.1f} %")
@@ -72,7 +91,7 @@ def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located, l
         text += f" (under a drifting-load noise model BIC {change})"
 
     if ivs:
-        text += "; 95 % interval " + ", ".join(f"{k} {a:.4g}–{b:.4g}" for k, (a, b) in ivs.items())
+        text += "; 95 % interval " + ", ".join(_interval_text(k, a, b) for k, (a, b) in ivs.items())
     strong = [a for a in loc.alignments if a.energy_share >= 0.2 and a.lift > 1.2]
     if strong:
         text += f"; the improvement is concentrated: {strong[0].sentence()}"
@@ -80,19 +99,92 @@ def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located, l
 
 
 def _n_scale(problem: Problem, model: Model) -> float:
-    """Factor turning the fit part's N into an effective sample size for the intervals.
+    """Factor turning the fit part's N into an effective sample size for the intervals: the effective fraction
+    of the final model's residual on the fit part
+    (:func:`~valve_emulator.diagnosis.fit.uncertainty.effective_fraction`).
 
-    With white errors (a nominal model, ``"split"``) it is 1. Without one the final residual is autocorrelated
-    and each sample carries less information: for AR(1) errors with lag-1 correlation ρ the variance of an
-    average grows by (1 + ρ)/(1 − ρ) (Bartlett), so N is scaled by (1 − ρ)/(1 + ρ) (at most 1, at least 1/N).
+    With a nominal model too: a real loop's residual is coloured by the load and by every way the model is
+    only close to the plant, and treating its samples as independent made the intervals ten times too narrow.
     """
-    if problem.validation == "split":
-        return 1.0
     w0, w1 = problem.train
-    r = (problem.y - model.y_hat)[w0:w1]
-    den = float(r[:-1] @ r[:-1])
-    rho = float(np.clip(r[1:] @ r[:-1] / den, 0.0, 0.999)) if den > 0 else 0.0
-    return max((1.0 - rho) / (1.0 + rho), 1.0 / max(r.size, 1))
+    return effective_fraction((problem.y - model.y_hat)[w0:w1])
+
+
+def _score_rows(fitter: Fitter, model: Model, name: str, rows: np.ndarray) -> Surface:
+    """The cost surface of candidate ``name`` of ``model`` at ``rows``, the rest held as
+    :meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.profile` holds it (a free dead time re-chosen)."""
+    scorer = fitter.scorer
+    act = next(a for a in model.active if a.name == name)
+    rest = {k: v for k, v in model.by_slot().items() if k != act.slot}
+    st, aim = model.fit.structure, scorer.aim(model)
+    delays = scorer.near(st.delay, 3) if model.delay_free else None
+    sse, _ = scorer.sse_grid(rest, scorer.ctx(model), act.candidate, rows, st, delays, aim)
+    return fitter.surface(name, rows, sse.min(axis=1))
+
+
+def _limits(cand: Candidate, ctx, surf: Surface, axis: int) -> tuple[float, float]:
+    """Where a stretched grid must stop along ``axis``: 0 for a parameter the grid never takes negative (a
+    band, a lag), and the candidate's declared search edges."""
+    name = cand.param_names[axis]
+    lo, hi = cand.bounds(ctx).get(name, (None, None))
+    floor = 0.0 if surf.params[:, axis].min() >= 0.0 else -np.inf
+    return max(floor, -np.inf if lo is None else lo), np.inf if hi is None else hi
+
+
+def _profile(fitter: Fitter, model: Model, name: str, n_eff: float, axes: tuple[int, ...]) -> Surface:
+    """The profile of candidate ``name`` (:meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.profile`),
+    stretched about the estimate by :data:`_STRETCH` (at most :data:`_STRETCHES` times) while the 95 % region
+    reaches an edge of the grid that is neither 0 for a positive parameter nor a declared search edge: an
+    interval cut by the grid would claim a precision the data do not have."""
+    surf = fitter.profile(model, name)
+    act = next(a for a in model.active if a.name == name)
+    cand = act.candidate
+    if cand.kind is not Kind.CHAIN or not axes:
+        return surf
+    ctx = fitter.scorer.ctx(model)
+    for _ in range(_STRETCHES):
+        grow = []
+        for ax in axes:
+            lo, hi = _limits(cand, ctx, surf, ax)
+            at_lo, at_hi = touches_edge(surf.params, surf.sse, n_eff, cand.n_params, ax)
+            col = surf.params[:, ax]
+            if (at_lo and col.min() > lo) or (at_hi and col.max() < hi):
+                grow.append((ax, lo, hi))
+        if not grow:
+            return surf
+        rows = surf.params.copy()
+        for ax, lo, hi in grow:
+            rows[:, ax] = np.clip(act.params[ax] + _STRETCH * (rows[:, ax] - act.params[ax]), lo, hi)
+        surf = _score_rows(fitter, model, name, np.unique(rows, axis=0))
+    return surf
+
+
+def _on_edges(cand: Candidate, ctx, p: np.ndarray) -> dict[str, tuple[str, float]]:
+    """The parameters whose estimate sits on a declared search edge: name → (``"≥"`` or ``"≤"``, the edge)."""
+    out = {}
+    for name, (lo, hi) in cand.bounds(ctx).items():
+        v = float(p[cand.param_names.index(name)])
+        if hi is not None and v >= hi * (1.0 - _ON_EDGE):
+            out[name] = ("≥", float(hi))
+        elif lo is not None and v <= lo * (1.0 + _ON_EDGE):
+            out[name] = ("≤", float(lo))
+    return out
+
+
+def _as_bounds(ivs: dict, edges: dict[str, tuple[str, float]]) -> dict:
+    """The intervals with a parameter on a search edge open on its far side: the data allow anything beyond."""
+    out = dict(ivs)
+    for name, (sign, edge) in edges.items():
+        out[name] = (edge, np.inf) if sign == "≥" else (-np.inf, edge)
+    return out
+
+
+def _edge_text(edges: dict[str, tuple[str, float]]) -> str:
+    """``" (at the edge of the range searched: R ≥ 150, a bound, not a value)"``, or ``""``."""
+    if not edges:
+        return ""
+    said = ", ".join(f"{k} {sign} {edge:.4g}" for k, (sign, edge) in edges.items())
+    return f" (at the edge of the range searched: {said}, a bound, not a value)"
 
 
 def _slip_interval(scorer: Scorer, model: Model, act, n: float) -> tuple[float, float]:
@@ -152,10 +244,10 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             act = final[name]
             cand = act.candidate
             params = cand.parameters(act.params)
-            surf = fitter.profile(model, name)
             names = tuple(k for k, v in params.items() if isinstance(v, (int, float)) and k in cand.param_names)
             axes = tuple(cand.param_names.index(k) for k in names)
-            n_eff = surf.n * _n_scale(problem, model)
+            n_eff = problem.n_fit * _n_scale(problem, model)
+            surf = _profile(fitter, model, name, n_eff, axes)
             ivs = intervals(surf.params, surf.sse, n_eff, names, cand.n_params, axes=axes) if names else {}
             if name == "deadband":
                 ivs["J"] = (0.0, max(0.0, _slip_interval(scorer, model, act, n_eff)[1]))
@@ -165,6 +257,8 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             # data are consistent with both, so the interval reaches the estimate.
             ivs = {k: (min(a, float(params[k])), max(b, float(params[k]))) if isinstance(params.get(k), float)
                    else (a, b) for k, (a, b) in ivs.items()}
+            edges = _on_edges(cand, scorer.ctx(model), act.params)
+            ivs = _as_bounds(ivs, edges)
             dbic = without.bic - chosen.model.bic
             load = None
             if cand.slot == "valve" and problem.validation == "twofold":
@@ -173,9 +267,10 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             params, ivs, units, p_user = _in_op_units(cand, act.params, params, ivs, frame)
             out.append(Finding(physics=name, parameters=params, windows=loc.windows,
                                evidence=_evidence(dbic, without.heldout, chosen.model.heldout, ivs, loc, load),
-                               description=cand.describe(p_user, nominal_info, units=units), intervals=ivs,
+                               description=cand.describe(p_user, nominal_info, units=units) + _edge_text(edges),
+                               intervals=ivs,
                                delta_bic=dbic, fit_without=without.heldout, fit_with=chosen.model.heldout,
-                               load_delta_bic=load))
+                               load_delta_bic=load, edges=edges))
     return tuple(out)
 
 
