@@ -13,11 +13,12 @@ bound ("R ≥ 150"), not as a value, and on plant data a valve finding is scored
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from valve_emulator.diagnosis.candidates import get
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
-from valve_emulator.diagnosis.candidates.stiction import scan_steps
 from valve_emulator.diagnosis.explain.locate import Located, locate
 from valve_emulator.diagnosis.explain.result import Finding
 from valve_emulator.diagnosis.explain.search import Model, Round
@@ -25,10 +26,10 @@ from valve_emulator.diagnosis.fit.cost import relative_cost
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
+from valve_emulator.diagnosis.fit.linear import PRIOR_WIDTH, LinearStructure
 from valve_emulator.diagnosis.fit.load_check import load_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Surface
-from valve_emulator.diagnosis.fit.scorer import Scorer
 from valve_emulator.diagnosis.fit.uncertainty import effective_fraction, intervals, touches_edge
 
 __all__ = ["findings", "param_text", "stiction_surface"]
@@ -110,16 +111,34 @@ def _n_scale(problem: Problem, model: Model) -> float:
     return effective_fraction((problem.y - model.y_hat)[w0:w1])
 
 
-def _score_rows(fitter: Fitter, model: Model, name: str, rows: np.ndarray) -> Surface:
-    """The cost surface of candidate ``name`` of ``model`` at ``rows``, the rest held as
-    :meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.profile` holds it (a free dead time re-chosen)."""
+def _pole_variants(st: LinearStructure) -> list[tuple[LinearStructure, float]]:
+    """The linear part's time constants as fitted and scaled by e^(±σ) (σ the prior's width, 25 %), each with
+    its prior penalty ((ln scale)/σ)² = 1: the profile is taken over them too (:func:`_score_rows`)."""
+    out = [(st, 0.0)]
+    if st.taus:
+        f = float(np.exp(PRIOR_WIDTH))
+        out += [(replace(st, taus=tuple(t * s for t in st.taus)), 1.0) for s in (1.0 / f, f)]
+    return out
+
+
+def _score_rows(fitter: Fitter, model: Model, slot: str, cand: Candidate, rows: np.ndarray, n_eff: float
+                ) -> Surface:
+    """The profile of candidate ``cand`` in ``slot`` of ``model`` at ``rows``: the rest held as
+    :meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.profile` holds it (a free dead time re-chosen), and
+    the linear part's time constants too (:func:`_pole_variants`, the gain re-fitted at each).
+
+    The interval then says when the linear part is uncertain: a valve band or a lag that trades off against the
+    plant's poles is not pinned by a profile that holds them. A variant's prior penalty p enters as the factor
+    e^(p/N_eff) on its SSE, so that N_eff ln SSE gains exactly p.
+    """
     scorer = fitter.scorer
-    act = next(a for a in model.active if a.name == name)
-    rest = {k: v for k, v in model.by_slot().items() if k != act.slot}
+    rest = {k: v for k, v in model.by_slot().items() if k != slot}
     st, aim = model.fit.structure, scorer.aim(model)
     delays = scorer.near(st.delay, 3) if model.delay_free else None
-    sse, _ = scorer.sse_grid(rest, scorer.ctx(model), act.candidate, rows, st, delays, aim)
-    return fitter.surface(name, rows, sse.min(axis=1))
+    variants = _pole_variants(st)
+    results = scorer.sse_jobs(rest, scorer.ctx(model), cand, rows, [(v, delays) for v, _ in variants], aim)
+    sse = np.min([r[0].min(axis=1) * np.exp(p / max(n_eff, 1.0)) for r, (_, p) in zip(results, variants)], axis=0)
+    return fitter.surface(cand.name, rows, sse)
 
 
 def _limits(cand: Candidate, ctx, surf: Surface, axis: int) -> tuple[float, float]:
@@ -131,17 +150,15 @@ def _limits(cand: Candidate, ctx, surf: Surface, axis: int) -> tuple[float, floa
     return max(floor, -np.inf if lo is None else lo), np.inf if hi is None else hi
 
 
-def _profile(fitter: Fitter, model: Model, name: str, n_eff: float, axes: tuple[int, ...]) -> Surface:
-    """The profile of candidate ``name`` (:meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.profile`),
-    stretched about the estimate by :data:`_STRETCH` (at most :data:`_STRETCHES` times) while the 95 % region
-    reaches an edge of the grid that is neither 0 for a positive parameter nor a declared search edge: an
-    interval cut by the grid would claim a precision the data do not have."""
-    surf = fitter.profile(model, name)
-    act = next(a for a in model.active if a.name == name)
-    cand = act.candidate
-    if cand.kind is not Kind.CHAIN or not axes:
-        return surf
+def _profile(fitter: Fitter, model: Model, slot: str, cand: Candidate, best: np.ndarray, n_eff: float,
+             axes: tuple[int, ...]) -> Surface:
+    """The profile of candidate ``cand`` in ``slot`` around ``best``: over its profile grid and the linear
+    part's time constants (:func:`_score_rows`), stretched about ``best`` by :data:`_STRETCH` (at most
+    :data:`_STRETCHES` times) while the 95 % region reaches an edge of the grid along one of ``axes`` that is
+    neither 0 for a positive parameter nor a declared search edge: an interval cut by the grid would claim a
+    precision the data do not have."""
     ctx = fitter.scorer.ctx(model)
+    surf = _score_rows(fitter, model, slot, cand, cand.profile_grid(ctx, best), n_eff)
     for _ in range(_STRETCHES):
         grow = []
         for ax in axes:
@@ -154,9 +171,31 @@ def _profile(fitter: Fitter, model: Model, name: str, n_eff: float, axes: tuple[
             return surf
         rows = surf.params.copy()
         for ax, lo, hi in grow:
-            rows[:, ax] = np.clip(act.params[ax] + _STRETCH * (rows[:, ax] - act.params[ax]), lo, hi)
-        surf = _score_rows(fitter, model, name, np.unique(rows, axis=0))
+            rows[:, ax] = np.clip(best[ax] + _STRETCH * (rows[:, ax] - best[ax]), lo, hi)
+        surf = _score_rows(fitter, model, slot, cand, np.unique(rows, axis=0), n_eff)
     return surf
+
+
+def _surface(fitter: Fitter, model: Model, act, n_eff: float, axes: tuple[int, ...]) -> Surface:
+    """The cost surface an accepted candidate's intervals come from: :func:`_profile` for a chain candidate,
+    :meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.profile` otherwise (an output candidate, the dead time)."""
+    if act.candidate.kind is not Kind.CHAIN or not axes:
+        return fitter.profile(model, act.name)
+    return _profile(fitter, model, act.slot, act.candidate, act.params, n_eff, axes)
+
+
+def _deadband_as_stiction(fitter: Fitter, model: Model, act, n_eff: float) -> dict[str, tuple[float, float]]:
+    """95 % intervals of S and J when the accepted valve is a deadband (J = 0 by construction).
+
+    A deadband is the stiction valve without its slip, and closed-loop data often cannot tell a band with a
+    slip of nearly S from one without: the stiction candidate is profiled in the valve slot around the
+    deadband's S, with J from 0 to 2 S (stretched like any profile), so that both intervals say how large a
+    band and a slip the data still allow.
+    """
+    stc = fitter.library.get("stiction") or get("stiction")
+    S0, start = float(act.params[0]), float(act.params[-1])
+    surf = _profile(fitter, model, act.slot, stc, np.array([S0, S0, start]), n_eff, (0, 1))
+    return intervals(surf.params, surf.sse, n_eff, ("S", "J"), stc.n_params, axes=(0, 1))
 
 
 def _on_edges(cand: Candidate, ctx, p: np.ndarray) -> dict[str, tuple[str, float]]:
@@ -185,24 +224,6 @@ def _edge_text(edges: dict[str, tuple[str, float]]) -> str:
         return ""
     said = ", ".join(f"{k} {sign} {edge:.4g}" for k, (sign, edge) in edges.items())
     return f" (at the edge of the range searched: {said}, a bound, not a value)"
-
-
-def _slip_interval(scorer: Scorer, model: Model, act, n: float) -> tuple[float, float]:
-    """95 % interval of the slip jump J when the accepted valve is a deadband (J = 0 by construction).
-
-    The stiction candidate is scored on S around the deadband's S times J from 0 to S, the rest of the model
-    held; the J extent of the region inside the χ²₂ bound says how large a slip the data still allow.
-    """
-    stc = scorer.library.get("stiction") or get("stiction")
-    S0, start = float(act.params[0]), float(act.params[-1])
-    hS = scan_steps(scorer.p.op_span)[0]
-    S = S0 + hS * np.arange(-4, 5)
-    S = S[S > 0]
-    J = np.linspace(0.0, max(S0, 1e-3), 25)
-    rows = np.array([(a, b, start) for a in S for b in J])
-    rest = {k: v for k, v in model.by_slot().items() if k != "valve"}
-    sse, _ = scorer.sse_grid(rest, scorer.ctx(model), stc, rows, model.fit.structure, None, scorer.aim(model))
-    return intervals(rows, sse[:, 0], n, ("J",), 2, axes=(1,))["J"]
 
 
 def _in_op_units(cand, act_params: np.ndarray, params: dict, ivs: dict, frame: Frame) -> tuple:
@@ -247,10 +268,12 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             names = tuple(k for k, v in params.items() if isinstance(v, (int, float)) and k in cand.param_names)
             axes = tuple(cand.param_names.index(k) for k in names)
             n_eff = problem.n_fit * _n_scale(problem, model)
-            surf = _profile(fitter, model, name, n_eff, axes)
+            surf = _surface(fitter, model, act, n_eff, axes)
             ivs = intervals(surf.params, surf.sse, n_eff, names, cand.n_params, axes=axes) if names else {}
             if name == "deadband":
-                ivs["J"] = (0.0, max(0.0, _slip_interval(scorer, model, act, n_eff)[1]))
+                band = _deadband_as_stiction(fitter, model, act, n_eff)
+                ivs["S"] = (min(ivs["S"][0], band["S"][0]), max(ivs["S"][1], band["S"][1]))
+                ivs["J"] = (0.0, max(0.0, band["J"][1]))
             if cand.slot == "valve":  # a band and a jump are not negative
                 ivs = {k: (max(0.0, a), b) for k, (a, b) in ivs.items()}
             # The profile re-chooses a free dead time on whole samples, the estimate has the polished one: the
