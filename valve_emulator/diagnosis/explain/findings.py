@@ -4,10 +4,11 @@ For each candidate a round of the search accepted, :func:`findings` compares the
 model without it (the round's baseline, or the sub-option without it for a pair): the improvement of the
 squared residual is located in time (:func:`~valve_emulator.diagnosis.explain.locate.locate`), the cost
 surface is profiled around the final value for the intervals
-(:func:`~valve_emulator.diagnosis.fit.uncertainty.intervals`, with the residual's effective sample size, and
-on a grid stretched about the estimate while the 95 % region reaches its edge), an estimate on an edge of
-the range searched (:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`) is reported as a
-bound ("R ≥ 150"), not as a value, and on plant data a valve finding is scored again under a drifting-load noise model
+(:func:`~valve_emulator.diagnosis.fit.uncertainty.intervals`: with the residual's effective sample size,
+over the linear part's time constants too, and on a grid stretched about the estimate while the 95 % region
+reaches its edge), an estimate on an edge of the range searched
+(:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`) is reported as a bound ("R ≥ 400"), not
+as a value, and on plant data a valve finding is scored again under a drifting-load noise model
 (:mod:`~valve_emulator.diagnosis.fit.load_check`).
 """
 
@@ -76,7 +77,7 @@ def stiction_surface(rounds: list[Round], n: int):
 
 
 def _interval_text(name: str, lo: float, hi: float) -> str:
-    """``"S 2.1–2.6"``, or a one-sided bound (``"R ≥ 150"``) for an interval open on one side."""
+    """``"S 2.1–2.6"``, or a one-sided bound (``"R ≥ 400"``) for an interval open on one side."""
     if np.isinf(hi):
         return f"{name} ≥ {lo:.4g}"
     if np.isinf(lo):
@@ -219,11 +220,34 @@ def _as_bounds(ivs: dict, edges: dict[str, tuple[str, float]]) -> dict:
 
 
 def _edge_text(edges: dict[str, tuple[str, float]]) -> str:
-    """``" (at the edge of the range searched: R ≥ 150, a bound, not a value)"``, or ``""``."""
+    """``" (at the edge of the range searched: R ≥ 400, a bound, not a value)"``, or ``""``."""
     if not edges:
         return ""
     said = ", ".join(f"{k} {sign} {edge:.4g}" for k, (sign, edge) in edges.items())
     return f" (at the edge of the range searched: {said}, a bound, not a value)"
+
+
+def _intervals(fitter: Fitter, problem: Problem, model: Model, act, params: dict) -> tuple[dict, dict]:
+    """The 95 % intervals of an accepted candidate's parameters (``act`` in the final ``model``, ``params`` its
+    JSON parameters) and the parameters on a search edge (:func:`_on_edges`), in the search's frame."""
+    cand = act.candidate
+    names = tuple(k for k, v in params.items() if isinstance(v, (int, float)) and k in cand.param_names)
+    axes = tuple(cand.param_names.index(k) for k in names)
+    n_eff = problem.n_fit * _n_scale(problem, model)
+    surf = _surface(fitter, model, act, n_eff, axes)
+    ivs = intervals(surf.params, surf.sse, n_eff, names, cand.n_params, axes=axes) if names else {}
+    if act.name == "deadband":
+        band = _deadband_as_stiction(fitter, model, act, n_eff)
+        ivs["S"] = (min(ivs["S"][0], band["S"][0]), max(ivs["S"][1], band["S"][1]))
+        ivs["J"] = (0.0, max(0.0, band["J"][1]))
+    if cand.slot == "valve":  # a band and a jump are not negative
+        ivs = {k: (max(0.0, a), b) for k, (a, b) in ivs.items()}
+    # The profile re-chooses a free dead time on whole samples, the estimate has the polished one: the data are
+    # consistent with both, so the interval reaches the estimate.
+    ivs = {k: (min(a, float(params[k])), max(b, float(params[k]))) if isinstance(params.get(k), float)
+           else (a, b) for k, (a, b) in ivs.items()}
+    edges = _on_edges(cand, fitter.scorer.ctx(model), act.params)
+    return _as_bounds(ivs, edges), edges
 
 
 def _in_op_units(cand, act_params: np.ndarray, params: dict, ivs: dict, frame: Frame) -> tuple:
@@ -265,29 +289,15 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             act = final[name]
             cand = act.candidate
             params = cand.parameters(act.params)
-            names = tuple(k for k, v in params.items() if isinstance(v, (int, float)) and k in cand.param_names)
-            axes = tuple(cand.param_names.index(k) for k in names)
-            n_eff = problem.n_fit * _n_scale(problem, model)
-            surf = _surface(fitter, model, act, n_eff, axes)
-            ivs = intervals(surf.params, surf.sse, n_eff, names, cand.n_params, axes=axes) if names else {}
-            if name == "deadband":
-                band = _deadband_as_stiction(fitter, model, act, n_eff)
-                ivs["S"] = (min(ivs["S"][0], band["S"][0]), max(ivs["S"][1], band["S"][1]))
-                ivs["J"] = (0.0, max(0.0, band["J"][1]))
-            if cand.slot == "valve":  # a band and a jump are not negative
-                ivs = {k: (max(0.0, a), b) for k, (a, b) in ivs.items()}
-            # The profile re-chooses a free dead time on whole samples, the estimate has the polished one: the
-            # data are consistent with both, so the interval reaches the estimate.
-            ivs = {k: (min(a, float(params[k])), max(b, float(params[k]))) if isinstance(params.get(k), float)
-                   else (a, b) for k, (a, b) in ivs.items()}
-            edges = _on_edges(cand, scorer.ctx(model), act.params)
-            ivs = _as_bounds(ivs, edges)
+            ivs, edges = _intervals(fitter, problem, model, act, params)
             dbic = without.bic - chosen.model.bic
             load = None
             if cand.slot == "valve" and problem.validation == "twofold":
                 load = load_delta_bic(scorer, without, chosen.model)
             nominal_info = {"theta": nominal.delay} if nominal.given else None
             params, ivs, units, p_user = _in_op_units(cand, act.params, params, ivs, frame)
+            if not frame.identity:
+                edges = {k: (sign, frame.convert(cand.dims, {k: v})[k]) for k, (sign, v) in edges.items()}
             out.append(Finding(physics=name, parameters=params, windows=loc.windows,
                                evidence=_evidence(dbic, without.heldout, chosen.model.heldout, ivs, loc, load),
                                description=cand.describe(p_user, nominal_info, units=units) + _edge_text(edges),
