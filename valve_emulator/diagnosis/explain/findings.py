@@ -240,8 +240,8 @@ def _intervals(fitter: Fitter, problem: Problem, model: Model, act, params: dict
         band = _deadband_as_stiction(fitter, model, act, n_eff)
         ivs["S"] = (min(ivs["S"][0], band["S"][0]), max(ivs["S"][1], band["S"][1]))
         ivs["J"] = (0.0, max(0.0, band["J"][1]))
-    if cand.slot == "valve":  # a band and a jump are not negative
-        ivs = {k: (max(0.0, a), b) for k, (a, b) in ivs.items()}
+    if cand.slot == "valve" or (axes and surf.params[:, list(axes)].min() >= 0.0):
+        ivs = {k: (max(0.0, a), b) for k, (a, b) in ivs.items()}  # a band, a jump, a lag: not negative
     # The profile re-chooses a free dead time on whole samples, the estimate has the polished one: the data are
     # consistent with both, so the interval reaches the estimate.
     ivs = {k: (min(a, float(params[k])), max(b, float(params[k]))) if isinstance(params.get(k), float)
