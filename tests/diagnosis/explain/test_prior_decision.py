@@ -6,20 +6,29 @@ from types import SimpleNamespace
 
 from valve_emulator.diagnosis.explain.prior import _decide, dead_time_move, nominal_gain, settle
 from valve_emulator.diagnosis.explain.result import Finding
-from valve_emulator.diagnosis.explain.search import DELTA_BIC
+from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT
 
 
-def _model(bic: float) -> SimpleNamespace:
-    return SimpleNamespace(bic=bic)
+def _model(bic: float, heldout: float = 0.0) -> SimpleNamespace:
+    return SimpleNamespace(bic=bic, heldout=heldout)
 
 
 def test_the_nominal_values_are_kept_unless_moving_them_lowers_the_penalised_bic_by_the_threshold():
-    moved = _model(100.0)
-    kept, delta = _decide(None, moved, _model(100.0 + 3.0 + DELTA_BIC), penalty=3.0)
+    moved = _model(100.0, heldout=90.0)
+    kept, delta = _decide(None, moved, _model(100.0 + 3.0 + DELTA_BIC, heldout=80.0), penalty=3.0)
     assert kept is moved and delta == DELTA_BIC
-    held = _model(100.0 + 3.0 + DELTA_BIC - 0.01)
+    held = _model(100.0 + 3.0 + DELTA_BIC - 0.01, heldout=80.0)
     kept, delta = _decide(None, moved, held, penalty=3.0)
     assert kept is held and delta < DELTA_BIC
+
+
+def test_a_move_that_lowers_the_bic_a_lot_but_buys_no_held_out_fit_is_not_made():
+    moved = _model(100.0, heldout=97.66)
+    held = _model(100.0 + 38.0, heldout=97.64)   # ΔBIC 38 for 0.02 points: the nominal value stays
+    kept, delta = _decide(None, moved, held, penalty=0.0)
+    assert kept is held and delta == 38.0
+    just = _model(100.0, heldout=97.64 + DELTA_FIT)
+    assert _decide(None, just, held, penalty=0.0)[0] is just
 
 
 def test_the_steady_state_gain_of_an_integrator_is_per_second():

@@ -10,7 +10,9 @@ Discretisation: OP is held over each sample, so the lag state obeys the exact ZO
 input-equivalent value for a plant much slower than Δt and reduces to OP_k as τ → 0.
 
 Grid: τ log-spaced from Δt/4 to max(30 Δt, 2 τ_plant) (a lag much longer than the plant would be the plant
-itself); :meth:`refine` searches a finer log grid around the best.
+itself); :meth:`refine` searches a finer log grid around the best, never above the top. The top is a search
+edge (:meth:`bounds`): a lag estimated there is reported as "τ ≥ …", not as a value. Below the bottom the
+refinement may go on (a lag shorter than Δt/4 hardly differs from none, which is no edge of the physics).
 """
 
 from __future__ import annotations
@@ -61,12 +63,19 @@ class ActuatorLag(ChainCandidate):
     twin_role: ClassVar[TwinRole | None] = TwinRole.ACTUATOR_LAG
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
-        hi = max(30.0 * ctx.dt, 2.0 * ctx.tau_plant)
-        return np.geomspace(ctx.dt / 4.0, hi, 40)[:, None]
+        return np.geomspace(*self._ends(ctx), 40)[:, None]
 
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
-        tau = best[0] * np.exp(np.linspace(-0.4, 0.4, 17))
+        tau = np.unique(np.minimum(best[0] * np.exp(np.linspace(-0.4, 0.4, 17)), self._ends(ctx)[1]))
         return np.vstack([best[None, :], tau[:, None]])
+
+    def bounds(self, ctx: ChainContext) -> dict[str, tuple[float | None, float | None]]:
+        return {"tau": (None, self._ends(ctx)[1])}   # a lag below Δt/4 is no lag: not a search edge
+
+    @staticmethod
+    def _ends(ctx: ChainContext) -> tuple[float, float]:
+        """The shortest and longest lag searched (s)."""
+        return ctx.dt / 4.0, max(30.0 * ctx.dt, 2.0 * ctx.tau_plant)
 
     def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
         return first_order_lag(x, params[:, 0], ctx.dt)

@@ -210,6 +210,15 @@ class Candidate(ABC):
         """
         return self.refine(ctx, best)
 
+    def bounds(self, ctx: ChainContext) -> dict[str, tuple[float | None, float | None]]:
+        """The ends of the range the search explores, per parameter name, where the truth may lie beyond them.
+
+        An estimate on such an end is not a value but a bound ("R ≥ 400"): the findings say so. An end that is
+        a limit of the physics itself (a jump of 0, a dead time of 0) is no search edge: None. Default: none
+        declared.
+        """
+        return {}
+
     def burn_in(self, ctx: ChainContext) -> int:
         """Samples after which this candidate's unknown initial state no longer matters (default 0).
 

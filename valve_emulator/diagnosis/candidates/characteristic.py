@@ -6,8 +6,10 @@ Flow through the valve is ``f(MV)`` on the travel x ∈ [0, 1] (ISA-75.11; Choud
 depends on the operating point: the residual of a linear-valve model correlates with the OP *level*.
 
 Parameters: ``kind`` (index into ``CHARACTERISTICS``; a label) and ``R``; one parameter for BIC. The grid
-holds every kind except the nominal one, and equal percentage at R ∈ {3 … 150} (log-spaced) unless the
-nominal is that very curve; :meth:`refine` searches R on a finer log grid.
+holds every kind except the nominal one, and equal percentage at R ∈ {3 … 400} (log-spaced) unless the
+nominal is that very curve; :meth:`refine` searches R on a finer log grid, never beyond the grid's ends. The
+top, :data:`R_MAX`, is steeper than any valve's inherent curve (catalogues give 20–100); an estimate there
+says only "at least that steep", so it is declared a search edge (:meth:`bounds`) and reported as a bound.
 """
 
 from __future__ import annotations
@@ -19,10 +21,14 @@ import numpy as np
 from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_RANGEABILITY, Characteristic
 
-__all__ = ["FlowCharacteristic", "R_GRID"]
+__all__ = ["FlowCharacteristic", "R_GRID", "R_MAX", "R_MIN"]
 
 #: Rangeabilities tried by the coarse grid.
-R_GRID = (3.0, 5.0, 8.0, 12.0, 20.0, 30.0, 50.0, 80.0, 150.0)
+R_GRID = (3.0, 5.0, 8.0, 12.0, 20.0, 30.0, 50.0, 80.0, 150.0, 250.0, 400.0)
+#: The steepest equal-percentage curve searched (the top of the grid).
+R_MAX = R_GRID[-1]
+#: The flattest one: R → 1 is the linear curve, itself a candidate, so this end is a limit of the physics.
+R_MIN = 1.05
 _EQP = CHARACTERISTICS.index("equal_percentage")
 
 
@@ -52,9 +58,11 @@ class FlowCharacteristic(ChainCandidate):
     def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
         if int(best[0]) != _EQP:
             return best[None, :]
-        R = best[1] * np.exp(np.linspace(-0.45, 0.45, 19))
-        R = R[R > 1.05]
+        R = np.unique(np.clip(best[1] * np.exp(np.linspace(-0.45, 0.45, 19)), R_MIN, R_MAX))
         return np.vstack([best[None, :], np.column_stack([np.full(R.size, _EQP), R])])
+
+    def bounds(self, ctx: ChainContext) -> dict[str, tuple[float | None, float | None]]:
+        return {"R": (None, R_MAX)}
 
     def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
         x = np.asarray(x, dtype=float)

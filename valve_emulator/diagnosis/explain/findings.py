@@ -4,17 +4,22 @@ For each candidate a round of the search accepted, :func:`findings` compares the
 model without it (the round's baseline, or the sub-option without it for a pair): the improvement of the
 squared residual is located in time (:func:`~valve_emulator.diagnosis.explain.locate.locate`), the cost
 surface is profiled around the final value for the intervals
-(:func:`~valve_emulator.diagnosis.fit.uncertainty.intervals`, with an effective sample size when the residual
-is autocorrelated), and on plant data a valve finding is scored again under a drifting-load noise model
+(:func:`~valve_emulator.diagnosis.fit.uncertainty.intervals`: with the residual's effective sample size,
+over the linear part's time constants too, and on a grid stretched about the estimate while the 95 % region
+reaches its edge), an estimate on an edge of the range searched
+(:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`) is reported as a bound ("R ≥ 400"), not
+as a value, and on plant data a valve finding is scored again under a drifting-load noise model
 (:mod:`~valve_emulator.diagnosis.fit.load_check`).
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from valve_emulator.diagnosis.candidates import get
-from valve_emulator.diagnosis.candidates.stiction import scan_steps
+from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.explain.locate import Located, locate
 from valve_emulator.diagnosis.explain.result import Finding
 from valve_emulator.diagnosis.explain.search import Model, Round
@@ -22,12 +27,19 @@ from valve_emulator.diagnosis.fit.cost import relative_cost
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
+from valve_emulator.diagnosis.fit.linear import PRIOR_WIDTH, LinearStructure
 from valve_emulator.diagnosis.fit.load_check import load_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal
-from valve_emulator.diagnosis.fit.scorer import Scorer
-from valve_emulator.diagnosis.fit.uncertainty import intervals
+from valve_emulator.diagnosis.fit.records import Surface
+from valve_emulator.diagnosis.fit.uncertainty import effective_fraction, intervals, touches_edge
 
 __all__ = ["findings", "param_text", "stiction_surface"]
+
+#: Factor by which a profile grid is stretched about the estimate when the 95 % region reaches its edge, and
+#: how many times at most (±40 % becomes ±80 %, then ±160 %).
+_STRETCH, _STRETCHES = 2.0, 2
+#: Relative distance from a declared search edge within which an estimate sits on it.
+_ON_EDGE = 1e-3
 
 
 def param_text(model: Model, added: tuple[str, ...], frame: Frame | None = None) -> str:
@@ -64,6 +76,15 @@ def stiction_surface(rounds: list[Round], n: int):
     return (S, J, grid), (float(best[0]), float(best[1]))
 
 
+def _interval_text(name: str, lo: float, hi: float) -> str:
+    """``"S 2.1–2.6"``, or a one-sided bound (``"R ≥ 400"``) for an interval open on one side."""
+    if np.isinf(hi):
+        return f"{name} ≥ {lo:.4g}"
+    if np.isinf(lo):
+        return f"{name} ≤ {hi:.4g}"
+    return f"{name} {lo:.4g}–{hi:.4g}"
+
+
 def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located, load: float | None = None) -> str:
     text = (f"against the model without it, BIC falls by {delta_bic:.0f} and the held-out fit rises from "
             f"{f0:.1f} % to {f1:.1f} %")
@@ -72,7 +93,7 @@ def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located, l
         text += f" (under a drifting-load noise model BIC {change})"
 
     if ivs:
-        text += "; 95 % interval " + ", ".join(f"{k} {a:.4g}–{b:.4g}" for k, (a, b) in ivs.items())
+        text += "; 95 % interval " + ", ".join(_interval_text(k, a, b) for k, (a, b) in ivs.items())
     strong = [a for a in loc.alignments if a.energy_share >= 0.2 and a.lift > 1.2]
     if strong:
         text += f"; the improvement is concentrated: {strong[0].sentence()}"
@@ -80,37 +101,153 @@ def _evidence(delta_bic: float, f0: float, f1: float, ivs: dict, loc: Located, l
 
 
 def _n_scale(problem: Problem, model: Model) -> float:
-    """Factor turning the fit part's N into an effective sample size for the intervals.
+    """Factor turning the fit part's N into an effective sample size for the intervals: the effective fraction
+    of the final model's residual on the fit part
+    (:func:`~valve_emulator.diagnosis.fit.uncertainty.effective_fraction`).
 
-    With white errors (a nominal model, ``"split"``) it is 1. Without one the final residual is autocorrelated
-    and each sample carries less information: for AR(1) errors with lag-1 correlation ρ the variance of an
-    average grows by (1 + ρ)/(1 − ρ) (Bartlett), so N is scaled by (1 − ρ)/(1 + ρ) (at most 1, at least 1/N).
+    With a nominal model too: a real loop's residual is coloured by the load and by every way the model is
+    only close to the plant, and treating its samples as independent made the intervals ten times too narrow.
     """
-    if problem.validation == "split":
-        return 1.0
     w0, w1 = problem.train
-    r = (problem.y - model.y_hat)[w0:w1]
-    den = float(r[:-1] @ r[:-1])
-    rho = float(np.clip(r[1:] @ r[:-1] / den, 0.0, 0.999)) if den > 0 else 0.0
-    return max((1.0 - rho) / (1.0 + rho), 1.0 / max(r.size, 1))
+    return effective_fraction((problem.y - model.y_hat)[w0:w1])
 
 
-def _slip_interval(scorer: Scorer, model: Model, act, n: float) -> tuple[float, float]:
-    """95 % interval of the slip jump J when the accepted valve is a deadband (J = 0 by construction).
+def _pole_variants(st: LinearStructure) -> list[tuple[LinearStructure, float]]:
+    """The linear part's time constants as fitted and scaled by e^(±σ) (σ the prior's width, 25 %), each with
+    its prior penalty ((ln scale)/σ)² = 1: the profile is taken over them too (:func:`_score_rows`)."""
+    out = [(st, 0.0)]
+    if st.taus:
+        f = float(np.exp(PRIOR_WIDTH))
+        out += [(replace(st, taus=tuple(t * s for t in st.taus)), 1.0) for s in (1.0 / f, f)]
+    return out
 
-    The stiction candidate is scored on S around the deadband's S times J from 0 to S, the rest of the model
-    held; the J extent of the region inside the χ²₂ bound says how large a slip the data still allow.
+
+def _score_rows(fitter: Fitter, model: Model, slot: str, cand: Candidate, rows: np.ndarray, n_eff: float
+                ) -> Surface:
+    """The profile of candidate ``cand`` in ``slot`` of ``model`` at ``rows``: the rest held as
+    :meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.profile` holds it (a free dead time re-chosen), and
+    the linear part's time constants too (:func:`_pole_variants`, the gain re-fitted at each).
+
+    The interval then says when the linear part is uncertain: a valve band or a lag that trades off against the
+    plant's poles is not pinned by a profile that holds them. A variant's prior penalty p enters as the factor
+    e^(p/N_eff) on its SSE, so that N_eff ln SSE gains exactly p.
     """
-    stc = scorer.library.get("stiction") or get("stiction")
+    scorer = fitter.scorer
+    rest = {k: v for k, v in model.by_slot().items() if k != slot}
+    st, aim = model.fit.structure, scorer.aim(model)
+    delays = scorer.near(st.delay, 3) if model.delay_free else None
+    variants = _pole_variants(st)
+    results = scorer.sse_jobs(rest, scorer.ctx(model), cand, rows, [(v, delays) for v, _ in variants], aim)
+    sse = np.min([r[0].min(axis=1) * np.exp(p / max(n_eff, 1.0)) for r, (_, p) in zip(results, variants)], axis=0)
+    return fitter.surface(cand.name, rows, sse)
+
+
+def _limits(cand: Candidate, ctx, surf: Surface, axis: int) -> tuple[float, float]:
+    """Where a stretched grid must stop along ``axis``: 0 for a parameter the grid never takes negative (a
+    band, a lag), and the candidate's declared search edges."""
+    name = cand.param_names[axis]
+    lo, hi = cand.bounds(ctx).get(name, (None, None))
+    floor = 0.0 if surf.params[:, axis].min() >= 0.0 else -np.inf
+    return max(floor, -np.inf if lo is None else lo), np.inf if hi is None else hi
+
+
+def _profile(fitter: Fitter, model: Model, slot: str, cand: Candidate, best: np.ndarray, n_eff: float,
+             axes: tuple[int, ...]) -> Surface:
+    """The profile of candidate ``cand`` in ``slot`` around ``best``: over its profile grid and the linear
+    part's time constants (:func:`_score_rows`), stretched about ``best`` by :data:`_STRETCH` (at most
+    :data:`_STRETCHES` times) while the 95 % region reaches an edge of the grid along one of ``axes`` that is
+    neither 0 for a positive parameter nor a declared search edge: an interval cut by the grid would claim a
+    precision the data do not have."""
+    ctx = fitter.scorer.ctx(model)
+    surf = _score_rows(fitter, model, slot, cand, cand.profile_grid(ctx, best), n_eff)
+    for _ in range(_STRETCHES):
+        grow = []
+        for ax in axes:
+            lo, hi = _limits(cand, ctx, surf, ax)
+            at_lo, at_hi = touches_edge(surf.params, surf.sse, n_eff, cand.n_params, ax)
+            col = surf.params[:, ax]
+            if (at_lo and col.min() > lo) or (at_hi and col.max() < hi):
+                grow.append((ax, lo, hi))
+        if not grow:
+            return surf
+        rows = surf.params.copy()
+        for ax, lo, hi in grow:
+            rows[:, ax] = np.clip(best[ax] + _STRETCH * (rows[:, ax] - best[ax]), lo, hi)
+        surf = _score_rows(fitter, model, slot, cand, np.unique(rows, axis=0), n_eff)
+    return surf
+
+
+def _surface(fitter: Fitter, model: Model, act, n_eff: float, axes: tuple[int, ...]) -> Surface:
+    """The cost surface an accepted candidate's intervals come from: :func:`_profile` for a chain candidate,
+    :meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.profile` otherwise (an output candidate, the dead time)."""
+    if act.candidate.kind is not Kind.CHAIN or not axes:
+        return fitter.profile(model, act.name)
+    return _profile(fitter, model, act.slot, act.candidate, act.params, n_eff, axes)
+
+
+def _deadband_as_stiction(fitter: Fitter, model: Model, act, n_eff: float) -> dict[str, tuple[float, float]]:
+    """95 % intervals of S and J when the accepted valve is a deadband (J = 0 by construction).
+
+    A deadband is the stiction valve without its slip, and closed-loop data often cannot tell a band with a
+    slip of nearly S from one without: the stiction candidate is profiled in the valve slot around the
+    deadband's S, with J from 0 to 2 S (stretched like any profile), so that both intervals say how large a
+    band and a slip the data still allow.
+    """
+    stc = fitter.library.get("stiction") or get("stiction")
     S0, start = float(act.params[0]), float(act.params[-1])
-    hS = scan_steps(scorer.p.op_span)[0]
-    S = S0 + hS * np.arange(-4, 5)
-    S = S[S > 0]
-    J = np.linspace(0.0, max(S0, 1e-3), 25)
-    rows = np.array([(a, b, start) for a in S for b in J])
-    rest = {k: v for k, v in model.by_slot().items() if k != "valve"}
-    sse, _ = scorer.sse_grid(rest, scorer.ctx(model), stc, rows, model.fit.structure, None, scorer.aim(model))
-    return intervals(rows, sse[:, 0], n, ("J",), 2, axes=(1,))["J"]
+    surf = _profile(fitter, model, act.slot, stc, np.array([S0, S0, start]), n_eff, (0, 1))
+    return intervals(surf.params, surf.sse, n_eff, ("S", "J"), stc.n_params, axes=(0, 1))
+
+
+def _on_edges(cand: Candidate, ctx, p: np.ndarray) -> dict[str, tuple[str, float]]:
+    """The parameters whose estimate sits on a declared search edge: name → (``"≥"`` or ``"≤"``, the edge)."""
+    out = {}
+    for name, (lo, hi) in cand.bounds(ctx).items():
+        v = float(p[cand.param_names.index(name)])
+        if hi is not None and v >= hi * (1.0 - _ON_EDGE):
+            out[name] = ("≥", float(hi))
+        elif lo is not None and v <= lo * (1.0 + _ON_EDGE):
+            out[name] = ("≤", float(lo))
+    return out
+
+
+def _as_bounds(ivs: dict, edges: dict[str, tuple[str, float]]) -> dict:
+    """The intervals with a parameter on a search edge open on its far side: the data allow anything beyond."""
+    out = dict(ivs)
+    for name, (sign, edge) in edges.items():
+        out[name] = (edge, np.inf) if sign == "≥" else (-np.inf, edge)
+    return out
+
+
+def _edge_text(edges: dict[str, tuple[str, float]]) -> str:
+    """``" (at the edge of the range searched: R ≥ 400, a bound, not a value)"``, or ``""``."""
+    if not edges:
+        return ""
+    said = ", ".join(f"{k} {sign} {edge:.4g}" for k, (sign, edge) in edges.items())
+    return f" (at the edge of the range searched: {said}, a bound, not a value)"
+
+
+def _intervals(fitter: Fitter, problem: Problem, model: Model, act, params: dict) -> tuple[dict, dict]:
+    """The 95 % intervals of an accepted candidate's parameters (``act`` in the final ``model``, ``params`` its
+    JSON parameters) and the parameters on a search edge (:func:`_on_edges`), in the search's frame."""
+    cand = act.candidate
+    names = tuple(k for k, v in params.items() if isinstance(v, (int, float)) and k in cand.param_names)
+    axes = tuple(cand.param_names.index(k) for k in names)
+    n_eff = problem.n_fit * _n_scale(problem, model)
+    surf = _surface(fitter, model, act, n_eff, axes)
+    ivs = intervals(surf.params, surf.sse, n_eff, names, cand.n_params, axes=axes) if names else {}
+    if act.name == "deadband":
+        band = _deadband_as_stiction(fitter, model, act, n_eff)
+        ivs["S"] = (min(ivs["S"][0], band["S"][0]), max(ivs["S"][1], band["S"][1]))
+        ivs["J"] = (0.0, max(0.0, band["J"][1]))
+    if cand.slot == "valve" or (axes and surf.params[:, list(axes)].min() >= 0.0):
+        ivs = {k: (max(0.0, a), b) for k, (a, b) in ivs.items()}  # a band, a jump, a lag: not negative
+    # The profile re-chooses a free dead time on whole samples, the estimate has the polished one: the data are
+    # consistent with both, so the interval reaches the estimate.
+    ivs = {k: (min(a, float(params[k])), max(b, float(params[k]))) if isinstance(params.get(k), float)
+           else (a, b) for k, (a, b) in ivs.items()}
+    edges = _on_edges(cand, fitter.scorer.ctx(model), act.params)
+    return _as_bounds(ivs, edges), edges
 
 
 def _in_op_units(cand, act_params: np.ndarray, params: dict, ivs: dict, frame: Frame) -> tuple:
@@ -152,30 +289,21 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             act = final[name]
             cand = act.candidate
             params = cand.parameters(act.params)
-            surf = fitter.profile(model, name)
-            names = tuple(k for k, v in params.items() if isinstance(v, (int, float)) and k in cand.param_names)
-            axes = tuple(cand.param_names.index(k) for k in names)
-            n_eff = surf.n * _n_scale(problem, model)
-            ivs = intervals(surf.params, surf.sse, n_eff, names, cand.n_params, axes=axes) if names else {}
-            if name == "deadband":
-                ivs["J"] = (0.0, max(0.0, _slip_interval(scorer, model, act, n_eff)[1]))
-            if cand.slot == "valve":  # a band and a jump are not negative
-                ivs = {k: (max(0.0, a), b) for k, (a, b) in ivs.items()}
-            # The profile re-chooses a free dead time on whole samples, the estimate has the polished one: the
-            # data are consistent with both, so the interval reaches the estimate.
-            ivs = {k: (min(a, float(params[k])), max(b, float(params[k]))) if isinstance(params.get(k), float)
-                   else (a, b) for k, (a, b) in ivs.items()}
+            ivs, edges = _intervals(fitter, problem, model, act, params)
             dbic = without.bic - chosen.model.bic
             load = None
             if cand.slot == "valve" and problem.validation == "twofold":
                 load = load_delta_bic(scorer, without, chosen.model)
             nominal_info = {"theta": nominal.delay} if nominal.given else None
             params, ivs, units, p_user = _in_op_units(cand, act.params, params, ivs, frame)
+            if not frame.identity:
+                edges = {k: (sign, frame.convert(cand.dims, {k: v})[k]) for k, (sign, v) in edges.items()}
             out.append(Finding(physics=name, parameters=params, windows=loc.windows,
                                evidence=_evidence(dbic, without.heldout, chosen.model.heldout, ivs, loc, load),
-                               description=cand.describe(p_user, nominal_info, units=units), intervals=ivs,
+                               description=cand.describe(p_user, nominal_info, units=units) + _edge_text(edges),
+                               intervals=ivs,
                                delta_bic=dbic, fit_without=without.heldout, fit_with=chosen.model.heldout,
-                               load_delta_bic=load))
+                               load_delta_bic=load, edges=edges))
     return tuple(out)
 
 

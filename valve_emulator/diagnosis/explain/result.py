@@ -37,6 +37,9 @@ class Finding:
     delta_bic, fit_without, fit_with : the test it passed.
     load_delta_bic : for a valve finding on plant data (no nominal model), ΔBIC again under a drifting-load
         noise model (:mod:`~valve_emulator.diagnosis.fit.load_check`); None otherwise.
+    edges : the parameters whose estimate sits on an edge of the range searched
+        (:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`): name → (``"≥"`` or ``"≤"``, the
+        edge). Such a parameter is a bound, not a value; its interval is open on the far side.
     """
 
     physics: str
@@ -49,6 +52,7 @@ class Finding:
     fit_without: float = 0.0
     fit_with: float = 0.0
     load_delta_bic: float | None = None
+    edges: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {"physics": self.physics, "parameters": dict(self.parameters),
