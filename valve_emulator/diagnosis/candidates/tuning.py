@@ -16,15 +16,22 @@ judged afterwards on the fitted plant by :meth:`Tuning.assess`:
    k − 1, as a DCS acts on the PV it sampled one cycle before); the one with the better :math:`R^2` is kept
    and reported. The :math:`R^2` says whether OP is the PI's output at all (a cascade slave or a
    manual-biased loop is not); below :data:`MIN_R2` tuning is not judged.
-2. **Loop**: :math:`L = C(e^{j\omega\Delta t})\,G(j\omega)\,e^{-j\omega(d + 1/2)\Delta t}` with the discrete
-   PI, the fitted plant (gain, time constants, dead time, integrator), the controller's lag ``d`` and the
-   zero-order hold's half-sample lag. The maximum sensitivity :math:`M_s = \max_\omega |1/(1+L)|` measures
+2. **Loop**: the plant as the closed loop shows it, a high-order ARX model
+   :math:`A(q)\,\mathrm{PV}_k = B(q)\,\mathrm{OP}_{k-1} + \varepsilon_k` (orders :data:`ARX_ORDERS`, at
+   least one sample of delay), fitted by least squares — the direct prediction-error method, consistent on
+   closed-loop data when the noise model (here :math:`1/A`) can describe the load (Ljung, *System
+   Identification*, 2nd ed., §13.4), where the replay of OP the search fits is biased by the controller's
+   answer to the load. Then :math:`L = C(e^{j\omega\Delta t})\,z^{-d}\,B/A` with the discrete PI and its lag
+   ``d``. The maximum sensitivity :math:`M_s = \max_\omega |1/(1+L)|` measures
    how much the loop amplifies disturbances; Åström & Hägglund (*Advanced PID Control*, ISA 2006, §4)
    recommend :math:`M_s` between 1.2 and 2, so a loop with :math:`M_s \ge` :data:`MS_AGGRESSIVE` (= 2) — or a
    gain margin below :data:`GM_AGGRESSIVE` (= 2) — is aggressively tuned. The two bounds agree: a loop
    with :math:`M_s < 2` has a gain margin of at least :math:`M_s/(M_s - 1) > 2` (the Nyquist curve stays
    outside the circle of radius :math:`1/M_s` around −1), and Åström & Hägglund's recommended gain margins
-   are 2–5, so a gain margin under 2 is aggressive whatever :math:`M_s` the grid resolved.
+   are 2–5, so a gain margin under 2 is aggressive whatever :math:`M_s` the grid resolved. Above
+   :data:`MS_EDGE` the ARX has put the loop at the edge of instability to explain a cycle that never decays,
+   which a periodic load explains as well: not judged aggressive. The fitted plant's own loop
+   (:func:`loop_response`: the discrete PI, the plant, ``(d + ½)Δt``) is reported beside it (``plant_ms``).
 3. **The cycle is the loop's**: its period must match the one the loop amplifies most,
    :math:`2\pi/\omega_{peak}`, within :data:`PERIOD_TOLERANCE`.
 
@@ -49,12 +56,16 @@ import numpy as np
 from valve_emulator.diagnosis.candidates.base import ChainContext, LoopCandidate, register
 
 __all__ = ["Tuning", "TuningAssessment", "Margins", "MS_AGGRESSIVE", "GM_AGGRESSIVE", "PERIOD_TOLERANCE",
-           "MIN_R2", "identify_pi", "loop_response", "margins", "nominal_margins"]
+           "MIN_R2", "MS_EDGE", "ARX_ORDERS", "arx_plant", "identify_pi", "loop_response", "margins", "nominal_margins"]
 
 #: Maximum sensitivity at and above which a loop is aggressively tuned (Åström & Hägglund 2006).
 MS_AGGRESSIVE = 2.0
 #: Gain margin below which a loop is aggressively tuned (Åström & Hägglund recommend 2–5; see the module docstring).
 GM_AGGRESSIVE = 2.0
+#: Ms above which the ARX loop sits at the edge of instability: a periodic load explains the cycle as well.
+MS_EDGE = 10.0
+#: Orders (na, nb) of the ARX model of PV on OP that the tuning check judges the loop with.
+ARX_ORDERS = (10, 20)
 #: Observed and predicted periods must agree within this fraction.
 PERIOD_TOLERANCE = 0.3
 #: Least R² of the PI fit for the controller to count as identified.
@@ -94,7 +105,8 @@ class TuningAssessment:
     kc, ti : identified PI (OP % per PV unit, s); ``ti`` is inf for a P-only controller.
     r2 : fit of the PI model.
     lag : samples between the PV the controller acts on and its OP (0 or 1; see :func:`identify_pi`).
-    ms, gain_margin, phase_margin : maximum sensitivity, gain margin and phase margin (°) of the identified loop.
+    ms, gain_margin, phase_margin : maximum sensitivity, gain margin and phase margin (°) of the loop with the
+        ARX plant (see the module docstring); ``plant_ms`` the maximum sensitivity with the fitted plant.
     period : period the loop amplifies most (s); ``observed`` the cycle's period in the data (NaN: none).
     reason : one sentence.
     """
@@ -111,6 +123,7 @@ class TuningAssessment:
     reason: str = ""
     lag: int = 0
     phase_margin: float = float("nan")
+    plant_ms: float = float("nan")
 
     def parameters(self) -> dict:
         return {"kc": float(f"{self.kc:.4g}"), "ti": float(f"{self.ti:.4g}"), "ms": round(self.ms, 2),
@@ -143,6 +156,27 @@ def identify_pi(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None,
     sp = None if sp is None else np.asarray(sp, dtype=float)
     fits = [(*_pi_fit(op, pv, sp, lag, dt), lag) for lag in (0, 1)]
     return max(fits, key=lambda f: f[2])
+
+
+def arx_plant(op: np.ndarray, pv: np.ndarray, orders: tuple[int, int] = ARX_ORDERS):
+    """``(a, b)`` of the ARX model of the module docstring: ``a = [1, a₁ … a_na]`` (PV_k + Σ a_i PV_{k−i}) and
+    ``b = [b₁ … b_nb]`` on OP_{k−1} … OP_{k−nb}, both signals centred."""
+    na, nb = orders
+    y, u = pv - pv.mean(), op - op.mean()
+    s = max(na, nb)
+    X = np.column_stack([y[s - i:y.size - i] for i in range(1, na + 1)] + [u[s - j:u.size - j]
+                                                                          for j in range(1, nb + 1)])
+    coef, *_ = np.linalg.lstsq(X, y[s:], rcond=None)
+    return np.r_[1.0, -coef[:na]], coef[na:]
+
+
+def _arx_loop(kc: float, ti: float, dt: float, lag: int, a: np.ndarray, b: np.ndarray,
+              omega: np.ndarray) -> np.ndarray:
+    """``L(e^{jωΔt})`` of the discrete PI, its lag and the ARX plant ``B/A``."""
+    z1 = np.exp(-1j * omega * dt)
+    ki = kc * dt / ti if np.isfinite(ti) else 0.0
+    c = (kc * (1.0 - z1) + ki) / (1.0 - z1) * z1 ** lag
+    return c * z1 * np.polyval(b[::-1], z1) / np.polyval(a[::-1], z1)
 
 
 def loop_response(kc: float, ti: float, dt: float, gain: float, taus, delay: float, integrating: bool,
@@ -229,18 +263,25 @@ class Tuning(LoopCandidate):
             return TuningAssessment(False, False, kc, ti, r2, observed=observed_period, lag=lag,
                                     reason="the identified controller and plant do not form a negative "
                                            "feedback loop, so the tuning cannot be judged")
+        op, pv = np.asarray(op, dtype=float), np.asarray(pv, dtype=float)
         n = op.shape[0]
-        omega = np.geomspace(2.0 * np.pi / (n * dt), np.pi / dt, 2000)
-        m = margins(loop_response(kc, ti, dt, gain, tuple(taus), delay, integrating, omega, lag), omega)
+        omega = np.geomspace(2.0 * np.pi / (n * dt), 0.999 * np.pi / dt, 4000)
+        fitted = margins(loop_response(kc, ti, dt, gain, tuple(taus), delay, integrating, omega, lag), omega)
+        m = margins(_arx_loop(kc, ti, dt, lag, *arx_plant(op, pv), omega), omega)
         matches = np.isfinite(observed_period) and abs(observed_period / m.period - 1.0) <= PERIOD_TOLERANCE
         what = (f"PI Kc = {kc:.3g} %/unit, Ti = {ti:.3g} s (R² {r2:.2f}, acting on PV{late or ' at once'}); "
-                f"with the fitted plant the loop has {m.text()}")
+                f"with the plant the closed loop shows (ARX) the loop has {m.text()} (with the fitted plant: Ms "
+                f"{fitted.ms:.2f})")
         if not np.isfinite(observed_period):
             tail = "; the data show no regular cycle"
         else:
             tail = f"; the data cycle with a period of {observed_period:.3g} s"
-        return TuningAssessment(True, bool(m.aggressive and matches), kc, ti, r2, m.ms, m.gain_margin, m.period,
-                                observed_period, what + tail, lag, m.phase_margin)
+        if m.ms > MS_EDGE:
+            tail += (f"; at Ms > {MS_EDGE:g} the loop would sit at the edge of instability, which a periodic load "
+                     "explains as well, so the tuning is not blamed")
+        aggressive = m.aggressive and m.ms <= MS_EDGE and matches
+        return TuningAssessment(True, bool(aggressive), kc, ti, r2, m.ms, m.gain_margin, m.period,
+                                observed_period, what + tail, lag, m.phase_margin, fitted.ms)
 
     def parameters(self, p: np.ndarray) -> dict:
         return {"kc": float(p[0]), "ti": float(p[1])}
