@@ -15,7 +15,9 @@ import pytest
 import valve_emulator as ve
 from valve_emulator.benchmark.independent import FAMILIES, draw
 from valve_emulator.config import loop_from_mapping
+from valve_emulator.diagnosis.assess.adequacy import adequacy
 from valve_emulator.diagnosis.assess.margins import judge_nominal
+from valve_emulator.diagnosis.candidates import get
 
 #: Findings an aggressive loop with a healthy valve must not be credited with.
 PHYSICS = {"stiction", "deadband", "dead_time", "actuator_lag"}
@@ -62,3 +64,30 @@ def test_the_nominal_loop_judged_on_an_aggressive_record_rings_at_its_own_period
     judged = judge_nominal(rec, loop_from_mapping(nominal))
     assert judged.cause and judged.lag == 1 and judged.r2 > 0.99
     assert judged.margins.ms == pytest.approx(truth["margins"]["Ms"], rel=0.01)
+
+
+def test_without_a_model_the_tuning_check_reads_the_late_pi_and_finds_the_loop_aggressive():
+    judged = []
+    for i in range(12):
+        rec, truth, _ = _draw("aggressive_pi", i)
+        facts = adequacy(rec).facts
+        t = get("tuning").assess(op=rec.op, pv=rec.pv, sp=rec.sp, dt=rec.dt, gain=truth["plant"]["gain"],
+                                 taus=(truth["plant"]["tau"],), delay=truth["plant"]["delay"],
+                                 observed_period=facts["period"] if facts["oscillating"] else float("nan"))
+        c = truth["controller"]
+        kc = c["kc"] if c["action"] == "reverse" else -c["kc"]
+        assert t.lag == 1 and t.kc == pytest.approx(kc, rel=1e-6) and t.ti == pytest.approx(c["ti"], rel=1e-6)
+        judged.append(t.aggressive)
+    assert sum(judged) >= 0.9 * len(judged), f"{sum(judged)}/{len(judged)} judged aggressive"
+
+
+@pytest.mark.slow  # 16 plant-data diagnoses, about 2–8 s each (≈ 1.5 min on one core)
+@pytest.mark.xfail(strict=True, reason="known limitation: in the plant-data decision (assess/decision.py) a valve, "
+                                       "actuator-lag or disturbance finding that imitates the ring comes before the "
+                                       "tuning check; about 70 % of these loops are named tuning today")
+def test_without_a_model_tuning_is_named_in_aggressive_loops():
+    named = []
+    for i in range(16):
+        rec, _, _ = _draw("aggressive_pi", i)
+        named.append(_named_tuning(ve.diagnose(rec, op_range=(0.0, 100.0)).to_json()))
+    assert sum(named) >= 0.9 * len(named), f"{sum(named)}/{len(named)} named tuning"
