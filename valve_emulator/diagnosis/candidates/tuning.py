@@ -30,8 +30,9 @@ judged afterwards on the fitted plant by :meth:`Tuning.assess`:
    outside the circle of radius :math:`1/M_s` around −1), and Åström & Hägglund's recommended gain margins
    are 2–5, so a gain margin under 2 is aggressive whatever :math:`M_s` the grid resolved. Above
    :data:`MS_EDGE` the ARX has put the loop at the edge of instability to explain a cycle that never decays,
-   which a periodic load explains as well: not judged aggressive. The fitted plant's own loop
-   (:func:`loop_response`: the discrete PI, the plant, ``(d + ½)Δt``) is reported beside it (``plant_ms``).
+   which a periodic load explains as well (a single frequency cannot tell them apart), so the loop is judged
+   with the fitted plant's own loop instead (:func:`loop_response`: the discrete PI, the plant,
+   ``(d + ½)Δt``), whose Ms is always reported beside (``plant_ms``).
 3. **The cycle is the loop's**: its period must match the one the loop amplifies most,
    :math:`2\pi/\omega_{peak}`, within :data:`PERIOD_TOLERANCE`.
 
@@ -277,9 +278,11 @@ class Tuning(LoopCandidate):
         else:
             tail = f"; the data cycle with a period of {observed_period:.3g} s"
         if m.ms > MS_EDGE:
-            tail += (f"; at Ms > {MS_EDGE:g} the loop would sit at the edge of instability, which a periodic load "
-                     "explains as well, so the tuning is not blamed")
-        aggressive = m.aggressive and m.ms <= MS_EDGE and matches
+            tail += (f"; at Ms > {MS_EDGE:g} the ARX loop sits at the edge of instability, which a periodic load "
+                     "explains as well, so the loop is judged with the fitted plant")
+            m = fitted
+            matches = np.isfinite(observed_period) and abs(observed_period / m.period - 1.0) <= PERIOD_TOLERANCE
+        aggressive = m.aggressive and matches
         return TuningAssessment(True, bool(aggressive), kc, ti, r2, m.ms, m.gain_margin, m.period,
                                 observed_period, what + tail, lag, m.phase_margin, fitted.ms)
 
