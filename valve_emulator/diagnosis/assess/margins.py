@@ -9,8 +9,9 @@ time and ``(d + ½)·Δt`` for sampling, half a sample of hold and the controlle
 from the data: :func:`~valve_emulator.diagnosis.candidates.tuning.identify_pi` keeps 0 or 1 sample, whichever
 explains ΔOP better). The loop is **aggressive** when Ms ≥ 2 or its gain margin is below 2 (Åström &
 Hägglund; see :mod:`~valve_emulator.diagnosis.candidates.tuning`), and the tuning is **the cause** when the
-recording cycles regularly (the adequacy check's oscillation) at the period the nominal loop amplifies most,
-within the tuning test's tolerance.
+recording's dominant period (the adequacy check's oscillation detector, regular or not: a loop ringing on a
+random load rings irregularly, and here the margins are known, not guessed from the cycle) is the period the
+nominal loop amplifies most, within the tuning test's tolerance.
 
 **Physics that only imitates the ring.** The search fits the model as a replay of the recorded OP (an output
 error). In a closed loop OP is the controller's answer to the load, so OP and the load are correlated, and
@@ -68,7 +69,7 @@ class NominalTuning:
     lag : samples of controller delay read from the data (0 or 1), ``r2`` the fit of the PI that read it.
     margins : of the nominal continuous loop with ``(lag + ½)·dt`` of sampling delay; None when the nominal
         controller and plant do not make negative feedback.
-    observed : the recording's regular cycle (s), NaN when it has none.
+    observed : the recording's dominant period (s; the adequacy check's, regular or not), NaN when it has none.
     """
 
     kc: float
@@ -121,7 +122,8 @@ def judge_nominal(rec: Recording, cfg: LoopConfig) -> NominalTuning | None:
     m = nominal_margins(cfg.plant.num, cfg.plant.den, cfg.plant.delay, c.kc, c.ti, c.td, action=c.action,
                         extra_delay=(lag + 0.5) * rec.dt)
     facts = adequacy(rec).facts
-    observed = float(facts.get("period", np.nan)) if facts.get("oscillating") else float("nan")
+    observed = float(facts.get("period", np.nan))   # the dominant period, regular or not: a load-driven ring is
+    #                                                  irregular, and the margins, not the cycle, say it rings
     return NominalTuning(kc=float(c.kc), ti=ti, lag=int(lag), r2=float(r2), margins=m, observed=observed)
 
 
