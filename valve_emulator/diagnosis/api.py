@@ -8,7 +8,9 @@ r"""``diagnose(recording, model=None, **options) -> Diagnosis``: the one call be
 
 The recording is read (a path, with the reader's options passed through), put on a uniform time grid once
 (:func:`~valve_emulator.recordings.resample.regularize`), then either explained against the model
-(:func:`~valve_emulator.diagnosis.explain.pipeline.explain`) or, without one, assessed
+(:func:`~valve_emulator.diagnosis.explain.pipeline.explain`, through
+:func:`~valve_emulator.diagnosis.assess.margins.explain_with_tuning`, which names an aggressively tuned nominal
+loop's ring as tuning) or, without one, assessed
 (:func:`~valve_emulator.diagnosis.assess.decision.assess_uniform`).
 
 OP's units (:mod:`~valve_emulator.diagnosis.fit.frame`): the plant-data search always runs in a unit-free
@@ -32,7 +34,7 @@ from valve_emulator.config import LoopConfig, load_loop
 from valve_emulator.diagnosis.answers import Reason
 from valve_emulator.diagnosis.assess.adequacy import EXCITATION, adequacy
 from valve_emulator.diagnosis.assess.decision import assess_uniform
-from valve_emulator.diagnosis.explain.pipeline import explain
+from valve_emulator.diagnosis.assess.margins import explain_with_tuning
 from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.report.diagnosis import Diagnosis
 from valve_emulator.recordings import MAX_GAP, Recording, RecordingError, read_recording, regularize
@@ -133,9 +135,9 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
     caveats = ((Reason.OP_UNITS_REFUTED, refuted),) if refuted else ()
     notes += (refuted,) if refuted else ()
     if cfg is not None:
-        return Diagnosis(recording=rec, explanation=explain(rec, cfg, candidates=candidates, validation=validation,
-                                                            progress=progress), notes=notes, caveats=caveats,
-                         model=cfg, pv_units=pv_units)
+        explained = explain_with_tuning(rec, cfg, candidates=candidates, validation=validation, progress=progress)
+        return Diagnosis(recording=rec, explanation=explained, notes=notes, caveats=caveats, model=cfg,
+                         pv_units=pv_units)
     a = assess_uniform(rec, progress=progress, frame=None if refuted else declared)
     return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes, caveats=caveats,
                      pv_units=pv_units)

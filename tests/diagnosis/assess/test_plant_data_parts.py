@@ -179,8 +179,8 @@ def test_pi_identification_and_loop_sensitivity_known_truth():
     e = RNG.normal(size=T).cumsum() * 0.05 + RNG.normal(size=T)
     kc, ti = 0.8, 20.0
     op = 50 + np.cumsum(kc * np.diff(e, prepend=e[0]) + kc * dt / ti * e)
-    k, t, r2 = identify_pi(op, -e, None, dt)      # e = SP - PV with SP = 0
-    assert (k, t) == (pytest.approx(kc), pytest.approx(ti)) and r2 > 0.999
+    k, t, r2, lag = identify_pi(op, -e, None, dt)      # e = SP - PV with SP = 0
+    assert (k, t) == (pytest.approx(kc), pytest.approx(ti)) and r2 > 0.999 and lag == 0
     # A pure integrator 1/s with P control Kc: L = Kc/(jω) → |S| < 1 at low frequencies, peak ~ 1 far away.
     w = np.geomspace(1e-3, 1.0, 200)
     L = loop_response(0.1, float("inf"), 0.01, 1.0, (), 0.0, True, w)

@@ -1,0 +1,93 @@
+"""An aggressively tuned loop with a healthy valve is answered as tuning, with its margins, not as physics.
+
+The recordings come from the independent simulator (:mod:`valve_emulator.benchmark.independent`, family
+``aggressive_pi``: a self-regulating plant with dead time, a PI tuned to a gain margin drawn in 1.2–1.6, acting
+on the PV one sample late, a healthy valve and a filtered load), never from the package's own loop simulation,
+whose discretisation the search shares. With the exact nominal model the loop's margins are known, and the
+truth's (Ms, gain margin, phase margin of the continuous loop with 1.5 samples of sampling delay) must be met.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import valve_emulator as ve
+from valve_emulator.benchmark.independent import FAMILIES, draw
+from valve_emulator.config import loop_from_mapping
+from valve_emulator.diagnosis.assess.adequacy import adequacy
+from valve_emulator.diagnosis.assess.margins import judge_nominal
+from valve_emulator.diagnosis.candidates import get
+
+#: Findings an aggressive loop with a healthy valve must not be credited with.
+PHYSICS = {"stiction", "deadband", "dead_time", "actuator_lag"}
+DRAWS = 20
+
+
+def _draw(family: str, index: int, seed: int = 1):
+    return draw(family, np.random.default_rng([seed, list(FAMILIES).index(family), index]))
+
+
+def _named_tuning(doc: dict) -> bool:
+    return (doc["answer"] == "no_stiction" and any(r["code"] == "tuning" for r in doc["reasons"])
+            and not PHYSICS & {f["physics"] for f in doc["findings"]})
+
+
+def _margins_right(doc: dict, truth: dict) -> bool:
+    found = next(f["parameters"] for f in doc["findings"] if f["physics"] == "tuning")
+    t = truth["margins"]
+    return all(abs(found[k] / t[key] - 1.0) <= 0.10 for k, key in
+               (("ms", "Ms"), ("gain_margin", "GM"), ("phase_margin", "PM")))
+
+
+@pytest.mark.slow  # 20 diagnoses with a model, about 1–6 s each (≈ 1 min on one core)
+def test_with_the_nominal_model_tuning_is_named_with_the_true_margins():
+    right = []
+    for i in range(DRAWS):
+        rec, truth, nominal = _draw("aggressive_pi", i)
+        doc = ve.diagnose(rec, loop_from_mapping(nominal)).to_json()
+        right.append(_named_tuning(doc) and _margins_right(doc, truth))
+    assert sum(right) >= 0.9 * DRAWS, f"{sum(right)}/{DRAWS} named tuning with margins within 10 %"
+
+
+@pytest.mark.parametrize("family", ["flow_sticky", "level_sticky", "healthy_flow"])
+def test_a_well_tuned_nominal_loop_is_not_the_cause(family):
+    for i in range(3):
+        rec, _, nominal = _draw(family, i)
+        judged = judge_nominal(rec, loop_from_mapping(nominal))
+        assert judged.lag == 1                                # the simulator's PI acts one sample late
+        assert not judged.margins.aggressive and not judged.cause
+
+
+def test_the_nominal_loop_judged_on_an_aggressive_record_rings_at_its_own_period():
+    rec, truth, nominal = _draw("aggressive_pi", 0)
+    judged = judge_nominal(rec, loop_from_mapping(nominal))
+    assert judged.cause and judged.lag == 1 and judged.r2 > 0.99
+    assert judged.margins.ms == pytest.approx(truth["margins"]["Ms"], rel=0.01)
+
+
+def test_without_a_model_the_tuning_check_reads_the_late_pi_and_finds_the_loop_aggressive():
+    judged = []
+    for i in range(12):
+        rec, truth, _ = _draw("aggressive_pi", i)
+        facts = adequacy(rec).facts
+        t = get("tuning").assess(op=rec.op, pv=rec.pv, sp=rec.sp, dt=rec.dt, gain=truth["plant"]["gain"],
+                                 taus=(truth["plant"]["tau"],), delay=truth["plant"]["delay"],
+                                 observed_period=facts["period"] if facts["oscillating"] else float("nan"))
+        c = truth["controller"]
+        kc = c["kc"] if c["action"] == "reverse" else -c["kc"]
+        assert t.lag == 1 and t.kc == pytest.approx(kc, rel=1e-6) and t.ti == pytest.approx(c["ti"], rel=1e-6)
+        judged.append(t.aggressive)
+    assert sum(judged) >= 0.9 * len(judged), f"{sum(judged)}/{len(judged)} judged aggressive"
+
+
+@pytest.mark.slow  # 16 plant-data diagnoses, about 2–8 s each (≈ 1.5 min on one core)
+@pytest.mark.xfail(strict=True, reason="known limitation: in the plant-data decision (assess/decision.py) a valve, "
+                                       "actuator-lag or disturbance finding that imitates the ring comes before the "
+                                       "tuning check; about 70 % of these loops are named tuning today")
+def test_without_a_model_tuning_is_named_in_aggressive_loops():
+    named = []
+    for i in range(16):
+        rec, _, _ = _draw("aggressive_pi", i)
+        named.append(_named_tuning(ve.diagnose(rec, op_range=(0.0, 100.0)).to_json()))
+    assert sum(named) >= 0.9 * len(named), f"{sum(named)}/{len(named)} named tuning"
