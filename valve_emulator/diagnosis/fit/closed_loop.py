@@ -37,10 +37,11 @@ __all__ = ["ACTIONS", "LOOP_TYPES", "MIN_R2", "MIN_T", "Declared", "Identificati
 ACTIONS = ("reverse", "direct")
 #: Loop types and whether their plant integrates (the convention of loop-monitoring tools).
 LOOP_TYPES = {"level": True, "flow": False, "pressure": False, "temperature": False}
-#: The fitted PI must explain at least this fraction of ΔOP's variance for its action to be used.
-MIN_R2 = 0.5
+#: The fitted PI must explain at least this fraction of ΔOP's variance for its action to be used (a sticky
+#: valve's loop saturates OP and winds the integral up, which the linear law does not follow) ...
+MIN_R2 = 0.2
 #: ... and its proportional gain must be this many standard errors from zero.
-MIN_T = 5.0
+MIN_T = 10.0
 
 
 @dataclass(frozen=True)
@@ -92,13 +93,13 @@ class Action:
 def controller_action(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None) -> Action:
     """The controller's action from its own law (see the module docstring)."""
     op, pv = np.asarray(op, dtype=float), np.asarray(pv, dtype=float)
-    e = (np.asarray(sp, dtype=float) - pv) if sp is not None else -pv
-    d_op = np.diff(op)
     best = Action(None, float("nan"), 0.0, -np.inf, 0)
     for lag in (0, 1):
-        y = d_op[lag:]
-        de, ek = np.diff(e)[:d_op.size - lag], e[1:d_op.size + 1 - lag]
-        X = np.column_stack([de, ek, np.ones(y.size)])
+        # e_k = SP_k − PV_{k−lag}: the set point as the controller sees it, PV as it was sampled.
+        pv_seen = pv[:pv.size - lag]
+        e = (np.asarray(sp, dtype=float)[lag:] - pv_seen) if sp is not None else -pv_seen
+        y = np.diff(op[lag:])
+        X = np.column_stack([np.diff(e), e[1:], np.ones(y.size)])
         coef, *_ = np.linalg.lstsq(X, y, rcond=None)
         res = y - X @ coef
         tot = float(np.sum((y - y.mean()) ** 2))

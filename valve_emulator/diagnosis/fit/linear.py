@@ -407,8 +407,8 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
 
     The taps and offsets are solved by least squares at every evaluation (variable projection), so the
     search has only ``len(taus) (+1)`` dimensions. Time constants are searched on a log scale and kept
-    within [dt/20 (or the structure's ``min_tau``), 1e3·record length]; the delay within ``delay_bounds`` (s). Time constants the structure
-    holds (``taus_held``) stay as they are.
+    within [dt/20 (or the structure's ``min_tau``), 1e3·record length]; the delay within ``delay_bounds``
+    (s). Time constants the structure holds (``taus_held``) stay as they are.
 
     ``extra`` regressors are fitted jointly at every evaluation (see :func:`fit_one`).
 

@@ -13,9 +13,10 @@ time and integrator plus dead time (the two low-order families of process contro
 *Process Dynamics and Control*, ch. 7), each with its time constant and dead time searched on a grid and
 refined by output error; BIC picks the family, unless it was declared. Both are fitted under the closed
 loop's constraints (:mod:`~valve_emulator.diagnosis.fit.closed_loop`: the gain's sign from the controller's
-action, time constants of at least a sample), so the controller's inverse is never the plant. The other family is kept as an alternative that every
-candidate search also tries, because a missing valve nonlinearity can make the wrong family look better
-on OP → PV (stiction turns a triangular OP into a square-wave flow).
+action, time constants of at least a sample), so the controller's inverse is never the plant.
+The other family is kept as an alternative that every candidate search also tries, because a missing valve
+nonlinearity can make the wrong family look better on OP → PV (stiction turns a triangular OP into a
+square-wave flow).
 """
 
 from __future__ import annotations
