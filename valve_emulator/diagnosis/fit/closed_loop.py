@@ -93,6 +93,8 @@ class Action:
 def controller_action(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None) -> Action:
     """The controller's action from its own law (see the module docstring)."""
     op, pv = np.asarray(op, dtype=float), np.asarray(pv, dtype=float)
+    if sp is not None and not np.all(np.isfinite(sp)):
+        sp = None   # no recorded set point: held constant
     best = Action(None, float("nan"), 0.0, -np.inf, 0)
     for lag in (0, 1):
         # e_k = SP_k − PV_{k−lag}: the set point as the controller sees it, PV as it was sampled.

@@ -141,11 +141,7 @@ def _real_poly(roots: list) -> np.ndarray:
 
 @dataclass(frozen=True)
 class LinearFit:
-    """A fitted linear part: structure, numerator taps and offsets, and its scores on the fit window.
-
-    ``signed_out``: the free fit's gain had the sign the structure forbids, so the gain is held at 0 — PV does
-    not answer OP, which is no plant for a loop under control (the search scores such a model as no model).
-    """
+    """A fitted linear part: structure, numerator taps and offsets, and its scores on the fit window."""
 
     structure: LinearStructure
     taps: np.ndarray = field(repr=False)
@@ -153,7 +149,6 @@ class LinearFit:
     trend: float
     sse: float
     n: int
-    signed_out: bool = False
 
     @property
     def gain(self) -> float:
@@ -333,7 +328,7 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
     if structure.sign * float(np.sum(beta[:nt])) < 0.0:
         # The gain has the sign the controller's action forbids: the constrained optimum has gain 0.
         held = _fit_held_gain(x, y, window, replace(structure, gain=0.0), trend, extra)
-        return replace(held, structure=structure, signed_out=True)
+        return replace(held, structure=structure)
     res = yw - Xw @ beta
     return LinearFit(structure, beta[:nt].copy(), float(beta[nt]), float(beta[nt + 1]) if trend else 0.0,
                      float(res @ res), w1 - w0)

@@ -150,8 +150,6 @@ class Scorer:
             score, heldout = bic(fit.sse, fit.n, k), self.p.heldout_fit(y_hat)
         else:
             score, heldout = self._ar1_bic(target - level.predict(flow, self.p.dt), k), float("nan")
-        if fit.signed_out or level.signed_out:   # a plant that does not answer OP (LinearFit): no model
-            score = float("inf")
         return Model(active=tuple(acts), fit=level, delay_free=delay_free, k=k, bic=score, heldout=heldout,
                      y_hat=y_hat, flow=flow, target=target if out is not None else None)
 
