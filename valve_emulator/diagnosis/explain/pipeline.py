@@ -44,6 +44,7 @@ from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, Ran
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
 from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.closed_loop import Declared, identification
+from valve_emulator.diagnosis.fit.crossval import cross_validated_fit
 from valve_emulator.diagnosis.fit.data import (
     HELD_OUT,
     Problem,
@@ -175,9 +176,21 @@ def _before(s: Searched, base: Model) -> tuple[np.ndarray, float, int]:
     problem = s.problem
     test_start = problem.test[0] if problem.validation == "split" else held_out_start(problem.T)
     if not s.nominal.given:
-        return problem.to_pv(base.y_hat), base.heldout, test_start
+        return problem.to_pv(base.y_hat), _reported_fit(s, base), test_start
     pv_before = _replay_nominal(problem, s.nominal, s.fitter.scorer)
     return pv_before, fit_percent(problem.pv[test_start:], pv_before[test_start:]), test_start
+
+
+def _reported_fit(s: Searched, model: Model) -> float:
+    """The held-out fit of ``model`` as reported, on PV itself. The search's rule compared it in the problem's
+    validation domain (:meth:`~valve_emulator.diagnosis.fit.data.Problem.validated`), which differs from PV
+    only for an integrating plant's prefiltered search."""
+    problem = s.problem
+    if problem.prefilter is None:
+        return model.heldout
+    if problem.validation == "split":
+        return problem.pv_heldout_fit(model.y_hat)
+    return cross_validated_fit(s.fitter.scorer, model, on_pv=True)
 
 
 def _response_horizon(problem: Problem, model: Model) -> float:
@@ -268,8 +281,8 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     st = model.fit.structure
     plant = {"gain": model.fit.gain * problem.y_scale * frame.gain, "taus": tuple(st.taus), "delay": st.delay,
              "integrating": st.integrating, "validation": problem.validation}
-    return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=base.heldout,
-                       fit_after=model.heldout, findings=found, located=located,
+    return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=_reported_fit(s, base),
+                       fit_after=_reported_fit(s, model), findings=found, located=located,
                        linear=_linear_table(nom, model, problem, frame), ranking=_ranking(rounds, frame),
                        traces=_traces(s, base, pv_before, test_start, frame),
                        rule=RULE if validation == "split" else RULE_TWOFOLD, seconds=time.perf_counter() - start,

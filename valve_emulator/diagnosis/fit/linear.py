@@ -60,6 +60,7 @@ __all__ = [
     "delay_grid_sse",
     "split_delay",
     "fit_one",
+    "on_pv",
     "sse_one",
     "polish",
 ]
@@ -331,6 +332,28 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
         return replace(held, structure=structure)
     res = yw - Xw @ beta
     return LinearFit(structure, beta[:nt].copy(), float(beta[nt]), float(beta[nt + 1]) if trend else 0.0,
+                     float(res @ res), w1 - w0)
+
+
+def on_pv(fit: LinearFit, u: np.ndarray, y: np.ndarray, window: tuple[int, int], dt: float) -> LinearFit:
+    """A fit made on prefiltered PV carried to PV itself (its offset and trend), for predicting PV.
+
+    The taps are re-fitted with the offsets on PV (:func:`fit_one`) — unless the structure holds the gain's
+    sign and that re-fit would break it. On PV an integrating plant's wandering load, which the controller
+    answers, weighs more than the valve's moves, and can pull the gain to the sign of the controller's
+    inverse; the prefiltered fit, which forgets the load, then keeps its taps and only the offsets are fitted.
+    """
+    level = fit_one(u, y, window, fit.structure, dt)
+    st = fit.structure
+    if st.sign == 0 or st.sign * level.gain > 0.0 or st.sign * fit.gain <= 0.0:
+        return level
+    x = _delayed_regressors(filter_inputs(u, st, dt), st.delay / dt, st.ntaps)
+    X = _regressors(np.zeros((u.shape[0], 0)), st.integrating, None)
+    w0, w1 = window
+    rest = y[w0:w1] - x[w0:w1] @ fit.taps
+    beta, *_ = np.linalg.lstsq(X[w0:w1], rest, rcond=None)
+    res = rest - X[w0:w1] @ beta
+    return LinearFit(st, fit.taps.copy(), float(beta[0]), float(beta[1]) if st.integrating else 0.0,
                      float(res @ res), w1 - w0)
 
 
