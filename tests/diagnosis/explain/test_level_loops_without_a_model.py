@@ -42,3 +42,4 @@ def test_the_identification_says_which_constraints_it_used(diagnosed):
         ident = d.to_json()["identification"]
         assert ident["gain_sign"] == int(np.sign(truth["plant"]["gain"]))
         assert any("controller" in c for c in ident["constraints"])
+

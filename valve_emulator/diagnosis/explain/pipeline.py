@@ -117,8 +117,8 @@ class Searched:
 
 
 def _prepared(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
-              validation: str, stops: tuple[float, float], declared: Declared | None = None,
-              recognised: bool | None = None) -> tuple[Problem, Nominal]:
+              validation: str, stops: tuple[float, float], declared: Declared | None = None
+              ) -> tuple[Problem, Nominal]:
     """The recording checked and split, the nominal model (identified from the data without one, under the
     closed loop's constraints and what ``declared`` says of the loop) and the fit part started after every
     candidate's burn-in."""
@@ -127,17 +127,16 @@ def _prepared(recording: Recording, nom: Nominal | None, lib: dict, say, *, pref
                       stops=stops)
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
-        constraints = identification(problem.op, problem.pv, recording.sp, declared, recognised=recognised)
+        constraints = identification(problem.op, problem.pv, recording.sp, declared)
         nom = identify(problem, constraints=constraints)
     return with_burn_in(problem, library_burn_in(problem, nom, lib)), nom
 
 
 def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
-                 validation: str, stops: tuple[float, float], declared: Declared | None = None,
-                 recognised: bool | None = None) -> Searched:
+                 validation: str, stops: tuple[float, float], declared: Declared | None = None) -> Searched:
     """Prepare, (identify,) search, settle the nominal linear part: one pass in one cost domain."""
     problem, nom = _prepared(recording, nom, lib, say, prefilter=prefilter, validation=validation, stops=stops,
-                             declared=declared, recognised=recognised)
+                             declared=declared)
     fitter = Fitter(Scorer(problem, nom, lib))
     search = Search(fitter, progress=say)
     model, rounds = search.run()
@@ -150,9 +149,7 @@ def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, p
 def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, validation: str,
             stops: tuple[float, float], declared: Declared | None = None) -> Searched:
     """The search in the right cost domain (see the module docstring): a nominal integrating plant's on
-    prefiltered PV; without a model on PV, and once more prefiltered when the result integrates — then with the
-    plant's family held integrating (recognised from the data), since the prefilter, which removes what tells
-    an integrator from a slow lag, cannot choose it again."""
+    prefiltered PV; without a model on PV, and once more prefiltered when the result integrates."""
     dt = recording.dt if len(recording) >= 2 else 1.0
     if nom is not None:
         st = nom.structure
@@ -166,7 +163,7 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
         say("the plant integrates: searching again on prefiltered PV")
         lam = prefilter_for(st.delay + sum(st.taus), dt)
         out = _search_once(recording, None, lib, say, prefilter=lam, validation=validation, stops=stops,
-                           declared=declared, recognised=True)
+                           declared=declared)
     return out
 
 

@@ -138,12 +138,9 @@ class Identification:
                 "integrating": self.integrating}
 
 
-def identification(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, declared: Declared | None = None, *,
-                   recognised: bool | None = None) -> Identification:
-    """The constraints for identifying the plant of this closed loop (see the module docstring).
-
-    ``recognised``: the plant's family as an earlier pass over the data found it (None: not yet known), used
-    when none was declared."""
+def identification(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, declared: Declared | None = None
+                   ) -> Identification:
+    """The constraints for identifying the plant of this closed loop (see the module docstring)."""
     declared = declared or Declared()
     said = ["causal: the plant answers OP one sample later at the earliest",
             "time constants of at least one sample"]
@@ -163,10 +160,6 @@ def identification(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, declar
     if integrating is not None:
         src = f"loop type {declared.loop_type}" if declared.loop_type is not None else "declared"
         said.append(f"{'integrating' if integrating else 'self-regulating'} plant ({src})")
-    elif recognised is not None:
-        integrating = recognised
-        said.append(f"{'integrating' if integrating else 'self-regulating'} plant (recognised from the data: "
-                    "the better fit by BIC)")
     else:
         said.append("integrating or self-regulating plant chosen from the data (BIC)")
     return Identification(sign=sign, integrating=integrating, constraints=tuple(said))
