@@ -58,6 +58,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--twin", type=Path, metavar="TWIN.yaml",
                    help="write the twin: the loop the diagnosis found as a loop config (simulate, serve)")
     p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
+    loop = p.add_argument_group("the loop, when known (plant data only)")
+    loop.add_argument("--loop-type", choices=("level", "flow", "pressure", "temperature"),
+                      help="level: an integrating plant; flow, pressure, temperature: self-regulating")
+    loop.add_argument("--integrating", action="store_true", default=None,
+                      help="the plant integrates (default: recognised from the data)")
+    loop.add_argument("--action", choices=("reverse", "direct"),
+                      help="the controller's action: reverse (OP rises as PV falls; positive process gain) or "
+                           "direct (default: read from the controller's law in the data)")
     s = p.add_argument_group("a plant-wide sweep (a folder or several files)")
     s.add_argument("--jobs", type=int, default=1, metavar="N", help="recordings diagnosed at once (default 1)")
     s.add_argument("--scheduler", metavar="ADDRESS",
@@ -97,6 +105,8 @@ def _sweep(args: argparse.Namespace) -> int:
     if any(p is not None for p in (args.model, args.report, args.plot, args.twin)):
         raise UserError("a sweep (a folder or several files) diagnoses plant data: --model, --report, --plot and "
                         "--twin apply to one file")
+    if any(v is not None for v in (args.loop_type, args.integrating, args.action)):
+        raise UserError("--loop-type, --integrating and --action describe one loop: they apply to one file")
     if args.scheduler is not None and args.jobs != 1:
         raise UserError("--jobs and --scheduler exclude each other (the cluster decides how many at once)")
     options = {k: v for k, v in reader_options(args).items() if v is not None}
@@ -146,6 +156,12 @@ def _run(args: argparse.Namespace) -> int:
     if nominal is not None and args.op_range is not None:
         raise UserError("--op-range applies only to plant data (without --model): a model's OP is % travel")
     extra = {} if args.op_range is None else {"op_range": tuple(args.op_range)}
+    loop = {k: v for k, v in (("loop_type", args.loop_type), ("integrating", args.integrating),
+                              ("action", args.action)) if v is not None}
+    if nominal is not None and loop:
+        raise UserError("--loop-type, --integrating and --action apply only to plant data (without --model): "
+                        "a model has its own plant")
+    extra.update(loop)
     d = diagnose(args.recording, nominal, progress=_progress(args.quiet), **extra, **reader_options(args))
     twin = d.twin().text() if args.twin else None   # before anything is written: no model, no twin
     written = []

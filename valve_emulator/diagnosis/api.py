@@ -35,6 +35,7 @@ from valve_emulator.diagnosis.answers import Reason
 from valve_emulator.diagnosis.assess.adequacy import EXCITATION, adequacy
 from valve_emulator.diagnosis.assess.decision import assess_uniform
 from valve_emulator.diagnosis.assess.margins import explain_with_tuning
+from valve_emulator.diagnosis.fit.closed_loop import Declared
 from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.report.diagnosis import Diagnosis
 from valve_emulator.recordings import MAX_GAP, Recording, RecordingError, read_recording, regularize
@@ -90,6 +91,7 @@ def _recording(recording, reader_options: dict) -> tuple[Recording, tuple[str, .
 def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
              candidates: Sequence[str] | None = None, validation: str | None = None,
              progress: Callable[[str], None] | None = None, op_range: Sequence[float] | None = None,
+             loop_type: str | None = None, integrating: bool | None = None, action: str | None = None,
              **reader_options) -> Diagnosis:
     """Diagnose one loop's recording (see the module docstring).
 
@@ -107,6 +109,11 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
     progress : called with a short message at each stage.
     op_range : OP's values at 0 and 100 % of travel, in OP's units (e.g. ``(0, 27648)`` for raw analog
         counts), when known (see the module docstring); plant data only.
+    loop_type, integrating, action : plant data only: the loop's type (``level`` integrates; ``flow``,
+        ``pressure``, ``temperature`` do not), whether its plant integrates, and the controller's action
+        (``reverse``: OP rises as PV falls, so the process gain is positive; ``direct``), when known. The
+        plant is identified under these (:mod:`~valve_emulator.diagnosis.fit.closed_loop`); without them
+        the family is chosen from the data and the action read from the controller's law.
 
     Raises
     ------
@@ -119,6 +126,9 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
         raise TypeError("candidates and validation apply only with a model (plant data use the fixed rule)")
     if model is not None and op_range is not None:
         raise TypeError("op_range applies only to plant data: with a model OP is % travel")
+    if model is not None and (loop_type, integrating, action) != (None, None, None):
+        raise TypeError("loop_type, integrating and action apply only to plant data: a model has its own plant")
+    loop = Declared(loop_type=loop_type, integrating=integrating, action=action)
     declared = _declared_span(op_range)
     cfg = load_loop(model) if isinstance(model, (str, os.PathLike)) else model
     pv_units = reader_options.get("pv_units", "")
@@ -138,7 +148,7 @@ def diagnose(recording, model: LoopConfig | str | os.PathLike | None = None, *,
         explained = explain_with_tuning(rec, cfg, candidates=candidates, validation=validation, progress=progress)
         return Diagnosis(recording=rec, explanation=explained, notes=notes, caveats=caveats, model=cfg,
                          pv_units=pv_units)
-    a = assess_uniform(rec, progress=progress, frame=None if refuted else declared)
+    a = assess_uniform(rec, progress=progress, frame=None if refuted else declared, declared=loop)
     return Diagnosis(recording=rec, explanation=a.explanation, assessment=a, notes=notes, caveats=caveats,
                      pv_units=pv_units)
 

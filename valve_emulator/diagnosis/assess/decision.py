@@ -69,6 +69,7 @@ from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningA
 from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
+from valve_emulator.diagnosis.fit.closed_loop import Declared
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES, UninformativeData
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
 from valve_emulator.recordings.recording import Recording
@@ -248,7 +249,8 @@ def assess(recording: Recording, *, progress: Callable[[str], None] | None = Non
 
 
 def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Callable[[str], None] | None = None,
-                   start: float | None = None, frame: Frame | None = None) -> Assessment:
+                   start: float | None = None, frame: Frame | None = None,
+                   declared: Declared | None = None) -> Assessment:
     """Assess a recording already on a uniform grid (steps 2 to 4 of the module docstring).
 
     ``notes`` say what was done to the data before (kept in the result); ``start`` is the
@@ -257,18 +259,19 @@ def assess_uniform(rec: Recording, *, notes: tuple[str, ...] = (), progress: Cal
     OP (and any affine map of PV) gives the same answer; ``frame`` may declare OP's travel span
     (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.travel_percent`), which adds S and J in % travel and the
     candidates that need the travel stops (check it first with
-    :meth:`~valve_emulator.diagnosis.fit.frame.Frame.refutation`).
+    :meth:`~valve_emulator.diagnosis.fit.frame.Frame.refutation`). ``declared``: what the user declares about
+    the loop (type, integrating plant, controller action), which the identification of its plant respects.
     """
     start = time.perf_counter() if start is None else start
-    whole = _assess_once(rec, notes, progress, start, frame)
+    whole = _assess_once(rec, notes, progress, start, frame, declared)
     if not (whole.decision is Answer.CANNOT_TELL and Reason.NOT_EXPLAINED in whole.codes
             and len(rec) >= 2 * MIN_SAMPLES):
         return whole
-    return _by_halves(rec, whole, progress, start, frame)
+    return _by_halves(rec, whole, progress, start, frame, declared)
 
 
 def _by_halves(rec: Recording, whole: Assessment, progress: Callable[[str], None] | None, start: float,
-               frame: Frame | None) -> Assessment:
+               frame: Frame | None, declared: Declared | None = None) -> Assessment:
     """A record that one linear model does not explain, assessed again as two halves (step 4's last rule)."""
     n = len(rec)
     cuts = ((0, n // 2), (n // 2, n))
@@ -277,7 +280,7 @@ def _by_halves(rec: Recording, whole: Assessment, progress: Callable[[str], None
         if progress is not None:
             progress(f"not explained as a whole: assessing samples {i0}–{i1 - 1} on their own")
         parts.append(_assess_once(rec.slice(i0, i1), (), progress, time.perf_counter(),
-                                  frame if frame is not None and frame.known else None))
+                                  frame if frame is not None and frame.known else None, declared))
     answered = [(cut, a) for cut, a in zip(cuts, parts) if a.decision is not Answer.CANNOT_TELL]
     said = "; ".join(f"samples {i0}–{i1 - 1}: {a.decision.words}" for (i0, i1), a in zip(cuts, parts))
     if not answered or len({a.decision for _, a in answered}) > 1:
@@ -297,7 +300,7 @@ def _held_out_fit(a: Assessment) -> float:
 
 
 def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str], None] | None, start: float,
-                 frame: Frame | None) -> Assessment:
+                 frame: Frame | None, declared: Declared | None = None) -> Assessment:
     """Steps 2 to 4 on the whole of ``rec``."""
     src = rec.source or "recording"
     ad = adequacy(rec)
@@ -309,7 +312,8 @@ def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str
     frame = Frame.unit_free(rec.op, declared=frame)   # the search never sees OP's units; a span is kept aside
     inner = replace(rec, op=frame.to_internal(rec.op), mv=None if rec.mv is None else frame.to_internal(rec.mv))
     try:
-        d = explain(inner, None, candidates=_searched(rec.op, frame), progress=progress, frame=frame)
+        d = explain(inner, None, candidates=_searched(rec.op, frame), progress=progress, frame=frame,
+                    declared=declared)
     except UninformativeData as exc:  # e.g. PV constant over the fit part: the data cannot decide
         return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=exc.reason, adequacy=ad,
                           reasons=((Reason.UNINFORMATIVE, exc.reason),), notes=notes, op_noise=noise,

@@ -2,7 +2,10 @@ r"""``explain(recording, nominal)``: replay, locate, search the candidate librar
 
 1. **Replay** the nominal model on the recorded OP (:mod:`~valve_emulator.diagnosis.fit.nominal`); its
    held-out free-run fit is ``fit_before``. Without a nominal model the linear part is identified from the
-   data first and *that* is the nominal model.
+   data first and *that* is the nominal model, under the closed loop's constraints
+   (:mod:`~valve_emulator.diagnosis.fit.closed_loop`: causal, the gain's sign from the controller's action,
+   no pole faster than a sample, the plant's family when declared), so it cannot be the controller's inverse;
+   the explanation says which constraints were used (``identification``).
 2. **Locate** the residual in time and operating conditions (:mod:`~valve_emulator.diagnosis.explain.locate`).
 3. **Search** (:mod:`~valve_emulator.diagnosis.explain.search`): add the most significant candidate physics,
    round after round, the linear part re-fitted around each; then, with a nominal model, hold its linear part
@@ -40,6 +43,8 @@ from valve_emulator.diagnosis.explain.prior import dead_time_move, nominal_gain,
 from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, RankRow, Traces
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
 from valve_emulator.diagnosis.fit.chain import run_chain
+from valve_emulator.diagnosis.fit.closed_loop import Declared, identification
+from valve_emulator.diagnosis.fit.crossval import cross_validated_fit
 from valve_emulator.diagnosis.fit.data import (
     HELD_OUT,
     Problem,
@@ -112,22 +117,26 @@ class Searched:
 
 
 def _prepared(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
-              validation: str, stops: tuple[float, float]) -> tuple[Problem, Nominal]:
-    """The recording checked and split, the nominal model (identified from the data without one) and the
-    fit part started after every candidate's burn-in."""
+              validation: str, stops: tuple[float, float], declared: Declared | None = None
+              ) -> tuple[Problem, Nominal]:
+    """The recording checked and split, the nominal model (identified from the data without one, under the
+    closed loop's constraints and what ``declared`` says of the loop) and the fit part started after every
+    candidate's burn-in."""
     problem = prepare(recording, nominal_delay=nom.delay if nom else None,
                       settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter, validation=validation,
                       stops=stops)
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
-        nom = identify(problem)
+        constraints = identification(problem.op, problem.pv, recording.sp, declared)
+        nom = identify(problem, constraints=constraints)
     return with_burn_in(problem, library_burn_in(problem, nom, lib)), nom
 
 
 def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
-                 validation: str, stops: tuple[float, float]) -> Searched:
+                 validation: str, stops: tuple[float, float], declared: Declared | None = None) -> Searched:
     """Prepare, (identify,) search, settle the nominal linear part: one pass in one cost domain."""
-    problem, nom = _prepared(recording, nom, lib, say, prefilter=prefilter, validation=validation, stops=stops)
+    problem, nom = _prepared(recording, nom, lib, say, prefilter=prefilter, validation=validation, stops=stops,
+                             declared=declared)
     fitter = Fitter(Scorer(problem, nom, lib))
     search = Search(fitter, progress=say)
     model, rounds = search.run()
@@ -138,7 +147,7 @@ def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, p
 
 
 def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, validation: str,
-            stops: tuple[float, float]) -> Searched:
+            stops: tuple[float, float], declared: Declared | None = None) -> Searched:
     """The search in the right cost domain (see the module docstring): a nominal integrating plant's on
     prefiltered PV; without a model on PV, and once more prefiltered when the result integrates."""
     dt = recording.dt if len(recording) >= 2 else 1.0
@@ -147,12 +156,14 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
         lam = prefilter_for(st.delay + sum(st.taus), dt) if st.integrating else None
         return _search_once(recording, nom, lib, say, prefilter=lam, validation=validation, stops=stops)
     lib = {k: v for k, v in lib.items() if k != "dead_time"}  # without a nominal model the dead time is identified
-    out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops)
+    out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
+                       declared=declared)
     st = out.model.fit.structure
     if st.integrating:
         say("the plant integrates: searching again on prefiltered PV")
         lam = prefilter_for(st.delay + sum(st.taus), dt)
-        out = _search_once(recording, None, lib, say, prefilter=lam, validation=validation, stops=stops)
+        out = _search_once(recording, None, lib, say, prefilter=lam, validation=validation, stops=stops,
+                           declared=declared)
     return out
 
 
@@ -162,9 +173,21 @@ def _before(s: Searched, base: Model) -> tuple[np.ndarray, float, int]:
     problem = s.problem
     test_start = problem.test[0] if problem.validation == "split" else held_out_start(problem.T)
     if not s.nominal.given:
-        return problem.to_pv(base.y_hat), base.heldout, test_start
+        return problem.to_pv(base.y_hat), _reported_fit(s, base), test_start
     pv_before = _replay_nominal(problem, s.nominal, s.fitter.scorer)
     return pv_before, fit_percent(problem.pv[test_start:], pv_before[test_start:]), test_start
+
+
+def _reported_fit(s: Searched, model: Model) -> float:
+    """The held-out fit of ``model`` as reported, on PV itself. The search's rule compared it in the problem's
+    validation domain (:meth:`~valve_emulator.diagnosis.fit.data.Problem.validated`), which differs from PV
+    only for an integrating plant's prefiltered search."""
+    problem = s.problem
+    if problem.prefilter is None:
+        return model.heldout
+    if problem.validation == "split":
+        return problem.pv_heldout_fit(model.y_hat)
+    return cross_validated_fit(s.fitter.scorer, model, on_pv=True)
 
 
 def _response_horizon(problem: Problem, model: Model) -> float:
@@ -211,7 +234,7 @@ def _fitted(s: Searched, frame: Frame) -> FittedLoop:
 def explain(recording: Recording, nominal: LoopConfig | None = None, *,
             candidates: Sequence[str] | None = None,
             progress: Callable[[str], None] | None = None, validation: str | None = None,
-            frame: Frame | None = None) -> Explanation:
+            frame: Frame | None = None, declared: Declared | None = None) -> Explanation:
     """Explain what the nominal model leaves out (see the module docstring).
 
     Parameters
@@ -224,6 +247,8 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     frame : when ``recording.op`` was mapped into a unit-free frame
         (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.to_internal`), that map: findings, the plant's gain,
         the traces and :meth:`~Explanation.predict` are then in OP's own units. Default: OP is % travel.
+    declared : without a nominal model, what the user declares about the loop (its type, whether the plant
+        integrates, the controller's action; :class:`~valve_emulator.diagnosis.fit.closed_loop.Declared`).
 
     Raises
     ------
@@ -239,7 +264,7 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     dt = recording.dt if len(recording) >= 2 else 1.0
     frame = frame or Frame()
     s = _search(recording, nominal_from_config(nominal, dt) if nominal is not None else None, lib, say,
-                validation=validation, stops=frame.stops)
+                validation=validation, stops=frame.stops, declared=declared)
     problem, nom, model, rounds = s.problem, s.nominal, s.model, s.rounds
     base = rounds[0].baseline if rounds else model
     pv_before, fit_before, test_start = _before(s, base)
@@ -253,11 +278,12 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     st = model.fit.structure
     plant = {"gain": model.fit.gain * problem.y_scale * frame.gain, "taus": tuple(st.taus), "delay": st.delay,
              "integrating": st.integrating, "validation": problem.validation}
-    return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=base.heldout,
-                       fit_after=model.heldout, findings=found, located=located,
+    return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=_reported_fit(s, base),
+                       fit_after=_reported_fit(s, model), findings=found, located=located,
                        linear=_linear_table(nom, model, problem, frame), ranking=_ranking(rounds, frame),
                        traces=_traces(s, base, pv_before, test_start, frame),
                        rule=RULE if validation == "split" else RULE_TWOFOLD, seconds=time.perf_counter() - start,
                        plant=plant, fitted=_fitted(s, frame),
                        input_delta_bic=input_delta_bic(s.fitter.scorer, model) if validation == "twofold" else None,
-                       linear_tests=s.tests + dead_time_move(found, nom.delay, st.delay))
+                       linear_tests=s.tests + dead_time_move(found, nom.delay, st.delay),
+                       identification=None if nom.identification is None else nom.identification.as_dict())

@@ -186,6 +186,9 @@ class Explanation:
     linear_tests : with a nominal model, one :class:`LinearMove` per parameter of its linear part that was
         tested (gain, time constants, and the dead time when the search freed it); :attr:`moved` are those
         the data moved.
+    identification : without a model, how the linear part was identified: ``constraints`` (one sentence each:
+        causality, the gain's sign and where it came from, the plant's family), ``gain_sign``, ``integrating``
+        (as declared, or None); None with a model.
     """
 
     source: str
@@ -204,6 +207,7 @@ class Explanation:
     fitted: FittedLoop | None = None
     input_delta_bic: float | None = None
     linear_tests: tuple[LinearMove, ...] = ()
+    identification: dict | None = None
 
     @property
     def moved(self) -> tuple[LinearMove, ...]:
@@ -228,6 +232,8 @@ class Explanation:
                "findings": [f.to_json() for f in self.findings], "verdict": self.verdict}
         if self.given:
             out["linear_part"] = [m.to_json() for m in self.linear_tests]
+        if self.identification is not None:
+            out["identification"] = self.identification
         return out
 
     def report(self, *, figure: str | None = None) -> str:

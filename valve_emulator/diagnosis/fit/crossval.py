@@ -22,7 +22,7 @@ import numpy as np
 
 from valve_emulator.diagnosis.fit.backfit import backfit
 from valve_emulator.diagnosis.fit.data import folds
-from valve_emulator.diagnosis.fit.linear import fit_one, polish
+from valve_emulator.diagnosis.fit.linear import on_pv, polish
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.scorer import Scorer
 
@@ -39,18 +39,22 @@ def _predict(scorer: Scorer, model: Model, window: tuple[int, int]) -> np.ndarra
         return backfit(model.flow, p.y, window, st, p.dt, out.candidate, out.params, ctx, prefilter=scorer.lam,
                        polish_kw=kw).y_hat
     fit = polish(model.flow, p.y, window, st, p.dt, **kw)
-    level = fit if scorer.lam is None else fit_one(model.flow, p.y, window, fit.structure, p.dt)
+    level = fit if scorer.lam is None else on_pv(fit, model.flow, p.y, window, p.dt)
     return level.predict(model.flow, p.dt)
 
 
-def cross_validated_fit(scorer: Scorer, model: Model) -> float:
-    """Pooled two-fold held-out fit (%) of ``model`` (see the module docstring)."""
-    y = scorer.p.y
+def cross_validated_fit(scorer: Scorer, model: Model, *, on_pv: bool = False) -> float:
+    """Pooled two-fold held-out fit (%) of ``model`` (see the module docstring), in the problem's validation
+    domain (:meth:`~valve_emulator.diagnosis.fit.data.Problem.validated`: what the search's rule compares), or
+    ``on_pv`` on PV itself (what is reported)."""
+    p = scorer.p
+    domain = (lambda y: y) if on_pv else p.validated
+    y = domain(p.y)
     err = dev = 0.0
-    for fit_window, (a, b) in folds(scorer.p):
+    for fit_window, (a, b) in folds(p):
         if b - a < 2 or fit_window[1] - fit_window[0] < 2:
             continue
-        y_hat = _predict(scorer, model, fit_window)
+        y_hat = domain(_predict(scorer, model, fit_window))
         err += float(np.sum((y[a:b] - y_hat[a:b]) ** 2))
         dev += float(np.sum((y[a:b] - np.mean(y[a:b])) ** 2))
     return float("nan") if dev == 0.0 else 100.0 * (1.0 - np.sqrt(err / dev))

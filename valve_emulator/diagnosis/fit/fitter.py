@@ -128,7 +128,9 @@ class Fitter:
         concentration loop drags the fitted time constant from 10 s to about 80 s), and with wrong poles
         the valve's cost basin disappears. So the coarse stage also tries the nominal poles scaled by
         2^(±1/2), 2^(±1) — or, without a model, first order with time constants from Δt to a tenth of the
-        record and an integrator — and later stages use the best.
+        record and an integrator (only the declared family when the plant's was declared), under the
+        identification's constraints (the gain's sign, time constants of a sample or more) — and later stages
+        use the best.
         """
         st = model.fit.structure
         out = [st]
@@ -140,9 +142,13 @@ class Fitter:
         else:
             dt = self.p.dt
             out += [replace(a, delay=st.delay) for a in self.nominal.alternates]
-            out += [LinearStructure(taus=(float(t),), delay=st.delay)
-                    for t in np.geomspace(dt, max(2 * dt, self.p.T * dt / 10.0), 8)]
-            out.append(LinearStructure(integrating=True, delay=st.delay))
+            family = None if self.nominal.identification is None else self.nominal.identification.integrating
+            plain = replace(st, taus=(), integrating=False, fixed_poles=())
+            if family is not True:
+                out += [replace(plain, taus=(float(t),))
+                        for t in np.geomspace(dt, max(2 * dt, self.p.T * dt / 10.0), 8)]
+            if family is not False:
+                out.append(replace(plain, integrating=True))
         return out
 
     def base(self) -> Model:

@@ -39,7 +39,7 @@ Cholesky per column and delay). The first sample scored, ``w0``, must leave room
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import minimize
@@ -60,6 +60,7 @@ __all__ = [
     "delay_grid_sse",
     "split_delay",
     "fit_one",
+    "on_pv",
     "sse_one",
     "polish",
 ]
@@ -82,6 +83,12 @@ class LinearStructure:
         by BIC).
     gain : a steady-state gain held at the nominal model's (sum of the taps, in the fit's units: scaled PV per
         % flow, per second for an integrator), or None when the taps are fitted freely.
+    sign : the sign the gain must have (+1 or −1), 0 when it is free. A plant identified from a closed loop
+        takes it from the controller's action (:mod:`~valve_emulator.diagnosis.fit.closed_loop`): a fit whose
+        free gain has the other sign is replaced by the best fit with gain 0 (the constrained least-squares
+        optimum), so the controller run backwards is never a fit.
+    min_tau : the shortest time constant :func:`polish` may reach (s); 0 for ``dt/20``. An identified plant
+        keeps its time constants at least one sample: a faster pole is what fits the controller's inverse.
     """
 
     taus: tuple[float, ...] = ()
@@ -90,6 +97,8 @@ class LinearStructure:
     delay: float = 0.0
     taus_held: bool = False
     gain: float | None = None
+    sign: int = 0
+    min_tau: float = 0.0
 
     @property
     def order(self) -> int:
@@ -206,7 +215,7 @@ def input_grid_sse(u: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     trend = int(structure.integrating and prefilter is None)
     sse = np.empty((u.shape[1], delays.size))
     grid_sse(u, y, w0, w1, delays, structure.ntaps, trend, sse, alpha=structure.denominator(dt),
-             integ=structure.integrating, dt=dt, lam=prefilter, frac=frac)
+             integ=structure.integrating, dt=dt, lam=prefilter, frac=frac, sign=structure.sign)
     return sse
 
 
@@ -240,7 +249,7 @@ def delay_grid_sse(z: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     w0, w1 = _check_window(window, delays, structure)
     trend = int(structure.integrating and not prefiltered)
     sse = np.empty((z.shape[1], delays.size))
-    grid_sse(z, y, w0, w1, delays, structure.ntaps, trend, sse, filtered=True)
+    grid_sse(z, y, w0, w1, delays, structure.ntaps, trend, sse, filtered=True, sign=structure.sign)
     return sse
 
 
@@ -316,9 +325,35 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
     G, b = normal_equations(Xw, yw)
     G[np.diag_indices_from(G)] *= 1.0 + RIDGE
     beta = np.linalg.solve(G + 1e-300 * np.eye(G.shape[0]), b)
-    res = yw - Xw @ beta
     nt = structure.ntaps
+    if structure.sign * float(np.sum(beta[:nt])) < 0.0:
+        # The gain has the sign the controller's action forbids: the constrained optimum has gain 0.
+        held = _fit_held_gain(x, y, window, replace(structure, gain=0.0), trend, extra)
+        return replace(held, structure=structure)
+    res = yw - Xw @ beta
     return LinearFit(structure, beta[:nt].copy(), float(beta[nt]), float(beta[nt + 1]) if trend else 0.0,
+                     float(res @ res), w1 - w0)
+
+
+def on_pv(fit: LinearFit, u: np.ndarray, y: np.ndarray, window: tuple[int, int], dt: float) -> LinearFit:
+    """A fit made on prefiltered PV carried to PV itself (its offset and trend), for predicting PV.
+
+    The taps are re-fitted with the offsets on PV (:func:`fit_one`) — unless the structure holds the gain's
+    sign and that re-fit would break it. On PV an integrating plant's wandering load, which the controller
+    answers, weighs more than the valve's moves, and can pull the gain to the sign of the controller's
+    inverse; the prefiltered fit, which forgets the load, then keeps its taps and only the offsets are fitted.
+    """
+    level = fit_one(u, y, window, fit.structure, dt)
+    st = fit.structure
+    if st.sign == 0 or st.sign * level.gain > 0.0 or st.sign * fit.gain <= 0.0:
+        return level
+    x = _delayed_regressors(filter_inputs(u, st, dt), st.delay / dt, st.ntaps)
+    X = _regressors(np.zeros((u.shape[0], 0)), st.integrating, None)
+    w0, w1 = window
+    rest = y[w0:w1] - x[w0:w1] @ fit.taps
+    beta, *_ = np.linalg.lstsq(X[w0:w1], rest, rcond=None)
+    res = rest - X[w0:w1] @ beta
+    return LinearFit(st, fit.taps.copy(), float(beta[0]), float(beta[1]) if st.integrating else 0.0,
                      float(res @ res), w1 - w0)
 
 
@@ -366,7 +401,7 @@ def sse_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], st: LinearStr
     if y_cost is None:
         y_cost = kernel_array(y if prefilter is None else highpass(y, prefilter))
     return column_sse(kernel_array(u), st.denominator(dt), st.integrating, dt, prefilter, frac, y_cost,
-                      window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None))
+                      window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None), st.sign)
 
 
 def prior_term(log_taus: np.ndarray, prior_sorted: list[float]) -> float:
@@ -390,8 +425,8 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
 
     The taps and offsets are solved by least squares at every evaluation (variable projection), so the
     search has only ``len(taus) (+1)`` dimensions. Time constants are searched on a log scale and kept
-    within [dt/20, 1e3·record length]; the delay within ``delay_bounds`` (s). Time constants the structure
-    holds (``taus_held``) stay as they are.
+    within [dt/20 (or the structure's ``min_tau``), 1e3·record length]; the delay within ``delay_bounds``
+    (s). Time constants the structure holds (``taus_held``) stay as they are.
 
     ``extra`` regressors are fitted jointly at every evaluation (see :func:`fit_one`).
 
@@ -403,7 +438,7 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     (4s+1)(8s+1) differ by one part in ten in the s² term — in favour of the plant the user believes in.
     """
     taus0 = np.log(np.asarray(() if structure.taus_held else structure.taus, dtype=float))
-    lo_tau, hi_tau = np.log(dt / 20.0), np.log(1e3 * dt * u.shape[0])
+    lo_tau, hi_tau = np.log(structure.min_tau or dt / 20.0), np.log(1e3 * dt * u.shape[0])
     lo_d, hi_d = delay_bounds
     use_prior = prior is not None and len(prior) == taus0.size and taus0.size > 0
     log_prior = np.log(np.asarray(prior, dtype=float)) if use_prior else None
@@ -431,7 +466,8 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
         x = p.tolist()
         taus = tuple(float(np.exp(min(max(v, lo_t), hi_t))) for v in x[:nt]) or st0.taus
         delay = min(max(x[-1], lo_d), hi_d) if free_delay else st0.delay
-        return LinearStructure(taus, st0.integrating, st0.fixed_poles, delay, st0.taus_held, st0.gain)
+        return LinearStructure(taus, st0.integrating, st0.fixed_poles, delay, st0.taus_held, st0.gain, st0.sign,
+                               st0.min_tau)
 
     def cost(p: np.ndarray) -> float:
         c = log_sse(sse(make(p)), n)

@@ -43,8 +43,13 @@ _BLOCK = 128
 _TILE = 16
 
 @numba.njit(cache=True, nogil=True)
-def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
-    """Cholesky solve of G beta = r (upper triangle of G filled); return yy - beta·r."""
+def _solve_sse(G, r, yy, q, beta, ntaps, sign):  # pragma: no cover - compiled
+    """Cholesky solve of G beta = r (upper triangle of G filled); return yy - beta·r.
+
+    With ``sign`` (+1 or −1; 0: free) the sum of the first ``ntaps`` coefficients (the gain) must have that
+    sign: when the free solution's does not, the constrained least-squares optimum has gain 0 (a single
+    linear inequality is active or not), whose SSE exceeds the free one by ``(cᵀβ)² / (cᵀG⁻¹c)``, c the
+    indicator of the taps (Lawson & Hanson, *Solving Least Squares Problems*, ch. 20)."""
     L = np.zeros((q, q))
     for i in range(q):
         for j in range(i + 1):
@@ -73,6 +78,20 @@ def _solve_sse(G, r, yy, q, beta):  # pragma: no cover - compiled
     sse = yy
     for i in range(q):
         sse -= beta[i] * r[i]
+    g = 0.0
+    for i in range(ntaps):
+        g += beta[i]
+    if sign * g < 0.0:
+        # c^T G^-1 c = |L^-1 c|^2, c = (1, …, 1, 0, …) over the taps.
+        cgc = 0.0
+        for i in range(q):
+            s = 1.0 if i < ntaps else 0.0
+            for m in range(i):
+                s -= L[i, m] * w[m]
+            w[i] = s / L[i, i]
+            cgc += w[i] * w[i]
+        if cgc > 0.0:
+            sse += g * g / cgc
     return max(sse, 0.0)
 
 
@@ -138,7 +157,7 @@ def _column_means(u, b0, nb):  # pragma: no cover - compiled
 def _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, beta, out):  # pragma: no cover - compiled
     """SSE of column ``j`` for every dead time into ``out``: its normal equations from the running sums kept
     near w0 (``lo``) and w1 (``hi``), the cross terms ``X`` and the window ``sums``, solved."""
-    _, w0, w1, delays, ntaps, trend = fit
+    _, w0, w1, delays, ntaps, trend, sign = fit
     yy, sy, ty, tt, st = sums
     loP, loP1, loPK = lo
     hiP, hiP1, hiPK = hi
@@ -161,7 +180,7 @@ def _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, beta, out):  # p
             G[ntaps, ntaps + 1] = st
             G[ntaps + 1, ntaps + 1] = tt
             r[ntaps + 1] = ty
-        out[di] = _solve_sse(G, r, yy, q, beta)
+        out[di] = _solve_sse(G, r, yy, q, beta, ntaps, sign)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -180,7 +199,7 @@ def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse):  # pragma: no
     for a single column. Each step works one stage at a time over the block's columns (branch-free inner
     loops) and indexes rows rather than taking row views (a view costs the same updates).
     """
-    y, w0, w1, delays, ntaps, trend = fit
+    y, w0, w1, delays, ntaps, trend, _ = fit
     alpha, p, gain, start, rmask, integ, dt, highpass, lam, frac = filt
     T = u.shape[0]
     dmin, dmax = delays.min(), delays.max()
@@ -306,7 +325,7 @@ def _grid_columns(u, c_lo, c_hi, filtered, stages, fit, sse):  # pragma: no cove
     """Fill rows c_lo..c_hi-1 of ``sse`` (n, nd), :data:`_BLOCK` columns of ``u`` (T, n; time-major, columns
     innermost) at a time. ``filtered``: ``u`` already holds the regressor source z; otherwise the filter
     ``stages`` ``(alpha, integ, dt, highpass, lam, frac)`` make it (see :func:`grid_sse`). ``fit`` is
-    ``(y, w0, w1, delays, ntaps, trend)``."""
+    ``(y, w0, w1, delays, ntaps, trend, sign)``."""
     T = u.shape[0]
     alpha, integ, dt, highpass, lam, frac = stages
     p, gain, start, rring, rmask = _filter_setup(alpha, T)
@@ -317,7 +336,7 @@ def _grid_columns(u, c_lo, c_hi, filtered, stages, fit, sse):  # pragma: no cove
 
 
 @numba.njit(cache=True, nogil=True)
-def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, trend):  # pragma: no cover
+def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, trend, sign):  # pragma: no cover
     """Compiled body of :func:`column_sse`."""
     T = u.shape[0]
     q = ntaps + 1 + trend
@@ -384,33 +403,36 @@ def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, t
                     G[i, jj] += x[i] * x[jj]
     if q == 2:
         G[0, 0], G[0, 1], G[1, 1], r[0], r[1] = g00, g01, g11, r0, r1
-    return _solve_sse(G, r, yy, q, beta)
+    return _solve_sse(G, r, yy, q, beta, ntaps, sign)
 
 
-def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend) -> float:
+def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend, sign=0) -> float:
     """SSE of the fit for one input column ``u`` (T,) and one dead time of ``m`` whole samples plus ``frac``.
 
     The arguments are :func:`grid_sse`'s for a single column and a single delay; this scalar version of the same
     pass is what a polish evaluates thousands of times (the block kernel's per-sample loop set-up, amortised
     over a block of columns, would dominate for one). The Gram entries are summed directly over the window.
+    ``sign``: the gain's required sign (see :func:`grid_sse`).
     """
     return float(_column_sse(kernel_array(u).reshape(-1), kernel_array(alpha), bool(integ), float(dt),
                              lam is not None, float(lam or 0.0), float(frac), kernel_array(y), int(w0), int(w1),
-                             int(m), int(ntaps), int(trend)))
+                             int(m), int(ntaps), int(trend), float(sign)))
 
 
 def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=None, integ=False, dt=1.0,
-             lam=None, frac=0.0) -> None:
+             lam=None, frac=0.0, sign=0) -> None:
     """Fill ``sse`` (n, nd) for every column of ``u`` (T, n) and every dead time of ``delays``, in place.
 
     ``filtered``: ``u`` is already the regressor source z. Otherwise z is made from each column minus its mean
     by the all-pole filter ``alpha`` (unit DC gain, one sample of delay), an integrator (``integ``, scaled by
     ``dt``), the high-pass prefilter of pole ``lam`` (None: none) and a fractional delay ``frac`` (0 ≤ f < 1).
+    ``sign`` (+1, −1; 0: free): the sign the gain (sum of the taps) must have; a column whose free fit has the
+    other sign scores the SSE of the best fit with gain 0.
     """
     u = kernel_array(u)
     alpha = np.ones(1) if alpha is None else kernel_array(alpha)
     stages = (alpha, bool(integ), float(dt), lam is not None, float(lam or 0.0), float(frac))
-    fit = (kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend))
+    fit = (kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend), float(sign))
     n = u.shape[1]
     workers = workers_for(n)
     # Whole blocks per worker, as even as the block size allows.

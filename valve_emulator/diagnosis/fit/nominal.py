@@ -11,9 +11,12 @@ integrating plant, the operating-point flow ``u0`` (a ramp); a recording's opera
 Without a model (:func:`identify`) the linear part is chosen from data between first order plus dead
 time and integrator plus dead time (the two low-order families of process control; Seborg et al.,
 *Process Dynamics and Control*, ch. 7), each with its time constant and dead time searched on a grid and
-refined by output error; BIC picks the family. The other family is kept as an alternative that every
-candidate search also tries, because a missing valve nonlinearity can make the wrong family look better
-on OP → PV (stiction turns a triangular OP into a square-wave flow).
+refined by output error; BIC picks the family, unless it was declared. Both are fitted under the closed
+loop's constraints (:mod:`~valve_emulator.diagnosis.fit.closed_loop`: the gain's sign from the controller's
+action, time constants of at least a sample), so the controller's inverse is never the plant.
+The other family is kept as an alternative that every candidate search also tries, because a missing valve
+nonlinearity can make the wrong family look better on OP → PV (stiction turns a triangular OP into a
+square-wave flow).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import numba
 import numpy as np
 
 from valve_emulator.config import LoopConfig
+from valve_emulator.diagnosis.fit.closed_loop import Identification
 from valve_emulator.diagnosis.fit.cost import bic
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.linear import (
@@ -53,6 +57,7 @@ class Nominal:
     valve_model, rest_samples, S, J : the nominal valve.
     characteristic : ``(kind, rangeability)`` of the nominal valve.
     alternates : other linear structures every candidate search also tries (identified models only).
+    identification : the closed-loop constraints the linear part was identified under (identified models only).
     """
 
     structure: LinearStructure
@@ -65,6 +70,7 @@ class Nominal:
     J: float = 0.0
     characteristic: tuple[str, float] = ("linear", DEFAULT_RANGEABILITY)
     alternates: tuple[LinearStructure, ...] = field(default=())
+    identification: Identification | None = None
 
     @property
     def delay(self) -> float:
@@ -132,8 +138,9 @@ def replay_plant(nominal: Nominal, flow: np.ndarray, dt: float) -> np.ndarray:
     return out
 
 
-def _family_fits(problem: Problem, u: np.ndarray, integrating: bool) -> LinearFit:
-    """Best fit of one family over a time-constant grid × the dead-time grid, then polished."""
+def _family_fits(problem: Problem, u: np.ndarray, integrating: bool, sign: int) -> LinearFit:
+    """Best fit of one family over a time-constant grid × the dead-time grid, then polished (the gain's
+    sign held to ``sign`` when nonzero, time constants at least a sample)."""
     dt = problem.dt
     if integrating:
         taus_grid = [()]
@@ -143,23 +150,28 @@ def _family_fits(problem: Problem, u: np.ndarray, integrating: bool) -> LinearFi
     lam = problem.prefilter
     target = problem.y if lam is None else highpass(problem.y, lam)
     for taus in taus_grid:
-        st = LinearStructure(taus=taus, integrating=integrating)
+        st = LinearStructure(taus=taus, integrating=integrating, sign=sign, min_tau=dt)
         sse = input_grid_sse(u, target, problem.train, problem.delays, st, dt, prefilter=lam)[0]
         i = int(np.argmin(sse))
         if sse[i] < best[0]:
             best = (float(sse[i]), st, int(problem.delays[i]))
-    st = LinearStructure(taus=best[1].taus, integrating=integrating, delay=best[2] * dt)
+    st = LinearStructure(taus=best[1].taus, integrating=integrating, delay=best[2] * dt, sign=sign, min_tau=dt)
     return polish(u, problem.y, problem.train, st, dt, free_delay=True,
                   delay_bounds=(0.0, float(problem.delays.max()) * dt), prefilter=lam)
 
 
-def identify(problem: Problem, *, valve_model: str = "kano", rest_samples: int = 1) -> Nominal:
-    """Linear model (FOPDT or IPDT, chosen by BIC) from OP to PV, with a linear, stiction-free valve."""
+def identify(problem: Problem, *, valve_model: str = "kano", rest_samples: int = 1,
+             constraints: Identification | None = None) -> Nominal:
+    """Linear model (FOPDT or IPDT, chosen by BIC unless ``constraints`` declare the family) from OP to PV,
+    with a linear, stiction-free valve, under the closed loop's ``constraints`` (default: none but causality)."""
+    constraints = constraints or Identification()
     u = np.asarray(problem.op, dtype=float)
-    fits = [_family_fits(problem, u, integrating) for integrating in (False, True)]
+    families = (False, True) if constraints.integrating is None else (constraints.integrating,)
+    fits = [_family_fits(problem, u, integrating, constraints.sign) for integrating in families]
     n = problem.n_fit
     scores = [bic(f.sse, n, f.structure.n_params() + 1) for f in fits]  # + 1: the dead time
     order = np.argsort(scores)
-    best, other = fits[order[0]], fits[order[1]]
+    best = fits[order[0]]
+    alternates = tuple(fits[i].structure for i in order[1:])
     return Nominal(best.structure, False, valve_model=valve_model, rest_samples=rest_samples,
-                   alternates=(other.structure,))
+                   alternates=alternates, identification=constraints)

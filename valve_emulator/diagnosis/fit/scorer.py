@@ -43,9 +43,9 @@ from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.linear import (
     LinearFit,
     LinearStructure,
-    fit_one,
     highpass,
     input_grid_sse,
+    on_pv,
     polish,
     prior_term,
     split_delay,
@@ -141,7 +141,7 @@ class Scorer:
             acts.append(a)
         k = fit.structure.n_params() + int(delay_free) + sum(
             a.candidate.n_params for a in acts if a.slot != "delay")
-        level = fit if self.lam is None else fit_one(flow, target, self.p.train, fit.structure, self.p.dt)
+        level = fit if self.lam is None else on_pv(fit, flow, target, self.p.train, self.p.dt)
         y_hat = level.predict(flow, self.p.dt)
         out = active.get("output")
         if out is not None:

@@ -1,0 +1,167 @@
+r"""What a closed loop tells the identification of its plant: the controller's action and the plant's family.
+
+A recording of a loop under control holds two relations between OP and PV: the plant's (PV follows OP) and
+the controller's (OP follows PV). Fitted without care, "PV from OP" can lock onto the second one run
+backwards — for a PI, :math:`\mathrm{PV} \approx \mathrm{SP} - \mathrm{OP}/K_c`, a fast plant whose gain has
+the sign opposite to the true one (Ljung, *System Identification*, 2nd ed., §13.4: the direct method is
+consistent only when the model cannot represent that inverse). Three things rule it out here:
+
+* **causality**: the plant model answers OP one sample later at the earliest (the regressors are
+  :math:`q^{-1}`-filtered OP), as a sampled controller, which computes OP at sample k from PV up to k−1, requires;
+* **the sign of the process gain**: a reverse-acting controller (OP rises when PV falls below SP) runs a plant
+  whose gain is positive, a direct-acting one a plant whose gain is negative. The action is declared, or
+  read from the controller's own law: the velocity-form PI
+  :math:`\Delta\mathrm{OP}_k = K_c\,\Delta e_{k-s} + K_c \tfrac{\Delta t}{T_i}\, e_{k-s}` with
+  :math:`e = \mathrm{SP} - \mathrm{PV}` (SP as recorded, or constant) is fitted by least squares for
+  :math:`s \in \{0, 1\}`, and its proportional gain's sign is the action when the law explains ΔOP
+  exactly (:data:`MIN_R2`) and the gain is clearly nonzero (:data:`MIN_T`);
+* **no pole faster than a sample**: the identified time constants are at least Δt.
+
+The plant's family (integrating or self-regulating) is declared (a loop type: ``level`` integrates; ``flow``,
+``pressure``, ``temperature`` do not), or chosen from the data by BIC (:func:`~valve_emulator.diagnosis.fit.
+nominal.identify`). :class:`Identification` records which constraints were used; the explanation reports it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from valve_emulator.errors import UserError
+
+__all__ = ["ACTIONS", "LOOP_TYPES", "MIN_R2", "MIN_T", "Declared", "Identification", "controller_action",
+           "identification"]
+
+#: Controller actions: reverse (OP rises as PV falls; the process gain is positive) or direct.
+ACTIONS = ("reverse", "direct")
+#: Loop types and whether their plant integrates (the convention of loop-monitoring tools).
+LOOP_TYPES = {"level": True, "flow": False, "pressure": False, "temperature": False}
+#: The fitted PI must explain at least this fraction of ΔOP's variance for its action to be used: the law read
+#: exactly, as a PI on the recorded SP and PV gives it. A law read loosely (a cascade, a filtered or tracking
+#: controller, OP without SP) is not trusted for the sign: on the shared plant windows, level and pressure
+#: loops read at R² 0.6–0.95 were then fitted with the half-cycle dead time and called sticky.
+MIN_R2 = 0.98
+#: ... and its proportional gain must be this many standard errors from zero.
+MIN_T = 10.0
+
+
+@dataclass(frozen=True)
+class Declared:
+    """What the user declares about the loop: its type, whether its plant integrates, its controller's action
+    (None: not declared).
+
+    Raises
+    ------
+    UserError
+        An unknown loop type or action, or a loop type that contradicts ``integrating``.
+    """
+
+    loop_type: str | None = None
+    integrating: bool | None = None
+    action: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.loop_type is not None and self.loop_type not in LOOP_TYPES:
+            raise UserError(f"loop_type must be one of {', '.join(LOOP_TYPES)}, got {self.loop_type!r}")
+        if self.action is not None and self.action not in ACTIONS:
+            raise UserError(f"action must be one of {', '.join(ACTIONS)}, got {self.action!r}")
+        if (self.loop_type is not None and self.integrating is not None
+                and LOOP_TYPES[self.loop_type] != self.integrating):
+            kind = "integrates" if LOOP_TYPES[self.loop_type] else "does not integrate"
+            raise UserError(f"loop_type {self.loop_type!r} {kind}, but integrating={self.integrating} was declared")
+
+    @property
+    def plant_integrates(self) -> bool | None:
+        """Whether the plant integrates, as declared (None: for the data to decide)."""
+        if self.integrating is not None:
+            return self.integrating
+        return None if self.loop_type is None else LOOP_TYPES[self.loop_type]
+
+
+@dataclass(frozen=True)
+class Action:
+    """The controller's action read from the data: ``action`` (None when the PI law does not explain OP),
+    the proportional gain ``kc`` (OP per PV unit, positive for reverse action), its t statistic, R² and the
+    sample shift ``lag`` of the better fit."""
+
+    action: str | None
+    kc: float
+    t: float
+    r2: float
+    lag: int
+
+
+def controller_action(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None) -> Action:
+    """The controller's action from its own law (see the module docstring)."""
+    op, pv = np.asarray(op, dtype=float), np.asarray(pv, dtype=float)
+    if sp is not None and not np.all(np.isfinite(sp)):
+        sp = None   # no recorded set point: held constant
+    best = Action(None, float("nan"), 0.0, -np.inf, 0)
+    for lag in (0, 1):
+        # e_k = SP_k − PV_{k−lag}: the set point as the controller sees it, PV as it was sampled.
+        pv_seen = pv[:pv.size - lag]
+        e = (np.asarray(sp, dtype=float)[lag:] - pv_seen) if sp is not None else -pv_seen
+        y = np.diff(op[lag:])
+        X = np.column_stack([np.diff(e), e[1:], np.ones(y.size)])
+        coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+        res = y - X @ coef
+        tot = float(np.sum((y - y.mean()) ** 2))
+        if tot <= 0.0:
+            continue
+        r2 = 1.0 - float(res @ res) / tot
+        sigma2 = float(res @ res) / max(y.size - 3, 1)
+        cov = sigma2 * np.linalg.pinv(X.T @ X)
+        t = float(coef[0] / np.sqrt(max(cov[0, 0], 1e-300)))
+        if r2 > best.r2:
+            best = Action(None, float(coef[0]), t, r2, lag)
+    if best.r2 >= MIN_R2 and abs(best.t) >= MIN_T:
+        return Action("reverse" if best.kc > 0 else "direct", best.kc, best.t, best.r2, best.lag)
+    return best
+
+
+@dataclass(frozen=True)
+class Identification:
+    """How the linear part of a loop without a model is identified.
+
+    Attributes
+    ----------
+    sign : the process gain's sign (+1, −1) implied by the controller's action, 0 when unknown.
+    integrating : the plant's family as declared (None: chosen from the data).
+    constraints : one sentence per constraint used, for the answer.
+    """
+
+    sign: int = 0
+    integrating: bool | None = None
+    constraints: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict:
+        return {"constraints": list(self.constraints), "gain_sign": self.sign,
+                "integrating": self.integrating}
+
+
+def identification(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, declared: Declared | None = None
+                   ) -> Identification:
+    """The constraints for identifying the plant of this closed loop (see the module docstring)."""
+    declared = declared or Declared()
+    said = ["causal: the plant answers OP one sample later at the earliest",
+            "time constants of at least one sample"]
+    if declared.action is not None:
+        action, how = declared.action, "declared"
+    else:
+        found = controller_action(op, pv, sp)
+        action = found.action
+        how = (f"read from the controller's law (PI fitted to OP{' and SP' if sp is not None else ''}: "
+               f"Kc {found.kc:.3g}, R² {found.r2:.2f}, OP at k from PV at k−{found.lag})")
+    sign = 0 if action is None else (1 if action == "reverse" else -1)
+    if sign:
+        said.append(f"process gain {'positive' if sign > 0 else 'negative'}: {action}-acting controller, {how}")
+    else:
+        said.append("process gain's sign free: OP is not a PI's output of PV, and no action was declared")
+    integrating = declared.plant_integrates
+    if integrating is not None:
+        src = f"loop type {declared.loop_type}" if declared.loop_type is not None else "declared"
+        said.append(f"{'integrating' if integrating else 'self-regulating'} plant ({src})")
+    else:
+        said.append("integrating or self-regulating plant chosen from the data (BIC)")
+    return Identification(sign=sign, integrating=integrating, constraints=tuple(said))
