@@ -19,7 +19,7 @@ answer "is the valve sticky?" whatever the method, and saying so beats a wrong a
    the most regular of them; excitation is a set-point change, or OP travelling over a robust range (0.5th–99.5th
    percentile) of at least :data:`EXCITATION` times its noise σ. White noise alone spans about 5 σ between those
    percentiles, so twice that is movement the noise cannot make. The noise σ is
-   :func:`op_noise`, the robust standard deviation of sample-to-sample changes divided by √2 (as for the
+   :func:`~valve_emulator.diagnosis.fit.frame.noise_sigma`, the robust standard deviation of sample-to-sample changes divided by √2 (as for the
    OP turning points of :mod:`~valve_emulator.diagnosis.explain.locate`); for an OP that mostly holds its
    value (σ = 0) it is OP's resolution, the median non-zero step.
 
@@ -35,22 +35,15 @@ import numpy as np
 from valve_emulator.detectors.base import oscillation
 from valve_emulator.diagnosis.answers import Reason
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES
+from valve_emulator.diagnosis.fit.frame import noise_sigma
 from valve_emulator.recordings.recording import Recording
 
-__all__ = ["Adequacy", "adequacy", "op_noise", "longest_constant_run", "FLAT_SHARE", "EXCITATION"]
+__all__ = ["Adequacy", "adequacy", "longest_constant_run", "FLAT_SHARE", "EXCITATION"]
 
 #: PV (or OP) constant over at least this share of the record is "flat".
 FLAT_SHARE = 0.5
 #: OP's robust range must reach this many noise σ to count as excitation.
 EXCITATION = 10.0
-
-
-def op_noise(op: np.ndarray) -> float:
-    """Robust noise σ of a signal: 1.4826 · MAD of its first differences, divided by √2."""
-    d = np.diff(np.asarray(op, dtype=float))
-    if d.size == 0:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
 
 
 def _step(x: np.ndarray) -> float:
@@ -102,7 +95,7 @@ def adequacy(rec: Recording) -> Adequacy:
     op, pv = np.asarray(rec.op, dtype=float), np.asarray(rec.pv, dtype=float)
     lo, hi = np.percentile(op, [0.5, 99.5])
     facts["op_range"] = float(hi - lo)
-    noise = op_noise(op)
+    noise = noise_sigma(op)
     facts["op_noise"] = noise
     facts["op_range_in_noise"] = float((hi - lo) / (noise if noise > 0 else _step(op)))
     for name, x in (("PV", pv), ("OP", op)):

@@ -17,7 +17,7 @@ run on each loop:
 
    * ``stiction`` when the diagnosis accepts valve friction (``stiction``, or ``deadband``, its J = 0 case
      in the 2005 model) and its band S is at least :data:`NOISE_BANDS` noise σ of OP
-     (:func:`~valve_emulator.diagnosis.assess.adequacy.op_noise`). A band inside OP's own jitter cannot make
+     (:func:`~valve_emulator.diagnosis.fit.frame.noise_sigma`). A band inside OP's own jitter cannot make
      a valve stick and slip — the noise moves it either way — so it is no diagnosis of stiction;
      3 σ is the package's convention for "beyond noise" (as for OP turning points in
      :mod:`~valve_emulator.diagnosis.explain.locate`). S and J are reported with 95 % intervals, and the call is
@@ -62,7 +62,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason
-from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_noise
+from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
@@ -70,7 +70,7 @@ from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES, UninformativeData
-from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
+from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, noise_sigma
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
@@ -305,7 +305,7 @@ def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str
         answer = Answer.NO_RESPONSE if ad.code is Reason.NO_RESPONSE else Answer.CANNOT_TELL
         return Assessment(source=src, decision=answer, cause="", reason=ad.reason, adequacy=ad,
                           reasons=((ad.code, ad.reason),), notes=notes, seconds=time.perf_counter() - start)
-    noise = op_noise(rec.op)
+    noise = noise_sigma(rec.op)
     frame = Frame.unit_free(rec.op, declared=frame)   # the search never sees OP's units; a span is kept aside
     inner = replace(rec, op=frame.to_internal(rec.op), mv=None if rec.mv is None else frame.to_internal(rec.mv))
     try:
