@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 import valve_emulator as ve
 from valve_emulator.benchmark.independent import draw
 from valve_emulator.diagnosis.answers import Reason
-from valve_emulator.diagnosis.fit.frame import Frame, noise_sigma, robust_range
+from valve_emulator.diagnosis.fit.frame import Frame, jitter_sigma, robust_range
 from valve_emulator.recordings.recording import Recording
 
 PERCENT = Frame.travel_percent(source="standard format")
@@ -58,7 +58,7 @@ def _mapped(rec: Recording, how) -> np.ndarray:
 def _clearly_outside(op: np.ndarray) -> bool:
     """Beyond 0..100 by five noise σ (the rule refutes at two), or centred on 0."""
     lo, hi = robust_range(op)
-    margin = 5.0 * noise_sigma(op)
+    margin = 5.0 * jitter_sigma(op)
     return lo < -margin or hi > 100.0 + margin or abs(float(np.median(op))) <= margin
 
 

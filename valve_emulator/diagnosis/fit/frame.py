@@ -13,7 +13,7 @@ the standard recording format (OP in %), ``--op-units``, ``--op-range LO HI``. I
 never in it: it adds S and J in % of travel, and the travel stops at which the chain's saturation candidate
 and the flow characteristic act (:attr:`Frame.stops`, their internal images). The data can refute it
 (:meth:`Frame.refutation`): an OP whose robust range goes below 0 or above 100 % of the span by more than
-:data:`SPAN_NOISE` of its noise σ (whatever share of the range that is), or that moves clearly beyond its noise
+:data:`SPAN_NOISE` of its noise σ (:func:`jitter_sigma`; whatever share of the range that is), or that moves clearly beyond its noise
 within less than :data:`SPAN_MIN_USED` % of it, is not in those units (a 0–1 fraction, raw counts, a deviation
 from the operating point or a signal normalised to ±1 read as %); the span is then dropped and the answer says
 so. A travel span is where a valve model clips OP, so an OP centred on 0 (half of it below the span) is always
@@ -34,7 +34,8 @@ import numpy as np
 
 from valve_emulator.errors import UserError
 
-__all__ = ["Frame", "CENTER", "WIDTH", "TRAVEL", "UNKNOWN_UNITS", "SPAN_NOISE", "SPAN_MIN_USED", "noise_sigma"]
+__all__ = ["Frame", "CENTER", "WIDTH", "TRAVEL", "UNKNOWN_UNITS", "SPAN_NOISE", "SPAN_MIN_USED", "noise_sigma",
+           "jitter_sigma"]
 
 #: Internal coordinate of OP's robust midpoint.
 CENTER = 50.0
@@ -45,7 +46,7 @@ TRAVEL = "% travel"
 #: The units of an OP whose span is not known: its own, whatever they are.
 UNKNOWN_UNITS = "OP units"
 #: A declared span is refuted when OP's robust range goes beyond 0 or 100 % of it by more than this many noise
-#: σ (:func:`noise_sigma`): a DCS clamps an OP in % at its limits, so only noise (or an archive's rounding) can
+#: σ (:func:`jitter_sigma`): a DCS clamps an OP in % at its limits, so only noise (or an archive's rounding) can
 #: carry it past them, where a 0–1 fraction, raw counts, or a deviation from the operating point or a ±1
 #: normalisation read as % land outside (or, below, far inside) the span. Two σ: white noise alone reaches
 #: 2.58 σ at its 0.5th percentile, so an OP that is noise centred on 0 is refuted too.
@@ -62,6 +63,15 @@ def noise_sigma(x) -> float:
     if d.size == 0:
         return 0.0
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+def jitter_sigma(x) -> float:
+    """Robust noise σ of a signal from its second differences (1.4826 · MAD / √6 for white noise): unlike
+    :func:`noise_sigma` it does not count a fast cycle's slope as noise."""
+    d = np.diff(np.asarray(x, dtype=float), n=2)
+    if d.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(6.0))
 
 
 def robust_range(x) -> tuple[float, float]:
@@ -127,7 +137,7 @@ class Frame:
         lo, hi = robust_range(op)
         a, b = self.span
         pct_lo, pct_hi = (100.0 * (x - a) / (b - a) for x in (lo, hi))
-        margin = 100.0 * SPAN_NOISE * noise_sigma(op) / (b - a)
+        margin = 100.0 * SPAN_NOISE * jitter_sigma(op) / (b - a)
         said = f"OP ran from {lo:.4g} to {hi:.4g} (0.5th–99.5th percentile)"
         span = f"the declared span {a:g}..{b:g} ({self.span_source})"
         if pct_lo < -margin or pct_hi > 100.0 + margin:
