@@ -7,13 +7,13 @@ import pytest
 from historian import flow_limited_loop
 
 from valve_emulator.diagnosis.assess.adequacy import EXCITATION, adequacy, longest_constant_run
-from valve_emulator.diagnosis.fit.frame import noise_sigma
 from valve_emulator.diagnosis.assess.decision import assess
 from valve_emulator.diagnosis.candidates import KINDS, SLOTS, ChainContext, get, registry
 from valve_emulator.diagnosis.candidates.quantization import on_few_levels, quantum
 from valve_emulator.diagnosis.candidates.saturation import op_flat_at_extreme
 from valve_emulator.diagnosis.candidates.tuning import identify_pi, loop_response
 from valve_emulator.diagnosis.fit.backfit import backfit
+from valve_emulator.diagnosis.fit.frame import noise_sigma
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.recordings.recording import Recording, RecordingError
 from valve_emulator.recordings.resample import regularize

@@ -64,7 +64,7 @@ def _clearly_outside(op: np.ndarray) -> bool:
 
 def _clearly_inside(op: np.ndarray) -> bool:
     lo, hi = robust_range(op)
-    return 0.0 <= lo and hi <= 100.0 and hi - lo >= 1.0
+    return lo >= 0.0 and hi <= 100.0 and hi - lo >= 1.0
 
 
 @settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])

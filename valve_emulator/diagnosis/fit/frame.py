@@ -13,11 +13,12 @@ the standard recording format (OP in %), ``--op-units``, ``--op-range LO HI``. I
 never in it: it adds S and J in % of travel, and the travel stops at which the chain's saturation candidate
 and the flow characteristic act (:attr:`Frame.stops`, their internal images). The data can refute it
 (:meth:`Frame.refutation`): an OP whose robust range goes below 0 or above 100 % of the span by more than
-:data:`SPAN_NOISE` of its noise σ (:func:`jitter_sigma`; whatever share of the range that is), or that moves clearly beyond its noise
-within less than :data:`SPAN_MIN_USED` % of it, is not in those units (a 0–1 fraction, raw counts, a deviation
-from the operating point or a signal normalised to ±1 read as %); the span is then dropped and the answer says
-so. A travel span is where a valve model clips OP, so an OP centred on 0 (half of it below the span) is always
-refuted, never clipped in silence: its robust range reaches below −2.5 σ even when it is noise alone. A nominal model's OP is % travel by construction: :meth:`Frame.travel_percent` with
+:data:`SPAN_NOISE` of its noise σ (:func:`jitter_sigma`; whatever share of the range that is), or that moves
+clearly beyond its noise within less than :data:`SPAN_MIN_USED` % of it, is not in those units (a 0–1
+fraction, raw counts, a deviation from the operating point or a signal normalised to ±1 read as %); the span is
+then dropped and the answer says so. A travel span is where a valve model clips OP, so an OP centred on 0 (half
+of it below the span) is always refuted, never clipped in silence: its robust range reaches below −2.5 σ even
+when it is noise alone. A nominal model's OP is % travel by construction: :meth:`Frame.travel_percent` with
 the span (0, 100) is the identity map of the model path.
 
 PV needs no frame: the fit scales it (``y = (pv − ȳ)/σ_y``, either sign of the process gain) and its
