@@ -65,7 +65,7 @@ def recommend(answer: Answer, cause: str, codes: tuple[Reason, ...], cycle: Cycl
     if answer is Answer.CANNOT_TELL:
         if Reason.FLAT_PV in codes:
             return Action("check_transmitter", "check the transmitter and the archive: PV is flat")
-        if Reason.WEAK_EVIDENCE in codes and Reason.STICTION in codes or Reason.DEADBAND in codes:
+        if Reason.WEAK_EVIDENCE in codes and (Reason.STICTION in codes or Reason.DEADBAND in codes):
             return Action("stroke_test_valve", "stroke-test the valve in small steps: only that tells a sticky "
                                                "valve from a slowly drifting load on this record")
         return Action("collect_data", "record a longer window, or one with a set-point step, in which the "

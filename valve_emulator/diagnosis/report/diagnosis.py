@@ -232,12 +232,18 @@ class Diagnosis:
         return head + sep + answer + sep2 + "\n".join(lines) + "\n\n" + rest
 
     def plot(self, path: str | os.PathLike, *, title: str | None = None) -> None:
-        """Write the figure (PNG): the diagnosis' four panels, or, when the data could not support a model,
-        the loop's data and the reason."""
+        """Write the figure (PNG): the raw OP/PV trend, the phase plot, the answer with its oscillation summary
+        and action, then the diagnosis' four panels; or, when the data could not support a model, the loop's
+        data and the reason."""
         if self.explanation is not None:
             from valve_emulator.diagnosis.report.plot import plot_diagnosis
 
-            plot_diagnosis(self.explanation, path)
+            strength = "" if self.strength is None else f" ({self.strength} evidence)"
+            words = self.oscillation.words
+            summary = (f"Answer: {self.answer.words}{strength}", words[0].upper() + words[1:],
+                       f"Action: {self.action.words}")
+            plot_diagnosis(self.explanation, path, recording=self.recording, summary=summary,
+                           title=self.source if title is None else title)
         else:
             from valve_emulator.diagnosis.report.plot_loop import plot_loop
 
