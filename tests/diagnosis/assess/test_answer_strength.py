@@ -39,9 +39,12 @@ def _docs():
 
 
 def test_stiction_calls_marked_strong_are_right_in_at_least_95_percent():
-    strong = [doc["answer"] == truth["expected"] for truth, doc in _docs() if doc["strength"] == "strong"]
+    strong = [(doc["answer"] == truth["expected"], doc["source"], doc["verdict"]) for truth, doc in _docs()
+              if doc["strength"] == "strong"]
     assert strong, "no call was marked strong"
-    assert sum(strong) >= 0.95 * len(strong), f"{sum(strong)}/{len(strong)} strong calls right"
+    right = sum(ok for ok, _, _ in strong)
+    wrong = [(source, verdict) for ok, source, verdict in strong if not ok]
+    assert right >= 0.95 * len(strong), f"{right}/{len(strong)} strong calls right; wrong: {wrong}"
 
 
 def test_every_stiction_answer_has_a_strength_with_or_without_a_model():

@@ -76,7 +76,7 @@ from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
-           "COARSE_SHARE", "MODEL_STRONG_GAIN", "coarse_pv", "strength_with_model"]
+           "COARSE_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "coarse_pv", "strength_with_model"]
 
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
@@ -90,8 +90,12 @@ MIN_FIT = 0.0
 CONTEST_BIC = 2.0 * DELTA_BIC
 #: A stiction call is only weak when PV changes on fewer than this share of the samples (see :func:`coarse_pv`).
 COARSE_SHARE = 0.5
-#: Held-out fit (points) valve friction must buy over a nominal model for a strong stiction answer.
+#: Held-out fit (points) valve friction must buy over a nominal model for a strong stiction answer ...
 MODEL_STRONG_GAIN = 20.0
+#: ... and over the identified linear valve on plant data: twice what any candidate needs to be accepted (on the
+#: independent loops, the one wrong strong call without it, a healthy valve under an oscillating load, was a
+#: deadband accepted for 0.5 points).
+PLANT_STRONG_GAIN = 1.0
 
 
 @dataclass(frozen=True)
@@ -241,6 +245,10 @@ def _stiction(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy) -
         reasons += ((Reason.WEAK_EVIDENCE, _load_text(valve).removeprefix("; weak evidence: ")),)
     if coarse_pv(ad.facts):
         reasons += ((Reason.WEAK_EVIDENCE, _coarse_text(ad.facts)),)
+    gain = valve.fit_with - valve.fit_without
+    if gain < PLANT_STRONG_GAIN:
+        reasons += ((Reason.WEAK_EVIDENCE, f"the friction buys only {gain:.2g} points of held-out fit, less than "
+                                           f"{PLANT_STRONG_GAIN:g}"),)
     return Decision(Answer.STICTION, valve.physics, reason, reasons, S=S, J=J, intervals=ivs)
 
 
