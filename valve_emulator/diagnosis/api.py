@@ -18,8 +18,9 @@ recording format or a reader told ``op_units`` (``"%"`` or ``"mA"``, converted t
 is % travel). A declared span adds S and J in % of travel, and saturation and the flow characteristic as
 candidates — unless the data refute it (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.refutation`: OP
 below 0 or above 100 % of the span by more than its noise, or clearly moving within less than 0.5 % of it). A
-refuted span is dropped and the answer says so (reason ``op_units_refuted``, and a note naming OP's observed range); with a
-model, whose OP is % travel by construction, the model is still fitted, with the same reason and note.
+refuted span is dropped and the answer says so (reason ``op_units_refuted``, and a note naming OP's observed
+range); with a model, whose OP is % travel by construction, the model is still fitted, with the same reason and
+note.
 S and J are always also given as fractions of the OP band used (OP's robust range).
 """
 
