@@ -235,16 +235,16 @@ class Diagnosis:
         """Write the figure (PNG): the raw OP/PV trend, the phase plot, the answer with its oscillation summary
         and action, then the diagnosis' four panels; or, when the data could not support a model, the loop's
         data and the reason."""
+        strength = "" if self.strength is None else f" ({self.strength} evidence)"
+        words = self.oscillation.words
+        summary = (words[0].upper() + words[1:], f"Action: {self.action.words}")
+        title = self.source if title is None else title
         if self.explanation is not None:
             from valve_emulator.diagnosis.report.plot import plot_diagnosis
 
-            strength = "" if self.strength is None else f" ({self.strength} evidence)"
-            words = self.oscillation.words
-            summary = (f"Answer: {self.answer.words}{strength}", words[0].upper() + words[1:],
-                       f"Action: {self.action.words}")
-            plot_diagnosis(self.explanation, path, recording=self.recording, summary=summary,
-                           title=self.source if title is None else title)
+            plot_diagnosis(self.explanation, path, recording=self.recording,
+                           summary=(f"Answer: {self.answer.words}{strength}", *summary), title=title)
         else:
             from valve_emulator.diagnosis.report.plot_loop import plot_loop
 
-            plot_loop(self.recording, self.assessment, path, title=self.source if title is None else title)
+            plot_loop(self.recording, self.assessment, path, title=title, summary=summary)

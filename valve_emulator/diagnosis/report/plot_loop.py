@@ -29,8 +29,10 @@ from valve_emulator.recordings.recording import Recording
 __all__ = ["plot_loop"]
 
 
-def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: str = "") -> None:
-    """Write the three-panel figure of ``a`` (on recording ``rec``) to ``path``."""
+def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: str = "",
+              summary: tuple[str, ...] = ()) -> None:
+    """Write the three-panel figure of ``a`` (on recording ``rec``) to ``path``; ``summary`` lines (the
+    oscillation summary, the action) join the refusal's reason."""
     fig = Figure(figsize=(13, 8.5), constrained_layout=True)
     grid = fig.add_gridspec(2, 2, height_ratios=(1.0, 1.1))
     head = (title + "\n" if title else "") + "\n".join(textwrap.wrap(a.statement, 150))
@@ -50,8 +52,9 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
     ax = fig.add_subplot(grid[1, 1])
     d = a.explanation
     if d is None:
-        ax.text(0.5, 0.5, "\n".join(textwrap.wrap(f"no model: {a.reason}", 60)), ha="center", va="center",
-                transform=ax.transAxes, fontsize=9)
+        lines = (f"no model: {a.reason}", *summary)
+        ax.text(0.5, 0.5, "\n\n".join("\n".join(textwrap.wrap(line, 60)) for line in lines), ha="center",
+                va="center", transform=ax.transAxes, fontsize=9)
         ax.set_axis_off()
     else:
         tr = d.traces
