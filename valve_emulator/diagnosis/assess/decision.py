@@ -263,14 +263,16 @@ def _coarse_text(facts: dict) -> str:
             "archive's compression), whose steps imitate a valve's stick-slip")
 
 
-def strength_with_model(friction: Finding, facts: dict) -> Strength:
+def strength_with_model(friction: Finding, facts: dict, fit_before: float, fit_after: float) -> Strength:
     """How strong a stiction answer against a nominal model is (no drifting-load check runs with one): strong
-    when the friction buys at least :data:`MODEL_STRONG_GAIN` points of held-out fit over the nominal chain and
-    PV is not coarse (:func:`coarse_pv`), else weak. A nominal model that is not quite right (an aggressive PI,
-    a slow actuator) lets small friction buy a few points; the large gains came only from sticky valves on the
-    independent loops (``bench/bench_unseen_loops.py``)."""
+    when the friction buys at least :data:`MODEL_STRONG_GAIN` points of held-out fit, the final model predicts
+    held-out PV better than the nominal one (``fit_after > fit_before``) and PV is not coarse
+    (:func:`coarse_pv`), else weak. A nominal model that is not quite right (an aggressive PI, a slow actuator)
+    lets small friction buy a few points; the large gains came only from sticky valves on the independent loops
+    (``bench/bench_unseen_loops.py``)."""
     gain = friction.fit_with - friction.fit_without
-    return Strength.STRONG if gain >= MODEL_STRONG_GAIN and not coarse_pv(facts) else Strength.WEAK
+    strong = gain >= MODEL_STRONG_GAIN and fit_after > fit_before and not coarse_pv(facts)
+    return Strength.STRONG if strong else Strength.WEAK
 
 
 def _contested(valve: Finding, S: float, fits: str, frame: Frame) -> Decision | None:

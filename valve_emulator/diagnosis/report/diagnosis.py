@@ -103,7 +103,9 @@ class Diagnosis:
         strength_with_model`."""
         if self.assessment is not None:
             return self.assessment.strength
-        return None if self.friction is None else strength_with_model(self.friction, adequacy(self.recording).facts)
+        if self.friction is None:
+            return None
+        return strength_with_model(self.friction, adequacy(self.recording).facts, self.fit_before, self.fit_after)
 
     @property
     def findings(self) -> tuple[Finding, ...]:
