@@ -98,7 +98,8 @@ def test_an_op_clamped_at_the_travel_stops_is_kept_as_percent():
 
 
 def _write_standard(path, rec: Recording, op: np.ndarray) -> None:
-    rows = (f"{t!r},{s!r},{o!r},,{p!r}" for t, s, o, p in zip(rec.t, rec.sp, op, rec.pv))
+    rows = (",".join([repr(float(t)), repr(float(s)), repr(float(o)), "", repr(float(p))])
+            for t, s, o, p in zip(rec.t, rec.sp, op, rec.pv))
     path.write_text("t,sp,op,mv,pv\n" + "\n".join(rows) + "\n", encoding="utf-8")
 
 
