@@ -19,6 +19,7 @@ Columns, per family and mode:
 * ``edge``: how often a friction finding sits on an edge of its search: S at the top of its grid (>= 95 % of
   the OP band used), J at the top (>= 1.55 S, the grid ending at 1.6 S) or at 0 for a stiction finding, or
   an interval reaching the ±40 % box the interval profile searches.
+* ``strong ok``: how often a stiction answer marked ``strong`` is right (the strength's calibration).
 * ``disagree``: the answer and the findings disagree (an answer other than stiction with a friction finding
   or friction estimate, or a stiction answer without one).
 * ``s/diag``: median wall seconds per diagnosis, after one untimed warm-up per process.
@@ -76,7 +77,7 @@ def score(doc: dict, truth: dict) -> dict:
     tuning = _names_tuning(doc)
     correct = answer == truth["expected"] and (tuning or not truth["tuning"])
     has_friction = friction is not None or any(f["physics"] in FRICTION for f in doc.get("findings") or ())
-    row = {"answer": answer, "correct": correct, "tuning": tuning,
+    row = {"answer": answer, "correct": correct, "tuning": tuning, "strength": doc["strength"],
            "disagree": (answer == "stiction") != has_friction, "reasons": [r["code"] for r in doc["reasons"]],
            "findings": [f["physics"] for f in doc.get("findings") or ()]}
     if friction is not None and friction["travel"] is not None:
@@ -134,7 +135,8 @@ def summary(rows: list[dict]) -> list[tuple]:
             out.append((family, mode, len(sel), _rate(sel, "correct"),
                         _rate(sel, "tuning") if family == "aggressive_pi" else "",
                         _median(sel, "S_err"), _median(sel, "J_err"), _rate(sel, "S_cov"), _rate(sel, "J_cov"),
-                        _rate(found, "edge"), _rate(sel, "disagree"), _median(sel, "seconds", "{:.1f}"),
+                        _rate(found, "edge"), _rate([r for r in sel if r["strength"] == "strong"], "correct"),
+                        _rate(sel, "disagree"), _median(sel, "seconds", "{:.1f}"),
                         " ".join(f"{a}:{n}" for a, n in sorted(_count(r["answer"] for r in sel).items()))))
     return out
 
@@ -146,8 +148,8 @@ def _count(items) -> dict:
     return counts
 
 
-HEADER = ("family", "mode", "draws", "correct", "tuning", "S err", "J err", "S cov", "J cov", "edge", "disagree",
-          "s/diag", "answers")
+HEADER = ("family", "mode", "draws", "correct", "tuning", "S err", "J err", "S cov", "J cov", "edge", "strong ok",
+          "disagree", "s/diag", "answers")
 
 
 def table(rows: list[tuple]) -> str:

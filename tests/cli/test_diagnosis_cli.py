@@ -39,9 +39,11 @@ def test_diagnose_writes_verdict_json_report_and_figure(files, tmp_path, capsys)
     assert "leaves out valve stiction" in captured.out
     assert "round 1: stiction" in captured.err  # progress on the terminal
     data = json.loads(out["json"].read_text(encoding="utf-8"))
-    assert list(data) == ["answer", "strength", "reasons", "friction", "source", "fit_before", "fit_after",
-                          "findings", "verdict", "linear_part"]   # linear_part: with a model only
-    assert data["answer"] == "stiction" and data["strength"] is None   # a model given: no load check
+    assert list(data) == ["answer", "strength", "reasons", "friction", "source", "action", "oscillation",
+                          "fit_before", "fit_after", "findings", "verdict", "linear_part"]   # linear_part: a model
+    assert data["answer"] == "stiction" and data["strength"] in ("strong", "weak")   # graded with a model too
+    assert data["action"]["code"] == "stroke_test_valve" and "S ≈" in data["action"]["words"]
+    assert data["oscillation"]["words"]
     assert [r["code"] for r in data["reasons"]] == ["stiction"] and data["friction"]["physics"] == "stiction"
     assert [f["physics"] for f in data["findings"]] == ["stiction"]
     finding = data["findings"][0]
@@ -51,6 +53,7 @@ def test_diagnose_writes_verdict_json_report_and_figure(files, tmp_path, capsys)
     assert data["fit_after"] > data["fit_before"] + 20
     report = out["md"].read_text(encoding="utf-8")
     assert data["verdict"] in report and "![diagnosis figure](out.png)" in report
+    assert f"**Action:** {data['action']['words']}." in report and data["oscillation"]["words"] in report
     assert out["png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out["png"].stat().st_size > 20_000
 
 

@@ -59,8 +59,8 @@ def test_diagnose_a_jittered_recorder_file_resamples_says_so_and_finds_stiction(
     assert lines[0].startswith("note: resampled onto a uniform 1 s grid: ") and "OP and SP held" in lines[0]
     assert "— answer: stiction: " in lines[1] and "S ≈" in lines[1]
     data = json.loads(out.read_text(encoding="utf-8"))
-    assert list(data) == ["answer", "strength", "reasons", "friction", "source", "fit_before", "fit_after",
-                          "findings", "verdict"]
+    assert list(data) == ["answer", "strength", "reasons", "friction", "source", "action", "oscillation",
+                          "fit_before", "fit_after", "findings", "verdict"]
     assert data["answer"] == "stiction" and data["strength"] in ("strong", "weak")
     S = data["friction"]["S"]
     assert S["interval"][0] <= S["value"] <= S["interval"][1]

@@ -115,7 +115,7 @@ def _codes(d) -> list[str]:
 
 
 def _cannot_be_percent(op: np.ndarray) -> bool:
-    """Far outside 0..100 % (the refutation rule has a 1 % margin; this is a margin of 5 %)."""
+    """Far outside 0..100 % (the refutation rule refutes beyond 2 noise σ; this is a margin of 5 %)."""
     lo, hi = np.percentile(op, [0.5, 99.5])
     return lo < -5.0 or hi > 105.0
 

@@ -97,8 +97,8 @@ def test_predict_on_a_new_op_follows_the_true_loop_where_the_nominal_model_does_
 def test_to_json_round_trips_with_the_documented_keys(diagnosis):
     data = diagnosis.to_json()
     assert json.loads(json.dumps(data)) == data
-    assert list(data) == ["answer", "strength", "reasons", "friction", "source", "fit_before", "fit_after",
-                          "findings", "verdict", "linear_part"]   # linear_part: with a model only
+    assert list(data) == ["answer", "strength", "reasons", "friction", "source", "action", "oscillation",
+                          "fit_before", "fit_after", "findings", "verdict", "linear_part"]   # linear_part: with a model
     assert set(data["findings"][0]) == {"physics", "parameters", "windows", "evidence"}
     assert diagnosis.report().startswith("# Diagnosis of ")
 

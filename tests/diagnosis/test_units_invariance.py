@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 import valve_emulator as ve
 from valve_emulator.diagnosis.answers import Answer, Reason
 from valve_emulator.diagnosis.assess.decision import assess_uniform
-from valve_emulator.diagnosis.fit.frame import SPAN_HIGH, SPAN_LOW, SPAN_MIN_USED, Frame
+from valve_emulator.diagnosis.fit.frame import SPAN_MIN_USED, Frame
 from valve_emulator.recordings.recording import write_csv
 
 PLANT = ([2.0], [12.0, 1.0], 4.0)
@@ -116,7 +116,10 @@ def _cycle(lo: float, hi: float) -> np.ndarray:
 
 @pytest.mark.parametrize("lo, hi, moving, refuted", [
     (20.0, 80.0, True, False),                     # % travel
-    (SPAN_LOW + 0.3, SPAN_HIGH - 0.3, True, False),  # a positioner's overtravel, within the margin
+    (0.3, 99.7, True, False),                      # nearly the whole travel, inside it
+    (-8.0, 108.0, True, True),                     # about 2 % beyond 0 and 100 %, far more than its noise
+    (-1.0, 1.0, True, True),                       # normalised to ±1
+    (-0.02, 0.02, True, True),                     # centred on 0, a small fraction of the range below it
     (1.0, 1.0 + 2 * SPAN_MIN_USED, True, False),    # a quiet loop that moves a per cent of travel
     (0.2, 0.2 + 0.8 * SPAN_MIN_USED, False, False),  # barely moving: nothing says it is not %
     (0.3, 0.6, True, True),                        # a 0–1 fraction (a cycle over 30 % of it)

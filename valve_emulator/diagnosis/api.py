@@ -19,9 +19,10 @@ travel span is *declared* by ``op_range=(LO, HI)`` (OP's values at 0 and 100 % t
 recording format or a reader told ``op_units`` (``"%"`` or ``"mA"``, converted to %), or by a model (its OP
 is % travel). A declared span adds S and J in % of travel, and saturation and the flow characteristic as
 candidates — unless the data refute it (:meth:`~valve_emulator.diagnosis.fit.frame.Frame.refutation`: OP
-outside about −1..101 % of the span, or clearly moving within less than 0.5 % of it). A refuted span is
-dropped and the answer says so (reason ``op_units_refuted``, and a note naming OP's observed range); with a
-model, whose OP is % travel by construction, the model is still fitted, with the same reason and note.
+below 0 or above 100 % of the span by more than its noise, or clearly moving within less than 0.5 % of it). A
+refuted span is dropped and the answer says so (reason ``op_units_refuted``, and a note naming OP's observed
+range); with a model, whose OP is % travel by construction, the model is still fitted, with the same reason and
+note.
 S and J are always also given as fractions of the OP band used (OP's robust range).
 """
 

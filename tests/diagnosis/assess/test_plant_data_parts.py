@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 from historian import flow_limited_loop
 
-from valve_emulator.diagnosis.assess.adequacy import EXCITATION, adequacy, longest_constant_run, op_noise
+from valve_emulator.diagnosis.assess.adequacy import EXCITATION, adequacy, longest_constant_run
 from valve_emulator.diagnosis.assess.decision import assess
 from valve_emulator.diagnosis.candidates import KINDS, SLOTS, ChainContext, get, registry
 from valve_emulator.diagnosis.candidates.quantization import on_few_levels, quantum
 from valve_emulator.diagnosis.candidates.saturation import op_flat_at_extreme
 from valve_emulator.diagnosis.candidates.tuning import identify_pi, loop_response
 from valve_emulator.diagnosis.fit.backfit import backfit
+from valve_emulator.diagnosis.fit.frame import noise_sigma
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.recordings.recording import Recording, RecordingError
 from valve_emulator.recordings.resample import regularize
@@ -61,7 +62,7 @@ def test_a_set_point_change_or_a_cycle_counts_as_information():
 
 
 def test_noise_and_runs_known_truth():
-    assert op_noise(np.cumsum(RNG.normal(scale=0.2, size=20000))) == pytest.approx(0.2 / np.sqrt(2), rel=0.05)
+    assert noise_sigma(np.cumsum(RNG.normal(scale=0.2, size=20000))) == pytest.approx(0.2 / np.sqrt(2), rel=0.05)
     assert longest_constant_run(np.array([1.0, 1.0, 2.0, 2.0, 2.0, 3.0])) == 3
 
 

@@ -63,7 +63,7 @@ def test_a_document_with_a_model_is_valid_and_its_friction_has_intervals_and_uni
     rec, nominal, _ = generate(CASES[0])     # stiction, undershoot
     doc = ve.diagnose(rec, nominal).to_json()
     _validate(doc)
-    assert doc["answer"] == "stiction" and doc["strength"] is None
+    assert doc["answer"] == "stiction" and doc["strength"] in ("strong", "weak")   # graded with a model too
     S = doc["friction"]["S"]
     assert S["interval"][0] <= S["value"] <= S["interval"][1] and S["units"]
 

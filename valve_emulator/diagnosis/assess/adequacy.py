@@ -19,7 +19,8 @@ answer "is the valve sticky?" whatever the method, and saying so beats a wrong a
    the most regular of them; excitation is a set-point change, or OP travelling over a robust range (0.5th–99.5th
    percentile) of at least :data:`EXCITATION` times its noise σ. White noise alone spans about 5 σ between those
    percentiles, so twice that is movement the noise cannot make. The noise σ is
-   :func:`op_noise`, the robust standard deviation of sample-to-sample changes divided by √2 (as for the
+   :func:`~valve_emulator.diagnosis.fit.frame.noise_sigma`, the robust standard deviation of sample-to-sample
+   changes divided by √2 (as for the
    OP turning points of :mod:`~valve_emulator.diagnosis.explain.locate`); for an OP that mostly holds its
    value (σ = 0) it is OP's resolution, the median non-zero step.
 
@@ -35,22 +36,15 @@ import numpy as np
 from valve_emulator.detectors.base import oscillation
 from valve_emulator.diagnosis.answers import Reason
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES
+from valve_emulator.diagnosis.fit.frame import noise_sigma
 from valve_emulator.recordings.recording import Recording
 
-__all__ = ["Adequacy", "adequacy", "op_noise", "longest_constant_run", "FLAT_SHARE", "EXCITATION"]
+__all__ = ["Adequacy", "adequacy", "Cycle", "cycle", "longest_constant_run", "FLAT_SHARE", "EXCITATION"]
 
 #: PV (or OP) constant over at least this share of the record is "flat".
 FLAT_SHARE = 0.5
 #: OP's robust range must reach this many noise σ to count as excitation.
 EXCITATION = 10.0
-
-
-def op_noise(op: np.ndarray) -> float:
-    """Robust noise σ of a signal: 1.4826 · MAD of its first differences, divided by √2."""
-    d = np.diff(np.asarray(op, dtype=float))
-    if d.size == 0:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
 
 
 def _step(x: np.ndarray) -> float:
@@ -102,9 +96,10 @@ def adequacy(rec: Recording) -> Adequacy:
     op, pv = np.asarray(rec.op, dtype=float), np.asarray(rec.pv, dtype=float)
     lo, hi = np.percentile(op, [0.5, 99.5])
     facts["op_range"] = float(hi - lo)
-    noise = op_noise(op)
+    noise = noise_sigma(op)
     facts["op_noise"] = noise
     facts["op_range_in_noise"] = float((hi - lo) / (noise if noise > 0 else _step(op)))
+    facts["pv_moves"] = float(np.mean(np.diff(pv) != 0.0))
     for name, x in (("PV", pv), ("OP", op)):
         share = longest_constant_run(x) / T
         facts[f"{name.lower()}_flat_share"] = share
@@ -140,3 +135,68 @@ def adequacy(rec: Recording) -> Adequacy:
                                f"less than {EXCITATION:g}): nothing moved the loop that the data could learn "
                                "from", facts, Reason.NO_EXCITATION)
     return Adequacy(True, "", facts)
+
+
+@dataclass(frozen=True)
+class Cycle:
+    """What a loop-monitoring user reads first: does the loop oscillate, how regularly, how far, how fast.
+
+    Attributes
+    ----------
+    oscillating : Thornhill et al.'s regularity test says so (``regularity > 1``).
+    regularity : that test's index r (mean period over three standard deviations of the periods; nan when too
+        few zero crossings).
+    period : the cycle's period (s; nan without a cycle).
+    pv_amplitude, op_amplitude : half the peak-to-peak swing of PV and OP over the cycle (their units), as
+        √2 × the standard deviation left after removing a moving mean one period long (set-point steps and
+        slow drift are not cycle); None without a cycle.
+    signal : the signal the test found most regular (``"SP − PV"``, ``"PV"`` or ``"OP"``).
+    """
+
+    oscillating: bool
+    regularity: float
+    period: float
+    pv_amplitude: float | None = None
+    op_amplitude: float | None = None
+    signal: str = ""
+
+    @property
+    def words(self) -> str:
+        """One phrase: ``"oscillation: period 52 s, PV ± 1.3, OP ± 4.1, regularity r = 3.2 (on SP − PV)"``."""
+        if not self.oscillating:
+            r = "" if not np.isfinite(self.regularity) else f" (regularity r = {self.regularity:.2f} ≤ 1)"
+            return f"no oscillation{r}"
+        return (f"oscillation: period {self.period:.3g} s, PV ± {self.pv_amplitude:.3g}, OP ± "
+                f"{self.op_amplitude:.3g}, regularity r = {self.regularity:.2f} (on {self.signal})")
+
+    def to_json(self) -> dict:
+        def num(x):
+            return None if x is None or not np.isfinite(x) else float(f"{x:.6g}")
+        return {"oscillating": self.oscillating, "regularity": num(self.regularity),
+                "period": num(self.period) if self.oscillating else None, "pv_amplitude": num(self.pv_amplitude),
+                "op_amplitude": num(self.op_amplitude), "signal": self.signal or None, "words": self.words}
+
+
+def _swing(x: np.ndarray, samples: int) -> float:
+    """Half the peak-to-peak swing of a cycle ``samples`` long in ``x``: √2 × the standard deviation of ``x``
+    less its centred moving mean over one period (exact for a sine)."""
+    x = np.asarray(x, dtype=float)
+    n = int(min(max(samples, 1), x.size))
+    mean = np.convolve(np.pad(x, (n // 2, n - 1 - n // 2), mode="edge"), np.ones(n) / n, mode="valid")
+    return float(np.sqrt(2.0) * np.std(x - mean))
+
+
+def cycle(rec: Recording) -> Cycle:
+    """The oscillation summary of ``rec``: the regularity test on SP − PV (with a set point), PV and OP, the most
+    regular of them, and the swings of PV and OP at its period."""
+    pv, op = np.asarray(rec.pv, dtype=float), np.asarray(rec.op, dtype=float)
+    signals = {"PV": pv, "OP": op}
+    if rec.has_sp and np.all(np.isfinite(rec.sp)):
+        signals = {"SP − PV": np.asarray(rec.sp, dtype=float) - pv, **signals}
+    tests = {name: oscillation(x) for name, x in signals.items()}
+    name, osc = max(tests.items(), key=lambda kv: kv[1].regularity if kv[1].regular else -1.0)
+    if not osc.regular:
+        return Cycle(False, float(osc.regularity), float("nan"))
+    samples = int(round(osc.period))
+    return Cycle(True, float(osc.regularity), float(osc.period * rec.dt), _swing(pv, samples), _swing(op, samples),
+                 name)

@@ -89,10 +89,12 @@ class Assessment:
 
     @property
     def strong(self) -> bool | None:
-        """For a stiction answer, whether its evidence survives a drifting-load noise model (None otherwise)."""
+        """For a stiction answer, whether its evidence survives a drifting-load noise model, on a PV fine enough
+        that its steps do not imitate stick-slip (:data:`Reason.WEAK_EVIDENCE` among the reasons otherwise;
+        None: no stiction answer or no load check)."""
         if not self.stiction or self.load_delta_bic is None:
             return None
-        return self.load_delta_bic >= DELTA_BIC
+        return self.load_delta_bic >= DELTA_BIC and Reason.WEAK_EVIDENCE not in self.codes
 
     @property
     def strength(self) -> Strength | None:

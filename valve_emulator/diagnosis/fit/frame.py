@@ -12,10 +12,13 @@ A **travel span** (OP's values at 0 and 100 % travel) is a claim about OP that t
 the standard recording format (OP in %), ``--op-units``, ``--op-range LO HI``. It is kept beside the map,
 never in it: it adds S and J in % of travel, and the travel stops at which the chain's saturation candidate
 and the flow characteristic act (:attr:`Frame.stops`, their internal images). The data can refute it
-(:meth:`Frame.refutation`): an OP whose robust range leaves [:data:`SPAN_LOW`, :data:`SPAN_HIGH`] % of the
-span, or that moves clearly beyond its noise within less than :data:`SPAN_MIN_USED` % of it, is not in those
-units (a 0–1 fraction, raw counts, a deviation from the operating point read as %); the span is then dropped
-and the answer says so. A nominal model's OP is % travel by construction: :meth:`Frame.travel_percent` with
+(:meth:`Frame.refutation`): an OP whose robust range goes below 0 or above 100 % of the span by more than
+:data:`SPAN_NOISE` of its noise σ (:func:`jitter_sigma`; whatever share of the range that is), or that moves
+clearly beyond its noise within less than :data:`SPAN_MIN_USED` % of it, is not in those units (a 0–1
+fraction, raw counts, a deviation from the operating point or a signal normalised to ±1 read as %); the span is
+then dropped and the answer says so. A travel span is where a valve model clips OP, so an OP centred on 0 (half
+of it below the span) is always refuted, never clipped in silence: its robust range reaches below −2.5 σ even
+when it is noise alone. A nominal model's OP is % travel by construction: :meth:`Frame.travel_percent` with
 the span (0, 100) is the identity map of the model path.
 
 PV needs no frame: the fit scales it (``y = (pv − ȳ)/σ_y``, either sign of the process gain) and its
@@ -32,7 +35,8 @@ import numpy as np
 
 from valve_emulator.errors import UserError
 
-__all__ = ["Frame", "CENTER", "WIDTH", "TRAVEL", "UNKNOWN_UNITS", "SPAN_LOW", "SPAN_HIGH", "SPAN_MIN_USED"]
+__all__ = ["Frame", "CENTER", "WIDTH", "TRAVEL", "UNKNOWN_UNITS", "SPAN_NOISE", "SPAN_MIN_USED", "noise_sigma",
+           "jitter_sigma"]
 
 #: Internal coordinate of OP's robust midpoint.
 CENTER = 50.0
@@ -42,13 +46,33 @@ WIDTH = 40.0
 TRAVEL = "% travel"
 #: The units of an OP whose span is not known: its own, whatever they are.
 UNKNOWN_UNITS = "OP units"
-#: A declared span is refuted when OP's robust range leaves [SPAN_LOW, SPAN_HIGH] % of it: a 1 % margin for
-#: a positioner's overtravel and an archive's rounding, where a 0–1 fraction, raw counts or a deviation from
-#: the operating point read as % land far outside (or, below, far inside) the span.
-SPAN_LOW, SPAN_HIGH = -1.0, 101.0
+#: A declared span is refuted when OP's robust range goes beyond 0 or 100 % of it by more than this many noise
+#: σ (:func:`jitter_sigma`): a DCS clamps an OP in % at its limits, so only noise (or an archive's rounding) can
+#: carry it past them, where a 0–1 fraction, raw counts, or a deviation from the operating point or a ±1
+#: normalisation read as % land outside (or, below, far inside) the span. Two σ: white noise alone reaches
+#: 2.58 σ at its 0.5th percentile, so an OP that is noise centred on 0 is refuted too.
+SPAN_NOISE = 2.0
 #: ... or when OP moves clearly beyond its noise over less than this share (%) of the span: no loop cycles
 #: or answers set-point changes with half a per cent of travel, where a 0–1 fraction read as % does.
 SPAN_MIN_USED = 0.5
+
+
+def noise_sigma(x) -> float:
+    """Robust noise σ of a signal: 1.4826 · MAD of its first differences, divided by √2 (0 for fewer than two
+    samples, or a signal that mostly holds its value)."""
+    d = np.diff(np.asarray(x, dtype=float))
+    if d.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+def jitter_sigma(x) -> float:
+    """Robust noise σ of a signal from its second differences (1.4826 · MAD / √6 for white noise): unlike
+    :func:`noise_sigma` it does not count a fast cycle's slope as noise."""
+    d = np.diff(np.asarray(x, dtype=float), n=2)
+    if d.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(6.0))
 
 
 def robust_range(x) -> tuple[float, float]:
@@ -106,18 +130,20 @@ class Frame:
 
     def refutation(self, op: np.ndarray, *, moving: bool) -> str:
         """Why OP cannot be in this frame's declared travel span, a sentence naming OP's observed range (``""``
-        when it can be, or no span is declared):
-        its robust range leaves [:data:`SPAN_LOW`, :data:`SPAN_HIGH`] % of the span, or, ``moving`` (OP moves
-        clearly beyond its noise), it covers less than :data:`SPAN_MIN_USED` % of it."""
+        when it can be, or no span is declared): its robust range goes below 0 or above 100 % of the span by more
+        than :data:`SPAN_NOISE` noise σ, or, ``moving`` (OP moves clearly beyond its noise), it covers less than
+        :data:`SPAN_MIN_USED` % of it."""
         if self.span is None:
             return ""
         lo, hi = robust_range(op)
         a, b = self.span
         pct_lo, pct_hi = (100.0 * (x - a) / (b - a) for x in (lo, hi))
+        margin = 100.0 * SPAN_NOISE * jitter_sigma(op) / (b - a)
         said = f"OP ran from {lo:.4g} to {hi:.4g} (0.5th–99.5th percentile)"
         span = f"the declared span {a:g}..{b:g} ({self.span_source})"
-        if pct_lo < SPAN_LOW or pct_hi > SPAN_HIGH:
-            why = f"{said}, {pct_lo:.4g}..{pct_hi:.4g} % of {span}, outside {SPAN_LOW:g}..{SPAN_HIGH:g} %"
+        if pct_lo < -margin or pct_hi > 100.0 + margin:
+            why = (f"{said}, {pct_lo:.4g}..{pct_hi:.4g} % of {span}, beyond 0..100 % by more than its noise "
+                   f"({SPAN_NOISE:g} σ = {margin:.2g} %), where a valve would clip it")
         elif moving and pct_hi - pct_lo < SPAN_MIN_USED:
             why = (f"{said}, {pct_hi - pct_lo:.3g} % of {span}, less than {SPAN_MIN_USED:g} % while it moves "
                    "clearly beyond its noise")

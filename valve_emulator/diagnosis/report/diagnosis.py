@@ -12,11 +12,15 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
+from valve_emulator.diagnosis.assess.action import Action, recommend
+from valve_emulator.diagnosis.assess.adequacy import Cycle, adequacy, cycle
+from valve_emulator.diagnosis.assess.decision import strength_with_model
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, robust_range
@@ -94,12 +98,54 @@ class Diagnosis:
 
     @property
     def strength(self) -> Strength | None:
-        """For a stiction answer on plant data, whether it survives a drifting-load noise model."""
-        return None if self.assessment is None else self.assessment.strength
+        """How strong a stiction answer is (None for other answers): on plant data, whether it survives a
+        drifting-load noise model; with a model, :func:`~valve_emulator.diagnosis.assess.decision.
+        strength_with_model`."""
+        if self.assessment is not None:
+            return self.assessment.strength
+        if self.friction is None:
+            return None
+        return strength_with_model(self.friction, adequacy(self.recording).facts, self.fit_before, self.fit_after)
 
     @property
     def findings(self) -> tuple[Finding, ...]:
-        return () if self.explanation is None else self.explanation.findings
+        """What the model leaves out, in agreement with the answer: a valve-friction finding only under a
+        stiction answer (a band inside OP noise, or a call the record cannot tell, is said in the reasons)."""
+        found = () if self.explanation is None else self.explanation.findings
+        if self.assessment is None or self.assessment.decision is Answer.STICTION:
+            return found
+        return tuple(f for f in found if f.physics not in VALVE_FRICTION)
+
+    @property
+    def cause(self) -> str:
+        """The physics behind the answer: on plant data the assessment's; with a model the valve friction, else
+        the first finding, else ``linear``."""
+        if self.assessment is not None:
+            return self.assessment.cause
+        first = self.friction or next(iter(self.findings), None)
+        return "linear" if first is None else first.physics
+
+    @cached_property
+    def oscillation(self) -> Cycle:
+        """The loop's oscillation summary (period, PV and OP swings, regularity), or no oscillation."""
+        return cycle(self.recording)
+
+    @cached_property
+    def action(self) -> Action:
+        """What to do next (:func:`~valve_emulator.diagnosis.assess.action.recommend`)."""
+        codes = tuple(code for code, _ in self.reasons)
+        tuning = None if self.assessment is None else self.assessment.tuning
+        return recommend(self.answer, self.cause, codes, self.oscillation, friction=self._friction_words(),
+                         tuning=tuning)
+
+    def _friction_words(self) -> str:
+        """S and J with their intervals, in % of travel when known, else in OP's units."""
+        doc = _friction_json(self.friction, self.frame)
+        if doc is None:
+            return ""
+        figures = doc["travel"] or doc
+        return "; ".join(f"{k} ≈ {figures[k]['value']:.3g} {figures[k]['units']} (95 % "
+                         f"{figures[k]['interval'][0]:.3g}–{figures[k]['interval'][1]:.3g})" for k in ("S", "J"))
 
     @property
     def fit_before(self) -> float | None:
@@ -165,31 +211,42 @@ class Diagnosis:
     def to_json(self) -> dict:
         """The ``diagnose --json`` document, valid against :data:`~valve_emulator.diagnosis.report.schema.SCHEMA`:
         ``answer``, ``strength``, ``reasons`` (``code``, ``sentence``), ``friction`` (the valve-friction
-        estimate with 95 % intervals and units, or null), ``source``, then ``fit_before``, ``fit_after``,
-        ``findings`` and ``verdict``."""
+        estimate with 95 % intervals and units, or null), ``source``, ``action`` (``code``, ``words``),
+        ``oscillation`` (the summary, :class:`~valve_emulator.diagnosis.assess.adequacy.Cycle`), then
+        ``fit_before``, ``fit_after``, ``findings`` and ``verdict``."""
         base = self.assessment.to_json() if self.assessment is not None else self.explanation.to_json()
+        base["findings"] = [f.to_json() for f in self.findings]
         strength = self.strength
         head = {"answer": str(self.answer), "strength": None if strength is None else str(strength),
                 "reasons": [{"code": str(c), "sentence": s} for c, s in self.reasons],
-                "friction": _friction_json(self.friction, self.frame), "source": self.source}
+                "friction": _friction_json(self.friction, self.frame), "source": self.source,
+                "action": self.action.to_json(), "oscillation": self.oscillation.to_json()}
         return {**head, **base}
 
     def report(self, *, figure: str | None = None) -> str:
         """A Markdown report (``figure``: a path to link, relative to the report), with the notes on the data."""
         text = (self.assessment or self.explanation).report(figure=figure)
-        if self.notes:
-            lines = "".join(f"- note: {n}\n" for n in self.notes)
-            text = text.replace("\n\n", "\n\n" + lines + "\n", 1)
-        return text
+        strength = "" if self.strength is None else f" ({self.strength} evidence)"
+        lines = [f"**Action:** {self.action.words}.", "", f"- answer: {self.answer.words}{strength}",
+                 f"- {self.oscillation.words}", *(f"- note: {n}" for n in self.notes)]
+        head, sep, rest = text.partition("\n\n")         # the title, then the answer's (or verdict's) paragraph
+        answer, sep2, rest = rest.partition("\n\n")
+        return head + sep + answer + sep2 + "\n".join(lines) + "\n\n" + rest
 
     def plot(self, path: str | os.PathLike, *, title: str | None = None) -> None:
-        """Write the figure (PNG): the diagnosis' four panels, or, when the data could not support a model,
-        the loop's data and the reason."""
+        """Write the figure (PNG): the raw OP/PV trend, the phase plot, the answer with its oscillation summary
+        and action, then the diagnosis' four panels; or, when the data could not support a model, the loop's
+        data and the reason."""
+        strength = "" if self.strength is None else f" ({self.strength} evidence)"
+        words = self.oscillation.words
+        summary = (words[0].upper() + words[1:], f"Action: {self.action.words}")
+        title = self.source if title is None else title
         if self.explanation is not None:
             from valve_emulator.diagnosis.report.plot import plot_diagnosis
 
-            plot_diagnosis(self.explanation, path)
+            plot_diagnosis(self.explanation, path, recording=self.recording,
+                           summary=(f"Answer: {self.answer.words}{strength}", *summary), title=title)
         else:
             from valve_emulator.diagnosis.report.plot_loop import plot_loop
 
-            plot_loop(self.recording, self.assessment, path, title=self.source if title is None else title)
+            plot_loop(self.recording, self.assessment, path, title=title, summary=summary)

@@ -1,7 +1,10 @@
 r"""The diagnosis figure (PNG; drawn on a :class:`matplotlib.figure.Figure` of its own, so it needs no display
 and leaves pyplot and the caller's backend alone).
 
-Four panels:
+With the recording (:meth:`~valve_emulator.diagnosis.report.diagnosis.Diagnosis.plot`), the figure opens with
+what every loop-monitoring user reads first: the raw OP, PV (and SP) trend over the whole record, and the
+PV–OP phase plot (MV–OP when the recording has the valve position; a sticky valve draws a parallelogram, a
+linear valve a line), beside the answer, its oscillation summary and the recommended action. Then four panels:
 
 1. the nominal model's residual (plant data: the identified linear model's) over the whole record, the
    located windows shaded, the held-out part marked;
@@ -14,6 +17,7 @@ Four panels:
 from __future__ import annotations
 
 import os
+import textwrap
 
 import numpy as np
 from matplotlib.colors import LogNorm
@@ -22,8 +26,9 @@ from matplotlib.figure import Figure
 from valve_emulator.detectors.base import oscillation
 from valve_emulator.diagnosis.explain.result import Explanation
 from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame
+from valve_emulator.recordings.recording import Recording
 
-__all__ = ["op_units", "plot_diagnosis"]
+__all__ = ["op_units", "plot_diagnosis", "plot_trend", "plot_phase"]
 
 # Samples the PV panel shows of the held-out part when OP does not cycle (else a few cycles of it).
 _SHOW = 600
@@ -45,12 +50,55 @@ def _shown(period: float | None, cycles: int, otherwise: int) -> int:
     return int(np.ceil(cycles * period)) if period is not None else otherwise
 
 
-def plot_diagnosis(d: Explanation, path: str | os.PathLike) -> None:
-    """Write the four-panel figure of ``d`` to ``path`` (PNG)."""
+def plot_trend(ax, rec: Recording, op_label: str) -> list:
+    """OP (left axis), PV and SP (right axis) over the whole record; returns the lines for a legend."""
+    ax.plot(rec.t, rec.op, color="tab:blue", lw=0.8, label=op_label)
+    ax.set(xlabel="t (s)", ylabel=op_label)
+    ax2 = ax.twinx()
+    ax2.plot(rec.t, rec.pv, color="tab:red", lw=0.8, label="PV")
+    if rec.has_sp:
+        ax2.plot(rec.t, rec.sp, color="k", ls="--", lw=0.7, label="SP")
+    ax2.set_ylabel("PV")
+    ax.set_title("The recording: OP, PV and SP", fontsize=10)
+    return ax.get_lines() + ax2.get_lines()
+
+
+def plot_phase(fig: Figure, ax, rec: Recording, op_label: str) -> None:
+    """The phase plot, coloured by time: MV against OP when the recording has the valve position, else PV
+    against OP."""
+    y, name = (rec.mv, "MV") if rec.mv is not None and np.all(np.isfinite(rec.mv)) else (rec.pv, "PV")
+    sc = ax.scatter(rec.op, y, c=rec.t, s=3, cmap="viridis")
+    ax.plot(rec.op, y, color="0.75", lw=0.3, zorder=0)
+    fig.colorbar(sc, ax=ax, label="t (s)")
+    ax.set(xlabel=op_label, ylabel=name, title=f"{name} against OP (phase plot)")
+
+
+def _summary(ax, lines: tuple[str, ...]) -> None:
+    """A text panel: the answer, the oscillation summary, the action."""
+    text = "\n\n".join("\n".join(textwrap.wrap(line, 62)) for line in lines)
+    ax.text(0.0, 1.0, text, ha="left", va="top", fontsize=9, transform=ax.transAxes)
+    ax.set_axis_off()
+
+
+def plot_diagnosis(d: Explanation, path: str | os.PathLike, *, recording: Recording | None = None,
+                   summary: tuple[str, ...] = (), title: str = "") -> None:
+    """Write the figure of ``d`` to ``path`` (PNG): with ``recording``, the trend, the phase plot and the
+    ``summary`` lines first, then the four panels."""
     tr = d.traces
-    fig = Figure(figsize=(13, 8.5), constrained_layout=True)
-    axes = fig.subplots(2, 2)
-    fig.suptitle(d.verdict, fontsize=10)
+    top = recording is not None
+    fig = Figure(figsize=(13, 14.5 if top else 8.5), constrained_layout=True)
+    grid = fig.add_gridspec(4 if top else 2, 2, height_ratios=(0.9, 1.0, 1.0, 1.0) if top else (1.0, 1.0))
+    if top:
+        units = op_units(d.fitted.frame if d.fitted is not None else None)
+        op_label = f"OP ({units})"
+        ax = fig.add_subplot(grid[0, :])
+        handles = plot_trend(ax, recording, op_label)
+        ax.legend(handles, [h.get_label() for h in handles], fontsize=8, loc="upper left")
+        plot_phase(fig, fig.add_subplot(grid[1, 0]), recording, op_label)
+        _summary(fig.add_subplot(grid[1, 1]), summary)
+    axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(2)] for r in ((2, 3) if top else (0, 1))])
+    head = (title + "\n" if title else "") + "\n".join(textwrap.wrap(d.verdict, 150))
+    fig.suptitle(head, fontsize=10 if not top else 9)
 
     ax = axes[0, 0]
     ax.plot(tr.t, tr.pv - tr.pv_before, lw=0.6, color="tab:red")

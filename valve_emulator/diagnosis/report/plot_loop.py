@@ -5,7 +5,8 @@ Three panels:
 
 1. OP (left axis) and PV with its set point (right axis) over time — where a stuck valve, a cycle or a
    flat PV shows; shaded, the half a record was answered on when one model explains neither the whole;
-2. PV against OP, coloured by time — a sticky valve draws a parallelogram, a linear valve a line;
+2. PV against OP (MV against OP when the valve position is recorded), coloured by time — a sticky valve
+   draws a parallelogram, a linear valve a line;
 3. the recorded PV against the final model's replay (and the linear model's) when there is a diagnosis,
    otherwise the refusal's reason.
 
@@ -22,14 +23,16 @@ from matplotlib.figure import Figure
 
 from valve_emulator.diagnosis.answers import Reason
 from valve_emulator.diagnosis.assess.result import Assessment
-from valve_emulator.diagnosis.report.plot import op_units
+from valve_emulator.diagnosis.report.plot import op_units, plot_phase, plot_trend
 from valve_emulator.recordings.recording import Recording
 
 __all__ = ["plot_loop"]
 
 
-def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: str = "") -> None:
-    """Write the three-panel figure of ``a`` (on recording ``rec``) to ``path``."""
+def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: str = "",
+              summary: tuple[str, ...] = ()) -> None:
+    """Write the three-panel figure of ``a`` (on recording ``rec``) to ``path``; ``summary`` lines (the
+    oscillation summary, the action) join the refusal's reason."""
     fig = Figure(figsize=(13, 8.5), constrained_layout=True)
     grid = fig.add_gridspec(2, 2, height_ratios=(1.0, 1.1))
     head = (title + "\n" if title else "") + "\n".join(textwrap.wrap(a.statement, 150))
@@ -38,30 +41,20 @@ def plot_loop(rec: Recording, a: Assessment, path: str | os.PathLike, *, title: 
     # Without a model (a refused record) nothing says what OP's units are: the recording's own.
     op_label = f"OP ({op_units(a.frame)})" if a.frame is not None else "OP"
     ax = fig.add_subplot(grid[0, :])
-    ax.plot(rec.t, rec.op, color="tab:blue", lw=0.8, label=op_label)
-    ax.set(xlabel="t (s)", ylabel=op_label)
-    ax2 = ax.twinx()
-    ax2.plot(rec.t, rec.pv, color="tab:red", lw=0.8, label="PV")
-    if rec.has_sp:
-        ax2.plot(rec.t, rec.sp, color="k", ls="--", lw=0.7, label="SP")
-    ax2.set_ylabel("PV")
-    handles = ax.get_lines() + ax2.get_lines()
+    handles = plot_trend(ax, rec, op_label)
     if a.explanation is not None and Reason.PART_OF_RECORD in a.codes:
         t = a.explanation.traces.t
         handles.append(ax.axvspan(t[0], t[-1], color="tab:green", alpha=0.08, label="the part answered"))
     ax.legend(handles, [h.get_label() for h in handles], fontsize=8, loc="upper left")
-    ax.set_title("The recording", fontsize=10)
 
-    ax = fig.add_subplot(grid[1, 0])
-    sc = ax.scatter(rec.op, rec.pv, c=rec.t, s=4, cmap="viridis")
-    fig.colorbar(sc, ax=ax, label="t (s)")
-    ax.set(xlabel=op_label, ylabel="PV", title="PV against OP")
+    plot_phase(fig, fig.add_subplot(grid[1, 0]), rec, op_label)
 
     ax = fig.add_subplot(grid[1, 1])
     d = a.explanation
     if d is None:
-        ax.text(0.5, 0.5, "\n".join(textwrap.wrap(f"no model: {a.reason}", 60)), ha="center", va="center",
-                transform=ax.transAxes, fontsize=9)
+        lines = (f"no model: {a.reason}", *summary)
+        ax.text(0.5, 0.5, "\n\n".join("\n".join(textwrap.wrap(line, 60)) for line in lines), ha="center",
+                va="center", transform=ax.transAxes, fontsize=9)
         ax.set_axis_off()
     else:
         tr = d.traces
