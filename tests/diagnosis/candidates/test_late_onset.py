@@ -1,0 +1,51 @@
+"""A chain candidate acting from an onset on: healthy before it, the candidate's own physics started there."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from valve_emulator.diagnosis.candidates import ChainContext, get
+from valve_emulator.diagnosis.candidates.base import LateOnset
+
+T = 600
+OP = 50.0 + 6.0 * np.sin(np.linspace(0.0, 12 * np.pi, T))
+CTX = ChainContext(dt=0.5, op=OP, op_span=12.0)
+STICTION = get("stiction")
+
+
+def test_before_the_onset_the_slot_passes_op_through_and_from_it_the_valve_sticks():
+    late = LateOnset(STICTION)
+    rows = LateOnset.with_onset(np.array([[3.0, 1.0, 2.0]]), 100.0)   # onset at 100 s = sample 200
+    mv = late.apply(OP, rows, CTX)[:, 0]
+    np.testing.assert_array_equal(mv[:200], OP[:200])
+    inner = STICTION.apply(OP[200:], np.array([[3.0, 1.0, 2.0]]), CTX)[:, 0]
+    np.testing.assert_array_equal(mv[200:], inner)
+    assert np.abs(mv[200:] - OP[200:]).max() > 1.0   # it does stick after the onset
+
+
+def test_rows_with_different_onsets_each_start_their_own_valve():
+    late = LateOnset(STICTION)
+    rows = LateOnset.with_onset(np.array([[3.0, 1.0, 2.0]] * 3), np.array([0.0, 50.0, 300.0]))
+    mv = late.apply(OP, rows, CTX)
+    np.testing.assert_array_equal(mv[:, 0], STICTION.apply(OP, rows[:1, :3], CTX)[:, 0])
+    np.testing.assert_array_equal(mv[:100, 1], OP[:100])
+    np.testing.assert_array_equal(mv[:, 2], OP)   # an onset at the record's end: a healthy valve throughout
+
+
+def test_a_late_finding_reports_its_onset_and_counts_it_as_a_parameter():
+    late = LateOnset(STICTION)
+    p = np.array([3.0, 1.0, 2.0, 812.34])
+    assert late.name == "stiction" and late.slot == "valve" and late.twin_role is STICTION.twin_role
+    assert late.n_params == STICTION.n_params + 1
+    assert late.parameters(p) == {"S": 3.0, "J": 1.0, "onset_s": 812.3}
+    assert "from t ≈ 812.3 s" in late.describe(p)
+
+
+def test_the_refinement_moves_the_onset_and_keeps_its_centre():
+    late = LateOnset(STICTION)
+    best = np.array([3.0, 1.0, 2.0, 120.0])
+    fine = late.refine(CTX, best)
+    assert fine.shape[1] == 4
+    assert np.any(np.all(fine == best, axis=1))
+    onsets = np.unique(fine[:, 3])
+    assert onsets.min() < 120.0 < onsets.max() and np.all(onsets >= 0.0)
