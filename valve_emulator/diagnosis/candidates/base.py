@@ -45,8 +45,8 @@ import numpy as np
 
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 
-__all__ = ["SLOTS", "KINDS", "Kind", "TwinRole", "Candidate", "ChainCandidate", "LateOnset", "DelayCandidate",
-           "OutputCandidate", "LoopCandidate", "ChainContext", "register", "registry", "get"]
+__all__ = ["SLOTS", "KINDS", "Kind", "TwinRole", "Candidate", "ChainCandidate", "DelayCandidate", "OutputCandidate",
+           "LoopCandidate", "ChainContext", "register", "registry", "get"]
 
 #: Positions, in signal order. At most one candidate per slot is active in a model.
 SLOTS: Final = ("actuator", "valve", "characteristic", "limit", "delay", "output", "loop")
@@ -259,8 +259,8 @@ class ChainCandidate(Candidate):
     #: log scale (:meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.joint_polish`).
     joint_with_poles: ClassVar[bool] = False
     #: The physics may begin part-way through a record (a valve that starts to stick): the search then also
-    #: fits it as :class:`LateOnset`, acting only from an onset time on
-    #: (:mod:`~valve_emulator.diagnosis.explain.onset`).
+    #: fits it as acting only from an onset time on
+    #: (:class:`~valve_emulator.diagnosis.explain.onset.LateOnset`).
     may_start_late: ClassVar[bool] = False
 
     @abstractmethod
@@ -275,83 +275,6 @@ class ChainCandidate(Candidate):
         """Rows varying parameter ``axis`` finely around ``best`` (for :attr:`threshold_axes` only; a candidate
         with threshold axes overrides it)."""
         return best[None, :]
-
-
-class LateOnset(ChainCandidate):
-    """A chain candidate that acts only from an onset time on: before it its slot passes the signal through, as
-    a healthy element does; from it on the candidate acts, its state started afresh at the onset sample.
-
-    Its parameter vector is the inner candidate's followed by ``onset`` (s from the record's first sample),
-    counted by BIC; its name, slot, units and twin role are the inner candidate's, so a finding of it is the
-    inner physics with ``onset_s`` among its parameters. Its grids are the inner candidate's at a given onset
-    (the onset is searched by :mod:`~valve_emulator.diagnosis.explain.onset`); its refinement also moves the
-    onset, by :attr:`onset_step` times the record's length.
-    """
-
-    #: The onset refinement's step, as a fraction of the record's length (±4 steps around the best).
-    onset_step: ClassVar[float] = 1.0 / 160.0
-
-    def __init__(self, inner: ChainCandidate) -> None:
-        self.inner = inner
-        self.name = inner.name
-        self.slot = inner.slot
-        self.param_names = (*inner.param_names, "onset")
-        self.n_params = inner.n_params + 1
-        self.dims = inner.dims
-        self.cause_rank = inner.cause_rank
-        self.needs_span = inner.needs_span
-        self.twin_role = inner.twin_role
-        self.threshold_axes = inner.threshold_axes
-
-    @staticmethod
-    def with_onset(rows: np.ndarray, onset: float | np.ndarray) -> np.ndarray:
-        """The inner candidate's parameter rows with an onset column (one value, or one per row)."""
-        rows = np.atleast_2d(rows)
-        return np.column_stack([rows, np.broadcast_to(np.asarray(onset, dtype=float), (rows.shape[0],))])
-
-    def _at(self, rows: np.ndarray, best: np.ndarray) -> np.ndarray:
-        return self.with_onset(rows, best[-1])
-
-    def grid(self, ctx: ChainContext) -> np.ndarray:
-        return self.with_onset(self.inner.grid(ctx), 0.0)
-
-    def scan(self, ctx: ChainContext) -> np.ndarray | None:
-        rows = self.inner.scan(ctx)
-        return None if rows is None else self.with_onset(rows, 0.0)
-
-    def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
-        h = self.onset_step * ctx.op.size * ctx.dt
-        onsets = best[-1] + h * np.arange(-4, 5)
-        along = self.with_onset(np.repeat(best[None, :-1], onsets.size, axis=0), onsets)
-        return np.vstack([self._at(self.inner.refine(ctx, best[:-1]), best), along[along[:, -1] >= 0.0]])
-
-    def profile_grid(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
-        return self._at(self.inner.profile_grid(ctx, best[:-1]), best)
-
-    def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
-        return self._at(self.inner.line(ctx, best[:-1], axis), best)
-
-    def burn_in(self, ctx: ChainContext) -> int:
-        return self.inner.burn_in(ctx)
-
-    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
-        x = np.asarray(x, dtype=float)
-        T, n = x.shape[0], params.shape[0]
-        starts = np.clip(np.round(params[:, -1] / ctx.dt).astype(np.int64), 0, T)
-        out = np.empty((T, n))
-        for k0 in np.unique(starts):
-            rows = np.flatnonzero(starts == k0)
-            xs = x if x.ndim == 1 else x[:, rows]
-            out[:, rows] = xs[:, None] if x.ndim == 1 else xs
-            if T - k0 >= 2:  # the inner candidate acts from the onset sample on, started there
-                out[k0:, rows] = self.inner.apply(xs[k0:], params[rows, :-1], ctx)
-        return out
-
-    def parameters(self, p: np.ndarray) -> dict:
-        return {**self.inner.parameters(p[:-1]), "onset_s": round(float(p[-1]), 1)}
-
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
-        return f"{self.inner.describe(p[:-1], nominal, units)}, from t ≈ {p[-1]:.4g} s on"
 
 
 class DelayCandidate(Candidate):

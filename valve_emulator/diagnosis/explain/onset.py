@@ -4,7 +4,7 @@ A valve can start to stick in the middle of a long record. Fitted over the whole
 must also explain the healthy part, where the valve followed OP: the fit settles on a smaller band, and what
 it leaves over is taken up by physics that is not there (a dead-time error, a characteristic). So for every
 candidate that :attr:`~valve_emulator.diagnosis.candidates.base.ChainCandidate.may_start_late`, the search
-also fits it as :class:`~valve_emulator.diagnosis.candidates.base.LateOnset`: the slot passes its signal
+also fits it as :class:`LateOnset`: the slot passes its signal
 through before an onset time ``t0`` and the candidate acts from ``t0`` on, its state started there.
 
 Fitting the onset (:func:`onset_option`)
@@ -14,11 +14,13 @@ Fitting the onset (:func:`onset_option`)
    the band trade off: a coarse grid over both, not a line search from the whole-record fit);
 2. **scan**: the candidate's global scan (fine in S for stiction) at the best onset;
 3. **refine**: the fitter's refinement of the candidate's parameters, its fine grid also moving the onset
-   by :attr:`~valve_emulator.diagnosis.candidates.base.LateOnset.onset_step` of the record (twice), the
-   threshold parameters centred.
+   by :attr:`LateOnset.onset_step` of the record (twice), the
+   threshold parameters centred. A late band below :data:`MIN_BAND` of the OP span is no onset (see
+   :func:`_material`).
 
 The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option in place of the
-whole-record one when it lowers BIC by the search's own threshold: the onset is one more parameter. (Measured on
+whole-record one when it lowers BIC by twice the search's own threshold: the onset is a change point, the
+best of many positions. (Measured on
 the independent ``late_onset`` loops: before a valve starts to stick the loop's OP moves little, and a sticky
 valve fits that part about as well as a healthy one, so BIC often cannot ask for the onset; preferring the
 late option whenever the whole-record one is not better by the threshold located wrong onsets as often as
@@ -32,18 +34,100 @@ credited with the healthy part.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import Candidate, ChainCandidate, LateOnset
+from valve_emulator.diagnosis.candidates.base import Candidate, ChainCandidate, ChainContext
 from valve_emulator.diagnosis.fit.data import Problem, fit_percent
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.records import Model, Option
 
-__all__ = ["ONSETS", "Onset", "onset_option", "acting_part", "onset_of"]
+__all__ = ["ONSETS", "MIN_BAND", "LateOnset", "Onset", "onset_option", "acting_part", "onset_of"]
 
-#: Onsets of the coarse stage, as fractions of the fit part (the physics acts on a tenth of it at least).
-ONSETS = tuple(np.round(np.linspace(0.1, 0.9, 17), 3))
+#: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
+#: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
+#: that began to stick there.
+ONSETS = tuple(np.round(np.linspace(0.1, 0.75, 14), 3))
+#: Least band (first OP-sized parameter) of a late fit, as a fraction of the OP span (see :func:`_material`).
+MIN_BAND = 0.05
+
+
+class LateOnset(ChainCandidate):
+    """A chain candidate that acts only from an onset time on: before it its slot passes the signal through, as
+    a healthy element does; from it on the candidate acts, its state started afresh at the onset sample.
+
+    Its parameter vector is the inner candidate's followed by ``onset`` (s from the record's first sample),
+    counted by BIC; its name, slot, units and twin role are the inner candidate's, so a finding of it is the
+    inner physics with ``onset_s`` among its parameters. Its grids are the inner candidate's at a given onset
+    (the onset is searched by :func:`onset_option`); its refinement also moves the
+    onset, by :attr:`onset_step` times the record's length.
+    """
+
+    #: The onset refinement's step, as a fraction of the record's length (±4 steps around the best).
+    onset_step: ClassVar[float] = 1.0 / 160.0
+
+    def __init__(self, inner: ChainCandidate) -> None:
+        self.inner = inner
+        self.name = inner.name
+        self.slot = inner.slot
+        self.param_names = (*inner.param_names, "onset")
+        self.n_params = inner.n_params + 1
+        self.dims = inner.dims
+        self.cause_rank = inner.cause_rank
+        self.needs_span = inner.needs_span
+        self.twin_role = inner.twin_role
+        self.threshold_axes = inner.threshold_axes
+
+    @staticmethod
+    def with_onset(rows: np.ndarray, onset: float | np.ndarray) -> np.ndarray:
+        """The inner candidate's parameter rows with an onset column (one value, or one per row)."""
+        rows = np.atleast_2d(rows)
+        return np.column_stack([rows, np.broadcast_to(np.asarray(onset, dtype=float), (rows.shape[0],))])
+
+    def _at(self, rows: np.ndarray, best: np.ndarray) -> np.ndarray:
+        return self.with_onset(rows, best[-1])
+
+    def grid(self, ctx: ChainContext) -> np.ndarray:
+        return self.with_onset(self.inner.grid(ctx), 0.0)
+
+    def scan(self, ctx: ChainContext) -> np.ndarray | None:
+        rows = self.inner.scan(ctx)
+        return None if rows is None else self.with_onset(rows, 0.0)
+
+    def refine(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
+        h = self.onset_step * ctx.op.size * ctx.dt
+        onsets = best[-1] + h * np.arange(-4, 5)
+        along = self.with_onset(np.repeat(best[None, :-1], onsets.size, axis=0), onsets)
+        return np.vstack([self._at(self.inner.refine(ctx, best[:-1]), best), along[along[:, -1] >= 0.0]])
+
+    def profile_grid(self, ctx: ChainContext, best: np.ndarray) -> np.ndarray:
+        return self._at(self.inner.profile_grid(ctx, best[:-1]), best)
+
+    def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
+        return self._at(self.inner.line(ctx, best[:-1], axis), best)
+
+    def burn_in(self, ctx: ChainContext) -> int:
+        return self.inner.burn_in(ctx)
+
+    def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        T, n = x.shape[0], params.shape[0]
+        starts = np.clip(np.round(params[:, -1] / ctx.dt).astype(np.int64), 0, T)
+        out = np.empty((T, n))
+        for k0 in np.unique(starts):
+            rows = np.flatnonzero(starts == k0)
+            xs = x if x.ndim == 1 else x[:, rows]
+            out[:, rows] = xs[:, None] if x.ndim == 1 else xs
+            if T - k0 >= 2:  # the inner candidate acts from the onset sample on, started there
+                out[k0:, rows] = self.inner.apply(xs[k0:], params[rows, :-1], ctx)
+        return out
+
+    def parameters(self, p: np.ndarray) -> dict:
+        return {**self.inner.parameters(p[:-1]), "onset_s": round(float(p[-1]), 1)}
+
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+        return f"{self.inner.describe(p[:-1], nominal, units)}, from t ≈ {p[-1]:.4g} s on"
 
 
 @dataclass(frozen=True)
@@ -74,6 +158,14 @@ def _coarse_rows(fitter: Fitter, cand: ChainCandidate, ctx) -> np.ndarray:
     return np.vstack([LateOnset.with_onset(inner, t0) for t0 in onsets])
 
 
+def _material(cand: ChainCandidate, params: np.ndarray, op_span: float) -> bool:
+    """Whether the late fit's first OP-sized parameter (a valve's band) is at least :data:`MIN_BAND` of the OP
+    span: a tiny band with a larger jump, acting late, walks with OP's noise and fits a slow drift near the end
+    of a record, not a valve that began to stick there."""
+    sized = [i for i, name in enumerate(cand.param_names) if cand.dims.get(name) == "op"]
+    return not sized or params[sized[0]] >= MIN_BAND * op_span
+
+
 def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option) -> Option | None:
     """``cand`` added to ``model`` acting from a fitted onset on (see the module docstring); None for a
     candidate that cannot start late or an option that frees the dead time with it."""
@@ -99,6 +191,8 @@ def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option) -
         row = scan[int(np.argmin(sse[:, 0]))]
         scan_surface = fitter.surface(cand.name, scan, sse[:, 0])
     r = fitter.refine(model, late, row, st, model.delay_free, joint=False)
+    if not _material(cand, r.active[cand.slot].params, ctx.op_span):
+        return None
     m = scorer.model(r.active, r.fit, model.delay_free, r.flow, target=aim.y)
     return Option(added=(cand.name,), model=m, coarse=None, scan=scan_surface, fine=r.fine)
 

@@ -95,13 +95,13 @@ class Search:
 
     def late_onsets(self, model: Model, cand: Candidate, options: list[Option]) -> list[Option]:
         """``options``, where physics that may start part-way acts from a fitted onset on
-        (:mod:`~valve_emulator.diagnosis.explain.onset`) when that lowers BIC by at least :data:`DELTA_BIC`
-        against acting over the whole record (the onset is one more parameter, and must earn it as any
-        addition does)."""
+        (:mod:`~valve_emulator.diagnosis.explain.onset`) when that lowers BIC by at least twice
+        :data:`DELTA_BIC` against acting over the whole record: the onset is a change point searched over the
+        record, and the best of many positions gains likelihood from noise alone more than one parameter does."""
         out = []
         for o in options:
             late = onset_option(self.fitter, model, cand, o)
-            out.append(late if late is not None and o.model.bic - late.model.bic >= DELTA_BIC else o)
+            out.append(late if late is not None and o.model.bic - late.model.bic >= 2 * DELTA_BIC else o)
         return out
 
     def round(self, model: Model, index: int) -> Round:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from valve_emulator.diagnosis.candidates import ChainContext, get
-from valve_emulator.diagnosis.candidates.base import LateOnset
+from valve_emulator.diagnosis.explain.onset import LateOnset
 
 T = 600
 OP = 50.0 + 6.0 * np.sin(np.linspace(0.0, 12 * np.pi, T))
