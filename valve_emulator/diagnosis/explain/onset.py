@@ -18,6 +18,10 @@ Fitting the onset (:func:`onset_option`)
    threshold parameters centred. A late band below :data:`MIN_BAND` of the OP span is no onset (see
    :func:`_material`).
 
+Only with a nominal model: without one the linear part is identified from the same record, and a band acting
+late trades off against it (on the shared plant windows it named a healthy level valve sticky, where the
+whole-record search did not).
+
 The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option in place of the
 whole-record one when it lowers BIC by twice the search's own threshold: the onset is a change point, the
 best of many positions. (Measured on
@@ -167,9 +171,9 @@ def _material(cand: ChainCandidate, params: np.ndarray, op_span: float) -> bool:
 
 
 def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option) -> Option | None:
-    """``cand`` added to ``model`` acting from a fitted onset on (see the module docstring); None for a
-    candidate that cannot start late or an option that frees the dead time with it."""
-    if not getattr(cand, "may_start_late", False) or plain.added != (cand.name,):
+    """``cand`` added to ``model`` acting from a fitted onset on (see the module docstring); None without a
+    nominal model, for a candidate that cannot start late or an option that frees the dead time with it."""
+    if not (fitter.nominal.given and getattr(cand, "may_start_late", False)) or plain.added != (cand.name,):
         return None
     late = LateOnset(cand)
     scorer = fitter.scorer
