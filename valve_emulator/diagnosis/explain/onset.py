@@ -9,6 +9,9 @@ through before an onset time ``t0`` and the candidate acts from ``t0`` on, its s
 
 Fitting the onset (:func:`onset_option`)
 ---------------------------------------
+It is fitted only where the residual says the physics may start late: the whole-record option's
+improvement lies mostly in the second half of the fit part (:data:`EARLY_SHARE`). Then:
+
 1. **coarse**: the candidate's coarse grid at each onset of :data:`ONSETS` fractions of the fit part, scored
    at the poles of the model being extended and of the candidate's own whole-record option (the onset and
    the band trade off: a coarse grid over both, not a line search from the whole-record fit);
@@ -47,12 +50,15 @@ from valve_emulator.diagnosis.fit.data import Problem, fit_percent
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.records import Model, Option
 
-__all__ = ["ONSETS", "MIN_BAND", "LateOnset", "Onset", "onset_option", "acting_part", "onset_of"]
+__all__ = ["ONSETS", "EARLY_SHARE", "MIN_BAND", "LateOnset", "Onset", "onset_option", "acting_part", "onset_of"]
 
 #: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
 #: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
 #: that began to stick there.
 ONSETS = tuple(np.round(np.linspace(0.1, 0.75, 14), 3))
+#: The onset is searched only when the whole-record option's improvement of the residual lies less than this
+#: share in the first half of the fit part (:func:`_early_share`; uniform physics puts about half there).
+EARLY_SHARE = 0.4
 #: Least band (first OP-sized parameter) of a late fit, as a fraction of the OP span (see :func:`_material`).
 MIN_BAND = 0.05
 
@@ -162,6 +168,15 @@ def _coarse_rows(fitter: Fitter, cand: ChainCandidate, ctx) -> np.ndarray:
     return np.vstack([LateOnset.with_onset(inner, t0) for t0 in onsets])
 
 
+def _early_share(problem: Problem, without: Model, plain: Model) -> float:
+    """Share of the whole-record option's improvement of the squared residual that lies in the first half of
+    the fit part (a change point in the residual: physics acting from the start improves both halves alike)."""
+    w0, w1 = problem.train
+    gain = ((problem.y - without.y_hat) ** 2 - (problem.y - plain.y_hat) ** 2)[w0:w1]
+    total = float(gain.sum())
+    return 1.0 if total <= 0.0 else float(gain[:gain.size // 2].sum()) / total
+
+
 def _material(cand: ChainCandidate, params: np.ndarray, op_span: float) -> bool:
     """Whether the late fit's first OP-sized parameter (a valve's band) is at least :data:`MIN_BAND` of the OP
     span: a tiny band with a larger jump, acting late, walks with OP's noise and fits a slow drift near the end
@@ -174,6 +189,8 @@ def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option) -
     """``cand`` added to ``model`` acting from a fitted onset on (see the module docstring); None without a
     nominal model, for a candidate that cannot start late or an option that frees the dead time with it."""
     if not (fitter.nominal.given and getattr(cand, "may_start_late", False)) or plain.added != (cand.name,):
+        return None
+    if _early_share(fitter.p, model, plain.model) >= EARLY_SHARE:
         return None
     late = LateOnset(cand)
     scorer = fitter.scorer
