@@ -36,6 +36,7 @@ class _CannedFitter:
 
     def __init__(self, base: Model, options: dict[tuple[tuple[str, ...], str], list[Option]]) -> None:
         self.scorer = SimpleNamespace(library=LIBRARY, p=SimpleNamespace(validation="split"), aim=lambda model: None)
+        self.nominal = SimpleNamespace(given=False)   # no late onsets are searched without a nominal model
         self._base, self._options, self.asked = base, options, []
 
     def base(self) -> Model:

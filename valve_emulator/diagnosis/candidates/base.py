@@ -267,6 +267,10 @@ class ChainCandidate(Candidate):
     #: (an actuator lag against a plant time constant): the fitter polishes them jointly with the poles, on a
     #: log scale (:meth:`~valve_emulator.diagnosis.fit.fitter.Fitter.joint_polish`).
     joint_with_poles: ClassVar[bool] = False
+    #: The physics may begin part-way through a record (a valve that starts to stick): the search then also
+    #: fits it as acting only from an onset time on
+    #: (:class:`~valve_emulator.diagnosis.explain.onset.LateOnset`).
+    may_start_late: ClassVar[bool] = False
 
     @abstractmethod
     def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:

@@ -59,6 +59,7 @@ class Stiction(ChainCandidate):
     dims: ClassVar[dict[str, str]] = {"S": "op", "J": "op"}
     twin_role: ClassVar[TwinRole | None] = TwinRole.VALVE_BAND
     threshold_axes: ClassVar[tuple[int, ...]] = (0, 1)
+    may_start_late: ClassVar[bool] = True
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         h = _coarse(ctx.op_span)

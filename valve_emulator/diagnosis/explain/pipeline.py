@@ -39,6 +39,7 @@ from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.explain.findings import findings, param_text, stiction_surface
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
+from valve_emulator.diagnosis.explain.onset import acting_part
 from valve_emulator.diagnosis.explain.prior import dead_time_move, nominal_gain, settle
 from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, RankRow, Traces
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
@@ -275,6 +276,7 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
                      response_time=horizon, masks=masks)
     say("estimating parameter intervals")
     found = findings(s.fitter, problem, model, rounds, masks, horizon, nom, frame)
+    found = acting_part(problem, model, pv_before, found)
     st = model.fit.structure
     plant = {"gain": model.fit.gain * problem.y_scale * frame.gain, "taus": tuple(st.taus), "delay": st.delay,
              "integrating": st.integrating, "validation": problem.validation}

@@ -3,7 +3,8 @@ r"""What the explain step found: findings, the JSON, the verdict sentence and th
 An :class:`Explanation` is a frozen record (the fitting machine is
 :class:`~valve_emulator.diagnosis.explain.search.Search`) that keeps the fitted model
 (:class:`~valve_emulator.diagnosis.fit.predict.FittedLoop`). :meth:`Explanation.to_json` returns exactly the
-keys ``fit_before``, ``fit_after``, ``findings`` (each ``physics``, ``parameters``, ``windows``, ``evidence``),
+keys ``fit_before``, ``fit_after``, ``findings`` (each ``physics``, ``parameters``, ``windows``, ``evidence``, and
+``onset`` for physics that starts part-way),
 ``verdict`` and, with a model, ``linear_part`` (whether each parameter of the nominal linear part moved:
 :class:`LinearMove`); everything else (intervals, rankings, the linear part's table) goes to
 :meth:`Explanation.report`.
@@ -16,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from valve_emulator.diagnosis.explain.locate import Located
+from valve_emulator.diagnosis.explain.onset import Onset
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 
 __all__ = ["Finding", "LinearMove", "RankRow", "Traces", "Explanation", "verdict"]
@@ -40,6 +42,8 @@ class Finding:
     edges : the parameters whose estimate sits on an edge of the range searched
         (:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`): name → (``"≥"`` or ``"≤"``, the
         edge). Such a parameter is a bound, not a value; its interval is open on the far side.
+    onset : for physics that starts part-way, when it starts and the fits where it acts
+        (:class:`~valve_emulator.diagnosis.explain.onset.Onset`); None when it acts from the start.
     """
 
     physics: str
@@ -53,10 +57,14 @@ class Finding:
     fit_with: float = 0.0
     load_delta_bic: float | None = None
     edges: dict = field(default_factory=dict)
+    onset: Onset | None = None
 
     def to_json(self) -> dict:
-        return {"physics": self.physics, "parameters": dict(self.parameters),
-                "windows": [[round(a, 6), round(b, 6)] for a, b in self.windows], "evidence": self.evidence}
+        out = {"physics": self.physics, "parameters": dict(self.parameters),
+               "windows": [[round(a, 6), round(b, 6)] for a, b in self.windows], "evidence": self.evidence}
+        if self.onset is not None:
+            out["onset"] = self.onset.to_json()
+        return out
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -38,6 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
+from valve_emulator.diagnosis.explain.onset import onset_option
 from valve_emulator.diagnosis.fit.crossval import with_cv
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
@@ -92,13 +93,24 @@ class Search:
         """``model`` with a held-out fit (two-fold validation computes it on demand)."""
         return model if self.scorer.p.validation == "split" else with_cv(self.scorer, model)
 
+    def late_onsets(self, model: Model, cand: Candidate, options: list[Option]) -> list[Option]:
+        """``options``, where physics that may start part-way acts from a fitted onset on
+        (:mod:`~valve_emulator.diagnosis.explain.onset`) when that lowers BIC by at least twice
+        :data:`DELTA_BIC` against acting over the whole record: the onset is a change point searched over the
+        record, and the best of many positions gains likelihood from noise alone more than one parameter does."""
+        out = []
+        for o in options:
+            late = onset_option(self.fitter, model, cand, o)
+            out.append(late if late is not None and o.model.bic - late.model.bic >= 2 * DELTA_BIC else o)
+        return out
+
     def round(self, model: Model, index: int) -> Round:
         """Every option that extends ``model`` by one candidate, and the one the rule accepts (if any)."""
         options: list[Option] = []
         cands = self._candidates(model)
         for c, cand in enumerate(cands):
             self.say(f"round {index}: {cand.name} ({c + 1}/{len(cands)})")
-            options += self.fitter.evaluate(model, cand)
+            options += self.late_onsets(model, cand, self.fitter.evaluate(model, cand))
         options.sort(key=lambda o: o.model.bic)
         model = self.validated(model)
         chosen = None

@@ -1,0 +1,91 @@
+"""A chain candidate acting from an onset on: healthy before it, the candidate's own physics started there."""
+
+from __future__ import annotations
+
+import jsonschema
+import numpy as np
+import pytest
+
+from valve_emulator import diagnose
+from valve_emulator.benchmark.independent import (
+    Controller,
+    Load,
+    Loop,
+    Measurement,
+    Plant,
+    Valve,
+    nominal_mapping,
+    simulate,
+)
+from valve_emulator.config import loop_from_mapping
+from valve_emulator.diagnosis.candidates import ChainContext, get
+from valve_emulator.diagnosis.explain.onset import LateOnset
+from valve_emulator.diagnosis.report.schema import schema
+
+T = 600
+OP = 50.0 + 6.0 * np.sin(np.linspace(0.0, 12 * np.pi, T))
+CTX = ChainContext(dt=0.5, op=OP, op_span=12.0)
+STICTION = get("stiction")
+
+
+def test_before_the_onset_the_slot_passes_op_through_and_from_it_the_valve_sticks():
+    late = LateOnset(STICTION)
+    rows = LateOnset.with_onset(np.array([[3.0, 1.0, 2.0]]), 100.0)   # onset at 100 s = sample 200
+    mv = late.apply(OP, rows, CTX)[:, 0]
+    np.testing.assert_array_equal(mv[:200], OP[:200])
+    inner = STICTION.apply(OP[200:], np.array([[3.0, 1.0, 2.0]]), CTX)[:, 0]
+    np.testing.assert_array_equal(mv[200:], inner)
+    assert np.abs(mv[200:] - OP[200:]).max() > 1.0   # it does stick after the onset
+
+
+def test_rows_with_different_onsets_each_start_their_own_valve():
+    late = LateOnset(STICTION)
+    rows = LateOnset.with_onset(np.array([[3.0, 1.0, 2.0]] * 3), np.array([0.0, 50.0, 300.0]))
+    mv = late.apply(OP, rows, CTX)
+    np.testing.assert_array_equal(mv[:, 0], STICTION.apply(OP, rows[:1, :3], CTX)[:, 0])
+    np.testing.assert_array_equal(mv[:100, 1], OP[:100])
+    np.testing.assert_array_equal(mv[:, 2], OP)   # an onset at the record's end: a healthy valve throughout
+
+
+def test_a_late_finding_reports_its_onset_and_counts_it_as_a_parameter():
+    late = LateOnset(STICTION)
+    p = np.array([3.0, 1.0, 2.0, 812.34])
+    assert late.name == "stiction" and late.slot == "valve" and late.twin_role is STICTION.twin_role
+    assert late.n_params == STICTION.n_params + 1
+    assert late.parameters(p) == {"S": 3.0, "J": 1.0, "onset_s": 812.3}
+    assert "from t ≈ 812.3 s" in late.describe(p)
+
+
+def test_the_refinement_moves_the_onset_and_keeps_its_centre():
+    late = LateOnset(STICTION)
+    best = np.array([3.0, 1.0, 2.0, 120.0])
+    fine = late.refine(CTX, best)
+    assert fine.shape[1] == 4
+    assert np.any(np.all(fine == best, axis=1))
+    onsets = np.unique(fine[:, 3])
+    assert onsets.min() < 120.0 < onsets.max() and np.all(onsets >= 0.0)
+
+
+@pytest.mark.slow
+def test_a_valve_that_starts_to_stick_part_way_is_found_from_its_onset_on():
+    """Known truth, from the independent simulator (a continuous FOPDT plant, a data-driven sticky valve, a SIMC PI
+    one sample late, a wandering load): S = 4 %, J = 2 % from t = 1500 s of a 3000 s record, the exact nominal
+    linear part. The first finding is stiction with S within 25 % and its onset within a tenth of the record,
+    and the fit from the onset on rises."""
+    steps = ((251.63787441938956, 48.2714394731882), (851.6378744193896, 51.187901073366604),
+             (1451.6378744193896, 48.944853372666934), (2051.6378744193894, 48.72503063209396),
+             (2651.6378744193894, 48.34256698512441))
+    loop = Loop(plant=Plant(kind="fopdt", gain=1.5, tau=20.0, delay=3.0),
+                valve=Valve(friction="data_driven", S=4.0, J=2.0, onset=1500.0),
+                controller=Controller(kc=1.3101110124466333, ti=20.0, action="reverse", sp_steps=steps),
+                load=(Load("filtered", size=0.3, tau=50.0),), measurement=Measurement(noise=0.05), dt=1.0,
+                duration=3000.0, seed=2)
+    rec, _ = simulate(loop)
+    doc = diagnose(rec, loop_from_mapping(nominal_mapping(loop, "late"))).to_json()
+    jsonschema.validate(doc, schema())
+    assert doc["answer"] == "stiction" and doc["findings"][0]["physics"] == "stiction"
+    finding = doc["findings"][0]
+    assert finding["parameters"]["S"] == pytest.approx(4.0, rel=0.25)
+    onset = finding["onset"]
+    assert abs(onset["onset_s"] - 1500.0) <= 300.0
+    assert onset["fit_after"] > onset["fit_before"] + 10.0
