@@ -77,7 +77,7 @@ def score(doc: dict, truth: dict) -> dict:
     tuning = _names_tuning(doc)
     correct = answer == truth["expected"] and (tuning or not truth["tuning"])
     has_friction = friction is not None or any(f["physics"] in FRICTION for f in doc.get("findings") or ())
-    row = {"answer": answer, "correct": correct, "tuning": tuning, "strength": doc["strength"],
+    row = {"answer": answer, "correct": correct, "tuning": tuning, "strength": doc.get("strength"),
            "disagree": (answer == "stiction") != has_friction, "reasons": [r["code"] for r in doc["reasons"]],
            "findings": [f["physics"] for f in doc.get("findings") or ()]}
     if friction is not None and friction["travel"] is not None:

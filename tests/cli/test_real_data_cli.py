@@ -60,7 +60,7 @@ def test_diagnose_a_jittered_recorder_file_resamples_says_so_and_finds_stiction(
     assert "— answer: stiction: " in lines[1] and "S ≈" in lines[1]
     data = json.loads(out.read_text(encoding="utf-8"))
     assert list(data) == ["answer", "strength", "reasons", "friction", "source", "action", "oscillation",
-                          "fit_before", "fit_after", "findings", "verdict"]
+                          "fit_before", "fit_after", "findings", "verdict", "identification"]
     assert data["answer"] == "stiction" and data["strength"] in ("strong", "weak")
     S = data["friction"]["S"]
     assert S["interval"][0] <= S["value"] <= S["interval"][1]
