@@ -39,6 +39,7 @@ from valve_emulator.diagnosis.assess.margins import explain_with_tuning
 from valve_emulator.diagnosis.fit.closed_loop import Declared
 from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.report.diagnosis import Diagnosis
+from valve_emulator.errors import UserError
 from valve_emulator.recordings import MAX_GAP, Recording, RecordingError, read_recording, regularize
 
 __all__ = ["diagnose", "ARRAYS"]
@@ -159,7 +160,7 @@ def _declared_span(op_range: Sequence[float] | None) -> Frame | None:
     if op_range is None:
         return None
     if len(op_range) != 2:
-        raise ValueError(f"op_range must be (LO, HI), OP's values at 0 and 100 % travel; got {op_range!r}")
+        raise UserError(f"op_range must be (LO, HI), OP's values at 0 and 100 % travel; got {op_range!r}")
     return Frame.travel_percent((float(op_range[0]), float(op_range[1])), source="op_range")
 
 

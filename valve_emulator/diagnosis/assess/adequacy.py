@@ -117,13 +117,10 @@ def adequacy(rec: Recording) -> Adequacy:
                             Reason.NO_RESPONSE)
         return Adequacy(False, f"{flat}; a seized valve, a closed block valve, a dead transmitter or a frozen "
                                "archive look the same", facts, Reason.FLAT_PV)
-    signals = [pv, op]
     sp_changes = 0
     if rec.has_sp and np.all(np.isfinite(rec.sp)):
-        sp = np.asarray(rec.sp, dtype=float)
-        sp_changes = int(np.count_nonzero(np.diff(sp) != 0.0))
-        signals.insert(0, sp - pv)
-    osc = max((oscillation(x) for x in signals), key=lambda o: o.regularity if o.regular else -1.0)
+        sp_changes = int(np.count_nonzero(np.diff(np.asarray(rec.sp, dtype=float)) != 0.0))
+    _, osc = most_regular(rec)
     facts["regularity"], facts["period"] = osc.regularity, osc.period * rec.dt
     facts["oscillating"] = bool(osc.regular)
     facts["sp_changes"] = sp_changes
@@ -177,6 +174,17 @@ class Cycle:
                 "op_amplitude": num(self.op_amplitude), "signal": self.signal or None, "words": self.words}
 
 
+def most_regular(rec: Recording):
+    """The regularity test (Thornhill, Huang & Zhang 2003) on SP − PV (when a set point is recorded), PV and OP:
+    ``(name, result)`` of the most regular of them (the first on a tie), regular or not."""
+    pv, op = np.asarray(rec.pv, dtype=float), np.asarray(rec.op, dtype=float)
+    signals = {"PV": pv, "OP": op}
+    if rec.has_sp and np.all(np.isfinite(rec.sp)):
+        signals = {"SP − PV": np.asarray(rec.sp, dtype=float) - pv, **signals}
+    tests = {name: oscillation(x) for name, x in signals.items()}
+    return max(tests.items(), key=lambda kv: kv[1].regularity if kv[1].regular else -1.0)
+
+
 def _swing(x: np.ndarray, samples: int) -> float:
     """Half the peak-to-peak swing of a cycle ``samples`` long in ``x``: √2 × the standard deviation of ``x``
     less its centred moving mean over one period (exact for a sine)."""
@@ -190,11 +198,7 @@ def cycle(rec: Recording) -> Cycle:
     """The oscillation summary of ``rec``: the regularity test on SP − PV (with a set point), PV and OP, the most
     regular of them, and the swings of PV and OP at its period."""
     pv, op = np.asarray(rec.pv, dtype=float), np.asarray(rec.op, dtype=float)
-    signals = {"PV": pv, "OP": op}
-    if rec.has_sp and np.all(np.isfinite(rec.sp)):
-        signals = {"SP − PV": np.asarray(rec.sp, dtype=float) - pv, **signals}
-    tests = {name: oscillation(x) for name, x in signals.items()}
-    name, osc = max(tests.items(), key=lambda kv: kv[1].regularity if kv[1].regular else -1.0)
+    name, osc = most_regular(rec)
     if not osc.regular:
         return Cycle(False, float(osc.regularity), float("nan"))
     samples = int(round(osc.period))

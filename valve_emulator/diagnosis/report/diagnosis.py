@@ -96,7 +96,7 @@ class Diagnosis:
             return self.assessment.decision
         return Answer.STICTION if any(f.physics in VALVE_FRICTION for f in self.findings) else Answer.NO_STICTION
 
-    @property
+    @cached_property
     def strength(self) -> Strength | None:
         """How strong a stiction answer is (None for other answers): on plant data, whether it survives a
         drifting-load noise model; with a model, :func:`~valve_emulator.diagnosis.assess.decision.
