@@ -25,6 +25,7 @@ from typing import Any, NoReturn
 
 import yaml
 
+from valve_emulator.config.register_map import parse_register_map
 from valve_emulator.config.schema import (
     DISTURBANCES,
     KEYS,
@@ -228,6 +229,15 @@ def _plant(ctx: _Context, value: Any, key: str) -> PlantConfig:
     return ctx.call(key, PlantConfig, num, den, delay=delay, **m)
 
 
+def _device_section(ctx: _Context, value: Any, allowed: tuple[str, ...]) -> dict:
+    """The ``device`` mapping, its ``register_map`` read with the file's lines (config/register_map.py)."""
+    m = ctx.section(value, "device", allowed)
+    if m.get("register_map") is not None:
+        m["register_map"] = parse_register_map(m["register_map"], "device.register_map", source=ctx.source,
+                                               line_of=ctx.line)
+    return m
+
+
 def _check_discretisation(ctx: _Context, plant: PlantConfig, dt: float, key: str) -> None:
     """Let the physics layer confirm it can discretise the plant at this dt (e.g. delay/dt not absurd)."""
     try:
@@ -267,7 +277,7 @@ def _single(ctx: _Context, data: Any, default_name: str) -> LoopConfig:
             if k in data:
                 ctx.fail(k, "{key} makes this a multi-loop (server) file; load it with load_server")
     top = ctx.section(data, "", KEYS[""], none_ok=False)
-    device = ctx.call("device", DeviceConfig, **ctx.section(top.get("device"), "device", KEYS["device"]))
+    device = ctx.call("device", DeviceConfig, **_device_section(ctx, top.get("device"), KEYS["device"]))
     return _loop(ctx, top, "", device=device, default_name=default_name)
 
 
@@ -350,7 +360,7 @@ def _server(ctx: _Context, data: Any, default_name: str) -> ServerConfig:
         loop = _single(ctx, data, default_name)
         return ServerConfig(dataclasses.replace(loop.device, unit=None), (loop,), source=ctx.source)
     top = ctx.section(data, "", KEYS["server"], none_ok=False)
-    dev = ctx.section(top.get("device"), "device", KEYS["device"])
+    dev = _device_section(ctx, top.get("device"), KEYS["device"])
     if "unit" in dev:
         ctx.fail("device.unit", "{key} is not allowed in a multi-loop file; give each loops[i].unit")
     device = ctx.call("device", DeviceConfig, unit=None, **dev)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import ipaddress
 import math
 import numbers
+from collections.abc import Mapping
 from dataclasses import KW_ONLY, dataclass, fields
 from enum import StrEnum
 from typing import Any
@@ -61,7 +62,7 @@ MAX_BLOCKS = 0x10000 // BLOCK_STRIDE
 
 _LOOP_SECTIONS = ("name", "description", "valve", "plant", "controller", "simulation")
 _DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts", "read_only",
-           "max_connections", "idle_timeout", "frame_timeout", "error_rate", "lockstep")
+           "max_connections", "idle_timeout", "frame_timeout", "error_rate", "lockstep", "register_map")
 
 #: Allowed YAML keys per section ("" = top level of a single-loop file, "server" = top level of a
 #: multi-loop file). Anything else is an error naming the key.
@@ -502,8 +503,15 @@ class DeviceConfig:
     frame_timeout: float = 5.0      # s > 0, a request frame must arrive completely within this time
     error_rate: float = 100.0       # > 0, exception answers per s per connection before it is read slower
     lockstep: bool = False          # the clock is the client's: no tick runs until it writes the step register
+    register_map: Any = None        # a RegisterMapConfig (config/register_map.py); None: the standard map
 
     def __post_init__(self) -> None:
+        from valve_emulator.config.register_map import RegisterMapConfig, parse_register_map
+
+        if isinstance(self.register_map, Mapping):   # an in-memory mapping: no lines to name
+            _set(self, register_map=parse_register_map(self.register_map, "register_map"))
+        elif self.register_map is not None and not isinstance(self.register_map, RegisterMapConfig):
+            raise ConfigError(f"{{key}} must be a mapping, got {_show(self.register_map)}", key="register_map")
         hosts = []
         for i, host in enumerate(sequence(self.instructor_hosts, "instructor_hosts")):
             try:
@@ -590,6 +598,9 @@ class ServerConfig:
                                   key=f"loops[{i}].unit")
             seen[address] = i
             blocks[address[0]] = max(blocks.get(address[0], 0), address[1] + 1)
+            if address[1] and self.device.register_map is not None:
+                raise ConfigError("{key}: a configured device.register_map places tags at any address of a unit, "
+                                  "so each unit carries one loop (no fleet.loops_per_unit > 1)", key="loops")
         for unit, count in blocks.items():
             missing = next((b for b in range(count) if (unit, b) not in seen), None)
             if missing is not None:

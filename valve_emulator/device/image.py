@@ -30,7 +30,6 @@ from valve_emulator.device.registers import BLOCK_STRIDE, MAX_BLOCKS, N_REGISTER
 __all__ = ["ImageLayout"]
 
 _BLOCK_BYTES: Final = 2 * BLOCK_STRIDE
-_ROW_BYTES: Final = 2 * N_REGISTERS
 
 
 class ImageLayout:
@@ -41,6 +40,8 @@ class ImageLayout:
     units : the unit id (0..255) of each loop, in bank order.
     blocks : the block of each loop inside its unit (default all 0: one loop per unit). The pairs
         ``(unit, block)`` must be unique and each unit's blocks must be ``0 .. B−1`` without gaps.
+    row_words : words of one loop's row: :data:`N_REGISTERS` for the standard map, the served row of a
+        configured register map otherwise (one loop per unit).
 
     Attributes
     ----------
@@ -50,7 +51,8 @@ class ImageLayout:
     loops_of : ``unit -> tuple of loop indices, by block``.
     """
 
-    def __init__(self, units: Sequence[int], blocks: Sequence[int] | None = None) -> None:
+    def __init__(self, units: Sequence[int], blocks: Sequence[int] | None = None, *,
+                 row_words: int = N_REGISTERS) -> None:
         units = tuple(int(u) for u in units)
         blocks = (0,) * len(units) if blocks is None else tuple(int(b) for b in blocks)
         if len(blocks) != len(units):
@@ -66,7 +68,9 @@ class ImageLayout:
                 raise ValueError(f"ImageLayout: units must be unique ids (unit {u} block {b} is given to loops "
                                  f"{slots[b]} and {i})")
             slots[b] = i
-        self.units, self.blocks = units, blocks
+        if row_words != N_REGISTERS and any(blocks):
+            raise ValueError("ImageLayout: only the standard map's rows fit blocks of several loops per unit")
+        self.units, self.blocks, self.row_words = units, blocks, row_words
         self.regions: dict[int, tuple[int, int]] = {}
         self.loops_of: dict[int, tuple[int, ...]] = {}
         start = 0
@@ -77,7 +81,7 @@ class ImageLayout:
                                  f"must be 0..B-1 without gaps")
             self.regions[u] = (start, count)
             self.loops_of[u] = tuple(slots[b] for b in range(count))
-            start += _BLOCK_BYTES * (count - 1) + _ROW_BYTES
+            start += _BLOCK_BYTES * (count - 1) + 2 * row_words
         self.size = start
         self.offsets = np.array([self.regions[u][0] + _BLOCK_BYTES * b for u, b in zip(units, blocks)],
                                 dtype=np.int64)

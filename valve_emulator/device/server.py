@@ -88,7 +88,6 @@ from valve_emulator.device.pdu import (
     MEI_DEVICE_ID,
     WRITE_FUNCTIONS,
     malformed,
-    register_names,
     write_target,
 )
 from valve_emulator.device.registers import (
@@ -101,10 +100,9 @@ from valve_emulator.device.registers import (
     RegisterError,
     RegisterValueError,
     address_of,
-    check_read,
     decode_write,
 )
-from valve_emulator.device.registers.bits import COILS, BitTable, bit_values, check_bits, coil_write
+from valve_emulator.device.registers.bits import BitTable
 from valve_emulator.device.rtu import RtuSerialLink, RtuStreamConnection, SerialSettings
 from valve_emulator.device.tick import Device
 from valve_emulator.device.traffic import TrafficLog, request_span
@@ -211,7 +209,9 @@ class EmulatorServer:
             time_scale = 0.0
         self.device = Device.from_config(config, bank=bank, time_scale=time_scale, clock=clock, sleep=sleep,
                                          jitter_size=jitter_size)
-        self._regions = self.device.layout.regions   # unit -> (image start byte, blocks)
+        #: the register map every request is answered through (the standard one, or device.register_map)
+        self.map = self.device.register_map
+        self._regions = self.device.served_layout.regions   # unit -> (served image start byte, blocks)
         self._reads: dict[bytes, tuple[int, int, bytes]] = {}   # see _read_fast
         dev = config.device
         self.guard = ConnectionGuard(max_connections=dev.max_connections, idle_timeout=dev.idle_timeout,
@@ -379,7 +379,7 @@ class EmulatorServer:
             if known is not None:
                 self.requests += 1
                 start, stop, head = known
-                return frame[:4] + head + self.device.image[start:stop]
+                return frame[:4] + head + self.device.served[start:stop]
             if frame[7] == 3 or frame[7] == 4:
                 answer = self._read_fast(frame)
                 if answer is not None:
@@ -402,17 +402,18 @@ class EmulatorServer:
         if region is None or address >= COMM_BASE or not 1 <= count <= 125:
             return None
         start, blocks = region
+        table = _READS[frame[7]]
         try:
-            check_read(_READS[frame[7]], address, count, blocks=blocks)
+            self.map.check_read(table, address, count, blocks=blocks)
         except RegisterError:
             return None
         self.requests += 1
-        n, start = 2 * count, start + 2 * address
+        n, start = 2 * count, start + 2 * self.map.word_offset(table, address)
         # MBAP: transaction and protocol id as sent, length = unit + function + byte count + data.
         head = (n + 3).to_bytes(2, "big") + bytes((frame[6], frame[7], n))
         if len(self._reads) < _KNOWN_READS:
             self._reads[frame[6:12]] = (start, start + n, head)
-        return frame[:4] + head + self.device.image[start:start + n]
+        return frame[:4] + head + self.device.served[start:start + n]
 
     def handle_faulted(self, frame: bytes, instructor: bool, state: CommState, *, peer: str = "",
                        client: str = "") -> bytes | None:
@@ -497,12 +498,8 @@ class EmulatorServer:
             address, count = write_target(fc, pdu)
             blocked = self._regions[unit][1] > 1   # name the registers inside the loop's block
             local = address % BLOCK_STRIDE if blocked else address
-            if fc in BIT_WRITE_FUNCTIONS:
-                span = [b.name for b in COILS[local:local + count]]
-                table = "coil"
-            else:
-                span = register_names(local, count)
-                table = "holding"
+            table = "coil" if fc in BIT_WRITE_FUNCTIONS else "holding"
+            span = self.map.names_in(table, local, count)
             match = _REGISTER_NAME.search(str(reason))
             # one key for everything outside the map: a client scanning addresses must not flood the log
             register = match.group(1) if match else (span[0] if span else "(outside the map)")
@@ -519,9 +516,9 @@ class EmulatorServer:
                 return bytes((fc, 2, 0, 0))   # nothing pending: a step's ticks have run before its answer
             return bytes((fc, 2 * count)) + self.comm.read(unit, address, count)
         start, blocks = region
-        check_read(table, address, count, blocks=blocks)
-        start += 2 * address
-        return bytes((fc, 2 * count)) + self.device.image[start:start + 2 * count]
+        self.map.check_read(table, address, count, blocks=blocks)
+        start += 2 * self.map.word_offset(table, address)
+        return bytes((fc, 2 * count)) + self.device.served[start:start + 2 * count]
 
     def _write(self, unit: int, address: int, registers: Any, instructor: bool) -> None:
         if address >= COMM_BASE and self.comm.covers(unit, address):
@@ -530,7 +527,7 @@ class EmulatorServer:
             else:
                 self.comm.write(unit, address, registers, instructor=instructor)
             return
-        index, offset = self.device.layout.locate_write(unit, address, len(registers))
+        index, offset = self.device.served_layout.locate_write(unit, address, len(registers))
         self.device.write(index, offset, registers, instructor=instructor)
 
     def _execute(self, fc: int, pdu: Any, unit: int, region: tuple[int, int], instructor: bool) -> bytes:
@@ -544,7 +541,7 @@ class EmulatorServer:
             self._write(unit, pdu.address, pdu.registers, instructor)
             return b"\x10" + WriteMultipleRegistersResponse(address=pdu.address, count=pdu.count).encode()
         if not self.comm.covers(unit, pdu.read_address):
-            check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse before writing
+            self.map.check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse first
         self._write(unit, pdu.write_address, pdu.write_registers, instructor)
         return self._read(23, "holding", unit, region, pdu.read_address, pdu.read_count)
 
@@ -558,8 +555,10 @@ class EmulatorServer:
 
     # --- the function codes decoded here (bits, diagnostics, mask write, identification) ------------
 
-    def _status(self, region: tuple[int, int], block: int) -> int:
-        at = region[0] + 2 * (BLOCK_STRIDE * block + _STATUS_ADDRESS)
+    def _status(self, unit: int, block: int) -> int:
+        """The ``status`` word of the loop in ``block`` of ``unit``: the bits are views of it (the standard image
+        holds it whatever map is served)."""
+        at = self.device.layout.regions[unit][0] + 2 * (BLOCK_STRIDE * block + _STATUS_ADDRESS)
         return (self.device.image[at] << 8) | self.device.image[at + 1]
 
     def _execute_raw(self, fc: int, pdu: bytes, unit: int, region: tuple[int, int], instructor: bool) -> bytes:
@@ -573,8 +572,9 @@ class EmulatorServer:
         address, count = _u16(pdu, 1), _u16(pdu, 3)
         if fc in BIT_READ_FUNCTIONS:
             table = BitTable.COIL if fc == 1 else BitTable.DISCRETE_INPUT
-            block, offset = check_bits(table, address, count, blocks=region[1])
-            values = bit_values(table, self._status(region, block), offset, count)
+            block, bits = self.map.bits_at(table, address, count, blocks=region[1])
+            status = self._status(unit, block)
+            values = [bool(status & b.status) for b in bits]
             packed = bytearray((count + 7) // 8)
             for i, on in enumerate(values):
                 if on:
@@ -589,15 +589,16 @@ class EmulatorServer:
             count, bits = 1, [pdu[3] == 0xFF]
         else:
             bits = [bool(pdu[6 + (i >> 3)] >> (i & 7) & 1) for i in range(count)]
-        block, offset = check_bits(BitTable.COIL, address, count, blocks=region[1])
+        block, coils = self.map.bits_at(BitTable.COIL, address, count, blocks=region[1])
         index = self.device.layout.loops_of[unit][block]
-        writes = [coil_write(offset + i, on) for i, on in enumerate(bits)]
+        # a coil writes its standard register (mode, fault) with 0 or 1, whatever map is served
+        writes = [(address_of(str(coil.register)), int(on)) for coil, on in zip(coils, bits)]
         auto = self.device.effective_auto(index)
         scaling = self.device.scaling
         for reg_address, raw in writes:   # check every coil before any is applied: whole or nothing
             decode_write(reg_address, [raw], scaling, index, auto=auto, instructor=instructor)
         for reg_address, raw in writes:
-            self.device.write(index, reg_address, [raw], instructor=instructor)
+            self.device.write(index, reg_address, [raw], instructor=instructor, standard=True)
         return bytes(pdu) if fc == 5 else bytes(pdu[:5])
 
     def _diagnostics(self, pdu: bytes) -> bytes:

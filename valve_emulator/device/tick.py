@@ -68,8 +68,9 @@ import numpy as np
 from valve_emulator.device._tasks import cancel_and_wait
 from valve_emulator.device.image import ImageLayout
 from valve_emulator.device.malfunctions import Malfunction, MalfunctionBank
-from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, patch
+from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, encode_loop, patch
 from valve_emulator.device.registers.kernel import ImageEncoder
+from valve_emulator.device.registers.mapping import STANDARD, RegisterMap, register_map_of
 from valve_emulator.device.snapshots import Snapshot, SnapshotError
 
 __all__ = ["JitterBuffer", "Device", "TICK_TASK_NAME"]
@@ -150,15 +151,21 @@ class Device:
         (step with :meth:`advance`).
     clock, sleep : ``time.monotonic`` and ``asyncio.sleep`` unless injected (fake time in tests).
     jitter_size : capacity of the lateness ring buffer (and of :attr:`tick_time`).
+    register_map : the :class:`~valve_emulator.device.registers.mapping.RegisterMap` the protocol adapters
+        serve (default the standard map).
 
     The image is :attr:`image`; loop ``i``'s registers start at byte :attr:`offsets` ``[i]`` (with one loop
-    per unit that is ``i·stride``).
+    per unit that is ``i·stride``). It always holds the standard map's words (OPC UA, the station and the
+    testing kit read it). What Modbus clients read is :attr:`served` laid out by :attr:`served_layout`: the
+    image itself with the standard map, a second image of the configured map's rows otherwise, encoded at the
+    same tick by the register codec.
     """
 
     def __init__(self, bank: Any, scaling: Scaling, *, units: Sequence[int], blocks: Sequence[int] | None = None,
                  time_scale: float = 1.0,
                  clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096) -> None:
+                 sleep: Callable[[float], Awaitable[Any]] = asyncio.sleep, jitter_size: int = 4096,
+                 register_map: RegisterMap = STANDARD) -> None:
         units = tuple(int(u) for u in units)
         if not (bank.n == scaling.n == len(units)):
             raise ValueError(f"Device: bank ({bank.n}), scaling ({scaling.n}) and units ({len(units)}) "
@@ -196,6 +203,12 @@ class Device:
         self.offsets = self.layout.offsets
         self.image = bytearray(self.layout.size)
         self._encode = ImageEncoder(scaling, self.image, self.offsets)
+        self.register_map = register_map
+        if register_map.standard:
+            self.served_layout, self.served = self.layout, self.image
+        else:
+            self.served_layout = ImageLayout(units, blocks, row_words=register_map.row_words)
+            self.served = bytearray(self.served_layout.size)
         self._refresh()
 
     @classmethod
@@ -210,7 +223,8 @@ class Device:
         units = [lp.device.unit for lp in config.loops]
         blocks = [lp.device.block for lp in config.loops]
         return cls(bank, Scaling.from_config(config), units=units, blocks=blocks if any(blocks) else None,
-                   time_scale=time_scale, clock=clock, sleep=sleep, jitter_size=jitter_size)
+                   time_scale=time_scale, clock=clock, sleep=sleep, jitter_size=jitter_size,
+                   register_map=register_map_of(config))
 
     # --- writes -------------------------------------------------------------------------------------
 
@@ -219,22 +233,32 @@ class Device:
         pending = self._pending.get((index, "auto"))
         return bool(self.bank.auto[index]) if pending is None else bool(pending)
 
-    def write(self, index: int, address: int, values: Sequence[int], *,
-              instructor: bool = False) -> list[tuple[str, float]]:
-        """Validate and queue a write of raw register ``values`` at ``address`` on loop ``index``.
+    def write(self, index: int, address: int, values: Sequence[int], *, instructor: bool = False,
+              standard: bool = False) -> list[tuple[str, float]]:
+        """Validate and queue a write of raw holding-register ``values`` at ``address`` on loop ``index``, in
+        the served map (``standard``: in the standard map, what a coil write stands for).
 
         Returns the accepted ``(quantity, value)`` changes; raises a ``RegisterError`` (nothing changed).
         """
+        regmap = STANDARD if standard else self.register_map
         changes = decode_write(address, values, self.scaling, index, auto=self.effective_auto(index),
-                               instructor=instructor)
-        start = int(self.offsets[index])
-        row = np.frombuffer(self.image, dtype=">u2", count=N_REGISTERS, offset=start).astype(np.int64)
+                               instructor=instructor, regmap=regmap)
         for quantity, value in changes:
             self._pending.pop((index, quantity), None)  # re-insert: keep arrival order for the tick
             self._pending[(index, quantity)] = value
-            patch(row, quantity, value, self.scaling, index)
-        self.image[start:start + self.stride] = row.astype(">u2").tobytes()
+        self._patch(self.image, int(self.offsets[index]), STANDARD, changes, index)
+        if self.served is not self.image:
+            self._patch(self.served, int(self.served_layout.offsets[index]), self.register_map, changes, index)
         return changes
+
+    def _patch(self, image: bytearray, start: int, regmap: RegisterMap, changes: list[tuple[str, Any]],
+               index: int) -> None:
+        """Show accepted ``changes`` of loop ``index`` at once in ``image`` (its row of ``regmap`` at ``start``)."""
+        stop = start + 2 * regmap.row_words
+        row = np.frombuffer(image, dtype=">u2", count=regmap.row_words, offset=start).astype(np.int64)
+        for quantity, value in changes:
+            patch(row, quantity, value, self.scaling, index, regmap=regmap)
+        image[start:stop] = row.astype(">u2").tobytes()
 
     def _apply_pending(self) -> None:
         bank = self.bank
@@ -270,6 +294,12 @@ class Device:
 
     def _refresh(self) -> None:
         self._encode(self.bank, tick=self.ticks, overruns=self.overruns, time=self.bank.sample_time)
+        if self.served is not self.image:   # a configured map: its rows, one loop at a time, by the codec
+            regmap, bank, served = self.register_map, self.bank, self.served
+            for i, start in enumerate(self.served_layout.offsets):
+                row = encode_loop(bank, self.scaling, i, tick=self.ticks, overruns=self.overruns,
+                                  time=bank.sample_time, regmap=regmap)
+                served[start:start + 2 * regmap.row_words] = row.astype(">u2").tobytes()
 
     def tick(self) -> None:
         """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""

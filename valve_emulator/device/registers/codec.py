@@ -16,6 +16,10 @@ Encoding of a 16-bit register (the row's :class:`~.table.Conversion` gives ``y``
     word = raw mod 2^16                            int16: two's complement
 
 A 32-bit register holds the float32 (or the counter modulo 2³²) in two words in the device's word order.
+
+Every function takes the map it works on (``regmap``, default the standard map,
+:data:`~valve_emulator.device.registers.mapping.STANDARD`): a configured map
+(``device.register_map``) is served by these same rules, one row at a time.
 """
 
 from __future__ import annotations
@@ -31,12 +35,12 @@ from valve_emulator.device.registers.errors import (
     RegisterAddressError,
     RegisterValueError,
 )
+from valve_emulator.device.registers.mapping import STANDARD, RegisterMap
 from valve_emulator.device.registers.scaling import Scaling
 from valve_emulator.device.registers.table import (
     CONTROLLER_QUANTITIES,
     MAP_VERSION,
     N_REGISTERS,
-    REGISTERS,
     RW_CONTROLLER,
     RW_INSTRUCTOR,
     WRITABLE_QUANTITIES,
@@ -46,13 +50,11 @@ from valve_emulator.device.registers.table import (
     Register,
     Status,
     address_of,
-    holding_at,
-    showing,
 )
-from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, split32
+from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, from_words, split32, split_words
 
-__all__ = ["decode_value", "decode_write", "encode_loop", "encode_value", "encode_write", "patch", "status_word",
-           "write_range"]
+__all__ = ["decode_value", "decode_write", "encode_loop", "encode_value", "encode_write", "loop_values", "patch",
+           "physical_range", "status_word", "write_range"]
 
 _STATUS: Final = address_of("status")
 # Written quantities that also flip a status bit: quantity -> (bit, is the bit set for this value?)
@@ -68,9 +70,19 @@ def _per_range(reg: Register, scaling: Scaling, index: int) -> tuple[float, floa
     return lo, reg.scale * 100.0 / (hi - lo)
 
 
+def _span(reg: Register, scaling: Scaling, index: int) -> tuple[float, float]:
+    """The engineering range a :attr:`Conversion.COUNTS` register scales (its own, or the loop's PV range)."""
+    if reg.span is not None:
+        return reg.span
+    return float(scaling.pv_lo[index]), float(scaling.pv_hi[index])
+
+
 def _scaled(reg: Register, value: float, scaling: Scaling, index: int) -> float:
-    """The unrounded raw value ``y`` of a 16-bit scaled register (see the module docstring)."""
+    """The unrounded raw value ``y`` of a scaled integer register (see the module docstring)."""
     conversion = reg.conversion
+    if conversion is Conversion.COUNTS:
+        (e_lo, e_hi), (lo, hi) = _span(reg, scaling, index), reg.counts
+        return lo + (value - e_lo) * (hi - lo) / (e_hi - e_lo)
     if conversion is Conversion.PV_RANGE:
         lo, k = _per_range(reg, scaling, index)
         return (value - lo) * k
@@ -91,11 +103,18 @@ def _round_clip(y: float, lo: int, hi: int) -> int:
     return round(y)
 
 
+def _cdab(reg: Register, scaling: Scaling) -> bool:
+    """Are the words of ``reg`` low word first (its own word order, else the device's)?"""
+    return (reg.word_order or scaling.word_order) is CDAB
+
+
 def encode_value(reg: Register, value: Any, scaling: Scaling, index: int) -> tuple[int, ...]:
     """The ``reg.width`` words register ``reg`` shows for the physical ``value`` of loop ``index``."""
-    cdab = scaling.word_order is CDAB
+    cdab = _cdab(reg, scaling)
     if reg.type is DataType.FLOAT32:
         return split32(float32_bits(float(value)), cdab)
+    if reg.type is DataType.FLOAT64:
+        return split_words(int.from_bytes(np.float64(value).astype(">f8").tobytes(), "big"), 4, cdab)
     conversion = reg.conversion
     if conversion is Conversion.COUNTER:
         raw = int(value) % (reg.type.raw_range[1] + 1)
@@ -108,7 +127,7 @@ def encode_value(reg: Register, value: Any, scaling: Scaling, index: int) -> tup
     else:
         raw = _round_clip(_scaled(reg, float(value), scaling, index), *reg.read_range)
     if reg.width == 2:
-        return split32(raw, cdab)
+        return split32(raw & 0xFFFFFFFF, cdab)
     return (raw & 0xFFFF,)
 
 
@@ -157,12 +176,10 @@ def _at(state: Any, name: str, index: int, *, optional: bool = False) -> Any:
     return value if value.ndim == 0 else value[index]
 
 
-def encode_loop(state: Any, scaling: Scaling, index: int, *, tick: int, overruns: int,
-                time: float) -> np.ndarray:
-    """Every register of loop ``index``: int64 array (N_REGISTERS,) of words, one register at a time.
+def loop_values(state: Any, index: int, *, tick: int, overruns: int, time: float) -> dict[str, Any]:
+    """The physical value of every quantity of loop ``index`` (what its registers show), by quantity name.
 
-    ``state`` is read as :func:`~valve_emulator.device.registers.kernel.encode` describes. Registers of the
-    internal controller (:data:`~.table.CONTROLLER_QUANTITIES`) read 0 on a loop without one.
+    ``state`` is read as :func:`~valve_emulator.device.registers.kernel.encode` describes.
     """
     controller = bool(_at(state, "has_controller", index))
     auto = bool(_at(state, "auto", index)) and controller
@@ -176,36 +193,76 @@ def encode_loop(state: Any, scaling: Scaling, index: int, *, tick: int, overruns
         status=status_word(stuck=bool(_at(state, "stuck", index)), sat_low=bool(_at(state, "sat_low", index)),
                            sat_high=bool(_at(state, "sat_high", index)), controller=controller, auto=auto,
                            seized=seized))
-    row = np.zeros(N_REGISTERS, dtype=np.int64)
-    for reg in REGISTERS:
-        if reg.quantity in CONTROLLER_QUANTITIES and not controller:
+    values["controller"] = controller
+    return values
+
+
+def encode_loop(state: Any, scaling: Scaling, index: int, *, tick: int, overruns: int,
+                time: float, regmap: RegisterMap = STANDARD) -> np.ndarray:
+    """Every register of loop ``index`` in ``regmap``: int64 array (``regmap.row_words``,) of words, one
+    register at a time (the standard map: its N_REGISTERS words, the compiled pass's specification).
+
+    Registers of the internal controller (:data:`~.table.CONTROLLER_QUANTITIES`) read 0 on a loop without one.
+    """
+    values = loop_values(state, index, tick=tick, overruns=overruns, time=time)
+    row = np.zeros(regmap.row_words, dtype=np.int64)
+    for reg in regmap.registers:
+        if reg.quantity in CONTROLLER_QUANTITIES and not values["controller"]:
             continue
-        row[reg.address:reg.address + reg.width] = encode_value(reg, values[reg.quantity], scaling, index)
+        at = regmap.word_offset(reg.table, reg.address)
+        row[at:at + reg.width] = encode_value(reg, values[reg.quantity], scaling, index)
     return row
 
 
-def patch(row: np.ndarray, quantity: str, value: Any, scaling: Scaling, index: int) -> None:
-    """Overwrite, in one unit's word ``row``, the registers that show ``quantity`` (after an accepted write)."""
+def patch(row: np.ndarray, quantity: str, value: Any, scaling: Scaling, index: int, *,
+          regmap: RegisterMap = STANDARD) -> None:
+    """Overwrite, in one loop's served word ``row`` of ``regmap``, the registers that show ``quantity`` (after
+    an accepted write), and the ``status`` bit the quantity flips."""
     if quantity not in WRITABLE_QUANTITIES:
         raise KeyError(f"quantity {quantity!r} is not writable")
-    for reg in showing(quantity):
-        row[reg.address:reg.address + reg.width] = encode_value(reg, value, scaling, index)
+    for reg in regmap.showing(quantity):
+        at = regmap.word_offset(reg.table, reg.address)
+        row[at:at + reg.width] = encode_value(reg, value, scaling, index)
     if quantity in _STATUS_FLAG:
         bit, is_set = _STATUS_FLAG[quantity]
-        row[_STATUS] = (row[_STATUS] & ~int(bit)) | (int(bit) if is_set(value) else 0)
+        for reg in regmap.showing("status"):
+            at = regmap.word_offset(reg.table, reg.address)
+            status = int(from_words(row[at:at + reg.width], reg.type, reg.word_order or scaling.word_order))
+            status = (status & ~int(bit)) | (int(bit) if is_set(value) else 0)
+            row[at:at + reg.width] = encode_value(reg, status, scaling, index)
 
 
 def write_range(reg: Register, scaling: Scaling, index: int) -> tuple[int, int]:
     """Raw range a write to ``reg`` may take on loop ``index`` (OP registers: within the loop's op_limits)."""
+    if reg.conversion is Conversion.COUNTS:
+        lo, hi = reg.write
+        if reg.quantity == "op":   # the counts of the loop's op_limits, inside the configured raw range
+            ends = sorted(_scaled(reg, float(x), scaling, index) for x in scaling.op_limits[index])
+            lo, hi = max(lo, math.ceil(ends[0] - 1e-9)), min(hi, math.floor(ends[1] + 1e-9))
+        return int(lo), int(hi)
     if reg.quantity != "op":
         return reg.write
     ranges = scaling.ma_raw_range if reg.conversion is Conversion.LOOP_CURRENT else scaling.op_raw_range
     return tuple(ranges[index])
 
 
+def physical_range(quantity: str, scaling: Scaling, index: int) -> tuple[float, float]:
+    """The physical values a write of ``quantity`` may take on loop ``index``: those its standard register
+    accepts (so a float or counts tag of a configured map allows exactly what the standard map does)."""
+    reg = next(r for r in STANDARD.holding if r.quantity == quantity and r.access is not R)
+    lo, hi = write_range(reg, scaling, index)
+    if reg.zero_is_off:
+        lo = max(lo, 1)
+    ends = sorted((float(decode_value(reg, lo, scaling, index)), float(decode_value(reg, hi, scaling, index))))
+    return ends[0], ends[1]
+
+
 def decode_value(reg: Register, raw: int, scaling: Scaling, index: int) -> Any:
     """The physical value of a written raw word (``raw`` signed for ``int16``); inverse of :func:`encode_value`."""
     conversion = reg.conversion
+    if conversion is Conversion.COUNTS:
+        (e_lo, e_hi), (lo, hi) = _span(reg, scaling, index), reg.counts
+        return e_lo + (raw - lo) * (e_hi - e_lo) / (hi - lo)
     if conversion is Conversion.LOOP_CURRENT:
         lo, hi = scaling.op_limits[index]
         return float(np.clip(scaling.tables[index].to_pct(raw / reg.scale), lo, hi))
@@ -224,30 +281,40 @@ def decode_value(reg: Register, raw: int, scaling: Scaling, index: int) -> Any:
 
 
 def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: int, *,
-                 auto: bool = False, instructor: bool = False) -> list[tuple[str, Any]]:
-    """Validate a write of raw ``values`` from ``address`` on unit ``index``; return the physical changes.
+                 auto: bool = False, instructor: bool = False, regmap: RegisterMap = STANDARD
+                 ) -> list[tuple[str, Any]]:
+    """Validate a write of raw holding-register ``values`` from ``address`` on unit ``index`` of ``regmap``;
+    return the physical changes.
 
     Returns ``[(quantity, value), ...]`` in address order with quantity one of ``op`` (% travel), ``sp``
     (PV units), ``auto`` (bool), ``kc``, ``ti`` (s, ``inf`` = no integral), ``td`` (s), ``S``, ``J``
     (% travel), ``load`` (% flow), ``noise`` (standard deviation, PV units), ``fault`` (int, :class:`Fault`
-    bits). Every register is checked before anything is returned, so a refused write changes nothing.
+    bits). Every register is checked before anything is returned, so a refused write changes nothing. A
+    register of two or four words is written whole, all its words in one request.
 
     Raises
     ------
-    RegisterAddressError : an address outside the map.
+    RegisterAddressError : an address outside the map, or part of a wider register.
     RegisterAccessError : read-only register; controller register on a loop without one; instructor
         register without ``instructor``; OP while the internal controller is in ``auto``.
     RegisterValueError : a raw value outside the register's range, e.g.
         ``register op_pct: 12000 out of range 0..10000``.
     """
     count = len(values)
-    if count < 1 or address < 0 or address + count > N_REGISTERS:
+    if regmap.standard and (count < 1 or address < 0 or address + count > N_REGISTERS):
         raise RegisterAddressError(f"holding registers {address}..{address + count - 1} outside the map "
                                    f"0..{N_REGISTERS - 1}", address=address, count=count)
+    if count < 1 or any(regmap.row_at("holding", a) is None for a in range(address, address + count)):
+        missing = next((a for a in range(address, address + count) if regmap.row_at("holding", a) is None),
+                       address)
+        raise RegisterAddressError(f"holding registers {address}..{address + count - 1}: no tag at holding "
+                                   f"{missing} ({regmap.reference('holding', missing)})", address=address,
+                                   count=count)
     has_ctl = bool(scaling.has_controller[index])
     changes: list[tuple[str, Any]] = []
-    for a, raw in zip(range(address, address + count), values):
-        reg = holding_at(a)
+    a = address
+    while a < address + count:
+        reg = regmap.row_at("holding", a)
         where = f"register {reg.name} (holding {reg.address})"
         refusal = None
         if reg.access is R:
@@ -258,13 +325,46 @@ def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: i
             refusal = "needs instructor write permission"
         elif reg.quantity == "op" and has_ctl and auto:
             refusal = "is writable only while the controller is in manual"
+        elif reg.address != a or reg.address + reg.width > address + count:
+            raise RegisterAddressError(f"{where} takes holding {reg.address}..{reg.address + reg.width - 1}: "
+                                       f"write all its {reg.width} registers at once", address=address,
+                                       count=count)
         if refusal is not None:
             raise RegisterAccessError(f"{where} {refusal}", register=reg.name)
-        raw = int(raw)
-        lo, hi = write_range(reg, scaling, index)
-        signed = raw - 65536 if reg.type is DataType.INT16 and raw >= 32768 else raw
-        if not (lo <= signed <= hi) or not (0 <= raw <= 65535):
-            raise RegisterValueError(f"register {reg.name}: {signed} out of range {lo}..{hi}", register=reg.name,
-                                     value=signed, allowed=(int(lo), int(hi)))
-        changes.append((reg.quantity, decode_value(reg, signed, scaling, index)))
+        words = [int(w) for w in values[a - address:a - address + reg.width]]
+        changes.append((reg.quantity, _decode_words(reg, words, scaling, index)))
+        a += reg.width
     return changes
+
+
+def _decode_words(reg: Register, words: list[int], scaling: Scaling, index: int) -> Any:
+    """The checked physical value of the words a client wrote to ``reg``."""
+    if not all(0 <= w <= 65535 for w in words):
+        raise RegisterValueError(f"register {reg.name}: {words} are not 16-bit words", register=reg.name,
+                                 value=words[0], allowed=(0, 65535))
+    if reg.type.is_float:
+        value = float(from_words(words, reg.type, reg.word_order or scaling.word_order))
+        return _within_physical(reg, value, scaling, index, shown=f"{value:g}")
+    raw = int(from_words(words, reg.type, reg.word_order or scaling.word_order))
+    lo, hi = write_range(reg, scaling, index)
+    if not lo <= raw <= hi:
+        raise RegisterValueError(f"register {reg.name}: {raw} out of range {lo}..{hi}", register=reg.name,
+                                 value=raw, allowed=(int(lo), int(hi)))
+    value = decode_value(reg, raw, scaling, index)
+    if reg.conversion is Conversion.COUNTS:
+        return _within_physical(reg, value, scaling, index, shown=str(raw))
+    return value
+
+
+def _within_physical(reg: Register, value: float, scaling: Scaling, index: int, *, shown: str) -> float:
+    """``value`` if the standard register of its quantity would accept it (ends within rounding), else
+    :class:`RegisterValueError` naming ``reg``."""
+    lo, hi = physical_range(reg.quantity, scaling, index)
+    slack = 1e-9 * max(1.0, abs(lo), abs(hi))
+    standard = next(r for r in STANDARD.holding if r.quantity == reg.quantity and r.access is not R)
+    if standard.zero_is_off and value == 0:
+        return math.inf
+    if not (math.isfinite(value) and lo - slack <= value <= hi + slack):
+        raise RegisterValueError(f"register {reg.name}: {shown} out of range ({value:g} outside {lo:g}..{hi:g} "
+                                 f"{standard.units})", register=reg.name, value=value, allowed=(lo, hi))
+    return min(max(value, lo), hi)

@@ -9,13 +9,13 @@ or a scale. The package docstring (:mod:`valve_emulator.device.registers`) docum
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import IntEnum, IntFlag, StrEnum
 from typing import Final
 
 from valve_emulator.config.schema import BLOCK_STRIDE, MAX_BLOCKS
 from valve_emulator.device.registers.errors import RegisterAddressError
-from valve_emulator.device.registers.words import DataType
+from valve_emulator.device.registers.words import DataType, WordOrder
 
 __all__ = [
     "ACCESS_VALUES",
@@ -84,6 +84,8 @@ class Conversion(StrEnum):
     FLAG = "flag"                     # raw = 1 if x else 0
     BITS = "bits"                     # raw = x, an integer bit set
     COUNTER = "counter"               # raw = x modulo the type's range (a counter that wraps)
+    COUNTS = "counts"                 # raw = lo + (x − e_lo)·(hi − lo)/(e_hi − e_lo): ``counts`` over ``span``
+                                      # (a configured map's ``raw: [lo, hi]``; span None: the loop's PV range)
 
 
 class Status(IntFlag):
@@ -134,6 +136,10 @@ class Register:
     conversion : :class:`Conversion` from the physical value to the raw word.
     zero_is_off : raw 0 means "off" (``ti``: no integral action, ``inf``); a value that is not finite and
         positive reads 0, the others read at least 1.
+    counts, span : with :attr:`Conversion.COUNTS`, the raw ``(lo, hi)`` the engineering ``span`` maps onto
+        (``span`` None: the loop's ``plant.pv_range``).
+    word_order : of a 32/64-bit register; ``None`` takes the device's (every row of the standard map).
+    table : ``holding`` or ``input``, the table the row is served in.
     """
 
     name: str
@@ -147,6 +153,10 @@ class Register:
     read: tuple[int, int] | None = field(default=None, kw_only=True)
     conversion: Conversion = field(default=Conversion.LINEAR, kw_only=True)
     zero_is_off: bool = field(default=False, kw_only=True)
+    counts: tuple[float, float] | None = field(default=None, kw_only=True)
+    span: tuple[float, float] | None = field(default=None, kw_only=True)
+    word_order: WordOrder | None = field(default=None, kw_only=True)
+    table: str = field(default="holding", kw_only=True)
 
     @property
     def width(self) -> int:
@@ -226,7 +236,7 @@ CLOCK_REGISTERS: Final[tuple[Register, ...]] = (
              conversion=Conversion.COUNTER),
 )
 # Input registers mirror what a controller cannot write: the read-only rows and the instructor rows.
-INPUT_REGISTERS: Final = tuple(r for r in REGISTERS if r.access in (R, RW_INSTRUCTOR))
+INPUT_REGISTERS: Final = tuple(replace(r, table="input") for r in REGISTERS if r.access in (R, RW_INSTRUCTOR))
 N_REGISTERS: Final = REGISTERS[-1].address + REGISTERS[-1].width
 assert N_REGISTERS < BLOCK_STRIDE  # a block must hold the whole map (and a pad)
 #: Quantities of the internal controller: their registers read 0 on a loop without one.

@@ -1,13 +1,16 @@
-"""Register words: the data types a register can hold and the word order of 32-bit values.
+"""Register words: the data types a register can hold and the word order of 32-bit and 64-bit values.
 
 Pure (standard library only, no pymodbus). Every 16-bit word travels big-endian (Modbus); a 32-bit value
-(``uint32``, ``int32``, ``float32``) takes two consecutive registers, in the device's :class:`WordOrder`::
+(``uint32``, ``int32``, ``float32``) takes two consecutive registers, a ``float64`` four, in the
+:class:`WordOrder` of the register (the device's ``word_order`` unless a configured map gives another)::
 
     value 0x12345678   ABCD: [0x1234, 0x5678]   (high word at the lower address, mbpoll -B)
                        CDAB: [0x5678, 0x1234]   (low word first, mbpoll's default)
 
-:func:`split32` is the one place that orders the two words: the compiled image encoder compiles this same
-function, and the Python codec and the clients call it, so they cannot disagree.
+A 64-bit value in ``CDAB`` is low word first too: its four words in reverse order (what pymodbus calls
+``word_order="little"``). :func:`split32` is the one place that orders two words: the compiled image encoder
+compiles this same function, and the Python codec and the clients call it, so they cannot disagree;
+:func:`split_words` orders any number of words by the same rule.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from typing import Final
 from valve_emulator.config.schema import WordOrder
 
 __all__ = ["ABCD", "CDAB", "DataType", "WordOrder", "as_word_order", "float32_bits", "from_words", "split32",
-           "to_words"]
+           "split_words", "to_words"]
 
 ABCD: Final = WordOrder.ABCD
 CDAB: Final = WordOrder.CDAB
@@ -34,6 +37,12 @@ class DataType(StrEnum):
     UINT32 = "uint32"     # two registers, in the word order
     INT32 = "int32"       # two registers, two's complement
     FLOAT32 = "float32"   # two registers, IEEE 754 single precision
+    FLOAT64 = "float64"   # four registers, IEEE 754 double precision
+
+    @property
+    def is_float(self) -> bool:
+        """Does the type hold an IEEE 754 float (the engineering value itself, no scale)?"""
+        return self.raw_range is None
 
     @property
     def width(self) -> int:
@@ -47,7 +56,7 @@ class DataType(StrEnum):
 
     @property
     def raw_range(self) -> tuple[int, int] | None:
-        """Smallest and largest integer the type holds (``None`` for ``float32``)."""
+        """Smallest and largest integer the type holds (``None`` for the floats)."""
         return _LAYOUT[self][2]
 
 
@@ -57,6 +66,7 @@ _LAYOUT: Final = {
     DataType.UINT32: (2, ">I", (0, 0xFFFFFFFF)),
     DataType.INT32: (2, ">i", (-0x80000000, 0x7FFFFFFF)),
     DataType.FLOAT32: (2, ">f", None),
+    DataType.FLOAT64: (4, ">d", None),
 }
 
 
@@ -77,24 +87,29 @@ def split32(bits: int, cdab: bool) -> tuple[int, int]:
     return (low, high) if cdab else (high, low)
 
 
+def split_words(bits: int, width: int, cdab: bool) -> tuple[int, ...]:
+    """The ``width`` register words of the ``16·width``-bit pattern ``bits``: high word first (ABCD), or
+    low word first (``cdab``). ``split_words(b, 2, c) == split32(b, c)``."""
+    words = tuple((bits >> (16 * k)) & 0xFFFF for k in range(width - 1, -1, -1))
+    return words[::-1] if cdab else words
+
+
 def to_words(value: float, type_: DataType | str, order: WordOrder | str = ABCD) -> list[int]:
-    """Register words of ``value`` stored as ``type_`` (integers must fit the type; floats are rounded to
-    float32). ``struct.error`` when an integer does not fit."""
+    """Register words of ``value`` stored as ``type_`` (integers must fit the type; ``float32`` rounds).
+    ``struct.error`` when an integer does not fit."""
     type_ = DataType(type_)
     packed = struct.pack(type_.struct_format, value)
-    if type_.width == 1:
-        return [struct.unpack(">H", packed)[0]]
-    return list(split32(struct.unpack(">I", packed)[0], WordOrder(order) is CDAB))
+    return list(split_words(int.from_bytes(packed, "big"), type_.width, WordOrder(order) is CDAB))
 
 
 def from_words(words: Sequence[int], type_: DataType | str, order: WordOrder | str = ABCD) -> float:
     """The value that the first ``type_.width`` register ``words`` hold (inverse of :func:`to_words`)."""
     type_ = DataType(type_)
-    if type_.width == 1:
-        return struct.unpack(type_.struct_format, struct.pack(">H", int(words[0])))[0]
+    width = type_.width
     # the order is an involution: applying it to the words on the wire gives the high word first again
-    first, second = split32((int(words[0]) << 16) | int(words[1]), WordOrder(order) is CDAB)
-    return struct.unpack(type_.struct_format, struct.pack(">HH", first, second))[0]
+    ordered = split_words(sum(int(w) << (16 * (width - 1 - k)) for k, w in enumerate(words[:width])), width,
+                          WordOrder(order) is CDAB)
+    return struct.unpack(type_.struct_format, b"".join(w.to_bytes(2, "big") for w in ordered))[0]
 
 
 def float32_bits(value: float) -> int:
