@@ -20,7 +20,6 @@ from __future__ import annotations
 import ipaddress
 import math
 import numbers
-from collections.abc import Mapping
 from dataclasses import KW_ONLY, dataclass, fields
 from enum import StrEnum
 from typing import Any
@@ -506,12 +505,9 @@ class DeviceConfig:
     register_map: Any = None        # a RegisterMapConfig (config/register_map.py); None: the standard map
 
     def __post_init__(self) -> None:
-        from valve_emulator.config.register_map import RegisterMapConfig, parse_register_map
-
-        if isinstance(self.register_map, Mapping):   # an in-memory mapping: no lines to name
-            _set(self, register_map=parse_register_map(self.register_map, "register_map"))
-        elif self.register_map is not None and not isinstance(self.register_map, RegisterMapConfig):
-            raise ConfigError(f"{{key}} must be a mapping, got {_show(self.register_map)}", key="register_map")
+        if self.register_map is not None and not hasattr(self.register_map, "tags"):   # the loader parses it
+            raise ConfigError(f"{{key}} must be a RegisterMapConfig (config.register_map.parse_register_map), got "
+                              f"{_show(self.register_map)}", key="register_map")
         hosts = []
         for i, host in enumerate(sequence(self.instructor_hosts, "instructor_hosts")):
             try:

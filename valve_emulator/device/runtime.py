@@ -44,11 +44,16 @@ DEFAULT_DEVICE = "default_device.yaml"
 
 
 def load_server_or_default(path: Path | None):
-    """``load_server(path)``, or the embedded default device when ``path`` is None."""
+    """``load_server(path)``, or the embedded default device when ``path`` is None; a ``device.register_map``
+    whose tags the device refuses (an unknown tag, a writable tag in an input register) is refused here, at
+    load, naming the file, line and key."""
     from valve_emulator.config import load_server
+    from valve_emulator.device.registers.mapping import register_map_of
 
     if path is not None:
-        return load_server(path)
+        config = load_server(path)
+        register_map_of(config)
+        return config
     with resources.as_file(resources.files("valve_emulator.data") / DEFAULT_DEVICE) as p:
         return load_server(p)
 
@@ -76,12 +81,14 @@ def reload_config(server, path: Path | None, *, read_only: bool = False,
     """
     from valve_emulator.config import load_server
     from valve_emulator.config.layout import server_slice
+    from valve_emulator.device.registers.mapping import register_map_of
 
     if path is None:
         _log.warning("config reload: no config file (serving the embedded default device); nothing to reload")
         return False
     try:
         config = load_server(path)
+        register_map_of(config)   # refuse a bad map now, not when a restart applies it
         if process is not None:
             config = server_slice(config, *process)
         config = apply_overrides(config, read_only=read_only, max_connections=max_connections,

@@ -25,6 +25,7 @@ Every function takes the map it works on (``regmap``, default the standard map,
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable, Sequence
 from typing import Any, Final
 
@@ -114,7 +115,7 @@ def encode_value(reg: Register, value: Any, scaling: Scaling, index: int) -> tup
     if reg.type is DataType.FLOAT32:
         return split32(float32_bits(float(value)), cdab)
     if reg.type is DataType.FLOAT64:
-        return split_words(int.from_bytes(np.float64(value).astype(">f8").tobytes(), "big"), 4, cdab)
+        return split_words(int.from_bytes(struct.pack(">d", float(value)), "big"), 4, cdab)
     conversion = reg.conversion
     if conversion is Conversion.COUNTER:
         raw = int(value) % (reg.type.raw_range[1] + 1)
