@@ -30,7 +30,7 @@ def test_parse_register_names_and_addresses():
 
 @pytest.mark.parametrize("text, message", [
     ("coils:3", "neither a register"), ("holding", "neither a register"), ("holding:x", "not an integer"),
-    ("holding:70000", "outside 0..65535"), ("holding:1:float64", "type 'float64'"),
+    ("holding:70000", "outside 0..65535"), ("holding:1:float16", "type 'float16'"),
     ("holding:1:uint16:0", "nonzero"), ("holding:1:bit16", "bit0..bit15"), ("hr:65535:float32", "past address"),
 ])
 def test_bad_specs_name_the_flag(text, message):

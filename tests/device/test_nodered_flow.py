@@ -68,7 +68,7 @@ async def _stop(proc) -> str:
         proc.send_signal(signal.SIGTERM)
         try:
             await asyncio.wait_for(proc.wait(), 10)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             proc.kill()
             await proc.wait()
     return (await proc.stdout.read()).decode(errors="replace")

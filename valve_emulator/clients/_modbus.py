@@ -6,7 +6,7 @@ A *point* says where one value lives on a device and how its raw words become a 
            |  TABLE:ADDRESS[:TYPE[:SCALE[:OFFSET]]]    any device
            |  TABLE:ADDRESS:bitN                       one bit of a 16-bit register (0/1)
     TABLE :=  holding | hr | input | ir                function code 3 or 4
-    TYPE  :=  uint16 (default) | int16 | uint32 | int32 | float32
+    TYPE  :=  uint16 (default) | int16 | uint32 | int32 | float32 | float64
 
 ``value = (raw - OFFSET) / SCALE`` when reading and ``raw = round(value * SCALE + OFFSET)`` when writing
 (SCALE default 1, OFFSET default 0). Addresses are zero-based PDU addresses (mbpoll ``-0``). Examples:
