@@ -12,6 +12,7 @@ import pytest
 from modbus_tk import defines as cst
 from modbus_tk import modbus_tcp
 from modbus_tk.modbus import ModbusError
+from pymodbus import FramerType
 from pymodbus.client import AsyncModbusTcpClient
 from pyModbusTCP.client import ModbusClient
 
@@ -115,6 +116,21 @@ async def test_milliamp_profile_serves_four_to_twenty_counts():
             client.close()
         srv.device.advance(1)
         assert bank.op_external[0] == pytest.approx(25.0)
+
+
+async def test_rtu_framing_answers_through_the_configured_map_too():
+    """Every Modbus adapter reads through the served map: RTU frames over TCP here."""
+    async with EmulatorServer(load_server(S7), time_scale=0, framer="rtu") as srv:
+        srv.device.advance(50)
+        client = AsyncModbusTcpClient("127.0.0.1", port=srv.port, framer=FramerType.RTU, timeout=2, retries=0)
+        await client.connect()
+        try:
+            pv = (await client.read_input_registers(0, count=1, device_id=1)).registers
+            assert _int16(pv[0]) == round(srv.device.bank.pv[0] / 200.0 * 27648)
+            standard = await client.read_holding_registers(4, count=1, device_id=1)   # the standard pv's place
+            assert standard.isError() and standard.exception_code == 2
+        finally:
+            client.close()
 
 
 # --- third-party clients ---------------------------------------------------------------------------------------

@@ -17,7 +17,12 @@ Where things are:
   :func:`encode_value`, :func:`patch`, :func:`decode_write`;
 - :mod:`~valve_emulator.device.registers.kernel` -- the compiled pass that encodes every loop each tick
   (:func:`encode_image`, :func:`encode`);
-- :mod:`~valve_emulator.device.registers.render` -- the documentation tables.
+- :mod:`~valve_emulator.device.registers.mapping` -- :class:`~.mapping.RegisterMap`, the map as a value:
+  :data:`~.mapping.STANDARD` (this table) or a configuration's ``device.register_map`` (each tag at any
+  address, type and scaling), which every Modbus adapter answers through;
+- :mod:`~valve_emulator.device.registers.render` -- the documentation tables;
+- :mod:`~valve_emulator.device.registers.export` -- a served map as a Kepware CSV, Ignition tag JSON or a
+  Node-RED flow.
 
 Holding registers (function codes 3, 6, 16, 22, 23)::
 

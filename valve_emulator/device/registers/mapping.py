@@ -29,7 +29,7 @@ today's image, which the kernel writes.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -48,10 +48,11 @@ from valve_emulator.device.registers.table import (
     R,
     Register,
     check_read,
+    register,
 )
 from valve_emulator.device.registers.words import DataType
 
-__all__ = ["STANDARD", "TAGS", "RegisterMap", "configured", "describe", "natural_span", "register_map_of"]
+__all__ = ["STANDARD", "TAGS", "RegisterMap", "configured", "natural_span", "register_map_of"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,9 +85,12 @@ class RegisterMap:
                 for a in range(row.address, row.address + getattr(row, "width", 1)):
                     assert a not in cells, f"{table} {a}: {row.name} overlaps {cells[a].name}"
                     cells[a] = row
+        # the standard input table mirrors holding registers: it reads their words
         mirror = all(at["holding"].get(r.address) is not None and dataclasses.replace(r, table="holding")
                      == at["holding"][r.address] for r in self.input)
-        sections: dict[str, tuple[int, int]] = {}   # table -> (first address, first word in the served row)
+        # table -> (first address, word of the row that address 0 would take): a table's words start at its first
+        # address, so word_offset(table, address) = that second number + address
+        sections: dict[str, tuple[int, int]] = {}
         words = 0
         for table in ("holding", "input"):
             cells = at[table]
@@ -122,8 +126,7 @@ class RegisterMap:
 
     def word_offset(self, table: str, address: int) -> int:
         """The word of a loop's served row that holds ``address`` of register ``table``."""
-        first, start = self._sections[table]
-        return start + address
+        return self._sections[table][1] + address
 
     def showing(self, quantity: str) -> tuple[Register, ...]:
         """The register rows whose words show ``quantity`` (each once: a mirror is not counted twice)."""
@@ -185,9 +188,8 @@ STANDARD: Final = _standard()
 #: ``op``, ``mv`` and ``flow`` for the quantity itself (``op`` is written like ``op_pct``).
 _ALIASES: Final = {"op": "op_pct", "mv": "mv_pct", "flow": "flow_pct"}
 _UNIT_NAMES: Final = frozenset(r.name for r in UNIT_REGISTERS + CLOCK_REGISTERS)
-TAGS: Final = {**{r.name: r for r in REGISTERS}, **{a: dataclasses.replace(REGISTERS[[r.name for r in REGISTERS]
-                                                                             .index(n)], name=a)
-                                                     for a, n in _ALIASES.items()}}
+TAGS: Final = {**{r.name: r for r in REGISTERS},
+               **{alias: dataclasses.replace(register(name), name=alias) for alias, name in _ALIASES.items()}}
 _BIT_TAGS: Final = {b.name: b for b in COILS + DISCRETE_INPUTS}
 _TYPES: Final = {t.value: t for t in DataType}
 #: Engineering ranges ``raw: [lo, hi]`` scales by default (the quantity's natural span); PV and SP take the
@@ -293,11 +295,4 @@ def register_map_of(config: Any) -> RegisterMap:
     if device.register_map is None:
         return STANDARD
     return configured(device.register_map, device.word_order)
-
-
-def describe(regmap: RegisterMap) -> Iterable[tuple[str, Any]]:
-    """``(table, row)`` of every row, holding, input, coils, discrete inputs, by address."""
-    for table in ("holding", "input", "coil", "discrete_input"):
-        for row in regmap.rows(table):
-            yield table, row
 
