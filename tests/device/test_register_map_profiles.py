@@ -9,6 +9,7 @@ import struct
 from pathlib import Path
 
 import pytest
+from asyncua import Client, ua
 from modbus_tk import defines as cst
 from modbus_tk import modbus_tcp
 from modbus_tk.modbus import ModbusError
@@ -21,6 +22,7 @@ from valve_emulator.device.registers import Scaling
 from valve_emulator.device.registers.export import KEPWARE_COLUMNS, export
 from valve_emulator.device.registers.mapping import register_map_of
 from valve_emulator.device.server import EmulatorServer
+from valve_emulator.opcua import NAMESPACE, OpcUaServer
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 
@@ -131,6 +133,27 @@ async def test_rtu_framing_answers_through_the_configured_map_too():
             assert standard.isError() and standard.exception_code == 2
         finally:
             client.close()
+
+
+async def test_opc_ua_keeps_its_node_names_and_its_writes_show_in_the_configured_map():
+    """OPC UA is not a register interface: its nodes are the loop's quantities whatever map Modbus serves, and
+    an OP written there reads back over Modbus in the profile's counts at once."""
+    config = load_server(S7)
+    async with _server(S7) as srv, OpcUaServer(srv.device, loops=config.loops, port=0) as opc:
+        srv.device.advance(10)
+        async with Client(opc.url) as ua_client:
+            ns = await ua_client.get_namespace_index(NAMESPACE)
+            loop = await ua_client.nodes.objects.get_child([f"{ns}:ValveEmulator", f"{ns}:Unit1",
+                                                           f"{ns}:s7_flow_loop"])
+            await (await loop.get_child(f"{ns}:op")).write_value(ua.DataValue(ua.Variant(40.0, ua.VariantType.Double)))
+            pv = await (await loop.get_child(f"{ns}:pv")).read_value()
+        client = await _pymodbus(srv)
+        try:
+            assert (await client.read_holding_registers(0, count=1, device_id=1)).registers == [11059]   # 40 %
+            counts = (await client.read_input_registers(0, count=1, device_id=1)).registers[0]
+        finally:
+            client.close()
+        assert pv == pytest.approx(_int16(counts) / 27648 * 200.0, abs=200.0 / 27648)
 
 
 # --- third-party clients ---------------------------------------------------------------------------------------

@@ -528,7 +528,7 @@ class EmulatorServer:
                 self.comm.write(unit, address, registers, instructor=instructor)
             return
         index, offset = self.device.served_layout.locate_write(unit, address, len(registers))
-        self.device.write(index, offset, registers, instructor=instructor)
+        self.device.write_served(index, offset, registers, instructor=instructor)
 
     def _execute(self, fc: int, pdu: Any, unit: int, region: tuple[int, int], instructor: bool) -> bytes:
         if fc in _READS:
@@ -598,7 +598,7 @@ class EmulatorServer:
         for reg_address, raw in writes:   # check every coil before any is applied: whole or nothing
             decode_write(reg_address, [raw], scaling, index, auto=auto, instructor=instructor)
         for reg_address, raw in writes:
-            self.device.write(index, reg_address, [raw], instructor=instructor, standard=True)
+            self.device.write(index, reg_address, [raw], instructor=instructor)
         return bytes(pdu) if fc == 5 else bytes(pdu[:5])
 
     def _diagnostics(self, pdu: bytes) -> bytes:

@@ -233,14 +233,22 @@ class Device:
         pending = self._pending.get((index, "auto"))
         return bool(self.bank.auto[index]) if pending is None else bool(pending)
 
-    def write(self, index: int, address: int, values: Sequence[int], *, instructor: bool = False,
-              standard: bool = False) -> list[tuple[str, float]]:
-        """Validate and queue a write of raw holding-register ``values`` at ``address`` on loop ``index``, in
-        the served map (``standard``: in the standard map, what a coil write stands for).
+    def write(self, index: int, address: int, values: Sequence[int], *,
+              instructor: bool = False) -> list[tuple[str, float]]:
+        """Validate and queue a write of raw ``values`` at holding ``address`` of the standard map on loop
+        ``index`` (what the station, OPC UA, scenarios and coil writes use, whatever map Modbus serves).
 
         Returns the accepted ``(quantity, value)`` changes; raises a ``RegisterError`` (nothing changed).
         """
-        regmap = STANDARD if standard else self.register_map
+        return self._write(STANDARD, index, address, values, instructor)
+
+    def write_served(self, index: int, address: int, values: Sequence[int], *,
+                     instructor: bool = False) -> list[tuple[str, float]]:
+        """:meth:`write` at holding ``address`` of the served map (:attr:`register_map`): a Modbus client's."""
+        return self._write(self.register_map, index, address, values, instructor)
+
+    def _write(self, regmap: RegisterMap, index: int, address: int, values: Sequence[int],
+               instructor: bool) -> list[tuple[str, float]]:
         changes = decode_write(address, values, self.scaling, index, auto=self.effective_auto(index),
                                instructor=instructor, regmap=regmap)
         for quantity, value in changes:
