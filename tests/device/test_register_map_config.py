@@ -1,7 +1,9 @@
 """A configured ``device.register_map``: what a file may say, what it is refused with, and that without one the
 device serves the standard map exactly as before."""
 
+import dataclasses
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -205,3 +207,60 @@ def test_registers_lists_a_configured_map_in_its_base_and_says_what_it_does_not_
     missing = not_served(register_map_of(cfg))
     assert "op_pct" in missing and "mv" in missing and "op" not in missing and "auto" not in missing
     assert "| op " in format_registers(rows, "md")
+
+
+def _random_state(rng, n, scaling):
+    class State:
+        pass
+
+    state = State()
+    for name in ("op", "mv", "flow", "S", "J"):
+        setattr(state, name, rng.uniform(-20, 120, n))
+    for name in ("pv", "sp", "kc", "ti", "td", "load", "noise_std"):
+        setattr(state, name, rng.uniform(-300, 500, n))
+    state.pv[:3] = (np.nan, np.inf, -1e40)            # what a broken sensor or a diverging loop reads as
+    state.ti[:2] = (0.0, np.inf)                      # no integral action
+    for name in ("stuck", "sat_low", "sat_high", "auto", "frozen"):
+        setattr(state, name, rng.uniform(size=n) < 0.5)
+    state.has_controller = scaling.has_controller
+    return state
+
+
+EVERY_KIND = {"op": {"address": 40001, "type": "int16", "raw": [0, 27648]},
+              "op_ma": {"address": 40002, "type": "uint16"},
+              "sp": {"address": 40003, "type": "float64", "word_order": "ABCD"},
+              "mode": {"address": 40007, "type": "uint16"},
+              "ti": {"address": 40008, "type": "uint16"},
+              "kc": {"address": 40009, "type": "int32", "raw": [-1000, 1000000], "range": [-1.0, 1000.0]},
+              "pv": {"address": 30001, "type": "uint16", "raw": [6400, 32000]},
+              "pv_f32": {"address": 30002, "type": "float32"},
+              "sp_f32": {"address": 30004, "type": "int16", "raw": [0, 27648]},
+              "noise": {"address": 30005, "type": "uint32"},
+              "load": {"address": 30007, "type": "int16"},
+              "status": {"address": 30008, "type": "uint16"},
+              "tick": {"address": 30009, "type": "uint32", "word_order": "ABCD"},
+              "time": {"address": 30011, "type": "float32"}}
+
+
+@pytest.mark.parametrize("source", ["s7_analog", "modicon_float_cdab", "ma_4_20_counts", "every kind"])
+def test_all_loops_at_once_encode_as_each_loop_alone(source):
+    """The device's per-tick pass over a configured map (numpy columns) gives the codec's words, loop by loop."""
+    from valve_emulator.device.registers.columns import encode_rows
+
+    if source == "every kind":
+        cfg = server_from_mapping({"device": {"register_map": {"word_order": "CDAB", "tags": EVERY_KIND}},
+                                   "loops": [{"unit": u, "plant": {"fopdt": {"gain": 1.0, "tau": 5.0},
+                                                                   "pv_range": [-50.0 * u, 100.0 * u]},
+                                              **({"controller": {"kc": 1.0}} if u % 2 else {})}
+                                             for u in range(1, 9)]})
+    else:   # the profile's loop on eight units
+        cfg = load_server(Path(__file__).resolve().parents[2] / "configs" / "profiles" / f"{source}.yaml")
+        loop = cfg.loops[0]
+        cfg = dataclasses.replace(cfg, loops=tuple(dataclasses.replace(loop, device=dataclasses.replace(
+            loop.device, unit=u)) for u in range(1, 9)))
+    regmap, scaling = register_map_of(cfg), Scaling.from_config(cfg)
+    state = _random_state(np.random.default_rng(11), scaling.n, scaling)
+    rows = encode_rows(state, scaling, regmap, tick=2 ** 32 + 5, overruns=7, time=12.3)
+    one_by_one = np.array([encode_loop(state, scaling, i, tick=2 ** 32 + 5, overruns=7, time=12.3, regmap=regmap)
+                           for i in range(scaling.n)])
+    assert np.array_equal(rows, one_by_one)

@@ -68,7 +68,8 @@ import numpy as np
 from valve_emulator.device._tasks import cancel_and_wait
 from valve_emulator.device.image import ImageLayout
 from valve_emulator.device.malfunctions import Malfunction, MalfunctionBank
-from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, encode_loop, patch
+from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, patch
+from valve_emulator.device.registers.columns import encode_rows
 from valve_emulator.device.registers.kernel import ImageEncoder
 from valve_emulator.device.registers.mapping import STANDARD, RegisterMap, register_map_of
 from valve_emulator.device.snapshots import Snapshot, SnapshotError
@@ -158,7 +159,7 @@ class Device:
     per unit that is ``i·stride``). It always holds the standard map's words (OPC UA, the station and the
     testing kit read it). What Modbus clients read is :attr:`served` laid out by :attr:`served_layout`: the
     image itself with the standard map, a second image of the configured map's rows otherwise, encoded at the
-    same tick by the register codec.
+    same tick (:func:`~valve_emulator.device.registers.columns.encode_rows`).
     """
 
     def __init__(self, bank: Any, scaling: Scaling, *, units: Sequence[int], blocks: Sequence[int] | None = None,
@@ -302,12 +303,10 @@ class Device:
 
     def _refresh(self) -> None:
         self._encode(self.bank, tick=self.ticks, overruns=self.overruns, time=self.bank.sample_time)
-        if self.served is not self.image:   # a configured map: its rows, one loop at a time, by the codec
-            regmap, bank, served = self.register_map, self.bank, self.served
-            for i, start in enumerate(self.served_layout.offsets):
-                row = encode_loop(bank, self.scaling, i, tick=self.ticks, overruns=self.overruns,
-                                  time=bank.sample_time, regmap=regmap)
-                served[start:start + 2 * regmap.row_words] = row.astype(">u2").tobytes()
+        if self.served is not self.image:   # a configured map: every loop's row (one per unit, back to back)
+            rows = encode_rows(self.bank, self.scaling, self.register_map, tick=self.ticks, overruns=self.overruns,
+                               time=self.bank.sample_time)
+            self.served[:] = rows.astype(">u2").tobytes()
 
     def tick(self) -> None:
         """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""
