@@ -101,17 +101,19 @@ class RegisterMapConfig:
 
 
 def reference(table: str, address: int) -> str:
-    """The one-based reference of zero-based ``address`` in ``table`` (holding 0 -> ``"40001"``; six digits
-    past 9999, ``"465281"``)."""
+    """The one-based reference of zero-based ``address`` in ``table`` (what an HMI tag editor shows: holding 0
+    -> ``"40001"``; five digits while the address fits, 0..9998, six beyond: ``"465281"``)."""
     number = address + 1
     return f"{TABLES[table]}{number:04d}" if number <= 9999 else f"{TABLES[table]}{number:05d}"
 
 
 def _parse_reference(value: object, key: str) -> tuple[str, int]:
     """``(table, zero-based address)`` of a one-based reference such as ``40101`` or ``"465001"``."""
-    text = str(value) if isinstance(value, (int, str)) and not isinstance(value, bool) else ""
-    if isinstance(value, int) and not isinstance(value, bool):
-        text = str(value) if value >= 100000 else f"{value:05d}"
+    text = ""
+    if isinstance(value, str):
+        text = value
+    elif isinstance(value, int) and not isinstance(value, bool):   # 101 is 00101: YAML drops leading zeros
+        text = f"{value:05d}"
     if not text.isdigit() or len(text) not in (5, 6):
         raise ConfigError(f"{{key}} must be a reference such as 40001 (holding), 30001 (input), 10001 (discrete "
                           f"input) or 00001 (coil) with base: 1, got {value!r}", key=key)

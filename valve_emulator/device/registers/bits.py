@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Final
 
+from valve_emulator.config.register_map import reference  # the one-based references of every table
 from valve_emulator.device.registers.errors import RegisterAddressError
 from valve_emulator.device.registers.table import (
     BLOCK_STRIDE,
@@ -41,18 +42,6 @@ class BitTable(StrEnum):
 
     COIL = "coil"                       # read FC1, write FC5 / FC15
     DISCRETE_INPUT = "discrete_input"   # read FC2
-
-
-_PREFIX: Final = {"coil": 0, "discrete_input": 1, "input": 3, "holding": 4}
-
-
-def reference(table: str, address: int) -> str:
-    """The one-based reference of zero-based ``address`` in ``table`` (``holding``, 0 -> ``"40001"``).
-
-    Five digits while the address fits (0..9998), six digits (``"465281"``) beyond, as tag editors do.
-    """
-    number = address + 1
-    return f"{_PREFIX[table]}{number:04d}" if number <= 9999 else f"{_PREFIX[table]}{number:05d}"
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
