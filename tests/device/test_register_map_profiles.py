@@ -253,7 +253,9 @@ def test_ignition_export_addresses_each_tag_with_the_modbus_driver_designators()
     assert paths["time"]["opcItemPath"] == "ns=1;s=[plc1]IRD7" and paths["time"]["dataType"] == "Float8"
     assert paths["tick"]["opcItemPath"] == "ns=1;s=[plc1]IRUI11"
     assert "Reverse Word Order on" in paths["pv"]["documentation"]
-    assert paths["op_ma"]["scaleMode"] == "Linear" and paths["op_ma"]["rawHigh"] == 100000.0
+    op_ma = paths["op_ma"]
+    assert (op_ma["scaleMode"], op_ma["rawLow"], op_ma["rawHigh"], op_ma["scaledLow"], op_ma["scaledHigh"]) == (
+        "Linear", 4000.0, 20000.0, 4.0, 20.0)                                   # mA × 1000
 
 
 def test_node_red_export_reads_every_tag_and_writes_the_writable_ones():

@@ -90,7 +90,9 @@ def linear_scaling(row: Register, scaling: Scaling, index: int = 0) -> tuple[flo
         return 0.0, 100.0 * row.scale, 0.0, hi - lo
     if row.scale == 1:
         return None
-    return 0.0, 100.0 * row.scale, 0.0, 100.0   # LINEAR and LOOP_CURRENT: raw = value × scale
+    # LINEAR and LOOP_CURRENT: raw = value × scale, over the raw range the register takes (within its type)
+    raw_lo, raw_hi = row.write if row.write[0] < row.write[1] else row.read_range
+    return float(raw_lo), float(raw_hi), raw_lo / row.scale, raw_hi / row.scale
 
 
 def _units(row: Register | Bit, pv_units: str) -> str:
