@@ -268,3 +268,14 @@ def test_node_red_export_reads_every_tag_and_writes_the_writable_ones():
     assert reads["pv_f32"]["quantity"] == "2" and all(n["server"] == client["id"] for n in reads.values())
     writes = [n for n in flow if n["type"] == "modbus-write"]
     assert [(w["name"], w["dataType"], w["adr"]) for w in writes] == [("write op", "HoldingRegister", "100")]
+
+
+def test_the_registers_command_exports_a_profile_and_refuses_a_unit_it_does_not_have(capsys):
+    from valve_emulator.cli import main as cli_main
+
+    assert cli_main(["registers", str(S7), "--format", "kepware"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].startswith("op,400001,Short,1,R/W,")
+    assert cli_main(["registers", str(S7)]) == 0
+    assert "Not served by this map (no address in device.register_map): op_pct," in capsys.readouterr().out
+    assert cli_main(["registers", str(S7), "--format", "node-red", "--unit", "9"]) == 2
+    assert "--unit 9: the config has no loop on unit 9" in capsys.readouterr().err
