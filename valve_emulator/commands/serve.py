@@ -98,8 +98,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="OPC UA application certificate (valve-emulator certs --opcua DIR)")
     g.add_argument("--opcua-key", type=Path, metavar="KEY", help="its private key")
     g.add_argument("--opcua-users", type=Path, metavar="USERS.yaml",
-                   help="users with hashed passwords and a role each (operator, instructor); without it anonymous "
-                        "clients are operators")
+                   help="users with hashed passwords and a role each (viewer, operator, instructor or a custom role "
+                        "of device.roles); without it anonymous clients are operators")
+    g.add_argument("--opcua-pki", type=Path, metavar="DIR",
+                   help="trust list of OPC UA client certificates: DIR/trusted/certs are accepted, unknown ones "
+                        "are refused and copied to DIR/rejected/certs (default: opcua.pki, else ./pki)")
+    g.add_argument("--opcua-trust-all", action="store_true",
+                   help="accept every OPC UA client certificate (loopback --host only; for trying things out)")
     g.add_argument("--opcua-history", metavar="DURATION",
                    help="keep the last DURATION (600, 600s, 10m, 2h) of every loop's PV, OP, SP and MV for OPC UA "
                         "HistoryRead (in memory, asyncua's SQLite history)")
@@ -181,6 +186,9 @@ def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object
     sec = config.opcua
     port = args.opcua if args.opcua is not None else sec.port
     if port is None:
+        for flag, given in (("--opcua-pki", args.opcua_pki), ("--opcua-trust-all", args.opcua_trust_all)):
+            if given:
+                raise UserError(f"{flag} needs OPC UA: give --opcua PORT (or the config's opcua.port)")
         return None, None
     from valve_emulator.opcua import OpcUaSecurity, load_users
 
@@ -189,9 +197,16 @@ def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object
     for what, path in (("certificate", cert), ("private key", key)):
         if path is not None and not Path(path).is_file():
             raise UserError(f"opcua {what} {path}: no such file")
-    security = OpcUaSecurity(policies=tuple(args.opcua_policy or sec.policies),
+    from valve_emulator.device.roles import RoleTable
+
+    roles = RoleTable.from_config(config)
+    policies = tuple(args.opcua_policy or sec.policies)
+    secure = any(p != "None" for p in policies)   # only a secure channel carries a client certificate
+    security = OpcUaSecurity(policies=policies,
                              certificate=Path(cert) if cert else None, private_key=Path(key) if key else None,
-                             users=load_users(users_path) if users_path is not None else None)
+                             users=load_users(users_path, roles) if users_path is not None else None,
+                             pki=Path(args.opcua_pki or sec.pki or "pki") if secure else None,
+                             trust_all=args.opcua_trust_all)
     security.check(args.host)
     return port, security
 
@@ -278,6 +293,7 @@ def run(args: argparse.Namespace) -> int:
         return run_processes(args)
     files = {"": args.config, "--record": args.record, "--snapshots": args.snapshots,
              "--opcua-cert": args.opcua_cert, "--opcua-key": args.opcua_key, "--opcua-users": args.opcua_users,
+             "--opcua-pki": args.opcua_pki,
              "--tls-cert": args.tls_cert, "--tls-key": args.tls_key, "--tls-ca": args.tls_ca}
     with user_files(files):
         return _run(args)

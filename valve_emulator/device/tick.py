@@ -219,14 +219,13 @@ class Device:
         pending = self._pending.get((index, "auto"))
         return bool(self.bank.auto[index]) if pending is None else bool(pending)
 
-    def write(self, index: int, address: int, values: Sequence[int], *,
-              instructor: bool = False) -> list[tuple[str, float]]:
-        """Validate and queue a write of raw register ``values`` at ``address`` on loop ``index``.
+    def write(self, index: int, address: int, values: Sequence[int], *, role: Any) -> list[tuple[str, float]]:
+        """Validate and queue a write of raw register ``values`` at ``address`` on loop ``index`` by a client
+        of ``role`` (:class:`~valve_emulator.device.roles.Role`: what it may write, the same on every interface).
 
         Returns the accepted ``(quantity, value)`` changes; raises a ``RegisterError`` (nothing changed).
         """
-        changes = decode_write(address, values, self.scaling, index, auto=self.effective_auto(index),
-                               instructor=instructor)
+        changes = decode_write(address, values, self.scaling, index, role=role, auto=self.effective_auto(index))
         start = int(self.offsets[index])
         row = np.frombuffer(self.image, dtype=">u2", count=N_REGISTERS, offset=start).astype(np.int64)
         for quantity, value in changes:

@@ -4,10 +4,14 @@ A second listener of the same :class:`~valve_emulator.device.server.EmulatorServ
 tick and checks) whose connections are TLS: the server proves itself with its certificate, the client must
 present a certificate signed by the configured CA (no certificate, or one the CA did not sign: the handshake
 fails and no Modbus request is ever read), and the client certificate's **role** — the extension
-``1.3.6.1.4.1.50316.802.1``, an ASN.1 UTF8String — decides what it may write:
+``1.3.6.1.4.1.50316.802.1``, an ASN.1 UTF8String — decides what it may write, through the device's
+permission table (:mod:`~valve_emulator.device.roles`): ``viewer`` reads only, ``operator`` writes OP, SP and
+the mode, ``instructor`` everything, a custom role of ``device.roles`` the tags it lists.
 
-- ``instructor``: everything, including the instructor registers (S, J, load, noise, fault, comm faults);
-- ``operator``, another role, or no role: what a Modbus client without instructor permission may write.
+A certificate whose role is not in the table -- a typo, ``readonly``, or no role extension at all -- gets no
+session: the connection is closed right after the handshake, before any request is read, and the refusal is
+logged with the client's address, the certificate's subject and the role it claimed (once per client and
+cause per interval, :class:`~valve_emulator.device.guard.RefusalLog`). Refused writes name the same three.
 
 The role replaces the plain port's instructor rule (``device.instructor_writes`` / ``instructor_hosts``):
 over TLS the certificate, not the IP address, is the credential. TLS 1.0 and 1.1 are refused.
@@ -23,14 +27,15 @@ from cryptography import x509
 from cryptography.x509.oid import ObjectIdentifier
 
 from valve_emulator.device.connection import ModbusConnection
+from valve_emulator.device.roles import Role
 from valve_emulator.errors import UserError
 
-__all__ = ["ROLE_OID", "INSTRUCTOR", "OPERATOR", "server_context", "role_of", "TlsModbusConnection"]
+__all__ = ["ROLE_OID", "server_context", "role_of", "subject_of", "TlsModbusConnection"]
 
 #: The Modbus/TCP Security role extension.
 ROLE_OID = ObjectIdentifier("1.3.6.1.4.1.50316.802.1")
-INSTRUCTOR = "instructor"
-OPERATOR = "operator"
+#: The permission of a connection that gets no session (it is closed before any request is read).
+_NO_SESSION = Role("(no session)", frozenset())
 
 
 def server_context(cert: Path | str, key: Path | str, ca: Path | str) -> ssl.SSLContext:
@@ -68,6 +73,13 @@ def role_of(der: bytes | None) -> str | None:
     return _utf8_string(value)
 
 
+def subject_of(der: bytes | None) -> str:
+    """The subject of a DER certificate as RFC 4514 text (``CN=plc-7,O=plant``); ``(no certificate)``."""
+    if not der:
+        return "(no certificate)"
+    return x509.load_der_x509_certificate(der).subject.rfc4514_string()
+
+
 def _utf8_string(der: bytes) -> str | None:
     """Decode a DER UTF8String (tag 0x0C, short or long length form); None when it is not one."""
     if len(der) < 2 or der[0] != 0x0C:
@@ -86,19 +98,34 @@ def _utf8_string(der: bytes) -> str | None:
 
 
 class TlsModbusConnection(ModbusConnection):
-    """A Modbus TCP connection inside TLS: instructor permission from the client certificate's role."""
+    """A Modbus TCP connection inside TLS: its permission is the client certificate's role, looked up in the
+    server's permission table (``server.roles``); a role the table does not have closes the connection."""
 
-    role: str | None = None
+    #: the role the certificate claims (None: no role extension), and the certificate's subject
+    claimed: str | None = None
+    subject: str = ""
 
     def connection_made(self, transport: Any) -> None:
-        super().connection_made(transport)
-        self.server.tls_sessions += 1   # only after a complete handshake: a refused client never gets here
         ssl_object = transport.get_extra_info("ssl_object")
-        self.role = role_of(ssl_object.getpeercert(binary_form=True)) if ssl_object is not None else None
-        self.instructor = self.permission()
+        der = ssl_object.getpeercert(binary_form=True) if ssl_object is not None else None
+        self.claimed, self.subject = role_of(der), subject_of(der)
+        super().connection_made(transport)
+        if self.slot is None:   # refused at the connection limit
+            return
+        server = self.server
+        server.tls_sessions += 1   # only after a complete handshake: a refused client never gets here
+        self.who = f"{self.peer_ip} (certificate {self.subject}, role {self.claimed!r})"
+        if server.roles.get(self.claimed) is None:
+            server.tls_refused += 1
+            why = "carries no role" if self.claimed is None else f"claims role {self.claimed!r}"
+            server.refusals.note(self.peer_ip, ("tls session", self.subject, self.claimed),
+                                 "refused TLS session from %s: certificate %s %s, which is not in the permission "
+                                 "table (%s; device.roles adds custom roles); connection closed",
+                                 self.peer_ip, self.subject, why, server.roles.describe())
+            self._close_now()
 
-    def permission(self) -> bool:
-        return self.role == INSTRUCTOR
+    def permission(self) -> Role:
+        return self.server.roles.get(self.claimed) or _NO_SESSION
 
     def eof_received(self) -> bool:
         # TLS cannot stay half-open (asyncio closes the transport after the peer's close_notify whatever we

@@ -1,15 +1,17 @@
-"""Who may do what over OPC UA: two roles, a users file with hashed passwords, and the rule asyncua enforces.
+"""Who may do what over OPC UA: users with hashed passwords, each with a role of the device's permission table.
 
-Roles are the instructor station's (``docs/station.md``): an **operator** reads everything and writes what a
-Modbus client without instructor permission may write (OP in manual, SP, mode, tuning); an **instructor**
-also writes the instructor variables (S, J, load, noise, fault) and calls the station's methods (Freeze,
-Run, SetSpeed, Snapshot, Restore, InjectMalfunction).
+Roles are the ones every interface shares (:mod:`valve_emulator.device.roles`): a **viewer** reads
+everything and writes nothing; an **operator** also writes OP (in manual), SP and the mode; an
+**instructor** writes every variable and calls the station's methods (Freeze, Run, SetSpeed, Snapshot,
+Restore, InjectMalfunction); a custom role of ``device.roles`` writes the tags it lists. A write the role
+may not make answers ``BadUserAccessDenied``; a method call of anyone but an instructor too.
 
 The users file is YAML::
 
     users:
       alice: {role: instructor, password: "pbkdf2-sha256$600000$<salt hex>$<hash hex>"}
       bob:   {role: operator,   password: "pbkdf2-sha256$600000$..."}
+      carol: {role: viewer,     password: "pbkdf2-sha256$600000$..."}
 
 with each password stored as PBKDF2-HMAC-SHA256 (``hashlib.pbkdf2_hmac``; NIST SP 800-132), made by
 :func:`hash_password` (``valve-emulator certs --hash-password`` reads a password on standard input and
@@ -23,8 +25,7 @@ import hashlib
 import hmac
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
-from enum import StrEnum
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,19 +33,15 @@ import yaml
 from asyncua import ua
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
 
+from valve_emulator.device.roles import DEFAULT_ROLES, OPERATOR, Role, RoleTable
 from valve_emulator.errors import UserError
 
-__all__ = ["Role", "StationUser", "UsersFile", "UsersError", "RoleRuleset", "hash_password", "check_password",
+__all__ = ["StationUser", "UsersFile", "UsersError", "RoleRuleset", "hash_password", "check_password",
            "load_users"]
 
 #: PBKDF2 iterations of a new hash (OWASP's 2023 figure for PBKDF2-HMAC-SHA256).
 ITERATIONS = 600_000
 _SCHEME = "pbkdf2-sha256"
-
-
-class Role(StrEnum):
-    OPERATOR = "operator"
-    INSTRUCTOR = "instructor"
 
 
 class UsersError(UserError):
@@ -53,13 +50,10 @@ class UsersError(UserError):
 
 @dataclass
 class StationUser(User):
-    """An asyncua :class:`User` that also carries the station role (asyncua's own role stays ``User``)."""
+    """An asyncua :class:`User` that also carries its role of the permission table (asyncua's own role stays
+    ``User``)."""
 
-    station_role: Role = Role.OPERATOR
-
-    @property
-    def instructor(self) -> bool:
-        return self.station_role is Role.INSTRUCTOR
+    station_role: Role = field(default=OPERATOR)
 
 
 def hash_password(password: str, *, iterations: int = ITERATIONS, salt: bytes | None = None) -> str:
@@ -95,7 +89,7 @@ class UsersFile:
         """asyncua's user-manager call: the user for these credentials, or None (access denied)."""
         if username is None:
             if self.anonymous:
-                return StationUser(role=UserRole.User, name="anonymous", station_role=Role.OPERATOR)
+                return StationUser(role=UserRole.User, name="anonymous", station_role=OPERATOR)
             return None
         entry = self.users.get(username)
         if entry is None or password is None or not check_password(password, entry[1]):
@@ -103,8 +97,9 @@ class UsersFile:
         return StationUser(role=UserRole.User, name=username, station_role=entry[0])
 
 
-def load_users(path: Path | str) -> dict[str, tuple[Role, str]]:
-    """Read a users file (see the module docstring); :class:`UsersError` names the file and key."""
+def load_users(path: Path | str, roles: RoleTable = DEFAULT_ROLES) -> dict[str, tuple[Role, str]]:
+    """Read a users file (see the module docstring) whose roles are those of ``roles`` (the device's permission
+    table: the built-in roles and ``device.roles``); :class:`UsersError` names the file and key."""
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
@@ -122,10 +117,10 @@ def load_users(path: Path | str) -> dict[str, tuple[Role, str]]:
         unknown = sorted(set(entry) - {"role", "password"})
         if unknown:
             raise UsersError(f"{where}: unknown key(s) {', '.join(unknown)}")
-        try:
-            role = Role(entry.get("role"))
-        except ValueError:
-            raise UsersError(f"{where}.role: must be 'operator' or 'instructor', got {entry.get('role')!r}") from None
+        role = roles.get(entry.get("role")) if isinstance(entry.get("role"), str) else None
+        if role is None:
+            raise UsersError(f"{where}.role: must be a role of the permission table ({roles.describe()}; "
+                             f"device.roles adds custom roles), got {entry.get('role')!r}")
         stored = entry.get("password")
         if not isinstance(stored, str) or not stored.startswith(_SCHEME + "$") or stored.count("$") != 3:
             raise UsersError(f"{where}.password: must be a hash made by 'valve-emulator certs --hash-password' "
@@ -148,5 +143,5 @@ class RoleRuleset(PermissionRuleset):
         if action_type_id not in self._allowed:
             return False
         if action_type_id == _CALL:
-            return isinstance(user, StationUser) and user.instructor
+            return isinstance(user, StationUser) and user.station_role.instructs
         return user is None or user.role is not UserRole.Anonymous

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import Any, Final
+from typing import Any, Final, Protocol
 
 import numpy as np
 
@@ -38,7 +38,6 @@ from valve_emulator.device.registers.table import (
     N_REGISTERS,
     REGISTERS,
     RW_CONTROLLER,
-    RW_INSTRUCTOR,
     WRITABLE_QUANTITIES,
     Conversion,
     Fault,
@@ -51,8 +50,8 @@ from valve_emulator.device.registers.table import (
 )
 from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, split32
 
-__all__ = ["decode_value", "decode_write", "encode_loop", "encode_value", "encode_write", "patch", "status_word",
-           "write_range"]
+__all__ = ["WritePermission", "decode_value", "decode_write", "encode_loop", "encode_value", "encode_write", "patch",
+           "status_word", "write_range"]
 
 _STATUS: Final = address_of("status")
 # Written quantities that also flip a status bit: quantity -> (bit, is the bit set for this value?)
@@ -223,8 +222,16 @@ def decode_value(reg: Register, raw: int, scaling: Scaling, index: int) -> Any:
     return raw / reg.scale
 
 
+class WritePermission(Protocol):
+    """What a client may write: a :class:`~valve_emulator.device.roles.Role` (the permission table)."""
+
+    name: str
+
+    def may_write(self, quantity: str) -> bool: ...
+
+
 def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: int, *,
-                 auto: bool = False, instructor: bool = False) -> list[tuple[str, Any]]:
+                 role: WritePermission, auto: bool = False) -> list[tuple[str, Any]]:
     """Validate a write of raw ``values`` from ``address`` on unit ``index``; return the physical changes.
 
     Returns ``[(quantity, value), ...]`` in address order with quantity one of ``op`` (% travel), ``sp``
@@ -235,8 +242,8 @@ def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: i
     Raises
     ------
     RegisterAddressError : an address outside the map.
-    RegisterAccessError : read-only register; controller register on a loop without one; instructor
-        register without ``instructor``; OP while the internal controller is in ``auto``.
+    RegisterAccessError : read-only register; controller register on a loop without one; a register
+        ``role`` may not write; OP while the internal controller is in ``auto``.
     RegisterValueError : a raw value outside the register's range, e.g.
         ``register op_pct: 12000 out of range 0..10000``.
     """
@@ -254,8 +261,8 @@ def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: i
             refusal = "is read-only"
         elif reg.access is RW_CONTROLLER and not has_ctl:
             refusal = "needs an internal controller; this loop has none"
-        elif reg.access is RW_INSTRUCTOR and not instructor:
-            refusal = "needs instructor write permission"
+        elif not role.may_write(reg.quantity):
+            refusal = f"is not writable by role {role.name!r}"
         elif reg.quantity == "op" and has_ctl and auto:
             refusal = "is writable only while the controller is in manual"
         if refusal is not None:
