@@ -52,7 +52,7 @@ def _run(args: argparse.Namespace) -> int:
         raise UserError("--modbus-role and --config need --modbus DIR")
     hosts = tuple(args.host or ("localhost", "127.0.0.1"))
     if args.hash_password:
-        from valve_emulator.opcua.users import hash_password
+        from valve_emulator.device.accounts import hash_password
 
         password = getpass.getpass("password: ") if sys.stdin.isatty() else sys.stdin.readline().rstrip("\n")
         if not password:

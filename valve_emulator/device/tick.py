@@ -219,9 +219,11 @@ class Device:
         pending = self._pending.get((index, "auto"))
         return bool(self.bank.auto[index]) if pending is None else bool(pending)
 
-    def write(self, index: int, address: int, values: Sequence[int], *, role: Any) -> list[tuple[str, float]]:
+    def write(self, index: int, address: int, values: Sequence[int], *,
+              role: Any = None) -> list[tuple[str, float]]:
         """Validate and queue a write of raw register ``values`` at ``address`` on loop ``index`` by a client
-        of ``role`` (:class:`~valve_emulator.device.roles.Role`: what it may write, the same on every interface).
+        of ``role`` (:class:`~valve_emulator.device.roles.Role`: what it may write, the same on every interface;
+        None: a client without credentials, see :func:`~valve_emulator.device.registers.decode_write`).
 
         Returns the accepted ``(quantity, value)`` changes; raises a ``RegisterError`` (nothing changed).
         """

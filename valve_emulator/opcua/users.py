@@ -6,46 +6,24 @@ everything and writes nothing; an **operator** also writes OP (in manual), SP an
 Restore, InjectMalfunction); a custom role of ``device.roles`` writes the tags it lists. A write the role
 may not make answers ``BadUserAccessDenied``; a method call of anyone but an instructor too.
 
-The users file is YAML::
-
-    users:
-      alice: {role: instructor, password: "pbkdf2-sha256$600000$<salt hex>$<hash hex>"}
-      bob:   {role: operator,   password: "pbkdf2-sha256$600000$..."}
-      carol: {role: viewer,     password: "pbkdf2-sha256$600000$..."}
-
-with each password stored as PBKDF2-HMAC-SHA256 (``hashlib.pbkdf2_hmac``; NIST SP 800-132), made by
-:func:`hash_password` (``valve-emulator certs --hash-password`` reads a password on standard input and
-prints the line). A password is checked in constant time (:func:`hmac.compare_digest`). Anonymous clients
-are operators, and only where the server allows anonymous access (loopback without a users file).
+The users file (names, hashed passwords, roles) is :mod:`valve_emulator.device.accounts`'s, shared with the
+instructor station. Anonymous clients are operators, and only where the server allows anonymous access
+(loopback without a users file).
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-import yaml
 from asyncua import ua
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
 
-from valve_emulator.device.roles import DEFAULT_ROLES, OPERATOR, Role, RoleTable
-from valve_emulator.errors import UserError
+from valve_emulator.device.accounts import authenticate
+from valve_emulator.device.roles import OPERATOR, Role
 
-__all__ = ["StationUser", "UsersFile", "UsersError", "RoleRuleset", "hash_password", "check_password",
-           "load_users"]
-
-#: PBKDF2 iterations of a new hash (OWASP's 2023 figure for PBKDF2-HMAC-SHA256).
-ITERATIONS = 600_000
-_SCHEME = "pbkdf2-sha256"
-
-
-class UsersError(UserError):
-    """A users file that cannot be used: the message names the file and the key."""
+__all__ = ["StationUser", "UsersFile", "RoleRuleset"]
 
 
 @dataclass
@@ -54,26 +32,6 @@ class StationUser(User):
     ``User``)."""
 
     station_role: Role = field(default=OPERATOR)
-
-
-def hash_password(password: str, *, iterations: int = ITERATIONS, salt: bytes | None = None) -> str:
-    """The stored form of ``password``: ``pbkdf2-sha256$ITERATIONS$SALT$HASH`` (hex)."""
-    salt = os.urandom(16) if salt is None else salt
-    digest = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
-    return f"{_SCHEME}${iterations}${salt.hex()}${digest.hex()}"
-
-
-def check_password(password: str, stored: str) -> bool:
-    """Does ``password`` match the ``stored`` hash? Constant time in the hash comparison."""
-    try:
-        scheme, iterations, salt, digest = stored.split("$")
-        if scheme != _SCHEME:
-            return False
-        expected = bytes.fromhex(digest)
-        got = hashlib.pbkdf2_hmac("sha256", password.encode(), bytes.fromhex(salt), int(iterations))
-    except ValueError:
-        return False
-    return hmac.compare_digest(got, expected)
 
 
 @dataclass(frozen=True)
@@ -91,42 +49,10 @@ class UsersFile:
             if self.anonymous:
                 return StationUser(role=UserRole.User, name="anonymous", station_role=OPERATOR)
             return None
-        entry = self.users.get(username)
-        if entry is None or password is None or not check_password(password, entry[1]):
-            return None
-        return StationUser(role=UserRole.User, name=username, station_role=entry[0])
-
-
-def load_users(path: Path | str, roles: RoleTable = DEFAULT_ROLES) -> dict[str, tuple[Role, str]]:
-    """Read a users file (see the module docstring) whose roles are those of ``roles`` (the device's permission
-    table: the built-in roles and ``device.roles``); :class:`UsersError` names the file and key."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise UsersError(f"{path}: cannot read the users file: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        raise UsersError(f"{path}: not valid YAML: {exc}") from None
-    if not isinstance(data, Mapping) or not isinstance(data.get("users"), Mapping) or not data["users"]:
-        raise UsersError(f"{path}: key 'users' must map user names to {{role, password}}")
-    users: dict[str, tuple[Role, str]] = {}
-    for name, entry in data["users"].items():
-        where = f"{path}: users.{name}"
-        if not isinstance(entry, Mapping):
-            raise UsersError(f"{where}: must be a mapping with 'role' and 'password'")
-        unknown = sorted(set(entry) - {"role", "password"})
-        if unknown:
-            raise UsersError(f"{where}: unknown key(s) {', '.join(unknown)}")
-        role = roles.get(entry.get("role")) if isinstance(entry.get("role"), str) else None
+        role = None if password is None else authenticate(self.users, username, password)
         if role is None:
-            raise UsersError(f"{where}.role: must be a role of the permission table ({roles.describe()}; "
-                             f"device.roles adds custom roles), got {entry.get('role')!r}")
-        stored = entry.get("password")
-        if not isinstance(stored, str) or not stored.startswith(_SCHEME + "$") or stored.count("$") != 3:
-            raise UsersError(f"{where}.password: must be a hash made by 'valve-emulator certs --hash-password' "
-                             f"({_SCHEME}$...), never the password itself")
-        users[str(name)] = (role, stored)
-    return users
+            return None
+        return StationUser(role=UserRole.User, name=username, station_role=role)
 
 
 _CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)

@@ -38,6 +38,7 @@ from valve_emulator.device.registers.table import (
     N_REGISTERS,
     REGISTERS,
     RW_CONTROLLER,
+    RW_INSTRUCTOR,
     WRITABLE_QUANTITIES,
     Conversion,
     Fault,
@@ -231,7 +232,7 @@ class WritePermission(Protocol):
 
 
 def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: int, *,
-                 role: WritePermission, auto: bool = False) -> list[tuple[str, Any]]:
+                 role: WritePermission | None = None, auto: bool = False) -> list[tuple[str, Any]]:
     """Validate a write of raw ``values`` from ``address`` on unit ``index``; return the physical changes.
 
     Returns ``[(quantity, value), ...]`` in address order with quantity one of ``op`` (% travel), ``sp``
@@ -243,7 +244,9 @@ def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: i
     ------
     RegisterAddressError : an address outside the map.
     RegisterAccessError : read-only register; controller register on a loop without one; a register
-        ``role`` may not write; OP while the internal controller is in ``auto``.
+        ``role`` may not write (None: a client without credentials, which writes every register except the
+        ``RW-instructor`` ones: :data:`~valve_emulator.device.roles.UNAUTHENTICATED`); OP while the internal
+        controller is in ``auto``.
     RegisterValueError : a raw value outside the register's range, e.g.
         ``register op_pct: 12000 out of range 0..10000``.
     """
@@ -261,8 +264,8 @@ def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: i
             refusal = "is read-only"
         elif reg.access is RW_CONTROLLER and not has_ctl:
             refusal = "needs an internal controller; this loop has none"
-        elif not role.may_write(reg.quantity):
-            refusal = f"is not writable by role {role.name!r}"
+        elif not (role.may_write(reg.quantity) if role is not None else reg.access is not RW_INSTRUCTOR):
+            refusal = "is not writable by role " + repr("unauthenticated" if role is None else role.name)
         elif reg.quantity == "op" and has_ctl and auto:
             refusal = "is writable only while the controller is in manual"
         if refusal is not None:
