@@ -131,7 +131,7 @@ async def test_probe_writes_the_current_stiction_back_when_the_scenario_writes_i
 
 
 async def test_probe_writes_nothing_when_no_event_needs_instructor_writes():
-    dev = FakeDevice(now=7, refuse_role=INSTRUCTOR)
+    dev = FakeDevice(now=7, refuse_instructor=True)
     assert await probe(scenario("- {at: 1, event: sp, value: 2.0}\n"), dev) == 7
     assert dev.writes == []
 

@@ -70,6 +70,7 @@ _REFUSED = web.AppKey("refused", RefusalLog)
 _USERS = web.AppKey("users", object)        # name -> (Role, stored hash), or None without a users file
 _ANONYMOUS = web.AppKey("anonymous", Role)  # the role of a request without credentials
 _SIGNED_IN = web.AppKey("signed_in", dict)  # verified credentials -> role (PBKDF2 costs ~0.3 s per check)
+_AUTH = web.RequestKey("auth", object)  # the request's checked credentials
 _REALM = 'Basic realm="valve_emulator station", charset="UTF-8"'
 _STREAMS = web.AppKey("streams", set)
 _COOKIE = "station_token"
@@ -120,11 +121,30 @@ def _basic(request: web.Request) -> tuple[str, str] | None:
 
 def _role(request: web.Request) -> Role:
     """The request's role (see the module docstring); StationError 401 for a wrong user name or password."""
+    return _signed_in(request) or request.app[_ANONYMOUS]
+
+
+def _signed_in(request: web.Request) -> Role | None:
+    """The role the request's credentials give (the token, or a user's name and password); None without
+    valid credentials of the token kind, StationError 401 for a wrong user name or password. Checked once per
+    request (kept in the request)."""
+    if _AUTH not in request:
+        try:
+            request[_AUTH] = _check_credentials(request)
+        except StationError as exc:
+            request[_AUTH] = exc
+    found = request[_AUTH]
+    if isinstance(found, StationError):
+        raise found
+    return found
+
+
+def _check_credentials(request: web.Request) -> Role | None:
     if _has_token(request):
         return INSTRUCTOR
     users, credentials = request.app[_USERS], _basic(request)
     if users is None or credentials is None:
-        return request.app[_ANONYMOUS]
+        return None
     signed_in = request.app[_SIGNED_IN]
     key = hashlib.sha256("\0".join(credentials).encode()).digest()
     role = signed_in.get(key)
@@ -137,10 +157,6 @@ def _role(request: web.Request) -> Role:
     return role
 
 
-def _credentials_given(request: web.Request) -> bool:
-    return "Authorization" in request.headers or _COOKIE in request.cookies
-
-
 def _instructor(request: web.Request) -> bool:
     return _role(request).instructs
 
@@ -149,7 +165,7 @@ def _need(request: web.Request, role: Role, allowed: bool, what: str) -> None:
     """Refuse (401 without credentials, 403 with) unless ``allowed``."""
     if allowed:
         return
-    if _credentials_given(request):
+    if _signed_in(request) is not None:
         raise StationError(f"role {role.name!r} may not {what}", field="role", status=403)
     need = "the instructor token" if request.app[_USERS] is None else "the token or a user's credentials"
     raise StationError(f"this call needs {need} (to {what})", field="token", status=401)
