@@ -4,9 +4,11 @@ allows. Client: asyncua in process."""
 
 import logging
 import shutil
+import subprocess
 
 import pytest
 from asyncua import Client, ua
+from required import tool
 
 from valve_emulator.cli import main
 from valve_emulator.config import server_from_mapping
@@ -170,3 +172,33 @@ async def test_each_user_writes_what_the_role_allows_and_nothing_else(roles_conf
 
 def _written(role):
     return {var for var, (_, allowed) in WRITES.items() if role in allowed}
+
+
+def _openssl_client_certificate(d, uri):
+    """A client certificate made with openssl as docs/opcua.md shows (DER for the trust list)."""
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "365",
+                    "-keyout", str(d / "client-key.pem"), "-out", str(d / "client.pem"),
+                    "-subj", "/CN=my-client/O=plant",
+                    "-addext", f"subjectAltName=URI:{uri},DNS:localhost",
+                    "-addext", "keyUsage=critical,digitalSignature,nonRepudiation,keyEncipherment,dataEncipherment",
+                    "-addext", "extendedKeyUsage=clientAuth"], check=True, capture_output=True)
+    subprocess.run(["openssl", "x509", "-in", str(d / "client.pem"), "-outform", "der", "-out", str(d / "client.der")],
+                   check=True, capture_output=True)
+
+
+async def test_a_client_certificate_made_with_openssl_and_trusted_ahead_gets_a_session(config, files, tmp_path):
+    tool("openssl", "apt-get install openssl")
+    uri = "urn:example:my-client"
+    _openssl_client_certificate(tmp_path, uri)
+    pki = tmp_path / "pki"
+    (pki / "trusted" / "certs").mkdir(parents=True)
+    shutil.copy(tmp_path / "client.der", pki / "trusted" / "certs")
+    async with EmulatorServer(config, port=0, time_scale=0) as srv, \
+            OpcUaServer(srv.device, loops=config.loops, port=0, security=_security(files, pki)) as opc:
+        client = Client(opc.url)
+        await client.set_security_string(f"Basic256Sha256,SignAndEncrypt,{tmp_path / 'client.der'},"
+                                         f"{tmp_path / 'client-key.pem'},{files / 'server.der'}")
+        client.application_uri = uri
+        async with client:
+            assert await client.get_namespace_index(NAMESPACE) > 0
+    assert opc.trust_list.accepted == 1 and not any((pki / "rejected" / "certs").iterdir())
