@@ -179,3 +179,29 @@ def test_openssl_with_a_known_role_is_answered_and_with_an_unknown_one_is_cut_of
     assert answered[:2] == b"\x00\x01" and answered[7:9] == b"\x03\x02", answered   # FC3, 2 bytes
     assert _s_client(srv.tls_port, pki, "client-readonly") == b""
     assert srv.tls_sessions == 2 and srv.tls_refused == 1 and srv.requests == 1
+
+
+async def _handshake_refused(port, ctx):
+    """Try a TLS session with ``ctx``; True when the server refuses it (in the handshake or at the first read)."""
+    try:
+        return await _session_closed(port, ctx)
+    except (ssl.SSLError, ConnectionError, asyncio.IncompleteReadError):
+        return True
+
+
+@pytest.mark.parametrize(("client", "reason"), [
+    (None, "PEER_DID_NOT_RETURN_A_CERTIFICATE"),
+    ("foreign", "certificate verify failed"),
+])
+async def test_a_failed_handshake_is_logged_with_the_address_and_the_reason(tls_server, pki, tmp_path, caplog,
+                                                                             client, reason):
+    caplog.set_level(logging.WARNING, logger=LOGGER)
+    ctx = ssl.create_default_context(ssl.Purpose.SERVER_AUTH, cafile=str(pki / "ca.pem"))
+    if client == "foreign":   # a certificate of another CA
+        modbus_certificate(tmp_path, "client-operator", role="operator")
+        ctx.load_cert_chain(str(tmp_path / "client-operator.pem"), str(tmp_path / "client-operator-key.pem"))
+    for _ in range(10):
+        assert await _handshake_refused(tls_server.tls_port, ctx)
+    assert tls_server.tls_failed == 10 and tls_server.tls_sessions == 0 and tls_server.requests == 0
+    [line] = [r.getMessage() for r in caplog.records if "refused TLS handshake" in r.getMessage()]
+    assert "from 127.0.0.1" in line and reason in line

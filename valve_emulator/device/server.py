@@ -236,6 +236,10 @@ class EmulatorServer:
         self.tls_sessions = 0
         #: of those, the ones closed at once because the certificate's role is not in :attr:`roles`
         self.tls_refused = 0
+        #: TLS handshakes that failed (no client certificate, one the CA did not sign, an old TLS version, ...)
+        self.tls_failed = 0
+        #: the TLS handshakes under way (:class:`~valve_emulator.device.tls.TlsAcceptor`)
+        self.tls_handshakes: set[asyncio.Task] = set()
         self.connection_set: set[ModbusConnection] = set()
         self.turns = TurnBudget()
         self.requests = 0
@@ -342,11 +346,10 @@ class EmulatorServer:
         """Serve the same units as Modbus/TCP Security too: TLS with ``context``
         (:func:`~valve_emulator.device.tls.server_context`) on ``host`` (default: the plain port's) and ``port``
         (0: a free one); returns the port. Call after :meth:`start`; closed by :meth:`stop`."""
-        from valve_emulator.device.tls import TlsModbusConnection
+        from valve_emulator.device.tls import TlsAcceptor
 
         loop = asyncio.get_running_loop()
-        self._tls_server = await loop.create_server(lambda: TlsModbusConnection(self), host or self.host, port,
-                                                    ssl=context, ssl_handshake_timeout=self.guard.frame_timeout)
+        self._tls_server = await loop.create_server(lambda: TlsAcceptor(self, context), host or self.host, port)
         self.tls_port = self._tls_server.sockets[0].getsockname()[1]
         _log.info("serving units %s over Modbus/TCP Security on %s:%d", list(self.units), host or self.host,
                   self.tls_port)
@@ -357,6 +360,8 @@ class EmulatorServer:
         tls, self._tls_server = self._tls_server, None
         if tls is not None:
             tls.close()
+            for handshake in list(self.tls_handshakes):
+                handshake.cancel()
         for link in self.serial_links:
             link.close()
         self.serial_links.clear()

@@ -13,12 +13,18 @@ session: the connection is closed right after the handshake, before any request 
 logged with the client's address, the certificate's subject and the role it claimed (once per client and
 cause per interval, :class:`~valve_emulator.device.guard.RefusalLog`). Refused writes name the same three.
 
+A handshake that fails -- no client certificate, one the CA did not sign, TLS 1.1 or older, a client that
+stops half-way -- is logged too, with the client's address and OpenSSL's reason (``certificate verify
+failed: unable to get local issuer certificate``), once per client and reason per interval: the server runs
+the handshake itself (:class:`TlsAcceptor`) rather than inside asyncio's listener, which drops the reason.
+
 The role replaces the plain port's instructor rule (``device.instructor_writes`` / ``instructor_hosts``):
 over TLS the certificate, not the IP address, is the credential. TLS 1.0 and 1.1 are refused.
 """
 
 from __future__ import annotations
 
+import asyncio
 import ssl
 from pathlib import Path
 from typing import Any
@@ -30,7 +36,7 @@ from valve_emulator.device.connection import ModbusConnection
 from valve_emulator.device.roles import Role
 from valve_emulator.errors import UserError
 
-__all__ = ["ROLE_OID", "server_context", "role_of", "subject_of", "TlsModbusConnection"]
+__all__ = ["ROLE_OID", "server_context", "role_of", "subject_of", "TlsAcceptor", "TlsModbusConnection"]
 
 #: The Modbus/TCP Security role extension.
 ROLE_OID = ObjectIdentifier("1.3.6.1.4.1.50316.802.1")
@@ -132,3 +138,51 @@ class TlsModbusConnection(ModbusConnection):
         # answer, and warns when we ask to keep it): do the plain connection's bookkeeping, then say so.
         super().eof_received()
         return False
+
+
+class TlsAcceptor(asyncio.Protocol):
+    """A TCP connection of the TLS listener until its handshake is done: runs the handshake
+    (``loop.start_tls``, within ``device.frame_timeout``), then hands the TLS transport to a
+    :class:`TlsModbusConnection`; a failed handshake is counted (``server.tls_failed``), logged with the
+    client's address and the reason, and the connection aborted."""
+
+    def __init__(self, server: Any, context: ssl.SSLContext) -> None:
+        self.server, self.context = server, context
+
+    def connection_made(self, transport: Any) -> None:
+        transport.pause_reading()   # the ClientHello stays in the socket until start_tls reads it
+        task = asyncio.get_running_loop().create_task(self._handshake(transport), name="valve-emulator-tls")
+        self.server.tls_handshakes.add(task)
+        task.add_done_callback(self.server.tls_handshakes.discard)
+
+    async def _handshake(self, transport: Any) -> None:
+        server, conn = self.server, TlsModbusConnection(self.server)
+        peer = transport.get_extra_info("peername")
+        ip = peer[0] if peer else "?"
+        try:
+            tls = await asyncio.get_running_loop().start_tls(transport, conn, self.context, server_side=True,
+                                                              ssl_handshake_timeout=server.guard.frame_timeout)
+        except (OSError, TimeoutError, asyncio.CancelledError) as exc:
+            transport.abort()
+            if isinstance(exc, asyncio.CancelledError):
+                raise
+            server.tls_failed += 1
+            reason = _handshake_reason(exc)
+            server.refusals.note(ip, ("tls handshake", reason), "refused TLS handshake from %s: %s", ip, reason)
+            return
+        conn.connection_made(tls)
+
+
+def _handshake_reason(exc: BaseException) -> str:
+    """What went wrong in a handshake, in OpenSSL's words where it has some."""
+    if isinstance(exc, ssl.SSLCertVerificationError):
+        return f"certificate verify failed: {exc.verify_message} (a client certificate the --tls-ca CA did not sign?)"
+    if isinstance(exc, ssl.SSLError):
+        reason = exc.reason or str(exc)
+        hint = {"PEER_DID_NOT_RETURN_A_CERTIFICATE": " (the client sent no certificate)",
+                "UNSUPPORTED_PROTOCOL": " (TLS 1.2 or later is required)",
+                "NO_SHARED_CIPHER": " (TLS 1.2 or later is required)"}.get(reason, "")
+        return f"{reason}{hint}"
+    if isinstance(exc, TimeoutError) or "taking longer" in str(exc):
+        return "handshake not completed within device.frame_timeout"
+    return f"connection lost during the handshake ({exc.__class__.__name__}: {exc})"
