@@ -323,8 +323,12 @@ class RtuStreamConnection(asyncio.Protocol):
             transport.abort()
             return
         self.peer_ip = peer[0] if peer else ""
-        self.role = self.server.plain_role(self.peer_ip)
+        self.role = self.permission()
         self.server.connection_set.add(self)
+
+    def permission(self) -> Role:
+        """This client's role (asked again when the server is reconfigured): the plain port's rule."""
+        return self.server.plain_role(self.peer_ip)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.server.connection_set.discard(self)
