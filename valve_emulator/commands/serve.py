@@ -106,7 +106,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "of device.roles); without it anonymous clients are operators")
     g.add_argument("--opcua-pki", type=Path, metavar="DIR",
                    help="trust list of OPC UA client certificates: DIR/trusted/certs are accepted, unknown ones "
-                        "are refused and copied to DIR/rejected/certs (default: opcua.pki, else ./pki)")
+                        "are refused and copied to DIR/rejected/certs (default: opcua.pki, else the folder of "
+                        "--opcua-cert)")
     g.add_argument("--opcua-trust-all", action="store_true",
                    help="accept every OPC UA client certificate (loopback --host only; for trying things out)")
     g.add_argument("--opcua-history", metavar="DURATION",
@@ -209,7 +210,8 @@ def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object
     security = OpcUaSecurity(policies=policies,
                              certificate=Path(cert) if cert else None, private_key=Path(key) if key else None,
                              users=load_users(users_path, roles) if users_path is not None else None,
-                             pki=Path(args.opcua_pki or sec.pki or "pki") if secure else None,
+                             pki=Path(args.opcua_pki or sec.pki or Path(cert or "pki/server.der").parent) if secure
+                             else None,
                              trust_all=args.opcua_trust_all)
     security.check(args.host)
     return port, security
