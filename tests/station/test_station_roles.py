@@ -106,3 +106,15 @@ async def test_a_flood_of_refused_actions_is_logged_once_per_interval(station_fo
     lines = [r.getMessage() for r in caplog.records if r.name == "valve_emulator.station"]
     assert len(lines) == 1
     assert "127.0.0.1 (user 'vera')" in lines[0] and "role 'viewer'" in lines[0]
+
+
+def test_serve_refuses_a_station_users_file_with_a_role_outside_the_table(tmp_path, capsys):
+    from valve_emulator.cli import main
+
+    bad = tmp_path / "users.yaml"
+    bad.write_text(f"users:\n  sid: {{role: setter, password: '{hash_password('set', iterations=1000)}'}}\n")
+    assert main(["serve", "--port", "0", "--web", "0", "--web-users", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "users.sid.role" in err and "viewer, operator, instructor" in err
+    assert main(["serve", "--port", "0", "--web-users", str(bad)]) == 2
+    assert "--web-users and --snapshots need --web PORT" in capsys.readouterr().err
