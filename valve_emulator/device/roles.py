@@ -45,8 +45,7 @@ from valve_emulator.config.roles import (
 from valve_emulator.config.roles import (
     VIEWER as VIEWER_NAME,
 )
-from valve_emulator.device.registers import REGISTERS, RW_INSTRUCTOR, UNIT_REGISTERS, R
-from valve_emulator.device.registers.table import CLOCK_REGISTERS
+from valve_emulator.device.registers import CLOCK_REGISTERS, REGISTERS, RW_INSTRUCTOR, UNIT_REGISTERS, R
 
 __all__ = ["Role", "RoleTable", "VIEWER", "OPERATOR", "INSTRUCTOR", "UNAUTHENTICATED", "BUILTIN_ROLES",
            "DEFAULT_ROLES", "tag_of"]

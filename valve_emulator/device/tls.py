@@ -162,10 +162,11 @@ class TlsAcceptor(asyncio.Protocol):
         try:
             tls = await asyncio.get_running_loop().start_tls(transport, conn, self.context, server_side=True,
                                                               ssl_handshake_timeout=server.guard.frame_timeout)
-        except (OSError, TimeoutError, asyncio.CancelledError) as exc:
+        except asyncio.CancelledError:   # the server is stopping
             transport.abort()
-            if isinstance(exc, asyncio.CancelledError):
-                raise
+            raise
+        except Exception as exc:   # an SSLError or OSError mostly; whatever it is, this connection is over
+            transport.abort()
             server.tls_failed += 1
             reason = _handshake_reason(exc)
             server.refusals.note(ip, ("tls handshake", reason), "refused TLS handshake from %s: %s", ip, reason)
