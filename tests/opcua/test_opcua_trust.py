@@ -78,6 +78,23 @@ async def test_an_unknown_client_certificate_is_rejected_and_trusted_once_moved(
         assert (opc.trust_list.accepted, opc.trust_list.refused) == (1, 1)
 
 
+async def test_a_client_whose_uri_is_not_its_certificates_is_refused_before_the_trust_list(config, files, tmp_path,
+                                                                                           caplog):
+    caplog.set_level(logging.WARNING, logger="valve_emulator.opcua.trust")
+    pki = tmp_path / "pki"
+    async with EmulatorServer(config, port=0, time_scale=0) as srv, \
+            OpcUaServer(srv.device, loops=config.loops, port=0, security=_security(files, pki)) as opc:
+        client = await _secure_client(opc.url, files)
+        client.application_uri = "urn:someone:else"
+        with pytest.raises(ua.UaStatusCodeError) as err:
+            async with client:
+                pass
+        assert type(err.value).__name__ == "BadCertificateUriInvalid"
+    assert not any((pki / "rejected" / "certs").iterdir())
+    [line] = [r.getMessage() for r in caplog.records if r.name == "valve_emulator.opcua.trust"]
+    assert "urn:someone:else" in line and "BadCertificateUriInvalid" in line
+
+
 async def test_a_certificate_signed_by_a_trusted_ca_is_accepted(config, tmp_path):
     """A CA certificate in trusted/certs admits the client certificates it signed (the Modbus test CA here)."""
     from cryptography import x509
