@@ -31,6 +31,7 @@ from valve_emulator.device.registers import (
     patch,
     write_range,
 )
+from valve_emulator.device.roles import INSTRUCTOR
 
 SLOW = settings(deadline=None, max_examples=60)   # the first example may compile the kernel
 SIXTEEN = [r for r in REGISTERS if r.width == 1]
@@ -80,7 +81,7 @@ def test_every_writable_register_round_trips_raw_to_physical_and_back(data, pv_r
         assert encode_value(r, value, sc, 0) == (raw & 0xFFFF,), r.name
         # and the device's decoder agrees with the table's write
         word = raw & 0xFFFF
-        [(quantity, decoded)] = decode_write(r.address, [word], sc, 0, instructor=True)
+        [(quantity, decoded)] = decode_write(r.address, [word], sc, 0, role=INSTRUCTOR)
         assert quantity == r.quantity and (decoded == value or (math.isnan(decoded) and math.isnan(value)))
 
 

@@ -17,6 +17,7 @@ import pytest
 
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import BLOCK_STRIDE, COMM_BASE, N_REGISTERS
+from valve_emulator.device.roles import UNAUTHENTICATED
 from valve_emulator.device.server import EmulatorServer
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
@@ -57,7 +58,7 @@ def _general(srv):
         fast, srv._read_fast = srv._read_fast, lambda frame: None
         known, srv._reads = srv._reads, {}   # and nothing remembered
         try:
-            return srv.handle(frame, False)
+            return srv.handle(frame, UNAUTHENTICATED)
         finally:
             srv._read_fast, srv._reads = fast, known
     return answer
@@ -69,11 +70,11 @@ async def test_every_read_gets_the_general_paths_bytes_and_counts(fake_bank_cls)
         general, fast_hits = _general(srv), 0
         for frame in _frames(6000):
             requests, exceptions = srv.requests, srv.exceptions
-            got = srv.handle(frame, False)
+            got = srv.handle(frame, UNAUTHENTICATED)
             counted = (srv.requests - requests, srv.exceptions - exceptions)
             # the same read again, from another transaction: a valid one is answered from the reads remembered
             again = frame[:1] + bytes((frame[1] ^ 0xFF,)) + frame[2:]
-            assert srv.handle(again, False) == again[:2] + got[2:]
+            assert srv.handle(again, UNAUTHENTICATED) == again[:2] + got[2:]
             assert srv.requests - requests == 2 * counted[0]
             fast_hits += srv._read_fast(frame) is not None
             requests, exceptions = srv.requests, srv.exceptions

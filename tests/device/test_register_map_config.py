@@ -24,6 +24,7 @@ from valve_emulator.device.registers import (
 from valve_emulator.device.registers.bits import COILS, DISCRETE_INPUTS
 from valve_emulator.device.registers.mapping import STANDARD, register_map_of
 from valve_emulator.device.registers.render import not_served
+from valve_emulator.device.roles import INSTRUCTOR
 from valve_emulator.device.tick import Device
 
 PLANT = "plant:\n  fopdt: {gain: 1.0, tau: 5.0}\n  pv_range: [0.0, 200.0]\n"
@@ -185,12 +186,12 @@ def test_writes_outside_the_raw_range_are_refused_and_inside_decode_to_engineeri
     with pytest.raises(RegisterValueError, match="register op: 32001 out of range 6400..32000"):
         decode_write(0, [32001], scaling, 0, regmap=regmap)
     high, low = struct.unpack(">HH", struct.pack(">f", 7.5))
-    assert decode_write(1, [low, high], scaling, 0, regmap=regmap, instructor=True) == [("S", 7.5)]   # CDAB
+    assert decode_write(1, [low, high], scaling, 0, regmap=regmap, role=INSTRUCTOR) == [("S", 7.5)]   # CDAB
     high, low = struct.unpack(">HH", struct.pack(">f", 150.0))
     with pytest.raises(RegisterValueError, match="out of range"):
-        decode_write(1, [low, high], scaling, 0, regmap=regmap, instructor=True)   # S is 0..100 %
+        decode_write(1, [low, high], scaling, 0, regmap=regmap, role=INSTRUCTOR)   # S is 0..100 %
     with pytest.raises(RegisterAddressError, match="write all its 2 registers"):
-        decode_write(1, [0], scaling, 0, regmap=regmap, instructor=True)
+        decode_write(1, [0], scaling, 0, regmap=regmap, role=INSTRUCTOR)
 
 
 def test_registers_lists_a_configured_map_in_its_base_and_says_what_it_does_not_serve():

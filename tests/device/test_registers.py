@@ -29,6 +29,7 @@ from valve_emulator.device.registers import (
     patch,
     registers_table,
 )
+from valve_emulator.device.roles import INSTRUCTOR
 
 
 def _state(n=1, **over):
@@ -220,9 +221,9 @@ def test_access_rules():
         decode_write(address_of("mv_pct"), [1], without, 0)
     with pytest.raises(RegisterAccessError, match="register sp .* needs an internal controller"):
         decode_write(address_of("sp"), [1], without, 0)
-    with pytest.raises(RegisterAccessError, match="register S .* instructor"):
+    with pytest.raises(RegisterAccessError, match="register S .* role 'unauthenticated'"):
         decode_write(address_of("S"), [300], without, 0)
-    assert decode_write(address_of("S"), [300, 150], without, 0, instructor=True) == [("S", 3.0), ("J", 1.5)]
+    assert decode_write(address_of("S"), [300, 150], without, 0, role=INSTRUCTOR) == [("S", 3.0), ("J", 1.5)]
     with pytest.raises(RegisterAccessError, match="register op_pct .* manual"):
         decode_write(address_of("op_pct"), [1], with_ctl, 0, auto=True)
     assert decode_write(address_of("op_pct"), [100], with_ctl, 0, auto=False) == [("op", 1.0)]

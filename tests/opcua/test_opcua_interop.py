@@ -114,6 +114,9 @@ def secure_files(tmp_path_factory):
     d = tmp_path_factory.mktemp("opcua")
     assert main(["certs", "--opcua", str(d)]) == 0
     opcua_certificate(d, application_uri="urn:valve-emulator:test-client", name="client")
+    trusted = d / "pki" / "trusted" / "certs"   # the client is trusted (docs/opcua.md: the trust list)
+    trusted.mkdir(parents=True)
+    (trusted / "client.der").write_bytes((d / "client.der").read_bytes())
     users = d / "users.yaml"
     users.write_text(f"users:\n  ines: {{role: instructor, password: '{hash_password('teach', iterations=2000)}'}}\n"
                      f"  otto: {{role: operator, password: '{hash_password('run', iterations=2000)}'}}\n")
@@ -124,7 +127,7 @@ async def test_basic256sha256_sign_and_encrypt_with_users(secure_files):
     d = secure_files
     proc, url, _ = start_serve("--opcua", "0", "--opcua-policy", "Basic256Sha256", "--opcua-cert",
                                str(d / "server.der"), "--opcua-key", str(d / "server-key.pem"),
-                               "--opcua-users", str(d / "users.yaml"))
+                               "--opcua-users", str(d / "users.yaml"), "--opcua-pki", str(d / "pki"))
     try:
         security = f"Basic256Sha256,SignAndEncrypt,{d / 'client.der'},{d / 'client-key.pem'},{d / 'server.der'}"
         client = Client(url)

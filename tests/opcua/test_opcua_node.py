@@ -87,17 +87,24 @@ def test_node_opcua_reads_unece_pv_units_and_an_uncertain_pv_outside_its_range(n
     assert seen["pv_statuses"][0] == "UncertainEngineeringUnitsExceeded"
 
 
-def test_node_opcua_basic256sha256_with_a_user(node, tmp_path):
+def test_node_opcua_basic256sha256_with_a_user_once_its_certificate_is_trusted(node, tmp_path):
+    """node-opcua makes its own application certificate: the first session is refused and the certificate
+    lands in pki/rejected/certs; moved to pki/trusted/certs, the client gets in."""
     assert main(["certs", "--opcua", str(tmp_path)]) == 0
     users = tmp_path / "users.yaml"
     users.write_text(f"users:\n  otto: {{role: operator, password: '{hash_password('run', iterations=2000)}'}}\n")
+    pki = tmp_path / "pki"
     proc, url, _ = start_serve("--opcua", "0", "--opcua-policy", "Basic256Sha256", "--opcua-cert",
                                str(tmp_path / "server.der"), "--opcua-key", str(tmp_path / "server-key.pem"),
-                               "--opcua-users", str(users))
+                               "--opcua-users", str(users), "--opcua-pki", str(pki))
     try:
+        assert not run_node_client(node, url, "--secure", "otto", "run")["ok"]
+        [rejected] = (pki / "rejected" / "certs").iterdir()
+        rejected.rename(pki / "trusted" / "certs" / rejected.name)
         _check(run_node_client(node, url, "--secure", "otto", "run"))
         refused = run_node_client(node, url, "--secure", "otto", "wrong")
         assert not refused["ok"]
     finally:
         err = stop(proc)
     assert "Traceback" not in err, err[-2000:]
+    assert "refused OPC UA session" in err and "BadCertificateUntrusted" in err

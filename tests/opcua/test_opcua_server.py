@@ -21,9 +21,9 @@ USERS = {"ines": ("instructor", hash_password("teach", iterations=1000)),
 
 
 def _users():
-    from valve_emulator.opcua.users import Role
+    from valve_emulator.device.roles import DEFAULT_ROLES
 
-    return {name: (Role(role), stored) for name, (role, stored) in USERS.items()}
+    return {name: (DEFAULT_ROLES.get(role), stored) for name, (role, stored) in USERS.items()}
 
 
 @pytest.fixture
@@ -94,7 +94,8 @@ REFUSED = [
     (1, "FIC101", "stuck", True, "BadNotWritable"),       # a status bit
     (1, "FIC101", "S", 1.0, "BadUserAccessDenied"),       # instructor variable, anonymous operator
     (2, "XV2", "op", 150.0, "BadOutOfRange"),             # beyond 100 % travel: refused, not clipped
-    (2, "XV2", "kc", 1.0, "BadNotWritable"),              # controller variable of a loop without one
+    (2, "XV2", "sp", 1.0, "BadNotWritable"),              # controller variable of a loop without one
+    (1, "FIC101", "kc", 1.0, "BadUserAccessDenied"),      # tuning: not an operator's
     (1, "FIC101", "sp", 80.0, "BadOutOfRange"),           # outside pv_range 0..50
     (2, "XV2", "op", "50", "BadTypeMismatch"),            # not a number
 ]
@@ -226,9 +227,10 @@ def test_beyond_loopback_needs_a_secure_policy_and_users(tmp_path):
     with pytest.raises(OpcUaError, match="certificate"):
         OpcUaSecurity(policies=("Basic256Sha256",), users=_users()).check("0.0.0.0")
     with pytest.raises(OpcUaError, match="beyond loopback"):
-        OpcUaSecurity(policies=("Basic256Sha256",), certificate=tmp_path / "c", private_key=tmp_path / "k").check("::")
+        OpcUaSecurity(policies=("Basic256Sha256",), certificate=tmp_path / "c", private_key=tmp_path / "k",
+                      pki=tmp_path / "pki").check("::")
     OpcUaSecurity(policies=("Basic256Sha256",), certificate=tmp_path / "c", private_key=tmp_path / "k",
-                  users=_users()).check("0.0.0.0")
+                  users=_users(), pki=tmp_path / "pki").check("0.0.0.0")
     OpcUaSecurity().check("127.0.0.1")
     OpcUaSecurity().check("::1")
     assert math.isfinite(1.0)

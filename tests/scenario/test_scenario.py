@@ -11,6 +11,7 @@ import pytest
 from valve_emulator.cli import main as cli_main
 from valve_emulator.device.malfunctions import Kind
 from valve_emulator.device.registers import Scaling, address_of, decode_write
+from valve_emulator.device.roles import INSTRUCTOR
 from valve_emulator.scenario import (
     EVENT_KINDS,
     ScenarioError,
@@ -103,9 +104,9 @@ def test_the_words_are_what_the_device_decodes_back():
     sc = scenario("- {at: 1, event: load, flow: -2.5}\n- {at: 2, event: noise, std: 1.5}\n")
     scaling = Scaling.from_config(sc.config)
     (name, raw), = register_writes(sc.events[0], sc)
-    assert decode_write(address_of(name), [raw], scaling, 0, instructor=True) == [("load", -2.5)]
+    assert decode_write(address_of(name), [raw], scaling, 0, role=INSTRUCTOR) == [("load", -2.5)]
     (name, raw), = register_writes(sc.events[1], sc)
-    assert decode_write(address_of(name), [raw], scaling, 0, instructor=True) == [("noise", pytest.approx(0.3))]
+    assert decode_write(address_of(name), [raw], scaling, 0, role=INSTRUCTOR) == [("noise", pytest.approx(0.3))]
 
 
 def test_ramps_and_sensor_faults_are_refused_over_modbus_naming_the_line():

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from valve_emulator.device.registers import COMM_BASE, MAP_VERSION, N_REGISTERS, Status
+from valve_emulator.device.roles import INSTRUCTOR
 from valve_emulator.device.tick import Device
 from valve_emulator.scenario import (
     DeviceMismatch,
@@ -218,7 +219,7 @@ def test_the_old_event_form_played_as_register_writes_and_the_malfunction_form_g
     def write_registers(event):   # the loop's registers (the unit's communication registers are the server's)
         loop_writes = [(name, word) for name, word in register_writes(event, old) if not name.startswith("comm_")]
         for address, words in write_groups(loop_writes):
-            by_registers.write(0, address, words, instructor=True)
+            by_registers.write(0, address, words, role=INSTRUCTOR)
 
     DevicePlayer(old.events, old.dt, start_tick=0, apply=write_registers).attach(by_registers)
     injected = Device.from_config(new.config, time_scale=0)

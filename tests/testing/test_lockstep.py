@@ -9,6 +9,7 @@ from aiohttp.test_utils import TestClient, TestServer
 from pymodbus.client import ModbusTcpClient
 
 from valve_emulator.device.registers import STEP_ADDRESS
+from valve_emulator.device.roles import UNAUTHENTICATED
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.station.app import make_app
 from valve_emulator.station.core import Station
@@ -112,8 +113,8 @@ async def test_a_broadcast_step_runs_its_ticks_once_and_other_broadcasts_reach_e
     cfg = load_config({"device": {"tick": 0.1, "lockstep": True}, "loops": [
         {"unit": u, "plant": {"num": [1.0], "den": [5.0, 1.0]}} for u in (1, 2, 3)]})
     srv = EmulatorServer(cfg)
-    srv.broadcast(bytes((6,)) + STEP_ADDRESS.to_bytes(2, "big") + (5).to_bytes(2, "big"), False)
+    srv.broadcast(bytes((6,)) + STEP_ADDRESS.to_bytes(2, "big") + (5).to_bytes(2, "big"), UNAUTHENTICATED)
     assert srv.device.ticks == 5
-    srv.broadcast(bytes((6, 0, 0)) + (2500).to_bytes(2, "big"), False)       # op_pct 25 % on every unit
+    srv.broadcast(bytes((6, 0, 0)) + (2500).to_bytes(2, "big"), UNAUTHENTICATED)       # op_pct 25 % on every unit
     srv.device.advance(1)
     assert list(srv.device.bank.op_external) == [25.0, 25.0, 25.0]

@@ -75,7 +75,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also serve the instructor station over HTTP on this port of the same host (0: a free "
                         "port); see docs/station.md")
     p.add_argument("--web-token", metavar="TOKEN",
-                   help="token the instructor page and API require (needed when --host is not loopback)")
+                   help="token the instructor page and API require (this or --web-users when --host is not "
+                        "loopback)")
+    p.add_argument("--web-users", type=Path, metavar="USERS.yaml",
+                   help="station users (HTTP Basic) with hashed passwords and a role each, the --opcua-users "
+                        "format; anonymous visitors then only watch")
     p.add_argument("--snapshots", type=Path, metavar="DIR",
                    help="directory of the station's named snapshots (created if missing; default: in memory)")
     p.add_argument("--backtrack", type=float, default=60.0, metavar="S",
@@ -98,8 +102,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="OPC UA application certificate (valve-emulator certs --opcua DIR)")
     g.add_argument("--opcua-key", type=Path, metavar="KEY", help="its private key")
     g.add_argument("--opcua-users", type=Path, metavar="USERS.yaml",
-                   help="users with hashed passwords and a role each (operator, instructor); without it anonymous "
-                        "clients are operators")
+                   help="users with hashed passwords and a role each (viewer, operator, instructor or a custom role "
+                        "of device.roles); without it anonymous clients are operators")
+    g.add_argument("--opcua-pki", type=Path, metavar="DIR",
+                   help="trust list of OPC UA client certificates: DIR/trusted/certs are accepted, unknown ones "
+                        "are refused and copied to DIR/rejected/certs (default: opcua.pki, else the folder of "
+                        "--opcua-cert)")
+    g.add_argument("--opcua-trust-all", action="store_true",
+                   help="accept every OPC UA client certificate (loopback --host only; for trying things out)")
     g.add_argument("--opcua-history", metavar="DURATION",
                    help="keep the last DURATION (600, 600s, 10m, 2h) of every loop's PV, OP, SP and MV for OPC UA "
                         "HistoryRead (in memory, asyncua's SQLite history)")
@@ -139,18 +149,18 @@ def _check(args: argparse.Namespace) -> None:
         raise UserError("--record with --processes: record in each process (--process-index) instead")
     if args.web is not None and not 0 <= args.web <= 65535:
         raise UserError(f"--web must be a port 0..65535, got {args.web}")
-    if args.web is None and (args.web_token or args.snapshots):
-        raise UserError("--web-token and --snapshots need --web PORT")
+    if args.web is None and (args.web_token or args.snapshots or args.web_users):
+        raise UserError("--web-token, --web-users and --snapshots need --web PORT")
     if args.web is not None and args.processes > 1:
         raise UserError("--web with --processes: the station serves one process's device; use --processes 1")
     if args.backtrack < 0 or not math.isfinite(args.backtrack):
         raise UserError(f"--backtrack must be >= 0 s, got {args.backtrack}")
-    if args.web is not None and args.web_token is None:
+    if args.web is not None and args.web_token is None and args.web_users is None:
         from valve_emulator.device.guard import is_loopback
 
         if not is_loopback(args.host):
-            raise UserError(f"--web on --host {args.host} needs --web-token: bound beyond loopback the instructor "
-                            f"page and API must ask for a token")
+            raise UserError(f"--web on --host {args.host} needs --web-token or --web-users: bound beyond loopback "
+                            f"the instructor page and API must ask for credentials")
     if args.rtu is None and (args.baud, args.parity, args.stopbits) != (19200, "E", 1):
         raise UserError("--baud, --parity and --stopbits set up the serial line of --rtu DEVICE; give --rtu")
     if args.rtu is not None and args.processes > 1:
@@ -181,6 +191,9 @@ def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object
     sec = config.opcua
     port = args.opcua if args.opcua is not None else sec.port
     if port is None:
+        for flag, given in (("--opcua-pki", args.opcua_pki), ("--opcua-trust-all", args.opcua_trust_all)):
+            if given:
+                raise UserError(f"{flag} needs OPC UA: give --opcua PORT (or the config's opcua.port)")
         return None, None
     from valve_emulator.opcua import OpcUaSecurity, load_users
 
@@ -189,11 +202,29 @@ def opcua_settings(args: argparse.Namespace, config) -> tuple[int | None, object
     for what, path in (("certificate", cert), ("private key", key)):
         if path is not None and not Path(path).is_file():
             raise UserError(f"opcua {what} {path}: no such file")
-    security = OpcUaSecurity(policies=tuple(args.opcua_policy or sec.policies),
+    from valve_emulator.device.roles import RoleTable
+
+    roles = RoleTable.from_config(config)
+    policies = tuple(args.opcua_policy or sec.policies)
+    secure = any(p != "None" for p in policies)   # only a secure channel carries a client certificate
+    security = OpcUaSecurity(policies=policies,
                              certificate=Path(cert) if cert else None, private_key=Path(key) if key else None,
-                             users=load_users(users_path) if users_path is not None else None)
+                             users=load_users(users_path, roles) if users_path is not None else None,
+                             pki=Path(args.opcua_pki or sec.pki or Path(cert or "pki/server.der").parent) if secure
+                             else None,
+                             trust_all=args.opcua_trust_all)
     security.check(args.host)
     return port, security
+
+
+def web_users(args: argparse.Namespace, config) -> dict | None:
+    """The station's users (``--web-users``) with roles of the config's permission table; None without."""
+    if args.web_users is None:
+        return None
+    from valve_emulator.device.accounts import load_users
+    from valve_emulator.device.roles import RoleTable
+
+    return load_users(args.web_users, RoleTable.from_config(config))
 
 
 def opcua_history_seconds(args: argparse.Namespace, opcua_port: int | None) -> float | None:
@@ -235,7 +266,7 @@ def _services(args: argparse.Namespace, config, *, opcua: int | None, security) 
                           backtrack=BacktrackRing(args.backtrack, 30) if args.backtrack > 0 else None)
         async with contextlib.AsyncExitStack() as stack:
             if args.web is not None:
-                stack.push_async_callback(await _start_web(station, args))
+                stack.push_async_callback(await _start_web(station, args, config))
             if opcua is not None:
                 stack.push_async_callback(await _start_opcua(srv, station, config, args, port=opcua,
                                                              security=security))
@@ -244,12 +275,14 @@ def _services(args: argparse.Namespace, config, *, opcua: int | None, security) 
     return attach
 
 
-async def _start_web(station, args: argparse.Namespace):
+async def _start_web(station, args: argparse.Namespace, config):
     """Start the instructor ``station``'s HTTP pages on ``--host``:``--web``; print its URL; return its stop."""
     from valve_emulator.station.app import start_station
 
+    users = web_users(args, config)
     with opening(f"--web {args.web} on {args.host}"):
-        runner, bound = await start_station(station, host=args.host, port=args.web, token=args.web_token)
+        runner, bound = await start_station(station, host=args.host, port=args.web, token=args.web_token,
+                                            users=users)
     where = f"[{args.host}]" if ":" in args.host else args.host
     print(f"valve-emulator: instructor station at http://{where}:{bound}/ (trainee) and "
           f"http://{where}:{bound}/instructor", flush=True)
@@ -278,6 +311,7 @@ def run(args: argparse.Namespace) -> int:
         return run_processes(args)
     files = {"": args.config, "--record": args.record, "--snapshots": args.snapshots,
              "--opcua-cert": args.opcua_cert, "--opcua-key": args.opcua_key, "--opcua-users": args.opcua_users,
+             "--opcua-pki": args.opcua_pki, "--web-users": args.web_users,
              "--tls-cert": args.tls_cert, "--tls-key": args.tls_key, "--tls-ca": args.tls_ca}
     with user_files(files):
         return _run(args)
@@ -318,6 +352,7 @@ def _run(args: argparse.Namespace) -> int:
         from valve_emulator.device.rtu import SerialSettings
 
         serial = SerialSettings(baud=args.baud, parity=args.parity, stopbits=args.stopbits)
+    web_users(args, cfg)   # refuse a bad users file before anything starts
     opcua_port, security = opcua_settings(args, cfg)
     opcua_history_seconds(args, opcua_port)  # refuse a bad --opcua-history before anything starts
     tls_port, tls_context = tls_settings(args, cfg)

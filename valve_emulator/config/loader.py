@@ -385,7 +385,7 @@ def _secure_section(ctx: _Context, value: Any, key: str, cls: type) -> Any:
     m = ctx.section(value, key, KEYS[key])
     if not ctx.source.startswith("<"):
         base = Path(ctx.source).parent
-        for k in ("certificate", "private_key", "users", "ca"):
+        for k in ("certificate", "private_key", "users", "ca", "pki"):
             if isinstance(m.get(k), str):
                 m[k] = str(base / m[k])
     return ctx.call(key, cls, **m)

@@ -24,6 +24,7 @@ from dataclasses import KW_ONLY, dataclass, fields
 from enum import StrEnum
 from typing import Any
 
+from valve_emulator.config.roles import RoleConfigError, custom_roles
 from valve_emulator.errors import UserError
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_MA_TABLE, DEFAULT_RANGEABILITY
 from valve_emulator.physics.stiction import MODELS, seed_to_2005
@@ -61,7 +62,8 @@ MAX_BLOCKS = 0x10000 // BLOCK_STRIDE
 
 _LOOP_SECTIONS = ("name", "description", "valve", "plant", "controller", "simulation")
 _DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts", "read_only",
-           "max_connections", "idle_timeout", "frame_timeout", "error_rate", "lockstep", "register_map")
+           "max_connections", "idle_timeout", "frame_timeout", "error_rate", "lockstep", "register_map",
+           "roles")
 
 #: Allowed YAML keys per section ("" = top level of a single-loop file, "server" = top level of a
 #: multi-loop file). Anything else is an error naming the key.
@@ -82,7 +84,7 @@ KEYS: dict[str, tuple[str, ...]] = {
     "simulation": ("dt", "duration", "seed"),
     "device": _DEVICE,
     "server": ("device", "loops", "fleet", "opcua", "tls"),
-    "opcua": ("port", "policies", "certificate", "private_key", "users"),
+    "opcua": ("port", "policies", "certificate", "private_key", "users", "pki"),
     "tls": ("port", "certificate", "private_key", "ca"),
     "server.device": _DEVICE[1:],
     "loops[i]": _LOOP_SECTIONS + ("unit",),
@@ -450,13 +452,15 @@ class OpcUaConfig:
     certificate: str | None = None    # application instance certificate (valve-emulator certs --opcua DIR)
     private_key: str | None = None
     users: str | None = None          # users file: names, hashed passwords, roles
+    pki: str | None = None            # trust list of client certificates (trusted/certs, rejected/certs)
 
     def __post_init__(self) -> None:
         policies = tuple(choice(p, f"policies[{i}]", OPCUA_POLICIES)
                          for i, p in enumerate(sequence(self.policies, "policies", min_len=1)))
         _set(self, port=None if self.port is None else integer(self.port, "port", ge=0, le=65535),
              policies=policies, certificate=_optional_path(self.certificate, "certificate"),
-             private_key=_optional_path(self.private_key, "private_key"), users=_optional_path(self.users, "users"))
+             private_key=_optional_path(self.private_key, "private_key"), users=_optional_path(self.users, "users"),
+             pki=_optional_path(self.pki, "pki"))
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -503,6 +507,8 @@ class DeviceConfig:
     error_rate: float = 100.0       # > 0, exception answers per s per connection before it is read slower
     lockstep: bool = False          # the clock is the client's: no tick runs until it writes the step register
     register_map: Any = None        # a RegisterMapConfig (config/register_map.py); None: the standard map
+    # Custom roles beside viewer, operator and instructor: ((name, writable tags), ...) (config/roles.py)
+    roles: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
     def __post_init__(self) -> None:
         if self.register_map is not None and not hasattr(self.register_map, "tags"):   # the loader parses it
@@ -527,6 +533,10 @@ class DeviceConfig:
              idle_timeout=real(self.idle_timeout, "idle_timeout", gt=0),
              frame_timeout=real(self.frame_timeout, "frame_timeout", gt=0),
              error_rate=real(self.error_rate, "error_rate", gt=0), lockstep=boolean(self.lockstep, "lockstep"))
+        try:
+            _set(self, roles=custom_roles(self.roles, "roles"))
+        except RoleConfigError as exc:
+            raise ConfigError(exc.detail, key=exc.key) from None
 
 
 def _instance(value: Any, key: str, cls: type, *, none_ok: bool = False) -> None:

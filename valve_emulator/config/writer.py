@@ -64,6 +64,7 @@ def _device(cfg: LoopConfig) -> dict:
     out = {k: getattr(d, k) for k in KEYS["device"]}
     out["word_order"] = str(d.word_order)
     out["instructor_hosts"] = list(d.instructor_hosts)
+    out["roles"] = {name: list(tags) for name, tags in d.roles}
     return out
 
 

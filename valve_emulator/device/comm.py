@@ -8,7 +8,7 @@ holding table at fixed addresses (:data:`UNIT_REGISTERS`)::
                                                      5 corrupt the CRC (RTU framings; Modbus TCP answers)
     comm_delay_ms  holding 65281 (0xFF01, 465282)   added response latency, 0..10,000 ms
 
-Both are instructor registers (written only by a client the server allows instructor writes, like ``S``,
+Both are instructor registers (written by a role that lists them, :mod:`~valve_emulator.device.roles`, like ``S``,
 ``J`` and ``fault``) and readable by anyone. A request that reads or writes them is always carried out and
 answered at once, whatever fault is active, so a test rig can clear a fault over the wire; every other
 request of the unit suffers the fault. A unit with more than 2040 loops' blocks covers these addresses
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Final
+from typing import Any, Final
 
 from valve_emulator.device.registers import (
     BLOCK_STRIDE,
@@ -88,16 +88,17 @@ class CommFaults:
         words = self._state[unit].words[address - COMM_BASE:address - COMM_BASE + count]
         return b"".join(w.to_bytes(2, "big") for w in words)
 
-    def write(self, unit: int, address: int, values: Sequence[int], *, instructor: bool) -> None:
-        """A client's write of unit registers; checked whole before anything changes (RegisterError)."""
+    def write(self, unit: int, address: int, values: Sequence[int], *, role: Any) -> None:
+        """A write of unit registers by a client of ``role`` (:class:`~valve_emulator.device.roles.Role`);
+        checked whole before anything changes (RegisterError)."""
         if not (address >= COMM_BASE and address + len(values) <= _END and values):
             raise RegisterAddressError(f"holding registers {address}..{address + len(values) - 1} outside the "
                                        f"unit registers {COMM_BASE}..{_END - 1}", address=address,
                                        count=len(values))
-        if not instructor:
-            reg = UNIT_REGISTERS[address - COMM_BASE]
-            raise RegisterAccessError(f"register {reg.name} (holding {reg.address}) needs instructor write "
-                                      f"permission", register=reg.name)
+        for reg in UNIT_REGISTERS[address - COMM_BASE:address - COMM_BASE + len(values)]:
+            if not role.may_write(reg.quantity):
+                raise RegisterAccessError(f"register {reg.name} (holding {reg.address}) is not writable by role "
+                                          f"{role.name!r}", register=reg.name)
         words = list(self._state[unit].words)
         words[address - COMM_BASE:address - COMM_BASE + len(values)] = values
         self._apply(unit, self._check(address, values, words))

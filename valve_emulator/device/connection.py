@@ -44,6 +44,7 @@ import socket
 from typing import Any
 
 from valve_emulator.device.registers import CommFault
+from valve_emulator.device.roles import UNAUTHENTICATED, Role
 
 __all__ = ["FRAMES_PER_ITERATION", "FRAMES_PER_TURN", "SOCKET_BUFFER", "VIOLATION_DELAY", "ModbusConnection",
            "TurnBudget"]
@@ -109,7 +110,7 @@ class ModbusConnection(asyncio.Protocol):
     """One client of ``server``.
 
     ``server`` provides ``guard`` (:class:`~valve_emulator.device.guard.ConnectionGuard`), ``turns``
-    (:class:`TurnBudget`), ``handle(frame, instructor, peer=...) -> bytes``, ``instructor_allowed(ip)``, the
+    (:class:`TurnBudget`), ``handle(frame, role, peer=...) -> bytes``, ``plain_role(ip)``, the
     set ``connection_set`` and the counters ``exceptions``, ``violations``, ``throttled``.
     """
 
@@ -117,7 +118,10 @@ class ModbusConnection(asyncio.Protocol):
         self.server = server
         self.transport: asyncio.Transport
         self.peer_ip = ""
-        self.instructor = False
+        #: what this client may write (:class:`~valve_emulator.device.roles.Role`)
+        self.role = UNAUTHENTICATED
+        #: the client as the log names it: its address (and, over TLS, its certificate and role)
+        self.who = ""
         self.slot = None
         self._buf = bytearray()
         self._write_paused = False
@@ -150,12 +154,13 @@ class ModbusConnection(asyncio.Protocol):
                     sock.setsockopt(socket.SOL_SOCKET, option, SOCKET_BUFFER)
             except OSError:  # not every transport (or platform) allows it; the defaults then apply
                 pass
-        self.instructor = self.permission()
+        self.who = self.peer_ip
+        self.role = self.permission()
         self.server.connection_set.add(self)
 
-    def permission(self) -> bool:
-        """May this client write the instructor registers (asked again when the server is reconfigured)?"""
-        return self.server.instructor_allowed(self.peer_ip)
+    def permission(self) -> Role:
+        """This client's role (asked again when the server is reconfigured): the plain port's rule."""
+        return self.server.plain_role(self.peer_ip)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.server.connection_set.discard(self)
@@ -193,7 +198,7 @@ class ModbusConnection(asyncio.Protocol):
                 or server.comm.active or self.transport.is_closing()):
             return False
         errors0 = server.exceptions
-        self._sent(1, server.handle(frame, self.instructor, peer=self.peer_ip, client=self.slot.peer), errors0,
+        self._sent(1, server.handle(frame, self.role, peer=self.who, client=self.slot.peer), errors0,
                    partial=False)
         if server.exceptions != errors0:
             self._sync_reading()   # the error budget may have run out
@@ -240,9 +245,9 @@ class ModbusConnection(asyncio.Protocol):
             pos, frames = end, frames + 1
             state = comm.plan(frame[6], frame[7:]) if comm.active else None
             if state is None:
-                answers.append(server.handle(frame, self.instructor, peer=self.peer_ip, client=slot.peer))
+                answers.append(server.handle(frame, self.role, peer=self.who, client=slot.peer))
                 continue
-            answer = server.handle_faulted(frame, self.instructor, state, peer=self.peer_ip, client=slot.peer)
+            answer = server.handle_faulted(frame, self.role, state, peer=self.who, client=slot.peer)
             if state.fault is CommFault.CLOSE:
                 turns.spend(frames)
                 if answers:

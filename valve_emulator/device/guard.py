@@ -21,7 +21,7 @@ enforced to within one sweep interval.
 
 Hostile traffic could otherwise turn the log into the bottleneck, so repeated messages of one kind go
 through :class:`LogLimiter` (one line per kind per interval, the number suppressed reported on the next
-line), and :class:`RefusalLog` logs a refused write once per client, register and exception code.
+line), and :class:`RefusalLog` logs a refused write or handshake once per client and cause per interval.
 """
 
 from __future__ import annotations
@@ -101,36 +101,62 @@ class LogLimiter:
 
 
 class RefusalLog:
-    """Log each refused write once per (client address, register, exception code).
+    """Log refused requests -- writes a role may not make, handshakes of certificates without a known role --
+    once per (client, cause) per ``interval`` seconds, so a flood cannot fill the disk.
 
-    ``capacity`` bounds the memory a client cycling through addresses could make this use; when it is
-    reached one line says so and later refusals are logged at DEBUG only.
+    ``client`` is the client as the log should name it (its address; over TLS also the certificate subject
+    and role), ``cause`` anything hashable that says why (register and exception code; the handshake's
+    reason). The first refusal of a pair is logged at WARNING; the repeats within ``interval`` are counted,
+    and the pair's next line, once the interval is over, says how many were not logged. A flood of N
+    refusals over T seconds thus writes about ``T / interval`` lines, whatever N is.
+
+    ``capacity`` bounds the pairs remembered (a client cycling through causes or addresses): when it is
+    reached, pairs whose interval is over are forgotten; if that frees nothing, one line says so and the
+    new pairs are logged at DEBUG only until it does.
     """
 
-    def __init__(self, logger: logging.Logger = _log, *, capacity: int = 10_000) -> None:
-        self.logger, self.capacity = logger, int(capacity)
-        self._seen: set[tuple[str, str, int]] = set()
+    def __init__(self, logger: logging.Logger = _log, *, interval: float = 10.0, capacity: int = 10_000,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.logger, self.interval, self.capacity, self._clock = logger, float(interval), int(capacity), clock
+        self._last: dict[tuple[str, Any], float] = {}     # (client, cause) -> when its last line was logged
+        self._suppressed: dict[tuple[str, Any], int] = {}
+        self._full_since: float | None = None
+        #: refusals noted (logged or not)
         self.refused = 0
 
-    def note(self, client: str, register: str, code: int, msg: str, *args: Any) -> bool:
-        """Count a refused write; log ``msg % args`` (at WARNING) if this triple is new. Returns logged?"""
+    def note(self, client: str, cause: Any, msg: str, *args: Any) -> bool:
+        """Count a refusal; log ``msg % args`` at WARNING unless this (client, cause) was logged less than
+        ``interval`` ago. Returns whether a line was logged at WARNING."""
         self.refused += 1
-        key = (client, register, int(code))
-        if key in self._seen:
+        now, key = self._clock(), (client, cause)
+        last = self._last.get(key)
+        if last is not None and now - last < self.interval:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
             return False
-        if len(self._seen) >= self.capacity:
-            if len(self._seen) == self.capacity:
-                self._seen.add(("", "", -1))  # marker: say it once
-                self.logger.warning("refused-write log holds %d entries; further refused writes are logged "
-                                    "at DEBUG only", self.capacity)
+        if last is None and len(self._last) >= self.capacity and not self._forget(now):
+            if self._full_since is None or now - self._full_since >= self.interval:
+                self._full_since = now
+                self.logger.warning("refusal log holds %d (client, cause) pairs; new ones are logged at DEBUG "
+                                    "only for now", self.capacity)
             self.logger.debug(msg, *args)
             return False
-        self._seen.add(key)
-        self.logger.warning(msg + "; further refusals of %s to this client are not logged", *args, register)
+        self._last[key] = now
+        missed = self._suppressed.pop(key, 0)
+        tail = f"; {missed} more like this in the last {self.interval:g} s were not logged" if missed else ""
+        self.logger.warning(msg + "%s; repeats from this client are logged at most once every %g s",
+                            *args, tail, self.interval)
         return True
 
+    def _forget(self, now: float) -> bool:
+        """Drop the pairs whose interval is over; did that free room?"""
+        for key in [k for k, t in self._last.items() if now - t >= self.interval]:
+            del self._last[key]
+            self._suppressed.pop(key, None)
+        return len(self._last) < self.capacity
+
     def clear(self) -> None:
-        self._seen.clear()
+        self._last.clear()
+        self._suppressed.clear()
 
 
 class Slot:

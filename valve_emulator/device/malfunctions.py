@@ -56,6 +56,7 @@ from valve_emulator.device.registers import (
     register,
 )
 from valve_emulator.device.registers.codec import decode_value, write_range
+from valve_emulator.device.roles import INSTRUCTOR
 from valve_emulator.errors import UserError
 
 __all__ = ["KINDS", "REGISTER_OF", "FaultKind", "Kind", "Malfunction", "MalfunctionBank", "MalfunctionError",
@@ -208,7 +209,7 @@ def parse_malfunction(body: Any, *, unit_index: Mapping[int, int], scaling: Scal
             continue
         try:
             word = register_word(reg_name, value, scaling, index)
-            decode_write(address_of(reg_name), [word], scaling, index, instructor=True)
+            decode_write(address_of(reg_name), [word], scaling, index, role=INSTRUCTOR)
         except RegisterError as exc:
             raise MalfunctionError(f"field {key!r}: {exc}", field=key) from None
     return Malfunction(unit=unit, index=index, kind=kind, params=params, ramp=ramp)

@@ -39,6 +39,7 @@ from typing import Any, Final
 
 from valve_emulator.device.pdu import BIT_WRITE_FUNCTIONS, WRITE_FUNCTIONS
 from valve_emulator.device.registers import CommFault
+from valve_emulator.device.roles import UNAUTHENTICATED, Role
 from valve_emulator.errors import UserError
 
 __all__ = ["PARITIES", "STREAM_GAP", "RtuResponder", "RtuSerialLink", "RtuStreamConnection", "SerialSettings", "crc16",
@@ -126,7 +127,7 @@ class RtuResponder:
         self.server = server
         self.silent_unknown = silent_unknown
 
-    def respond(self, frame: bytes, instructor: bool) -> tuple[bytes | None, float, CommFault]:
+    def respond(self, frame: bytes, role: Role) -> tuple[bytes | None, float, CommFault]:
         """``(response frame or None, delay in s, communication fault applied)`` for one received ``frame``
         (address, PDU, CRC)."""
         server = self.server
@@ -136,16 +137,16 @@ class RtuResponder:
         unit, pdu = frame[0], frame[1:-2]
         if unit == 0:
             if pdu[0] in _BROADCAST_WRITES:
-                server.broadcast(pdu, instructor)
+                server.broadcast(pdu, role)
             return None, 0.0, CommFault.NONE
         if unit not in server.device.layout.regions and self.silent_unknown:
             server.foreign_frames += 1
             return None, 0.0, CommFault.NONE
         state = server.comm.plan(unit, pdu) if server.comm.active else None
         if state is None:
-            reply = server.answer(unit, pdu, instructor)
+            reply = server.answer(unit, pdu, role)
         else:
-            reply = server.answer_faulted(unit, pdu, instructor, state)
+            reply = server.answer_faulted(unit, pdu, role, state)
             if reply is None:
                 return None, 0.0, state.fault
         out = bytes((unit,)) + reply
@@ -248,7 +249,7 @@ class RtuSerialLink:
             self.dropped += 1
             self.server.crc_errors += 1
             return
-        reply, delay, _ = self.responder.respond(frame, self.server.instructor_allowed(""))
+        reply, delay, _ = self.responder.respond(frame, self.server.plain_role(""))
         if reply is None:
             return
         if delay > 0:
@@ -308,7 +309,7 @@ class RtuStreamConnection(asyncio.Protocol):
         self.responder = RtuResponder(server, silent_unknown=False)
         self.transport: asyncio.Transport
         self.slot = None
-        self.instructor = False
+        self.role = UNAUTHENTICATED
         self.peer_ip = ""
         self._buf = bytearray()
         self._last = 0.0
@@ -322,8 +323,12 @@ class RtuStreamConnection(asyncio.Protocol):
             transport.abort()
             return
         self.peer_ip = peer[0] if peer else ""
-        self.instructor = self.server.instructor_allowed(self.peer_ip)
+        self.role = self.permission()
         self.server.connection_set.add(self)
+
+    def permission(self) -> Role:
+        """This client's role (asked again when the server is reconfigured): the plain port's rule."""
+        return self.server.plain_role(self.peer_ip)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.server.connection_set.discard(self)
@@ -354,7 +359,7 @@ class RtuStreamConnection(asyncio.Protocol):
                 break
             del buf[:n]
             self.slot.last_request = now
-            reply, delay, fault = self.responder.respond(frame, self.instructor)
+            reply, delay, fault = self.responder.respond(frame, self.role)
             if fault is CommFault.CLOSE:
                 self._buf.clear()
                 self.transport.close()

@@ -33,8 +33,8 @@ Function codes: 3, 4, 6, 16, 23 are decoded by pymodbus; 1, 2, 5, 15 (the bit ta
 :mod:`~valve_emulator.device.registers.bits`), 8 (diagnostics: sub-function 0 echoes, 0x0A clears the
 counters, 0x0B..0x0E read them, :class:`DiagnosticCounters`), 22 (mask write, §6.16, checked and applied
 as the FC6 write of its result) and 43 / 0x0E (device identification, :mod:`~valve_emulator.device.identity`)
-are decoded here from the raw bytes. Every
-refused write is logged once per client address, register and exception code
+are decoded here from the raw bytes. A refused write is logged once per client and cause (register and
+exception code) per interval, with the client's certificate subject and role over TLS
 (:class:`~valve_emulator.device.guard.RefusalLog`). Listening on all interfaces logs a warning at start.
 
 Answers (exception codes):
@@ -49,8 +49,9 @@ Answers (exception codes):
 - ``read_only`` mode: every write function code (5, 6, 15, 16, 22, 23) gets ``0x01`` illegal function
   (the server does not offer writing at all), and nothing changes.
 - read/write outside the map, an FC4 read over an unmapped input address, a write to a read-only register,
-  to a controller register of a loop without controller, to an instructor register without permission
-  (``instructor_writes`` off, or the client's IP not in ``instructor_hosts``), or to OP while the internal
+  to a controller register of a loop without controller, to a register the client's role may not write
+  (:mod:`~valve_emulator.device.roles`: on the plain port an instructor register while ``instructor_writes``
+  is off or the client's IP is not in ``instructor_hosts``), or to OP while the internal
   controller is in auto, and the same for a coil that writes such a register; a coil or discrete input
   that does not exist; an FC43 object id the device does not have (individual access): ``0x02`` illegal
   data address; nothing changes.
@@ -103,6 +104,7 @@ from valve_emulator.device.registers import (
     decode_write,
 )
 from valve_emulator.device.registers.bits import BitTable
+from valve_emulator.device.roles import INSTRUCTOR, UNAUTHENTICATED, Role, RoleTable
 from valve_emulator.device.rtu import RtuSerialLink, RtuStreamConnection, SerialSettings
 from valve_emulator.device.tick import Device
 from valve_emulator.device.traffic import TrafficLog, request_span
@@ -232,6 +234,12 @@ class EmulatorServer:
         self.tls_port: int | None = None
         #: TLS connections whose handshake succeeded (a client certificate signed by the CA)
         self.tls_sessions = 0
+        #: of those, the ones closed at once because the certificate's role is not in :attr:`roles`
+        self.tls_refused = 0
+        #: TLS handshakes that failed (no client certificate, one the CA did not sign, an old TLS version, ...)
+        self.tls_failed = 0
+        #: the TLS handshakes under way (:class:`~valve_emulator.device.tls.TlsAcceptor`)
+        self.tls_handshakes: set[asyncio.Task] = set()
         self.connection_set: set[ModbusConnection] = set()
         self.turns = TurnBudget()
         self.requests = 0
@@ -251,6 +259,8 @@ class EmulatorServer:
         self._read_only = bool(dev.read_only)
         self._instructor = bool(dev.instructor_writes)
         self._instructor_hosts = frozenset(_normalise_ip(h) for h in dev.instructor_hosts)
+        #: the permission table of the certificates' roles (Modbus/TCP Security)
+        self.roles = RoleTable.from_config(config)
 
     @property
     def units(self) -> tuple[int, ...]:
@@ -266,6 +276,11 @@ class EmulatorServer:
         if not self._instructor:
             return False
         return not self._instructor_hosts or _normalise_ip(peer_ip) in self._instructor_hosts
+
+    def plain_role(self, peer_ip: str) -> Role:
+        """The role of a client without credentials (plain port, serial line) at ``peer_ip``: instructor where
+        ``device.instructor_writes``/``instructor_hosts`` allow it, else :data:`UNAUTHENTICATED`."""
+        return INSTRUCTOR if self.instructor_allowed(peer_ip) else UNAUTHENTICATED
 
     def reconfigure(self, config: Any) -> list[str]:
         """Apply the live settings (:data:`LIVE_DEVICE_KEYS`) of a new ``ServerConfig`` to the running server.
@@ -290,7 +305,7 @@ class EmulatorServer:
         self._apply_access(dataclasses.replace(self.config, device=live))
         self.refusals.clear()  # new rules: report refusals under them afresh
         for conn in self.connection_set:
-            conn.instructor = conn.permission()
+            conn.role = conn.permission()
         return restart
 
     # --- lifecycle ----------------------------------------------------------------------------------
@@ -331,11 +346,10 @@ class EmulatorServer:
         """Serve the same units as Modbus/TCP Security too: TLS with ``context``
         (:func:`~valve_emulator.device.tls.server_context`) on ``host`` (default: the plain port's) and ``port``
         (0: a free one); returns the port. Call after :meth:`start`; closed by :meth:`stop`."""
-        from valve_emulator.device.tls import TlsModbusConnection
+        from valve_emulator.device.tls import TlsAcceptor
 
         loop = asyncio.get_running_loop()
-        self._tls_server = await loop.create_server(lambda: TlsModbusConnection(self), host or self.host, port,
-                                                    ssl=context, ssl_handshake_timeout=self.guard.frame_timeout)
+        self._tls_server = await loop.create_server(lambda: TlsAcceptor(self, context), host or self.host, port)
         self.tls_port = self._tls_server.sockets[0].getsockname()[1]
         _log.info("serving units %s over Modbus/TCP Security on %s:%d", list(self.units), host or self.host,
                   self.tls_port)
@@ -346,6 +360,8 @@ class EmulatorServer:
         tls, self._tls_server = self._tls_server, None
         if tls is not None:
             tls.close()
+            for handshake in list(self.tls_handshakes):
+                handshake.cancel()
         for link in self.serial_links:
             link.close()
         self.serial_links.clear()
@@ -368,7 +384,7 @@ class EmulatorServer:
 
     # --- one request --------------------------------------------------------------------------------
 
-    def handle(self, frame: bytes, instructor: bool, *, peer: str = "", client: str = "") -> bytes:
+    def handle(self, frame: bytes, role: Role, *, peer: str = "", client: str = "") -> bytes:
         """Answer one complete MBAP ``frame`` (header + PDU) with a complete response frame.
 
         ``peer`` (the client's address) names the client when a refused write is logged; ``client`` (its
@@ -385,7 +401,7 @@ class EmulatorServer:
                 if answer is not None:
                     return answer
         tid, unit = (frame[0] << 8) | frame[1], frame[6]
-        return self._framer.encode(self.answer(unit, frame[7:], instructor, peer=peer, client=client), unit, tid)
+        return self._framer.encode(self.answer(unit, frame[7:], role, peer=peer, client=client), unit, tid)
 
     def _read_fast(self, frame: bytes) -> bytes | None:
         """The answer frame to a well-formed FC3 / FC4 read of mapped registers, straight from the register
@@ -415,15 +431,15 @@ class EmulatorServer:
             self._reads[frame[6:12]] = (start, start + n, head)
         return frame[:4] + head + self.device.served[start:start + n]
 
-    def handle_faulted(self, frame: bytes, instructor: bool, state: CommState, *, peer: str = "",
+    def handle_faulted(self, frame: bytes, role: Role, state: CommState, *, peer: str = "",
                        client: str = "") -> bytes | None:
         """:meth:`handle` for a unit with a communication fault (see :mod:`~valve_emulator.device.comm`):
         the response frame, or ``None`` when nothing is to be sent."""
         tid, unit = (frame[0] << 8) | frame[1], frame[6]
-        pdu = self.answer_faulted(unit, frame[7:], instructor, state, peer=peer, client=client)
+        pdu = self.answer_faulted(unit, frame[7:], role, state, peer=peer, client=client)
         return None if pdu is None else self._framer.encode(pdu, unit, tid)
 
-    def answer_faulted(self, unit: int, pdu: bytes, instructor: bool, state: CommState, *,
+    def answer_faulted(self, unit: int, pdu: bytes, role: Role, state: CommState, *,
                        peer: str = "", client: str = "") -> bytes | None:
         """:meth:`answer` under communication fault ``state``: ``None`` for no response (and for a
         connection to be closed), an exception 0x06 / 0x04, or the normal answer (delay only, bad CRC: the
@@ -439,29 +455,29 @@ class EmulatorServer:
             if self.traffic is not None:
                 self.traffic.note(client, unit, pdu, response)
             return response
-        return self.answer(unit, pdu, instructor, peer=peer, client=client)
+        return self.answer(unit, pdu, role, peer=peer, client=client)
 
-    def broadcast(self, pdu: bytes, instructor: bool) -> None:
+    def broadcast(self, pdu: bytes, role: Role) -> None:
         """A broadcast write (unit 0 on a serial line): carried out by every unit, nothing answered. The clock's
         ``step`` belongs to the whole device, so a broadcast step runs its ticks once, not once per unit."""
         for n, target in enumerate(dict.fromkeys(self.units)):
             if n and pdu[0] in _ALL_WRITES and request_span(pdu)[0] == _STEP.address:
                 break
-            self.answer(target, pdu, instructor)
+            self.answer(target, pdu, role)
 
-    def answer(self, unit: int, pdu: bytes, instructor: bool, *, peer: str = "", client: str = "") -> bytes:
+    def answer(self, unit: int, pdu: bytes, role: Role, *, peer: str = "", client: str = "") -> bytes:
         """The response PDU to request ``pdu`` (function code first, at least one byte) for ``unit``.
 
         Framing-independent: the TCP connection wraps it in MBAP, the RTU link in address and CRC.
         """
         if self.traffic is None:
-            return self._answer(unit, pdu, instructor, peer)
+            return self._answer(unit, pdu, role, peer)
         arrived = self.traffic.arrival()
-        response = self._answer(unit, pdu, instructor, peer)
+        response = self._answer(unit, pdu, role, peer)
         self.traffic.note(client, unit, pdu, response, arrived=arrived)
         return response
 
-    def _answer(self, unit: int, pdu: bytes, instructor: bool, peer: str) -> bytes:
+    def _answer(self, unit: int, pdu: bytes, role: Role, peer: str) -> bytes:
         self.requests += 1
         fc = pdu[0]
         try:
@@ -476,11 +492,11 @@ class EmulatorServer:
             if self._read_only and fc in _ALL_WRITES:
                 raise _Refused(ExcCodes.ILLEGAL_FUNCTION, "server is read-only (device.read_only)")
             if fc in _OWN_DECODING:
-                return self._execute_raw(fc, pdu, unit, region, instructor)
+                return self._execute_raw(fc, pdu, unit, region, role)
             request = self._decoder.decode(pdu)
             if request is None:  # cannot happen after _malformed; never let it reach _execute
                 raise _Refused(ExcCodes.ILLEGAL_VALUE, "malformed request")
-            return self._execute(fc, request, unit, region, instructor)
+            return self._execute(fc, request, unit, region, role)
         except RegisterError as exc:
             code = next(c for cls, c in _CODE_OF if isinstance(exc, cls))
             return self._refuse(fc, code, unit, exc, pdu, peer)
@@ -504,8 +520,8 @@ class EmulatorServer:
             # one key for everything outside the map: a client scanning addresses must not flood the log
             register = match.group(1) if match else (span[0] if span else "(outside the map)")
             where = f"{table} {address}" + (f"..{address + count - 1}" if count > 1 else "")
-            self.refusals.note(peer, register, code, "refused write from %s to unit %d %s (%s): exception 0x%02X, %s",
-                               peer or "?", unit, where, ", ".join(span) or "outside the map", code, reason)
+            self.refusals.note(peer, (register, code), "refused write from %s to unit %d %s (%s): exception 0x%02X, "
+                               "%s", peer or "?", unit, where, ", ".join(span) or "outside the map", code, reason)
         response = ExceptionResponse(fc, code)
         return bytes((response.function_code,)) + response.encode()
 
@@ -520,34 +536,37 @@ class EmulatorServer:
         start += 2 * self.map.word_offset(table, address)
         return bytes((fc, 2 * count)) + self.device.served[start:start + 2 * count]
 
-    def _write(self, unit: int, address: int, registers: Any, instructor: bool) -> None:
+    def _write(self, unit: int, address: int, registers: Any, role: Role) -> None:
         if address >= COMM_BASE and self.comm.covers(unit, address):
             if address == _STEP.address:
-                self._step(registers)
+                self._step(registers, role)
             else:
-                self.comm.write(unit, address, registers, instructor=instructor)
+                self.comm.write(unit, address, registers, role=role)
             return
         index, offset = self.device.served_layout.locate_write(unit, address, len(registers))
-        self.device.write_served(index, offset, registers, instructor=instructor)
+        self.device.write_served(index, offset, registers, role=role)
 
-    def _execute(self, fc: int, pdu: Any, unit: int, region: tuple[int, int], instructor: bool) -> bytes:
+    def _execute(self, fc: int, pdu: Any, unit: int, region: tuple[int, int], role: Role) -> bytes:
         if fc in _READS:
             return self._read(fc, _READS[fc], unit, region, pdu.address, pdu.count)
         if fc == 6:
-            self._write(unit, pdu.address, pdu.registers, instructor)
+            self._write(unit, pdu.address, pdu.registers, role)
             response = WriteSingleRegisterResponse(address=pdu.address, registers=pdu.registers)
             return b"\x06" + response.encode()
         if fc == 16:
-            self._write(unit, pdu.address, pdu.registers, instructor)
+            self._write(unit, pdu.address, pdu.registers, role)
             return b"\x10" + WriteMultipleRegistersResponse(address=pdu.address, count=pdu.count).encode()
         if not self.comm.covers(unit, pdu.read_address):
             self.map.check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse first
-        self._write(unit, pdu.write_address, pdu.write_registers, instructor)
+        self._write(unit, pdu.write_address, pdu.write_registers, role)
         return self._read(23, "holding", unit, region, pdu.read_address, pdu.read_count)
 
-    def _step(self, registers: Any) -> None:
+    def _step(self, registers: Any, role: Role) -> None:
         """A write of the clock's ``step`` register: run that many ticks now, before the write is answered."""
         _check_step(_STEP.address, len(registers))
+        if not role.may_write("step"):
+            raise RegisterAccessError(f"register step (holding {_STEP.address}) is not writable by role "
+                                      f"{role.name!r}", register="step")
         if not self.device.lockstep:
             raise RegisterAccessError(f"register step (holding {_STEP.address}) is writable only in lockstep "
                                       f"(serve --lockstep); this device runs its own clock", register="step")
@@ -561,7 +580,7 @@ class EmulatorServer:
         at = self.device.layout.regions[unit][0] + 2 * (BLOCK_STRIDE * block + _STATUS_ADDRESS)
         return (self.device.image[at] << 8) | self.device.image[at + 1]
 
-    def _execute_raw(self, fc: int, pdu: bytes, unit: int, region: tuple[int, int], instructor: bool) -> bytes:
+    def _execute_raw(self, fc: int, pdu: bytes, unit: int, region: tuple[int, int], role: Role) -> bytes:
         """Function codes 1, 2, 5, 8, 15, 22 and 43 on a well-formed ``pdu`` (see :mod:`.pdu`)."""
         if fc == 8:
             return self._diagnostics(pdu)
@@ -583,7 +602,7 @@ class EmulatorServer:
         if fc == 22:   # result = (current AND and_mask) OR (or_mask AND NOT and_mask), §6.16
             current = int.from_bytes(self._read(3, "holding", unit, region, address, 1)[2:], "big")
             and_mask, or_mask = count, _u16(pdu, 5)
-            self._write(unit, address, [(current & and_mask) | (or_mask & ~and_mask & 0xFFFF)], instructor)
+            self._write(unit, address, [(current & and_mask) | (or_mask & ~and_mask & 0xFFFF)], role)
             return bytes(pdu)
         if fc == 5:
             count, bits = 1, [pdu[3] == 0xFF]
@@ -596,9 +615,9 @@ class EmulatorServer:
         auto = self.device.effective_auto(index)
         scaling = self.device.scaling
         for reg_address, raw in writes:   # check every coil before any is applied: whole or nothing
-            decode_write(reg_address, [raw], scaling, index, auto=auto, instructor=instructor)
+            decode_write(reg_address, [raw], scaling, index, auto=auto, role=role)
         for reg_address, raw in writes:
-            self.device.write(index, reg_address, [raw], instructor=instructor)
+            self.device.write(index, reg_address, [raw], role=role)
         return bytes(pdu) if fc == 5 else bytes(pdu[:5])
 
     def _diagnostics(self, pdu: bytes) -> bytes:

@@ -235,23 +235,26 @@ class Device:
         return bool(self.bank.auto[index]) if pending is None else bool(pending)
 
     def write(self, index: int, address: int, values: Sequence[int], *,
-              instructor: bool = False) -> list[tuple[str, float]]:
+              role: Any = None) -> list[tuple[str, float]]:
         """Validate and queue a write of raw ``values`` at holding ``address`` of the standard map on loop
-        ``index`` (what the station, OPC UA, scenarios and coil writes use, whatever map Modbus serves).
+        ``index`` by a client of ``role`` (what the station, OPC UA, scenarios and coil writes use, whatever map
+        Modbus serves). ``role`` is a :class:`~valve_emulator.device.roles.Role`: what it may write, the same on
+        every interface; None: a client without credentials, see
+        :func:`~valve_emulator.device.registers.decode_write`.
 
         Returns the accepted ``(quantity, value)`` changes; raises a ``RegisterError`` (nothing changed).
         """
-        return self._write(STANDARD, index, address, values, instructor)
+        return self._write(STANDARD, index, address, values, role)
 
     def write_served(self, index: int, address: int, values: Sequence[int], *,
-                     instructor: bool = False) -> list[tuple[str, float]]:
+                     role: Any = None) -> list[tuple[str, float]]:
         """:meth:`write` at holding ``address`` of the served map (:attr:`register_map`): a Modbus client's."""
-        return self._write(self.register_map, index, address, values, instructor)
+        return self._write(self.register_map, index, address, values, role)
 
     def _write(self, regmap: RegisterMap, index: int, address: int, values: Sequence[int],
-               instructor: bool) -> list[tuple[str, float]]:
-        changes = decode_write(address, values, self.scaling, index, auto=self.effective_auto(index),
-                               instructor=instructor, regmap=regmap)
+               role: Any) -> list[tuple[str, float]]:
+        changes = decode_write(address, values, self.scaling, index, role=role, auto=self.effective_auto(index),
+                               regmap=regmap)
         for quantity, value in changes:
             self._pending.pop((index, quantity), None)  # re-insert: keep arrival order for the tick
             self._pending[(index, quantity)] = value

@@ -27,7 +27,9 @@ Writes answer:
 
 - ``BadNotWritable``: a read-only variable, OP while the loop is in auto, a controller variable of a loop
   without controller;
-- ``BadUserAccessDenied``: an instructor variable written by an operator;
+- ``BadUserAccessDenied``: a variable the user's role does not write (:mod:`valve_emulator.device.roles`:
+  a viewer writes nothing, an operator OP, SP and mode; anonymous clients are operators), logged once per
+  user and variable per interval;
 - ``BadOutOfRange``: a value the register refuses (the Modbus ``0x03``); ``BadTypeMismatch``: not a number.
 
 Values are read at request time from the register image (so a read sees a write at once, as over Modbus),
@@ -56,10 +58,9 @@ import numpy as np
 from asyncua import Server, ua
 from asyncua.server.address_space import AttributeService
 
-from valve_emulator.device.guard import is_loopback
+from valve_emulator.device.guard import RefusalLog, is_loopback
 from valve_emulator.device.registers import (
     REGISTERS,
-    RW_INSTRUCTOR,
     Conversion,
     DataType,
     R,
@@ -72,8 +73,10 @@ from valve_emulator.device.registers import (
     from_words,
 )
 from valve_emulator.device.registers.codec import decode_value
+from valve_emulator.device.roles import OPERATOR, Role
 from valve_emulator.errors import UserError
 from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
+from valve_emulator.opcua.trust import TrustList
 from valve_emulator.opcua.units import eu_information
 from valve_emulator.opcua.users import RoleRuleset, StationUser, UsersFile
 
@@ -115,10 +118,6 @@ class Variable:
         if self.analog:
             return ua.VariantType.Double
         return ua.VariantType.UInt32 if self.read.type is DataType.UINT32 else ua.VariantType.UInt16
-
-    @property
-    def instructor(self) -> bool:
-        return self.write is not None and self.write.access is RW_INSTRUCTOR
 
     @property
     def units(self) -> str:
@@ -169,13 +168,19 @@ class OpcUaSecurity:
 
     ``policies``: ``"None"`` and/or secure policy names (:data:`SECURE_POLICIES`, always Sign&Encrypt);
     ``certificate``/``private_key``: the application instance certificate (PEM or DER) and its key;
-    ``users``: the users file's users (None: anonymous operators only).
+    ``users``: the users file's users, name -> (role of the permission table, hash) (None: anonymous
+    operators only);
+    ``pki``: the trust list's folder (:class:`~valve_emulator.opcua.trust.TrustList`: ``trusted/certs``,
+    ``rejected/certs``), which a secure policy needs; ``trust_all``: accept every client certificate instead
+    (loopback only).
     """
 
     policies: tuple[str, ...] = ("None",)
     certificate: Path | None = None
     private_key: Path | None = None
     users: dict | None = None
+    pki: Path | None = None
+    trust_all: bool = False
 
     def check(self, host: str) -> None:
         """Refuse a set-up that exposes the device: beyond loopback only secure policies with users."""
@@ -186,6 +191,14 @@ class OpcUaSecurity:
         if secure and (self.certificate is None or self.private_key is None):
             raise OpcUaError(f"opcua: policy {secure[0]} needs a certificate and a private key "
                              "(make them with 'valve-emulator certs --opcua DIR')")
+        if secure and self.pki is None and not self.trust_all:
+            raise OpcUaError(f"opcua: policy {secure[0]} needs a trust list of client certificates (--opcua-pki "
+                             "DIR or opcua.pki; unknown clients land in DIR/rejected/certs) or, on loopback, "
+                             "--opcua-trust-all")
+        if self.trust_all and not is_loopback(host):
+            raise OpcUaError(f"--opcua-trust-all: refusing to accept every client certificate on {host!r} (beyond "
+                             "loopback); trust each client by moving its certificate from PKI/rejected/certs to "
+                             "PKI/trusted/certs (docs/opcua.md)")
         if is_loopback(host):
             return
         if "None" in self.policies or not secure or not self.users:
@@ -336,6 +349,10 @@ class OpcUaServer:
         self.deferred = 0
         self.writes = 0
         self.refused = 0
+        #: refused writes and sessions, logged once per user (or client) and cause per interval
+        self.refusals = RefusalLog(_log)
+        #: the client certificates accepted (built at start from ``security.pki``/``trust_all``)
+        self.trust_list: TrustList | None = None
 
     # --- values -----------------------------------------------------------------------------------------
 
@@ -411,13 +428,13 @@ class OpcUaServer:
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             self.refused += 1
             return ua.StatusCode(ua.StatusCodes.BadTypeMismatch)
-        instructor = isinstance(user, StationUser) and user.instructor
-        if var.instructor and not instructor:
-            self.refused += 1
+        role = user.station_role if isinstance(user, StationUser) else OPERATOR
+        if not role.may_write(var.write.quantity):
+            self._refused_write(user, role, index, var)
             return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
         try:
             words = encode_write(var.write, value, self.device.scaling, index)
-            self.device.write(index, var.write.address, words, instructor=instructor)
+            self.device.write(index, var.write.address, words, role=role)
         except RegisterValueError:
             self.refused += 1
             return ua.StatusCode(ua.StatusCodes.BadOutOfRange)
@@ -429,6 +446,14 @@ class OpcUaServer:
             return ua.StatusCode(ua.StatusCodes.BadNotWritable)
         self.writes += 1
         return ua.StatusCode()
+
+    def _refused_write(self, user: Any, role: Role, index: int, var: Variable) -> None:
+        """Count and log (once per user and variable per interval) a write the user's role may not make."""
+        self.refused += 1
+        name = getattr(user, "name", None) or "anonymous"
+        self.refusals.note(name, (var.name, role.name), "refused OPC UA write of %s.%s by user %r (role %r): "
+                           "BadUserAccessDenied, the role does not write %s", self.loops[index].name, var.name,
+                           name, role.name, var.name)
 
     # --- address space --------------------------------------------------------------------------------
 
@@ -724,6 +749,10 @@ class OpcUaServer:
         if sec.certificate is not None:
             await server.load_certificate(str(sec.certificate))
             await server.load_private_key(str(sec.private_key))
+        if sec.pki is not None or sec.trust_all:
+            self.trust_list = TrustList(sec.pki, trust_all=sec.trust_all)
+            self.trust_list.create()
+            server.set_certificate_validator(self.trust_list)
         self.ns = await server.register_namespace(NAMESPACE)
         loop_type = await self._define_loop_type()
         objects = ua.NodeId(ua.ObjectIds.ObjectsFolder)

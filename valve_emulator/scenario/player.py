@@ -42,6 +42,7 @@ from valve_emulator.device.registers import (
     Status,
     address_of,
 )
+from valve_emulator.device.roles import INSTRUCTOR
 from valve_emulator.errors import UserError
 from valve_emulator.scenario.timeline import Event, RegisterWrite, Scenario, ScenarioError, SetPoint
 
@@ -123,7 +124,7 @@ def apply_on_device(device: Any, event: Event) -> None:
         device.inject(action)
     elif isinstance(action, SetPoint | RegisterWrite):
         name = "sp" if isinstance(action, SetPoint) else action.register
-        device.write(action.index, _ADDRESS[name], [action.word], instructor=True)
+        device.write(action.index, _ADDRESS[name], [action.word], role=INSTRUCTOR)
 
 
 class DevicePlayer:

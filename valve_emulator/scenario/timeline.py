@@ -55,6 +55,7 @@ from typing import Any, Final
 from valve_emulator.config import ConfigError, LoopConfig, ServerConfig, load_server, server_from_mapping
 from valve_emulator.device.malfunctions import Kind, Malfunction, MalfunctionError, parse_malfunction
 from valve_emulator.device.registers import REGISTERS, UNIT_REGISTERS, Register, RegisterError, Scaling, decode_write
+from valve_emulator.device.roles import INSTRUCTOR
 from valve_emulator.scenario._yaml import ScenarioError, Where, load_yaml
 
 __all__ = ["EVENT_KINDS", "Condition", "DeviceShape", "Event", "Hint", "RegisterWrite", "Say", "Scenario",
@@ -275,7 +276,7 @@ def _device_accepts(name: str, word: int, index: int, key: str, where: Where, sh
             raise where.fail(key, f"register {name}: {word} out of range {reg.lo}..{reg.hi}")
         return
     try:
-        decode_write(reg.address, [word], shape.scaling, index, auto=False, instructor=True)
+        decode_write(reg.address, [word], shape.scaling, index, auto=False, role=INSTRUCTOR)
     except RegisterError as exc:
         raise where.fail(key, str(exc)) from None
 

@@ -5,18 +5,31 @@ see the same device between two ticks. The API is documented with examples in ``
 
 Access
 ------
-The trainee page ``/`` and the trainee API (state, stream, operator actions, alarm acknowledge) are open.
-The instructor page ``/instructor`` and every instructor call need the station token when one is set
-(``--web-token``): header ``Authorization: Bearer TOKEN``, or the ``station_token`` cookie that
-``/instructor?token=TOKEN`` sets (HttpOnly, SameSite=Strict). Without a token the instructor API is open, and
-:func:`start_station` allows that only on a loopback address. The trainee's view of ``/api/state`` leaves out
-the instructor's information (S, J, malfunctions, notes, score; MV unless revealed), and so does
-``?view=trainee``, which the trainee page always asks for.
+Every request has a role of the device's permission table (:mod:`valve_emulator.device.roles`, the same
+roles as Modbus/TCP Security and OPC UA):
+
+- the station token (``--web-token``: header ``Authorization: Bearer TOKEN``, or the ``station_token``
+  cookie that ``/instructor?token=TOKEN`` sets, HttpOnly, SameSite=Strict) is the **instructor**;
+- a user of the users file (``--web-users``, the OPC UA users file's format, :mod:`~valve_emulator.device.accounts`)
+  signs in with HTTP Basic (``Authorization: Basic base64(user:password)``; a browser asks for it after a
+  401) and has that user's role; a wrong name or password is 401;
+- a request with neither is **anonymous**: a viewer when there is a users file (sign in to act), an operator
+  (the trainee) when there is only a token, and -- on a loopback-only station with neither -- an instructor.
+
+The instructor page ``/instructor`` and every instructor call (run, freeze, snapshots, malfunctions,
+scenarios, ...) need a role that instructs; operator actions (``POST /api/loops/{unit}``) need a role that
+writes the field's tag (``op``, ``sp``, ``mode``), and the write goes through ``Device.write`` under that role;
+acknowledging an alarm needs a role that writes something (not a viewer). Without the right role the answer
+is 401 when no credentials came, 403 when they did. :func:`start_station` refuses a station beyond loopback
+without a token or a users file. The trainee's view of ``/api/state`` leaves out the instructor's
+information (S, J, malfunctions, notes, score; MV unless revealed), and so does ``?view=trainee``, which the
+trainee page always asks for.
 
 Every ``POST``/``DELETE`` must carry ``Content-Type: application/json`` (a page of another site cannot send
 that without a CORS preflight, which this server never grants) and a JSON object body (``{}`` when there is
 nothing to say). A refused call answers ``{"error": message, "field": name}`` with a 4xx status and changes
-nothing; refusals are logged at WARNING once per client address, route and field, like refused Modbus writes.
+nothing; refusals are logged at WARNING once per client (address and user) and cause (route and field) per
+interval, like refused Modbus writes (:class:`~valve_emulator.device.guard.RefusalLog`).
 aiohttp's own refusals -- an unknown path (404, field ``path``), a method the route does not take (405,
 ``method``), a body over :data:`MAX_BODY` bytes (413, ``body``) -- get the same JSON form.
 
@@ -30,17 +43,21 @@ delays the tick, which runs in the same event loop and never waits for a client.
 from __future__ import annotations
 
 import asyncio
+import base64
+import hashlib
 import hmac
 import json
 import logging
 import math
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from importlib import resources
 from typing import Any
 
 from aiohttp import web
 
-from valve_emulator.device.guard import is_loopback
+from valve_emulator.device.accounts import authenticate
+from valve_emulator.device.guard import RefusalLog, is_loopback
+from valve_emulator.device.roles import INSTRUCTOR, OPERATOR, VIEWER, Role
 from valve_emulator.errors import UserError
 from valve_emulator.station.core import Station, StationError
 
@@ -49,7 +66,12 @@ __all__ = ["make_app", "start_station", "STATION_KEY", "MAX_BODY", "BODY_TIMEOUT
 _log = logging.getLogger("valve_emulator.station")
 STATION_KEY = web.AppKey("station", Station)
 _TOKEN = web.AppKey("token", object)
-_REFUSED = web.AppKey("refused", set)
+_REFUSED = web.AppKey("refused", RefusalLog)
+_USERS = web.AppKey("users", object)        # name -> (Role, stored hash), or None without a users file
+_ANONYMOUS = web.AppKey("anonymous", Role)  # the role of a request without credentials
+_SIGNED_IN = web.AppKey("signed_in", dict)  # verified credentials -> role (PBKDF2 costs ~0.3 s per check)
+_AUTH = web.RequestKey("auth", object)  # the request's checked credentials
+_REALM = 'Basic realm="valve_emulator station", charset="UTF-8"'
 _STREAMS = web.AppKey("streams", set)
 _COOKIE = "station_token"
 _STATIC = ("index.html", "instructor.html", "station.js", "station.css", "report.html")
@@ -72,25 +94,103 @@ def _client(request: web.Request) -> str:
     return request.remote or "?"
 
 
-def _instructor(request: web.Request) -> bool:
+def _has_token(request: web.Request) -> bool:
+    """Did the request bring the station token (Bearer header or cookie)?"""
     token = request.app[_TOKEN]
     if token is None:
-        return True
+        return False
     given = request.headers.get("Authorization", "")
     given = given[7:] if given.startswith("Bearer ") else request.cookies.get(_COOKIE, "")
     return hmac.compare_digest(given.encode(), str(token).encode())
 
 
+def _basic(request: web.Request) -> tuple[str, str] | None:
+    """The HTTP Basic user name and password of the request; None without them."""
+    header = request.headers.get("Authorization", "")
+    if not header.startswith("Basic "):
+        return None
+    try:
+        name, colon, password = base64.b64decode(header[6:], validate=True).decode("utf-8").partition(":")
+    except (ValueError, UnicodeDecodeError):
+        colon = ""
+    if not colon:
+        raise StationError("Authorization: Basic credentials must be base64 of user:password", field="credentials",
+                           status=401)
+    return name, password
+
+
+def _role(request: web.Request) -> Role:
+    """The request's role (see the module docstring); StationError 401 for a wrong user name or password."""
+    return _signed_in(request) or request.app[_ANONYMOUS]
+
+
+def _signed_in(request: web.Request) -> Role | None:
+    """The role the request's credentials give (the token, or a user's name and password); None without
+    valid credentials of the token kind, StationError 401 for a wrong user name or password. Checked once per
+    request (kept in the request)."""
+    if _AUTH not in request:
+        try:
+            request[_AUTH] = _check_credentials(request)
+        except StationError as exc:
+            request[_AUTH] = exc
+    found = request[_AUTH]
+    if isinstance(found, StationError):
+        raise found
+    return found
+
+
+def _check_credentials(request: web.Request) -> Role | None:
+    if _has_token(request):
+        return INSTRUCTOR
+    users, credentials = request.app[_USERS], _basic(request)
+    if users is None or credentials is None:
+        return None
+    signed_in = request.app[_SIGNED_IN]
+    key = hashlib.sha256("\0".join(credentials).encode()).digest()
+    role = signed_in.get(key)
+    if role is None:
+        role = authenticate(users, *credentials)
+        if role is None:
+            raise StationError("user name or password wrong", field="credentials", status=401)
+        if len(signed_in) < 1024:
+            signed_in[key] = role
+    return role
+
+
+def _instructor(request: web.Request) -> bool:
+    return _role(request).instructs
+
+
+def _need(request: web.Request, role: Role, allowed: bool, what: str) -> None:
+    """Refuse (401 without credentials, 403 with) unless ``allowed``."""
+    if allowed:
+        return
+    if _signed_in(request) is not None:
+        raise StationError(f"role {role.name!r} may not {what}", field="role", status=403)
+    need = "the instructor token" if request.app[_USERS] is None else "the token or a user's credentials"
+    raise StationError(f"this call needs {need} (to {what})", field="token", status=401)
+
+
+def _who(request: web.Request) -> str:
+    """The client as the log names it: address, and the user name it signed in with."""
+    header = request.headers.get("Authorization", "")
+    if header.startswith("Basic "):
+        try:
+            name = base64.b64decode(header[6:], validate=True).decode("utf-8").partition(":")[0]
+        except (ValueError, UnicodeDecodeError):
+            name = "(unreadable)"
+        return f"{_client(request)} (user {name[:64]!r})"
+    return _client(request)
+
+
 def _refuse(request: web.Request, exc: StationError) -> web.Response:
     resource = request.match_info.route.resource
-    # an unknown path is logged under one key, not its own: a client making up paths must not grow the set
-    key = (_client(request), request.method, resource.canonical if resource else "(no route)", exc.field)
-    seen = request.app[_REFUSED]
-    if key not in seen:
-        seen.add(key)
-        _log.warning("refused %s %s from %s: %s (field %s); further refusals of this field to this client are "
-                     "not logged", request.method, request.path, _client(request), exc, exc.field)
-    return web.json_response({"error": str(exc), "field": exc.field}, status=exc.status)
+    # an unknown path is logged under one key, not its own: a client making up paths must not grow the log
+    cause = (request.method, resource.canonical if resource else "(no route)", exc.field)
+    request.app[_REFUSED].note(_who(request), cause, "refused %s %s from %s: %s (field %s)", request.method,
+                               request.path, _who(request), exc, exc.field)
+    headers = {"WWW-Authenticate": _REALM} if exc.status == 401 and request.app[_USERS] is not None else None
+    return web.json_response({"error": str(exc), "field": exc.field}, status=exc.status, headers=headers)
 
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -101,8 +201,9 @@ def _api(*, instructor: bool = False) -> Callable[[Handler], Handler]:
     def wrap(handler: Handler) -> Handler:
         async def run(request: web.Request) -> web.StreamResponse:
             try:
-                if instructor and not _instructor(request):
-                    raise StationError("this call needs the instructor token", field="token", status=401)
+                if instructor:
+                    role = _role(request)
+                    _need(request, role, role.instructs, "use the instructor's controls")
                 if request.method in ("POST", "DELETE") and request.content_type != "application/json":
                     raise StationError(f"request body: Content-Type must be application/json, got "
                                        f"{request.content_type!r}", field="body", status=415)
@@ -189,10 +290,14 @@ def _clean(x: Any) -> Any:
     return x
 
 
-def make_app(station: Station, *, token: str | None = None) -> web.Application:
-    """The aiohttp application of ``station`` (see the module docstring)."""
+def make_app(station: Station, *, token: str | None = None, users: Mapping[str, tuple[Role, str]] | None = None
+             ) -> web.Application:
+    """The aiohttp application of ``station`` (see the module docstring); ``users``: the users file's users
+    (:func:`~valve_emulator.device.accounts.load_users`), None without one."""
     app = web.Application(client_max_size=MAX_BODY, middlewares=[_json_errors])
-    app[STATION_KEY], app[_TOKEN], app[_REFUSED], app[_STREAMS] = station, token, set(), set()
+    app[STATION_KEY], app[_TOKEN], app[_REFUSED], app[_STREAMS] = station, token, RefusalLog(_log), set()
+    app[_USERS], app[_SIGNED_IN] = users, {}
+    app[_ANONYMOUS] = VIEWER if users is not None else OPERATOR if token is not None else INSTRUCTOR
     st = station
     r = app.router
 
@@ -209,10 +314,14 @@ def make_app(station: Station, *, token: str | None = None) -> web.Application:
             resp = web.HTTPFound("/instructor")
             resp.set_cookie(_COOKIE, token, httponly=True, samesite="Strict")
             raise resp
-        if not _instructor(request):
-            _refuse(request, StationError("the instructor page needs the token", field="token", status=401))
-            return web.Response(status=401, text="401: the instructor page needs the station token "
-                                                 "(/instructor?token=...)\n")
+        try:
+            _need(request, role := _role(request), role.instructs, "open the instructor page")
+        except StationError as exc:
+            _refuse(request, exc)
+            headers = {"WWW-Authenticate": _REALM} if exc.status == 401 and users is not None else None
+            return web.Response(status=exc.status, headers=headers,
+                                text=f"{exc.status}: the instructor page needs the station token "
+                                     f"(/instructor?token=...) or an instructor's credentials\n")
         return await page(request, "instructor.html")
 
     async def static(request: web.Request) -> web.Response:
@@ -260,10 +369,14 @@ def make_app(station: Station, *, token: str | None = None) -> web.Application:
 
     @_api()
     async def operate(request: web.Request) -> web.Response:
-        return _json(st.operate(request.match_info["unit"], await _body(request)))
+        role = _role(request)
+        _need(request, role, role.writes, "operate the loops")
+        return _json(st.operate(request.match_info["unit"], await _body(request), role=role))
 
     @_api()
     async def ack(request: web.Request) -> web.Response:
+        role = _role(request)
+        _need(request, role, role.writes, "acknowledge alarms")
         await _body(request)
         return _json(st.acknowledge(request.match_info["unit"]))
 
@@ -411,16 +524,17 @@ def make_app(station: Station, *, token: str | None = None) -> web.Application:
 
 
 async def start_station(station: Station, *, host: str, port: int, token: str | None = None,
+                        users: Mapping[str, tuple[Role, str]] | None = None,
                         idle_timeout: float = IDLE_TIMEOUT) -> tuple[web.AppRunner, int]:
     """Serve ``station`` on ``host:port`` (0: a free port) in the running loop; returns the runner (call
-    ``await runner.cleanup()`` to stop) and the bound port. Refuses a non-loopback host without a token.
-    ``idle_timeout``: seconds a connection may stay without a complete request."""
-    if token is None and not is_loopback(host):
-        raise UserError(f"--web on {host} (not loopback) needs --web-token: the instructor API would be open "
-                        f"to anyone who reaches the port")
+    ``await runner.cleanup()`` to stop) and the bound port. Refuses a non-loopback host without a token or
+    users. ``idle_timeout``: seconds a connection may stay without a complete request."""
+    if token is None and users is None and not is_loopback(host):
+        raise UserError(f"--web on {host} (not loopback) needs --web-token or --web-users: the instructor API "
+                        f"would be open to anyone who reaches the port")
     if token is not None and len(token) < 8:
         raise UserError("--web-token must be at least 8 characters")
-    runner = web.AppRunner(make_app(station, token=token), access_log=None, shutdown_timeout=1.0,
+    runner = web.AppRunner(make_app(station, token=token, users=users), access_log=None, shutdown_timeout=1.0,
                            keepalive_timeout=idle_timeout)
     await runner.setup()
     site = web.TCPSite(runner, host, port)

@@ -31,6 +31,7 @@ import numpy as np
 
 from valve_emulator.device.malfunctions import Malfunction, MalfunctionError, parse_malfunction, register_word
 from valve_emulator.device.registers import RegisterError, address_of
+from valve_emulator.device.roles import OPERATOR, Role
 from valve_emulator.device.snapshots import BacktrackRing, SnapshotError, SnapshotNotFound, SnapshotStore, check_name
 from valve_emulator.errors import UserError
 from valve_emulator.station.evaluation import Action, Evaluation, trend_png
@@ -294,8 +295,10 @@ class Station:
 
     # --- trainee: operator actions, alarms ---------------------------------------------------------------
 
-    def operate(self, unit: Any, body: Mapping[str, Any], *, who: str = "trainee") -> dict[str, Any]:
-        """One operator action on ``unit``: ``{"mode": "auto"|"manual"}``, ``{"sp": x}`` or ``{"op": x}``."""
+    def operate(self, unit: Any, body: Mapping[str, Any], *, who: str = "trainee",
+                role: Role = OPERATOR) -> dict[str, Any]:
+        """One operator action on ``unit``: ``{"mode": "auto"|"manual"}``, ``{"sp": x}`` or ``{"op": x}``, by a
+        client of ``role`` (:mod:`~valve_emulator.device.roles`; a role that does not write the tag: 403)."""
         index = self.index_of(unit)
         keys = [k for k in ("mode", "sp", "op") if k in body]
         extra = [k for k in body if k not in ("mode", "sp", "op")]
@@ -305,6 +308,8 @@ class Station:
             raise StationError("request body: exactly one of fields 'mode', 'sp', 'op' is required", field="body")
         key = keys[0]
         value = body[key]
+        if key not in role.tags:   # the keys are the tags: op, sp, mode
+            raise StationError(f"field {key!r}: role {role.name!r} does not write {key}", field=key, status=403)
         if key == "mode":
             if value not in ("auto", "manual"):
                 raise StationError(f"field 'mode' must be 'auto' or 'manual', got {value!r}", field="mode")
@@ -316,7 +321,7 @@ class Station:
         try:
             if key != "mode":   # a value no register word can carry is refused here, with the map's text
                 word = register_word(name, value, self.device.scaling, index)
-            self.device.write(index, address_of(name), [word])
+            self.device.write(index, address_of(name), [word], role=role)
         except RegisterError as exc:
             self.evaluation.action(Action(who=who, unit=self.device.units[index], action=action, value=value,
                                           sim_time=t, accepted=False, message=str(exc)))

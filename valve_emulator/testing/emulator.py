@@ -45,6 +45,7 @@ from valve_emulator.device.registers import (
     register,
 )
 from valve_emulator.device.registers.codec import decode_value
+from valve_emulator.device.roles import INSTRUCTOR
 from valve_emulator.testing import CLOCKS
 
 __all__ = ["CLOCKS", "Emulator", "load_config"]
@@ -350,7 +351,7 @@ class Emulator:
                 raw = 0
             else:
                 raw = register_word(name, float(value), device.scaling, index)
-            device.write(index, reg.address, [raw], instructor=True)
+            device.write(index, reg.address, [raw], role=INSTRUCTOR)
 
     def _inject(self, body: dict[str, Any]) -> dict[str, Any]:
         from valve_emulator.device.malfunctions import parse_malfunction

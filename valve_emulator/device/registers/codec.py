@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable, Sequence
-from typing import Any, Final
+from typing import Any, Final, Protocol
 
 import numpy as np
 
@@ -54,8 +54,8 @@ from valve_emulator.device.registers.table import (
 )
 from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, from_words, split32, split_words
 
-__all__ = ["decode_value", "decode_write", "encode_loop", "encode_value", "encode_write", "loop_values", "patch",
-           "physical_range", "status_word", "write_range"]
+__all__ = ["WritePermission", "decode_value", "decode_write", "encode_loop", "encode_value", "encode_write",
+           "loop_values", "patch", "physical_range", "status_word", "write_range"]
 
 _STATUS: Final = address_of("status")
 # Written quantities that also flip a status bit: quantity -> (bit, is the bit set for this value?)
@@ -281,11 +281,19 @@ def decode_value(reg: Register, raw: int, scaling: Scaling, index: int) -> Any:
     return raw / reg.scale
 
 
+class WritePermission(Protocol):
+    """What a client may write: a :class:`~valve_emulator.device.roles.Role` (the permission table)."""
+
+    name: str
+
+    def may_write(self, quantity: str) -> bool: ...
+
+
 def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: int, *,
-                 auto: bool = False, instructor: bool = False, regmap: RegisterMap = STANDARD
+                 role: WritePermission | None = None, auto: bool = False, regmap: RegisterMap = STANDARD
                  ) -> list[tuple[str, Any]]:
-    """Validate a write of raw holding-register ``values`` from ``address`` on unit ``index`` of ``regmap``;
-    return the physical changes.
+    """Validate a write of raw holding-register ``values`` from ``address`` on unit ``index`` of ``regmap``
+    by a client of ``role``; return the physical changes.
 
     Returns ``[(quantity, value), ...]`` in address order with quantity one of ``op`` (% travel), ``sp``
     (PV units), ``auto`` (bool), ``kc``, ``ti`` (s, ``inf`` = no integral), ``td`` (s), ``S``, ``J``
@@ -296,8 +304,10 @@ def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: i
     Raises
     ------
     RegisterAddressError : an address outside the map, or part of a wider register.
-    RegisterAccessError : read-only register; controller register on a loop without one; instructor
-        register without ``instructor``; OP while the internal controller is in ``auto``.
+    RegisterAccessError : read-only register; controller register on a loop without one; a register
+        ``role`` may not write (None: a client without credentials, which writes every register except the
+        ``RW-instructor`` ones: :data:`~valve_emulator.device.roles.UNAUTHENTICATED`); OP while the internal
+        controller is in ``auto``.
     RegisterValueError : a raw value outside the register's range, e.g.
         ``register op_pct: 12000 out of range 0..10000``.
     """
@@ -322,8 +332,8 @@ def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: i
             refusal = "is read-only"
         elif reg.access is RW_CONTROLLER and not has_ctl:
             refusal = "needs an internal controller; this loop has none"
-        elif reg.access is RW_INSTRUCTOR and not instructor:
-            refusal = "needs instructor write permission"
+        elif not (role.may_write(reg.quantity) if role is not None else reg.access is not RW_INSTRUCTOR):
+            refusal = "is not writable by role " + repr("unauthenticated" if role is None else role.name)
         elif reg.quantity == "op" and has_ctl and auto:
             refusal = "is writable only while the controller is in manual"
         elif reg.address != a or reg.address + reg.width > address + count:
