@@ -46,6 +46,8 @@ Snapshots and malfunctions (the instructor station, ``docs/station.md``): :meth:
 complete state (:mod:`~valve_emulator.device.snapshots`) and :meth:`Device.restore` puts it back between two
 ticks; :attr:`Device.malfunctions` holds the ramped faults, advanced at each tick before the loops step.
 Callbacks in :attr:`Device.on_tick` run after every tick (the station's trends, scoring and backtrack).
+:attr:`Device.alarms` (:class:`~valve_emulator.device.alarms.PvAlarms`) compares every PV with its alarm
+limits whenever the image is refreshed and writes the ``alarms`` register of the loops whose alarm changed.
 
 Writes arrive through :meth:`Device.write` (validated by the register map; a refused write raises a
 :class:`~valve_emulator.device.registers.RegisterError` and changes nothing). An accepted write shows in
@@ -66,9 +68,10 @@ from typing import Any
 import numpy as np
 
 from valve_emulator.device._tasks import cancel_and_wait
+from valve_emulator.device.alarms import PvAlarms
 from valve_emulator.device.image import ImageLayout
 from valve_emulator.device.malfunctions import Malfunction, MalfunctionBank
-from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, patch
+from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, address_of, decode_write, patch
 from valve_emulator.device.registers.kernel import ImageEncoder
 from valve_emulator.device.snapshots import Snapshot, SnapshotError
 
@@ -80,6 +83,7 @@ TICK_TASK_NAME = "valve-emulator-tick"
 QUIET_RUN = 1 << 16
 #: Fewer ticks than this run one by one: a compiled run's set-up costs more than a few single steps.
 QUIET_MIN = 8
+_ALARMS = address_of("alarms")
 _log = logging.getLogger(__name__)
 
 
@@ -196,6 +200,10 @@ class Device:
         self.offsets = self.layout.offsets
         self.image = bytearray(self.layout.size)
         self._encode = ImageEncoder(scaling, self.image, self.offsets)
+        #: the PV alarms of the bank's loops (``plant.alarm_limits``); None for a bank without loop configs
+        self.alarms = PvAlarms.of_loops(bank.loops) if hasattr(bank, "loops") else None
+        if self.alarms is not None:
+            self.alarms.listeners.append(self._show_alarm)
         self._refresh()
 
     @classmethod
@@ -270,6 +278,13 @@ class Device:
 
     def _refresh(self) -> None:
         self._encode(self.bank, tick=self.ticks, overruns=self.overruns, time=self.bank.sample_time)
+        if self.alarms is not None:
+            self.alarms.update(self.bank.pv)
+
+    def _show_alarm(self, change: Any) -> None:
+        """Write loop ``change.index``'s new alarm word into its ``alarms`` register."""
+        at = int(self.offsets[change.index]) + 2 * _ALARMS
+        self.image[at:at + 2] = change.word.to_bytes(2, "big")
 
     def tick(self) -> None:
         """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""
@@ -380,8 +395,11 @@ class Device:
         if not hasattr(self.bank, "state"):
             raise SnapshotError("this loop bank cannot be captured", field="bank")
         ramps = self.malfunctions.state() if self.malfunctions is not None else []
+        device = {"ticks": self.ticks, "ramps": ramps, "config": self._fingerprint()}
+        if self.alarms is not None:
+            device["alarms"] = self.alarms.words.tolist()
         return Snapshot(name=name, time=float(self.bank.sample_time), ticks=self.ticks, bank=self.bank.state(),
-                        device={"ticks": self.ticks, "ramps": ramps, "config": self._fingerprint()})
+                        device=device)
 
     def restore(self, snap: Snapshot) -> None:
         """Put ``snap`` back: the device continues as after the save; pending writes are dropped.
@@ -404,12 +422,22 @@ class Device:
             except (TypeError, ValueError, KeyError) as exc:
                 raise SnapshotError(f"snapshot {snap.label}: malfunction ramps do not fit this device: {exc}",
                                     field="file") from None
+        alarm_words = None
+        if self.alarms is not None:
+            try:
+                alarm_words = self.alarms.checked_words(snap.device.get("alarms"))
+            except ValueError as exc:
+                raise SnapshotError(f"snapshot {snap.label}: {exc}", field="file") from None
         try:
             self.bank.set_state(snap.bank)
         except ValueError as exc:   # StateMismatch: checked before anything was written
             raise SnapshotError(f"snapshot {snap.label} does not fit this device: {exc}", field="name") from exc
         if self.malfunctions is not None:
             self.malfunctions.set_state(ramps)
+        if self.alarms is not None:
+            self.alarms.set_words(alarm_words)
+            for i in range(self.alarms.n):
+                self._show_alarm(self.alarms.change(i))
         self._pending.clear()
         self.ticks = int(snap.device["ticks"])
         self._refresh()

@@ -172,6 +172,7 @@ def encode_loop(state: Any, scaling: Scaling, index: int, *, tick: int, overruns
     values.update(
         auto=auto, load=float(_at(state, "load", index, optional=True)),
         noise=float(_at(state, "noise_std", index, optional=True)), fault=int(Fault.SEIZED) if seized else 0,
+        alarms=int(_at(state, "alarms", index, optional=True)),
         map_version=MAP_VERSION, tick=int(tick), overruns=int(overruns), time=float(time),
         status=status_word(stuck=bool(_at(state, "stuck", index)), sat_low=bool(_at(state, "sat_low", index)),
                            sat_high=bool(_at(state, "sat_high", index)), controller=controller, auto=auto,
