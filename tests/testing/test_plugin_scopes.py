@@ -35,7 +35,8 @@ def test_module_and_session_fixtures_share_one_emulator_each(pytester, run_pytes
 
 def test_a_markers_config_path_is_read_from_the_test_files_folder(pytester, run_pytest):
     folder = pytester.mkdir("loops")
-    (folder / "slow.yaml").write_text("device: {tick: 0.5}\nloops:\n  - unit: 4\n    plant: {num: [1.0], den: [3.0, 1.0]}\n")
+    (folder / "slow.yaml").write_text("device: {tick: 0.5}\nloops:\n  - unit: 4\n"
+                                      "    plant: {num: [1.0], den: [3.0, 1.0]}\n")
     (folder / "test_plant.py").write_text(
         "import pytest\n\n"
         "@pytest.mark.valve_emulator(config='slow.yaml')\n"

@@ -122,7 +122,8 @@ Many loops per unit id (blocks)
 A plant-size fleet (``fleet.loops_per_unit`` > 1, see ``docs/config.md``) puts several loops behind one
 unit id, each in its own *block* of :data:`BLOCK_STRIDE` = 32 registers: loop ``k`` of the unit answers
 at addresses ``32k .. 32k + 31`` with exactly the map above shifted by ``32k``, so loop 3's ``pv`` is
-holding register ``3·32 + 4 = 100``. A unit of ``B`` blocks spans ``0 .. 32(B−1) + 31``: at most :data:`MAX_BLOCKS` = 2048 blocks (the 16-bit address space), so one port
+holding register ``3·32 + 4 = 100``. A unit of ``B`` blocks spans ``0 .. 32(B−1) + 31``: at most
+:data:`MAX_BLOCKS` = 2048 blocks (the 16-bit address space), so one port
 serves up to 247 × 2048 loops.
 
 - Holding reads (FC3 and the read half of FC23) may span blocks: one read of 125 registers polls about
