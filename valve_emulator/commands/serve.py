@@ -15,6 +15,11 @@ Lockstep: ``--lockstep`` (or ``device.lockstep: true`` in CONFIG) runs no tick b
 PLC program in any language closes the loop deterministically (read PV, compute, write OP, write step;
 docs/testing.md). The station's ``POST /api/step`` does the same.
 
+Start-up: the "listening on HOST:PORT" line is printed once every requested port and device is open (Modbus TCP,
+``--rtu``, ``--tls-port``, ``--web``, ``--opcua``), then one line per further interface; a readiness check may
+wait for it. A port in use is one error line naming the flag and the port (``--opcua 4840: address already in
+use``), exit status 2, nothing printed on stdout and no recording started.
+
 SIGINT/SIGTERM stop it (a recording is complete up to the last tick: every row is flushed as written).
 SIGHUP re-reads CONFIG and applies its connection and access settings (``device.read_only``,
 ``instructor_*``, ``max_connections``, ``idle_timeout``, ``frame_timeout``, ``error_rate``) at once; other
