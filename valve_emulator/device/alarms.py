@@ -19,8 +19,8 @@ acked         yes       no       acknowledged while active
 returned      no        yes      PV back inside its limits before anyone acknowledged it
 ============  ========  =======  ========================================================
 
-Acknowledging a returned alarm makes it normal. The arrays are updated for every loop at once (one numpy pass
-per tick); only loops whose alarm word changed are handed to the listeners.
+Acknowledging a returned alarm makes it normal. The words are updated for every loop at once (one compiled
+pass per tick); only loops whose alarm word changed are handed to the listeners.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 
+import numba
 import numpy as np
 
 from valve_emulator.device.registers import AlarmBit
@@ -89,6 +90,28 @@ def state_of(word: int) -> AlarmState:
     return AlarmState.RETURNED if unacked else AlarmState.NORMAL
 
 
+@numba.njit(cache=True)
+def _update_words(pv, lo, hi, words, changed):  # pragma: no cover - compiled
+    """One pass over every loop (a fleet's tick cannot afford a numpy temporary per step): the new ``alarms``
+    word of each loop into ``words``, the indices that changed into ``changed``; returns how many did."""
+    count = 0
+    for i in range(pv.shape[0]):
+        old = words[i]
+        word = 1 if pv[i] > hi[i] else (2 if pv[i] < lo[i] else 0)     # PV_HIGH, PV_LOW (NaN: neither)
+        unacked = old & 4                                              # UNACKED stays until acknowledged ...
+        if word != 0 and (old & 3) == 0:
+            unacked = 4                                                # ... and is set when the alarm rises
+        word |= unacked
+        if word != old:
+            words[i] = word
+            changed[count] = i
+            count += 1
+    return count
+
+
+assert (int(AlarmBit.PV_HIGH), int(AlarmBit.PV_LOW), int(AlarmBit.UNACKED)) == (1, 2, 4)   # the kernel's bits
+
+
 class PvAlarms:
     """The PV alarms of ``n`` loops with limits ``lo`` < ``hi`` (PV units; arrays the caller may change in place).
 
@@ -106,6 +129,7 @@ class PvAlarms:
         #: the ``alarms`` word of every loop (:class:`AlarmBit`)
         self.words = np.zeros(n, dtype=np.int64)
         self._pv = np.full(n, np.nan)
+        self._changed = np.zeros(n, dtype=np.int64)   # scratch: the indices one update changed
         #: called with an :class:`AlarmChange` for every loop whose word changed (keep them short: the tick
         #: waits for them)
         self.listeners: list[Callable[[AlarmChange], None]] = []
@@ -125,17 +149,10 @@ class PvAlarms:
 
     def update(self, pv: np.ndarray) -> np.ndarray:
         """Compare every loop's ``pv`` with its limits; returns the indices whose word changed."""
-        pv = np.asarray(pv, dtype=float)
-        self._pv = pv
-        high, low = pv > self.hi, pv < self.lo
-        active = high | low
-        was_active = (self.words & (AlarmBit.PV_HIGH | AlarmBit.PV_LOW)) != 0
-        unacked = ((self.words & AlarmBit.UNACKED) != 0) | (active & ~was_active)
-        words = (high * int(AlarmBit.PV_HIGH) + low * int(AlarmBit.PV_LOW)
-                 + unacked * int(AlarmBit.UNACKED)).astype(np.int64)
-        changed = np.flatnonzero(words != self.words)
-        if changed.size:
-            self.words = words
+        self._pv = np.ascontiguousarray(pv, dtype=np.float64)
+        count = _update_words(self._pv, self.lo, self.hi, self.words, self._changed)
+        changed = self._changed[:count].copy()
+        if count:
             self._notify(changed, acknowledged=False)
         return changed
 
