@@ -436,8 +436,8 @@ class Device:
             self.malfunctions.set_state(ramps)
         if self.alarms is not None:
             self.alarms.set_words(alarm_words)
-            for i in range(self.alarms.n):
-                self._show_alarm(self.alarms.change(i))
+            words = np.frombuffer(self.image, dtype=">u2")   # every loop's alarms register at once
+            words[self.offsets // 2 + _ALARMS] = self.alarms.words
         self._pending.clear()
         self.ticks = int(snap.device["ticks"])
         self._refresh()
