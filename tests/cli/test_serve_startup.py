@@ -44,16 +44,17 @@ def _tls_flags(pki: Path) -> list[str]:
 @pytest.mark.parametrize("interface", ["--port", "--opcua", "--web", "--tls-port"])
 def test_a_taken_port_is_one_line_naming_the_flag_and_nothing_is_written(interface, taken_port, pki, tmp_path):
     """Each interface is asked for with the taken port while every other one gets a free port: the taken one is
-    named in a single line, no "listening" line was printed, and the recording was never created."""
+    named in a single line, no "listening" line was printed, and neither the recording nor the station's
+    snapshot folder was created."""
     ports = {"--port": "0", "--opcua": "0", "--web": "0", "--tls-port": "0", interface: str(taken_port)}
-    record = tmp_path / "rec.csv"
+    record, snapshots = tmp_path / "rec.csv", tmp_path / "snapshots"
     flags = [f for flag, port in ports.items() for f in (flag, port)]
-    out = _serve(*flags, *_tls_flags(pki), "--record", str(record))
+    out = _serve(*flags, *_tls_flags(pki), "--record", str(record), "--snapshots", str(snapshots))
     assert out.returncode == 2, out.stderr
     assert out.stdout == ""
     assert out.stderr.splitlines() == [f"valve-emulator serve: error: {interface} {taken_port}: address already "
                                        f"in use"]
-    assert not record.exists()
+    assert not record.exists() and not snapshots.exists()
 
 
 def test_a_serial_device_that_cannot_be_opened_names_the_rtu_flag(tmp_path):

@@ -233,21 +233,36 @@ def _services(args: argparse.Namespace, config, *, opcua: int | None, security) 
 
     @contextlib.asynccontextmanager
     async def attach(srv) -> AsyncIterator[list[str]]:
-        from valve_emulator.device.snapshots import BacktrackRing, SnapshotStore
-        from valve_emulator.station.core import Station
+        async with contextlib.AsyncExitStack() as stack:
+            yield await _start_services(srv, stack, args, config, opcua=opcua, security=security)
 
+    return attach
+
+
+async def _start_services(srv, stack: contextlib.AsyncExitStack, args: argparse.Namespace, config, *,
+                          opcua: int | None, security) -> list[str]:
+    """Make the station and start the web pages and OPC UA over it (their stops pushed on ``stack``); return the
+    lines announcing them. If a port is taken, the ``--snapshots`` folder made for the station is removed again:
+    a server that did not start leaves nothing behind."""
+    from valve_emulator.device.snapshots import BacktrackRing, SnapshotStore
+    from valve_emulator.station.core import Station
+
+    made = args.snapshots is not None and not args.snapshots.exists()
+    try:
         station = Station(srv.device, snapshots=SnapshotStore(args.snapshots),
                           backtrack=BacktrackRing(args.backtrack, 30) if args.backtrack > 0 else None)
         wanted = ((_start_web, args.web is not None), (_start_opcua, opcua is not None))
         lines = []
-        async with contextlib.AsyncExitStack() as stack:
-            for start in (start for start, asked in wanted if asked):
-                stop, line = await start(srv, station, config, args, port=opcua, security=security)
-                stack.push_async_callback(stop)
-                lines.append(line)
-            yield lines
-
-    return attach
+        for start in (start for start, asked in wanted if asked):
+            stop, line = await start(srv, station, config, args, port=opcua, security=security)
+            stack.push_async_callback(stop)
+            lines.append(line)
+        return lines
+    except BaseException:
+        if made:
+            with contextlib.suppress(OSError):   # only if still empty
+                args.snapshots.rmdir()
+        raise
 
 
 async def _start_web(srv, station, config, args: argparse.Namespace, **_: object):
