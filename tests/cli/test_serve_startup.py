@@ -81,3 +81,10 @@ def test_listening_comes_first_once_every_port_is_open_then_each_interface_annou
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0 and "Traceback" not in err, err
+
+
+def test_an_address_this_machine_does_not_have_names_the_host_flag():
+    """192.0.2.1 is TEST-NET-1 (RFC 5737): never an address of this machine."""
+    out = _serve("--host", "192.0.2.1", "--port", "0")
+    assert (out.returncode, out.stdout) == (2, "")
+    assert out.stderr.splitlines() == ["valve-emulator serve: error: --host 192.0.2.1: cannot assign requested address"]

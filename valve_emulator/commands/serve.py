@@ -270,7 +270,7 @@ async def _start_web(srv, station, config, args: argparse.Namespace, **_: object
     announcing its URL."""
     from valve_emulator.station.app import start_station
 
-    with opening(f"--web {args.web}"):
+    with opening(f"--web {args.web}", args.host):
         runner, bound = await start_station(station, host=args.host, port=args.web, token=args.web_token)
     where = f"[{args.host}]" if ":" in args.host else args.host
     return runner.cleanup, (f"valve-emulator: instructor station at http://{where}:{bound}/ (trainee) and "
@@ -285,7 +285,7 @@ async def _start_opcua(srv, station, config, args: argparse.Namespace, *, port: 
     history = opcua_history_seconds(args, port)
     server = OpcUaServer(srv.device, loops=config.loops, host=args.host, port=port, security=security,
                          station=station, history=history)
-    with opening(f"--opcua {port}"), _quiet("asyncua.server.server"):
+    with opening(f"--opcua {port}", args.host), _quiet("asyncua.server.server"):
         await server.start()
     return server.stop, f"valve-emulator: OPC UA at {server.url} (policies {', '.join(server.security.policies)})"
 

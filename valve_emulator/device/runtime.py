@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import errno
 import gc
 import logging
 import os
@@ -113,13 +114,15 @@ def describe_units(config) -> str:
 
 
 @contextlib.contextmanager
-def opening(what: str) -> Iterator[None]:
-    """Run the block that opens ``what`` (a flag and its port or serial device: ``--opcua 4840``); an ``OSError``
-    (address in use, no such device, no permission) becomes a ``UserError`` naming it, in one line:
-    ``--opcua 4840: address already in use``."""
+def opening(what: str, host: str | None = None) -> Iterator[None]:
+    """Run the block that opens ``what`` (a flag and its port or serial device: ``--opcua 4840``) on ``host``; an
+    ``OSError`` (address in use, no such device, no permission) becomes a ``UserError`` naming it, in one line:
+    ``--opcua 4840: address already in use``. An address this machine does not have names ``--host`` instead."""
     try:
         yield
     except OSError as exc:
+        if host is not None and exc.errno == errno.EADDRNOTAVAIL:
+            what = f"--host {host}"
         raise UserError(f"{what}: {_reason(exc)}") from exc
 
 
@@ -201,7 +204,7 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                                      rtu=rtu, serial=serial)
             notices = []
             if tls_port is not None:
-                with opening(f"--tls-port {tls_port}"):
+                with opening(f"--tls-port {tls_port}", host):
                     bound = await srv.open_tls(tls_context, port=tls_port)
                 notices.append(f"valve-emulator: Modbus/TCP Security (TLS, client certificates) on {host}:{bound}")
             if attach is not None:
@@ -240,7 +243,7 @@ async def _open_modbus(stack: AsyncExitStack, config, *, host: str, port: int, t
     ``--rtu``), entered into ``stack``; a port in use or a device that cannot be opened names its flag."""
     from valve_emulator.device.server import EmulatorServer
 
-    with opening(f"--port {port}"):
+    with opening(f"--port {port}", host):
         srv = await stack.enter_async_context(
             EmulatorServer(config, host=host, port=port, time_scale=time_scale, framer=framer))
     if rtu is not None:
