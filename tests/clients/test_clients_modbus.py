@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from valve_emulator.clients._channels import add_channel_arguments, channels_from_args, emulator_channels
 from valve_emulator.clients._modbus import Link, Point, Reader, parse_point
 from valve_emulator.config import server_from_mapping
-from valve_emulator.device.registers import N_REGISTERS
+from valve_emulator.device.registers import address_of
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.errors import UserError
 
@@ -87,7 +87,7 @@ async def test_emulator_channels_are_one_request_and_a_gap_refusal_falls_back():
         try:
             reader = emulator_channels().reader(word_order="ABCD")
             [req] = reader.requests                       # one snapshot of the whole map per sample
-            assert req.table == "holding" and req.address + req.count == N_REGISTERS
+            assert req.table == "holding" and req.address + req.count == address_of("alarms")
             sample = await reader.read(link)
             assert sample["op"] == 50.0 and sample["extra:stuck"] == 1.0
             before = srv.requests

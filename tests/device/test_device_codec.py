@@ -51,7 +51,7 @@ def test_word_order_and_address_space_have_one_definition():
     assert reg.ABCD is schema.WordOrder.ABCD and reg.CDAB is schema.WordOrder.CDAB
     assert _modbus.ABCD is reg.ABCD and _modbus.CDAB is reg.CDAB
     assert reg.MAX_BLOCKS is schema.MAX_BLOCKS and reg.BLOCK_STRIDE is schema.BLOCK_STRIDE
-    assert reg.MAX_BLOCKS * reg.BLOCK_STRIDE == 0x10000 and reg.N_REGISTERS < reg.BLOCK_STRIDE
+    assert reg.MAX_BLOCKS * reg.BLOCK_STRIDE == 0x10000 and reg.N_REGISTERS <= reg.BLOCK_STRIDE
     assert {t.value: (t.width, t.struct_format) for t in DataType} == _modbus.TYPES
 
 

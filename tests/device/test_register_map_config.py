@@ -110,7 +110,7 @@ def test_without_a_register_map_the_standard_map_is_served():
     assert STANDARD.holding == REGISTERS and STANDARD.input == INPUT_REGISTERS
     assert STANDARD.coils == COILS and STANDARD.discrete_inputs == DISCRETE_INPUTS
     # one section: the input table reads the holding words at the same address (the mirror)
-    assert STANDARD.row_words == 31
+    assert STANDARD.row_words == 32   # op_pct .. alarms
     assert all(STANDARD.word_offset(t, a) == a for t in ("holding", "input") for a in range(31))
     assert not_served(STANDARD) == []
 
@@ -265,3 +265,21 @@ def test_all_loops_at_once_encode_as_each_loop_alone(source):
     one_by_one = np.array([encode_loop(state, scaling, i, tick=2 ** 32 + 5, overruns=7, time=12.3, regmap=regmap)
                            for i in range(scaling.n)])
     assert np.array_equal(rows, one_by_one)
+
+
+def test_a_configured_map_serves_the_alarm_word_after_a_tick_and_after_an_acknowledgement():
+    """PV starts at 0, below the low alarm limit (10 % of the PV range): the served ``alarms`` tag reads
+    PV_LOW | UNACKED after a tick, and PV_LOW alone once the alarm is acknowledged between ticks, as the standard
+    image does."""
+    from valve_emulator.device.registers import AlarmBit, address_of
+
+    cfg = _config({"op": {"address": 40001, "type": "int16", "raw": [0, 27648]},
+                   "alarms": {"address": 30010, "type": "uint16"}})
+    dev = Device.from_config(cfg)
+    at = 2 * dev.register_map.word_offset("input", 9)
+    served = lambda: int.from_bytes(dev.served[at:at + 2], "big")  # noqa: E731
+    standard = lambda: int.from_bytes(dev.image[2 * address_of("alarms"):2 * address_of("alarms") + 2], "big")  # noqa: E731
+    dev.tick()
+    assert served() == standard() == AlarmBit.PV_LOW | AlarmBit.UNACKED
+    assert dev.alarms.acknowledge(0)
+    assert served() == standard() == AlarmBit.PV_LOW

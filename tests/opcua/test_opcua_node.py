@@ -1,6 +1,7 @@
 """node-opcua-client (from the npm registry, installed by .ci/run into tests/opcua/node) against
 ``valve-emulator serve --opcua``: browse, read, units, status, write OP, a refused write, a subscription with its
-timestamps; anonymous on loopback and Basic256Sha256 Sign&Encrypt with a user name."""
+timestamps; anonymous on loopback and Basic256Sha256 Sign&Encrypt with a user name; the PV alarm's condition
+(ConditionRefresh, Acknowledge)."""
 
 from __future__ import annotations
 
@@ -108,3 +109,35 @@ def test_node_opcua_basic256sha256_with_a_user_once_its_certificate_is_trusted(n
         err = stop(proc)
     assert "Traceback" not in err, err[-2000:]
     assert "refused OPC UA session" in err and "BadCertificateUntrusted" in err
+
+
+def test_node_opcua_refreshes_and_acknowledges_the_pv_alarm(node, tmp_path):
+    """The default device with its PV range moved to 1..10: PV starts at 0, below the low alarm limit 1.9, so the
+    alarm is raised before the client connects. node-opcua's ConditionRefresh shows it, its Acknowledge call
+    acknowledges it, and the Modbus ``alarms`` register loses its not-acknowledged bit."""
+    from pymodbus.client import ModbusTcpClient
+
+    from valve_emulator.device.registers import AlarmBit, address_of
+
+    config = DEFAULT_DEVICE.read_text().replace("pv_range: [-10.0, 10.0]", "pv_range: [1.0, 10.0]")
+    (tmp_path / "plant.yaml").write_text(config)
+    proc, url, port = start_serve(str(tmp_path / "plant.yaml"), "--opcua", "0")
+    try:
+        done = subprocess.run([node, str(NODE_DIR / "alarms.mjs"), url, "concentration_undershoot"],
+                              capture_output=True, text=True, timeout=120, cwd=NODE_DIR)
+        lines = [ln for ln in done.stdout.splitlines() if ln.startswith("{")]
+        assert lines, done.stdout[-2000:] + done.stderr[-2000:]
+        seen = json.loads(lines[-1])
+        with ModbusTcpClient("127.0.0.1", port=port, timeout=5) as mb:
+            word = mb.read_holding_registers(address_of("alarms"), count=1, device_id=1).registers[0]
+    finally:
+        err = stop(proc)
+    assert "Traceback" not in err, err[-2000:]
+    assert seen["ok"], seen
+    assert seen["refresh"] == "Good" and seen["acknowledge"] == "Good"
+    assert seen["raised"]["message"].startswith("concentration_undershoot: PV ")
+    assert "below its low limit 1.9" in seen["raised"]["message"]
+    assert (seen["raised"]["active"], seen["raised"]["acked"], seen["raised"]["retain"]) == (True, False, True)
+    assert seen["raised"]["conditionId"] == "ns=2;s=Unit1.concentration_undershoot.PvAlarm"
+    assert (seen["acked"]["active"], seen["acked"]["acked"]) == (True, True)
+    assert word == AlarmBit.PV_LOW

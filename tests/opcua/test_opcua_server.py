@@ -13,6 +13,7 @@ from valve_emulator.device.registers import REGISTERS, address_of
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.snapshots import SnapshotStore
 from valve_emulator.opcua import NAMESPACE, OpcUaError, OpcUaSecurity, OpcUaServer, hash_password
+from valve_emulator.opcua.alarms import CONDITION_NAME
 from valve_emulator.opcua.server import BITS, VARIABLES
 from valve_emulator.station.core import Station
 
@@ -52,8 +53,9 @@ async def test_address_space_is_the_register_map_with_units_and_ranges(served, c
     async with Client(opc.url) as client:
         loop, ns = await _loop_node(client, 1, "FIC101")
         names = {(await c.read_browse_name()).Name for c in await loop.get_children()}
-        # every quantity of the register map, under its 16-bit register's name, and the status bits
-        assert names == {v.name for v in VARIABLES} | set(BITS)
+        # every quantity of the register map, under its 16-bit register's name, the status bits and the PV
+        # alarm's condition object
+        assert names == {v.name for v in VARIABLES} | set(BITS) | {CONDITION_NAME}
         assert {"pv", "sp", "op", "mv", "mode", "S", "J", "kc", "ti", "load", "fault", "stuck", "seized"} <= names
         assert len(VARIABLES) == len({r.quantity for r in REGISTERS})
         type_def = await loop.read_type_definition()

@@ -185,7 +185,7 @@ async def test_serve_command_runs_tcp_and_rtu_from_one_process_on_one_tick(pty_p
 
 @pytest.mark.parametrize(("argv", "message"), [
     (["--baud", "9600"], "--baud, --parity and --stopbits set up the serial line of --rtu DEVICE"),
-    (["--rtu", "/nonexistent/ttyX"], "serial device /nonexistent/ttyX"),
+    (["--rtu", "/nonexistent/ttyX"], "--rtu /nonexistent/ttyX: no such file or directory"),
 ])
 def test_serve_refuses_bad_serial_flags(argv, message, capsys):
     from valve_emulator.cli import main

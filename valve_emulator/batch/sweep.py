@@ -89,7 +89,8 @@ def _dask_results(files: Sequence[Path], options: dict, scheduler):
         from distributed import Client
         from distributed import as_completed as dask_completed
     except ModuleNotFoundError as exc:  # the optional extra is missing
-        raise UserError("--scheduler needs Dask distributed: pip install 'valve_emulator[cluster]'") from exc
+        raise UserError("--scheduler needs Dask distributed: pip install 'dask[distributed]' (the extra "
+                        "'cluster' of valve_emulator)") from exc
     client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
     try:
         futures = {client.submit(diagnose_file, str(f), options, pure=False): i for i, f in enumerate(files)}

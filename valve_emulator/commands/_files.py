@@ -44,3 +44,16 @@ def user_files(files: Mapping[str, Path | None]) -> Iterator[None]:
         if Path(exc.filename).absolute() != path.absolute():
             where += f": {exc.filename}"
         raise UserError(f"{where}: {exc.strerror or exc}") from exc
+
+
+def check_figure(flag: str, path: Path | None) -> None:
+    """Refuse a figure file whose extension matplotlib cannot write (``--plot fig.pgn``), naming the flag, before
+    a command computes or writes anything. A name without an extension is written as PNG."""
+    if path is None or not path.suffix:
+        return
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if path.suffix[1:].lower() not in formats:
+        raise UserError(f"{flag} {path}: cannot write a {path.suffix} figure; use one of "
+                        f"{', '.join('.' + f for f in sorted(formats))}")

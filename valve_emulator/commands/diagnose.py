@@ -37,7 +37,7 @@ import sys
 import time
 from pathlib import Path
 
-from valve_emulator.commands._files import user_files
+from valve_emulator.commands._files import check_figure, user_files
 from valve_emulator.commands._reader import add_reader_arguments, reader_options
 from valve_emulator.errors import UserError
 
@@ -145,6 +145,7 @@ def _run(args: argparse.Namespace) -> int:
                     ("--twin", args.twin)):
         if p is not None and not p.parent.is_dir():
             raise UserError(f"{flag} {p}: folder {p.parent} does not exist")
+    check_figure("--plot", args.plot)
     if args.jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {args.jobs}")
     if len(args.recording) > 1 or args.recording[0].is_dir():

@@ -15,6 +15,11 @@ Lockstep: ``--lockstep`` (or ``device.lockstep: true`` in CONFIG) runs no tick b
 PLC program in any language closes the loop deterministically (read PV, compute, write OP, write step;
 docs/testing.md). The station's ``POST /api/step`` does the same.
 
+Start-up: the "listening on HOST:PORT" line is printed once every requested port and device is open (Modbus TCP,
+``--rtu``, ``--tls-port``, ``--web``, ``--opcua``), then one line per further interface; a readiness check may
+wait for it. A port in use is one error line naming the flag and the port (``--opcua 4840: address already in
+use``), exit status 2, nothing printed on stdout and no recording started.
+
 SIGINT/SIGTERM stop it (a recording is complete up to the last tick: every row is flushed as written).
 SIGHUP re-reads CONFIG and applies its connection and access settings (``device.read_only``,
 ``instructor_*``, ``max_connections``, ``idle_timeout``, ``frame_timeout``, ``error_rate``) at once; other
@@ -253,54 +258,84 @@ def tls_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
 def _services(args: argparse.Namespace, config, *, opcua: int | None, security) -> Attach | None:
     """The instructor station (``--web``) and OPC UA (``--opcua``) beside the Modbus server, sharing one
     :class:`~valve_emulator.station.core.Station` (the HTTP pages and the OPC UA methods act on the same one);
-    None when neither is asked for."""
+    None when neither is asked for. Entered, it opens their ports and yields the lines announcing them."""
     if args.web is None and opcua is None:
         return None
 
     @contextlib.asynccontextmanager
-    async def attach(srv) -> AsyncIterator[None]:
-        from valve_emulator.device.snapshots import BacktrackRing, SnapshotStore
-        from valve_emulator.station.core import Station
-
-        station = Station(srv.device, snapshots=SnapshotStore(args.snapshots),
-                          backtrack=BacktrackRing(args.backtrack, 30) if args.backtrack > 0 else None)
+    async def attach(srv) -> AsyncIterator[list[str]]:
         async with contextlib.AsyncExitStack() as stack:
-            if args.web is not None:
-                stack.push_async_callback(await _start_web(station, args, config))
-            if opcua is not None:
-                stack.push_async_callback(await _start_opcua(srv, station, config, args, port=opcua,
-                                                             security=security))
-            yield
+            yield await _start_services(srv, stack, args, config, opcua=opcua, security=security)
 
     return attach
 
 
-async def _start_web(station, args: argparse.Namespace, config):
-    """Start the instructor ``station``'s HTTP pages on ``--host``:``--web``; print its URL; return its stop."""
+async def _start_services(srv, stack: contextlib.AsyncExitStack, args: argparse.Namespace, config, *,
+                          opcua: int | None, security) -> list[str]:
+    """Make the station and start the web pages and OPC UA over it (their stops pushed on ``stack``); return the
+    lines announcing them. If a port is taken, the ``--snapshots`` folder made for the station is removed again:
+    a server that did not start leaves nothing behind."""
+    from valve_emulator.device.snapshots import BacktrackRing, SnapshotStore
+    from valve_emulator.station.core import Station
+
+    made = args.snapshots is not None and not args.snapshots.exists()
+    try:
+        station = Station(srv.device, snapshots=SnapshotStore(args.snapshots),
+                          backtrack=BacktrackRing(args.backtrack, 30) if args.backtrack > 0 else None)
+        wanted = ((_start_web, args.web is not None), (_start_opcua, opcua is not None))
+        lines = []
+        for start in (start for start, asked in wanted if asked):
+            stop, line = await start(srv, station, config, args, port=opcua, security=security)
+            stack.push_async_callback(stop)
+            lines.append(line)
+        return lines
+    except BaseException:
+        if made:
+            with contextlib.suppress(OSError):   # only if still empty
+                args.snapshots.rmdir()
+        raise
+
+
+async def _start_web(srv, station, config, args: argparse.Namespace, **_: object):
+    """Start the instructor ``station``'s HTTP pages on ``--host``:``--web``; return its stop and the line
+    announcing its URL."""
     from valve_emulator.station.app import start_station
 
     users = web_users(args, config)
-    with opening(f"--web {args.web} on {args.host}"):
+    with opening(f"--web {args.web}", args.host):
         runner, bound = await start_station(station, host=args.host, port=args.web, token=args.web_token,
                                             users=users)
     where = f"[{args.host}]" if ":" in args.host else args.host
-    print(f"valve-emulator: instructor station at http://{where}:{bound}/ (trainee) and "
-          f"http://{where}:{bound}/instructor", flush=True)
-    return runner.cleanup
+    return runner.cleanup, (f"valve-emulator: instructor station at http://{where}:{bound}/ (trainee) and "
+                            f"http://{where}:{bound}/instructor")
 
 
 async def _start_opcua(srv, station, config, args: argparse.Namespace, *, port: int, security):
-    """Start the OPC UA server over ``srv``'s device (methods through ``station``); print its URL; return its
-    stop."""
+    """Start the OPC UA server over ``srv``'s device (methods through ``station``); return its stop and the
+    line announcing its URL. A port in use is one error line: asyncua's own logged traceback is held back."""
     from valve_emulator.opcua import OpcUaServer
 
     history = opcua_history_seconds(args, port)
     server = OpcUaServer(srv.device, loops=config.loops, host=args.host, port=port, security=security,
                          station=station, history=history)
-    with opening(f"--opcua {port} on {args.host}"):
+    with opening(f"--opcua {port}", args.host), _quiet("asyncua.server.server"):
         await server.start()
-    print(f"valve-emulator: OPC UA at {server.url} (policies {', '.join(server.security.policies)})", flush=True)
-    return server.stop
+    return server.stop, f"valve-emulator: OPC UA at {server.url} (policies {', '.join(server.security.policies)})"
+
+
+@contextlib.contextmanager
+def _quiet(logger: str):
+    """Drop ``logger``'s ERROR records (with their tracebacks) inside the block: the exception it raises says
+    the same in one line."""
+    def no_errors(record: logging.LogRecord) -> bool:
+        return record.levelno < logging.ERROR
+
+    log = logging.getLogger(logger)
+    log.addFilter(no_errors)
+    try:
+        yield
+    finally:
+        log.removeFilter(no_errors)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,7 +6,8 @@ open loop, as the diagnosis' fit does (the recording's OP is mapped to % travel 
 and the open-loop replay prints the replayed PV's fit against the recorded one on the last 30 % (the part a
 diagnosis with a model holds out: compare it with that diagnosis' ``fit_after``). REC is read like ``diagnose`` reads
 a recording (the same reader flags). A bad recording, or one without a set point for ``--replay-sp``, is one
-error line naming the file, exit code 2, and nothing written.
+error line naming the file, exit code 2, and nothing written; so is a ``--plot`` file matplotlib cannot write
+(``fig.pgn``), refused before the CSV is written.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from valve_emulator.commands._files import user_files
+from valve_emulator.commands._files import check_figure, user_files
 from valve_emulator.commands._reader import add_reader_arguments, reader_options
 from valve_emulator.errors import UserError
 
@@ -75,6 +76,7 @@ def _run(args: argparse.Namespace) -> int:
     for flag, p in (("--out", args.out), ("--plot", args.plot)):
         if p is not None and not p.parent.is_dir():
             raise UserError(f"{flag} {p}: folder {p.parent} does not exist")
+    check_figure("--plot", args.plot)
     if args.replay is not None:
         rec, how = _replay(cfg, args)
     else:

@@ -7,11 +7,10 @@ byte offsets computed here.
 Layout (see also :mod:`~valve_emulator.device.registers`)
 ----------------------------------------------------------
 Every loop has an address ``(unit, block)``. Block ``k`` of a unit starts at register address
-``k·BLOCK_STRIDE`` (``BLOCK_STRIDE = 32``): its 31 registers (:data:`N_REGISTERS`) occupy
-``32k .. 32k + 30`` and address ``32k + 31`` is a *pad* that reads 0. The blocks of a unit are
-``0 .. B−1`` without gaps, so a unit's holding-register space is ``0 .. 32(B−1) + 30`` and one read of
-125 registers polls about four loops. With one block per unit (``B = 1``, the classic layout) a unit's
-space is exactly the register map, 0..30.
+``k·BLOCK_STRIDE`` (``BLOCK_STRIDE = 32``): its 32 registers (:data:`N_REGISTERS`) occupy
+``32k .. 32k + 31``. The blocks of a unit are ``0 .. B−1`` without gaps, so a unit's holding-register space
+is ``0 .. 32(B−1) + 31`` and one read of 125 registers polls about four loops. With one block per unit
+(``B = 1``, the classic layout) a unit's space is exactly the register map, 0..31.
 
 In the image each unit owns one region of ``32(B−1) + 31`` words, in the order the units first appear;
 a loop's words start at byte ``region_start(unit) + 64·block``. With one block per unit the image is the
@@ -98,7 +97,7 @@ class ImageLayout:
     def locate_write(self, unit: int, address: int, count: int) -> tuple[int, int]:
         """``(loop index, address inside its block)`` of a write of ``count`` registers at ``address``.
 
-        A write stays inside one loop's block: one that reaches a pad or the next block raises
+        A write stays inside one loop's block: one that reaches the next block raises
         :class:`~valve_emulator.device.registers.RegisterAddressError`. With one block per unit the
         address is passed on unchanged (the register map then checks it).
         """

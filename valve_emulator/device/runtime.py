@@ -9,9 +9,11 @@
   they live above this layer).
 
 The lines :func:`serve` prints on stdout (``listening on HOST:PORT, ...``, ``reloaded ...``) are what a
-supervisor (``serve --processes N``, a test, an orchestrator) reads to know the server is up.
-A port in use or a serial device that cannot be opened is a :class:`~valve_emulator.errors.UserError`
-naming the interface and address.
+supervisor (``serve --processes N``, a test, an orchestrator) reads to know the server is up: the "listening"
+line comes only once every requested port and device (Modbus TCP, RTU, Modbus/TCP Security and the attached
+services: the station's web port, OPC UA) is open. A port in use or a serial device that cannot be opened is a
+:class:`~valve_emulator.errors.UserError` naming the flag and the port (``--opcua 4840: address already in
+use``), raised before anything is printed or recorded.
 """
 
 from __future__ import annotations
@@ -19,11 +21,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import errno
 import gc
 import logging
+import os
 import signal
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import AbstractAsyncContextManager, AsyncExitStack
 from importlib import resources
 from pathlib import Path
@@ -37,8 +41,10 @@ __all__ = ["DEFAULT_DEVICE", "Attach", "apply_overrides", "describe_units", "loa
 _log = logging.getLogger("valve_emulator.serve")
 
 #: Services that run beside the Modbus server for as long as it runs: ``attach(server)`` is entered once the
-#: server listens and left before it stops (e.g. the instructor station's HTTP pages, an OPC UA server).
-Attach = Callable[[Any], AbstractAsyncContextManager[Any]]
+#: server's own ports are open and left before it stops (e.g. the instructor station's HTTP pages, an OPC UA
+#: server). Entering it opens the services' ports and yields the lines announcing them, which :func:`serve`
+#: prints after its "listening" line.
+Attach = Callable[[Any], AbstractAsyncContextManager[Sequence[str]]]
 #: The embedded device served without a CONFIG (package data ``valve_emulator/data``).
 DEFAULT_DEVICE = "default_device.yaml"
 
@@ -115,13 +121,28 @@ def describe_units(config) -> str:
 
 
 @contextlib.contextmanager
-def opening(what: str) -> Iterator[None]:
-    """Run the block that opens ``what`` (a port, a serial device); an ``OSError`` (address in use, no such
-    device, no permission) becomes a ``UserError`` naming it."""
+def opening(what: str, host: str | None = None) -> Iterator[None]:
+    """Run the block that opens ``what`` (a flag and its port or serial device: ``--opcua 4840``) on ``host``; an
+    ``OSError`` (address in use, no such device, no permission) becomes a ``UserError`` naming it, in one line:
+    ``--opcua 4840: address already in use``. An address this machine does not have names ``--host`` instead."""
     try:
         yield
     except OSError as exc:
-        raise UserError(f"{what}: {exc.strerror or exc}") from exc
+        if host is not None and exc.errno == errno.EADDRNOTAVAIL:
+            what = f"--host {host}"
+        raise UserError(f"{what}: {_reason(exc)}") from exc
+
+
+def _reason(exc: OSError) -> str:
+    """What went wrong, without the address the caller names already: ``address already in use``. The errno
+    may sit on an error the raised one wraps (the serial line's)."""
+    cause: BaseException | None = exc
+    while cause is not None:
+        if isinstance(cause, OSError) and isinstance(cause.errno, int):
+            text = os.strerror(cause.errno)
+            return text[:1].lower() + text[1:]
+        cause = cause.__cause__ or cause.__context__
+    return str(exc.strerror or exc)
 
 
 class _Signals:
@@ -167,6 +188,9 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                 tls_context=None, attach: Attach | None = None) -> None:
     """Serve until SIGINT/SIGTERM (or cancellation); ``ready(server)`` is called once listening.
 
+    Every port and device is opened before the "listening" line is printed and before ``record`` is created:
+    one that cannot be opened is a ``UserError`` naming its flag, and nothing has been written.
+
     ``rtu`` (a serial device) with ``serial`` (:class:`~valve_emulator.device.rtu.SerialSettings`) serves the
     units on that line too; ``framer="rtu"`` makes the TCP port speak RTU frames. ``tls_port`` with
     ``tls_context`` (:func:`~valve_emulator.device.tls.server_context`) serves Modbus/TCP Security.
@@ -178,18 +202,20 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
     """
     from valve_emulator.device.guard import binds_all_interfaces
     from valve_emulator.device.record import TickRecorder
-    from valve_emulator.device.server import EmulatorServer
 
     stop = asyncio.Event()
     signals = _Signals(asyncio.get_running_loop(), stop)
     try:
         async with AsyncExitStack() as stack:
-            with opening(f"Modbus TCP on {host}:{port}"):
-                srv = await stack.enter_async_context(
-                    EmulatorServer(config, host=host, port=port, time_scale=time_scale, framer=framer))
-            if rtu is not None:
-                with opening(f"Modbus RTU on {rtu}"):
-                    srv.open_serial(rtu, serial)
+            srv = await _open_modbus(stack, config, host=host, port=port, time_scale=time_scale, framer=framer,
+                                     rtu=rtu, serial=serial)
+            notices = []
+            if tls_port is not None:
+                with opening(f"--tls-port {tls_port}", host):
+                    bound = await srv.open_tls(tls_context, port=tls_port)
+                notices.append(f"valve-emulator: Modbus/TCP Security (TLS, client certificates) on {host}:{bound}")
+            if attach is not None:
+                notices.extend(await stack.enter_async_context(attach(srv)))
             hup = getattr(signal, "SIGHUP", None)
             if hup is not None:  # installed before the "listening" line, which tells a supervisor we are up
                 signals.on(hup, lambda: reload_config(srv, config_path, read_only=read_only,
@@ -200,12 +226,8 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
                 print("valve-emulator: WARNING: bound to all interfaces. Modbus TCP has no authentication: "
                       "anyone who can reach this port can move the valve. Use an isolated network.",
                       file=sys.stderr, flush=True)
-            if tls_port is not None:
-                with opening(f"Modbus/TCP Security on {host}:{tls_port}"):
-                    bound = await srv.open_tls(tls_context, port=tls_port)
-                print(f"valve-emulator: Modbus/TCP Security (TLS, client certificates) on {host}:{bound}", flush=True)
-            if attach is not None:
-                await stack.enter_async_context(attach(srv))
+            for line in notices:
+                print(line, flush=True)
             if record is not None:
                 recorder = TickRecorder(srv.device, record, units=record_units)
                 await recorder.start()
@@ -220,3 +242,18 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
             await stop.wait()
     finally:
         signals.remove()
+
+
+async def _open_modbus(stack: AsyncExitStack, config, *, host: str, port: int, time_scale: float, framer: str,
+                       rtu: str | None, serial):
+    """The :class:`~valve_emulator.device.server.EmulatorServer` on ``--port`` (and its serial line on
+    ``--rtu``), entered into ``stack``; a port in use or a device that cannot be opened names its flag."""
+    from valve_emulator.device.server import EmulatorServer
+
+    with opening(f"--port {port}", host):
+        srv = await stack.enter_async_context(
+            EmulatorServer(config, host=host, port=port, time_scale=time_scale, framer=framer))
+    if rtu is not None:
+        with opening(f"--rtu {rtu}"):
+            srv.open_serial(rtu, serial)
+    return srv

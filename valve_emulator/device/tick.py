@@ -46,6 +46,8 @@ Snapshots and malfunctions (the instructor station, ``docs/station.md``): :meth:
 complete state (:mod:`~valve_emulator.device.snapshots`) and :meth:`Device.restore` puts it back between two
 ticks; :attr:`Device.malfunctions` holds the ramped faults, advanced at each tick before the loops step.
 Callbacks in :attr:`Device.on_tick` run after every tick (the station's trends, scoring and backtrack).
+:attr:`Device.alarms` (:class:`~valve_emulator.device.alarms.PvAlarms`) compares every PV with its alarm
+limits whenever the image is refreshed and writes the ``alarms`` register of the loops whose alarm changed.
 
 Writes arrive through :meth:`Device.write` (validated by the register map; a refused write raises a
 :class:`~valve_emulator.device.registers.RegisterError` and changes nothing). An accepted write shows in
@@ -66,9 +68,18 @@ from typing import Any
 import numpy as np
 
 from valve_emulator.device._tasks import cancel_and_wait
+from valve_emulator.device.alarms import PvAlarms
 from valve_emulator.device.image import ImageLayout
 from valve_emulator.device.malfunctions import Malfunction, MalfunctionBank
-from valve_emulator.device.registers import N_REGISTERS, Fault, Scaling, decode_write, patch
+from valve_emulator.device.registers import (
+    N_REGISTERS,
+    Fault,
+    Scaling,
+    address_of,
+    decode_write,
+    encode_value,
+    patch,
+)
 from valve_emulator.device.registers.columns import encode_rows
 from valve_emulator.device.registers.kernel import ImageEncoder
 from valve_emulator.device.registers.mapping import STANDARD, RegisterMap, register_map_of
@@ -82,6 +93,7 @@ TICK_TASK_NAME = "valve-emulator-tick"
 QUIET_RUN = 1 << 16
 #: Fewer ticks than this run one by one: a compiled run's set-up costs more than a few single steps.
 QUIET_MIN = 8
+_ALARMS = address_of("alarms")
 _log = logging.getLogger(__name__)
 
 
@@ -210,6 +222,10 @@ class Device:
         else:
             self.served_layout = ImageLayout(units, blocks, row_words=register_map.row_words)
             self.served = bytearray(self.served_layout.size)
+        #: the PV alarms of the bank's loops (``plant.alarm_limits``); None for a bank without loop configs
+        self.alarms = PvAlarms.of_loops(bank.loops) if hasattr(bank, "loops") else None
+        if self.alarms is not None:
+            self.alarms.listeners.append(self._show_alarm)
         self._refresh()
 
     @classmethod
@@ -306,10 +322,24 @@ class Device:
 
     def _refresh(self) -> None:
         self._encode(self.bank, tick=self.ticks, overruns=self.overruns, time=self.bank.sample_time)
+        if self.alarms is not None:
+            self.alarms.update(self.bank.pv)
         if self.served is not self.image:   # a configured map: every loop's row (one per unit, back to back)
             rows = encode_rows(self.bank, self.scaling, self.register_map, tick=self.ticks, overruns=self.overruns,
-                               time=self.bank.sample_time)
+                               time=self.bank.sample_time,
+                               alarms=None if self.alarms is None else self.alarms.words)
             self.served[:] = rows.astype(">u2").tobytes()
+
+    def _show_alarm(self, change: Any) -> None:
+        """Write loop ``change.index``'s new alarm word into its ``alarms`` register (and the served map's)."""
+        at = int(self.offsets[change.index]) + 2 * _ALARMS
+        self.image[at:at + 2] = change.word.to_bytes(2, "big")
+        if self.served is not self.image:
+            at = int(self.served_layout.offsets[change.index])
+            for reg in self.register_map.showing("alarms"):
+                k = at + 2 * self.register_map.word_offset(reg.table, reg.address)
+                words = encode_value(reg, change.word, self.scaling, change.index)
+                self.served[k:k + 2 * reg.width] = np.asarray(words, dtype=">u2").tobytes()
 
     def tick(self) -> None:
         """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""
@@ -420,8 +450,11 @@ class Device:
         if not hasattr(self.bank, "state"):
             raise SnapshotError("this loop bank cannot be captured", field="bank")
         ramps = self.malfunctions.state() if self.malfunctions is not None else []
+        device = {"ticks": self.ticks, "ramps": ramps, "config": self._fingerprint()}
+        if self.alarms is not None:
+            device["alarms"] = self.alarms.words.tolist()
         return Snapshot(name=name, time=float(self.bank.sample_time), ticks=self.ticks, bank=self.bank.state(),
-                        device={"ticks": self.ticks, "ramps": ramps, "config": self._fingerprint()})
+                        device=device)
 
     def restore(self, snap: Snapshot) -> None:
         """Put ``snap`` back: the device continues as after the save; pending writes are dropped.
@@ -444,12 +477,22 @@ class Device:
             except (TypeError, ValueError, KeyError) as exc:
                 raise SnapshotError(f"snapshot {snap.label}: malfunction ramps do not fit this device: {exc}",
                                     field="file") from None
+        alarm_words = None
+        if self.alarms is not None:
+            try:
+                alarm_words = self.alarms.checked_words(snap.device.get("alarms"))
+            except ValueError as exc:
+                raise SnapshotError(f"snapshot {snap.label}: {exc}", field="file") from None
         try:
             self.bank.set_state(snap.bank)
         except ValueError as exc:   # StateMismatch: checked before anything was written
             raise SnapshotError(f"snapshot {snap.label} does not fit this device: {exc}", field="name") from exc
         if self.malfunctions is not None:
             self.malfunctions.set_state(ramps)
+        if self.alarms is not None:
+            self.alarms.set_words(alarm_words)
+            words = np.frombuffer(self.image, dtype=">u2")   # every loop's alarms register at once
+            words[self.offsets // 2 + _ALARMS] = self.alarms.words
         self._pending.clear()
         self.ticks = int(snap.device["ticks"])
         self._refresh()

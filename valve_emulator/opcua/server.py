@@ -38,6 +38,9 @@ every tick with the values that changed. Each analog item has EngineeringUnits w
 (:mod:`~valve_emulator.opcua.units`) and, where it has one, an EURange; a value outside it is
 ``UncertainEngineeringUnitsExceeded``. ``SourceTimestamp`` is the wall-clock time of the tick that made the
 value (:class:`TickClock`), ``ServerTimestamp`` the time it was read or sent.
+
+Each loop's PV alarm is an ``AlarmConditionType`` condition (``Unit1.FIC101.PvAlarm``) whose events come from
+the ``Server`` object and which a client acknowledges (:mod:`~valve_emulator.opcua.alarms`).
 """
 
 from __future__ import annotations
@@ -75,6 +78,7 @@ from valve_emulator.device.registers import (
 from valve_emulator.device.registers.codec import decode_value
 from valve_emulator.device.roles import OPERATOR, Role
 from valve_emulator.errors import UserError
+from valve_emulator.opcua.alarms import AlarmConditions
 from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
 from valve_emulator.opcua.trust import TrustList
 from valve_emulator.opcua.units import eu_information
@@ -353,6 +357,8 @@ class OpcUaServer:
         self.refusals = RefusalLog(_log)
         #: the client certificates accepted (built at start from ``security.pki``/``trust_all``)
         self.trust_list: TrustList | None = None
+        #: the loops' PV alarms as OPC UA conditions (:mod:`~valve_emulator.opcua.alarms`), once started
+        self.alarm_conditions: AlarmConditions | None = None
 
     # --- values -----------------------------------------------------------------------------------------
 
@@ -769,6 +775,9 @@ class OpcUaServer:
         root = server.get_node(station.RequestedNewNodeId)
         await self._add_methods(root)
         self._track_monitored_items()
+        if getattr(self.device, "alarms", None) is not None:   # each loop's PV alarm as an AlarmConditionType condition
+            self.alarm_conditions = AlarmConditions(self)
+            await self.alarm_conditions.start()
         await server.start()
         if self.history is not None:
             await historize(server, self._historized, self.history, self.history_path)
@@ -783,6 +792,9 @@ class OpcUaServer:
         return f"opc.tcp://{host}:{self.port}/valve-emulator/"
 
     async def stop(self) -> None:
+        conditions, self.alarm_conditions = self.alarm_conditions, None
+        if conditions is not None:
+            await conditions.stop()
         task, self._publisher = self._publisher, None
         if task is not None:
             task.cancel()

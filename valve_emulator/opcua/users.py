@@ -19,6 +19,7 @@ from typing import Any
 
 from asyncua import ua
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
+from asyncua.ua.ua_binary import struct_from_binary
 
 from valve_emulator.device.accounts import authenticate
 from valve_emulator.device.roles import OPERATOR, Role
@@ -56,11 +57,28 @@ class UsersFile:
 
 
 _CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
+#: The Alarms & Conditions methods every session may call: acknowledging an alarm is the operator's job, and a
+#: client refreshes the conditions it shows when it subscribes (valve_emulator.opcua.alarms).
+ALARM_METHODS = frozenset(ua.NodeId(m) for m in (ua.ObjectIds.AcknowledgeableConditionType_Acknowledge,
+                                                 ua.ObjectIds.ConditionType_ConditionRefresh,
+                                                 ua.ObjectIds.ConditionType_ConditionRefresh2))
+
+
+def _calls_only(body: Any, methods: frozenset[ua.NodeId]) -> bool:
+    """Does the (still encoded) CallRequest ``body`` call only ``methods``? Decoded from a copy: the server
+    decodes the body itself afterwards."""
+    try:
+        params = struct_from_binary(ua.CallParameters, body.copy())
+    except Exception:   # not decodable: the server's own decoding will refuse it
+        return False
+    calls = params.MethodsToCall or []
+    return bool(calls) and all(c.MethodId in methods for c in calls)
 
 
 class RoleRuleset(PermissionRuleset):
     """Which OPC UA services a session may use: the ordinary client services for everyone with a session;
-    method calls (the station's instructor actions) only for instructors; no address-space editing at all."""
+    method calls (the station's instructor actions) only for instructors, except the alarm methods
+    (:data:`ALARM_METHODS`: every role that writes something, not a viewer); no address-space editing at all."""
 
     def __init__(self) -> None:
         self._allowed = frozenset(ua.NodeId(t) for t in USER_TYPES)
@@ -68,6 +86,9 @@ class RoleRuleset(PermissionRuleset):
     def check_validity(self, user: Any, action_type_id: ua.NodeId, body: Any) -> bool:
         if action_type_id not in self._allowed:
             return False
+        session = user is None or user.role is not UserRole.Anonymous
         if action_type_id == _CALL:
+            if _calls_only(body, ALARM_METHODS):   # acknowledging: any role that writes something
+                return session and (not isinstance(user, StationUser) or user.station_role.writes)
             return isinstance(user, StationUser) and user.station_role.instructs
-        return user is None or user.role is not UserRole.Anonymous
+        return session

@@ -15,7 +15,10 @@ manual``). A page can do nothing a Modbus client could not.
 Alarms: a PV high and low limit per loop -- ``plant.alarms`` of its config (by default 10 % and 90 % of the
 loop's PV range), or the scenario's
 ``limits`` -- raise an alarm that stays until acknowledged *and* back inside the limits (ISA-18.2's latched
-alarm states, simplified: unacknowledged active, acknowledged active, unacknowledged returned).
+alarm states, simplified: unacknowledged active, acknowledged active, unacknowledged returned). The device
+computes them (:attr:`Device.alarms <valve_emulator.device.alarms.PvAlarms>`), so the station, the ``alarms``
+register and OPC UA's alarm conditions show one state; the station adds the trainee's acknowledgements to the
+evaluation.
 """
 
 from __future__ import annotations
@@ -24,7 +27,6 @@ import logging
 import math
 import time
 from collections.abc import Mapping
-from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -36,7 +38,7 @@ from valve_emulator.device.snapshots import BacktrackRing, SnapshotError, Snapsh
 from valve_emulator.errors import UserError
 from valve_emulator.station.evaluation import Action, Evaluation, trend_png
 
-__all__ = ["Alarm", "Station", "StationError"]
+__all__ = ["Station", "StationError"]
 
 _log = logging.getLogger("valve_emulator.station")
 
@@ -47,13 +49,6 @@ class StationError(UserError):
     def __init__(self, message: str, *, field: str, status: int = 400) -> None:
         super().__init__(message)
         self.field, self.status = field, status
-
-
-class Alarm(StrEnum):
-    NORMAL = "normal"
-    UNACKED = "unacked"        # active, not acknowledged
-    ACKED = "acked"            # active, acknowledged
-    RETURNED = "returned"      # back inside the limits, not acknowledged yet
 
 
 def _number(body: Mapping[str, Any], key: str, *, lo: float = -math.inf, hi: float = math.inf) -> float:
@@ -94,9 +89,9 @@ class Station:
         scaling = device.scaling
         lo, hi = np.asarray(scaling.pv_lo, dtype=float), np.asarray(scaling.pv_hi, dtype=float)
         self.pv_lo, self.pv_hi = lo, hi
-        self.lim_lo, self.lim_hi = np.array([lp.plant.alarm_limits for lp in self.bank.loops], dtype=float).T
-        self.alarm = [Alarm.NORMAL] * n
-        self._alarmed: set[int] = set()   # loops whose alarm is not NORMAL
+        #: the device's PV alarms; their limit arrays are the station's (a scenario changes them in place)
+        self.alarms = device.alarms
+        self.lim_lo, self.lim_hi = self.alarms.lo, self.alarms.hi
         self.revealed: set[int] = set()   # unit ids whose MV the trainee sees
         self.evaluation = Evaluation(n=n, dt=self.bank.dt, lo=self.lim_lo, hi=self.lim_hi,
                                      units=list(device.units))
@@ -115,26 +110,10 @@ class Station:
         self._moving = np.abs(mv - self._prev_mv) > 1e-9
         self._prev_mv = mv
         self.evaluation.add_sample(t, sp, pv, op, mv)
-        out = (pv > self.lim_hi) | (pv < self.lim_lo)
-        for i in self._alarmed | set(np.flatnonzero(out).tolist()):
-            self._update_alarm(i, bool(out[i]))
         if self.backtrack is not None and self.backtrack.due(t):
             self.backtrack.add(device.snapshot(f"bt-{t:08.1f}"))
         if self.scenario is not None:
             self.scenario.on_tick(self, t)
-
-    def _set_alarm(self, i: int, a: Alarm) -> None:
-        self.alarm[i] = a
-        (self._alarmed.discard if a is Alarm.NORMAL else self._alarmed.add)(i)
-
-    def _update_alarm(self, i: int, out: bool) -> None:
-        a = self.alarm[i]
-        if out and a in (Alarm.NORMAL, Alarm.RETURNED):
-            self._set_alarm(i, Alarm.UNACKED)
-        elif not out and a is Alarm.ACKED:
-            self._set_alarm(i, Alarm.NORMAL)
-        elif not out and a is Alarm.UNACKED:
-            self._set_alarm(i, Alarm.RETURNED)
 
     # --- state ----------------------------------------------------------------------------------------
 
@@ -159,7 +138,7 @@ class Station:
                     "op": float(op[k]),
                     "mode": ("auto" if auto[k] else "manual") if ctl[k] else "external",
                     "pv_range": [float(self.pv_lo[i]), float(self.pv_hi[i])], "pv_units": self.pv_units[i],
-                    "limits": [float(self.lim_lo[i]), float(self.lim_hi[i])], "alarm": str(self.alarm[i]),
+                    "limits": [float(self.lim_lo[i]), float(self.lim_hi[i])], "alarm": str(self.alarms.state(i)),
                     "status": {"stuck": bool(stuck[k]), "moving": bool(self._moving[i]),
                                "saturated": bool(op[k] <= 0.0 or op[k] >= 100.0), "fault": bool(frozen[k])},
                     "mv_revealed": unit in self.revealed}
@@ -331,15 +310,13 @@ class Station:
         return {"unit": self.device.units[index], key: value}
 
     def acknowledge(self, unit: Any, *, who: str = "trainee") -> dict[str, Any]:
+        """Acknowledge ``unit``'s PV alarm (an active one stays active, a returned one becomes normal) and
+        record the action; returns the alarm state after it."""
         index = self.index_of(unit)
-        a = self.alarm[index]
-        if a is Alarm.UNACKED:
-            self._set_alarm(index, Alarm.ACKED)
-        elif a is Alarm.RETURNED:
-            self._set_alarm(index, Alarm.NORMAL)
+        self.alarms.acknowledge(index)
         self.evaluation.action(Action(who=who, unit=self.device.units[index], action="ack",
                                       sim_time=float(self.bank.sample_time)))
-        return {"unit": self.device.units[index], "alarm": str(self.alarm[index])}
+        return {"unit": self.device.units[index], "alarm": str(self.alarms.state(index))}
 
     # --- report -----------------------------------------------------------------------------------------
 

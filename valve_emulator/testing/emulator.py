@@ -18,7 +18,8 @@ depend on the machine's speed; a test that wants bits to repeat writes between a
 State, faults and history, all in engineering units:
 
 - :meth:`state` -- loop ``i``'s registers by name, decoded as a client would (``state(0)["pv"]``: PV in the
-  loop's units; ``["time"]``: simulated s); :attr:`time`, :attr:`ticks`.
+  loop's units; ``["time"]``: simulated s), and the status bits by name (``["seized"]``, ``["stuck"]``);
+  :attr:`time`, :attr:`ticks`.
 - :meth:`set` -- write registers by name with instructor rights, checked like a Modbus write.
 - :meth:`inject` -- the instructor station's malfunctions (stiction, seize, load, noise, sensor faults,
   comm; ramps in simulated seconds).
@@ -41,6 +42,7 @@ from valve_emulator.device.registers import (
     DataType,
     Register,
     RegisterAccessError,
+    Status,
     from_words,
     register,
 )
@@ -48,7 +50,7 @@ from valve_emulator.device.registers.codec import decode_value
 from valve_emulator.device.roles import INSTRUCTOR
 from valve_emulator.testing import CLOCKS
 
-__all__ = ["CLOCKS", "Emulator", "load_config"]
+__all__ = ["CLOCKS", "Emulator", "load_config", "status_bits"]
 #: Wall time :meth:`Emulator.advance` runs ticks back to back before it lets waiting requests in.
 _TURN = 0.002
 #: Ticks per call of ``Device.advance`` inside a turn.
@@ -153,7 +155,9 @@ class Emulator:
         ``pv``, ``sp``: PV units (the register's % of ``pv_range`` scaled back); ``op_pct``, ``mv_pct``,
         ``flow_pct``: %; ``op_ma``: mA; ``mode``: bool (auto); ``ti``: s (``inf``: no integral); ``status``,
         ``fault``, ``tick``, ``overruns``: integers; ``time`` and the ``*_f32`` registers: their float32 value.
-        The controller's registers are absent on a loop without an internal controller.
+        The controller's registers are absent on a loop without an internal controller. The bits of ``status``
+        are there by name as well, each a bool: ``stuck``, ``moving``, ``sat_low``, ``sat_high``,
+        ``controller``, ``auto``, ``seized`` (:func:`status_bits`).
         """
         return self._call(self._state, self._index(loop))
 
@@ -166,7 +170,8 @@ class Emulator:
     def inject(self, kind: str, loop: int = 0, /, *, ramp: float = 0.0, **params: Any) -> dict[str, Any]:
         """Inject the instructor station's malfunction ``kind`` into loop ``loop``:
         ``emu.inject("stiction", S=8.0, J=4.0, ramp=60.0)``, ``emu.inject("load", flow=10.0)``,
-        ``emu.inject("seize")``, ``emu.inject("clear")`` (kinds and parameters: the one list,
+        ``emu.inject("seize")``, ``emu.inject("comm", fault="no_response")``, ``emu.inject("clear")`` (kinds,
+        parameters and the comm faults' names as scenario files write them: the one list,
         :data:`valve_emulator.device.malfunctions.KINDS`; docs/scenarios.md). Ramps run in
         simulated seconds. ``MalfunctionError`` naming the field when the request is wrong."""
         body = {"unit": self.units[self._index(loop)], "kind": kind, **params, "ramp": ramp}
@@ -332,8 +337,9 @@ class Emulator:
         words = [int.from_bytes(device.image[start + 2 * a:start + 2 * a + 2], "big")
                  for a in range(device.stride // 2)]
         controller = bool(device.scaling.has_controller[index])
-        return {reg.name: _engineering(reg, words, device.scaling, index) for reg in REGISTERS
-                if controller or reg.access.value != "RW-controller"}
+        state = {reg.name: _engineering(reg, words, device.scaling, index) for reg in REGISTERS
+                 if controller or reg.access.value != "RW-controller"}
+        return {**state, **status_bits(state["status"])}
 
     def _set(self, index: int, values: Mapping[str, Any]) -> None:
         from valve_emulator.device.malfunctions import register_word
@@ -359,6 +365,12 @@ class Emulator:
         m = parse_malfunction(body, unit_index=self.device.unit_index, scaling=self.device.scaling)
         self.device.inject(m)
         return m.as_dict()
+
+
+def status_bits(status: int) -> dict[str, bool]:
+    """The ``status`` register's bits by name (``stuck``, ``moving``, ``sat_low``, ``sat_high``, ``controller``,
+    ``auto``, ``seized``: :class:`~valve_emulator.device.registers.Status`), as :meth:`Emulator.state` shows them."""
+    return {bit.name.lower(): bool(status & bit) for bit in Status}
 
 
 def _engineering(reg: Register, words: list[int], scaling: Any, index: int) -> Any:

@@ -52,6 +52,7 @@ Holding registers (function codes 3, 6, 16, 22, 23)::
     | load          | holding | 28      | 40029     | int16   | 100   | % flow                   | RW-instructor |
     | noise         | holding | 29      | 40030     | uint16  | 100   | % of pv_range            | RW-instructor |
     | fault         | holding | 30      | 40031     | uint16  | 1     | bits                     | RW-instructor |
+    | alarms        | holding | 31      | 40032     | uint16  | 1     | bits                     | R             |
     | comm_fault    | holding | 65280   | 465281    | uint16  | 1     | 0..5, see CommFault      | RW-instructor |
     | comm_delay_ms | holding | 65281   | 465282    | uint16  | 1     | ms added to every answer | RW-instructor |
     | step          | holding | 65296   | 465297    | uint16  | 1     | ticks to run (lockstep)  | RW            |
@@ -78,6 +79,8 @@ Encoding (``raw = physical × scale``, rounded to the nearest integer, clipped t
   ``sp`` writes must lie in 0..10000. The float32 copies carry engineering units.
 - ``ti`` = 0 means no integral action (P only; the bank gets ``ti = inf``). ``kc`` must be ≥ 0.001.
 - ``status`` bits: see :class:`Status`.
+- ``alarms`` bits: the loop's PV alarm (:class:`AlarmBit`: 1 PV above its high limit, 2 below its low
+  limit, 4 not acknowledged yet; :mod:`valve_emulator.device.alarms`).
 - Instructor faults: ``load`` adds a load disturbance of ``load/100`` % flow to the plant input
   (int16, -10000..10000); ``noise`` sets the standard deviation of the PV measurement noise in % of the
   loop's ``pv_range`` × 100 (0..10000; % of span, like ``pv``, so one number means the same on every
@@ -123,18 +126,18 @@ Many loops per unit id (blocks)
 -------------------------------
 A plant-size fleet (``fleet.loops_per_unit`` > 1, see ``docs/config.md``) puts several loops behind one
 unit id, each in its own *block* of :data:`BLOCK_STRIDE` = 32 registers: loop ``k`` of the unit answers
-at addresses ``32k .. 32k + 30`` with exactly the map above shifted by ``32k``, so loop 3's ``pv`` is
-holding register ``3·32 + 4 = 100``. Address ``32k + 31`` is a pad. A unit of ``B`` blocks spans
-``0 .. 32(B−1) + 30``: at most :data:`MAX_BLOCKS` = 2048 blocks (the 16-bit address space), so one port
+at addresses ``32k .. 32k + 31`` with exactly the map above shifted by ``32k``, so loop 3's ``pv`` is
+holding register ``3·32 + 4 = 100``. A unit of ``B`` blocks spans ``0 .. 32(B−1) + 31``: at most
+:data:`MAX_BLOCKS` = 2048 blocks (the 16-bit address space), so one port
 serves up to 247 × 2048 loops.
 
 - Holding reads (FC3 and the read half of FC23) may span blocks: one read of 125 registers polls about
-  four loops, which is how a SCADA driver polls many loops cheaply. Pads read 0.
+  four loops, which is how a SCADA driver polls many loops cheaply.
 - Input reads (FC4) stay inside one block (the input table has holes in every block anyway).
-- Writes stay inside one block; a write that reaches a pad or the next block is an illegal address.
+- Writes stay inside one block; a write that reaches the next block is an illegal address.
 - Coils and discrete inputs of loop ``k`` are at ``32k + address``; a bit request stays inside one block.
 
-With one block per unit (the default) nothing changes: the unit's map is 0..30 and address 31 is outside it.
+With one block per unit (the default) nothing changes: the unit's map is 0..31.
 """
 
 from valve_emulator.device.registers.codec import (

@@ -190,6 +190,7 @@ def loop_values(state: Any, index: int, *, tick: int, overruns: int, time: float
     values.update(
         auto=auto, load=float(_at(state, "load", index, optional=True)),
         noise=float(_at(state, "noise_std", index, optional=True)), fault=int(Fault.SEIZED) if seized else 0,
+        alarms=int(_at(state, "alarms", index, optional=True)),
         map_version=MAP_VERSION, tick=int(tick), overruns=int(overruns), time=float(time),
         status=status_word(stuck=bool(_at(state, "stuck", index)), sat_low=bool(_at(state, "sat_low", index)),
                            sat_high=bool(_at(state, "sat_high", index)), controller=controller, auto=auto,

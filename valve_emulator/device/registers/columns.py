@@ -36,8 +36,10 @@ def _column(state: Any, name: str, n: int, dtype: type, optional: bool = False) 
     return np.broadcast_to(np.asarray(value, dtype=dtype), (n,))
 
 
-def loop_columns(state: Any, n: int, *, tick: int, overruns: int, time: float) -> dict[str, np.ndarray]:
-    """:func:`~.codec.loop_values` of every loop: quantity -> array (n,)."""
+def loop_columns(state: Any, n: int, *, tick: int, overruns: int, time: float,
+                 alarms: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """:func:`~.codec.loop_values` of every loop: quantity -> array (n,). ``alarms``: every loop's alarm word
+    (:class:`~valve_emulator.device.alarms.PvAlarms`; the bank does not hold them), else ``state.alarms`` or 0."""
     values = {name: _column(state, name, n, float) for name in _MEASURED}
     controller = _column(state, "has_controller", n, bool)
     auto = _column(state, "auto", n, bool) & controller
@@ -52,7 +54,9 @@ def loop_columns(state: Any, n: int, *, tick: int, overruns: int, time: float) -
                   noise=_column(state, "noise_std", n, float, optional=True),
                   fault=np.where(seized, int(Fault.SEIZED), 0), map_version=np.full(n, MAP_VERSION),
                   tick=np.full(n, int(tick)), overruns=np.full(n, int(overruns)), time=np.full(n, float(time)),
-                  status=status, controller=controller)
+                  status=status, controller=controller,
+                  alarms=(_column(state, "alarms", n, int, optional=True) if alarms is None
+                          else np.asarray(alarms, dtype=np.int64)))
     return values
 
 
@@ -106,11 +110,11 @@ def _words(reg: Register, x: np.ndarray, scaling: Scaling) -> np.ndarray:
 
 
 def encode_rows(state: Any, scaling: Scaling, regmap: RegisterMap, *, tick: int, overruns: int,
-                time: float) -> np.ndarray:
+                time: float, alarms: np.ndarray | None = None) -> np.ndarray:
     """Every loop's served row of ``regmap``: int64 (n, ``regmap.row_words``), equal to :func:`~.codec.encode_loop`
     of each loop. Registers of the internal controller read 0 on a loop without one."""
     n = scaling.n
-    values = loop_columns(state, n, tick=tick, overruns=overruns, time=time)
+    values = loop_columns(state, n, tick=tick, overruns=overruns, time=time, alarms=alarms)
     rows = np.zeros((n, regmap.row_words), dtype=np.int64)
     for reg in regmap.registers:
         words = _words(reg, np.asarray(values[reg.quantity]), scaling)

@@ -38,6 +38,7 @@ __all__ = [
     "UNIT_REGISTERS",
     "WRITABLE_QUANTITIES",
     "Access",
+    "AlarmBit",
     "CommFault",
     "Conversion",
     "Fault",
@@ -52,7 +53,7 @@ __all__ = [
 
 #: TCP port `valve-emulator serve` listens on by default (clients default to it too).
 DEFAULT_PORT: Final = 5020
-MAP_VERSION: Final = 2   # 2: load, noise, fault registers; instructor rows mirrored as input
+MAP_VERSION: Final = 3   # 2: load, noise, fault registers; instructor rows mirrored as input; 3: alarms
 
 
 class Access(StrEnum):
@@ -98,6 +99,14 @@ class Status(IntFlag):
     CONTROLLER = 16     # the loop has an internal PI(D) controller
     AUTO = 32           # that controller is in auto
     SEIZED = 64         # instructor fault: the valve is seized (``fault`` bit 0), it does not move at all
+
+
+class AlarmBit(IntFlag):
+    """Bits of the ``alarms`` register: the loop's PV alarm (:mod:`valve_emulator.device.alarms`)."""
+
+    PV_HIGH = 1         # PV above its high alarm limit (plant.alarms)
+    PV_LOW = 2          # PV below its low alarm limit
+    UNACKED = 4         # not acknowledged since it became active (still set once PV is back: "returned")
 
 
 class CommFault(IntEnum):
@@ -217,6 +226,7 @@ REGISTERS: Final[tuple[Register, ...]] = (
              conversion=Conversion.PV_SPAN),
     Register("fault", 30, _U16, 1, "bits", RW_INSTRUCTOR, "fault", write=(0, 1),
              conversion=Conversion.BITS),
+    Register("alarms", 31, _U16, 1, "bits", R, "alarms", conversion=Conversion.BITS),   # see AlarmBit
 )
 #: First address of the unit registers and the largest ``comm_delay_ms``.
 COMM_BASE: Final = 0xFF00
@@ -238,7 +248,7 @@ CLOCK_REGISTERS: Final[tuple[Register, ...]] = (
 # Input registers mirror what a controller cannot write: the read-only rows and the instructor rows.
 INPUT_REGISTERS: Final = tuple(replace(r, table="input") for r in REGISTERS if r.access in (R, RW_INSTRUCTOR))
 N_REGISTERS: Final = REGISTERS[-1].address + REGISTERS[-1].width
-assert N_REGISTERS < BLOCK_STRIDE  # a block must hold the whole map (and a pad)
+assert N_REGISTERS <= BLOCK_STRIDE  # a block must hold the whole map
 #: Quantities of the internal controller: their registers read 0 on a loop without one.
 CONTROLLER_QUANTITIES: Final = frozenset(r.quantity for r in REGISTERS if r.access is RW_CONTROLLER)
 #: Quantities a client may change (through any register that shows them).
