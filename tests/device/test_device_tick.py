@@ -208,3 +208,21 @@ def test_advance_in_batches_equals_tick_by_tick_to_the_bit():
     for key in a:
         if isinstance(a[key], np.ndarray):
             assert np.array_equal(a[key], b[key], equal_nan=True), key
+
+
+def test_a_tick_callback_reads_each_ticks_image_while_an_advance_runs_them():
+    """Ticks run one by one encode the image once, after the last; a callback between them sees its own tick."""
+    from valve_emulator.config import server_from_mapping
+
+    cfg = server_from_mapping({"device": {"tick": 0.1},
+                               "loops": [{"unit": 1, "plant": {"num": [1.0], "den": [2.0, 1.0]}}]})
+    dev = Device.from_config(cfg, time_scale=0)
+    at = 2 * address_of("tick")
+    seen = []
+    dev.on_tick.append(lambda d: seen.append(int.from_bytes(d.image[at:at + 4], "big")))
+    dev.advance(5)
+    assert seen == [1, 2, 3, 4, 5]
+    dev.on_tick.clear()
+    dev.write(0, address_of("op_pct"), [2500])   # a pending write: the first tick runs alone, then a batch
+    dev.advance(4)
+    assert int.from_bytes(dev.image[at:at + 4], "big") == 9 and _word(dev, 0, "op_pct") == 2500

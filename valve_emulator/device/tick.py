@@ -91,8 +91,8 @@ TICK_TASK_NAME = "valve-emulator-tick"
 #: Loop-ticks (ticks × loops) :meth:`Device.advance` runs in one compiled call when nothing else acts in them
 #: (the call's output arrays take about 50 bytes per loop-tick).
 QUIET_RUN = 1 << 16
-#: Fewer ticks than this run one by one: a compiled run's set-up costs more than a few single steps.
-QUIET_MIN = 8
+#: Fewer ticks than this run one by one: a compiled run's set-up costs about as much as two single steps.
+QUIET_MIN = 3
 _ALARMS = address_of("alarms")
 _log = logging.getLogger(__name__)
 
@@ -269,8 +269,9 @@ class Device:
 
     def _write(self, regmap: RegisterMap, index: int, address: int, values: Sequence[int],
                role: Any) -> list[tuple[str, float]]:
-        changes = decode_write(address, values, self.scaling, index, role=role, auto=self.effective_auto(index),
-                               regmap=regmap)
+        # the mode matters only to a loop with a controller: asking the bank costs more than the rest of a check
+        auto = bool(self.scaling.has_controller[index]) and self.effective_auto(index)
+        changes = decode_write(address, values, self.scaling, index, role=role, auto=auto, regmap=regmap)
         for quantity, value in changes:
             self._pending.pop((index, quantity), None)  # re-insert: keep arrival order for the tick
             self._pending[(index, quantity)] = value
@@ -341,15 +342,21 @@ class Device:
                 words = encode_value(reg, change.word, self.scaling, change.index)
                 self.served[k:k + 2 * reg.width] = np.asarray(words, dtype=">u2").tobytes()
 
-    def tick(self) -> None:
-        """One tick now: apply pending writes, step the bank, refresh the image, wake waiters."""
+    def tick(self, *, refresh: bool = True) -> None:
+        """One tick now: apply pending writes, step the bank, refresh the image, wake waiters.
+
+        ``refresh=False`` leaves the image as it was, for a caller that runs another tick at once and refreshes
+        after it (:meth:`advance`): the image is a function of the bank's state and the counters only, so one
+        refresh after the last tick shows what one after every tick would.
+        """
         start = self._clock()
         self._apply_pending()
         if self.malfunctions is not None:
             self.malfunctions.apply(self.bank.t)
         self.bank.step()
         self.ticks += 1
-        self._refresh()
+        if refresh or self.on_tick:   # a callback may read the image
+            self._refresh()
         for callback in self.on_tick:
             callback(self)
         self.tick_time.add(self._clock() - start)
@@ -369,17 +376,22 @@ class Device:
         Ticks that nothing can tell apart from the bank's own stepping -- no write pending, no ramp running,
         no :attr:`on_tick` callback -- run as one compiled ``bank.run`` (from :data:`QUIET_MIN` ticks, at most
         :data:`QUIET_RUN` loop-ticks at a time), which the loop bank guarantees equal to as many ``bank.step()``
-        calls, bit for bit; the image is then encoded once, after the last of them.
+        calls, bit for bit; the image is then encoded once, after the last of them. Ticks run one by one encode
+        the image once too, after the last (unless an :attr:`on_tick` callback, which may read it, runs between).
         """
         if self.time_scale != 0 and not self._frozen:
             raise RuntimeError(f"Device.advance needs frozen time (time_scale=0 or freeze()), "
                                f"not time_scale={self.time_scale}")
         end = self.ticks + int(k)
-        while self.ticks < end:
-            if end - self.ticks >= QUIET_MIN and self._quiet():
-                self._run_quiet(min(end - self.ticks, max(QUIET_MIN, QUIET_RUN // self.bank.n)))
-            else:
-                self.tick()
+        try:
+            while self.ticks < end:
+                if end - self.ticks >= QUIET_MIN and self._quiet():
+                    self._run_quiet(min(end - self.ticks, max(QUIET_MIN, QUIET_RUN // self.bank.n)))
+                else:
+                    self.tick(refresh=self.ticks + 1 == end)
+        except Exception:
+            self._refresh()   # the image shows the last tick that ran
+            raise
         return self.ticks
 
     def _quiet(self) -> bool:
