@@ -1,8 +1,9 @@
 """Level loops diagnosed without a model: the identified plant is never the controller run backwards.
 
 Each loop is drawn from the independent simulator (an integrating plant with or without a lag, a dead time, a
-SIMC PI acting one sample late, a sticky valve with S and J drawn, a wandering load, PV noise). About 6 s a
-diagnosis: 40 draws take about four minutes, so the test is marked slow.
+SIMC PI acting one sample late, a sticky valve with S and J drawn, a wandering load, PV noise). About 4–6 s a
+diagnosis (a self-regulating first answer is searched again with the plant held integrating): 40 draws take
+about four minutes, so the tests are marked slow.
 """
 
 import numpy as np
@@ -43,3 +44,19 @@ def test_the_identification_says_which_constraints_it_used(diagnosed):
         assert ident["gain_sign"] == int(np.sign(truth["plant"]["gain"]))
         assert any("controller" in c for c in ident["constraints"])
 
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured 27 of 40 (19 before the integrating plant was searched for on "
+                   "prefiltered PV): the held search still finds a disturbance, a flow limit or a characteristic "
+                   "instead of the valve on some loops, and the search on PV keeps a half-cycle dead time on others")
+def test_stiction_is_found_in_nine_loops_of_ten(diagnosed):
+    found = sum(d.answer == "stiction" for _, d in diagnosed)
+    assert found >= 0.9 * DRAWS, f"stiction found in {found} of {DRAWS}"
+
+
+@pytest.mark.slow
+def test_stiction_is_found_in_most_loops(diagnosed):
+    """A floor under the rate measured (27 of 40), so that a change that loses level loops again is seen."""
+    found = sum(d.answer == "stiction" for _, d in diagnosed)
+    assert found >= 24, f"stiction found in {found} of {DRAWS}"

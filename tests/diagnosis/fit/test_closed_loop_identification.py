@@ -53,6 +53,25 @@ def test_the_controllers_action_is_read_from_its_law(index):
     assert (found.kc > 0) == (truth["plant"]["gain"] > 0)
 
 
+@pytest.mark.parametrize("index", range(4))
+def test_the_controllers_integral_time_is_read_from_its_law(index):
+    """Ti in samples, within 2 % of the independent simulator's PI (sampled every second)."""
+    rec, truth, _ = draw("level_sticky", np.random.default_rng([7, index]))
+    found = controller_action(rec.op, rec.pv, rec.sp)
+    assert found.ti * rec.dt == pytest.approx(truth["controller"]["ti"], rel=0.02)
+
+
+def test_an_integrating_plants_dead_time_is_bounded_by_the_integral_time_only_when_the_law_is_read():
+    rec, truth, _ = draw("level_sticky", np.random.default_rng([7, 1]))
+    ident = identification(rec.op, rec.pv, rec.sp, dt=rec.dt)
+    assert ident.max_delay == pytest.approx(truth["controller"]["ti"], rel=0.02)
+    assert ident.delay_bound(True) == ident.max_delay and ident.delay_bound(False) is None
+    assert any("integral time" in c for c in ident.constraints)
+    noisy = rec.op + np.random.default_rng(0).normal(0.0, 2.0, rec.op.size)   # OP no PI's output any more
+    loose = identification(noisy, rec.pv, rec.sp, dt=rec.dt)
+    assert loose.max_delay is None and loose.delay_bound(True) is None
+
+
 def test_declared_loop_type_and_action_decide_the_constraints():
     rec, truth, _ = draw("level_sticky", np.random.default_rng([7, 0]))
     flipped = "direct" if truth["controller"]["action"] == "reverse" else "reverse"

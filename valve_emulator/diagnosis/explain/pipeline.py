@@ -24,7 +24,10 @@ Which cost: PV itself, or a high-pass prefiltered PV for an integrating plant (s
 :func:`~valve_emulator.diagnosis.fit.linear.highpass`): the prefilter makes an integrator's cost smooth in the
 valve parameters, but would only throw away a self-regulating plant's slow response. With a nominal model
 its plant decides; without one the search runs on PV (its pole set spans both families) and, if the result
-integrates, once more prefiltered, whose result is kept.
+integrates, once more prefiltered, whose result is kept. If the result is then self-regulating and the
+controller's law was read exactly, the loop is searched once more on prefiltered PV with the plant held
+integrating, kept when it predicts held-out PV better through the prefilter (:func:`_integrating_or_not`): on PV
+a wandering load hides an integrator.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, Ran
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
 from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.closed_loop import Declared, identification
-from valve_emulator.diagnosis.fit.crossval import cross_validated_fit
+from valve_emulator.diagnosis.fit.crossval import cross_validated_fit, with_cv
 from valve_emulator.diagnosis.fit.data import (
     HELD_OUT,
     Problem,
@@ -128,9 +131,18 @@ def _prepared(recording: Recording, nom: Nominal | None, lib: dict, say, *, pref
                       stops=stops)
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
-        constraints = identification(problem.op, problem.pv, recording.sp, declared)
+        constraints = identification(problem.op, problem.pv, recording.sp, declared, dt=problem.dt)
+        problem = _bounded_delays(problem, constraints.delay_bound(True) if constraints.integrating else None)
         nom = identify(problem, constraints=constraints)
     return with_burn_in(problem, library_burn_in(problem, nom, lib)), nom
+
+
+def _bounded_delays(problem: Problem, bound: float | None) -> Problem:
+    """``problem`` with its dead-time grid cut below ``bound`` (s; None: as it is), at least no dead time."""
+    if bound is None:
+        return problem
+    keep = problem.delays[problem.delays * problem.dt < bound]
+    return replace(problem, delays=keep if keep.size else problem.delays[:1])
 
 
 def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
@@ -150,7 +162,8 @@ def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, p
 def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, validation: str,
             stops: tuple[float, float], declared: Declared | None = None) -> Searched:
     """The search in the right cost domain (see the module docstring): a nominal integrating plant's on
-    prefiltered PV; without a model on PV, and once more prefiltered when the result integrates."""
+    prefiltered PV; without a model on PV, once more prefiltered when the result integrates, and once more
+    prefiltered with the plant held integrating when it does not and the controller's law was read."""
     dt = recording.dt if len(recording) >= 2 else 1.0
     if nom is not None:
         st = nom.structure
@@ -162,10 +175,40 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
     st = out.model.fit.structure
     if st.integrating:
         say("the plant integrates: searching again on prefiltered PV")
-        lam = prefilter_for(st.delay + sum(st.taus), dt)
-        out = _search_once(recording, None, lib, say, prefilter=lam, validation=validation, stops=stops,
-                           declared=declared)
-    return out
+        out = _search_once(recording, None, lib, say, prefilter=prefilter_for(st.delay + sum(st.taus), dt),
+                           validation=validation, stops=stops, declared=declared)
+    ident = replace(out.nominal.identification, integrating=True)
+    if (out.model.fit.structure.integrating or (declared is not None and declared.plant_integrates is not None)
+            or ident.max_delay is None):
+        return out
+    say("searching again on prefiltered PV, the plant held integrating")
+    ipdt = identify(_bounded_delays(out.problem, ident.delay_bound(True)), constraints=ident).structure
+    held = _search_once(recording, None, lib, say, prefilter=prefilter_for(ipdt.delay, dt),
+                        validation=validation, stops=stops,
+                        declared=replace(declared or Declared(), integrating=True))
+    return _integrating_or_not(out, held)
+
+
+def _integrating_or_not(free: Searched, held: Searched) -> Searched:
+    """The search so far (``free``, whose plant came out self-regulating) or the one on prefiltered PV that held
+    the plant integrating (``held``): the held one when its held-out fit, cross-validated through the prefilter,
+    beats the free one's on the same blocks in the same domain by :data:`DELTA_FIT` points and its gain is not
+    held at zero by the gain's sign.
+
+    Why: on PV an integrator's free run drifts with every wandering load, so the search there prefers a slow
+    first-order plant or a half-cycle dead time, and a sticky level valve goes unseen; through the prefilter
+    the load is forgotten, and the two families are compared on what each predicts of the loop's cycles.
+    """
+    ours = with_cv(held.fitter.scorer, held.model).heldout
+    theirs = cross_validated_fit(held.fitter.scorer, free.model)
+    if not ours >= theirs + DELTA_FIT or held.model.fit.gain == 0.0:
+        return free
+    ident = held.nominal.identification
+    said = tuple(c for c in ident.constraints if "plant (declared)" not in c) + (
+        f"integrating plant: through the high-pass prefilter, the search holding an integrator predicts held-out "
+        f"PV better than the search with the family free ({ours:.1f} % against {theirs:.1f} %)",)
+    nominal = replace(held.nominal, identification=replace(ident, integrating=None, constraints=said))
+    return replace(held, nominal=nominal)
 
 
 def _before(s: Searched, base: Model) -> tuple[np.ndarray, float, int]:

@@ -196,7 +196,7 @@ class Explanation:
         the data moved.
     identification : without a model, how the linear part was identified: ``constraints`` (one sentence each:
         causality, the gain's sign and where it came from, the plant's family), ``gain_sign``, ``integrating``
-        (as declared, or None); None with a model.
+        (as declared, or None), ``max_delay`` (an integrating plant's dead-time bound, or None); None with a model.
     """
 
     source: str

@@ -15,7 +15,14 @@ consistent only when the model cannot represent that inverse). Three things rule
   :math:`e = \mathrm{SP} - \mathrm{PV}` (SP as recorded, or constant) is fitted by least squares for
   :math:`s \in \{0, 1\}`, and its proportional gain's sign is the action when the law explains ΔOP
   exactly (:data:`MIN_R2`) and the gain is clearly nonzero (:data:`MIN_T`);
-* **no pole faster than a sample**: the identified time constants are at least Δt.
+* **no pole faster than a sample**: the identified time constants are at least Δt;
+* **an integrating plant's dead time shorter than the controller's integral time**: a PI
+  :math:`K_c(1 + 1/(T_i s))` on :math:`K e^{-\theta s}/s` has the loop phase
+  :math:`-180° + \arctan(\omega T_i) - \omega\theta\,(180°/\pi)`, below −180° at every frequency when
+  :math:`T_i \le \theta` (:math:`\arctan x < x`), so no gain keeps that loop stable: a loop recorded under such
+  a PI, which stays bounded, has :math:`\theta < T_i`. When the PI is read exactly (above), the dead time an
+  integrating plant is searched over stops at :math:`T_i` (:attr:`Identification.max_delay`); on a sticky level
+  loop the unbounded search locks onto a dead time of half the limit cycle's period, which this excludes.
 
 The plant's family (integrating or self-regulating) is declared (a loop type: ``level`` integrates; ``flow``,
 ``pressure``, ``temperature`` do not), or chosen from the data by BIC (:func:`~valve_emulator.diagnosis.fit.
@@ -24,7 +31,7 @@ nominal.identify`). :class:`Identification` records which constraints were used;
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -82,14 +89,15 @@ class Declared:
 @dataclass(frozen=True)
 class Action:
     """The controller's action read from the data: ``action`` (None when the PI law does not explain OP),
-    the proportional gain ``kc`` (OP per PV unit, positive for reverse action), its t statistic, R² and the
-    sample shift ``lag`` of the better fit."""
+    the proportional gain ``kc`` (OP per PV unit, positive for reverse action), its t statistic, R², the
+    sample shift ``lag`` of the better fit and the integral time ``ti`` in samples (inf: no integral action)."""
 
     action: str | None
     kc: float
     t: float
     r2: float
     lag: int
+    ti: float = float("inf")
 
 
 def controller_action(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None) -> Action:
@@ -114,9 +122,11 @@ def controller_action(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None) -> 
         cov = sigma2 * np.linalg.pinv(X.T @ X)
         t = float(coef[0] / np.sqrt(max(cov[0, 0], 1e-300)))
         if r2 > best.r2:
-            best = Action(None, float(coef[0]), t, r2, lag)
+            # ΔOP = Kc Δe + (Kc/Ti) e per sample: Ti = Kc / coef[1] samples, when both have one sign.
+            ti = float(coef[0] / coef[1]) if coef[0] * coef[1] > 0.0 else float("inf")
+            best = Action(None, float(coef[0]), t, r2, lag, ti)
     if best.r2 >= MIN_R2 and abs(best.t) >= MIN_T:
-        return Action("reverse" if best.kc > 0 else "direct", best.kc, best.t, best.r2, best.lag)
+        return replace(best, action="reverse" if best.kc > 0 else "direct")
     return best
 
 
@@ -129,27 +139,40 @@ class Identification:
     sign : the process gain's sign (+1, −1) implied by the controller's action, 0 when unknown.
     integrating : the plant's family as declared (None: chosen from the data).
     constraints : one sentence per constraint used, for the answer.
+    max_delay : the longest dead time (s) an integrating plant may have, the controller's integral time read
+        from its law (None: not read).
     """
 
     sign: int = 0
     integrating: bool | None = None
     constraints: tuple[str, ...] = ()
+    max_delay: float | None = None
 
     def as_dict(self) -> dict:
         return {"constraints": list(self.constraints), "gain_sign": self.sign,
-                "integrating": self.integrating}
+                "integrating": self.integrating, "max_delay": self.max_delay}
+
+    def delay_bound(self, integrating: bool) -> float | None:
+        """The longest dead time (s) a plant of this family may have (None: no bound)."""
+        return self.max_delay if integrating else None
 
 
-def identification(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, declared: Declared | None = None
-                   ) -> Identification:
-    """The constraints for identifying the plant of this closed loop (see the module docstring)."""
+def identification(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, declared: Declared | None = None,
+                   dt: float = 1.0) -> Identification:
+    """The constraints for identifying the plant of this closed loop, sampled every ``dt`` s (see the module
+    docstring)."""
     declared = declared or Declared()
     said = ["causal: the plant answers OP one sample later at the earliest",
             "time constants of at least one sample"]
+    found = controller_action(op, pv, sp)
+    max_delay = None
+    if found.action is not None and np.isfinite(found.ti) and found.ti > 0.0:
+        max_delay = found.ti * dt
+        said.append(f"an integrating plant's dead time below the controller's integral time ({max_delay:.3g} s, "
+                    "read from its law): no PI keeps a loop stable otherwise")
     if declared.action is not None:
         action, how = declared.action, "declared"
     else:
-        found = controller_action(op, pv, sp)
         action = found.action
         how = (f"read from the controller's law (PI fitted to OP{' and SP' if sp is not None else ''}: "
                f"Kc {found.kc:.3g}, R² {found.r2:.2f}, OP at k from PV at k−{found.lag})")
@@ -164,4 +187,4 @@ def identification(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, declar
         said.append(f"{'integrating' if integrating else 'self-regulating'} plant ({src})")
     else:
         said.append("integrating or self-regulating plant chosen from the data (BIC)")
-    return Identification(sign=sign, integrating=integrating, constraints=tuple(said))
+    return Identification(sign=sign, integrating=integrating, constraints=tuple(said), max_delay=max_delay)
