@@ -21,8 +21,8 @@ from valve_emulator.config import loop_from_mapping
 from valve_emulator.diagnosis.candidates import ChainContext, get
 from valve_emulator.diagnosis.explain.onset import BLOCKS, LateOnset, Suspected, post_onset_split, suspect_onset
 from valve_emulator.diagnosis.fit.data import HELD_OUT, prepare
-from valve_emulator.recordings import Recording
 from valve_emulator.diagnosis.report.schema import schema
+from valve_emulator.recordings import Recording
 
 T = 600
 OP = 50.0 + 6.0 * np.sin(np.linspace(0.0, 12 * np.pi, T))

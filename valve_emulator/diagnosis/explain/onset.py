@@ -7,31 +7,47 @@ candidate that :attr:`~valve_emulator.diagnosis.candidates.base.ChainCandidate.m
 also fits it as :class:`LateOnset`: the slot passes its signal
 through before an onset time ``t0`` and the candidate acts from ``t0`` on, its state started there.
 
+Locating the onset before the fit (:func:`suspect_onset`)
+--------------------------------------------------------
+A valve that starts to stick makes a healthy loop cycle from then on: the energy of the control error
+``SP − PV`` steps up. The record is cut into :data:`BLOCKS` blocks, and the least-squares step in the mean
+of their log energies is the change point; it is *suspected* when the energy rises by :data:`MIN_RISE` (in
+log) and the step explains :data:`MIN_SHARE` of the variance (without a set point, PV's fast part stands in).
+Where one is suspected, with a model (``"split"`` validation) the held-out part is the last 30 % of the part
+after it (:func:`post_onset_split`): held out from the record's end, a valve that starts to stick after 70 %
+of the record would act only where it is never fitted.
+
 Fitting the onset (:func:`onset_option`)
 ---------------------------------------
-It is fitted only where the residual says the physics may start late: the whole-record option's
-improvement lies mostly in the second half of the fit part (:data:`EARLY_SHARE`). Then:
+With a suspected onset the fit is tried with and without a model. Without one it is tried only with a model
+and where the residual says the physics may start late: the whole-record option's improvement lies mostly in
+the second half of the fit part (:data:`EARLY_SHARE`). Then:
 
-1. **coarse**: the candidate's coarse grid at each onset of :data:`ONSETS` fractions of the fit part, scored
-   at the poles of the model being extended and of the candidate's own whole-record option (the onset and
-   the band trade off: a coarse grid over both, not a line search from the whole-record fit);
+1. **coarse**: the candidate's coarse grid at each onset :data:`NEAR` the suspected one (else at each of
+   :data:`ONSETS` fractions of the fit part), scored at the poles of the model being extended and of the
+   candidate's own whole-record option (the onset and the band trade off: a coarse grid over both, not a
+   line search from the whole-record fit);
 2. **scan**: the candidate's global scan (fine in S for stiction) at the best onset;
 3. **refine**: the fitter's refinement of the candidate's parameters, its fine grid also moving the onset
    by :attr:`LateOnset.onset_step` of the record (twice), the
    threshold parameters centred. A late band below :data:`MIN_BAND` of the OP span is no onset (see
    :func:`_material`).
 
-Only with a nominal model: without one the linear part is identified from the same record, and a band acting
-late trades off against it (on the shared plant windows it named a healthy level valve sticky, where the
-whole-record search did not).
+An onset before the fit part (which starts after every candidate's burn-in, up to a third of the record)
+cannot be told by the fit from one a little earlier: there the located one stands, give or take the
+refinement's steps, and the band is fitted on the part where it acts.
+
+Why only with a model where no onset is suspected: without one the linear part is identified from the same
+record, and a band acting late at any of the coarse onsets trades off against it (on the shared plant windows
+it named a healthy level valve sticky, where the whole-record search did not).
 
 The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option in place of the
-whole-record one when it lowers BIC by twice the search's own threshold: the onset is a change point, the
-best of many positions. (Measured on
-the independent ``late_onset`` loops: before a valve starts to stick the loop's OP moves little, and a sticky
-valve fits that part about as well as a healthy one, so BIC often cannot ask for the onset; preferring the
-late option whenever the whole-record one is not better by the threshold located wrong onsets as often as
-right ones.)
+whole-record one: where an onset was suspected, unless the whole-record option is significant against it
+(measured on the independent ``late_onset`` loops: before a valve starts to stick the loop's OP moves little,
+and a sticky valve fits that part about as well as a healthy one, so BIC alone rarely asks for the onset);
+else when it lowers BIC by twice the search's own threshold (the onset is then a change point, the best of
+many positions; preferring it whenever the whole-record one was not better by the threshold located wrong
+onsets as often as right ones).
 
 What the answer says (:func:`acting_part`): the onset, and the fits (%) of the model without the finding and of
 the final model on the samples from the onset on, so that the finding is judged where it acts and is not
@@ -262,8 +278,9 @@ def post_onset_split(problem: Problem, suspected: Suspected | None) -> Problem:
 
 
 def _onsets(problem: Problem, suspected: Suspected | None) -> np.ndarray:
-    """Onsets (s) of the coarse stage: :data:`ONSETS` of the fit part, or :data:`NEAR` a located change point
-    (those within the fit part)."""
+    """Onsets (s) of the coarse stage: :data:`ONSETS` of the fit part, or :data:`NEAR` a located change point,
+    the nearest first (an onset before the fit part scores about alike wherever it is: the first best stands),
+    up to the last tenth of the fit part."""
     w0, w1 = problem.train
     if suspected is None:
         return (w0 + np.asarray(ONSETS) * (w1 - w0)) * problem.dt
