@@ -19,7 +19,14 @@ from valve_emulator.benchmark.independent import (
 )
 from valve_emulator.config import loop_from_mapping
 from valve_emulator.diagnosis.candidates import ChainContext, get
-from valve_emulator.diagnosis.explain.onset import BLOCKS, LateOnset, Suspected, post_onset_split, suspect_onset
+from valve_emulator.diagnosis.explain.onset import (
+    BLOCKS,
+    LateOnset,
+    Onset,
+    Suspected,
+    post_onset_split,
+    suspect_onset,
+)
 from valve_emulator.diagnosis.fit.data import HELD_OUT, prepare
 from valve_emulator.diagnosis.report.schema import schema
 from valve_emulator.recordings import Recording
@@ -66,6 +73,13 @@ def test_the_refinement_moves_the_onset_and_keeps_its_centre():
     assert np.any(np.all(fine == best, axis=1))
     onsets = np.unique(fine[:, 3])
     assert onsets.min() < 120.0 < onsets.max() and np.all(onsets >= 0.0)
+
+
+def test_an_onset_reads_as_its_time_and_the_fits_where_the_finding_acts():
+    onset = Onset(onset_s=1541.23, fit_before=12.345, fit_after=56.78)
+    assert onset.to_json() == {"onset_s": 1541.2, "fit_before": 12.35, "fit_after": 56.78}
+    line = onset.sentence()
+    assert "t ≈ 1541 s" in line and "12.3 % without" in line and "56.8 % with" in line
 
 
 def _loop_error(n: int, onset: int | None, *, first_move: int = 150, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

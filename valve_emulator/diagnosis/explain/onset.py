@@ -180,6 +180,11 @@ class Onset:
     fit_before: float
     fit_after: float
 
+    def sentence(self) -> str:
+        """One line for the report: when, and the fits where the finding acts."""
+        return (f"from t ≈ {self.onset_s:.4g} s on; free-run fit from then on {self.fit_before:.1f} % without the "
+                f"finding, {self.fit_after:.1f} % with it")
+
     def to_json(self) -> dict:
         return {"onset_s": round(self.onset_s, 1), "fit_before": round(self.fit_before, 2),
                 "fit_after": round(self.fit_after, 2)}
