@@ -132,13 +132,24 @@ def _problem(validation: str):
     return prepare(rec, validation=validation)
 
 
+def _suspected(sample: int) -> Suspected:
+    return Suspected(sample=sample, rise=2.0, share=0.5, signal="SP − PV")
+
+
 def test_after_a_late_onset_the_held_out_part_is_the_tail_of_the_part_after_it():
+    """The usual split holds out the last 30 % (from sample 2100 of 3000): an onset after 60 % of the record
+    would leave less than a tenth of it to fit."""
     problem = _problem("split")
-    late = post_onset_split(problem, Suspected(sample=2400, rise=2.0, share=0.5, signal="SP − PV"))
-    assert late.train == (problem.train[0], 2400 + round((1 - HELD_OUT) * 600))
-    assert late.test == (late.train[1], problem.T)
-    early = post_onset_split(problem, Suspected(sample=0, rise=2.0, share=0.5, signal="SP − PV"))
-    assert early.train == problem.train   # an onset at the start: the usual last 30 %
+    for onset in (1900, 2400):
+        late = post_onset_split(problem, _suspected(onset))
+        assert late.train == (problem.train[0], onset + round((1 - HELD_OUT) * (3000 - onset)))
+        assert late.test == (late.train[1], problem.T)
+
+
+def test_an_onset_that_leaves_a_tenth_of_the_record_to_fit_keeps_the_usual_split():
+    problem = _problem("split")
+    for onset in (0, 1500, 1800):
+        assert post_onset_split(problem, _suspected(onset)) is problem
     assert post_onset_split(problem, None) is problem
 
 

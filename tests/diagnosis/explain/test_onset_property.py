@@ -8,13 +8,13 @@ an ideal valve) and as plant data (no model, OP declared as % travel).
 
 The property asked for: the onset within 10 % of the record, S and J within 25 % and no finding besides the
 valve's own (its friction, and an actuator lag where the loop has one) in at least 9 draws of 10. It is not met:
-measured 0/20 with a model and 5/20 without (strict xfails below). What holds is checked at the rates measured
-(seed 32): the change point locates the onset before any fit in 17 draws of 20; the answer is stiction in 13/20
-with a model and 15/20 without; an onset it reports is within a tenth of the record in 5 of 6 with a model and 8
-of 8 without; stiction from an onset within a tenth, with S within 25 %, in 4/20 and 7/20. What stands in the
+measured 1/20 with a model and 5/20 without (strict xfails below). What holds is checked at the rates measured
+(seed 32): the change point locates the onset before any fit in 17 draws of 20; the answer is stiction in 14/20
+with a model and 15/20 without; an onset it reports is within a tenth of the record in 6 of 7 with a model and 8
+of 8 without; stiction from an onset within a tenth, with S within 25 %, in 5/20 and 7/20. What stands in the
 way, measured: with a model the linear part re-fitted around the nominal chain leans on the controller's
 correlation with a wandering load (its poles move several-fold faster than the nominal ones, and the valve
-then lowers the fit: 8 no-stiction answers or extra dead-time, disturbance and characteristic findings); J is
+then lowers the fit: 6 no-stiction answers, extra dead-time, disturbance and characteristic findings); J is
 underestimated where an actuator lag smooths the slip, and Karnopp friction's J is not Choudhury's J.
 
 Time: about 4 minutes for the 20 draws, both ways (about 3 s a diagnosis on an idle core; 15–30 s on a machine
@@ -96,9 +96,9 @@ def test_the_onset_is_located_before_any_fit_within_a_tenth_of_the_record():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 5), ("plant", 8)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 6), ("plant", 8)])
 def test_an_onset_the_answer_reports_is_within_a_tenth_of_the_record(mode, least):
-    """Measured: 5 of 6 reported onsets with a model (the miss is the change point's: 900 s for 1679 s), 8 of 8
+    """Measured: 6 of 7 reported onsets with a model (the miss is the change point's: 900 s for 1679 s), 8 of 8
     without."""
     reported = [o.onset_err for o in (_outcome(i, mode) for i in range(DRAWS)) if o.onset_err is not None]
     assert sum(e <= ONSET_TOL for e in reported) >= least
@@ -106,7 +106,7 @@ def test_an_onset_the_answer_reports_is_within_a_tenth_of_the_record(mode, least
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 4), ("plant", 7)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 5), ("plant", 7)])
 def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode, least):
     """The part of the property the search reaches: the answer is stiction, from an onset within a tenth of the
     record, with S within 25 % (J and the other findings are left to the strict xfail below)."""
@@ -116,7 +116,7 @@ def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured 0/20 with a model and 5/20 without (see the module docstring)")
+@pytest.mark.xfail(strict=True, reason="measured 1/20 with a model and 5/20 without (see the module docstring)")
 @pytest.mark.parametrize("mode", ["model", "plant"])
 def test_onset_and_size_within_tolerance_and_nothing_else_in_nine_draws_of_ten(mode):
     assert _count(mode, lambda o: o.holds) >= 0.9 * DRAWS
