@@ -19,8 +19,17 @@ from valve_emulator.benchmark.independent import (
 )
 from valve_emulator.config import loop_from_mapping
 from valve_emulator.diagnosis.candidates import ChainContext, get
-from valve_emulator.diagnosis.explain.onset import LateOnset
+from valve_emulator.diagnosis.explain.onset import (
+    BLOCKS,
+    LateOnset,
+    Onset,
+    Suspected,
+    post_onset_split,
+    suspect_onset,
+)
+from valve_emulator.diagnosis.fit.data import HELD_OUT, prepare
 from valve_emulator.diagnosis.report.schema import schema
+from valve_emulator.recordings import Recording
 
 T = 600
 OP = 50.0 + 6.0 * np.sin(np.linspace(0.0, 12 * np.pi, T))
@@ -64,6 +73,89 @@ def test_the_refinement_moves_the_onset_and_keeps_its_centre():
     assert np.any(np.all(fine == best, axis=1))
     onsets = np.unique(fine[:, 3])
     assert onsets.min() < 120.0 < onsets.max() and np.all(onsets >= 0.0)
+
+
+def test_an_onset_reads_as_its_time_and_the_fits_where_the_finding_acts():
+    onset = Onset(onset_s=1541.23, fit_before=12.345, fit_after=56.78)
+    assert onset.to_json() == {"onset_s": 1541.2, "fit_before": 12.35, "fit_after": 56.78}
+    line = onset.sentence()
+    assert "t ≈ 1541 s" in line and "12.3 % without" in line and "56.8 % with" in line
+
+
+def _loop_error(n: int, onset: int | None, *, first_move: int = 150, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(SP, PV) of a loop: set-point steps from ``first_move`` on, PV following them with a small noise and a
+    slow load, and from ``onset`` on a stick-slip cycle (a square wave of period 80 samples, amplitude 1)."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(n)
+    sp = 50.0 + np.where(k >= first_move, 2.0 * ((k - first_move) // 400 % 2 * 2 - 1), 0.0)
+    load = np.convolve(rng.normal(0.0, 0.05, n), np.ones(50) / 50, mode="same")
+    pv = sp + 0.05 * rng.normal(size=n) + load
+    if onset is not None:
+        pv = pv + np.where(k >= onset, np.sign(np.sin(2 * np.pi * (k - onset) / 80.0 + 0.1)), 0.0)
+    return sp, pv
+
+
+@pytest.mark.parametrize("onset", [700, 1500, 2300])
+def test_a_loop_that_starts_to_cycle_part_way_is_located_within_a_block(onset):
+    sp, pv = _loop_error(3000, onset)
+    found = suspect_onset(pv, sp)
+    assert isinstance(found, Suspected) and found.signal == "SP − PV"
+    assert abs(found.sample - onset) <= 2 * 3000 // BLOCKS
+    assert found.rise > 1.0 and found.share > 0.5
+
+
+def test_without_a_set_point_the_fast_part_of_pv_locates_the_onset():
+    """A regulating loop (the set point never moves) recorded without its set point."""
+    _, pv = _loop_error(3000, 1800, first_move=3000, seed=1)
+    found = suspect_onset(pv, None)
+    assert found is not None and found.signal == "PV" and abs(found.sample - 1800) <= 2 * 3000 // BLOCKS
+
+
+def test_a_loop_that_cycles_throughout_or_never_has_no_onset():
+    sp, pv = _loop_error(3000, 0, seed=2)
+    assert suspect_onset(pv, sp) is None
+    sp, pv = _loop_error(3000, None, seed=3)
+    assert suspect_onset(pv, sp) is None
+
+
+def test_a_cycle_that_starts_with_the_first_set_point_move_is_not_an_onset():
+    """Before the set point first moves a loop is quiet whether its valve sticks or not."""
+    sp, pv = _loop_error(3000, 600, first_move=600, seed=4)
+    assert suspect_onset(pv, sp) is None
+
+
+def _problem(validation: str):
+    n = 3000
+    t = np.arange(n, dtype=float)
+    op = 50.0 + np.sin(t / 30.0)
+    rec = Recording(t=t, sp=None, op=op, mv=None, pv=op + 0.01 * np.cos(t / 7.0))
+    return prepare(rec, validation=validation)
+
+
+def _suspected(sample: int) -> Suspected:
+    return Suspected(sample=sample, rise=2.0, share=0.5, signal="SP − PV")
+
+
+def test_after_a_late_onset_the_held_out_part_is_the_tail_of_the_part_after_it():
+    """The usual split holds out the last 30 % (from sample 2100 of 3000): an onset after 60 % of the record
+    would leave less than a tenth of it to fit."""
+    problem = _problem("split")
+    for onset in (1900, 2400):
+        late = post_onset_split(problem, _suspected(onset))
+        assert late.train == (problem.train[0], onset + round((1 - HELD_OUT) * (3000 - onset)))
+        assert late.test == (late.train[1], problem.T)
+
+
+def test_an_onset_that_leaves_a_tenth_of_the_record_to_fit_keeps_the_usual_split():
+    problem = _problem("split")
+    for onset in (0, 1500, 1800):
+        assert post_onset_split(problem, _suspected(onset)) is problem
+    assert post_onset_split(problem, None) is problem
+
+
+def test_two_fold_validation_keeps_its_folds_after_an_onset():
+    problem = _problem("twofold")
+    assert post_onset_split(problem, Suspected(sample=2400, rise=2.0, share=0.5, signal="PV")) is problem
 
 
 @pytest.mark.slow

@@ -42,7 +42,7 @@ from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.explain.findings import findings, param_text, stiction_surface
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
-from valve_emulator.diagnosis.explain.onset import acting_part
+from valve_emulator.diagnosis.explain.onset import acting_part, post_onset_split, suspect_onset
 from valve_emulator.diagnosis.explain.prior import dead_time_move, nominal_gain, settle
 from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, RankRow, Traces
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
@@ -150,8 +150,10 @@ def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, p
     """Prepare, (identify,) search, settle the nominal linear part: one pass in one cost domain."""
     problem, nom = _prepared(recording, nom, lib, say, prefilter=prefilter, validation=validation, stops=stops,
                              declared=declared)
+    suspected = suspect_onset(problem.pv, recording.sp)
+    problem = post_onset_split(problem, suspected)
     fitter = Fitter(Scorer(problem, nom, lib))
-    search = Search(fitter, progress=say)
+    search = Search(fitter, progress=say, suspected=suspected)
     model, rounds = search.run()
     if nom.given:
         say("testing whether the nominal linear part moves")

@@ -264,6 +264,8 @@ class Explanation:
             out += [f"### {i}. `{f.physics}`", "", f"- parameters: {params}"]
             if ivs:
                 out.append(f"- 95 % intervals (profile of the cost surface): {ivs}")
+            if f.onset is not None:
+                out.append(f"- acts {f.onset.sentence()}")
             out += [f"- evidence: {f.evidence}", f"- windows (s): {shown or 'none'}{more}", ""]
         loc = self.located
         out += ["## Where the nominal model's residual concentrates", "",

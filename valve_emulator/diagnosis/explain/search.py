@@ -38,7 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
-from valve_emulator.diagnosis.explain.onset import onset_option
+from valve_emulator.diagnosis.explain.onset import Suspected, onset_option
 from valve_emulator.diagnosis.fit.crossval import with_cv
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
@@ -73,8 +73,10 @@ class Search:
     message at each stage.
     """
 
-    def __init__(self, fitter: Fitter, *, progress: Callable[[str], None] | None = None) -> None:
+    def __init__(self, fitter: Fitter, *, progress: Callable[[str], None] | None = None,
+                 suspected: Suspected | None = None) -> None:
         self.fitter = fitter
+        self.suspected = suspected
         self.scorer = fitter.scorer
         self.say = progress or (lambda msg: None)
 
@@ -95,13 +97,25 @@ class Search:
 
     def late_onsets(self, model: Model, cand: Candidate, options: list[Option]) -> list[Option]:
         """``options``, where physics that may start part-way acts from a fitted onset on
-        (:mod:`~valve_emulator.diagnosis.explain.onset`) when that lowers BIC by at least twice
-        :data:`DELTA_BIC` against acting over the whole record: the onset is a change point searched over the
-        record, and the best of many positions gains likelihood from noise alone more than one parameter does."""
+        (:mod:`~valve_emulator.diagnosis.explain.onset`).
+
+        Where no change point was located before the search, the late option replaces the whole-record one
+        when it lowers BIC by at least twice :data:`DELTA_BIC`: the onset is then searched over the record,
+        and the best of many positions gains likelihood from noise alone more than one parameter does. Where
+        one was (``suspected``), the onset is searched only near it and the late option stands unless the
+        whole-record one is :func:`significant` against it: before a valve starts to stick the loop's OP
+        moves little, so a valve sticking throughout fits the healthy part about as well, and BIC alone
+        cannot ask for the onset."""
         out = []
         for o in options:
-            late = onset_option(self.fitter, model, cand, o)
-            out.append(late if late is not None and o.model.bic - late.model.bic >= 2 * DELTA_BIC else o)
+            late = onset_option(self.fitter, model, cand, o, self.suspected)
+            if late is None:
+                out.append(o)
+            elif self.suspected is None:
+                out.append(late if o.model.bic - late.model.bic >= 2 * DELTA_BIC else o)
+            else:
+                whole, late = (replace(x, model=self.validated(x.model)) for x in (o, late))
+                out.append(whole if significant(whole.model, late.model) else late)
         return out
 
     def round(self, model: Model, index: int) -> Round:
