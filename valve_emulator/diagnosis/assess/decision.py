@@ -52,7 +52,9 @@ run on each loop:
    * otherwise ``no stiction``, with the cause: aggressive ``tuning`` when
      :meth:`~valve_emulator.diagnosis.candidates.tuning.Tuning.assess` finds the loop ringing at its own period
      through its controller — first, because a sinusoidal load fitted at that period is the ring itself, which
-     the identified loop predicts and a load would have to match by chance; then an accepted periodic load (a
+     the identified loop predicts and a load would have to match by chance (unless the test itself found that
+     a periodic load explains the cycle as well, ``load_alike``: then an accepted one is the cause); then an
+     accepted periodic load (a
      candidate with a ``period``: ``disturbance``), when the record has no regular cycle or the load has the
      cycle's period (within the tuning test's tolerance); then the first accepted non-valve candidate in the
      order of their :attr:`~valve_emulator.diagnosis.candidates.base.Candidate.cause_rank` (an external
@@ -246,12 +248,13 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
                  f"PV (ΔBIC {load:.1f} against the load alone)")
     ranked = _causes(d.findings)
     cycle = ad.facts.get("period", float("nan")) if ad.facts.get("oscillating") else float("nan")
-    if tune is not None and tune.aggressive:
+    periodic = next((f for f in ranked if _periodic(f)), None)
+    load_cycle = periodic is not None and (not np.isfinite(cycle) or _same_period(periodic.parameters["period"], cycle))
+    if tune is not None and tune.aggressive and not (load_cycle and tune.load_alike):
         also = f"; also {ranked[0].description}" if ranked else ""
         named = _tuning_decision(tune, also, fits)
         return because(named.answer, named.cause, named.reasons, named.reason, tune)
-    periodic = next((f for f in ranked if _periodic(f)), None)
-    if periodic is not None and (not np.isfinite(cycle) or _same_period(periodic.parameters["period"], cycle)):
+    if load_cycle:
         return because(Answer.NO_STICTION, periodic.physics, ((Reason(periodic.physics), periodic.description),),
                        f"{periodic.description}, not the valve; {fits}", tune)
     if ranked:

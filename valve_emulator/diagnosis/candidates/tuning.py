@@ -120,6 +120,8 @@ class TuningAssessment:
         ARX plant (see the module docstring); ``plant_ms`` the maximum sensitivity with the fitted plant.
     period : period the loop amplifies most (s); ``observed`` the cycle's period in the data (NaN: none).
     reason : one sentence.
+    load_alike : the ARX loop sat at the edge of instability (Ms > :data:`MS_EDGE`), so a periodic load explains
+        the cycle as well and the loop was judged with the fitted plant instead.
     """
 
     judged: bool
@@ -135,6 +137,7 @@ class TuningAssessment:
     lag: int = 0
     phase_margin: float = float("nan")
     plant_ms: float = float("nan")
+    load_alike: bool = False
 
     def parameters(self) -> dict:
         return {"kc": float(f"{self.kc:.4g}"), "ti": float(f"{self.ti:.4g}"), "ms": round(self.ms, 2),
@@ -301,7 +304,8 @@ class Tuning(LoopCandidate):
             tail = "; the data show no regular cycle"
         else:
             tail = f"; the data cycle with a period of {observed_period:.3g} s"
-        if m.ms > MS_EDGE:
+        load_alike = m.ms > MS_EDGE
+        if load_alike:
             tail += (f"; at Ms > {MS_EDGE:g} the ARX loop sits at the edge of instability, which a periodic load "
                      "explains as well, so the loop is judged with the fitted plant")
             m = fitted
@@ -314,7 +318,7 @@ class Tuning(LoopCandidate):
                          f"cycles at {own:.3g} s")
         aggressive = m.aggressive and matches
         return TuningAssessment(True, bool(aggressive), kc, ti, r2, m.ms, m.gain_margin, m.period,
-                                observed_period, what + tail, lag, m.phase_margin, fitted.ms)
+                                observed_period, what + tail, lag, m.phase_margin, fitted.ms, load_alike)
 
     def parameters(self, p: np.ndarray) -> dict:
         return {"kc": float(p[0]), "ti": float(p[1])}
