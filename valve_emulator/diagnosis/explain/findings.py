@@ -9,7 +9,7 @@ over the linear part's time constants too, and on a grid stretched about the est
 reaches its edge), an estimate on an edge of the range searched
 (:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`) is reported as a bound ("R ≥ 400"), not
 as a value, and on plant data a valve finding is scored again under a drifting-load noise model
-(:mod:`~valve_emulator.diagnosis.fit.load_check`).
+(:mod:`~valve_emulator.diagnosis.fit.load_check`), against a linear valve on the same linear part.
 """
 
 from __future__ import annotations
