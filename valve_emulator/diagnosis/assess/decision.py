@@ -425,7 +425,11 @@ def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str
                           seconds=time.perf_counter() - start)
     decided = _decide(rec, d, ad, noise, frame)
     named = {code for code, _ in decided.reasons}
-    others = tuple((Reason(f.physics), f.description) for f in d.findings if f.physics not in named)
+    # The other findings qualify the answer; valve friction only a stiction answer (elsewhere the decision's own
+    # reasons say what fits: a band inside OP noise, a band a drifting load explains better), so that no reason
+    # contradicts the answer.
+    others = tuple((Reason(f.physics), f.description) for f in d.findings if f.physics not in named
+                   and (decided.answer is Answer.STICTION or f.physics not in VALVE_FRICTION))
     valve = _valve(d.findings)
     return Assessment(source=src, decision=decided.answer, cause=decided.cause, reason=decided.reason,
                       reasons=decided.reasons + others, S=decided.S, J=decided.J, intervals=decided.intervals,
