@@ -81,10 +81,11 @@ def _at_edge_as_value(finding, rec, plant: dict) -> bool:
     """Whether ``finding`` reports a parameter on an end of its search range as a value (see the docstring)."""
     for name, ends in _search_ends(finding.physics, rec, plant).items():
         value = finding.parameters.get(name)
+        if not isinstance(value, float):
+            continue
         lo, hi = finding.intervals.get(name, (value, value))
-        closed = np.isfinite(lo) and np.isfinite(hi)
-        if isinstance(value, float) and closed and any(
-                end is not None and abs(value - end) <= 1e-3 * abs(end) for end in ends):
+        closed = all(x is not None and np.isfinite(x) for x in (lo, hi))
+        if closed and any(end is not None and abs(value - end) <= 1e-3 * abs(end) for end in ends):
             return True
     return False
 

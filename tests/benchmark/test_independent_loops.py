@@ -256,3 +256,6 @@ def test_the_benchmark_counts_a_parameter_on_a_search_edge_reported_as_a_value()
     assert edges(doc(as_value, inside)) == (1, 2)
     assert edges(doc(as_bound, inside)) == (0, 2)
     assert edges(doc()) == (0, 0)
+    linear = Finding(physics="characteristic", parameters={"kind": "linear", "R": None}, windows=(), evidence="",
+                     description="", intervals={})
+    assert edges(doc(linear)) == (0, 1)   # a parameter without a value is no value on an edge
