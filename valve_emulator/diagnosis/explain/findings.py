@@ -8,7 +8,7 @@ surface is profiled around the final value for the intervals
 over the linear part's time constants too, and on a grid stretched about the estimate while the 95 % region
 reaches its edge), an estimate on an edge of the range searched
 (:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`) is reported as a bound ("R ≥ 400"), not
-as a value, and on plant data a valve finding is scored again under a drifting-load noise model
+as a value, and a valve finding is scored again under a drifting-load noise model
 (:mod:`~valve_emulator.diagnosis.fit.load_check`), against a linear valve on the same linear part.
 """
 
@@ -304,7 +304,7 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             ivs, edges = _intervals(fitter, problem, model, act, params)
             dbic = without.bic - chosen.model.bic
             load = None
-            if cand.slot == "valve" and problem.validation == "twofold":
+            if cand.slot == "valve":   # with or without a nominal model: the strength of either reads it
                 load = _load_delta_bic(scorer, without, chosen.model)
             nominal_info = {"theta": nominal.delay} if nominal.given else None
             params, ivs, units, p_user = _in_op_units(cand, act.params, params, ivs, frame)
