@@ -54,12 +54,11 @@ run on each loop:
      through its controller — first, because a sinusoidal load fitted at that period is the ring itself, which
      the identified loop predicts and a load would have to match by chance (unless the test itself found that
      a periodic load explains the cycle as well, ``load_alike``: then an accepted one is the cause); then an
-     accepted periodic load (a
-     candidate with a ``period``: ``disturbance``), when the record has no regular cycle or the load has the
-     cycle's period (within the tuning test's tolerance); then the first accepted non-valve candidate in the
-     order of their :attr:`~valve_emulator.diagnosis.candidates.base.Candidate.cause_rank` (an external
-     disturbance at another period than the cycle's, a quantised PV, saturation, a flow characteristic, an
-     actuator lag, a dead time); or "the linear model explains the loop".
+     accepted periodic load (a candidate with a ``period``: ``disturbance``), when the record has no regular
+     cycle or the load has the cycle's period (within the tuning test's tolerance); then the first accepted
+     non-valve candidate in the order of their :attr:`~valve_emulator.diagnosis.candidates.base.Candidate.
+     cause_rank` (an external disturbance at another period than the cycle's, a quantised PV, saturation, a
+     flow characteristic, an actuator lag, a dead time); or "the linear model explains the loop".
 
    The decision names no candidate: the causes come from the registry (their ``cause_rank``, a ``period``
    parameter), the tuning test is the registered candidate judged on the loop (``Kind.LOOP``).
