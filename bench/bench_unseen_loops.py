@@ -16,9 +16,12 @@ Columns, per family and mode:
 * ``S err``, ``J err``: median relative error of the friction estimate (in % travel) where friction was
   found on a loop that has it (J only where the true J >= 0.5 %).
 * ``S cov``, ``J cov``: how often the reported 95 % interval contains the true value (same loops).
-* ``edge``: how often a friction finding sits on an edge of its search: S at the top of its grid (>= 95 % of
-  the OP band used), J at the top (>= 1.55 S, the grid ending at 1.6 S) or at 0 for a stiction finding, or
-  an interval reaching the ±40 % box the interval profile searches.
+* ``edge``: findings (of any physics) that report a parameter on an end of the range the search explored as a
+  value, which the diagnosis must not do (an estimate there is a bound, "R ≥ 368.9", with an interval open on
+  that side): the ends are the candidate's declared ones
+  (:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`, for the recording's sample time and
+  the identified plant's slowest time constant), and a parameter counts when its estimate lies within 0.1 %
+  of one while its reported 95 % interval is closed on both sides. ``k/n``: k such findings of n.
 * ``strong ok``: how often a stiction answer marked ``strong`` is right (the strength's calibration).
 * ``disagree``: the answer and the findings disagree (an answer other than stiction with a friction finding
   or friction estimate, or a stiction answer without one).
@@ -62,13 +65,36 @@ def _names_tuning(doc: dict) -> bool:
         f["physics"] == "tuning" for f in doc.get("findings") or ())
 
 
-def _on_edge(friction: dict) -> bool:
-    travel, band = friction["travel"], friction["band"]
-    S, J = travel["S"]["value"], travel["J"]["value"]
-    lo, hi = travel["S"]["interval"]
-    return bool((band is not None and band["S"]["value"] >= 0.95) or J >= 1.55 * S
-                or (friction["physics"] == "stiction" and J == 0.0)
-                or lo <= 0.6125 * S or hi >= 1.3875 * S)
+def _search_ends(physics: str, rec, plant: dict) -> dict:
+    """The declared ends of ``physics``'s search range, per parameter, for this recording and identified plant."""
+    from valve_emulator.diagnosis.candidates import get
+    from valve_emulator.diagnosis.candidates.base import ChainContext
+    from valve_emulator.diagnosis.fit.frame import robust_range
+
+    lo, hi = robust_range(rec.op)
+    taus = plant.get("taus") or ()
+    ctx = ChainContext(dt=rec.dt, op=rec.op, op_span=hi - lo, tau_plant=max(taus, default=10.0 * rec.dt))
+    return get(physics).bounds(ctx)
+
+
+def _at_edge_as_value(finding, rec, plant: dict) -> bool:
+    """Whether ``finding`` reports a parameter on an end of its search range as a value (see the docstring)."""
+    for name, ends in _search_ends(finding.physics, rec, plant).items():
+        value = finding.parameters.get(name)
+        if not isinstance(value, float):
+            continue
+        lo, hi = finding.intervals.get(name, (value, value))
+        closed = all(x is not None and np.isfinite(x) for x in (lo, hi))
+        if closed and any(end is not None and abs(value - end) <= 1e-3 * abs(end) for end in ends):
+            return True
+    return False
+
+
+def edges(diagnosis) -> tuple[int, int]:
+    """``(k, n)``: of the ``n`` findings of ``diagnosis``, the ``k`` that report a search edge as a value."""
+    found = diagnosis.findings
+    plant = {} if diagnosis.explanation is None else diagnosis.explanation.plant
+    return sum(_at_edge_as_value(f, diagnosis.recording, plant) for f in found), len(found)
 
 
 def score(doc: dict, truth: dict) -> dict:
@@ -83,7 +109,6 @@ def score(doc: dict, truth: dict) -> dict:
     if friction is not None and friction["travel"] is not None:
         travel = friction["travel"]
         row["S"], row["J"] = travel["S"]["value"], travel["J"]["value"]
-        row["edge"] = _on_edge(friction)
         if truth["S"] > 0:
             S_lo, S_hi = travel["S"]["interval"]
             row["S_err"] = abs(row["S"] - truth["S"]) / truth["S"]
@@ -108,15 +133,21 @@ def run_draw(family: str, index: int, seed: int) -> list[dict]:
              ve.diagnose(rec, op_range=(0.0, 100.0)))
         seconds = time.perf_counter() - t0
         truth_brief = {k: truth[k] for k in ("expected", "tuning", "S", "J")}
+        at_edge, found = edges(d)
         rows.append({"family": family, "index": index, "mode": mode, "seconds": seconds, "truth": truth_brief,
                      "valve": truth["valve"], "plant": truth["plant"], "margins": truth.get("margins"),
-                     **score(d.to_json(), truth)})
+                     "edge": at_edge, "found": found, **score(d.to_json(), truth)})
     return rows
 
 
 def _rate(rows: list[dict], key: str) -> str:
     values = [r[key] for r in rows if key in r]
     return f"{sum(values)}/{len(values)}" if values else "–"
+
+
+def _sum(rows: list[dict], key: str, of: str) -> str:
+    """``"k/n"``: ``key`` summed over the rows, of ``of`` summed."""
+    return f"{sum(r.get(key, 0) for r in rows)}/{sum(r.get(of, 0) for r in rows)}"
 
 
 def _median(rows: list[dict], key: str, fmt: str = "{:.0%}") -> str:
@@ -131,11 +162,10 @@ def summary(rows: list[dict]) -> list[tuple]:
             sel = [r for r in rows if r["family"] == family and r["mode"] == mode]
             if not sel:
                 continue
-            found = [r for r in sel if "edge" in r]
             out.append((family, mode, len(sel), _rate(sel, "correct"),
                         _rate(sel, "tuning") if family == "aggressive_pi" else "",
                         _median(sel, "S_err"), _median(sel, "J_err"), _rate(sel, "S_cov"), _rate(sel, "J_cov"),
-                        _rate(found, "edge"), _rate([r for r in sel if r["strength"] == "strong"], "correct"),
+                        _sum(sel, "edge", "found"), _rate([r for r in sel if r["strength"] == "strong"], "correct"),
                         _rate(sel, "disagree"), _median(sel, "seconds", "{:.1f}"),
                         " ".join(f"{a}:{n}" for a, n in sorted(_count(r["answer"] for r in sel).items()))))
     return out

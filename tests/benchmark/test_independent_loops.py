@@ -223,11 +223,10 @@ def test_the_benchmark_scores_answers_intervals_edges_and_disagreements_against_
 
     sticky = {"expected": "stiction", "tuning": False, "S": 4.0, "J": 2.0}
     row = score(_document("stiction", 4.2, 1.9, codes=["stiction"], physics=["stiction"]), sticky)
-    assert row["correct"] and row["S_cov"] and row["J_cov"] and not row["edge"] and not row["disagree"]
+    assert row["correct"] and row["S_cov"] and row["J_cov"] and not row["disagree"]
     assert row["S_err"] == pytest.approx(0.05) and row["J_err"] == pytest.approx(0.05)
     row = score(_document("stiction", 5.0, 1.0, interval=0.05, physics=["stiction"]), sticky)
     assert not row["S_cov"] and not row["J_cov"]
-    assert score(_document("stiction", 4.0, 0.0, interval=0.5, physics=["deadband"]), sticky)["edge"]   # ±40 % box
     healthy = {"expected": "no_stiction", "tuning": False, "S": 0.0, "J": 0.0}
     row = score(_document("no_stiction", physics=["stiction"]), healthy)
     assert row["correct"] and row["disagree"]
@@ -235,3 +234,28 @@ def test_the_benchmark_scores_answers_intervals_edges_and_disagreements_against_
     assert not score(_document("no_stiction", codes=["linear"]), tuned)["correct"]
     assert score(_document("no_stiction", codes=["tuning"]), tuned)["correct"]
     assert not score(_document("cannot_tell"), healthy)["correct"]
+
+
+def test_the_benchmark_counts_a_parameter_on_a_search_edge_reported_as_a_value():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
+    from types import SimpleNamespace
+
+    from bench_unseen_loops import edges
+
+    from valve_emulator.diagnosis.candidates.characteristic import R_MAX
+    from valve_emulator.diagnosis.explain.result import Finding
+
+    def curve(R, interval):
+        return Finding(physics="characteristic", parameters={"kind": "equal_percentage", "R": R}, windows=(),
+                       evidence="", description="", intervals={"R": interval})
+
+    recording = SimpleNamespace(dt=1.0, op=np.linspace(20.0, 60.0, 500))
+    as_value, as_bound, inside = curve(R_MAX, (300.0, R_MAX)), curve(R_MAX, (R_MAX, np.inf)), curve(30.0, (20.0, 50.0))
+    doc = lambda *found: SimpleNamespace(findings=found, recording=recording,  # noqa: E731
+                                         explanation=SimpleNamespace(plant={"taus": [12.0]}))
+    assert edges(doc(as_value, inside)) == (1, 2)
+    assert edges(doc(as_bound, inside)) == (0, 2)
+    assert edges(doc()) == (0, 0)
+    linear = Finding(physics="characteristic", parameters={"kind": "linear", "R": None}, windows=(), evidence="",
+                     description="", intervals={})
+    assert edges(doc(linear)) == (0, 1)   # a parameter without a value is no value on an edge

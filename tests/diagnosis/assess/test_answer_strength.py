@@ -2,7 +2,10 @@
 with and without a nominal model, the stiction calls marked strong are right in at least 95 %, the answer and
 the findings agree, and every document carries its strength, oscillation summary and action.
 
-Slow: 14 loops (two of each family) diagnosed twice, about 7 s a diagnosis on one core (3–4 min).
+Slow: 90 loops diagnosed twice, about 3 s a diagnosis on one core (about 10 min; 15–20 min on a loaded machine):
+enough for 95 % of the strong calls to mean something (at least 40 of them; 16 draws of each sticky family gave
+33). The sticky families (where calls are made) are drawn 22 times, the others (where a wrong strong call would
+come from) 6 times.
 """
 
 from __future__ import annotations
@@ -21,7 +24,10 @@ from valve_emulator.diagnosis.report.schema import schema
 
 pytestmark = pytest.mark.slow
 SEED = 2032
-DRAWS = [(family, i) for family in FAMILIES for i in range(2)]
+STICKY = ("level_sticky", "late_onset", "flow_sticky")
+DRAWS = [(family, i) for family in FAMILIES for i in range(22 if family in STICKY else 6)]
+#: Strong calls the calibration needs before its rate means anything.
+MIN_STRONG = 40
 
 
 @cache
@@ -38,16 +44,13 @@ def _docs():
         yield truth, plant
 
 
-@pytest.mark.xfail(strict=True, reason="not met with every issue-32 change together: 8 of 9 strong calls right; a "
-                   "slow actuator with S < 1 % is called strong stiction (S 3.2 %) under the closed-loop "
-                   "identification constraints (each change alone gave 9 of 9)")
 def test_stiction_calls_marked_strong_are_right_in_at_least_95_percent():
     strong = [(doc["answer"] == truth["expected"], doc["source"], doc["verdict"]) for truth, doc in _docs()
               if doc["strength"] == "strong"]
-    assert strong, "no call was marked strong"
     right = sum(ok for ok, _, _ in strong)
     wrong = [(source, verdict) for ok, source, verdict in strong if not ok]
     assert right >= 0.95 * len(strong), f"{right}/{len(strong)} strong calls right; wrong: {wrong}"
+    assert len(strong) >= MIN_STRONG, f"{right}/{len(strong)} strong calls right, fewer than {MIN_STRONG}"
 
 
 def test_every_stiction_answer_has_a_strength_with_or_without_a_model():

@@ -34,7 +34,12 @@ judged afterwards on the fitted plant by :meth:`Tuning.assess`:
    with the fitted plant's own loop instead (:func:`loop_response`: the discrete PI, the plant,
    ``(d + ½)Δt``), whose Ms is always reported beside (``plant_ms``).
 3. **The cycle is the loop's**: its period must match the one the loop amplifies most,
-   :math:`2\pi/\omega_{peak}`, within :data:`PERIOD_TOLERANCE`.
+   :math:`2\pi/\omega_{peak}`, within :data:`PERIOD_TOLERANCE` — the record's most regular cycle, or, when
+   that is another cycle (a slow load's) or the record cycles irregularly, the control error's own cycle once
+   everything slower than :data:`SLOWER` times the loop's period is removed (:func:`own_cycle`; isolating one
+   oscillation of several by filtering, as Thornhill, Huang & Zhang, *J. Process Control* 13 (2003) 91–100,
+   do). An aggressive loop under a random load rings at its own period without ringing regularly, and a slow
+   periodic load can be the record's most regular cycle while the loop rings underneath.
 
 Parameters reported: ``kc``, ``ti``, ``ms`` and the predicted ``period``.
 
@@ -54,10 +59,12 @@ from typing import ClassVar
 
 import numpy as np
 
+from valve_emulator.detectors.base import oscillation
 from valve_emulator.diagnosis.candidates.base import ChainContext, LoopCandidate, register
 
 __all__ = ["Tuning", "TuningAssessment", "Margins", "MS_AGGRESSIVE", "GM_AGGRESSIVE", "PERIOD_TOLERANCE",
-           "MIN_R2", "MS_EDGE", "ARX_ORDERS", "arx_plant", "identify_pi", "loop_response", "margins", "nominal_margins"]
+           "MIN_R2", "MS_EDGE", "ARX_ORDERS", "SLOWER", "arx_plant", "identify_pi", "loop_response", "margins",
+           "nominal_margins", "own_cycle"]
 
 #: Maximum sensitivity at and above which a loop is aggressively tuned (Åström & Hägglund 2006).
 MS_AGGRESSIVE = 2.0
@@ -71,6 +78,9 @@ ARX_ORDERS = (10, 20)
 PERIOD_TOLERANCE = 0.3
 #: Least R² of the PI fit for the controller to count as identified.
 MIN_R2 = 0.5
+#: :func:`own_cycle` removes what is slower than this many times the loop's own period (a moving mean that long
+#: passes the loop's period whole: its first zero is at that period's double).
+SLOWER = 2.0
 
 
 @dataclass(frozen=True)
@@ -110,6 +120,8 @@ class TuningAssessment:
         ARX plant (see the module docstring); ``plant_ms`` the maximum sensitivity with the fitted plant.
     period : period the loop amplifies most (s); ``observed`` the cycle's period in the data (NaN: none).
     reason : one sentence.
+    load_alike : the ARX loop sat at the edge of instability (Ms > :data:`MS_EDGE`), so a periodic load explains
+        the cycle as well and the loop was judged with the fitted plant instead.
     """
 
     judged: bool
@@ -125,10 +137,16 @@ class TuningAssessment:
     lag: int = 0
     phase_margin: float = float("nan")
     plant_ms: float = float("nan")
+    load_alike: bool = False
 
     def parameters(self) -> dict:
         return {"kc": float(f"{self.kc:.4g}"), "ti": float(f"{self.ti:.4g}"), "ms": round(self.ms, 2),
                 "period": round(self.period, 1)}
+
+
+def _same(observed: float, period: float) -> bool:
+    """An observed period (NaN: none) within :data:`PERIOD_TOLERANCE` of the loop's."""
+    return bool(np.isfinite(observed) and abs(observed / period - 1.0) <= PERIOD_TOLERANCE)
 
 
 def _pi_fit(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, lag: int,
@@ -157,6 +175,16 @@ def identify_pi(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None,
     sp = None if sp is None else np.asarray(sp, dtype=float)
     fits = [(*_pi_fit(op, pv, sp, lag, dt), lag) for lag in (0, 1)]
     return max(fits, key=lambda f: f[2])
+
+
+def own_cycle(pv: np.ndarray, sp: np.ndarray | None, dt: float, period: float) -> float:
+    """The period (s) the control error SP − PV (−PV without a set point) cycles at once what is slower than
+    :data:`SLOWER` × ``period`` is removed (its centred moving mean over that span subtracted): the mean period
+    of Thornhill et al.'s zero-crossing test, regular or not (NaN when too few crossings)."""
+    e = (np.asarray(sp, dtype=float) if sp is not None else 0.0) - np.asarray(pv, dtype=float)
+    n = int(min(max(round(SLOWER * period / dt), 2), e.size))
+    slow = np.convolve(np.pad(e, (n // 2, n - 1 - n // 2), mode="edge"), np.ones(n) / n, mode="valid")
+    return float(oscillation(e - slow).period) * dt
 
 
 def arx_plant(op: np.ndarray, pv: np.ndarray, orders: tuple[int, int] = ARX_ORDERS):
@@ -269,7 +297,6 @@ class Tuning(LoopCandidate):
         omega = np.geomspace(2.0 * np.pi / (n * dt), 0.999 * np.pi / dt, 4000)
         fitted = margins(loop_response(kc, ti, dt, gain, tuple(taus), delay, integrating, omega, lag), omega)
         m = margins(_arx_loop(kc, ti, dt, lag, *arx_plant(op, pv), omega), omega)
-        matches = np.isfinite(observed_period) and abs(observed_period / m.period - 1.0) <= PERIOD_TOLERANCE
         what = (f"PI Kc = {kc:.3g} %/unit, Ti = {ti:.3g} s (R² {r2:.2f}, acting on PV{late or ' at once'}); "
                 f"with the plant the closed loop shows (ARX) the loop has {m.text()} (with the fitted plant: Ms "
                 f"{fitted.ms:.2f})")
@@ -277,14 +304,21 @@ class Tuning(LoopCandidate):
             tail = "; the data show no regular cycle"
         else:
             tail = f"; the data cycle with a period of {observed_period:.3g} s"
-        if m.ms > MS_EDGE:
+        load_alike = m.ms > MS_EDGE
+        if load_alike:
             tail += (f"; at Ms > {MS_EDGE:g} the ARX loop sits at the edge of instability, which a periodic load "
                      "explains as well, so the loop is judged with the fitted plant")
             m = fitted
-            matches = np.isfinite(observed_period) and abs(observed_period / m.period - 1.0) <= PERIOD_TOLERANCE
+        matches = _same(observed_period, m.period)
+        if not matches:
+            own = own_cycle(pv, sp, dt, m.period)
+            matches = _same(own, m.period)
+            if matches:
+                tail += (f"; once what is slower than {SLOWER:g} times that period is removed, the control error "
+                         f"cycles at {own:.3g} s")
         aggressive = m.aggressive and matches
         return TuningAssessment(True, bool(aggressive), kc, ti, r2, m.ms, m.gain_margin, m.period,
-                                observed_period, what + tail, lag, m.phase_margin, fitted.ms)
+                                observed_period, what + tail, lag, m.phase_margin, fitted.ms, load_alike)
 
     def parameters(self, p: np.ndarray) -> dict:
         return {"kc": float(p[0]), "ti": float(p[1])}

@@ -8,8 +8,8 @@ surface is profiled around the final value for the intervals
 over the linear part's time constants too, and on a grid stretched about the estimate while the 95 % region
 reaches its edge), an estimate on an edge of the range searched
 (:meth:`~valve_emulator.diagnosis.candidates.base.Candidate.bounds`) is reported as a bound ("R ≥ 400"), not
-as a value, and on plant data a valve finding is scored again under a drifting-load noise model
-(:mod:`~valve_emulator.diagnosis.fit.load_check`).
+as a value, and a valve finding is scored again under a drifting-load noise model
+(:mod:`~valve_emulator.diagnosis.fit.load_check`), against a linear valve on the same linear part.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame
 from valve_emulator.diagnosis.fit.linear import PRIOR_WIDTH, LinearStructure
-from valve_emulator.diagnosis.fit.load_check import load_delta_bic
+from valve_emulator.diagnosis.fit.load_check import load_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Surface
 from valve_emulator.diagnosis.fit.uncertainty import effective_fraction, intervals, touches_edge
@@ -267,6 +267,18 @@ def _in_op_units(cand, act_params: np.ndarray, params: dict, ivs: dict, frame: F
     return params, ivs, units, p_user
 
 
+def _load_delta_bic(scorer, without: Model, with_: Model) -> float:
+    """ΔBIC of a valve finding under the drifting-load noise model
+    (:mod:`~valve_emulator.diagnosis.fit.load_check`), with the model without it scored from the linear part of
+    the model with it: the two differ by the valve alone, so the figure weighs the valve against a linear valve
+    with a drifting load, not one plant against another. Each search model keeps its own plant otherwise, and
+    two plants the search's error model rates alike can differ by tens of BIC under the drifting-load one (a
+    plant at the causal bound, Δt and no dead time, against an integrator with a long dead time), which the
+    valve would then be charged with."""
+    at_call = replace(without, fit=replace(without.fit, structure=with_.fit.structure), delay_free=with_.delay_free)
+    return load_bic(scorer, at_call)[0] - load_bic(scorer, with_)[0]
+
+
 def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round], masks, horizon,
              nominal: Nominal, frame: Frame | None = None) -> tuple[Finding, ...]:
     """One :class:`Finding` per candidate accepted in ``rounds``, in the order accepted (see the module
@@ -292,8 +304,8 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             ivs, edges = _intervals(fitter, problem, model, act, params)
             dbic = without.bic - chosen.model.bic
             load = None
-            if cand.slot == "valve" and problem.validation == "twofold":
-                load = load_delta_bic(scorer, without, chosen.model)
+            if cand.slot == "valve":   # with or without a nominal model: the strength of either reads it
+                load = _load_delta_bic(scorer, without, chosen.model)
             nominal_info = {"theta": nominal.delay} if nominal.given else None
             params, ivs, units, p_user = _in_op_units(cand, act.params, params, ivs, frame)
             if not frame.identity:
