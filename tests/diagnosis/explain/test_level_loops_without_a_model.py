@@ -47,8 +47,8 @@ def test_the_identification_says_which_constraints_it_used(diagnosed):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured 27 of 40 (19 before the integrating plant was searched for on "
-                   "prefiltered PV): the held search still finds a disturbance, a flow limit or a characteristic "
+@pytest.mark.xfail(strict=True, reason="measured 22 of 40 (19 before the integrating plant was searched for on "
+                   "prefiltered PV; 27 when it was kept without also predicting PV itself no worse): the held search still finds a disturbance, a flow limit or a characteristic "
                    "instead of the valve on some loops, and the search on PV keeps a half-cycle dead time on others")
 def test_stiction_is_found_in_nine_loops_of_ten(diagnosed):
     found = sum(d.answer == "stiction" for _, d in diagnosed)
@@ -57,6 +57,6 @@ def test_stiction_is_found_in_nine_loops_of_ten(diagnosed):
 
 @pytest.mark.slow
 def test_stiction_is_found_in_most_loops(diagnosed):
-    """A floor under the rate measured (27 of 40), so that a change that loses level loops again is seen."""
+    """A floor under the rate measured (22 of 40), so that a change that loses level loops again is seen."""
     found = sum(d.answer == "stiction" for _, d in diagnosed)
-    assert found >= 24, f"stiction found in {found} of {DRAWS}"
+    assert found >= 20, f"stiction found in {found} of {DRAWS}"

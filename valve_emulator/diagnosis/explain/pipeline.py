@@ -194,8 +194,9 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
 def _integrating_or_not(free: Searched, held: Searched) -> Searched:
     """The search so far (``free``, whose plant came out self-regulating) or the one on prefiltered PV that held
     the plant integrating (``held``): the held one when its held-out fit, cross-validated through the prefilter,
-    beats the free one's on the same blocks in the same domain by :data:`DELTA_FIT` points and its gain is not
-    held at zero by the gain's sign.
+    beats the free one's on the same blocks in the same domain by :data:`DELTA_FIT` points, it predicts held-out
+    PV itself no worse than the free one (within :data:`DELTA_FIT`), and its gain is not held at zero by the
+    gain's sign.
 
     Why: on PV an integrator's free run drifts with every wandering load, so the search there prefers a slow
     first-order plant or a half-cycle dead time, and a sticky level valve goes unseen; through the prefilter
@@ -205,6 +206,8 @@ def _integrating_or_not(free: Searched, held: Searched) -> Searched:
     theirs = cross_validated_fit(held.fitter.scorer, free.model)
     if not ours >= theirs + DELTA_FIT or held.model.fit.gain == 0.0:
         return free
+    if _reported_fit(held, held.model) < _reported_fit(free, free.model) - DELTA_FIT:
+        return free   # it must not predict held-out PV itself worse either: a self-regulating loop kept its plant
     ident = held.nominal.identification
     said = tuple(c for c in ident.constraints if "plant (declared)" not in c) + (
         f"integrating plant: through the high-pass prefilter, the search holding an integrator predicts held-out "
