@@ -48,8 +48,9 @@ def test_the_identification_says_which_constraints_it_used(diagnosed):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="measured 22 of 40 (19 before the integrating plant was searched for on "
-                   "prefiltered PV; 27 when it was kept without also predicting PV itself no worse): the held search still finds a disturbance, a flow limit or a characteristic "
-                   "instead of the valve on some loops, and the search on PV keeps a half-cycle dead time on others")
+                   "prefiltered PV; 27 when kept without also predicting PV itself no worse): the held search "
+                   "still finds a disturbance, a flow limit or a characteristic instead of the valve on some "
+                   "loops, and the search on PV keeps a half-cycle dead time on others")
 def test_stiction_is_found_in_nine_loops_of_ten(diagnosed):
     found = sum(d.answer == "stiction" for _, d in diagnosed)
     assert found >= 0.9 * DRAWS, f"stiction found in {found} of {DRAWS}"
