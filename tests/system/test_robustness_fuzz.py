@@ -21,7 +21,14 @@ import tracemalloc
 import pytest
 
 from valve_emulator.config import server_from_mapping
-from valve_emulator.device.registers import INPUT_REGISTERS, N_REGISTERS, RegisterError, address_of, check_read
+from valve_emulator.device.registers import (
+    INPUT_REGISTERS,
+    MAP_VERSION,
+    N_REGISTERS,
+    RegisterError,
+    address_of,
+    check_read,
+)
 from valve_emulator.device.registers.bits import BitTable, check_bits
 from valve_emulator.device.server import EmulatorServer
 
@@ -329,7 +336,7 @@ async def test_fuzz_1e5_malformed_frames_leave_the_device_unharmed():
         # nothing was written, and a normal read answers correctly
         assert await asyncio.to_thread(_read_holding, srv.port, 1, 0, 2) == before_op
         regs = await asyncio.to_thread(_read_holding, srv.port, 2, address_of("map_version"), 1)
-        assert regs == [2]
+        assert regs == [MAP_VERSION]
         assert srv.device._pending == {}
         print(f"fuzz: {stats}, {t1 - t0:.1f} s, requests {srv.requests}, violations {srv.violations}, "
               f"retained {(mem_after - mem_before) / 1024:.0f} KiB, tick p99 {srv.device.jitter.p99 * 1e3:.2f} ms")
