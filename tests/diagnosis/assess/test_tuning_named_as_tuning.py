@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from unseen_loops import AGGRESSIVE_MODEL, AGGRESSIVE_PLANT, diagnosed_all
 
-import valve_emulator as ve
 from valve_emulator.benchmark.independent import FAMILIES, draw
 from valve_emulator.config import loop_from_mapping
 from valve_emulator.diagnosis.assess.adequacy import adequacy
@@ -22,7 +22,6 @@ from valve_emulator.diagnosis.candidates.tuning import own_cycle
 
 #: Findings an aggressive loop with a healthy valve must not be credited with.
 PHYSICS = {"stiction", "deadband", "dead_time", "actuator_lag"}
-DRAWS = 20
 
 
 def _draw(family: str, index: int, seed: int = 1):
@@ -43,12 +42,8 @@ def _margins_right(doc: dict, truth: dict) -> bool:
 
 @pytest.mark.slow  # 20 diagnoses with a model, about 1–6 s each (≈ 1 min on one core)
 def test_with_the_nominal_model_tuning_is_named_with_the_true_margins():
-    right = []
-    for i in range(DRAWS):
-        rec, truth, nominal = _draw("aggressive_pi", i)
-        doc = ve.diagnose(rec, loop_from_mapping(nominal)).to_json()
-        right.append(_named_tuning(doc) and _margins_right(doc, truth))
-    assert sum(right) >= 0.9 * DRAWS, f"{sum(right)}/{DRAWS} named tuning with margins within 10 %"
+    right = [_named_tuning(d.doc) and _margins_right(d.doc, d.truth) for d in diagnosed_all(AGGRESSIVE_MODEL)]
+    assert sum(right) >= 0.9 * len(right), f"{sum(right)}/{len(right)} named tuning with margins within 10 %"
 
 
 @pytest.mark.parametrize("family", ["flow_sticky", "level_sticky", "healthy_flow"])
@@ -94,8 +89,5 @@ def test_without_a_model_the_tuning_check_reads_the_late_pi_and_finds_the_loop_a
 
 @pytest.mark.slow  # 40 plant-data diagnoses, about 1–8 s each (≈ 2.5 min on one core)
 def test_without_a_model_tuning_is_named_in_aggressive_loops():
-    named = []
-    for i in range(40):
-        rec, _, _ = _draw("aggressive_pi", i)
-        named.append(_named_tuning(ve.diagnose(rec, op_range=(0.0, 100.0)).to_json()))
+    named = [_named_tuning(d.doc) for d in diagnosed_all(AGGRESSIVE_PLANT)]
     assert sum(named) >= 0.9 * len(named), f"{sum(named)}/{len(named)} named tuning"

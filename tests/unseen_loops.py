@@ -1,0 +1,199 @@
+"""Diagnoses of loops the search did not make, each computed once per test run and shared by the tests.
+
+The property tests of the diagnosis judge loops drawn from the independent simulator
+(:mod:`valve_emulator.benchmark.independent`: continuous plants integrated finely and sampled, a PI acting one
+sample late, other friction laws), each at its own rate over its own set of draws. Several sets overlap (the
+answer's calibration reads the level loops, late onsets and aggressive loops the other tests draw), so a draw is
+named by what makes it — family, the random generator's entropy, with or without the nominal model — and
+diagnosed once:
+
+- in one process, it is kept in memory;
+- under pytest-xdist, the workers of one run (``PYTEST_XDIST_TESTRUNUID``) share a folder: the first worker that
+  needs a draw claims it (a file created exclusively), diagnoses it and writes its document; a worker that needs
+  a draw another one has claimed waits for the document instead of diagnosing it again. A worker that needs many
+  draws (:func:`diagnosed_all`) first diagnoses every one nobody has claimed, from the end of the list (the
+  per-draw tests, collected in list order, meet it in the middle), then waits for the rest.
+
+A claim whose diagnosis raised is released, so the waiting worker diagnoses the draw itself and meets the same
+error. What is shared is the public JSON document and the identified plant (not in the document), nothing else.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+
+import valve_emulator as ve
+from valve_emulator.benchmark.independent import FAMILIES, draw
+from valve_emulator.config import loop_from_mapping
+
+#: Modes of diagnosis: with the nominal model the family hands out, or as plant data (OP in % travel).
+MODES = ("model", "plant")
+#: How long a worker waits for a draw another worker claimed before diagnosing it itself (s).
+PATIENCE = 900.0
+
+
+@dataclass(frozen=True)
+class Draw:
+    """One drawn loop and how it is diagnosed: ``np.random.default_rng(list(entropy))`` draws ``family``."""
+
+    family: str
+    entropy: tuple[int, ...]
+    mode: str
+
+    @property
+    def name(self) -> str:
+        return f"{self.family}-{'.'.join(map(str, self.entropy))}-{self.mode}"
+
+
+@dataclass(frozen=True)
+class Diagnosed:
+    """A draw's truth, recording, nominal mapping, JSON document and identified plant (gain, taus, delay)."""
+
+    draw: Draw
+    truth: dict
+    recording: object
+    nominal: dict
+    doc: dict
+    plant: dict
+
+
+def drawn(family: str, seed: int, count: int, modes: Sequence[str] = MODES, *,
+          family_index: bool = True, start: int = 0) -> list[Draw]:
+    """``count`` draws of ``family``, each in every mode: entropy ``(seed, family's index, i)``, or ``(seed, i)``
+    when ``family_index`` is False."""
+    out = []
+    for i in range(start, start + count):
+        entropy = (seed, list(FAMILIES).index(family), i) if family_index else (seed, i)
+        out.extend(Draw(family, entropy, mode) for mode in modes)
+    return out
+
+
+@cache
+def loop(family: str, entropy: tuple[int, ...]) -> tuple:
+    """(recording, truth, nominal mapping) of one draw (cheap: a fraction of a second)."""
+    return draw(family, np.random.default_rng(list(entropy)))
+
+
+def _diagnose(key: Draw) -> dict:
+    rec, _, nominal = loop(key.family, key.entropy)
+    d = (ve.diagnose(rec, loop_from_mapping(nominal)) if key.mode == "model" else
+         ve.diagnose(rec, op_range=(0.0, 100.0)))
+    plant = dict(d.explanation.plant)
+    plant["taus"] = list(plant["taus"])
+    return {"doc": d.to_json(), "plant": plant}
+
+
+def _folder() -> Path | None:
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if not run:
+        return None
+    folder = Path(tempfile.gettempdir()) / f"valve_emulator-unseen-{run}"
+    if not folder.exists():
+        for old in folder.parent.glob("valve_emulator-unseen-*"):   # runs of more than a day ago
+            if time.time() - old.stat().st_mtime > 86400:
+                shutil.rmtree(old, ignore_errors=True)
+        folder.mkdir(exist_ok=True)
+    return folder
+
+
+_memory: dict[Draw, dict] = {}
+
+
+def _read(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+
+
+def _claim_and_diagnose(key: Draw, folder: Path) -> dict | None:
+    """Diagnose ``key`` if nobody has claimed it (its record), else None."""
+    done, claim = folder / f"{key.name}.json", folder / f"{key.name}.claim"
+    try:
+        os.close(os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return None
+    try:
+        record = _diagnose(key)
+    except BaseException:
+        claim.unlink(missing_ok=True)
+        raise
+    part = done.with_suffix(f".{os.getpid()}.part")
+    part.write_text(json.dumps(record))
+    os.replace(part, done)
+    return record
+
+
+def _record(key: Draw, *, wait: bool = True) -> dict | None:
+    """The shared record of ``key``: from memory, the run's folder, diagnosed here, or (``wait``) waited for."""
+    if key in _memory:
+        return _memory[key]
+    folder = _folder()
+    if folder is None:
+        record = _diagnose(key)
+    else:
+        done, claim = folder / f"{key.name}.json", folder / f"{key.name}.claim"
+        record = _read(done) or _claim_and_diagnose(key, folder)
+        if record is None and not wait:
+            return None
+        deadline = time.monotonic() + PATIENCE
+        while record is None:
+            time.sleep(0.1)
+            record = _read(done)
+            if record is None and (not claim.exists() or time.monotonic() > deadline):
+                claim.unlink(missing_ok=True)   # released after an error, or its worker is gone
+                record = _claim_and_diagnose(key, folder)
+    _memory[key] = record
+    return record
+
+
+def _diagnosed(key: Draw, record: dict) -> Diagnosed:
+    rec, truth, nominal = loop(key.family, key.entropy)
+    return Diagnosed(draw=key, truth=truth, recording=rec, nominal=nominal, doc=record["doc"], plant=record["plant"])
+
+
+def diagnosed(key: Draw) -> Diagnosed:
+    """One draw, diagnosed once per test run."""
+    return _diagnosed(key, _record(key))
+
+
+def diagnosed_all(keys: Iterable[Draw]) -> list[Diagnosed]:
+    """Every draw of ``keys``, in order: those nobody has claimed diagnosed here first (from the end of the list),
+    then the ones other workers are diagnosing waited for."""
+    keys = list(keys)
+    for key in reversed(keys):
+        _record(key, wait=False)
+    return [diagnosed(key) for key in keys]
+
+
+# The sets the property tests judge (each test says why its size). Sets overlap on purpose: a draw named twice
+# is diagnosed once.
+#: Level loops (integrating plants), diagnosed as plant data: the identification's property test.
+LEVEL = drawn("level_sticky", 32, 40, ("plant",), family_index=False)
+#: Stiction that starts part-way, with and without the model: the onset's property test.
+LATE_ONSET = drawn("late_onset", 32, 20, family_index=False)
+#: Aggressively tuned PI loops with a healthy valve: the tuning's property test (20 with the model, 40 without).
+AGGRESSIVE_MODEL = drawn("aggressive_pi", 1, 20, ("model",))
+AGGRESSIVE_PLANT = drawn("aggressive_pi", 1, 40, ("plant",))
+#: Sticky flow and level loops with their nominal model: the intervals' coverage test.
+COVERAGE = drawn("flow_sticky", 7, 20, ("model",)) + drawn("level_sticky", 7, 20, ("model",))
+#: The answer's calibration: 22 loops of each sticky family (where calls are made), 6 of each other family (where
+#: a wrong strong call would come from), each with and without the model. It reuses the sets above where they
+#: have the family.
+STRENGTH = (drawn("level_sticky", 32, 22, family_index=False)
+            + drawn("late_onset", 32, 22, family_index=False)
+            + drawn("flow_sticky", 7, 22)
+            + drawn("aggressive_pi", 1, 6)
+            + [d for family in ("slow_noisy_valve", "coarse_ad", "healthy_flow") for d in drawn(family, 2032, 6)])
+#: Every draw of every set, once, in a stable order.
+ALL = list(dict.fromkeys(LEVEL + LATE_ONSET + AGGRESSIVE_MODEL + AGGRESSIVE_PLANT + COVERAGE + STRENGTH))
