@@ -40,7 +40,8 @@ def full_loop(disturbance: DisturbanceConfig, controller: ControllerConfig | Non
     return LoopConfig(
         "every_key", description="all: keys; set 'away' # from defaults",
         valve=ValveConfig(model="he", S=4.5, J=1.25, rest_time=0.3, initial_direction=-1, op0=37.5,
-                          characteristic="equal_percentage", rangeability=30.0,
+                          actuator_lag=2.5, characteristic="equal_percentage", rangeability=30.0,
+                          flow_limits=(12.5, 80.0),
                           ma_table=((4.0, 100.0), (20.0, 0.0)), op_range=(4000.0, 27648.0)),
         plant=PlantConfig((0.5, 2.0), (12.0, 7.0, 1.0), delay=3.3, pv0=-12.5, u0=41.0, pv_range=(-50.0, 25.0),
                           units="kg/m³", disturbance=disturbance, noise=0.05, alarms=(-40.0, 10.0)),

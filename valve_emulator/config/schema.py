@@ -70,7 +70,7 @@ _DEVICE = ("unit", "tick", "word_order", "instructor_writes", "instructor_hosts"
 KEYS: dict[str, tuple[str, ...]] = {
     "": _LOOP_SECTIONS + ("device",),
     "valve": ("model", "S", "J", "seed_s", "seed_j", "rest_time", "initial_direction", "op0", "mv0", "stuck0",
-              "characteristic", "rangeability", "ma_table", "op_range"),
+              "actuator_lag", "characteristic", "rangeability", "flow_limits", "ma_table", "op_range"),
     "plant": ("num", "den", "delay", "fopdt", "integrator", "pv0", "u0", "rest_flow", "pv_range", "units",
               "disturbance", "noise", "alarms"),
     "plant.fopdt": ("gain", "tau", "delay"),
@@ -256,7 +256,12 @@ def _copier(cls: type) -> tuple[frozenset[str], Any]:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ValveConfig:
-    """The sticky valve and its signal chain (YAML section ``valve``)."""
+    """The sticky valve and its signal chain (YAML section ``valve``).
+
+    The chain, in signal order: OP → actuator lag (``actuator_lag``) → stiction (``S``, ``J``) → MV →
+    characteristic → flow limits (``flow_limits``) → flow. The diagnosis' chain has the same order
+    (:mod:`valve_emulator.diagnosis.fit.chain`), so a twin places what it found where the fit had it.
+    """
 
     model: str = "kano"            # stiction state machine: choudhury | kano | he (physics.stiction.MODELS)
     S: float = 0.0                 # % travel, deadband + stickband (2005 convention), >= 0
@@ -267,8 +272,10 @@ class ValveConfig:
     mv0: float | None = None       # % travel in 0..100, the valve's position at the start (last moved in
                                    # initial_direction); None: at rest at its initial OP, OP − d(S − J)/2
     stuck0: bool = True            # at the start the valve is stuck (True) or still moving (False)
+    actuator_lag: float = 0.0      # s >= 0, the actuator's first-order lag between OP and the friction; 0: none
     characteristic: str = "linear"  # inherent flow characteristic: linear | equal_percentage | quick_opening
     rangeability: float = DEFAULT_RANGEABILITY  # R > 1, used by equal_percentage
+    flow_limits: tuple[float, float] = (0.0, 100.0)  # % flow, 0 <= lo < hi <= 100: the flow clipped to them
     ma_table: tuple[tuple[float, float], ...] = DEFAULT_MA_TABLE  # (mA, % travel) points, >= 2
     op_range: tuple[float, float] = (0.0, 100.0)  # a recording's OP at 0 and 100 % travel, in its own units
                                                   # (lo < hi); maps a replayed recording's OP to travel
@@ -283,8 +290,10 @@ class ValveConfig:
         _set(self, initial_direction=int(self.initial_direction),
              op0=real(self.op0, "op0", ge=0, le=100),
              mv0=real(self.mv0, "mv0", ge=0, le=100, none_ok=True), stuck0=boolean(self.stuck0, "stuck0"),
+             actuator_lag=real(self.actuator_lag, "actuator_lag", ge=0),
              characteristic=choice(self.characteristic, "characteristic", CHARACTERISTICS),
-             rangeability=real(self.rangeability, "rangeability", gt=1))
+             rangeability=real(self.rangeability, "rangeability", gt=1),
+             flow_limits=_percent_interval(self.flow_limits, "flow_limits"))
         _set(self, ma_table=_ma_table(self.ma_table), op_range=interval(self.op_range, "op_range"))
         if self.seed_form is not None:
             s, j = sequence(self.seed_form, "seed_form", length=2)
@@ -294,6 +303,15 @@ class ValveConfig:
                                   "(S = seed_s, J = 2*seed_j); set seed_form=None when changing S or J",
                                   key="seed_form")
             _set(self, seed_form=(s, j))
+
+
+def _percent_interval(value: Any, key: str) -> tuple[float, float]:
+    """``[lo, hi]`` with ``0 <= lo < hi <= 100`` (a range of % flow or % travel)."""
+    lo, hi = interval(value, key)
+    for i, x in enumerate((lo, hi)):
+        if not 0.0 <= x <= 100.0:
+            raise ConfigError(f"{{key}} must be in 0..100 %, got {x:g}", key=f"{key}[{i}]")
+    return lo, hi
 
 
 def _ma_table(value: Any) -> tuple[tuple[float, float], ...]:

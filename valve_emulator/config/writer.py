@@ -31,7 +31,8 @@ def _valve(cfg: LoopConfig) -> dict:
     else:
         out["S"], out["J"] = v.S, v.J
     out.update(rest_time=v.rest_time, initial_direction=v.initial_direction, op0=v.op0, mv0=v.mv0,
-               stuck0=v.stuck0, characteristic=v.characteristic, rangeability=v.rangeability,
+               stuck0=v.stuck0, actuator_lag=v.actuator_lag, characteristic=v.characteristic,
+               rangeability=v.rangeability, flow_limits=list(v.flow_limits),
                ma_table=[list(row) for row in v.ma_table], op_range=list(v.op_range))
     return out
 

@@ -9,7 +9,10 @@ Order inside one sample k, for every loop at once (see ``docs/design.md``):
 1. ``pv_k``  = plant output at ``t_k`` + measurement noise;
 2. ``op_k``  = PI(D)(sp_k, pv_k) where the loop has an internal controller, else the external OP held since
    the last write (``op_external``);
-3. ``mv_k``  = stiction(saturate(op_k)), ``flow_k`` = characteristic(mv_k);
+3. ``mv_k``  = stiction(saturate(actuator(op_k))), ``flow_k`` = clip(characteristic(mv_k), flow limits): the
+   actuator's lag (``valve.actuator_lag``, :mod:`~valve_emulator.physics.actuator`) acts before the friction,
+   the flow limits (``valve.flow_limits``) after the characteristic — the order of the diagnosis' chain; a
+   loop without them passes OP and flow unchanged;
 4. the plant integrates ``flow_k`` + load disturbance over ``[t_k, t_k + dt)``, giving ``pv_{k+1}``.
 
 The initial state is an equilibrium: the valve at rest at its initial OP (controller bias, or ``valve.op0``
@@ -32,6 +35,7 @@ import numba
 import numpy as np
 
 from valve_emulator.config import LoopConfig, ValveConfig
+from valve_emulator.physics.actuator import actuator_output, lag_coefficients
 from valve_emulator.physics.controller import PIDBank, pid_step_kernel
 from valve_emulator.physics.disturbance import BLOCK as NORMALS_BLOCK
 from valve_emulator.physics.disturbance import DisturbanceBank, NoiseBank
@@ -71,13 +75,15 @@ def _flow(mv, kind, rangeability):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, valve, char_kind, char_r, plant,
-                     plant_pv, pv_meas, op, flow, u_in):  # pragma: no cover - compiled
+def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, actuator, valve, char_kind, char_r,
+                     flow_limits, plant, plant_pv, pv_meas, op, flow, u_in):  # pragma: no cover - compiled
     """Advance every loop one sample in place (see the module docstring for the order).
 
     ``pid`` and ``plant`` are the argument tuples of ``pid_step_kernel`` and ``plant_step_kernel`` after
     their inputs, ``pid_op`` and ``plant_pv`` the output arrays inside them (their banks' ``kernel_output``);
-    ``valve`` is ``(S, J, R, codes, state)`` of ``stiction_step_kernel``. Outputs: ``pv_meas`` (PV measured
+    ``actuator`` is ``(tau, a, w, state)`` of :func:`~valve_emulator.physics.actuator.actuator_output`;
+    ``valve`` is ``(S, J, R, codes, state)`` of ``stiction_step_kernel``; ``flow_limits`` (n, 2) the flow's
+    ``[lo, hi]``. Outputs: ``pv_meas`` (PV measured
     at t_k), ``op``, ``flow``; ``u_in`` is scratch. Returns 0, or a nonzero code when an input was not
     finite (the controller or plant kernel refused it).
     """
@@ -90,10 +96,11 @@ def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, val
     st = valve[4]
     for i in range(n):
         op[i] = pid_op[i] if has_ctrl[i] else op_ext[i]
-        u_in[i] = st[i, U_PREV] if frozen[i] else op[i]
+        demand = actuator_output(i, op[i], actuator[0], actuator[1], actuator[2], actuator[3])
+        u_in[i] = st[i, U_PREV] if frozen[i] else demand
     stiction_step_kernel(u_in, valve[0], valve[1], valve[2], valve[3], valve[4])
     for i in range(n):
-        flow[i] = _flow(st[i, MV], char_kind[i], char_r[i])
+        flow[i] = min(max(_flow(st[i, MV], char_kind[i], char_r[i]), flow_limits[i, 0]), flow_limits[i, 1])
         u_in[i] = flow[i] + dist[i]
     bad = plant_step_kernel(u_in, *plant)
     if bad >= 0:
@@ -102,12 +109,13 @@ def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, val
 
 
 @numba.njit(cache=True)
-def _run_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, valve, char_kind, char_r, plant, plant_pv,
-                pv_meas, op, flow, u_in, out_pv, out_op, out_mv, out_flow, out_stuck):  # pragma: no cover
+def _run_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, actuator, valve, char_kind, char_r,
+                flow_limits, plant, plant_pv, pv_meas, op, flow, u_in, out_pv, out_op, out_mv, out_flow,
+                out_stuck):  # pragma: no cover
     st = valve[4]
     for k in range(sp.shape[0]):
-        code = loop_step_kernel(sp[k], noise[k], dist[k], op_ext[k], has_ctrl, frozen, pid, pid_op, valve,
-                                char_kind, char_r, plant, plant_pv, pv_meas, op, flow, u_in)
+        code = loop_step_kernel(sp[k], noise[k], dist[k], op_ext[k], has_ctrl, frozen, pid, pid_op, actuator,
+                                valve, char_kind, char_r, flow_limits, plant, plant_pv, pv_meas, op, flow, u_in)
         if code != 0:
             return k
         for i in range(sp.shape[1]):
@@ -146,6 +154,7 @@ class LoopBank:
         self._vstate = np.zeros((n, NSTATE))
         self._char_kind = np.array([CHARACTERISTICS.index(v.characteristic) for v in valves], dtype=np.int64)
         self._char_r = np.array([v.rangeability for v in valves], dtype=float)
+        self._flow_limits = np.array([v.flow_limits for v in valves], dtype=float).reshape(n, 2)
         # Fleets repeat these: build each distinct one once (they are immutable, sharing is safe).
         self.characteristics = _shared(Characteristic, [(v.characteristic, v.rangeability) for v in valves])
         self.tables = _shared(LookupTable, [(v.ma_table,) for v in valves])
@@ -169,14 +178,17 @@ class LoopBank:
         ])
         self.op_external = np.array([v.op0 for v in valves], dtype=float)
 
-        # valve at rest at its initial OP; plant in equilibrium at the resulting flow
+        # actuator at rest at the initial OP, valve at rest there; plant in equilibrium at the resulting flow
+        self._act_tau = np.array([v.actuator_lag for v in valves], dtype=float)
+        self._act_a, self._act_w = lag_coefficients(self._act_tau, self.dt)
+        self._act_state = op_init.astype(float)
         initial_state(self._vstate, op_init, np.array([v.initial_direction for v in valves], dtype=float),
                       self._S, self._J, self._codes)
         for i, v in enumerate(valves):
             if v.mv0 is not None or not v.stuck0:
                 _place_valve(self._vstate[i], v, self._S[i], self._J[i])
         mv0 = self._vstate[:, MV]
-        flow0 = _flows(self.characteristics, mv0)
+        flow0 = np.clip(_flows(self.characteristics, mv0), self._flow_limits[:, 0], self._flow_limits[:, 1])
         # The exact discretisation (three matrix exponentials) dominates building a large bank: loops with the
         # same transfer function and delay share one (same inputs, same result: nothing is approximated), and
         # the distinct ones are discretised in batches of one order.
@@ -446,8 +458,9 @@ class LoopBank:
 
     def _kernel_args(self) -> tuple:
         pid, plant = self._pid.kernel_args(), self._plant.kernel_args()
-        return (pid, self._pid.kernel_output(), self._valve_args, self._char_kind, self._char_r, plant,
-                self._plant.kernel_output())
+        actuator = (self._act_tau, self._act_a, self._act_w, self._act_state)
+        return (pid, self._pid.kernel_output(), actuator, self._valve_args, self._char_kind, self._char_r,
+                self._flow_limits, plant, self._plant.kernel_output())
 
     def step(self) -> None:
         """Advance every loop one sample ``dt``; afterwards ``pv``, ``op``, ``mv`` … describe sample k."""

@@ -16,6 +16,8 @@ swings little more than S. So the open-loop replay starts as the diagnosis' defa
 (:mod:`valve_emulator.diagnosis.candidates.valve_start`): the loop first runs through the record's first fifth
 (at least 100 samples) mirrored in time, ``OP[K], …, OP[1]``, which joins the record at ``OP[0]``; by then the
 valve is in a state a valve cycling on this OP reaches; the plant then starts at rest, as the fit's does.
+(An actuator lag, ``valve.actuator_lag``, runs through the pre-roll with the valve; the fit's chain instead lags
+the record from rest at OP(0) and pre-rolls the valve on the lagged OP, which a twin's carried start reproduces.)
 A loop that carries the state its recording starts in (a twin's ``valve.mv0``, ``valve.stuck0``,
 ``valve.initial_direction`` and ``plant.rest_flow``, the state the diagnosis' fit started in) starts there
 instead, with no pre-roll, and so matches the recording from its first sample.

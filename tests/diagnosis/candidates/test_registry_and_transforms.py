@@ -248,7 +248,7 @@ def _toy(slot: str, params: tuple[str, ...], role, name: str = "toy_declared"):
 @pytest.mark.parametrize("slot, params, role, name, message", [
     ("actuator", ("S",), TwinRole.VALVE_BAND, "toy_declared", "twin role VALVE_BAND needs slot 'valve'"),
     ("valve", ("band",), TwinRole.VALVE_BAND, "toy_declared", "the parameters S"),
-    ("limit", ("lo",), TwinRole.OP_LIMITS, "toy_declared", "the parameters lo, hi"),
+    ("limit", ("lo",), TwinRole.FLOW_LIMITS, "toy_declared", "the parameters lo, hi"),
     ("valve", ("S",), None, "Toy Band", "lower-case identifier"),
 ])
 def test_registration_refuses_a_declaration_the_package_could_not_act_on(slot, params, role, name, message):

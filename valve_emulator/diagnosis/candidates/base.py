@@ -78,9 +78,9 @@ class TwinRole(StrEnum):
 
     VALVE_BAND = "valve.S, valve.J"
     CHARACTERISTIC = "valve.characteristic, valve.rangeability"
-    ACTUATOR_LAG = "plant.den"
+    ACTUATOR_LAG = "valve.actuator_lag"
     DEAD_TIME = "plant.delay"
-    OP_LIMITS = "controller.op_limits"
+    FLOW_LIMITS = "valve.flow_limits"
     DISTURBANCE = "plant.disturbance"
 
     @property
@@ -95,10 +95,10 @@ class TwinRole(StrEnum):
 
 
 _TWIN_SLOTS: Final = {TwinRole.VALVE_BAND: "valve", TwinRole.CHARACTERISTIC: "characteristic",
-                      TwinRole.ACTUATOR_LAG: "actuator", TwinRole.DEAD_TIME: "delay", TwinRole.OP_LIMITS: "limit",
+                      TwinRole.ACTUATOR_LAG: "actuator", TwinRole.DEAD_TIME: "delay", TwinRole.FLOW_LIMITS: "limit",
                       TwinRole.DISTURBANCE: "output"}
 _TWIN_READS: Final = {TwinRole.VALVE_BAND: ("S",), TwinRole.CHARACTERISTIC: ("kind", "R"),
-                      TwinRole.ACTUATOR_LAG: ("tau",), TwinRole.DEAD_TIME: (), TwinRole.OP_LIMITS: ("lo", "hi"),
+                      TwinRole.ACTUATOR_LAG: ("tau",), TwinRole.DEAD_TIME: (), TwinRole.FLOW_LIMITS: ("lo", "hi"),
                       TwinRole.DISTURBANCE: ("period", "amplitude", "phase")}
 
 #: What a candidate of each kind must implement besides the common methods.

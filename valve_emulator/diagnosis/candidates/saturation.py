@@ -63,7 +63,7 @@ class Saturation(ChainCandidate):
     dims: ClassVar[dict[str, str]] = {"lo": "op_level", "hi": "op_level"}
     cause_rank: ClassVar[int | None] = 30
     needs_span: ClassVar[bool] = True   # limits are travel levels
-    twin_role: ClassVar[TwinRole | None] = TwinRole.OP_LIMITS
+    twin_role: ClassVar[TwinRole | None] = TwinRole.FLOW_LIMITS
 
     def shows_without_span(self, op: np.ndarray) -> bool:
         """OP held flat at an extreme (:func:`op_flat_at_extreme`) is a limit the data place themselves."""

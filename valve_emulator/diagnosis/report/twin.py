@@ -5,7 +5,9 @@ r"""The twin: the loop a diagnosis found, written as a loop config that ``simula
 
 valve
     ``S``, ``J`` of the stiction (or deadband: ``J = 0``) finding, else the nominal valve's; the
-    characteristic found, else the nominal one; the valve model and rest criterion of the nominal valve. All in
+    characteristic found, else the nominal one; the valve model and rest criterion of the nominal valve; a found
+    actuator lag as ``actuator_lag`` (before the friction, where the diagnosis' chain has it) and a found
+    saturation as ``flow_limits`` (the flow clipped after the characteristic, as in the chain). All in
     the twin's travel: the real % travel when OP's travel span is known (the standard format, ``op_units``,
     ``op_range``), and otherwise the diagnosis' unit-free frame (:mod:`~valve_emulator.diagnosis.fit.frame`: the
     recording's robust OP range on 30–70 %). The search always runs in the unit-free frame; :class:`TwinTravel`
@@ -15,9 +17,7 @@ valve
     the recording's OP exactly as the diagnosis did.
 plant
     The final model's linear part as a continuous transfer function (:mod:`~valve_emulator.diagnosis.fit.
-    continuous`), in PV units per % flow, with its dead time. A found actuator lag ``1/(τs + 1)`` joins the
-    plant's denominator: the simulator has no actuator element, and a lag commutes with a linear valve and
-    characteristic (exact then; with a sticky valve the lag moves from before the valve to after it).
+    continuous`), in PV units per % flow, with its dead time.
     The operating point ``pv0, u0`` is the fit's (offset, mean flow; for an integrator the balance flow from the
     fitted trend), ``pv0`` then moved so the twin's open-loop replay has the fit's mean PV on the fit part.
     ``noise`` is the RMS of the final model's residual on the fit part; ``pv_range`` the recorded PV's range
@@ -27,7 +27,7 @@ controller
     The model's controller (tuning, action, limits) when a model with one was given; else, when the recording
     has a set point, a PI identified from it (:func:`identify_pi`); else a controller in **manual** holding
     the first OP, tuned by the SIMC rules (Skogestad, *J. Process Control* 13 (2003) 291–309) for the twin's
-    own plant, so an operator can switch it to auto. A saturation found becomes its ``op_limits``. It starts at
+    own plant, so an operator can switch it to auto. It starts at
     the recording's first OP, with the recorded SP's median (PV's without one) as its set point.
 the start
     ``valve.mv0``, ``stuck0``, ``initial_direction`` and ``plant.rest_flow`` carry the state the recording
@@ -76,6 +76,7 @@ from valve_emulator.diagnosis.fit.data import fit_percent, fold_windows
 from valve_emulator.diagnosis.fit.frame import Frame
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.errors import UserError
+from valve_emulator.physics.actuator import actuator_response
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.simulation.replay import op_travel, pre_rolled, replay_op
 
@@ -198,15 +199,11 @@ class TwinTravel:
         return frame.op_level(self.stops[0]), frame.op_level(self.stops[1])
 
 
-def _plant(fitted: FittedLoop, lag: float | None, travel: TwinTravel
-           ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+def _plant(fitted: FittedLoop, travel: TwinTravel) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """The linear part as ``(num, den)`` in PV units per % flow of the twin's travel."""
     ctx, fit = fitted.ctx, fitted.linear
     num, den = continuous_transfer_function(fit.structure, fit.taps, ctx.dt)
-    num = tuple(c * ctx.y_scale / travel.ratio for c in num)
-    if lag:
-        den = tuple(float(c) for c in np.polymul(den, [lag, 1.0]))
-    return num, den
+    return tuple(c * ctx.y_scale / travel.ratio for c in num), den
 
 
 def _operating_point(fitted: FittedLoop, travel: TwinTravel) -> tuple[float, float]:
@@ -308,12 +305,35 @@ def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray, travel: TwinTrav
         kind, R = CHARACTERISTICS[int(curve["kind"])], curve["R"]
     lines.append("valve.characteristic: " + ("found by the diagnosis." if char is not None else
                                              "the model's." if model is not None else "linear (assumed)."))
+    tau, flow_limits = _actuator_lag(fitted), _flow_limits(fitted)
+    if tau:
+        lines.append(f"valve.actuator_lag: the actuator lag found by the diagnosis (τ = {_g(tau)} s), before the "
+                     "valve's friction as in the diagnosis' chain.")
+    if flow_limits != (0.0, 100.0):
+        lines.append("valve.flow_limits: the saturation found by the diagnosis (the flow clipped after the "
+                     "characteristic, as in the diagnosis' chain).")
     rest = model.valve.rest_time if model is not None else (ctx.rest_samples - 0.5) * ctx.dt
     valve = ValveConfig(model=ctx.valve_model, S=S, J=J, rest_time=rest, op0=float(np.clip(op[0], 0.0, 100.0)),
-                        characteristic=kind, rangeability=R if R > 1.0 else DEFAULT_RANGEABILITY,
-                        op_range=travel.op_range(frame),
+                        actuator_lag=tau, characteristic=kind, rangeability=R if R > 1.0 else DEFAULT_RANGEABILITY,
+                        flow_limits=flow_limits, op_range=travel.op_range(frame),
                         **({"ma_table": model.valve.ma_table} if model is not None else {}))
     return valve, lines
+
+
+def _actuator_lag(fitted: FittedLoop) -> float:
+    """The actuator lag's time constant found (s; 0: none). The lag is unit-free, so no travel map."""
+    found = _in_role(fitted, TwinRole.ACTUATOR_LAG)
+    return _named(found)["tau"] if found is not None else 0.0
+
+
+def _flow_limits(fitted: FittedLoop) -> tuple[float, float]:
+    """The flow's ``[lo, hi]`` (%) of the saturation found, ``(0, 100)`` without one. The limits are levels on
+    the chain's travel scale, which is the twin's travel: no map."""
+    found = _in_role(fitted, TwinRole.FLOW_LIMITS)
+    if found is None:
+        return 0.0, 100.0
+    flow = _named(found)
+    return max(0.0, flow["lo"]), min(100.0, flow["hi"])
 
 
 def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: TwinTravel
@@ -322,9 +342,7 @@ def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: T
     explanation, rec = diagnosis.explanation, diagnosis.recording
     fitted = explanation.fitted
     ctx, st = fitted.ctx, fitted.linear.structure
-    lag = _in_role(fitted, TwinRole.ACTUATOR_LAG)
-    tau_a = _named(lag)["tau"] if lag is not None else None
-    num, den = _plant(fitted, tau_a, travel)
+    num, den = _plant(fitted, travel)
     pv0, u0 = _operating_point(fitted, travel)
     w0 = ctx.window[0]
     noise = float(np.sqrt(np.mean((explanation.traces.pv[w0:] - explanation.traces.pv_after[w0:]) ** 2)))
@@ -334,8 +352,7 @@ def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: T
     plant = PlantConfig(num, den, delay=st.delay, pv0=pv0, u0=u0, units=units, noise=noise,
                         pv_range=(lo - PV_MARGIN * span, hi + PV_MARGIN * span))
     lines = [f"plant.num, den, delay: the final model's linear part, {_plant_origin(explanation, model)} "
-             f"({st.describe()}), as a continuous transfer function in PV units per % flow"
-             + (f"; times the actuator lag 1/({_g(tau_a)}s+1) found by the diagnosis" if tau_a else "") + ".",
+             f"({st.describe()}), as a continuous transfer function in PV units per % flow.",
              f"plant.pv0, u0: the fit's operating point; plant.noise: RMS residual of the final model ({_g(noise)}); "
              f"pv_range: the recorded PV range widened by {PV_MARGIN:g} of it each side"
              + (f"; units: {units}." if units else ".")]
@@ -368,17 +385,12 @@ def _controller(diagnosis, model: LoopConfig | None, op: np.ndarray, plant: Plan
     rec, fitted = diagnosis.recording, diagnosis.explanation.fitted
     st, lines = fitted.linear.structure, []
     limits = (0.0, 100.0)
-    sat = _in_role(fitted, TwinRole.OP_LIMITS)
-    if sat is not None:
-        flow = _named(sat)
-        limits = (max(0.0, flow["lo"]), min(100.0, flow["hi"]))
-        lines.append("controller.op_limits: the saturation found by the diagnosis.")
     has_sp = rec.sp is not None and bool(np.all(np.isfinite(rec.sp)))
     pi = identify_pi(rec.t, rec.sp, rec.pv, op) if has_sp else None
     if model is not None and model.controller is not None:
         c = model.controller
         kc, ti, td, action, mode = c.kc, c.ti, c.td, c.action, "auto"
-        limits = (max(limits[0], c.op_limits[0]), min(limits[1], c.op_limits[1]))
+        limits = (max(0.0, c.op_limits[0]), min(100.0, c.op_limits[1]))
         lines.append("controller: the model's tuning and action.")
     elif pi is not None:
         (kc, ti, action), td, mode = pi, 0.0, "auto"
@@ -456,12 +468,16 @@ def _valve_start(cfg: LoopConfig, fitted: FittedLoop, op: np.ndarray, travel: Tw
     """The state the fit's valve starts the record in (``op``: the recorded OP in the twin's travel).
 
     A start moving up or down is the valve at rest ``J + ε`` behind OP(0) in the fit's frame, so that OP(0)
-    moves it; the pre-roll start is whatever the twin's valve reaches through the mirrored pre-roll, which runs
-    the same state machine on the same OP as the fit's.
+    moves it (an actuator lag starts at rest at OP(0), so the valve reads OP(0) first either way); the pre-roll
+    start is whatever the twin's valve reaches through the mirrored pre-roll, which runs the same state machine
+    on the same demand as the fit's: the fit's chain lags the whole record first, then pre-rolls the valve on
+    the lagged OP.
     """
     d = _fitted_start(fitted)
     if d is None:
-        bank = pre_rolled(cfg, op)
+        v = cfg.valve
+        demand = actuator_response(op, v.actuator_lag, cfg.simulation.dt) if v.actuator_lag else op
+        bank = pre_rolled(replace(cfg, valve=replace(v, actuator_lag=0.0)), demand)
         return ValveStart(float(bank.mv[0]), int(bank.direction[0]), bool(bank.stuck[0]))
     v = cfg.valve
     J = v.J / travel.ratio                                          # the fit's frame
