@@ -112,17 +112,16 @@ def unseen(family: str, seed: int, with_model: bool):
 
 
 @pytest.mark.slow
-def test_twins_of_loops_the_package_did_not_simulate_replay_the_whole_record_as_their_diagnosis():
+@pytest.mark.parametrize(("family", "seed", "with_model"), UNSEEN,
+                         ids=lambda v: ("model" if v else "plant") if isinstance(v, bool) else str(v))
+def test_twins_of_loops_the_package_did_not_simulate_replay_the_whole_record_as_their_diagnosis(family, seed,
+                                                                                                 with_model):
     """Recordings of the independent simulator (continuous plants, the controller a sample late, friction and
     lag in either order): the twin's open-loop replay fits the whole record at least as well as the diagnosis'
-    prediction, less 2 points, in at least 90 % of the loops (24 of 24 today; 24 diagnoses, about 3 minutes)."""
-    results = []
-    for family, seed, with_model in UNSEEN:
-        rec, d = unseen(family, seed, with_model)
-        diagnosis, replay = whole_record_fits(d, rec, d.to_config())
-        results.append((family, seed, with_model, round(diagnosis, 1), round(replay, 1)))
-    bad = [r for r in results if r[4] < r[3] - 2.0]
-    assert len(bad) <= 0.1 * len(results), bad
+    prediction, less 2 points (each of the 24 loops; a diagnosis of a few seconds each)."""
+    rec, d = unseen(family, seed, with_model)
+    diagnosis, replay = whole_record_fits(d, rec, d.to_config())
+    assert replay >= diagnosis - 2.0, (round(diagnosis, 1), round(replay, 1))
 
 
 @pytest.mark.slow
