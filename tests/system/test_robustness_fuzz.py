@@ -4,10 +4,10 @@ A seeded generator builds batches of malformed requests whose specified answer i
 each batch in one ``sendall`` (sometimes cut into many small segments) and checks every answer; a batch may
 end with a frame that cannot be resynchronised (wrong protocol id, a length of 0, 1 or > 254, random bytes,
 a truncated frame followed by end of stream), after which the server must have answered everything before
-it and closed the connection. The client runs in another process with blocking sockets, as an attacker would:
-in a thread of this one it would take the GIL from the event loop for about a third of the CPU time, and the tick would
-measure the test, not the server. The server and its tick (real physics, time-scale 1, 100 ms) run on the test's
-event loop.
+it and closed the connection. The client runs in another process with blocking sockets, as an attacker
+would: in a thread of this one it would hold the GIL for about a third of the CPU time, and the tick would
+measure the test, not the server. The server and its tick (real physics, time-scale 1, 100 ms) run on the
+test's event loop.
 """
 
 from __future__ import annotations
