@@ -21,14 +21,13 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 pytest_plugins = ["valve_emulator.testing.plugin", "pytester"]
 
 
-# Test modules that assert wall-clock timing (tick rates, lateness and overruns while clients load the device).
-# They are marked ``realtime``: .ci/run runs every other test in two processes (pytest-xdist) and then these on
-# their own, so that no other test shares the machine's two cores with them. A single test elsewhere that times
-# the tick carries the marker itself.
+# Test modules all of whose tests assert wall-clock timing (tick rates, lateness and overruns while clients load
+# the device). They are marked ``realtime``: .ci/run runs every other test in two processes (pytest-xdist) and then
+# these on their own, so that no other test shares the machine's two cores with them. In a module that mixes them
+# with tests on a manual clock (tests/system/test_device_closed_loop.py, test_robustness_flood.py), and elsewhere,
+# a test that asserts wall-clock timing carries the marker itself.
 _REALTIME = {
-    "system/test_device_closed_loop.py",
     "system/test_hostile_input.py",
-    "system/test_robustness_flood.py",
     "system/test_robustness_fuzz.py",
     "system/test_clients_e2e.py",
     "opcua/test_opcua_hostile.py",

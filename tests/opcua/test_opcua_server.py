@@ -4,6 +4,7 @@ roles, the station's methods and subscriptions; asyncua's client in process."""
 import asyncio
 import json
 import math
+import time
 
 import pytest
 from asyncua import Client, ua
@@ -236,6 +237,17 @@ def test_beyond_loopback_needs_a_secure_policy_and_users(tmp_path):
     OpcUaSecurity().check("127.0.0.1")
     OpcUaSecurity().check("::1")
     assert math.isfinite(1.0)
+
+
+async def test_stopping_opcua_ends_its_tasks_at_once(config, no_task_leak):
+    """asyncua's own stop waits for the once-a-second clock task to wake up; the server ends it instead, so that
+    neither a user's shutdown nor a test waits a second for nothing."""
+    async with EmulatorServer(config, port=0, time_scale=0) as srv:
+        opc = OpcUaServer(srv.device, loops=config.loops, port=0)
+        await opc.start()
+        started = time.monotonic()
+        await opc.stop()
+        assert time.monotonic() - started < 0.5
 
 
 @pytest.mark.realtime

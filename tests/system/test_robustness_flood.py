@@ -58,6 +58,7 @@ def _read(port: int) -> bytes:
         return data
 
 
+@pytest.mark.realtime
 async def test_200_connections_and_10_slow_clients_keep_the_tick_and_the_normal_clients(caplog):
     caplog.set_level(logging.INFO, logger="valve_emulator.device.server")
     cfg = _config(frame_timeout=FRAME_TIMEOUT, idle_timeout=IDLE_TIMEOUT)   # max_connections: default 64
@@ -218,6 +219,7 @@ def _frames(n: int, pdu: bytes, unit: int = 1) -> bytes:
     return b"".join(struct.pack(">HHHB", t & 0xFFFF, 0, len(pdu) + 1, unit) + pdu for t in range(n))
 
 
+@pytest.mark.realtime
 async def test_garbage_is_tarpitted_then_closed_without_holding_a_connection_slot(fake_bank_cls):
     from valve_emulator.device.connection import VIOLATION_DELAY
 
@@ -237,6 +239,7 @@ async def test_garbage_is_tarpitted_then_closed_without_holding_a_connection_slo
         writer.close()
 
 
+@pytest.mark.realtime
 async def test_error_budget_slows_a_garbage_stream_and_nobody_else(fake_bank_cls):
     cfg = _config(error_rate=200.0)
     async with EmulatorServer(cfg, bank=fake_bank_cls.for_config(cfg), time_scale=0) as srv:
@@ -255,6 +258,7 @@ async def test_error_budget_slows_a_garbage_stream_and_nobody_else(fake_bank_cls
         assert elapsed >= (400 - 200 - 32) / 200 * 0.8             # about 200 answers per second after the burst
 
 
+@pytest.mark.realtime
 async def test_a_pipelining_client_does_not_hold_up_another(fake_bank_cls):
     cfg = _config()
     async with EmulatorServer(cfg, bank=fake_bank_cls.for_config(cfg), time_scale=0) as srv:

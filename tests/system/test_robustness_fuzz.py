@@ -4,19 +4,23 @@ A seeded generator builds batches of malformed requests whose specified answer i
 each batch in one ``sendall`` (sometimes cut into many small segments) and checks every answer; a batch may
 end with a frame that cannot be resynchronised (wrong protocol id, a length of 0, 1 or > 254, random bytes,
 a truncated frame followed by end of stream), after which the server must have answered everything before
-it and closed the connection. The client runs in a thread with blocking sockets; the server and its tick
-(real physics, time-scale 1, 100 ms) run on the test's event loop.
+it and closed the connection. The client runs in another process with blocking sockets, as an attacker
+would: in a thread of this one it would hold the GIL for about a third of the CPU time, and the tick would
+measure the test, not the server. The server and its tick (real physics, time-scale 1, 100 ms) run on the
+test's event loop.
 """
 
 from __future__ import annotations
 
 import asyncio
 import gc
+import multiprocessing
 import random
 import socket
 import struct
 import time
 import tracemalloc
+from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
@@ -305,38 +309,44 @@ async def _until(predicate, timeout: float = 5.0) -> None:
 
 
 async def test_fuzz_1e5_malformed_frames_leave_the_device_unharmed():
-    async with EmulatorServer(_config(), time_scale=1.0) as srv:
-        await srv.device.wait_for_tick(2)
-        stats = await asyncio.to_thread(_fuzz, srv.port, 3000, 1)          # warm-up: code paths, caches
-        await _until(lambda: srv.connections == 0)
-        before_op = await asyncio.to_thread(_read_holding, srv.port, 1, 0, 2)
-        gc.collect()
-        tasks_before = len(asyncio.all_tasks())
-        tracemalloc.start()
-        mem_before = tracemalloc.get_traced_memory()[0]
-        ticks0 = await srv.device.wait_for_tick(srv.device.ticks + 1)   # measure from a tick instant
-        t0, overruns0 = time.monotonic(), srv.device.overruns
+    loop = asyncio.get_running_loop()
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as attacker:
+        async with EmulatorServer(_config(), time_scale=1.0) as srv:
+            # the wall time each tick ran at (this coroutine resumes after a tick, later on a busy event loop)
+            tick_at: dict[int, float] = {}
+            srv.device.on_tick.append(lambda device: tick_at.__setitem__(device.ticks, time.monotonic()))
+            await srv.device.wait_for_tick(2)
+            # warm-up: the attacker process starts, the server's code paths and caches fill
+            stats = await loop.run_in_executor(attacker, _fuzz, srv.port, 3000, 1)
+            await _until(lambda: srv.connections == 0)
+            before_op = await asyncio.to_thread(_read_holding, srv.port, 1, 0, 2)
+            gc.collect()
+            tasks_before = len(asyncio.all_tasks())
+            tracemalloc.start()
+            mem_before = tracemalloc.get_traced_memory()[0]
+            ticks0 = await srv.device.wait_for_tick(srv.device.ticks + 1)   # measure from a tick instant
+            t0, overruns0 = tick_at[ticks0], srv.device.overruns
 
-        stats = await asyncio.to_thread(_fuzz, srv.port, N_FRAMES, 9)
+            stats = await loop.run_in_executor(attacker, _fuzz, srv.port, N_FRAMES, 9)
 
-        ticks1 = await srv.device.wait_for_tick(srv.device.ticks + 1)
-        t1 = time.monotonic()
-        await _until(lambda: srv.connections == 0)
-        gc.collect()
-        mem_after = tracemalloc.get_traced_memory()[0]
-        tracemalloc.stop()
-        assert stats["frames"] >= N_FRAMES and stats["closed"] > 100 and stats["split"] > 10, stats
-        # the tick kept its schedule: ticks advanced at the nominal rate (±1 %), none overran
-        rate = (ticks1 - ticks0) / (t1 - t0)
-        assert rate == pytest.approx(1 / TICK, rel=0.01), (ticks1 - ticks0, t1 - t0)
-        assert srv.device.overruns == overruns0
-        # tasks and memory back to the baseline
-        assert len(asyncio.all_tasks()) == tasks_before
-        assert mem_after - mem_before < 512 * 1024, f"{(mem_after - mem_before) / 1024:.0f} KiB retained"
-        # nothing was written, and a normal read answers correctly
-        assert await asyncio.to_thread(_read_holding, srv.port, 1, 0, 2) == before_op
-        regs = await asyncio.to_thread(_read_holding, srv.port, 2, address_of("map_version"), 1)
-        assert regs == [MAP_VERSION]
-        assert srv.device._pending == {}
-        print(f"fuzz: {stats}, {t1 - t0:.1f} s, requests {srv.requests}, violations {srv.violations}, "
-              f"retained {(mem_after - mem_before) / 1024:.0f} KiB, tick p99 {srv.device.jitter.p99 * 1e3:.2f} ms")
+            ticks1 = await srv.device.wait_for_tick(srv.device.ticks + 1)
+            t1 = tick_at[ticks1]
+            await _until(lambda: srv.connections == 0)
+            gc.collect()
+            mem_after = tracemalloc.get_traced_memory()[0]
+            tracemalloc.stop()
+            assert stats["frames"] >= N_FRAMES and stats["closed"] > 100 and stats["split"] > 10, stats
+            # the tick kept its schedule: ticks advanced at the nominal rate (±1 %), none overran
+            rate = (ticks1 - ticks0) / (t1 - t0)
+            assert rate == pytest.approx(1 / TICK, rel=0.01), (ticks1 - ticks0, t1 - t0)
+            assert srv.device.overruns == overruns0
+            # tasks and memory back to the baseline
+            assert len(asyncio.all_tasks()) == tasks_before
+            assert mem_after - mem_before < 512 * 1024, f"{(mem_after - mem_before) / 1024:.0f} KiB retained"
+            # nothing was written, and a normal read answers correctly
+            assert await asyncio.to_thread(_read_holding, srv.port, 1, 0, 2) == before_op
+            regs = await asyncio.to_thread(_read_holding, srv.port, 2, address_of("map_version"), 1)
+            assert regs == [MAP_VERSION]
+            assert srv.device._pending == {}
+            print(f"fuzz: {stats}, {t1 - t0:.1f} s, requests {srv.requests}, violations {srv.violations}, "
+                  f"retained {(mem_after - mem_before) / 1024:.0f} KiB, tick p99 {srv.device.jitter.p99 * 1e3:.2f} ms")

@@ -280,6 +280,16 @@ def _asyncua_loggers() -> list[logging.Logger]:
     return [logging.getLogger(n) for n in names]
 
 
+async def _stop_clock_task(server: Server) -> None:
+    """End asyncua's task that writes the server's CurrentTime once a second. ``Server.stop`` only flags it
+    and waits for its one-second sleep to run out: every stop would take a second for nothing."""
+    task, server.iserver.time_task = server.iserver.time_task, None
+    if task is not None:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
 class _CheckedWrites(AttributeService):
     """asyncua's attribute service with the loop variables' writes routed through ``Device.write``."""
 
@@ -802,6 +812,7 @@ class OpcUaServer:
                 await task
         server, self.server = self.server, None
         if server is not None:
+            await _stop_clock_task(server)
             await server.stop()
         for logger in _asyncua_loggers():
             logger.removeFilter(self._log_filter)
