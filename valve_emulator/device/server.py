@@ -1,9 +1,9 @@
 """Modbus TCP adapter: serves the register image of a :class:`~valve_emulator.device.tick.Device`.
 
-The only module that imports pymodbus on the server side or knows Modbus exception codes.
+The only module that imports pymodbus on the server side (its exception codes) or knows Modbus exception codes.
 
-Decision: pymodbus for the PDU layer only, our own asyncio server for the rest
-------------------------------------------------------------------------------
+Decision: our own asyncio server and PDU decoding, pymodbus for its exception codes
+-----------------------------------------------------------------------------------
 pymodbus 3.16's server drops every request but the first when several frames arrive in one TCP segment
 (its receive buffer is cleared on send), logs a full traceback for an unknown unit id, runs datastore
 "actions" twice for function code 6 and blocks the owner's own writes to client-read-only registers. Fixing
