@@ -212,12 +212,9 @@ class LoopBank:
         self.noise_std = np.array([c.plant.noise for c in loops], dtype=float)
         self._seeds = seeds
         self._noise: NoiseBank | None = None
-        # What a step needs of them, none of it state (a snapshot holds the generators themselves): the
-        # disturbances' step, None when no loop has one (the kinds are fixed by the configs), and the noise
-        # of a bank where no loop is noisy (read-only).
+        # the disturbances' step, None when no loop has one (the kinds are fixed by the configs); a bound
+        # method, so not part of the bank's state (a snapshot holds the generators themselves)
         self._disturbance = None if all(d.type == "none" for d in dist) else self._dist.step
-        self._silence = np.zeros(n)
-        self._silence.flags.writeable = False
         #: instructor faults: extra load (% flow added to the plant input) and a valve stuck completely
         self.load = np.zeros(n)
         self.frozen = np.zeros(n, dtype=np.bool_)
@@ -467,7 +464,7 @@ class LoopBank:
             self._apply_sp_schedule(t)
         dist = self.load + (0.0 if self._disturbance is None else self._disturbance(t))   # d + load, bit for bit
         if self._noise is None and not self.noise_std.any():
-            noise = self._sensor(self._silence)
+            noise = self._sensor(np.zeros(self.n))
         else:
             noise = self._sensor(self._unit_noise(1)[0] * self.noise_std)
         pv_meas = np.empty(self.n)
