@@ -108,6 +108,8 @@ class RegisterMap:
             if row.access is not R:
                 written.setdefault(row.quantity, row)
         object.__setattr__(self, "_written", written)
+        #: the quantities the map's registers show (what a tick encodes for it)
+        object.__setattr__(self, "quantities", frozenset(row.quantity for row in self.holding + self.input))
         shown: dict[str, list[Register]] = {}
         for row in self.holding + (() if mirror else self.input):
             shown.setdefault(row.quantity, []).append(row)
