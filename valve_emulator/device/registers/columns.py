@@ -116,9 +116,12 @@ def _words(reg: Register, x: np.ndarray, scaling: Scaling) -> np.ndarray:
         bits = x.astype(np.float64).view(np.uint64)
     else:
         bits = _raw(reg, x, scaling) & ((1 << (16 * width)) - 1)
-    shifts = [16 * (width - 1 - k) for k in range(width)]          # high word first
-    words = np.stack([(bits >> np.uint64(s) if bits.dtype == np.uint64 else bits >> s) & 0xFFFF for s in shifts],
-                     axis=1).astype(np.int64)
+    if width == 1:   # most tags: one word, no order
+        return (bits & 0xFFFF).astype(np.int64).reshape(-1, 1)
+    words = np.empty((bits.shape[0], width), dtype=np.int64)
+    for k in range(width):                                          # high word first
+        s = 16 * (width - 1 - k)
+        words[:, k] = (bits >> np.uint64(s) if bits.dtype == np.uint64 else bits >> s) & 0xFFFF
     return words[:, ::-1] if (reg.word_order or scaling.word_order) is CDAB else words
 
 
