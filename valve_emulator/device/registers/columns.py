@@ -98,20 +98,19 @@ def _raw(reg: Register, x: np.ndarray, scaling: Scaling) -> np.ndarray:
     if conversion in (Conversion.BITS, Conversion.FLAG):
         return (x != 0).astype(np.int64) if conversion is Conversion.FLAG else x.astype(np.int64)
     lo, hi = reg.read_range
-    with np.errstate(invalid="ignore"):
-        y = _scaled(reg, x.astype(float), scaling)
-        raw = np.where(y >= lo, np.where(y > hi, hi, np.rint(np.where(np.isfinite(y), y, lo))), lo)
-        if reg.zero_is_off:
-            raw = np.where(np.isfinite(x) & (x > 0), raw, 0)
+    y = _scaled(reg, x.astype(float), scaling)
+    raw = np.where(y >= lo, np.where(y > hi, hi, np.rint(np.where(np.isfinite(y), y, lo))), lo)
+    if reg.zero_is_off:
+        raw = np.where(np.isfinite(x) & (x > 0), raw, 0)
     return raw.astype(np.int64)
 
 
 def _words(reg: Register, x: np.ndarray, scaling: Scaling) -> np.ndarray:
-    """(n, width) register words of ``reg`` for the loops' physical values ``x``."""
+    """(n, width) register words of ``reg`` for the loops' physical values ``x`` (inside :func:`encode_rows`'
+    ``errstate``: NaN compares and float32 overflows are the rule's, not an error)."""
     width = reg.width
     if reg.type is DataType.FLOAT32:
-        with np.errstate(over="ignore", invalid="ignore"):
-            bits = x.astype(np.float64).astype(np.float32).view(np.uint32).astype(np.int64)
+        bits = x.astype(np.float64).astype(np.float32).view(np.uint32).astype(np.int64)
     elif reg.type is DataType.FLOAT64:
         bits = x.astype(np.float64).view(np.uint64)
     else:
@@ -133,10 +132,11 @@ def encode_rows(state: Any, scaling: Scaling, regmap: RegisterMap, *, tick: int,
     values = loop_columns(state, n, tick=tick, overruns=overruns, time=time, alarms=alarms,
                           quantities=regmap.quantities)
     rows = np.zeros((n, regmap.row_words), dtype=np.int64)
-    for reg in regmap.registers:
-        words = _words(reg, np.asarray(values[reg.quantity]), scaling)
-        if reg.quantity in CONTROLLER_QUANTITIES:
-            words[~values["controller"]] = 0
-        at = regmap.word_offset(reg.table, reg.address)
-        rows[:, at:at + reg.width] = words
+    with np.errstate(over="ignore", invalid="ignore"):   # once per tick, not per register
+        for reg in regmap.registers:
+            words = _words(reg, np.asarray(values[reg.quantity]), scaling)
+            if reg.quantity in CONTROLLER_QUANTITIES:
+                words[~values["controller"]] = 0
+            at = regmap.word_offset(reg.table, reg.address)
+            rows[:, at:at + reg.width] = words
     return rows
