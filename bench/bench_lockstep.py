@@ -20,6 +20,12 @@ request outstanding, no Modbus library) measures, one request at a time:
 ``--before`` serves a second device from another checkout of the project (its code on ``PYTHONPATH``), and each
 round measures both servers one after the other, so that a before/after comparison shares the machine's load.
 Figures are medians over the rounds with their spread (min–max).
+
+``--answers N [--before CHECKOUT]``: instead of timing, N random request frames (every function code, refused
+and malformed ones, steps of 0 to 300 ticks, two roles) answered in-process by a lockstep device of 10 loops on
+4 units (a unit without a loop asked too) and by one serving the Modbus float32 CDAB and S7 counts profiles;
+prints the SHA-256 of every answer and of both register images after every request, for each checkout: a
+faster request path must give the same digest.
 """
 
 from __future__ import annotations
@@ -35,6 +41,9 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "bench"))
@@ -279,6 +288,118 @@ def timeit_runs(fn: Callable[[], object], repeats: int, number: int) -> list[flo
     return runs
 
 
+def _answers_servers() -> list:
+    """The lockstep servers :func:`answers_digest` asks: 10 loops on 4 units, then the two profiles' maps."""
+    from valve_emulator.config import server_from_mapping
+    from valve_emulator.device.runtime import load_server_or_default, with_device
+    from valve_emulator.device.server import EmulatorServer
+
+    fleet = server_from_mapping({
+        "device": {"tick": 0.1, "instructor_writes": True, "lockstep": True},
+        "loops": [
+            {"unit": 1, "valve": {"S": 5.0, "J": 2.0},
+             "plant": {"fopdt": {"gain": 3.0, "tau": 10.0, "delay": 1.0}, "noise": 0.02,
+                       "disturbance": {"type": "sine", "amplitude": 2.0, "period": 5.0}},
+             "controller": {"kc": 0.2, "ti": 10.0, "sp_steps": [[0.5, 1.0], [3.0, 2.0]]}},
+            {"unit": 2, "valve": {"S": 3.0, "J": 1.0, "ma_table": [[4.0, 0.0], [12.0, 40.0], [20.0, 100.0]]},
+             "plant": {"integrator": {"gain": 0.1}, "pv0": 50.0}},
+        ],
+        "fleet": {"count": 8, "loops_per_unit": 4, "seed": 3,
+                  "base": {"valve": {"S": 4.0, "J": 1.0, "op0": 45.0},
+                           "plant": {"fopdt": {"gain": 1.0, "tau": 4.0, "delay": 0.3}},
+                           "controller": {"kc": 0.5, "ti": 5.0, "mode": "manual"}},
+                  "vary": {"S": [0.5, 3.0], "gain": [0.5, 2.0]}}})
+    servers = [EmulatorServer(fleet)]
+    for profile in ("modicon_float_cdab", "s7_analog"):
+        config = load_server_or_default(ROOT / "configs" / "profiles" / f"{profile}.yaml")
+        servers.append(EmulatorServer(with_device(config, lockstep=True)))
+    return servers
+
+
+def _random_pdu(rng: Any, step_heavy: bool) -> bytes:
+    """One request PDU: mostly the lockstep path's function codes at addresses near the map, some refused,
+    some malformed (a byte cut off or added)."""
+    def address() -> int:
+        kind = rng.random()
+        if kind < 0.3:
+            return int(rng.choice([0, 0, 0, 1, 5, 6, 24]))
+        if kind < 0.6:
+            return int(rng.integers(0, 40))
+        if kind < 0.8:
+            return int(32 * rng.integers(0, 4) + rng.integers(0, 33))
+        return int(rng.choice([STEP, STEP - 1, 0xFF00, 0xFF01, 0xFF02, int(rng.integers(0, 65536))]))
+
+    def value() -> int:
+        return int(rng.choice([rng.integers(0, 65536), rng.integers(0, 10001), rng.integers(0, 30000),
+                               rng.integers(0, 2), rng.integers(4000, 20001)]))
+
+    fc = int(rng.choice([3, 4, 6, 16, 23, 1, 2, 5, 8, 15, 22, 43, 7, 0x2B],
+                        p=[.2, .08, .3, .1, .1, .03, .03, .03, .02, .03, .03, .02, .02, .01]))
+    if fc == 6 and step_heavy and rng.random() < 0.4:
+        pdu = struct.pack(">BHH", 6, STEP, int(rng.choice([0, 1, 1, 1, 2, 3, 5, 10, int(rng.integers(0, 300))])))
+    elif fc in (3, 4, 1, 2):
+        pdu = struct.pack(">BHH", fc, address(), int(rng.choice([1, 2, 4, 10, int(rng.integers(0, 130))])))
+    elif fc in (6, 5):
+        pdu = struct.pack(">BHH", fc, address(), value() if fc == 6 else int(rng.choice([0, 0xFF00, 1])))
+    elif fc == 16:
+        n = int(rng.integers(1, 5))
+        pdu = struct.pack(f">BHHB{n}H", 16, address(), n, 2 * n, *(value() for _ in range(n)))
+    elif fc == 23:
+        pdu = struct.pack(">BHHHHBH", 23, address(), int(rng.integers(1, 4)), STEP if rng.random() < 0.4
+                          else address(), 1, 2, int(rng.integers(0, 4)) if rng.random() < 0.5 else value())
+    elif fc == 15:
+        pdu = struct.pack(">BHHBB", 15, address(), 2, 1, int(rng.integers(0, 4)))
+    elif fc == 22:
+        pdu = struct.pack(">BHHH", 22, address(), int(rng.integers(0, 65536)), int(rng.integers(0, 65536)))
+    elif fc == 8:
+        pdu = struct.pack(">BHH", 8, int(rng.choice([0, 0x0A, 0x0B, 0x0D, 0x0E, 3])), 0)
+    elif fc == 43:
+        pdu = bytes((43, 14, int(rng.integers(1, 5)), int(rng.integers(0, 8))))
+    else:
+        pdu = bytes((fc,)) + bytes(rng.integers(0, 256, int(rng.integers(0, 6)), dtype=np.uint8))
+    cut = rng.random()
+    if cut < 0.03:
+        return pdu[:-1] or pdu
+    if cut < 0.05:
+        return pdu + b"\x00"
+    return pdu
+
+
+def answers_digest(n: int, seed: int = 34) -> dict[str, Any]:
+    """SHA-256 of the answers to ``n`` random frames and of the register images after each (see the module doc)."""
+    import hashlib
+
+    from valve_emulator.device.roles import INSTRUCTOR, UNAUTHENTICATED
+
+    rng = np.random.default_rng(seed)
+    digest = hashlib.sha256()
+    codes: dict[str, int] = {}
+    for srv in _answers_servers():
+        units = sorted(set(srv.units))
+        for tid in range(n // 3):
+            unit = int(rng.choice(units)) if rng.random() < 0.95 else int(rng.choice([0, 77]))
+            frame = struct.pack(">HHHB", tid & 0xFFFF, 0, 0, unit)
+            pdu = _random_pdu(rng, step_heavy=True)
+            frame = frame[:4] + struct.pack(">HB", len(pdu) + 1, unit) + pdu
+            answer = srv.handle(frame, INSTRUCTOR if rng.random() < 0.3 else UNAUTHENTICATED)
+            digest.update(answer)
+            digest.update(bytes(srv.device.image))
+            if srv.device.served is not srv.device.image:
+                digest.update(bytes(srv.device.served))
+            key = f"0x{answer[8]:02X}" if answer[7] & 0x80 else "answered"
+            codes[key] = codes.get(key, 0) + 1
+        digest.update(str(srv.device.ticks).encode())
+    return {"sha256": digest.hexdigest(), "answers": dict(sorted(codes.items()))}
+
+
+def answers_digest_of(root: Path, n: int) -> dict[str, Any]:
+    """:func:`answers_digest` with checkout ``root``'s code, in a process of its own."""
+    env = dict(os.environ, PYTHONPATH=str(root))
+    done = subprocess.run([sys.executable, __file__, "--answers-json", str(n)], capture_output=True, text=True,
+                          env=env, cwd=root, check=True)
+    return json.loads(done.stdout)
+
+
 def server_cpu_of(root: Path, number: int) -> dict[str, float]:
     """:func:`server_cpu` of checkout ``root``: in this process for this checkout, else in a process of its own
     with that checkout's code."""
@@ -310,11 +431,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=3, help="rounds per server (default 3)")
     ap.add_argument("--requests", type=int, default=2000, help="requests (or scans) per case and round")
     ap.add_argument("--before", type=Path, help="another checkout to measure alongside this one, alternately")
+    ap.add_argument("--answers", type=int, help="compare the answers to this many random frames instead of timing")
     ap.add_argument("--server-cpu", type=int, help=argparse.SUPPRESS)   # one checkout's, as JSON
+    ap.add_argument("--answers-json", type=int, help=argparse.SUPPRESS)   # one checkout's, as JSON
     args = ap.parse_args(argv)
     if args.server_cpu:
         print(json.dumps(server_cpu(args.server_cpu)))
         return 0
+    if args.answers_json:
+        print(json.dumps(answers_digest(args.answers_json)))
+        return 0
+    if args.answers:
+        roots = {"this checkout": ROOT} if args.before is None else {"before": args.before.resolve(), "after": ROOT}
+        digests = {name: answers_digest_of(root, args.answers) for name, root in roots.items()}
+        for name, d in digests.items():
+            print(f"{name}: {d['sha256']} {d['answers']}")
+        same = len({d["sha256"] for d in digests.values()}) == 1
+        print("the same answers and images" if same else "ANSWERS OR IMAGES DIFFER")
+        return 0 if same else 1
     roots = {"this checkout": ROOT}
     if args.before is not None:
         roots = {"before": args.before.resolve(), "after": ROOT}

@@ -269,3 +269,45 @@ async def test_mbpoll_default_word_order_matches_a_cdab_device(make_server, mbpo
         values = _values(out)
         assert float(values[address_of("op_f32")]) == pytest.approx(50.0)
         assert float(values[address_of("mv_f32")]) == pytest.approx(50.0)
+
+
+def test_register_requests_are_answered_in_the_bytes_pymodbus_encodes():
+    """The server decodes FC3/6/16/23 from the raw bytes and frames its answers itself: an answer, an exception
+    answer and the MBAP header are the bytes pymodbus' response classes and socket framer give for them."""
+    from pymodbus.framer import FramerSocket
+    from pymodbus.pdu import DecodePDU, ExceptionResponse
+    from pymodbus.pdu.register_message import (
+        ReadHoldingRegistersResponse,
+        ReadWriteMultipleRegistersResponse,
+        WriteMultipleRegistersResponse,
+        WriteSingleRegisterResponse,
+    )
+
+    from valve_emulator.device.roles import UNAUTHENTICATED
+
+    srv = EmulatorServer(_config(lockstep=True))
+    framer = FramerSocket(DecodePDU(is_server=False))
+
+    def ask(pdu, tid):
+        return srv.handle(struct.pack(">HHHB", tid, 0, len(pdu) + 1, OPEN_LOOP) + pdu, UNAUTHENTICATED)
+
+    def expected(response, tid):
+        return framer.encode(bytes((response.function_code,)) + response.encode(), OPEN_LOOP, tid)
+
+    def words(address, count):
+        return list(struct.unpack(f">{count}H", srv.device.served[2 * address:2 * (address + count)]))
+
+    op, op_ma, pv = address_of("op_pct"), address_of("op_ma"), address_of("pv")
+    assert ask(struct.pack(">BHH", 6, op, 4321), 0x1234) == expected(
+        WriteSingleRegisterResponse(address=op, registers=[4321]), 0x1234)
+    assert ask(struct.pack(">BHHBHH", 16, op, 2, 4, 6000, 13600), 0xFFFF) == expected(
+        WriteMultipleRegistersResponse(address=op, count=2), 0xFFFF)
+    step = struct.pack(">BHHHHBH", 23, pv, 3, 0xFF10, 1, 2, 1)
+    answer = ask(step, 7)
+    assert srv.device.ticks == 1
+    assert answer == expected(ReadWriteMultipleRegistersResponse(registers=words(pv, 3)), 7)
+    read = expected(ReadHoldingRegistersResponse(registers=words(op_ma, 2)), 8)
+    assert ask(struct.pack(">BHH", 3, op_ma, 2), 8) == read
+    refused = ask(struct.pack(">BHH", 6, address_of("mv_pct"), 1), 9)          # read-only: illegal data address
+    assert refused == expected(ExceptionResponse(6, 2), 9)
+    assert ask(struct.pack(">BHH", 16, op, 0), 10) == expected(ExceptionResponse(16, 3), 10)   # malformed

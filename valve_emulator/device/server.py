@@ -1,16 +1,20 @@
 """Modbus TCP adapter: serves the register image of a :class:`~valve_emulator.device.tick.Device`.
 
-The only module that imports pymodbus on the server side or knows Modbus exception codes.
+The only module that imports pymodbus on the server side (its exception codes) or knows Modbus exception codes.
 
-Decision: pymodbus for the PDU layer only, our own asyncio server for the rest
-------------------------------------------------------------------------------
+Decision: our own asyncio server and PDU decoding, pymodbus for its exception codes
+-----------------------------------------------------------------------------------
 pymodbus 3.16's server drops every request but the first when several frames arrive in one TCP segment
 (its receive buffer is cleared on send), logs a full traceback for an unknown unit id, runs datastore
 "actions" twice for function code 6 and blocks the owner's own writes to client-read-only registers. Fixing
 that inside its connection and datastore classes would mean overriding private methods of several classes.
-So this module runs a plain ``asyncio`` TCP server with its own MBAP framing and uses pymodbus where it
-is good: decoding request PDUs (:class:`pymodbus.pdu.DecodePDU`, which validates quantities) and encoding
-write responses, exception responses and MBAP headers (:class:`pymodbus.framer.FramerSocket`). Read
+So this module runs a plain ``asyncio`` TCP server with its own MBAP framing. It also decodes the request
+PDUs itself: pymodbus' decoder (:class:`pymodbus.pdu.DecodePDU`) formats every request for a debug log, logging
+on or not, which cost a lockstep client more than the rest of a register write. Once
+:func:`~valve_emulator.device.pdu.malformed` has checked a PDU's length, quantities and byte count, its fields
+are big-endian words at fixed places, read straight from the bytes; a write's answer echoes the request (FC6)
+or its first five bytes (FC16), an exception answer is the function code with bit 7 set and the code, and
+the MBAP header is built as pymodbus' ``FramerSocket`` builds it (``tests/device`` compares the bytes). Read
 responses are the byte count plus a slice of the precomputed big-endian register image, with no
 per-register work.
 
@@ -29,13 +33,13 @@ FC16, 1..121 written by FC23, 1..2000 bits read, 1..1968 written by FC15, byte c
 *before* anything decodes it, so no malformed PDU reaches a decoder (pymodbus' would log a warning per
 frame) and every one is answered ``0x03``.
 
-Function codes: 3, 4, 6, 16, 23 are decoded by pymodbus; 1, 2, 5, 15 (the bit tables of
+Function codes, all decoded here from the raw bytes: 3, 4, 6, 16, 23; 1, 2, 5, 15 (the bit tables of
 :mod:`~valve_emulator.device.registers.bits`), 8 (diagnostics: sub-function 0 echoes, 0x0A clears the
 counters, 0x0B..0x0E read them, :class:`DiagnosticCounters`), 22 (mask write, §6.16, checked and applied
-as the FC6 write of its result) and 43 / 0x0E (device identification, :mod:`~valve_emulator.device.identity`)
-are decoded here from the raw bytes. A refused write is logged once per client and cause (register and
-exception code) per interval, with the client's certificate subject and role over TLS
-(:class:`~valve_emulator.device.guard.RefusalLog`). Listening on all interfaces logs a warning at start.
+as the FC6 write of its result) and 43 / 0x0E (device identification, :mod:`~valve_emulator.device.identity`).
+A refused write is logged once per client and cause (register and exception code) per interval, with the
+client's certificate subject and role over TLS (:class:`~valve_emulator.device.guard.RefusalLog`). Listening
+on all interfaces logs a warning at start.
 
 Answers (exception codes):
 
@@ -69,14 +73,12 @@ import ipaddress
 import logging
 import re
 import socket
+import struct
 import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerSocket
-from pymodbus.pdu import DecodePDU, ExceptionResponse
-from pymodbus.pdu.register_message import WriteMultipleRegistersResponse, WriteSingleRegisterResponse
 
 from valve_emulator.device.comm import CommFaults, CommState
 from valve_emulator.device.connection import SOCKET_BUFFER, ModbusConnection, TurnBudget
@@ -226,8 +228,6 @@ class EmulatorServer:
         self.comm = CommFaults({unit: blocks for unit, (_, blocks) in self._regions.items()})
         if self.device.malfunctions is not None:   # the instructor's comm malfunction acts on these
             self.device.malfunctions.comm = self.comm
-        self._decoder = DecodePDU(is_server=True)
-        self._framer = FramerSocket(self._decoder)
         self._server: asyncio.Server | None = None
         self._tls_server: asyncio.Server | None = None
         #: the Modbus/TCP Security listener's port (:meth:`open_tls`), None without one
@@ -400,8 +400,7 @@ class EmulatorServer:
                 answer = self._read_fast(frame)
                 if answer is not None:
                     return answer
-        tid, unit = (frame[0] << 8) | frame[1], frame[6]
-        return self._framer.encode(self.answer(unit, frame[7:], role, peer=peer, client=client), unit, tid)
+        return _mbap(frame, self.answer(frame[6], frame[7:], role, peer=peer, client=client))
 
     def _read_fast(self, frame: bytes) -> bytes | None:
         """The answer frame to a well-formed FC3 / FC4 read of mapped registers, straight from the register
@@ -435,9 +434,8 @@ class EmulatorServer:
                        client: str = "") -> bytes | None:
         """:meth:`handle` for a unit with a communication fault (see :mod:`~valve_emulator.device.comm`):
         the response frame, or ``None`` when nothing is to be sent."""
-        tid, unit = (frame[0] << 8) | frame[1], frame[6]
-        pdu = self.answer_faulted(unit, frame[7:], role, state, peer=peer, client=client)
-        return None if pdu is None else self._framer.encode(pdu, unit, tid)
+        pdu = self.answer_faulted(frame[6], frame[7:], role, state, peer=peer, client=client)
+        return None if pdu is None else _mbap(frame, pdu)
 
     def answer_faulted(self, unit: int, pdu: bytes, role: Role, state: CommState, *,
                        peer: str = "", client: str = "") -> bytes | None:
@@ -493,10 +491,7 @@ class EmulatorServer:
                 raise _Refused(ExcCodes.ILLEGAL_FUNCTION, "server is read-only (device.read_only)")
             if fc in _OWN_DECODING:
                 return self._execute_raw(fc, pdu, unit, region, role)
-            request = self._decoder.decode(pdu)
-            if request is None:  # cannot happen after _malformed; never let it reach _execute
-                raise _Refused(ExcCodes.ILLEGAL_VALUE, "malformed request")
-            return self._execute(fc, request, unit, region, role)
+            return self._execute(fc, pdu, unit, region, role)
         except RegisterError as exc:
             code = next(c for cls, c in _CODE_OF if isinstance(exc, cls))
             return self._refuse(fc, code, unit, exc, pdu, peer)
@@ -522,8 +517,7 @@ class EmulatorServer:
             where = f"{table} {address}" + (f"..{address + count - 1}" if count > 1 else "")
             self.refusals.note(peer, (register, code), "refused write from %s to unit %d %s (%s): exception 0x%02X, "
                                "%s", peer or "?", unit, where, ", ".join(span) or "outside the map", code, reason)
-        response = ExceptionResponse(fc, code)
-        return bytes((response.function_code,)) + response.encode()
+        return bytes((fc | 0x80, code))
 
     def _read(self, fc: int, table: str, unit: int, region: tuple[int, int], address: int, count: int) -> bytes:
         if address >= COMM_BASE and table == "holding" and self.comm.covers(unit, address):
@@ -546,20 +540,23 @@ class EmulatorServer:
         index, offset = self.device.served_layout.locate_write(unit, address, len(registers))
         self.device.write_served(index, offset, registers, role=role)
 
-    def _execute(self, fc: int, pdu: Any, unit: int, region: tuple[int, int], role: Role) -> bytes:
+    def _execute(self, fc: int, pdu: bytes, unit: int, region: tuple[int, int], role: Role) -> bytes:
+        """Function codes 3, 4, 6, 16 and 23 on a well-formed ``pdu`` (its fields at the places
+        :mod:`.pdu` lists)."""
+        address = _u16(pdu, 1)
         if fc in _READS:
-            return self._read(fc, _READS[fc], unit, region, pdu.address, pdu.count)
+            return self._read(fc, _READS[fc], unit, region, address, _u16(pdu, 3))
         if fc == 6:
-            self._write(unit, pdu.address, pdu.registers, role)
-            response = WriteSingleRegisterResponse(address=pdu.address, registers=pdu.registers)
-            return b"\x06" + response.encode()
+            self._write(unit, address, [_u16(pdu, 3)], role)
+            return bytes(pdu)                 # the answer echoes the request
         if fc == 16:
-            self._write(unit, pdu.address, pdu.registers, role)
-            return b"\x10" + WriteMultipleRegistersResponse(address=pdu.address, count=pdu.count).encode()
-        if not self.comm.covers(unit, pdu.read_address):
-            self.map.check_read("holding", pdu.read_address, pdu.read_count, blocks=region[1])  # refuse first
-        self._write(unit, pdu.write_address, pdu.write_registers, role)
-        return self._read(23, "holding", unit, region, pdu.read_address, pdu.read_count)
+            self._write(unit, address, _words(pdu, 6, _u16(pdu, 3)), role)
+            return bytes(pdu[:5])             # function, address, count
+        read_count = _u16(pdu, 3)
+        if not self.comm.covers(unit, address):
+            self.map.check_read("holding", address, read_count, blocks=region[1])  # refuse first
+        self._write(unit, _u16(pdu, 5), _words(pdu, 10, _u16(pdu, 7)), role)
+        return self._read(23, "holding", unit, region, address, read_count)
 
     def _step(self, registers: Any, role: Role) -> None:
         """A write of the clock's ``step`` register: run that many ticks now, before the write is answered."""
@@ -643,6 +640,16 @@ def _check_step(address: int, count: int) -> None:
 
 def _u16(pdu: bytes, at: int) -> int:
     return (pdu[at] << 8) | pdu[at + 1]
+
+
+def _words(pdu: bytes, at: int, count: int) -> list[int]:
+    """``count`` big-endian 16-bit words from byte ``at`` of ``pdu``."""
+    return list(struct.unpack_from(f">{count}H", pdu, at))
+
+
+def _mbap(frame: bytes, pdu: bytes) -> bytes:
+    """The answer frame to request ``frame``: its transaction id, protocol 0, the length, its unit, ``pdu``."""
+    return frame[:2] + b"\x00\x00" + (len(pdu) + 1).to_bytes(2, "big") + frame[6:7] + pdu
 
 
 def _normalise_ip(host: str) -> str:

@@ -61,6 +61,7 @@ import heapq
 import itertools
 import logging
 import math
+import struct
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from typing import Any
@@ -78,7 +79,7 @@ from valve_emulator.device.registers import (
     address_of,
     decode_write,
     encode_value,
-    patch,
+    patches,
 )
 from valve_emulator.device.registers.columns import encode_rows
 from valve_emulator.device.registers.kernel import ImageEncoder
@@ -94,6 +95,7 @@ QUIET_RUN = 1 << 16
 #: Fewer ticks than this run one by one: a compiled run's set-up costs about as much as two single steps.
 QUIET_MIN = 3
 _ALARMS = address_of("alarms")
+_WORDS = {width: f">{width}H" for width in (1, 2, 4)}   # struct formats of a register's big-endian words
 _log = logging.getLogger(__name__)
 
 
@@ -282,12 +284,14 @@ class Device:
 
     def _patch(self, image: bytearray, start: int, regmap: RegisterMap, changes: list[tuple[str, Any]],
                index: int) -> None:
-        """Show accepted ``changes`` of loop ``index`` at once in ``image`` (its row of ``regmap`` at ``start``)."""
-        stop = start + 2 * regmap.row_words
-        row = np.frombuffer(image, dtype=">u2", count=regmap.row_words, offset=start).astype(np.int64)
+        """Show accepted ``changes`` of loop ``index`` at once in ``image`` (its row of ``regmap`` at ``start``):
+        only the words that show them, written in place (a write costs a few registers, not the row)."""
+        def read(at: int, width: int) -> tuple[int, ...]:
+            return struct.unpack_from(_WORDS[width], image, start + 2 * at)
+
         for quantity, value in changes:
-            patch(row, quantity, value, self.scaling, index, regmap=regmap)
-        image[start:stop] = row.astype(">u2").tobytes()
+            for at, words in patches(read, quantity, value, self.scaling, index, regmap=regmap):
+                struct.pack_into(_WORDS[len(words)], image, start + 2 * at, *words)
 
     def _apply_pending(self) -> None:
         bank = self.bank

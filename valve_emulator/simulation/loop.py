@@ -224,6 +224,9 @@ class LoopBank:
         self.noise_std = np.array([c.plant.noise for c in loops], dtype=float)
         self._seeds = seeds
         self._noise: NoiseBank | None = None
+        # the disturbances' step, None when no loop has one (the kinds are fixed by the configs); a bound
+        # method, so not part of the bank's state (a snapshot holds the generators themselves)
+        self._disturbance = None if all(d.type == "none" for d in dist) else self._dist.step
         #: instructor faults: extra load (% flow added to the plant input) and a valve stuck completely
         self.load = np.zeros(n)
         self.frozen = np.zeros(n, dtype=np.bool_)
@@ -463,11 +466,20 @@ class LoopBank:
                 self._flow_limits, plant, self._plant.kernel_output())
 
     def step(self) -> None:
-        """Advance every loop one sample ``dt``; afterwards ``pv``, ``op``, ``mv`` … describe sample k."""
-        t = self.t
-        self._apply_sp_schedule(t)
-        dist = self._dist.step(t) + self.load
-        noise = self._sensor(self._unit_noise(1)[0] * self.noise_std)
+        """Advance every loop one sample ``dt``; afterwards ``pv``, ``op``, ``mv`` … describe sample k.
+
+        The emulator's lockstep runs one of these per client request, so the work around the compiled step is
+        kept to what this bank has: a set-point schedule only when a step is due, the disturbance generators
+        only when a loop has a disturbance (as :meth:`run` does), the noise streams only once a loop is noisy.
+        """
+        t = self.k * self.dt
+        if self._sp_next.min() <= t + 1e-9 * self.dt:
+            self._apply_sp_schedule(t)
+        dist = self.load + (0.0 if self._disturbance is None else self._disturbance(t))   # d + load, bit for bit
+        if self._noise is None and not self.noise_std.any():
+            noise = self._sensor(np.zeros(self.n))
+        else:
+            noise = self._sensor(self._unit_noise(1)[0] * self.noise_std)
         pv_meas = np.empty(self.n)
         code = loop_step_kernel(self._sp, noise, dist, self.op_external, self.has_controller, self.frozen,
                                 *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in)
@@ -507,8 +519,7 @@ class LoopBank:
             if steps:
                 self.op_external[:] = op[-1]
         # loops without disturbance or noise need no per-sample generator calls
-        quiet_dist = all(c.plant.disturbance.type == "none" for c in self.loops)
-        dist = np.zeros((steps, self.n)) if quiet_dist else np.ascontiguousarray(
+        dist = np.zeros((steps, self.n)) if self._disturbance is None else np.ascontiguousarray(
             self._dist.step_many(times)).reshape(steps, self.n)
         dist += self.load
         noise = np.ascontiguousarray(self._unit_noise(steps) * self.noise_std + self.pv_bias)

@@ -147,6 +147,7 @@ from valve_emulator.device.registers.codec import (
     encode_value,
     encode_write,
     patch,
+    patches,
     status_word,
     write_range,
 )
@@ -195,6 +196,7 @@ __all__ = [
     "format_registers",
     "from_words",
     "patch",
+    "patches",
     "registers_table",
     "split32",
     "status_word",

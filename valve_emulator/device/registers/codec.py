@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Final, Protocol
 
 import numpy as np
@@ -55,7 +55,7 @@ from valve_emulator.device.registers.table import (
 from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, from_words, split32, split_words
 
 __all__ = ["WritePermission", "decode_value", "decode_write", "encode_loop", "encode_value", "encode_write",
-           "loop_values", "patch", "physical_range", "status_word", "write_range"]
+           "loop_values", "patch", "patches", "physical_range", "status_word", "write_range"]
 
 _STATUS: Final = address_of("status")
 # Written quantities that also flip a status bit: quantity -> (bit, is the bit set for this value?)
@@ -91,7 +91,7 @@ def _scaled(reg: Register, value: float, scaling: Scaling, index: int) -> float:
         lo, k = _per_range(reg, scaling, index)
         return ((lo + value) - lo) * k
     if conversion is Conversion.LOOP_CURRENT:
-        return float(scaling.op_to_ma(value, np.array([index]))[0]) * reg.scale
+        return scaling.op_to_ma_at(value, index) * reg.scale
     return value * reg.scale
 
 
@@ -220,18 +220,27 @@ def patch(row: np.ndarray, quantity: str, value: Any, scaling: Scaling, index: i
           regmap: RegisterMap = STANDARD) -> None:
     """Overwrite, in one loop's served word ``row`` of ``regmap``, the registers that show ``quantity`` (after
     an accepted write), and the ``status`` bit the quantity flips."""
+    for at, words in patches(lambda at, width: row[at:at + width], quantity, value, scaling, index, regmap=regmap):
+        row[at:at + len(words)] = words
+
+
+def patches(read: Callable[[int, int], Sequence[int]], quantity: str, value: Any, scaling: Scaling, index: int, *,
+            regmap: RegisterMap = STANDARD) -> Iterator[tuple[int, tuple[int, ...]]]:
+    """What :func:`patch` writes, as ``(word of the row, words)`` pairs, for a caller that keeps the row
+    elsewhere (the device writes them straight into its byte image). ``read(word, width)`` gives the row's
+    words there now; each pair must be written before the next is asked for (the ``status`` word is read
+    after the quantity's own registers are written)."""
     if quantity not in WRITABLE_QUANTITIES:
         raise KeyError(f"quantity {quantity!r} is not writable")
     for reg in regmap.showing(quantity):
-        at = regmap.word_offset(reg.table, reg.address)
-        row[at:at + reg.width] = encode_value(reg, value, scaling, index)
+        yield regmap.word_offset(reg.table, reg.address), encode_value(reg, value, scaling, index)
     if quantity in _STATUS_FLAG:
         bit, is_set = _STATUS_FLAG[quantity]
         for reg in regmap.showing("status"):
             at = regmap.word_offset(reg.table, reg.address)
-            status = int(from_words(row[at:at + reg.width], reg.type, reg.word_order or scaling.word_order))
+            status = int(from_words(read(at, reg.width), reg.type, reg.word_order or scaling.word_order))
             status = (status & ~int(bit)) | (int(bit) if is_set(value) else 0)
-            row[at:at + reg.width] = encode_value(reg, status, scaling, index)
+            yield at, encode_value(reg, status, scaling, index)
 
 
 def write_range(reg: Register, scaling: Scaling, index: int) -> tuple[int, int]:
@@ -251,7 +260,7 @@ def write_range(reg: Register, scaling: Scaling, index: int) -> tuple[int, int]:
 def physical_range(quantity: str, scaling: Scaling, index: int) -> tuple[float, float]:
     """The physical values a write of ``quantity`` may take on loop ``index``: those its standard register
     accepts (so a float or counts tag of a configured map allows exactly what the standard map does)."""
-    reg = next(r for r in STANDARD.holding if r.quantity == quantity and r.access is not R)
+    reg = STANDARD.written(quantity)
     lo, hi = write_range(reg, scaling, index)
     if reg.zero_is_off:
         lo = max(lo, 1)
@@ -373,7 +382,7 @@ def _within_physical(reg: Register, value: float, scaling: Scaling, index: int, 
     :class:`RegisterValueError` naming ``reg``."""
     lo, hi = physical_range(reg.quantity, scaling, index)
     slack = 1e-9 * max(1.0, abs(lo), abs(hi))
-    standard = next(r for r in STANDARD.holding if r.quantity == reg.quantity and r.access is not R)
+    standard = STANDARD.written(reg.quantity)
     if standard.zero_is_off and value == 0:
         return math.inf
     if not (math.isfinite(value) and lo - slack <= value <= hi + slack):

@@ -21,10 +21,9 @@ from typing import Any, Final, NamedTuple
 import numba
 import numpy as np
 
-from valve_emulator.device.registers.codec import encode_value
 from valve_emulator.device.registers.scaling import Scaling
 from valve_emulator.device.registers.table import MAP_VERSION, N_REGISTERS, Conversion, Fault, Status, register
-from valve_emulator.device.registers.words import CDAB, split32
+from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, split32
 
 __all__ = ["ImageEncoder", "encode", "encode_image", "encode_words"]
 
@@ -69,6 +68,8 @@ class _Map(NamedTuple):
     status: _Cell
     map_version: _Cell
     tick: _Cell
+    overruns: _Cell
+    time: _Cell
     op_f32: _Cell
     mv_f32: _Cell
     pv_f32: _Cell
@@ -82,7 +83,6 @@ class _Constants(NamedTuple):
     """Numbers of the map that are not a register's cell: PV range factor, status and fault bits."""
 
     pv_full: float   # raw units per whole PV range: 100 · scale of the PV registers
-    common: int      # words of the tick, overruns and time registers
     map_version: int
     stuck: int
     moving: int
@@ -95,22 +95,15 @@ class _Constants(NamedTuple):
 
 
 _MAP: Final = _Map(*(_cell(name) for name in _Map._fields))
-#: The tick, overruns and time registers: the same words on every loop, written as one run.
-_COMMON: Final = tuple(register(n) for n in ("tick", "overruns", "time"))
-assert [r.address for r in _COMMON] == [_MAP.tick.at, _MAP.tick.at + 2, _MAP.tick.at + 4]
+#: The tick and overruns registers count modulo 2^32 (uint32), time is a float32: the same words on every loop.
+assert [register(n).type for n in ("tick", "overruns", "time")] == [DataType.UINT32, DataType.UINT32,
+                                                                     DataType.FLOAT32]
 _PV_SCALES: Final = {register(n).scale for n in ("pv", "sp", "noise")}
 assert len(_PV_SCALES) == 1, "pv, sp and noise share one range factor"
 _CONSTANTS: Final = _Constants(
-    100.0 * _PV_SCALES.pop(), sum(r.width for r in _COMMON), MAP_VERSION, int(Status.STUCK), int(Status.MOVING),
+    100.0 * _PV_SCALES.pop(), MAP_VERSION, int(Status.STUCK), int(Status.MOVING),
     int(Status.SAT_LOW), int(Status.SAT_HIGH), int(Status.CONTROLLER), int(Status.AUTO), int(Status.SEIZED),
     int(Fault.SEIZED))
-
-
-def _common_words(scaling: Scaling, *, tick: int, overruns: int, time: float) -> np.ndarray:
-    """The words shared by every loop: tick, overruns (uint32) and time (float32), in register order."""
-    values = (tick, overruns, time)
-    return np.array([w for reg, v in zip(_COMMON, values) for w in encode_value(reg, v, scaling, 0)],
-                    dtype=np.int64)
 
 
 def _array(state: Any, name: str, n: int, dtype: np.dtype, optional: bool) -> np.ndarray:
@@ -129,14 +122,27 @@ def _array(state: Any, name: str, n: int, dtype: np.dtype, optional: bool) -> np
 
 _F64: Final = np.dtype(np.float64)
 _BOOL: Final = np.dtype(np.bool_)
+#: The state's arrays the kernel reads, in its argument order after ``op``'s loop current: (name, dtype,
+#: optional).
+_INPUTS: Final = (("op", _F64, False), ("mv", _F64, False), ("flow", _F64, False), ("pv", _F64, False),
+                  ("sp", _F64, False), ("kc", _F64, False), ("ti", _F64, False), ("td", _F64, False),
+                  ("S", _F64, False), ("J", _F64, False), ("load", _F64, True), ("noise_std", _F64, True),
+                  ("stuck", _BOOL, False), ("sat_low", _BOOL, False), ("sat_high", _BOOL, False),
+                  ("has_controller", _BOOL, False), ("auto", _BOOL, False), ("frozen", _BOOL, True))
 
 
-def _floats(state: Any, name: str, n: int, optional: bool = False) -> np.ndarray:
-    return _array(state, name, n, _F64, optional)
-
-
-def _bools(state: Any, name: str, n: int, optional: bool = False) -> np.ndarray:
-    return _array(state, name, n, _BOOL, optional)
+def _inputs(state: Any, n: int) -> list[np.ndarray]:
+    """Every array of :data:`_INPUTS` as :func:`_array` gives it, in one pass: a bank's arrays are taken as they
+    are after a few attribute checks (at one loop a function call per array would cost more than the kernel)."""
+    shape = (n,)
+    out = []
+    for name, dtype, optional in _INPUTS:
+        value = getattr(state, name, None)
+        if not (type(value) is np.ndarray and value.dtype is dtype and value.shape == shape
+                and value.flags.c_contiguous):
+            value = _array(state, name, n, dtype, optional)
+        out.append(value)
+    return out
 
 
 def encode_image(state: Any, scaling: Scaling, image: bytearray | np.ndarray, offsets: np.ndarray, *,
@@ -164,17 +170,12 @@ class ImageEncoder:
         self._half = offsets // 2
 
     def __call__(self, state: Any, *, tick: int, overruns: int, time: float) -> None:
-        scaling, n = self.scaling, self.scaling.n
-        op = _floats(state, "op", n)
-        _encode_kernel(op, np.ascontiguousarray(scaling.op_to_ma(op), dtype=np.float64), _floats(state, "mv", n),
-                       _floats(state, "flow", n), _floats(state, "pv", n), _floats(state, "sp", n),
-                       _floats(state, "kc", n), _floats(state, "ti", n), _floats(state, "td", n),
-                       _floats(state, "S", n), _floats(state, "J", n), _floats(state, "load", n, True),
-                       _floats(state, "noise_std", n, True), _bools(state, "stuck", n),
-                       _bools(state, "sat_low", n), _bools(state, "sat_high", n),
-                       _bools(state, "has_controller", n), _bools(state, "auto", n),
-                       _bools(state, "frozen", n, True), scaling.pv_lo, scaling.pv_hi,
-                       _common_words(scaling, tick=tick, overruns=overruns, time=time),
+        scaling = self.scaling
+        op, *rest = _inputs(state, scaling.n)
+        _encode_kernel(op, np.ascontiguousarray(scaling.op_to_ma(op), dtype=np.float64), *rest,
+                       scaling.pv_lo, scaling.pv_hi,
+                       # the codec's counters (modulo 2^32) and float32, as 32-bit patterns
+                       int(tick) & 0xFFFFFFFF, int(overruns) & 0xFFFFFFFF, float32_bits(float(time)),
                        scaling.word_order is CDAB, self._half, self._words16)
 
 
@@ -231,8 +232,8 @@ def _put(img, at, value):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _put_f32(img, at, bits, cdab):  # pragma: no cover - compiled
-    """Store the IEEE float32 pattern ``bits`` in two registers, in the word order."""
+def _put32(img, at, bits, cdab):  # pragma: no cover - compiled
+    """Store the 32-bit pattern ``bits`` (a float32's or a counter's) in two registers, in the word order."""
     first, second = _split32(np.int64(bits), cdab)   # unsigned and signed ints would mix into a float
     _put(img, at, first)
     _put(img, at + 1, second)
@@ -247,7 +248,8 @@ def _compile(m: _Map, k: _Constants):
 
     @numba.njit(cache=True)
     def encode_kernel(op, ma, mv, flow, pv, sp, kc, ti, td, S, J, load, noise, stuck, sat_low, sat_high, ctl,
-                      auto, frozen, pv_lo, pv_hi, common, cdab, word0, img):  # pragma: no cover - compiled
+                      auto, frozen, pv_lo, pv_hi, tick, overruns, time, cdab, word0,
+                      img):  # pragma: no cover - compiled
         f32 = np.empty(4, np.float32)
         bits = f32.view(np.uint32)
         for i in range(op.shape[0]):
@@ -273,13 +275,14 @@ def _compile(m: _Map, k: _Constants):
                  + (k.sat_high if sat_high[i] else 0) + (k.controller if c else 0) + (k.auto if a else 0)
                  + (k.seized if frozen[i] else 0))
             _put(img, b + m.map_version.at, k.map_version)
-            for r in range(k.common):
-                _put(img, b + m.tick.at + r, common[r])
+            _put32(img, b + m.tick.at, tick, cdab)
+            _put32(img, b + m.overruns.at, overruns, cdab)
+            _put32(img, b + m.time.at, time, cdab)
             f32[0], f32[1], f32[2], f32[3] = op[i], mv[i], pv[i], (sp[i] if c else 0.0)
-            _put_f32(img, b + m.op_f32.at, bits[0], cdab)
-            _put_f32(img, b + m.mv_f32.at, bits[1], cdab)
-            _put_f32(img, b + m.pv_f32.at, bits[2], cdab)
-            _put_f32(img, b + m.sp_f32.at, bits[3], cdab)
+            _put32(img, b + m.op_f32.at, bits[0], cdab)
+            _put32(img, b + m.mv_f32.at, bits[1], cdab)
+            _put32(img, b + m.pv_f32.at, bits[2], cdab)
+            _put32(img, b + m.sp_f32.at, bits[3], cdab)
             _put(img, b + m.load.at, _word(load[i], m.load))
             # a width w in PV units reads like the PV lo + w (the codec's rule, kept float for float)
             _put(img, b + m.noise.at, _word(((pv_lo[i] + noise[i]) - pv_lo[i]) * per_pv, m.noise))

@@ -103,6 +103,13 @@ class RegisterMap:
         object.__setattr__(self, "_at", at)
         object.__setattr__(self, "_sections", sections)
         object.__setattr__(self, "row_words", words)
+        written: dict[str, Register] = {}
+        for row in self.holding:
+            if row.access is not R:
+                written.setdefault(row.quantity, row)
+        object.__setattr__(self, "_written", written)
+        #: the quantities the map's registers show (what a tick encodes for it)
+        object.__setattr__(self, "quantities", frozenset(row.quantity for row in self.holding + self.input))
         shown: dict[str, list[Register]] = {}
         for row in self.holding + (() if mirror else self.input):
             shown.setdefault(row.quantity, []).append(row)
@@ -127,6 +134,10 @@ class RegisterMap:
     def word_offset(self, table: str, address: int) -> int:
         """The word of a loop's served row that holds ``address`` of register ``table``."""
         return self._sections[table][1] + address
+
+    def written(self, quantity: str) -> Register | None:
+        """The first holding row a client writes ``quantity`` through (not read-only), or ``None``."""
+        return self._written.get(quantity)
 
     def showing(self, quantity: str) -> tuple[Register, ...]:
         """The register rows whose words show ``quantity`` (each once: a mirror is not counted twice)."""

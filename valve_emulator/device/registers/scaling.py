@@ -120,6 +120,12 @@ class Scaling:
 
     # --- the loop current, shared by the compiled encoder and the codec -------------------------------
 
+    def op_to_ma_at(self, op: float, index: int) -> float:
+        """:meth:`op_to_ma` of one OP of unit ``index`` (a write's echo in the image), the same number."""
+        if index not in self._custom:
+            return 4.0 + 0.16 * float(op)
+        return float(self.op_to_ma(op, np.array([index]))[0])
+
     def op_to_ma(self, op: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
         """OP (% travel) of units ``index`` (default all) -> loop current in mA."""
         op = np.atleast_1d(np.asarray(op, dtype=float))

@@ -104,6 +104,9 @@ def to_words(value: float, type_: DataType | str, order: WordOrder | str = ABCD)
 
 def from_words(words: Sequence[int], type_: DataType | str, order: WordOrder | str = ABCD) -> float:
     """The value that the first ``type_.width`` register ``words`` hold (inverse of :func:`to_words`)."""
+    if type_ is DataType.UINT16 or type_ is DataType.INT16:   # one word (most writes): no order, no struct
+        word = int(words[0]) & 0xFFFF
+        return word - 0x10000 if type_ is DataType.INT16 and word >= 0x8000 else word
     type_ = DataType(type_)
     width = type_.width
     # the order is an involution: applying it to the words on the wire gives the high word first again
