@@ -103,6 +103,7 @@ def _fleet_image() -> dict:
     # Writes on the way (register addresses from the map, values raw): OP of open-loop loops, SP and mode
     # of the controlled loop, instructor S/J and load.
     from valve_emulator.device.registers import address_of
+    from valve_emulator.device.roles import INSTRUCTOR
     writes = {
         100: [(2, "op_pct", [6000]), (0, "sp", [1500])],
         300: [(5, "S", [150]), (0, "mode", [0]), (0, "op_pct", [4500])],
@@ -113,7 +114,7 @@ def _fleet_image() -> dict:
     for k in range(1000):
         for index, name, values in writes.get(k, ()):
             try:
-                device.write(index, address_of(name), values, instructor=True)
+                device.write(index, address_of(name), values, role=INSTRUCTOR)
             except Exception as exc:  # noqa: BLE001 - recorded, must be the same before and after
                 errors.append(f"tick {k} loop {index} {name}: {type(exc).__name__}: {exc}")
         device.advance(1)
