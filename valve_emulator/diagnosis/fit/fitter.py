@@ -188,8 +188,16 @@ class Fitter:
         The chain's output depends only on the grid, never on the linear structure or the dead time, and starts
         often share their grids (the θ-held and θ-free variants start from the same scan row, and refinements
         converge): at each stage every distinct grid is pushed through the chain once and scored for every start
-        that uses it (:meth:`_score_grids`). Each start's numbers are those of refining it alone.
+        that uses it (:meth:`_score_grids`). Each start's numbers are those of refining it alone, and equal starts
+        (same row, structure and variant) are refined once.
         """
+        keys = [(best.tobytes(), repr(st), free) for best, st, free in starts]
+        first: dict[tuple, int] = {}
+        for k, key in enumerate(keys):
+            first.setdefault(key, k)
+        if len(first) < len(starts):
+            done = dict(zip(first, self.refine_all(model, cand, [starts[k] for k in first.values()], joint=joint)))
+            return [done[key] for key in keys]
         active = model.by_slot()
         ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
         bests = [b for b, _, _ in starts]
@@ -233,13 +241,17 @@ class Fitter:
     def _score_grids(self, active, ctx, cand, grids: list[np.ndarray], jobs: list[tuple], aim: Aim) -> list[tuple]:
         """``sse_grid`` of ``grids[k]`` for ``jobs[k]`` (structure, delays), every distinct grid through the chain
         once (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.sse_jobs`, all its jobs at once)."""
-        groups: dict[tuple, list[int]] = {}
-        for k, g in enumerate(grids):
-            groups.setdefault((g.shape, g.tobytes()), []).append(k)
+        groups: dict[tuple, dict[tuple, list[int]]] = {}
+        for k, (g, (st, delays)) in enumerate(zip(grids, jobs)):
+            job = (repr(st), None if delays is None else delays.tobytes())
+            groups.setdefault((g.shape, g.tobytes()), {}).setdefault(job, []).append(k)
         out: list[tuple] = [None] * len(grids)   # type: ignore[list-item]
-        for ks in groups.values():
-            for k, r in zip(ks, self.scorer.sse_jobs(active, ctx, cand, grids[ks[0]], [jobs[k] for k in ks], aim)):
-                out[k] = r
+        for same_grid in groups.values():
+            ks = [k[0] for k in same_grid.values()]
+            for r, same_job in zip(self.scorer.sse_jobs(active, ctx, cand, grids[ks[0]], [jobs[k] for k in ks], aim),
+                                   same_grid.values()):
+                for k in same_job:
+                    out[k] = r
         return out
 
     def _row_flow(self, memo: dict, active, ctx, cand, row: np.ndarray) -> np.ndarray:
