@@ -248,8 +248,10 @@ class Fitter:
         out: list[tuple] = [None] * len(grids)   # type: ignore[list-item]
         for same_grid in groups.values():
             ks = [k[0] for k in same_grid.values()]
-            for r, same_job in zip(self.scorer.sse_jobs(active, ctx, cand, grids[ks[0]], [jobs[k] for k in ks], aim),
-                                   same_grid.values()):
+            grid = grids[ks[0]]
+            scored = ([self.scorer.sse_grid(active, ctx, cand, grid, *jobs[ks[0]], aim)] if len(ks) == 1 else
+                      self.scorer.sse_jobs(active, ctx, cand, grid, [jobs[k] for k in ks], aim))
+            for r, same_job in zip(scored, same_grid.values()):
                 for k in same_job:
                     out[k] = r
         return out
