@@ -436,12 +436,16 @@ class Fitter:
         grid = cand.grid(ctx)
         flows = self.scorer.chain(model.by_slot(), ctx, cand, grid)
         starts: dict[bool, list[Start]] = {v.free: [] for v in variants}
-        for st in self.pole_set(model):
+        poles = self.pole_set(model)
+        # θ free: every pole hypothesis over the dead-time grid, in one pass over the flows.
+        free = any(v.free for v in variants)
+        on_grid = (self.scorer.sse_flows_all(flows, [(st, self.p.delays) for st in poles], aim) if free else
+                   [None] * len(poles))
+        for st, grid_delays in zip(poles, on_grid):
             penalty = self.scorer.prior_penalty(st)
-            grid_delays = None
             for v in sorted(variants, key=lambda v: not v.free):   # θ free first: its columns may serve θ held
                 if v.free:
-                    sse, delays = grid_delays = self.scorer.sse_flows(flows, st, self.p.delays, aim)
+                    sse, delays = grid_delays
                 else:
                     sse, delays = self._held_delay(flows, st, aim, grid_delays)
                 flat = sse.min(axis=1)

@@ -206,6 +206,19 @@ class Scorer:
                 parts[i].append(sse)
         return [(np.vstack(p), u) for p, u in zip(parts, used)]
 
+    def sse_flows_all(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
+        """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, :data:`_CHUNK`
+        columns at a time (copied contiguous, then scored for every job while they are in cache): the same numbers
+        as job by job over the whole array."""
+        parts: list[list] = [[] for _ in jobs]
+        used: list = [None] * len(jobs)
+        for a in range(0, flows.shape[1], _CHUNK):
+            block = np.ascontiguousarray(flows[:, a:a + _CHUNK])
+            for i, (st, delays) in enumerate(jobs):
+                sse, used[i] = self.sse_flows(block, st, delays, aim)
+                parts[i].append(sse)
+        return [(np.vstack(p), u) for p, u in zip(parts, used)]
+
     def near(self, d: float, r: int) -> np.ndarray:
         """Whole-sample dead times of the problem's grid within ``r`` samples of ``d`` (s)."""
         d0 = int(round(d / self.p.dt))
