@@ -5,9 +5,14 @@ and PV, PV noise 5 % of the amplitude); the nominal model lacks the stiction (``
 linear part identified). *Warm*: one untimed warm-up loads the compiled kernels (numba caches them on disk),
 then the median of ``--repeat`` runs. *First run*: a fresh interpreter with an empty kernel cache
 (``NUMBA_CACHE_DIR`` a new temporary folder), as after a fresh install: imports, reading the recording's CSV,
-compilation and one diagnosis, timed from outside; then the same after ``valve-emulator compile`` (untimed). Run::
+compilation and one diagnosis, timed from outside; then the same after ``valve-emulator compile`` (untimed).
+``--before CHECKOUT``: on a shared machine, compare with another checkout of the project measured alternately,
+each run a fresh interpreter (its code on ``PYTHONPATH``) that warms up and times one diagnosis, wall and CPU
+seconds (CPU: every thread's, the less sensitive to the machine's load); medians and the ratio after/before.
+Run::
 
     python bench/bench_diagnose.py [--samples 1000 10000] [--repeat 3] [--no-model] [--no-first-run]
+    python bench/bench_diagnose.py --before /path/to/other/checkout [--samples 10000] [--repeat 3] [--no-model]
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 from valve_emulator.benchmark.cases import CASES, generate, nominal_mapping
 from valve_emulator.diagnosis.explain.pipeline import explain
@@ -60,13 +66,58 @@ def first_run(samples: int, model: bool, ahead: bool = False) -> float:
         return time.perf_counter() - t
 
 
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def one_run(samples: int, model: bool) -> dict:
+    """Warm up, then time one diagnosis of ``samples`` samples in this interpreter: wall and CPU seconds."""
+    case = CASES[0]
+    rec, nominal, _ = generate(case, duration=1000 + case.cut)
+    explain(rec, nominal if model else None)
+    rec, nominal, _ = generate(case, duration=samples - 1 + case.cut)
+    wall, cpu = time.perf_counter(), time.process_time()
+    d = explain(rec, nominal if model else None)
+    return {"wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu, "verdict": d.verdict}
+
+
+def alternate(before: Path, samples: list[int], repeat: int, model: bool) -> None:
+    """Each size ``repeat`` times, this checkout and ``before`` one after the other (see the module docstring)."""
+    roots = {"before": before.resolve(), "after": ROOT}
+    for n in samples:
+        runs: dict[str, list[dict]] = {k: [] for k in roots}
+        for _ in range(repeat):
+            for label, root in roots.items():
+                cmd = [sys.executable, str(ROOT / "bench" / "bench_diagnose.py"), "--one", str(n)]
+                cmd += [] if model else ["--no-model"]
+                out = subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(root)}, check=True,
+                                     capture_output=True, text=True).stdout
+                runs[label].append(json.loads(out.splitlines()[-1]))
+        med = {k: {m: statistics.median(r[m] for r in v) for m in ("wall", "cpu")} for k, v in runs.items()}
+        for label, v in runs.items():
+            walls = ", ".join(f"{r['wall']:.2f}" for r in v)
+            print(f"{n:6d} samples {label:6s}: wall median {med[label]['wall']:5.2f} s ({walls}), "
+                  f"CPU median {med[label]['cpu']:5.2f} s | {v[-1]['verdict']}")
+        print(f"{n:6d} samples after/before: wall {med['after']['wall'] / med['before']['wall']:.2f}, "
+              f"CPU {med['after']['cpu'] / med['before']['cpu']:.2f}")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--samples", type=int, nargs="+", default=[1000, 10000])
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--no-model", action="store_true", help="identify the linear part from the data instead")
     p.add_argument("--no-first-run", action="store_true", help="skip the first-run (empty cache) timings")
+    p.add_argument("--before", type=Path, help="another checkout, measured alternately with this one")
+    p.add_argument("--one", type=int, help=argparse.SUPPRESS)   # a child of --before: one timed run, JSON
     args = p.parse_args(argv)
+    if args.one is not None:
+        print(json.dumps(one_run(args.one, not args.no_model)))
+        return 0
+    if args.before is not None:
+        print(f"{os.cpu_count()} CPU(s); load {os.getloadavg()[0]:.1f}; "
+              f"{'no model' if args.no_model else 'nominal model given'}")
+        alternate(args.before, args.samples, args.repeat, not args.no_model)
+        return 0
     case = CASES[0]  # stiction, undershoot, concentration loop, dt = 1 s
     print(f"{os.cpu_count()} CPU(s); case: {case.name}; {'no model' if args.no_model else 'nominal model given'}")
     t0 = time.perf_counter()

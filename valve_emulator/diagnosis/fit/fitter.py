@@ -179,30 +179,89 @@ class Fitter:
         """Two passes of fine grid + polish around ``best`` (then, for a candidate that trades off against the
         poles and ``joint``, :meth:`joint_polish`), threshold parameters centred: ``cand`` refined into
         ``model``."""
+        return self.refine_all(model, cand, [(best, st, free)], joint=joint)[0]
+
+    def refine_all(self, model: Model, cand: Candidate, starts: list[tuple[np.ndarray, LinearStructure, bool]], *,
+                   joint: bool = True) -> list[Refined]:
+        """:meth:`refine` of ``cand`` from each ``(best, structure, free)`` of ``starts``, stage by stage.
+
+        The chain's output depends only on the grid, never on the linear structure or the dead time, and starts
+        often share their grids (the θ-held and θ-free variants start from the same scan row, and refinements
+        converge): at each stage every distinct grid is pushed through the chain once and scored for every start
+        that uses it (:meth:`_score_grids`). Each start's numbers are those of refining it alone, and equal starts
+        (same row, structure and variant) are refined once.
+        """
+        keys = [(best.tobytes(), repr(st), free) for best, st, free in starts]
+        first: dict[tuple, int] = {}
+        for k, key in enumerate(keys):
+            first.setdefault(key, k)
+        if len(first) < len(starts):
+            done = dict(zip(first, self.refine_all(model, cand, [starts[k] for k in first.values()], joint=joint)))
+            return [done[key] for key in keys]
         active = model.by_slot()
         ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
+        bests = [b for b, _, _ in starts]
+        sts = [s for _, s, _ in starts]
+        frees = [f for _, _, f in starts]
+        fits: list[LinearFit] = [None] * len(starts)   # type: ignore[list-item]
+        flows: list[np.ndarray] = [None] * len(starts)  # type: ignore[list-item]
+        grids: list[np.ndarray] = []
+        scored: list[tuple] = []
         for _ in range(2):
-            g = cand.refine(ctx, best)
-            delays = self.scorer.near(st.delay, 2) if free else None
-            sse, delays = self.scorer.sse_grid(active, ctx, cand, g, st, delays, aim)
-            i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
-            best = g[i]
-            st0 = replace(st, delay=float(delays[j]) * self.p.dt) if free else st
-            flow = self.scorer.chain(active, ctx, cand, g[i:i + 1])[:, 0]
-            fit = self.scorer.polish(flow, st0, free, aim)
-            st = fit.structure
-        fine = self.surface(cand.name, g, sse.min(axis=1))
+            grids = [cand.refine(ctx, b) for b in bests]
+            jobs = [(st, self.scorer.near(st.delay, 2) if free else None) for st, free in zip(sts, frees)]
+            scored = self._score_grids(active, ctx, cand, grids, jobs, aim)
+            rows = {}
+            for k, (g, (sse, delays)) in enumerate(zip(grids, scored)):
+                i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
+                bests[k] = g[i]
+                st0 = replace(sts[k], delay=float(delays[j]) * self.p.dt) if frees[k] else sts[k]
+                flows[k] = self._row_flow(rows, active, ctx, cand, g[i])
+                fits[k] = self.scorer.polish(flows[k], st0, frees[k], aim)
+                sts[k] = fits[k].structure
+        fines = [self.surface(cand.name, g, sse.min(axis=1)) for g, (sse, _) in zip(grids, scored)]
         if joint and self.trades_with_prior(cand):
-            best, st = self.joint_polish(active, ctx, cand, best, st, free, aim)
-            flow = self.scorer.chain(active, ctx, cand, best[None, :])[:, 0]
-            fit = self.scorer.polish(flow, st, free, aim)
+            for k in range(len(starts)):
+                bests[k], sts[k] = self.joint_polish(active, ctx, cand, bests[k], sts[k], frees[k], aim)
+                flows[k] = self.scorer.chain(active, ctx, cand, bests[k][None, :])[:, 0]
+                fits[k] = self.scorer.polish(flows[k], sts[k], frees[k], aim)
         if cand.threshold_axes:
-            best = self.centre(active, ctx, cand, best, st, aim)
-            flow = self.scorer.chain(active, ctx, cand, best[None, :])[:, 0]
-            fit = self.scorer.polish(flow, st, free, aim)
-        new_active = dict(active)
-        new_active[cand.slot] = Active(cand, best)
-        return Refined(active=new_active, fit=fit, flow=flow, fine=fine)
+            bests = self.centre_all(active, ctx, cand, bests, sts, aim)
+            rows = {}
+            for k in range(len(starts)):
+                flows[k] = self._row_flow(rows, active, ctx, cand, bests[k])
+                fits[k] = self.scorer.polish(flows[k], sts[k], frees[k], aim)
+        out = []
+        for best, fit, flow, fine in zip(bests, fits, flows, fines):
+            new_active = dict(active)
+            new_active[cand.slot] = Active(cand, best)
+            out.append(Refined(active=new_active, fit=fit, flow=flow, fine=fine))
+        return out
+
+    def _score_grids(self, active, ctx, cand, grids: list[np.ndarray], jobs: list[tuple], aim: Aim) -> list[tuple]:
+        """``sse_grid`` of ``grids[k]`` for ``jobs[k]`` (structure, delays), every distinct grid through the chain
+        once (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.sse_jobs`, all its jobs at once)."""
+        groups: dict[tuple, dict[tuple, list[int]]] = {}
+        for k, (g, (st, delays)) in enumerate(zip(grids, jobs)):
+            job = (repr(st), None if delays is None else delays.tobytes())
+            groups.setdefault((g.shape, g.tobytes()), {}).setdefault(job, []).append(k)
+        out: list[tuple] = [None] * len(grids)   # type: ignore[list-item]
+        for same_grid in groups.values():
+            ks = [k[0] for k in same_grid.values()]
+            grid = grids[ks[0]]
+            scored = ([self.scorer.sse_grid(active, ctx, cand, grid, *jobs[ks[0]], aim)] if len(ks) == 1 else
+                      self.scorer.sse_jobs(active, ctx, cand, grid, [jobs[k] for k in ks], aim))
+            for r, same_job in zip(scored, same_grid.values()):
+                for k in same_job:
+                    out[k] = r
+        return out
+
+    def _row_flow(self, memo: dict, active, ctx, cand, row: np.ndarray) -> np.ndarray:
+        """The chain's output (T,) for one parameter row, computed once per distinct row in ``memo``."""
+        key = row.tobytes()
+        if key not in memo:
+            memo[key] = self.scorer.chain(active, ctx, cand, row[None, :])[:, 0]
+        return memo[key]
 
     def trades_with_prior(self, cand: Candidate) -> bool:
         """Whether ``cand`` trades off against the poles and a nominal model's prior must choose between the
@@ -250,19 +309,28 @@ class Fitter:
         cell at uniformly distributed places; its middle is the value least likely to miss one. The
         flat bottom is the contiguous run around the argmin with N·ln(SSE/SSE_min) ≤ :data:`_FLAT`.
         """
+        return self.centre_all(active, ctx, cand, [best], [st], aim)[0]
+
+    def centre_all(self, active, ctx, cand, bests: list[np.ndarray], sts: list[LinearStructure], aim: Aim
+                   ) -> list[np.ndarray]:
+        """:meth:`centre` of each of ``bests`` (with its structure), axis by axis, a line shared by several
+        through the chain once."""
+        bests = list(bests)
         for axis in cand.threshold_axes:
-            rows = cand.line(ctx, best, axis)
-            sse, _ = self.scorer.sse_grid(active, ctx, cand, rows, st, None, aim)
-            cost = relative_cost(sse[:, 0], self.p.n_fit)
-            i = int(np.argmin(cost))
-            lo = hi = i
-            while lo > 0 and cost[lo - 1] <= _FLAT:
-                lo -= 1
-            while hi < cost.size - 1 and cost[hi + 1] <= _FLAT:
-                hi += 1
-            best = rows[i].copy()
-            best[axis] = 0.5 * (rows[lo, axis] + rows[hi, axis])
-        return best
+            lines = [cand.line(ctx, best, axis) for best in bests]
+            scored = self._score_grids(active, ctx, cand, lines, [(st, None) for st in sts], aim)
+            for k, (rows, (sse, _)) in enumerate(zip(lines, scored)):
+                cost = relative_cost(sse[:, 0], self.p.n_fit)
+                i = int(np.argmin(cost))
+                lo = hi = i
+                while lo > 0 and cost[lo - 1] <= _FLAT:
+                    lo -= 1
+                while hi < cost.size - 1 and cost[hi + 1] <= _FLAT:
+                    hi += 1
+                best = rows[i].copy()
+                best[axis] = 0.5 * (rows[lo, axis] + rows[hi, axis])
+                bests[k] = best
+        return bests
 
     def delay_option(self, model: Model, cand: Candidate) -> Option:
         flow, aim = model.flow, self.scorer.aim(model)
@@ -334,13 +402,16 @@ class Fitter:
         ranked = {v.free: self._ranked(starts[v.free], cand) for v in variants}
         scan = cand.scan(ctx)
         scanned = self.scan_surfaces(model.by_slot(), ctx, cand, scan, ranked, aim) if scan is not None else {}
+        todo = [(v.free, i, start) for v in variants for i, start in enumerate(ranked[v.free])]
+        p0s = [start.params if scanned.get((free, i)) is None else scan[int(np.argmin(scanned[(free, i)].sse))]
+               for free, i, start in todo]
+        refined = self.refine_all(model, cand, [(p0, start.structure, free)
+                                                for p0, (free, _, start) in zip(p0s, todo)], joint=False)
+        by_start = {(free, i): self._result(model, r, free, aim, scanned.get((free, i)))
+                    for r, (free, i, _) in zip(refined, todo)}
         options = []
         for v in variants:
-            results = []
-            for i, start in enumerate(ranked[v.free]):
-                scan_surface = scanned.get((v.free, i))
-                p0 = start.params if scan_surface is None else scan[int(np.argmin(scan_surface.sse))]
-                results.append(self._result(model, cand, p0, start.structure, v.free, aim, scan_surface))
+            results = [by_start[(v.free, i)] for i in range(len(ranked[v.free]))]
             if self.trades_with_prior(cand):
                 results = self._joint_results(model, cand, v.free, results)
             best = min(results, key=lambda r: r.score)
@@ -365,12 +436,16 @@ class Fitter:
         grid = cand.grid(ctx)
         flows = self.scorer.chain(model.by_slot(), ctx, cand, grid)
         starts: dict[bool, list[Start]] = {v.free: [] for v in variants}
-        for st in self.pole_set(model):
+        poles = self.pole_set(model)
+        # θ free: every pole hypothesis over the dead-time grid, in one pass over the flows.
+        free = any(v.free for v in variants)
+        on_grid = (self.scorer.sse_flows_all(flows, [(st, self.p.delays) for st in poles], aim) if free else
+                   [None] * len(poles))
+        for st, grid_delays in zip(poles, on_grid):
             penalty = self.scorer.prior_penalty(st)
-            grid_delays = None
             for v in sorted(variants, key=lambda v: not v.free):   # θ free first: its columns may serve θ held
                 if v.free:
-                    sse, delays = grid_delays = self.scorer.sse_flows(flows, st, self.p.delays, aim)
+                    sse, delays = grid_delays
                 else:
                     sse, delays = self._held_delay(flows, st, aim, grid_delays)
                 flat = sse.min(axis=1)
@@ -381,11 +456,9 @@ class Fitter:
                                             coarse=self.surface(cand.name, grid, flat)))
         return starts
 
-    def _result(self, model: Model, cand: Candidate, p0: np.ndarray, st: LinearStructure, free: bool, aim: Aim,
-                scan: Surface | None) -> Result:
-        """Stage 3 from one start: ``cand`` refined into ``model`` from ``p0`` and scored (a dead time freed
+    def _result(self, model: Model, r: Refined, free: bool, aim: Aim, scan: Surface | None) -> Result:
+        """Stage 3 from one start: ``r``, the candidate refined into ``model`` from it, scored (a dead time freed
         with it becomes the ``dead_time`` candidate of the model)."""
-        r = self.refine(model, cand, p0, st, free, joint=False)
         active = dict(r.active)
         if free and not model.delay_free:
             active["delay"] = Active(self.library["dead_time"], np.array([r.fit.structure.delay]))

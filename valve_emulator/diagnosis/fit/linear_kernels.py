@@ -41,6 +41,11 @@ RIDGE = 1e-10
 _BLOCK = 128
 # Samples whose cross terms with the output are accumulated together (see _add_cross_terms).
 _TILE = 16
+# Columns of a wider input scored together, from a contiguous copy (see grid_sse): read in place, each block is a
+# short run of every long row (2 KB apart for 256 columns) and the pass over time waited on those reads; from a
+# copy of 64 columns, copy included, a 256-column input scored in 0.4 of the time at 10⁴ samples (fresh data,
+# two threads).
+_GROUP = 64
 
 @numba.njit(cache=True, nogil=True)
 def _solve_sse(G, r, yy, q, beta, ntaps, sign):  # pragma: no cover - compiled
@@ -434,11 +439,21 @@ def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=N
     stages = (alpha, bool(integ), float(dt), lam is not None, float(lam or 0.0), float(frac))
     fit = (kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend), float(sign))
     n = u.shape[1]
+    if n <= _GROUP:
+        _score_columns(u, bool(filtered), stages, fit, sse)
+        return
+    for a in range(0, n, _GROUP):
+        _score_columns(np.ascontiguousarray(u[:, a:a + _GROUP]), bool(filtered), stages, fit, sse[a:a + _GROUP])
+
+
+def _score_columns(u: np.ndarray, filtered: bool, stages: tuple, fit: tuple, sse: np.ndarray) -> None:
+    """:func:`grid_sse` of the columns of ``u`` (C-contiguous), split over the worker threads."""
+    n = u.shape[1]
     workers = workers_for(n)
     # Whole blocks per worker, as even as the block size allows.
     cuts = [min(n, _BLOCK * round(n * w / workers / _BLOCK)) for w in range(workers + 1)]
     cuts[-1] = n
-    run_split(lambda a, b: _grid_columns(u, a, b, bool(filtered), stages, fit, sse), cuts)
+    run_split(lambda a, b: _grid_columns(u, a, b, filtered, stages, fit, sse), cuts)
 
 
 @numba.njit(cache=True)
