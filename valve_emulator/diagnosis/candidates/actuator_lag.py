@@ -4,7 +4,8 @@ A pneumatic actuator and positioner fill with air before the stem moves; to firs
 demand follows OP through ``1/(τ s + 1)``. The lag acts before the valve's friction (the force builds up,
 then the stem breaks free), so it sits in the ``actuator`` slot, ahead of stiction.
 
-Discretisation: OP is held over each sample, so the lag state obeys the exact ZOH recursion
+Discretisation (the coefficients are the device's actuator's, :func:`~valve_emulator.physics.actuator.
+lag_coefficients`): OP is held over each sample, so the lag state obeys the exact ZOH recursion
 ``x_{k+1} = a x_k + (1 − a) OP_k`` with ``a = e^{−Δt/τ}``; the plant, itself discretised by ZOH, is fed the
 *average* of the lag output over the sample, ``x_k + (OP_k − x_k)(1 − (τ/Δt)(1 − a))``, which is the
 input-equivalent value for a plant much slower than Δt and reduces to OP_k as τ → 0.
@@ -23,6 +24,7 @@ import numba
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
+from valve_emulator.physics.actuator import lag_coefficients
 
 __all__ = ["ActuatorLag", "first_order_lag"]
 
@@ -44,11 +46,8 @@ def first_order_lag(x: np.ndarray, tau: np.ndarray, dt: float) -> np.ndarray:
     """Sample-averaged output (T, n) of ``1/(τ s + 1)`` for each τ, started at rest at ``x[0]``."""
     x = np.asarray(x, dtype=float)
     x2 = np.ascontiguousarray(x[:, None] if x.ndim == 1 else x)
-    tau = np.atleast_1d(np.asarray(tau, dtype=float))
-    with np.errstate(divide="ignore", over="ignore"):
-        a = np.where(tau > 0, np.exp(-dt / np.maximum(tau, 1e-300)), 0.0)
-        w = np.where(tau > 0, 1.0 - (tau / dt) * (1.0 - a), 1.0)
-    out = np.empty((x2.shape[0], tau.size))
+    a, w = lag_coefficients(tau, dt)
+    out = np.empty((x2.shape[0], a.size))
     _lag_kernel(x2, a, w, out)
     return out
 
