@@ -197,25 +197,24 @@ class Scorer:
     def sse_jobs(self, active, ctx, cand, grid, jobs, aim: Aim) -> list[tuple]:
         """Several ``(structure, delays)`` evaluations of one grid in one pass: each chunk of rows is pushed
         through the chain once (the valve simulation is the costly part) and scored for every job."""
-        parts: list[list] = [[] for _ in jobs]
-        used: list = [None] * len(jobs)
-        for a in range(0, grid.shape[0], _CHUNK):
-            flows = self.chain(active, ctx, cand, grid[a:a + _CHUNK])
-            for i, (st, delays) in enumerate(jobs):
-                sse, used[i] = self.sse_flows(flows, st, delays, aim)
-                parts[i].append(sse)
-        return [(np.vstack(p), u) for p, u in zip(parts, used)]
+        chunks = (self.chain(active, ctx, cand, grid[a:a + _CHUNK]) for a in range(0, grid.shape[0], _CHUNK))
+        return self._score_chunks(chunks, jobs, aim)
 
     def sse_flows_all(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
         """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, :data:`_CHUNK`
         columns at a time (copied contiguous, then scored for every job while they are in cache): the same numbers
         as job by job over the whole array."""
+        chunks = (np.ascontiguousarray(flows[:, a:a + _CHUNK]) for a in range(0, flows.shape[1], _CHUNK))
+        return self._score_chunks(chunks, jobs, aim)
+
+    def _score_chunks(self, chunks, jobs: list[tuple], aim: Aim) -> list[tuple]:
+        """Each chunk of flows (T, ≤ :data:`_CHUNK`) scored for every job, as it comes; per job the SSE rows of
+        all chunks stacked, and the delays it searched."""
         parts: list[list] = [[] for _ in jobs]
         used: list = [None] * len(jobs)
-        for a in range(0, flows.shape[1], _CHUNK):
-            block = np.ascontiguousarray(flows[:, a:a + _CHUNK])
+        for flows in chunks:
             for i, (st, delays) in enumerate(jobs):
-                sse, used[i] = self.sse_flows(block, st, delays, aim)
+                sse, used[i] = self.sse_flows(flows, st, delays, aim)
                 parts[i].append(sse)
         return [(np.vstack(p), u) for p, u in zip(parts, used)]
 
