@@ -6,6 +6,7 @@ import socket
 import struct
 
 import pytest
+from mbpoll_output import mbpoll_values, run
 
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import N_REGISTERS, address_of
@@ -229,32 +230,19 @@ async def test_fast_time_scale_serves_while_ticking(make_server, client_for):
         assert (await _holding(client, OPEN_LOOP))[address_of("mv_pct")] == 6000
 
 
-async def _run(*argv):
-    proc = await asyncio.create_subprocess_exec(*argv, stdout=asyncio.subprocess.PIPE,
-                                                stderr=asyncio.subprocess.STDOUT)
-    out, _ = await asyncio.wait_for(proc.communicate(), 10)
-    return proc.returncode, out.decode()
-
-
-def _values(text):
-    """``[address]: value`` lines of mbpoll's output."""
-    pairs = [line.split(":", 1) for line in text.splitlines() if line.startswith("[")]
-    return {int(a.strip("[]")): v.strip() for a, v in pairs}
-
-
 async def test_mbpoll_reads_and_writes(make_server, mbpoll):
     async with make_server() as srv:
         base = [mbpoll, "-m", "tcp", "-p", str(srv.port), "-a", str(OPEN_LOOP), "-0", "-1", "-o", "2"]
-        rc, out = await _run(*base, "-r", "0", "-t", "4", "127.0.0.1", "7500")
+        rc, out = await run(*base, "-r", "0", "-t", "4", "127.0.0.1", "7500")
         assert rc == 0, out
-        rc, out = await _run(*base, "-r", "0", "-c", "3", "-t", "4", "127.0.0.1")
+        rc, out = await run(*base, "-r", "0", "-c", "3", "-t", "4", "127.0.0.1")
         assert rc == 0, out
-        assert _values(out) == {0: "7500", 1: "16000", 2: "5000"}
-        rc, out = await _run(*base, "-r", str(address_of("op_f32")), "-t", "4:float", "-B", "127.0.0.1")
-        assert rc == 0 and float(_values(out)[address_of("op_f32")]) == pytest.approx(75.0), out
-        rc, out = await _run(*base, "-r", str(address_of("mv_pct")), "-c", "2", "-t", "3", "127.0.0.1")
-        assert rc == 0 and _values(out) == {2: "5000", 3: "5000"}, out
-        rc, out = await _run(*base, "-r", "0", "-t", "4", "127.0.0.1", "12000")       # out of range
+        assert mbpoll_values(out) == {0: "7500", 1: "16000", 2: "5000"}
+        rc, out = await run(*base, "-r", str(address_of("op_f32")), "-t", "4:float", "-B", "127.0.0.1")
+        assert rc == 0 and float(mbpoll_values(out)[address_of("op_f32")]) == pytest.approx(75.0), out
+        rc, out = await run(*base, "-r", str(address_of("mv_pct")), "-c", "2", "-t", "3", "127.0.0.1")
+        assert rc == 0 and mbpoll_values(out) == {2: "5000", 3: "5000"}, out
+        rc, out = await run(*base, "-r", "0", "-t", "4", "127.0.0.1", "12000")       # out of range
         assert rc != 0 and "Illegal data value" in out
         srv.device.advance(1)
         assert srv.device.bank.op_external[0] == 75.0          # the accepted write, not the refused one
@@ -264,9 +252,9 @@ async def test_mbpoll_default_word_order_matches_a_cdab_device(make_server, mbpo
     async with make_server(_config(word_order="CDAB")) as srv:
         argv = [mbpoll, "-m", "tcp", "-p", str(srv.port), "-a", str(OPEN_LOOP), "-0", "-1", "-o", "2",
                 "-r", str(address_of("op_f32")), "-c", "2", "-t", "4:float", "127.0.0.1"]   # no -B: CDAB
-        rc, out = await _run(*argv)
+        rc, out = await run(*argv)
         assert rc == 0, out
-        values = _values(out)
+        values = mbpoll_values(out)
         assert float(values[address_of("op_f32")]) == pytest.approx(50.0)
         assert float(values[address_of("mv_f32")]) == pytest.approx(50.0)
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from asyncua import Client, ua
+from mbpoll_output import mbpoll_values, run
 from modbus_tk import defines as cst
 from modbus_tk import modbus_tcp
 from modbus_tk.modbus import ModbusError
@@ -158,27 +159,15 @@ async def test_opc_ua_keeps_its_node_names_and_its_writes_show_in_the_configured
 
 # --- third-party clients ---------------------------------------------------------------------------------------
 
-async def _run(*argv):
-    proc = await asyncio.create_subprocess_exec(*argv, stdout=asyncio.subprocess.PIPE,
-                                                stderr=asyncio.subprocess.STDOUT)
-    out, _ = await asyncio.wait_for(proc.communicate(), 10)
-    return proc.returncode, out.decode()
-
-
-def _values(text):
-    pairs = [line.split(":", 1) for line in text.splitlines() if line.startswith("[")]
-    return {int(a.strip("[]")): v.strip() for a, v in pairs}
-
-
 async def test_mbpoll_reads_pv_and_writes_op_of_the_modicon_profile_with_its_references(mbpoll):
     """mbpoll's defaults are the Modicon conventions: one-based references and floats low word first."""
     async with _server(MODICON) as srv:
         srv.device.advance(20)
         base = [mbpoll, "-m", "tcp", "-p", str(srv.port), "-a", "1", "-1", "-o", "2"]
-        rc, out = await _run(*base, "-r", "1", "-t", "3:float", "127.0.0.1")          # 30001
+        rc, out = await run(*base, "-r", "1", "-t", "3:float", "127.0.0.1")          # 30001
         assert rc == 0, out
-        assert float(_values(out)[1]) == pytest.approx(srv.device.bank.pv[0], rel=1e-5)
-        rc, out = await _run(*base, "-r", "1", "-t", "4:float", "127.0.0.1", "33.25")  # 40001
+        assert float(mbpoll_values(out)[1]) == pytest.approx(srv.device.bank.pv[0], rel=1e-5)
+        rc, out = await run(*base, "-r", "1", "-t", "4:float", "127.0.0.1", "33.25")  # 40001
         assert rc == 0, out
         srv.device.advance(1)
         assert srv.device.bank.op_external[0] == pytest.approx(33.25)

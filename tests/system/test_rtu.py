@@ -12,6 +12,7 @@ import time
 
 import pytest
 import serial
+from mbpoll_output import mbpoll_values, run
 from required import tool
 
 from valve_emulator.config import server_from_mapping
@@ -53,15 +54,7 @@ def make_server(fake_bank_cls):
 
 
 async def _mbpoll(mbpoll, *argv):
-    proc = await asyncio.create_subprocess_exec(mbpoll, "-m", "rtu", "-0", "-1", "-o", "1", *argv,
-                                                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT)
-    out, _ = await asyncio.wait_for(proc.communicate(), 20)
-    return proc.returncode, out.decode()
-
-
-def _values(text):
-    pairs = [line.split(":", 1) for line in text.splitlines() if line.startswith("[")]
-    return {int(a.strip("[]")): v.strip() for a, v in pairs}
+    return await run(mbpoll, "-m", "rtu", "-0", "-1", "-o", "1", *argv, timeout=20)
 
 
 @pytest.mark.parametrize(("settings", "flags"), [
@@ -75,9 +68,9 @@ async def test_mbpoll_reads_and_writes_over_a_serial_line(make_server, pty_pair,
         rc, out = await _mbpoll(mbpoll, *flags, "-a", "1", "-r", "0", "-t", "4", client_end, "7500")
         assert rc == 0, out
         rc, out = await _mbpoll(mbpoll, *flags, "-a", "1", "-r", "0", "-c", "3", "-t", "4", client_end)
-        assert rc == 0 and _values(out) == {0: "7500", 1: "16000", 2: "5000"}, out
+        assert rc == 0 and mbpoll_values(out) == {0: "7500", 1: "16000", 2: "5000"}, out
         rc, out = await _mbpoll(mbpoll, *flags, "-a", "2", "-r", "0", "-c", "7", "-t", "1", client_end)
-        assert rc == 0 and _values(out) == {0: "1", 1: "0", 2: "0", 3: "0", 4: "0", 5: "0", 6: "0"}, out
+        assert rc == 0 and mbpoll_values(out) == {0: "1", 1: "0", 2: "0", 3: "0", 4: "0", 5: "0", 6: "0"}, out
         rc, out = await _mbpoll(mbpoll, *flags, "-a", "3", "-r", "0", "-t", "4", client_end)   # no unit 3
         assert rc != 0 and "timed out" in out.lower(), out
         assert link.frames >= 4 and link.dropped == 0
@@ -170,13 +163,13 @@ async def test_serve_command_runs_tcp_and_rtu_from_one_process_on_one_tick(pty_p
         rc, out = await _mbpoll(mbpoll, "-b", "9600", "-P", "none", "-s", "2", "-a", "1", "-r", str(tick),
                                 "-c", "2", "-t", "4", client_end)
         assert rc == 0, out
-        rtu_tick = int(_values(out)[tick]) << 16 | int(_values(out)[tick + 1])
+        rtu_tick = int(mbpoll_values(out)[tick]) << 16 | int(mbpoll_values(out)[tick + 1])
         tcp = await asyncio.create_subprocess_exec(
             mbpoll, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", "-r", str(tick), "-c", "2", "-t", "4",
             "127.0.0.1", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT)
         out = (await asyncio.wait_for(tcp.communicate(), 20))[0].decode()
         assert tcp.returncode == 0, out
-        tcp_tick = int(_values(out)[tick]) << 16 | int(_values(out)[tick + 1])
+        tcp_tick = int(mbpoll_values(out)[tick]) << 16 | int(mbpoll_values(out)[tick + 1])
         assert 0 <= tcp_tick - rtu_tick <= 20        # the same tick counter, read a moment apart
     finally:
         proc.terminate()
