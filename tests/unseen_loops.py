@@ -116,9 +116,14 @@ def _read(path: Path) -> dict | None:
         return None
 
 
+def _files(key: Draw, folder: Path) -> tuple[Path, Path]:
+    """Where ``key``'s document is written once diagnosed, and the file whose creation claims it."""
+    return folder / f"{key.name}.json", folder / f"{key.name}.claim"
+
+
 def _claim_and_diagnose(key: Draw, folder: Path) -> dict | None:
     """Diagnose ``key`` if nobody has claimed it (its record), else None."""
-    done, claim = folder / f"{key.name}.json", folder / f"{key.name}.claim"
+    done, claim = _files(key, folder)
     try:
         os.close(os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
     except FileExistsError:
@@ -142,7 +147,7 @@ def _record(key: Draw, *, wait: bool = True) -> dict | None:
     if folder is None:
         record = _diagnose(key)
     else:
-        done, claim = folder / f"{key.name}.json", folder / f"{key.name}.claim"
+        done, claim = _files(key, folder)
         record = _read(done) or _claim_and_diagnose(key, folder)
         if record is None and not wait:
             return None
@@ -157,14 +162,11 @@ def _record(key: Draw, *, wait: bool = True) -> dict | None:
     return record
 
 
-def _diagnosed(key: Draw, record: dict) -> Diagnosed:
-    rec, truth, nominal = loop(key.family, key.entropy)
-    return Diagnosed(draw=key, truth=truth, recording=rec, nominal=nominal, doc=record["doc"], plant=record["plant"])
-
-
 def diagnosed(key: Draw) -> Diagnosed:
     """One draw, diagnosed once per test run."""
-    return _diagnosed(key, _record(key))
+    record = _record(key)
+    rec, truth, nominal = loop(key.family, key.entropy)
+    return Diagnosed(draw=key, truth=truth, recording=rec, nominal=nominal, doc=record["doc"], plant=record["plant"])
 
 
 def diagnosed_all(keys: Iterable[Draw]) -> list[Diagnosed]:
