@@ -26,7 +26,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import minimize
 
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.fit.backfit import backfit
@@ -35,6 +34,7 @@ from valve_emulator.diagnosis.fit.cost import log_sse, relative_cost
 from valve_emulator.diagnosis.fit.linear import LinearFit, LinearStructure, split_delay, sse_one
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
 from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
+from valve_emulator.diagnosis.fit.simplex import nelder_mead
 
 __all__ = ["Fitter", "Refined", "Result", "Start", "Variant"]
 
@@ -296,9 +296,8 @@ class Fitter:
         x0 = np.concatenate([np.log(np.maximum(best, 1e-12)), np.log(st.taus[:nt]), [st.delay] if free else []])
         step = np.concatenate([np.full(k + nt, 0.1), [max(self.p.dt, 0.1 * st.delay)] if free else []])
         simplex = np.vstack([x0] + [x0 + np.eye(x0.size)[i] * step[i] for i in range(x0.size)])
-        res = minimize(cost, x0, method="Nelder-Mead",
-                       options={"initial_simplex": simplex, "maxfev": _JOINT_EVALS, "xatol": 1e-2, "fatol": 0.05})
-        return make(res.x) if res.fun <= cost(x0) else (best, st)
+        res = nelder_mead(cost, simplex, maxfev=_JOINT_EVALS, xatol=1e-2, fatol=0.05)
+        return make(res.x) if res.fun <= res.start else (best, st)
 
     def centre(self, active, ctx, cand, best, st, aim: Aim) -> np.ndarray:
         """Move each threshold parameter to the middle of the flat bottom of its cost.

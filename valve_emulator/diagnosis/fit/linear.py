@@ -42,11 +42,11 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import minimize
 from scipy.signal import lfilter
 
 from valve_emulator.diagnosis.fit.cost import log_sse
 from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_sse, grid_sse, normal_equations
+from valve_emulator.diagnosis.fit.simplex import nelder_mead
 from valve_emulator.physics._arrays import kernel_array
 
 __all__ = [
@@ -478,7 +478,6 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     x0 = np.concatenate([taus0, [structure.delay] if free_delay else []])
     step = np.concatenate([np.full(taus0.size, 0.3), [max(dt, 0.1 * structure.delay)] if free_delay else []])
     simplex = np.vstack([x0] + [x0 + np.eye(x0.size)[i] * step[i] for i in range(x0.size)])
-    res = minimize(cost, x0, method="Nelder-Mead",
-                   options={"initial_simplex": simplex, "maxfev": max_evals, "xatol": 1e-3, "fatol": 1e-3})
-    best = make(res.x) if res.fun <= cost(x0) else structure
+    res = nelder_mead(cost, simplex, maxfev=max_evals, xatol=1e-3, fatol=1e-3)
+    best = make(res.x) if res.fun <= res.start else structure
     return fit(best)
