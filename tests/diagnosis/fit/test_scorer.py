@@ -86,3 +86,26 @@ def test_dead_times_near_a_value_stay_on_the_problems_grid():
     lo, hi = int(problem.delays.min()), int(problem.delays.max())
     assert scorer.near(3.0, 2).tolist() == [max(lo, 1), 2, 3, 4, 5]
     assert scorer.near(float(hi), 3).max() == hi and scorer.near(0.0, 3).min() == lo
+
+
+def test_jobs_the_linear_fit_cannot_tell_apart_are_scored_once_with_the_numbers_of_each_alone(monkeypatch):
+    problem = _problem()
+    scorer = Scorer(problem, NOMINAL, {})
+    aim = scorer.aim(None)
+    rng = np.random.default_rng(5)
+    flows = problem.op[:, None] + rng.normal(0.0, 2.0, (T, 70))
+    delays = np.arange(0, 5)
+    first_order = LinearStructure(taus=(10.0,), delay=2.0)
+    # The same poles with a held gain and another dead time: the same job on a grid of dead times.
+    same = LinearStructure(taus=(10.0,), delay=4.0, gain=1.5, min_tau=0.5)
+    jobs = [(first_order, delays), (LinearStructure(integrating=True), delays), (same, delays.copy()),
+            (first_order, None), (same, None)]
+    alone = [scorer.sse_flows_all(flows, [job], aim)[0] for job in jobs]
+    calls = []
+    sse_flows = scorer.sse_flows
+    monkeypatch.setattr(scorer, "sse_flows", lambda *a: calls.append(a[1]) or sse_flows(*a))
+    together = scorer.sse_flows_all(flows, jobs, aim)
+    assert len(calls) == 4 * 2   # four distinct jobs (the dead time held is the structure's own), two chunks
+    for (sse, used), (sse_alone, used_alone) in zip(together, alone):
+        assert sse.tobytes() == sse_alone.tobytes() and np.array_equal(used, used_alone)
+    assert not np.array_equal(together[3][0], together[4][0])   # own dead times 2 s and 4 s differ

@@ -91,6 +91,14 @@ def library_burn_in(problem: Problem, nominal: Nominal, library: dict[str, Candi
     return max((c.burn_in(ctx) for c in library.values()), default=0)
 
 
+def _kernel_job(st: LinearStructure, delays: np.ndarray | None) -> tuple:
+    """What the SSE of :meth:`Scorer.sse_flows` depends on besides the flows: the poles (the denominator and the
+    regressors' number follow from them), the gain's sign and the dead times searched (the structure's own when
+    ``delays`` is None). Its held gain, held time constants and bounds are for the polish, not this fit."""
+    return (st.taus, st.fixed_poles, st.integrating, st.sign,
+            ("own", st.delay) if delays is None else ("grid", np.asarray(delays, dtype=np.int64).tobytes()))
+
+
 class Scorer:
     """Grid scoring for one problem (see the module docstring).
 
@@ -209,14 +217,19 @@ class Scorer:
 
     def _score_chunks(self, chunks, jobs: list[tuple], aim: Aim) -> list[tuple]:
         """Each chunk of flows (T, ≤ :data:`_CHUNK`) scored for every job, as it comes; per job the SSE rows of
-        all chunks stacked, and the delays it searched."""
+        all chunks stacked, and the delays it searched. Jobs the linear kernel cannot tell apart
+        (:func:`_kernel_job`, e.g. an integrator that is both an identified alternate and a pole hypothesis of
+        its own) are scored once and share the numbers."""
+        first: dict[tuple, int] = {}
+        same = [first.setdefault(_kernel_job(st, delays), i) for i, (st, delays) in enumerate(jobs)]
         parts: list[list] = [[] for _ in jobs]
         used: list = [None] * len(jobs)
         for flows in chunks:
             for i, (st, delays) in enumerate(jobs):
-                sse, used[i] = self.sse_flows(flows, st, delays, aim)
-                parts[i].append(sse)
-        return [(np.vstack(p), u) for p, u in zip(parts, used)]
+                if same[i] == i:
+                    sse, used[i] = self.sse_flows(flows, st, delays, aim)
+                    parts[i].append(sse)
+        return [(np.vstack(parts[k]), used[k]) for k in same]
 
     def near(self, d: float, r: int) -> np.ndarray:
         """Whole-sample dead times of the problem's grid within ``r`` samples of ``d`` (s)."""
