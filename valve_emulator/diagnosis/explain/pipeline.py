@@ -26,8 +26,8 @@ valve parameters, but would only throw away a self-regulating plant's slow respo
 its plant decides; without one the search runs on PV (its pole set spans both families) and, if the result
 integrates, once more prefiltered, whose result is kept. If the result is then self-regulating and the
 controller's law was read exactly, the loop is searched once more on prefiltered PV with the plant held
-integrating, kept when it predicts held-out PV better through the prefilter (:func:`_integrating_or_not`): on PV
-a wandering load hides an integrator.
+integrating, kept when it predicts held-out PV better through the prefilter and explains PV better under a
+drifting-load noise model (:func:`_integrating_or_not`): on PV a wandering load hides an integrator.
 """
 
 from __future__ import annotations
