@@ -38,8 +38,8 @@ def _found() -> int:
 
 @pytest.mark.xfail(strict=True, reason="measured 27 of 40 (22 while the search holding an integrator also had to "
                    "predict held-out PV itself no worse; 19 before that search existed): on the rest no search finds "
-                   "the valve — a disturbance, a flow limit or a characteristic instead, or nothing, mostly where the "
-                   "plant has a lag the held integrator stands in for with dead time")
+                   "the valve (a disturbance, a flow limit or a characteristic instead, or nothing; five of the 13 "
+                   "misses have a plant lag of 7-10 s, which the held integrator stands in for with dead time)")
 def test_stiction_is_found_in_nine_loops_of_ten():
     found = _found()
     assert found >= 0.9 * len(LEVEL), f"stiction found in {found} of {len(LEVEL)}"
