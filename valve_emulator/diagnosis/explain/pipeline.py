@@ -26,8 +26,8 @@ valve parameters, but would only throw away a self-regulating plant's slow respo
 its plant decides; without one the search runs on PV (its pole set spans both families) and, if the result
 integrates, once more prefiltered, whose result is kept. If the result is then self-regulating and the
 controller's law was read exactly, the loop is searched once more on prefiltered PV with the plant held
-integrating, kept when it predicts held-out PV better through the prefilter (:func:`_integrating_or_not`): on PV
-a wandering load hides an integrator.
+integrating, kept when it predicts held-out PV better through the prefilter and explains PV better under a
+drifting-load noise model (:func:`_integrating_or_not`): on PV a wandering load hides an integrator.
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ from valve_emulator.diagnosis.fit.data import (
 )
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame
-from valve_emulator.diagnosis.fit.load_check import input_delta_bic
+from valve_emulator.diagnosis.fit.load_check import family_delta_bic, input_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.diagnosis.fit.scorer import Scorer, library_burn_in
@@ -194,24 +194,31 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
 def _integrating_or_not(free: Searched, held: Searched) -> Searched:
     """The search so far (``free``, whose plant came out self-regulating) or the one on prefiltered PV that held
     the plant integrating (``held``): the held one when its held-out fit, cross-validated through the prefilter,
-    beats the free one's on the same blocks in the same domain by :data:`DELTA_FIT` points, it predicts held-out
-    PV itself no worse than the free one (within :data:`DELTA_FIT`), and its gain is not held at zero by the
+    beats the free one's on the same blocks in the same domain by :data:`DELTA_FIT` points, it explains PV
+    better under the drifting-load noise model by :data:`DELTA_BIC`
+    (:func:`~valve_emulator.diagnosis.fit.load_check.family_delta_bic`), and its gain is not held at zero by the
     gain's sign.
 
     Why: on PV an integrator's free run drifts with every wandering load, so the search there prefers a slow
     first-order plant or a half-cycle dead time, and a sticky level valve goes unseen; through the prefilter
-    the load is forgotten, and the two families are compared on what each predicts of the loop's cycles.
+    the load is forgotten, and the two families are compared on what each predicts of the loop's cycles. The
+    prefilter alone would give a self-regulating loop an integrator (it forgets the slow response such a plant
+    predicts), so both are also scored on PV itself, as one-step predictions under a random-walk load: there a
+    first-order flow loop keeps its plant, while the free run of PV, which no integrating model can match on a
+    loop whose load wanders, would reject a level loop's right plant as readily.
     """
     ours = with_cv(held.fitter.scorer, held.model).heldout
     theirs = cross_validated_fit(held.fitter.scorer, free.model)
     if not ours >= theirs + DELTA_FIT or held.model.fit.gain == 0.0:
         return free
-    if _reported_fit(held, held.model) < _reported_fit(free, free.model) - DELTA_FIT:
-        return free   # it must not predict held-out PV itself worse either: a self-regulating loop kept its plant
+    better = family_delta_bic((free.fitter.scorer, free.model), (held.fitter.scorer, held.model))
+    if not better >= DELTA_BIC:
+        return free
     ident = held.nominal.identification
     said = tuple(c for c in ident.constraints if "plant (declared)" not in c) + (
         f"integrating plant: through the high-pass prefilter, the search holding an integrator predicts held-out "
-        f"PV better than the search with the family free ({ours:.1f} % against {theirs:.1f} %)",)
+        f"PV better than the search with the family free ({ours:.1f} % against {theirs:.1f} %), and under a "
+        f"drifting-load noise model it explains PV better (ΔBIC {better:.0f})",)
     nominal = replace(held.nominal, identification=replace(ident, integrating=None, constraints=said))
     return replace(held, nominal=nominal)
 
