@@ -38,7 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
-from valve_emulator.diagnosis.explain.onset import LateOnset, Suspected, onset_option
+from valve_emulator.diagnosis.explain.onset import LateOnset, Suspected, bic_after, late_start, onset_option
 from valve_emulator.diagnosis.fit.crossval import with_cv
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.load_check import load_bic
@@ -143,6 +143,16 @@ class Search:
                     out.append(whole)
         return out
 
+    def holds_after_onset(self, new: Model, old: Model) -> bool:
+        """Where ``old`` has a finding that starts late, whether ``new`` also lowers the BIC of the part after
+        its onset by :data:`DELTA_BIC` (:func:`~valve_emulator.diagnosis.explain.onset.bic_after`): an
+        addition is judged where the late finding acts, not credited with the part before it."""
+        start = late_start(old, self.scorer.p.dt)
+        if start is None:
+            return True
+        p = self.scorer.p
+        return bic_after(p, old, start) - bic_after(p, new, start) >= DELTA_BIC
+
     def whole_beats_late(self, whole: Model, late: Model) -> bool:
         """Whether the whole-record option beats the late one where an onset was located: :func:`significant`
         against it, and its BIC under the drifting-load noise model (:func:`~valve_emulator.diagnosis.fit.
@@ -176,7 +186,8 @@ class Search:
             for j in [i, *subs]:
                 options[j] = replace(options[j], model=self.validated(options[j].model))
             o = options[i]
-            if significant(o.model, model) and all(significant(o.model, options[j].model) for j in subs):
+            if (significant(o.model, model) and all(significant(o.model, options[j].model) for j in subs)
+                    and self.holds_after_onset(o.model, model)):
                 chosen = o
                 break
         return Round(baseline=model, options=tuple(options), chosen=chosen)
