@@ -27,9 +27,12 @@ import functools
 from dataclasses import dataclass
 
 import pytest
+import numpy as np
 from unseen_loops import LATE_ONSET, Draw, diagnosed, diagnosed_all, loop
 
 from valve_emulator.diagnosis.explain.onset import suspect_onset
+from valve_emulator.physics.actuator import actuator_response
+from valve_emulator.physics.stiction import simulate_many
 
 DRAWS = 20
 SEED = 32
@@ -41,14 +44,58 @@ def _loop(i: int) -> tuple:
     return loop("late_onset", (SEED, i))
 
 
+def _stem_rms(op: np.ndarray, mv: np.ndarray, S: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """RMS (% travel) of each 2005 valve's (S, J) travel on ``op`` against the stem travel ``mv``, at its best
+    initial direction and with the operating point free (a constant offset)."""
+    out = []
+    for direction in (1, -1):
+        r = mv[:, None] - simulate_many(op, S, J, direction=direction)
+        out.append(np.sqrt(np.mean((r - r.mean(axis=0)) ** 2, axis=0)))
+    return np.minimum(*out)
+
+
+@functools.cache
+def valve_2005(i: int) -> tuple[float, float]:
+    """The (S, J) of the 2005 valve (:mod:`valve_emulator.physics.stiction`, the model the diagnosis reports)
+    that best reproduces draw ``i``'s own stem travel from its OP after the onset: no plant, no noise, the
+    actuator lag applied to OP where it acts before the friction, OP taken as it is or one sample earlier.
+
+    Why: the drawn valve is a Karnopp stem or a data-driven valve written from its definition, whose S and J
+    are defined as the 2005 model's, but whose cycles differ in detail (a Karnopp stem re-sticks during slow
+    motion, the data-driven one rests after 1.5 samples of a held input). Fitted to the valve's own OP→MV,
+    the 2005 model reproduces S but not J: its J misses the drawn J by more than 25 % in 8 draws of 20
+    (:func:`test_the_2005_valve_fitted_to_the_drawn_valve_alone_reproduces_its_S_but_not_always_its_J`),
+    so the drawn J cannot be the measure of a diagnosis' J; this one can."""
+    rec, truth, _ = _loop(i)
+    valve = truth["valve"]
+    k0 = int(np.ceil(truth["onset"] / rec.dt)) + 1
+    op = np.clip(np.asarray(rec.op, dtype=float), 0.0, 100.0)
+    if valve["actuator_lag"] > 0 and valve["order"] == "lag_first":
+        op = actuator_response(op, valve["actuator_lag"], rec.dt)
+    mv = np.asarray(truth["mv"], dtype=float)[k0:]
+    S, J = (a.ravel() for a in np.meshgrid(truth["S"] * np.linspace(0.3, 2.0, 69),
+                                           truth["S"] * np.linspace(0.0, 1.6, 41)))
+    best = min((float(e[j]), float(S[j]), float(J[j]))
+               for e in (_stem_rms(op[k0 - shift:op.size - shift], mv, S, J) for shift in (0, 1))
+               for j in [int(np.argmin(e))])
+    return best[1], best[2]
+
+
+def j_error(J: float, i: int) -> float:
+    """Error of a diagnosed J against the J a 2005 valve has for draw ``i`` (:func:`valve_2005`), relative to
+    the larger of that J and the drawn one (a drawn valve whose 2005 J is 0 is judged on the drawn J's scale)."""
+    J_2005, J_drawn = valve_2005(i)[1], _loop(i)[1]["J"]
+    return abs(J - J_2005) / max(J_2005, J_drawn)
+
+
 @dataclass(frozen=True)
 class Outcome:
     """One diagnosis against the loop's truth."""
 
     answer: str
     onset_err: float | None   # |reported − true onset| / record length; None when no onset is reported
-    S_err: float | None       # relative errors of the friction's S and J in % travel; None without friction
-    J_err: float | None
+    S_err: float | None       # relative error of the friction's S in % travel; None without friction
+    J_err: float | None       # error of its J against the 2005 valve's (:func:`j_error`)
     extra: tuple[str, ...]    # findings that are not the valve's own
 
     @property
@@ -70,7 +117,7 @@ def _outcome(i: int, mode: str) -> Outcome:
     S_err = J_err = None
     if travel is not None:
         S_err = abs(travel["S"]["value"] - truth["S"]) / truth["S"]
-        J_err = abs(travel["J"]["value"] - truth["J"]) / truth["J"]
+        J_err = j_error(travel["J"]["value"], i)
     return Outcome(answer=doc["answer"], onset_err=abs(onsets[0] - truth["onset"]) / length if onsets else None,
                    S_err=S_err, J_err=J_err, extra=tuple(f["physics"] for f in findings if f["physics"] not in own))
 
@@ -83,6 +130,20 @@ def _outcomes(mode: str) -> list[Outcome]:
 
 def _count(mode: str, test) -> int:
     return sum(bool(test(o)) for o in _outcomes(mode))
+
+
+@pytest.mark.slow
+def test_the_2005_valve_fitted_to_the_drawn_valve_alone_reproduces_its_S_but_not_always_its_J():
+    """The measure of J (:func:`valve_2005`): fitted to the valve's own OP→MV, S within 25 % of the drawn S in
+    19 draws of 20, J within 25 % of the drawn J in 12 of 20 only (Karnopp stems 4 of 9)."""
+    S_ok = J_ok = 0
+    for i in range(DRAWS):
+        truth = _loop(i)[1]
+        S, J = valve_2005(i)
+        S_ok += abs(S - truth["S"]) <= SIZE_TOL * truth["S"]
+        J_ok += abs(J - truth["J"]) <= SIZE_TOL * truth["J"]
+    assert S_ok >= 0.9 * DRAWS
+    assert J_ok <= 0.75 * DRAWS
 
 
 @pytest.mark.slow
