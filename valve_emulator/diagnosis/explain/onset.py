@@ -376,10 +376,10 @@ def onset_of(model: Model, name: str) -> float | None:
     return float(act.params[-1])
 
 
-def late_start(model: Model, dt: float) -> int | None:
-    """The first sample of the earliest finding of ``model`` that starts late, None when none does."""
-    onsets = [a.params[-1] for a in model.active if isinstance(a.candidate, LateOnset)]
-    return int(round(min(onsets) / dt)) if onsets else None
+def late_start(model: Model) -> float | None:
+    """The onset (s) of the earliest finding of ``model`` that starts late, None when none does."""
+    onsets = [float(a.params[-1]) for a in model.active if isinstance(a.candidate, LateOnset)]
+    return min(onsets) if onsets else None
 
 
 def bic_after(problem: Problem, model: Model, start: int) -> float:

@@ -147,10 +147,11 @@ class Search:
         """Where ``old`` has a finding that starts late, whether ``new`` also lowers the BIC of the part after
         its onset by :data:`DELTA_BIC` (:func:`~valve_emulator.diagnosis.explain.onset.bic_after`): an
         addition is judged where the late finding acts, not credited with the part before it."""
-        start = late_start(old, self.scorer.p.dt)
-        if start is None:
+        t0 = late_start(old)
+        if t0 is None:
             return True
         p = self.scorer.p
+        start = int(round(t0 / p.dt))
         return bic_after(p, old, start) - bic_after(p, new, start) >= DELTA_BIC
 
     def whole_beats_late(self, whole: Model, late: Model) -> bool:
