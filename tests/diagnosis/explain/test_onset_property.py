@@ -7,15 +7,18 @@ with or without an actuator lag). Each loop is diagnosed with its nominal model 
 an ideal valve) and as plant data (no model, OP declared as % travel).
 
 The property asked for: the onset within 10 % of the record, S and J within 25 % and no finding besides the
-valve's own (its friction, and an actuator lag where the loop has one) in at least 9 draws of 10. It is not met:
-measured 1/20 with a model and 5/20 without (strict xfails below). What holds is checked at the rates measured
-(seed 32): the change point locates the onset before any fit in 17 draws of 20; the answer is stiction in 14/20
-with a model and 15/20 without; an onset it reports is within a tenth of the record in 6 of 7 with a model and 8
-of 8 without; stiction from an onset within a tenth, with S within 25 %, in 5/20 and 7/20. What stands in the
-way, measured: with a model the linear part re-fitted around the nominal chain leans on the controller's
-correlation with a wandering load (its poles move several-fold faster than the nominal ones, and the valve
-then lowers the fit: 6 no-stiction answers, extra dead-time, disturbance and characteristic findings); J is
-underestimated where an actuator lag smooths the slip, and Karnopp friction's J is not Choudhury's J.
+valve's own (its friction, and an actuator lag where the loop has one) in at least 9 draws of 10. J is judged
+against the J of the 2005 valve that best reproduces the drawn valve's own stem travel (:func:`valve_2005`):
+the drawn valve's J is not that J in 8 draws of 20. It is not met: measured 1/20 with a model and 5/20 without
+(strict xfails below). What holds is checked at the rates measured (seed 32): the change point locates the
+onset before any fit in 17 draws of 20; the answer is stiction in 15/20 with a model and 16/20 without; an
+onset it reports is within a tenth of the record in 10 of 12 with a model and 13 of 14 without; stiction from
+an onset within a tenth, with S within 25 %, in 9/20 and 8/20. What stands in the way, measured: with a model
+the linear part re-fitted around the nominal chain leans on the controller's correlation with a wandering
+load (its gain falls several-fold: 5 no-stiction answers, dead-time and disturbance findings); a deadband
+(J = 0) is chosen over stiction in 4 draws with a model and 6 without; extra dead-time, disturbance, lag and
+characteristic findings that hold after the onset too (6 draws with a model, 5 without); J off where an
+actuator lag smooths the slip.
 
 Time: about 4 minutes for the 20 draws, both ways (about 3 s a diagnosis on an idle core; 15–30 s on a machine
 shared by six processes).
@@ -26,8 +29,8 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
-import pytest
 import numpy as np
+import pytest
 from unseen_loops import LATE_ONSET, Draw, diagnosed, diagnosed_all, loop
 
 from valve_emulator.diagnosis.explain.onset import suspect_onset
@@ -158,17 +161,17 @@ def test_the_onset_is_located_before_any_fit_within_a_tenth_of_the_record():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 6), ("plant", 8)])
-def test_an_onset_the_answer_reports_is_within_a_tenth_of_the_record(mode, least):
-    """Measured: 6 of 7 reported onsets with a model (the miss is the change point's: 900 s for 1679 s), 8 of 8
-    without."""
+@pytest.mark.parametrize(("mode", "least", "wrong"), [("model", 10, 2), ("plant", 13, 1)])
+def test_an_onset_the_answer_reports_is_within_a_tenth_of_the_record(mode, least, wrong):
+    """Measured: 10 of 12 reported onsets with a model, 13 of 14 without. The misses: the change point's (900 s
+    for 1679 s, both ways) and, with a model, a deadband started late where no change point was located."""
     reported = [o.onset_err for o in _outcomes(mode) if o.onset_err is not None]
     assert sum(e <= ONSET_TOL for e in reported) >= least
-    assert sum(e > ONSET_TOL for e in reported) <= 1
+    assert sum(e > ONSET_TOL for e in reported) <= wrong
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 5), ("plant", 7)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 9), ("plant", 8)])
 def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode, least):
     """The part of the property the search reaches: the answer is stiction, from an onset within a tenth of the
     record, with S within 25 % (J and the other findings are left to the strict xfail below)."""
