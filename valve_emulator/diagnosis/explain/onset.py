@@ -42,13 +42,17 @@ Why only with a model where no onset is suspected: without one the linear part i
 record, and a band acting late at any of the coarse onsets trades off against it (on the shared plant windows
 it named a healthy level valve sticky, where the whole-record search did not).
 
-The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option in place of the
-whole-record one: where an onset was suspected, unless the whole-record option is significant against it
-(measured on the independent ``late_onset`` loops: before a valve starts to stick the loop's OP moves little,
-and a sticky valve fits that part about as well as a healthy one, so BIC alone rarely asks for the onset);
-else when it lowers BIC by twice the search's own threshold (the onset is then a change point, the best of
-many positions; preferring it whenever the whole-record one was not better by the threshold located wrong
-onsets as often as right ones).
+The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option beside the whole-record
+ones. Where an onset was suspected, a whole-record option of physics that may start late (alone or with a
+free dead time) stays only if it beats the best late option, significant against it and 10 lower in BIC under
+the drifting-load noise model too (:meth:`~valve_emulator.diagnosis.explain.search.Search.late_first`): before
+a valve starts to stick the controller moves OP to cancel a wandering load while PV holds its set point, so
+in the search's free-run cost a valve stuck there fits that part *better* than the healthy one, and BIC alone
+cannot ask for the onset. Where none was, the late option replaces the whole-record one when it lowers BIC by
+twice the search's own threshold (the onset is then a change point, the best of many positions; preferring
+it whenever the whole-record one was not better by the threshold located wrong onsets as often as right
+ones). Once a finding starts late, later additions must also lower the BIC of the part after the onset
+(:func:`bic_after`).
 
 What the answer says (:func:`acting_part`): the onset, and the fits (%) of the model without the finding and of
 the final model on the samples from the onset on, so that the finding is judged where it acts and is not
