@@ -119,23 +119,25 @@ class Search:
     def _may_start_late(self, option: Option) -> bool:
         return any(getattr(self.scorer.library.get(name), "may_start_late", False) for name in option.added)
 
-    def late_first(self, options: list[Option]) -> list[Option]:
-        """Where an onset was located, ``options`` without the whole-record options of physics that may start
-        late (alone or paired with a free dead time) that do not beat the best late option
-        (:meth:`whole_beats_late`): before a valve starts to stick the loop's OP moves little, so a valve
-        sticking throughout, or a deadband, fits the healthy part about as well, and BIC alone cannot ask for
-        the onset; a dead time freed to let a valve that sticks throughout fit the healthy part is not evidence
-        of either."""
+    def late_first(self, options: list[Option], model: Model) -> list[Option]:
+        """Where an onset was located and the best late option counts against ``model`` (:func:`significant`),
+        ``options`` without the whole-record options of physics that may start late (alone or paired with a
+        free dead time) that do not beat it (:meth:`whole_beats_late`): before a valve starts to stick the
+        loop's OP moves little, so a valve sticking throughout, or a deadband, fits the healthy part about as
+        well, and BIC alone cannot ask for the onset; a dead time freed to let a valve that sticks throughout
+        fit the healthy part is not evidence of either. A late option that does not count replaces nothing."""
         lates = [o for o in options if self._starts_late(o)]
         if self.suspected is None or not lates:
             return options
-        best = min(lates, key=lambda o: o.model.bic)
-        best = replace(best, model=self.validated(best.model))
+        first = min(lates, key=lambda o: o.model.bic)
+        best = replace(first, model=self.validated(first.model))
+        if not significant(best.model, model):
+            return options
         out = []
         for o in options:
-            if o in lates:
-                out.append(best if o is min(lates, key=lambda x: x.model.bic) else o)
-            elif not self._may_start_late(o):
+            if o is first:
+                out.append(best)
+            elif o in lates or not self._may_start_late(o):
                 out.append(o)
             else:
                 whole = replace(o, model=self.validated(o.model))
@@ -176,9 +178,9 @@ class Search:
         for c, cand in enumerate(cands):
             self.say(f"round {index}: {cand.name} ({c + 1}/{len(cands)})")
             options += self.late_onsets(model, cand, self.fitter.evaluate(model, cand))
-        options = self.late_first(options)
-        options.sort(key=lambda o: o.model.bic)
         model = self.validated(model)
+        options = self.late_first(options, model)
+        options.sort(key=lambda o: o.model.bic)
         chosen = None
         for i, o in enumerate(options):
             if model.bic - o.model.bic < DELTA_BIC:
