@@ -44,7 +44,8 @@ it named a healthy level valve sticky, where the whole-record search did not).
 
 The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option beside the whole-record
 ones. Where an onset was suspected, a whole-record option of physics that may start late (alone or with a
-free dead time) stays only if it beats the best late option, significant against it and 10 lower in BIC under
+free dead time) stays only if it beats the best late option (where that one counts against the model being
+extended), significant against it and 10 lower in BIC under
 the drifting-load noise model too (:meth:`~valve_emulator.diagnosis.explain.search.Search.late_first`): before
 a valve starts to stick the controller moves OP to cancel a wandering load while PV holds its set point, so
 in the search's free-run cost a valve stuck there fits that part *better* than the healthy one, and BIC alone
