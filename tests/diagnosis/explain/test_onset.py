@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import jsonschema
 import numpy as np
 import pytest
@@ -24,9 +26,11 @@ from valve_emulator.diagnosis.explain.onset import (
     LateOnset,
     Onset,
     Suspected,
+    bic_after,
     post_onset_split,
     suspect_onset,
 )
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.data import HELD_OUT, prepare
 from valve_emulator.diagnosis.report.schema import schema
 from valve_emulator.recordings import Recording
@@ -181,3 +185,23 @@ def test_a_valve_that_starts_to_stick_part_way_is_found_from_its_onset_on():
     onset = finding["onset"]
     assert abs(onset["onset_s"] - 1500.0) <= 300.0
     assert onset["fit_after"] > onset["fit_before"] + 10.0
+
+
+def _predicting(pred: np.ndarray, k: int):
+    """A stand-in for a search model: its linear part predicts ``pred`` (nothing else is read)."""
+    return SimpleNamespace(target=None, fit=SimpleNamespace(predict=lambda flow, dt: pred), flow=None, k=k)
+
+
+def test_an_addition_is_judged_on_the_part_after_an_onset_not_credited_with_the_part_before():
+    """``bic_after``: an addition that mends only the part before a late finding's onset gains nothing there,
+    one that mends the part after it gains what it mends."""
+    T, onset = 2000, 1000
+    t = np.arange(T)
+    swing = 2.0 * np.sin(2 * np.pi * t / 200.0)
+    before, after = np.where(t < onset, swing, 0.0), np.where(t >= onset, swing, 0.0)
+    noise = np.random.default_rng(3).normal(0.0, 0.5, T)
+    problem = SimpleNamespace(y=before + after + noise, train=(0, T), dt=1.0, prefilter=None)
+    old = _predicting(np.zeros(T), k=3)
+    gain_before = bic_after(problem, old, onset) - bic_after(problem, _predicting(before, k=4), onset)
+    gain_after = bic_after(problem, old, onset) - bic_after(problem, _predicting(after, k=4), onset)
+    assert gain_before < 0.0 < DELTA_BIC < gain_after

@@ -28,6 +28,7 @@ class Deadband(ChainCandidate):
     param_names: ClassVar[tuple[str, ...]] = ("S", "start")
     n_params: ClassVar[int] = 1
     dims: ClassVar[dict[str, str]] = {"S": "op"}
+    may_start_late: ClassVar[bool] = True
     twin_role: ClassVar[TwinRole | None] = TwinRole.VALVE_BAND
     threshold_axes: ClassVar[tuple[int, ...]] = (0,)
 

@@ -42,13 +42,18 @@ Why only with a model where no onset is suspected: without one the linear part i
 record, and a band acting late at any of the coarse onsets trades off against it (on the shared plant windows
 it named a healthy level valve sticky, where the whole-record search did not).
 
-The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option in place of the
-whole-record one: where an onset was suspected, unless the whole-record option is significant against it
-(measured on the independent ``late_onset`` loops: before a valve starts to stick the loop's OP moves little,
-and a sticky valve fits that part about as well as a healthy one, so BIC alone rarely asks for the onset);
-else when it lowers BIC by twice the search's own threshold (the onset is then a change point, the best of
-many positions; preferring it whenever the whole-record one was not better by the threshold located wrong
-onsets as often as right ones).
+The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option beside the whole-record
+ones. Where an onset was suspected, a whole-record option of physics that may start late (alone or with a
+free dead time) stays only if it beats the best late option (where that one counts against the model being
+extended), significant against it and 10 lower in BIC under
+the drifting-load noise model too (:meth:`~valve_emulator.diagnosis.explain.search.Search.late_first`): before
+a valve starts to stick the controller moves OP to cancel a wandering load while PV holds its set point, so
+in the search's free-run cost a valve stuck there fits that part *better* than the healthy one, and BIC alone
+cannot ask for the onset. Where none was, the late option replaces the whole-record one when it lowers BIC by
+twice the search's own threshold (the onset is then a change point, the best of many positions; preferring
+it whenever the whole-record one was not better by the threshold located wrong onsets as often as right
+ones). Once a finding starts late, later additions must also lower the BIC of the part after the onset
+(:func:`bic_after`).
 
 What the answer says (:func:`acting_part`): the onset, and the fits (%) of the model without the finding and of
 the final model on the samples from the onset on, so that the finding is judged where it acts and is not
@@ -63,12 +68,15 @@ from typing import ClassVar
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainCandidate, ChainContext
+from valve_emulator.diagnosis.fit.cost import bic
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent
 from valve_emulator.diagnosis.fit.fitter import Fitter
+from valve_emulator.diagnosis.fit.linear import highpass
 from valve_emulator.diagnosis.fit.records import Model, Option
 
 __all__ = ["ONSETS", "EARLY_SHARE", "MIN_BAND", "BLOCKS", "MIN_RISE", "MIN_SHARE", "MIN_ACTING", "NEAR", "LateOnset",
-           "Onset", "Suspected", "suspect_onset", "post_onset_split", "onset_option", "acting_part", "onset_of"]
+           "Onset", "Suspected", "suspect_onset", "post_onset_split", "onset_option", "acting_part", "onset_of",
+           "late_start", "bic_after"]
 
 #: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
 #: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
@@ -371,6 +379,32 @@ def onset_of(model: Model, name: str) -> float | None:
     if act is None or not isinstance(act.candidate, LateOnset):
         return None
     return float(act.params[-1])
+
+
+def late_start(model: Model) -> float | None:
+    """The onset (s) of the earliest finding of ``model`` that starts late, None when none does."""
+    onsets = [float(a.params[-1]) for a in model.active if isinstance(a.candidate, LateOnset)]
+    return min(onsets) if onsets else None
+
+
+def bic_after(problem: Problem, model: Model, start: int) -> float:
+    """BIC of ``model`` on its fit part from sample ``start`` on, under an AR(1) error (the residual of the
+    linear part against what it was fitted to, in the search's domain, as the search's two-fold BIC).
+
+    Where a finding starts late the record holds two regimes, and physics added after it must hold where it
+    acts: a dead time, a load or a characteristic that only mends the part before the onset (where a
+    wandering load the model leaves out dominates the free-run residual) is not a finding of the loop the
+    valve now runs in."""
+    target = problem.y if model.target is None else model.target
+    r = target - model.fit.predict(model.flow, problem.dt)
+    if problem.prefilter is not None:
+        r = highpass(r, problem.prefilter)
+    w0, w1 = problem.train
+    r = r[max(w0, start):w1]
+    den = float(r[:-1] @ r[:-1])
+    rho = float(np.clip(r[1:] @ r[:-1] / den, -0.999, 0.999)) if den > 0 else 0.0
+    w = r[1:] - rho * r[:-1]
+    return bic(float(w @ w), w.size, model.k + 1)
 
 
 def acting_part(problem: Problem, model: Model, pv_before: np.ndarray, findings: tuple) -> tuple:

@@ -38,9 +38,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
-from valve_emulator.diagnosis.explain.onset import Suspected, onset_option
+from valve_emulator.diagnosis.explain.onset import LateOnset, Suspected, bic_after, late_start, onset_option
 from valve_emulator.diagnosis.fit.crossval import with_cv
 from valve_emulator.diagnosis.fit.fitter import Fitter
+from valve_emulator.diagnosis.fit.load_check import load_bic
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
 
 __all__ = ["DELTA_BIC", "DELTA_FIT", "Model", "Surface", "Option", "Round", "Search", "significant"]
@@ -102,21 +103,73 @@ class Search:
         Where no change point was located before the search, the late option replaces the whole-record one
         when it lowers BIC by at least twice :data:`DELTA_BIC`: the onset is then searched over the record,
         and the best of many positions gains likelihood from noise alone more than one parameter does. Where
-        one was (``suspected``), the onset is searched only near it and the late option stands unless the
-        whole-record one is :func:`significant` against it: before a valve starts to stick the loop's OP
-        moves little, so a valve sticking throughout fits the healthy part about as well, and BIC alone
-        cannot ask for the onset."""
+        one was (``suspected``), the onset is searched only near it and the late option joins the options;
+        which whole-record options stay beside it the round decides (:meth:`late_first`)."""
+        single = next((o for o in options if o.added == (cand.name,)), None)
+        late = None if single is None else onset_option(self.fitter, model, cand, single, self.suspected)
+        if late is None:
+            return options
+        if self.suspected is None:
+            return [late if o is single and o.model.bic - late.model.bic >= 2 * DELTA_BIC else o for o in options]
+        return [*options, late]
+
+    def _starts_late(self, option: Option) -> bool:
+        return any(isinstance(a.candidate, LateOnset) for a in option.model.active if a.name in option.added)
+
+    def _may_start_late(self, option: Option) -> bool:
+        return any(getattr(self.scorer.library.get(name), "may_start_late", False) for name in option.added)
+
+    def late_first(self, options: list[Option], model: Model) -> list[Option]:
+        """Where an onset was located and the best late option counts against ``model`` (:func:`significant`),
+        ``options`` without the whole-record options of physics that may start late (alone or paired with a
+        free dead time) that do not beat it (:meth:`whole_beats_late`): before a valve starts to stick the
+        loop's OP moves little, so a valve sticking throughout, or a deadband, fits the healthy part about as
+        well, and BIC alone cannot ask for the onset; a dead time freed to let a valve that sticks throughout
+        fit the healthy part is not evidence of either. A late option that does not count replaces nothing."""
+        lates = [o for o in options if self._starts_late(o)]
+        if self.suspected is None or not lates:
+            return options
+        first = min(lates, key=lambda o: o.model.bic)
+        best = replace(first, model=self.validated(first.model))
+        if not significant(best.model, model):
+            return options
         out = []
         for o in options:
-            late = onset_option(self.fitter, model, cand, o, self.suspected)
-            if late is None:
+            if o is first:
+                out.append(best)
+            elif o in lates or not self._may_start_late(o):
                 out.append(o)
-            elif self.suspected is None:
-                out.append(late if o.model.bic - late.model.bic >= 2 * DELTA_BIC else o)
             else:
-                whole, late = (replace(x, model=self.validated(x.model)) for x in (o, late))
-                out.append(whole if significant(whole.model, late.model) else late)
+                whole = replace(o, model=self.validated(o.model))
+                if self.whole_beats_late(whole.model, best.model):
+                    out.append(whole)
         return out
+
+    def holds_after_onset(self, new: Model, old: Model) -> bool:
+        """Where ``old`` has a finding that starts late, whether ``new`` also lowers the BIC of the part after
+        its onset by :data:`DELTA_BIC` (:func:`~valve_emulator.diagnosis.explain.onset.bic_after`): an
+        addition is judged where the late finding acts, not credited with the part before it."""
+        t0 = late_start(old)
+        if t0 is None:
+            return True
+        p = self.scorer.p
+        start = int(round(t0 / p.dt))
+        return bic_after(p, old, start) - bic_after(p, new, start) >= DELTA_BIC
+
+    def whole_beats_late(self, whole: Model, late: Model) -> bool:
+        """Whether the whole-record option beats the late one where an onset was located: :func:`significant`
+        against it, and its BIC under the drifting-load noise model (:func:`~valve_emulator.diagnosis.fit.
+        load_check.load_bic`) at least :data:`DELTA_BIC` lower too.
+
+        Why both: the search's free-run cost expects PV to come back to what OP explains. Before the onset the
+        controller moves OP to cancel a wandering load while PV holds its set point, so a healthy valve replays
+        those moves into PV swings that never happened, and a valve stuck there replays them away: on the
+        independent ``late_onset`` loops the whole-record valve won by hundreds of BIC on that part alone.
+        Under the drifting-load noise model the load is allowed for, and a valve sticking throughout no longer
+        gains from it."""
+        if not significant(whole, late):
+            return False
+        return load_bic(self.scorer, late)[0] - load_bic(self.scorer, whole)[0] >= DELTA_BIC
 
     def round(self, model: Model, index: int) -> Round:
         """Every option that extends ``model`` by one candidate, and the one the rule accepts (if any)."""
@@ -125,8 +178,9 @@ class Search:
         for c, cand in enumerate(cands):
             self.say(f"round {index}: {cand.name} ({c + 1}/{len(cands)})")
             options += self.late_onsets(model, cand, self.fitter.evaluate(model, cand))
-        options.sort(key=lambda o: o.model.bic)
         model = self.validated(model)
+        options = self.late_first(options, model)
+        options.sort(key=lambda o: o.model.bic)
         chosen = None
         for i, o in enumerate(options):
             if model.bic - o.model.bic < DELTA_BIC:
@@ -135,7 +189,8 @@ class Search:
             for j in [i, *subs]:
                 options[j] = replace(options[j], model=self.validated(options[j].model))
             o = options[i]
-            if significant(o.model, model) and all(significant(o.model, options[j].model) for j in subs):
+            if (significant(o.model, model) and all(significant(o.model, options[j].model) for j in subs)
+                    and self.holds_after_onset(o.model, model)):
                 chosen = o
                 break
         return Round(baseline=model, options=tuple(options), chosen=chosen)
