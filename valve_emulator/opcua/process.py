@@ -1,7 +1,7 @@
 """The OPC UA server in a process of its own, fed from the device's register image: what ``serve --opcua`` runs.
 
 :class:`OpcUaProcess` lives in the device process. It starts the OPC UA process
-(``python -m valve_emulator.opcua.remote``: a fresh interpreter, whatever the caller's main module, handed
+(``python -m valve_emulator.opcua``: a fresh interpreter, whatever the caller's main module, handed
 its end of a socket pair and, as the first message, what to serve) and then:
 
 - publishes the register image to shared memory whenever it changes
@@ -41,6 +41,15 @@ __all__ = ["OpcUaProcess", "OpcUaProcessError", "STOP_TIMEOUT"]
 _log = logging.getLogger(__name__)
 #: Seconds the OPC UA process has to stop before it is killed.
 STOP_TIMEOUT = 10.0
+
+
+def _log_record(name: str, level: int, message: str, exc_text: str | None) -> None:
+    """Log a record of the OPC UA process here, as this process's own (its ``processName`` says where from)."""
+    logger = logging.getLogger(name)
+    if logger.isEnabledFor(level):
+        record = logger.makeRecord(name, level, "(OPC UA process)", 0, message, None, None)
+        record.exc_text, record.processName = exc_text, "opcua"
+        logger.handle(record)
 
 
 class OpcUaProcessError(RuntimeError):
@@ -107,7 +116,8 @@ class OpcUaProcess:
         ours, theirs = socket.socketpair()
         local = self.local
         self.channel = Channel(ours, {"write": local.write, "acknowledge_alarm": local.acknowledge_alarm,
-                                      "station": local.station, "ready": self._ready, "failed": self._failed})
+                                      "station_action": local.station_action, "ready": self._ready,
+                                      "failed": self._failed, "log": _log_record})
         await self.channel.open()
         self._reading = loop.create_task(self.channel.run(), name="valve-emulator-opcua-channel")
         try:
@@ -118,7 +128,7 @@ class OpcUaProcess:
                 self.device.image_listeners.append(self._published)
                 local.alarm_listeners.append(self._alarmed)
                 self.process = await asyncio.create_subprocess_exec(
-                    sys.executable, "-m", "valve_emulator.opcua.remote", str(theirs.fileno()),
+                    sys.executable, "-m", "valve_emulator.opcua", str(theirs.fileno()),
                     pass_fds=(theirs.fileno(),), stdin=asyncio.subprocess.DEVNULL)
                 theirs.close()
                 self._watching = loop.create_task(self._watch(), name="valve-emulator-opcua-watch")

@@ -18,9 +18,11 @@ import contextlib
 import heapq
 import itertools
 import logging
+import os
 import pickle
 import socket
-from collections.abc import AsyncIterator, Callable, Sequence
+import threading
+from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -132,8 +134,8 @@ class RemoteSource:
     async def acknowledge_alarm(self, index: int) -> bool:
         return await self.channel.call("acknowledge_alarm", index)
 
-    async def station(self, action: str, argument: Any = None) -> Any:
-        return await self.channel.call("station", action, argument)
+    async def station_action(self, action: str, argument: Any = None) -> Any:
+        return await self.channel.call("station_action", action, argument)
 
     @contextlib.asynccontextmanager
     async def paused(self) -> AsyncIterator[None]:
@@ -148,29 +150,77 @@ class RemoteSource:
 
 
 def child_main(fd: int) -> None:
-    """The OPC UA process's entry point (``python -m valve_emulator.opcua.remote FD``, started by
+    """The OPC UA process's entry point (``python -m valve_emulator.opcua FD``, started by
     :class:`~valve_emulator.opcua.process.OpcUaProcess`): read the :class:`ChildSpec` from the socket ``fd``,
-    then serve until the device process closes it."""
+    then serve until the device process closes it, and exit at once (nothing is left to tear down)."""
     sock = socket.socket(fileno=fd)
     spec = read_first(sock)
     logging.basicConfig(level=spec.log_level,
                         format="%(asctime)s %(levelname)s [opcua process] %(name)s: %(message)s")
     asyncio.run(_serve(sock, spec))
+    logging.shutdown()
+    os._exit(0)
+
+
+class ForwardLogs(logging.Handler):
+    """Hand this process's log records to the device process (note ``log``), which logs them as its own: one
+    log, in the format and at the place ``serve`` was told, whichever process the record comes from."""
+
+    def __init__(self, channel: Channel) -> None:
+        super().__init__()
+        self.channel = channel
+        self._thread = threading.get_ident()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if threading.get_ident() != self._thread:   # the channel belongs to the event loop's thread
+            return
+        try:
+            exc_text = logging.Formatter().formatException(record.exc_info) if record.exc_info else None
+            self.channel.note("log", record.name, record.levelno, record.getMessage(), exc_text)
+        except Exception:
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def _logging_to(channel: Channel) -> Iterator[None]:
+    """Send every log record through ``channel`` inside the block (to stderr before and after it)."""
+    root = logging.getLogger()
+    local, forward = list(root.handlers), ForwardLogs(channel)
+    for handler in local:
+        root.removeHandler(handler)
+    root.addHandler(forward)
+    try:
+        yield
+    finally:
+        root.removeHandler(forward)
+        for handler in local:
+            root.addHandler(handler)
 
 
 async def _serve(sock: socket.socket, spec: ChildSpec) -> None:
-    from valve_emulator.opcua.server import OpcUaServer
-
     source = RemoteSource(spec)
     channel = Channel(sock, {"tick": source.ticked, "alarm": source.alarmed})
     source.channel = channel
     await channel.open()
     reading = asyncio.get_running_loop().create_task(channel.run())
+    with _logging_to(channel):
+        await _serve_on(channel, source, spec)
+    await channel.close()
+    reading.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await reading
+    source.close()
+
+
+async def _serve_on(channel: Channel, source: RemoteSource, spec: ChildSpec) -> None:
+    from valve_emulator.opcua.server import OpcUaServer
+
     server = OpcUaServer(source, loops=spec.loops, host=spec.host, port=spec.port, security=spec.security,
                          history=spec.history, history_path=spec.history_path)
     try:
         try:
-            await server.start()
+            with _without_errors("asyncua.server.server"):   # the device process says it in one line
+                await server.start()
         except Exception as exc:   # a port in use, a certificate that does not load: the device process says so
             channel.note("failed", _sendable(exc))
             return
@@ -179,11 +229,20 @@ async def _serve(sock: socket.socket, spec: ChildSpec) -> None:
         await channel.closed.wait()
     finally:
         await server.stop()
-        await channel.close()
-        reading.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await reading
-        source.close()
+
+
+@contextlib.contextmanager
+def _without_errors(logger: str) -> Iterator[None]:
+    """Drop ``logger``'s ERROR records (with their tracebacks) inside the block."""
+    def no_errors(record: logging.LogRecord) -> bool:
+        return record.levelno < logging.ERROR
+
+    log = logging.getLogger(logger)
+    log.addFilter(no_errors)
+    try:
+        yield
+    finally:
+        log.removeFilter(no_errors)
 
 
 def _sendable(exc: Exception) -> Exception:
@@ -193,9 +252,3 @@ def _sendable(exc: Exception) -> Exception:
     except Exception:
         return RuntimeError(f"{type(exc).__name__}: {exc}")
     return exc
-
-
-if __name__ == "__main__":
-    import sys
-
-    child_main(int(sys.argv[1]))

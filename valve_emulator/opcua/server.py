@@ -24,7 +24,8 @@ Every variable is derived from the register map (:data:`~valve_emulator.device.r
 variable per quantity, named after the quantity's 16-bit register (``op_pct`` → ``op``), read from the
 register with the finest resolution (the float32 copy where there is one) and written through the first
 writable register, so an OPC UA write is checked by exactly the code that checks a Modbus write
-(:meth:`Device.write <valve_emulator.device.tick.Device.write>`, in the device's process). The bits are the ``status`` register's.
+(:meth:`Device.write <valve_emulator.device.tick.Device.write>`, in the device's process). The bits are the
+``status`` register's.
 
 Writes answer:
 
@@ -650,7 +651,7 @@ class OpcUaServer:
         """Run a station action; its refusal (:class:`~valve_emulator.opcua.source.StationRefusal`) becomes
         BadNotFound (an unknown snapshot) or BadInvalidArgument, and a result is handed back as JSON text."""
         try:
-            result = await self.source.station(action, argument)
+            result = await self.source.station_action(action, argument)
         except StationRefusal as exc:
             _log.info("OPC UA: station method refused: %s", exc.args[0])
             code = ua.StatusCodes.BadNotFound if exc.status == 404 else ua.StatusCodes.BadInvalidArgument
