@@ -97,8 +97,11 @@ NAMESPACE = "urn:valve-emulator"
 APPLICATION_URI = "urn:valve-emulator:server"
 #: The publisher yields to the event loop after this many monitored variables ...
 YIELD_EVERY = 200
-#: ... and stops for this tick once it has used this share of the tick period.
+#: ... and stops for this tick once it has used this share of the tick period (in the device's process: the
+#: tick comes first) ...
 PUBLISH_BUDGET = 0.3
+#: ... or this share in a process of its own, where only asyncua's publishing and the clients' requests share it.
+PROCESS_PUBLISH_BUDGET = 0.7
 SECURE_POLICIES = ("Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
 
 
@@ -350,14 +353,17 @@ class OpcUaServer:
     security : :class:`OpcUaSecurity` (default: policy None, anonymous operators; loopback only).
     history : keep the last ``history`` seconds of every loop's PV, OP, SP and MV for HistoryRead
         (:mod:`~valve_emulator.opcua.history`), in SQLite at ``history_path`` (default in memory); None: none.
+    publish_budget : the share of each tick period the publisher may spend feeding subscriptions
+        (:data:`PUBLISH_BUDGET`; :data:`PROCESS_PUBLISH_BUDGET` in a process of its own).
     """
 
     def __init__(self, source: DeviceSource, *, loops: Sequence[Any], host: str = "127.0.0.1", port: int = 0,
                  security: OpcUaSecurity | None = None, history: float | None = None,
-                 history_path: str = ":memory:") -> None:
+                 history_path: str = ":memory:", publish_budget: float = PUBLISH_BUDGET) -> None:
         self.source, self.loops, self.host, self.port = source, list(loops), host, int(port)
         #: seconds of PV, OP, SP and MV kept for HistoryRead (None: no history), in SQLite at history_path
         self.history, self.history_path = history, history_path
+        self.publish_budget = publish_budget
         self._historized: list[ua.NodeId] = []
         self.security = security or OpcUaSecurity()
         self.security.check(host)
@@ -689,7 +695,8 @@ class OpcUaServer:
         one). The tick comes first: the loop yields to the event loop every :data:`YIELD_EVERY` variables, and
         when a tick's share of work (:data:`PUBLISH_BUDGET` of the tick period) is spent it stops and goes on
         after the next tick where it stopped, so a subscription larger than the machine can feed gets every
-        variable's latest value less often instead of delaying the tick."""
+        variable's latest value less often instead of delaying the tick (or, in a process of its own, the
+        clients' requests)."""
         source, seen, at = self.source, self.source.ticks, 0
         clock = time.perf_counter
         while True:
@@ -698,7 +705,7 @@ class OpcUaServer:
             if self._dirty:
                 self._dirty, at = False, 0
                 self._active = [entry for entry in self._monitored if entry[0].datachange_callbacks]
-            deadline, active, done = clock() + PUBLISH_BUDGET * finite_period(source), self._active, 0
+            deadline, active, done = clock() + self.publish_budget * finite_period(source), self._active, 0
             while done < len(active):
                 attval, key, reader = active[at % len(active)]
                 at, done = (at + 1) % len(active), done + 1
