@@ -234,6 +234,9 @@ class OpcUaCounters:
     alarm_events: int = 0
 
 
+#: A variable's value now: (value, variant type, status: None for Good).
+Sampler = Callable[[], tuple[Any, ua.VariantType, ua.StatusCode | None]]
+
 _GOOD = ua.StatusCode(ua.StatusCodes.Good)
 #: The status of an analog value outside its EURange (OPC UA Part 8: the value is outside the range defined for it).
 _EU_EXCEEDED = ua.StatusCode(ua.StatusCodes.UncertainEngineeringUnitsExceeded)
@@ -373,14 +376,14 @@ class OpcUaServer:
         self.targets: dict[ua.NodeId, tuple[int, Variable]] = {}
         #: every node id this adapter created (for BadNotWritable on the others)
         self.node_ids: set[ua.NodeId] = set()
-        self._monitored: list[tuple[Any, int, Callable[[int], ua.DataValue]]] = []
+        self._monitored: list[tuple[Any, int, Sampler]] = []
         self._sent: dict[int, Any] = {}
         #: when the tick that made the served values ran (their SourceTimestamp)
         self.tick_clock = TickClock(source)
         self._publisher: asyncio.Task | None = None
         self._log_filter = RepeatFilter()
-        self._active: list[tuple[Any, int, Callable[[], ua.DataValue]]] = []
-        self._readers: dict[ua.NodeId, Callable[..., ua.DataValue]] = {}
+        self._active: list[tuple[Any, int, Sampler]] = []
+        self._samplers: dict[ua.NodeId, Sampler] = {}
         self._dirty = True
         #: data-change notifications handed to subscriptions (one per monitored item and change)
         self.notifications = 0
@@ -442,20 +445,25 @@ class OpcUaServer:
         return _SharedDataValue(Value=ua.Variant(value, variant), StatusCode=status or _GOOD,
                                 SourceTimestamp=self.tick_clock.stamp(), ServerTimestamp=datetime.now(UTC))
 
-    def _reader(self, index: int, var: Variable, eu_range: tuple[float, float] | None) -> Callable[..., ua.DataValue]:
-        """The reader of an analog or integer variable; a value outside ``eu_range`` is Uncertain."""
+    def _sampler(self, index: int, var: Variable, eu_range: tuple[float, float] | None) -> Sampler:
+        """The sampler of an analog or integer variable; a value outside ``eu_range`` is Uncertain."""
+        variant = var.variant
         if eu_range is None:
-            return lambda *_: self._data_value(self.value(index, var), var.variant)
+            return lambda: (self.value(index, var), variant, None)
         lo, hi = eu_range
 
-        def read(*_: Any) -> ua.DataValue:
+        def sample() -> tuple[Any, ua.VariantType, ua.StatusCode | None]:
             value = self.value(index, var)
-            return self._data_value(value, var.variant, None if lo <= value <= hi else _EU_EXCEEDED)
+            return value, variant, None if lo <= value <= hi else _EU_EXCEEDED
 
-        return read
+        return sample
 
-    def _bit_reader(self, index: int, bit: Status) -> Callable[..., ua.DataValue]:
-        return lambda *_: self._data_value(bool(int(self.value(index, _STATUS)) & int(bit)), ua.VariantType.Boolean)
+    def _bit_sampler(self, index: int, bit: Status) -> Sampler:
+        return lambda: (bool(int(self.value(index, _STATUS)) & int(bit)), ua.VariantType.Boolean, None)
+
+    def _reader(self, sampler: Sampler) -> Callable[..., ua.DataValue]:
+        """What asyncua calls to read a variable: its sample now, as a DataValue."""
+        return lambda *_: self._data_value(*sampler())
 
     # --- writes ---------------------------------------------------------------------------------------
 
@@ -599,15 +607,15 @@ class OpcUaServer:
             if historizing:
                 self._historized.append(node.RequestedNewNodeId)
             self.targets[node.RequestedNewNodeId] = (index, var)
-            self._readers[node.RequestedNewNodeId] = self._reader(index, var, self._eu_range(loop, var)
-                                                                  if var.analog else None)
+            self._samplers[node.RequestedNewNodeId] = self._sampler(index, var, self._eu_range(loop, var)
+                                                                    if var.analog else None)
             if var.analog:
                 items += self._analog_properties(node.RequestedNewNodeId, loop, var)
         for bit_name, (bit, true_state, false_state) in BITS.items():
             node = self._variable_item(obj.RequestedNewNodeId, bit_name, False, ua.VariantType.Boolean,
                                        ua.ObjectIds.TwoStateDiscreteType)
             items.append(node)
-            self._readers[node.RequestedNewNodeId] = self._bit_reader(index, bit)
+            self._samplers[node.RequestedNewNodeId] = self._bit_sampler(index, bit)
             for prop, text in (("TrueState", true_state), ("FalseState", false_state)):
                 items.append(self._variable_item(node.RequestedNewNodeId, prop, ua.LocalizedText(text),
                                                  ua.VariantType.LocalizedText, 0, prop=True))
@@ -630,10 +638,10 @@ class OpcUaServer:
     def _serve_values(self) -> None:
         """Answer reads of the loop variables from the register image, and watch them for subscriptions."""
         aspace = self.server.iserver.aspace
-        for node_id, reader in self._readers.items():
-            aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, reader)
+        for node_id, sampler in self._samplers.items():
+            aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, self._reader(sampler))
             attval = aspace._nodes[node_id].attributes[ua.AttributeIds.Value]
-            self._monitored.append((attval, len(self._monitored), reader))
+            self._monitored.append((attval, len(self._monitored), sampler))
 
     async def _add_methods(self, station_node: Any) -> None:
         if not self.source.has_station:
@@ -707,7 +715,7 @@ class OpcUaServer:
                 self._active = [entry for entry in self._monitored if entry[0].datachange_callbacks]
             deadline, active, done = clock() + self.publish_budget * finite_period(source), self._active, 0
             while done < len(active):
-                attval, key, reader = active[at % len(active)]
+                attval, key, sample = active[at % len(active)]
                 at, done = (at + 1) % len(active), done + 1
                 if done % YIELD_EVERY == 0:
                     await asyncio.sleep(0)
@@ -717,11 +725,11 @@ class OpcUaServer:
                 callbacks = attval.datachange_callbacks
                 if not callbacks:
                     continue
-                dv = reader()
-                value = dv.Value.Value
-                if self._sent.get(key) == value:
+                value, variant, status = sample()
+                if self._sent.get(key) == value:   # unchanged: no DataValue made
                     continue
                 self._sent[key] = value
+                dv = self._data_value(value, variant, status)
                 self.notifications += len(callbacks)
                 for handle, callback in list(callbacks.items()):
                     try:
