@@ -139,7 +139,8 @@ class Channel:
             try:
                 self._send(("answer", ident, ok, payload))
             except (pickle.PicklingError, TypeError, AttributeError) as exc:   # an answer that does not pickle
-                self._send(("answer", ident, False, RuntimeError(f"{op_error(payload)}: {exc}")))
+                self._send(("answer", ident, False, RuntimeError(
+                    f"an answer of type {type(payload).__name__} cannot be sent between processes: {exc}")))
 
     async def close(self) -> None:
         for task in list(self._tasks):
@@ -149,10 +150,6 @@ class Channel:
             writer.close()
             with contextlib.suppress(Exception):
                 await writer.wait_closed()
-
-
-def op_error(payload: Any) -> str:
-    return f"an answer of type {type(payload).__name__} cannot be sent between processes"
 
 
 def read_first(sock: socket.socket) -> Any:
