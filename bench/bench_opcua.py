@@ -94,8 +94,14 @@ def _clients(url: str, modbus_port: int, loops: list[str], clients: int, publish
         tasks = []
         if url:
             for i in range(clients):    # one at a time: a session and its subscription, then the next
-                tasks.append(asyncio.create_task(session(counts, i, ready[i])))
-                await asyncio.wait_for(ready[i].wait(), 900)
+                task = asyncio.create_task(session(counts, i, ready[i]))
+                tasks.append(task)
+                waiting = asyncio.create_task(ready[i].wait())
+                await asyncio.wait({task, waiting}, timeout=600, return_when=asyncio.FIRST_COMPLETED)
+                if not ready[i].is_set():   # the session failed (its error) or timed out
+                    waiting.cancel()
+                    raise RuntimeError(f"OPC UA client {i} could not subscribe") from (
+                        task.exception() if task.done() else None)
         tasks.append(asyncio.create_task(poll(polled)))
         await asyncio.sleep(3.0)                       # initial values and the first publishes settle
         start, polled_before = list(counts), polled[0]

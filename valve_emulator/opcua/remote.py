@@ -30,12 +30,9 @@ from valve_emulator.device.alarms import AlarmChange
 from valve_emulator.opcua.channel import Channel, read_first
 from valve_emulator.opcua.shared import COMPUTED, ImageReader, SharedLayout
 
-__all__ = ["ChildSpec", "NICE", "RemoteSource", "child_main"]
+__all__ = ["ChildSpec", "RemoteSource", "child_main"]
 
 _log = logging.getLogger(__name__)
-#: The OPC UA process runs this much nicer than the device process: on a busy machine the tick gets a core
-#: first, and OPC UA clients get their values a little later rather than the tick running late.
-NICE = 5
 
 
 @dataclass(frozen=True)
@@ -158,8 +155,6 @@ def child_main(fd: int) -> None:
     then serve until the device process closes it, and exit at once (nothing is left to tear down)."""
     sock = socket.socket(fileno=fd)
     spec = read_first(sock)
-    with contextlib.suppress(OSError, AttributeError):   # not on every platform
-        os.nice(NICE)
     logging.basicConfig(level=spec.log_level,
                         format="%(asctime)s %(levelname)s [opcua process] %(name)s: %(message)s")
     asyncio.run(_serve(sock, spec))
