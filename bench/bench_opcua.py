@@ -45,10 +45,12 @@ from common import machine, table  # noqa: E402
 COUNTED = ("pv", "op")
 
 
-def _clients(url: str, modbus_port: int, loops: list[str], clients: int, publish_ms: float, variables: list[str],
-             seconds: float, out_q) -> None:
-    """``clients`` OPC UA sessions subscribed to ``variables`` of every loop, and a Modbus poller, for
-    ``seconds``; counts the notifications of pv and op."""
+def _client(url: str, modbus_port: int, loops: list[str], publish_ms: float, variables: list[str], seconds: float,
+            poll: bool, go, out_q) -> None:
+    """One OPC UA session (none without ``url``) subscribed to ``variables`` of every loop, and with ``poll`` a
+    Modbus poller, in a process of its own (asyncua's client costs about as much per notification as its
+    server: clients sharing a process would be what limits the count). Puts ``ready`` once subscribed, waits
+    for ``go``, then counts the notifications of pv and op for ``seconds`` after 3 s of settling."""
     import logging
 
     from asyncua import Client
@@ -58,7 +60,7 @@ def _clients(url: str, modbus_port: int, loops: list[str], clients: int, publish
     for name in ("pymodbus", "asyncua"):
         logging.getLogger(name).setLevel(logging.ERROR)
 
-    async def session(counts, i, ready):
+    async def session(count, ready):
         client = Client(url, timeout=120)
         async with client:
             ns = await client.get_namespace_index("urn:valve-emulator")
@@ -67,7 +69,7 @@ def _clients(url: str, modbus_port: int, loops: list[str], clients: int, publish
             class Handler:
                 def datachange_notification(self, node, val, data):
                     if node.nodeid in counted:
-                        counts[i] += 1
+                        count[0] += 1
 
             sub = await client.create_subscription(publish_ms, Handler())
             nodes = [client.get_node(f"ns={ns};s={path}.{var}") for path in loops for var in variables]
@@ -77,42 +79,53 @@ def _clients(url: str, modbus_port: int, loops: list[str], clients: int, publish
             ready.set()
             await asyncio.sleep(3600)
 
-    async def poll(count):
+    async def modbus(polled):
         client = AsyncModbusTcpClient("127.0.0.1", port=modbus_port, timeout=2, retries=0)
         await client.connect()
         try:
             while True:
                 rr = await client.read_holding_registers(0, count=125, device_id=1)
-                count[0] += not rr.isError()
+                polled[0] += not rr.isError()
                 await asyncio.sleep(0.1)
         finally:
             client.close()
 
     async def main():
-        counts, polled = [0] * clients, [0]
-        ready = [asyncio.Event() for _ in range(clients)]
-        tasks = []
+        count, polled, ready, tasks = [0], [0], asyncio.Event(), []
         if url:
-            for i in range(clients):    # one at a time: a session and its subscription, then the next
-                task = asyncio.create_task(session(counts, i, ready[i]))
-                tasks.append(task)
-                waiting = asyncio.create_task(ready[i].wait())
-                await asyncio.wait({task, waiting}, timeout=600, return_when=asyncio.FIRST_COMPLETED)
-                if not ready[i].is_set():   # the session failed (its error) or timed out
-                    waiting.cancel()
-                    raise RuntimeError(f"OPC UA client {i} could not subscribe") from (
-                        task.exception() if task.done() else None)
-        tasks.append(asyncio.create_task(poll(polled)))
+            task = asyncio.create_task(session(count, ready))
+            tasks.append(task)
+            waiting = asyncio.create_task(ready.wait())
+            await asyncio.wait({task, waiting}, timeout=600, return_when=asyncio.FIRST_COMPLETED)
+            if not ready.is_set():   # the session failed (its error) or timed out
+                waiting.cancel()
+                out_q.put(("failed", repr(task.exception()) if task.done() else "timed out subscribing"))
+                return
+        out_q.put(("ready",))
+        await asyncio.get_running_loop().run_in_executor(None, go.wait)
+        if poll:
+            tasks.append(asyncio.create_task(modbus(polled)))
         await asyncio.sleep(3.0)                       # initial values and the first publishes settle
-        start, polled_before = list(counts), polled[0]
-        out_q.put(("start", time.time()))
+        start, polled_before = count[0], polled[0]
+        out_q.put(("start",))
         await asyncio.sleep(seconds)
-        out_q.put(("counts", [c - s for c, s in zip(counts, start)], polled[0] - polled_before))
+        out_q.put(("counts", count[0] - start, polled[0] - polled_before))
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
 
     asyncio.run(main())
+
+
+async def _each(q, k: int, what: str, timeout: float) -> list[tuple]:
+    """The next ``k`` messages of the client processes, each ``what`` (a failure ends the run with its error)."""
+    loop, out = asyncio.get_running_loop(), []
+    for _ in range(k):
+        msg = await loop.run_in_executor(None, q.get, True, timeout)
+        if msg[0] != what:
+            raise RuntimeError(f"an OPC UA client process: {msg}")
+        out.append(msg)
+    return out
 
 
 def _cpu(pid: int) -> float:
@@ -154,20 +167,22 @@ async def _load_round(mode: str, n: int, clients: int, publish_ms: float, variab
         async with _opcua(mode, srv.device, cfg.loops) as (opc, pid):
             build = time.monotonic() - t0
             paths = [f"Unit{srv.device.units[i]}.{lp.name}" for i, lp in enumerate(cfg.loops)]
-            q = mp.Queue()
-            proc = mp.Process(target=_clients, args=(opc.url if opc else "", srv.port, paths, clients, publish_ms,
-                                                     variables, seconds, q), daemon=True)
-            proc.start()
-            loop = asyncio.get_running_loop()
-            msg = await loop.run_in_executor(None, q.get, True, 1800)
-            assert msg[0] == "start"
+            q, go, procs = mp.Queue(), mp.Event(), []
+            for i in range(max(clients, 1)):   # one at a time: a session and its subscription, then the next
+                procs.append(mp.Process(target=_client, args=(opc.url if opc and clients else "", srv.port, paths,
+                                                              publish_ms, variables, seconds, i == 0, go, q),
+                                        daemon=True))
+                procs[-1].start()
+                await _each(q, 1, "ready", 1800)
+            go.set()
+            await _each(q, len(procs), "start", 600)
             srv.device.jitter = type(srv.device.jitter)(4096)
             sent0 = (await opc.counters()).notifications if opc else 0
             ticks0, overruns0, t0 = srv.device.ticks, srv.device.overruns, time.monotonic()
             cpu0, opc_cpu0 = _cpu(os.getpid()), _cpu(pid)
             if profiler is not None:
                 profiler.enable()
-            msg = await loop.run_in_executor(None, q.get, True, seconds + 300)
+            results = await _each(q, len(procs), "counts", seconds + 300)
             elapsed = time.monotonic() - t0
             if profiler is not None:
                 profiler.disable()
@@ -175,10 +190,11 @@ async def _load_round(mode: str, n: int, clients: int, publish_ms: float, variab
             sent = (await opc.counters()).notifications - sent0 if opc else 0
             ticks, overruns = srv.device.ticks - ticks0, srv.device.overruns - overruns0
             lateness = srv.device.jitter.values()
-            proc.join(30)
-            if proc.is_alive():
-                proc.kill()
-            counts, polled = msg[1], msg[2]
+            for proc in procs:
+                proc.join(30)
+                if proc.is_alive():
+                    proc.kill()
+            counts, polled = [r[1] for r in results], sum(r[2] for r in results)
     expected = len(COUNTED) * n * seconds * 1000 / publish_ms
     served = clients and opc is not None
     return {"build": build, "p50": float(np.percentile(lateness, 50)) * 1e3,
