@@ -1,27 +1,35 @@
 """OPC UA beside Modbus under load, and under hostile input.
 
-    python bench/bench_opcua.py [--loops 1000] [--clients 10] [--seconds 10] [--rounds 3] [--hostile 100000]
+    python bench/bench_opcua.py [--mode process|in-process] [--loops 1000] [--clients 5] [--publish 1000]
+        [--vars pv,op,sp,mv] [--seconds 10] [--rounds 3] [--hostile 25000] [--profile]
 
 **Load.** The device (``--loops`` loops of a fleet, tick 0.1 s, real time, PV measurement noise on every loop
-so that PV and OP change at every tick) and its OPC UA server run in this process, in one event loop, as
-``valve-emulator serve --opcua`` runs them. A second process opens ``--clients`` OPC UA sessions (asyncua),
-each with one subscription (publishing interval 100 ms) monitoring every loop's ``pv`` and ``op``, and one
-Modbus client polling 125 holding registers at 10 Hz. Over a ``--seconds`` window: the tick's lateness
-against its absolute deadline (p50, p99; target p99 <= 5 ms) and the notifications each client received
-against the expected ``2 × loops × seconds / 0.1 s`` (a changed value per item per publishing interval;
-target >= 95 %). Medians over ``--rounds``.
+so that PV and OP change at every tick) runs in this process; its OPC UA server runs in a process of its own
+(``--mode process``, what ``valve-emulator serve --opcua`` runs) or in this process's event loop
+(``--mode in-process``). A third process opens ``--clients`` OPC UA sessions (asyncua), each with one
+subscription (publishing interval ``--publish`` ms) monitoring ``--vars`` of every loop, and one Modbus client
+polling 125 holding registers at 10 Hz. Over a ``--seconds`` window: the tick's lateness against its absolute
+deadline (p50, p99) beside the same fleet and poller without OPC UA measured in the same run (target: within
+1 ms of it, 10 ticks/s, no overrun), and the pv/op notifications each client received against the expected
+``2 × loops × seconds / publishing interval`` (both change every tick; target >= 99 %). Also the CPU time of
+the device process and of the OPC UA process per second, and the OPC UA process's CPU per notification
+handed to a subscription (the cost of a notification, and so the cores a load needs). Medians over
+``--rounds``. ``--profile`` profiles the OPC UA server in process (cProfile) and prints where its time goes.
 
 **Hostile.** ``--hostile N`` malformed OPC UA messages (``tests/opcua/hostile.py``: random bytes, absurd
 and tiny sizes, garbage after Hello, truncated chunks, bad sequence numbers, junk OpenSecureChannel, TLS
 ClientHello) from 4 threads of another process while the device ticks and a Modbus client and an OPC UA
-client read once a second: crashes, ticks per second, overruns, normal reads answered.
+client read once a second: crashes, ticks per second, overruns, normal reads answered (default 25,000: about
+5 s; 0: skip).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import multiprocessing as mp
+import os
 import statistics
 import sys
 import time
@@ -34,11 +42,15 @@ sys.path.insert(0, str(ROOT / "tests" / "opcua"))
 from bench_scale import fleet_mapping  # noqa: E402
 from common import machine, table  # noqa: E402
 
-PUBLISH_MS = 100
+COUNTED = ("pv", "op")
 
 
-def _clients(url: str, modbus_port: int, loops: list[str], clients: int, seconds: float, out_q) -> None:
-    """``clients`` OPC UA sessions subscribed to every loop's pv and op, and a Modbus poller, for ``seconds``."""
+def _client(url: str, modbus_port: int, loops: list[str], publish_ms: float, variables: list[str], seconds: float,
+            poll: bool, go, out_q) -> None:
+    """One OPC UA session (none without ``url``) subscribed to ``variables`` of every loop, and with ``poll`` a
+    Modbus poller, in a process of its own (asyncua's client costs about as much per notification as its
+    server: clients sharing a process would be what limits the count). Puts ``ready`` once subscribed, waits
+    for ``go``, then counts the notifications of pv and op for ``seconds`` after 3 s of settling."""
     import logging
 
     from asyncua import Client
@@ -48,46 +60,56 @@ def _clients(url: str, modbus_port: int, loops: list[str], clients: int, seconds
     for name in ("pymodbus", "asyncua"):
         logging.getLogger(name).setLevel(logging.ERROR)
 
-    async def session(counts, i, ready):
-        client = Client(url, timeout=60)
+    async def session(count, ready):
+        client = Client(url, timeout=120)
         async with client:
             ns = await client.get_namespace_index("urn:valve-emulator")
+            counted = set()
 
             class Handler:
                 def datachange_notification(self, node, val, data):
-                    counts[i] += 1
+                    if node.nodeid in counted:
+                        count[0] += 1
 
-            sub = await client.create_subscription(PUBLISH_MS, Handler())
-            nodes = [client.get_node(f"ns={ns};s={path}.{var}") for path in loops for var in ("pv", "op")]
+            sub = await client.create_subscription(publish_ms, Handler())
+            nodes = [client.get_node(f"ns={ns};s={path}.{var}") for path in loops for var in variables]
+            counted.update(n.nodeid for n in nodes if n.nodeid.Identifier.rsplit(".", 1)[1] in COUNTED)
             for k in range(0, len(nodes), 500):
                 await sub.subscribe_data_change(nodes[k:k + 500])
             ready.set()
             await asyncio.sleep(3600)
 
-    async def poll(count):
+    async def modbus(polled):
         client = AsyncModbusTcpClient("127.0.0.1", port=modbus_port, timeout=2, retries=0)
         await client.connect()
         try:
             while True:
                 rr = await client.read_holding_registers(0, count=125, device_id=1)
-                count[0] += not rr.isError()
+                polled[0] += not rr.isError()
                 await asyncio.sleep(0.1)
         finally:
             client.close()
 
     async def main():
-        counts, polled = [0] * clients, [0]
-        ready = [asyncio.Event() for _ in range(clients)]
-        tasks = []
-        for i in range(clients):    # one at a time: a session and its subscription, then the next
-            tasks.append(asyncio.create_task(session(counts, i, ready[i])))
-            await asyncio.wait_for(ready[i].wait(), 600)
-        tasks.append(asyncio.create_task(poll(polled)))
-        await asyncio.sleep(2.0)                       # initial values and the first publishes settle
-        start = list(counts)
-        out_q.put(("start", time.time()))
+        count, polled, ready, tasks = [0], [0], asyncio.Event(), []
+        if url:
+            task = asyncio.create_task(session(count, ready))
+            tasks.append(task)
+            waiting = asyncio.create_task(ready.wait())
+            await asyncio.wait({task, waiting}, timeout=600, return_when=asyncio.FIRST_COMPLETED)
+            if not ready.is_set():   # the session failed (its error) or timed out
+                waiting.cancel()
+                out_q.put(("failed", repr(task.exception()) if task.done() else "timed out subscribing"))
+                return
+        out_q.put(("ready",))
+        await asyncio.get_running_loop().run_in_executor(None, go.wait)
+        if poll:
+            tasks.append(asyncio.create_task(modbus(polled)))
+        await asyncio.sleep(3.0)                       # initial values and the first publishes settle
+        start, polled_before = count[0], polled[0]
+        out_q.put(("start",))
         await asyncio.sleep(seconds)
-        out_q.put(("counts", [c - s for c, s in zip(counts, start)], polled[0]))
+        out_q.put(("counts", count[0] - start, polled[0] - polled_before))
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -95,43 +117,113 @@ def _clients(url: str, modbus_port: int, loops: list[str], clients: int, seconds
     asyncio.run(main())
 
 
-async def _load_round(n: int, clients: int, seconds: float) -> dict:
+async def _each(q, k: int, what: str, timeout: float) -> list[tuple]:
+    """The next ``k`` messages of the client processes, each ``what`` (a failure ends the run with its error)."""
+    loop, out = asyncio.get_running_loop(), []
+    for _ in range(k):
+        msg = await loop.run_in_executor(None, q.get, True, timeout)
+        if msg[0] != what:
+            raise RuntimeError(f"an OPC UA client process: {msg}")
+        out.append(msg)
+    return out
+
+
+def _cpu(pid: int) -> float:
+    """CPU seconds (user + system) process ``pid`` has used."""
+    import psutil
+
+    times = psutil.Process(pid).cpu_times()
+    return times.user + times.system
+
+
+@contextlib.asynccontextmanager
+async def _opcua(mode: str, device, loops):
+    """The OPC UA server over ``device`` in ``mode`` and the id of the process it runs in; mode none: none."""
+    from valve_emulator.opcua import LocalSource, OpcUaProcess, OpcUaServer
+
+    if mode == "none":
+        yield None, os.getpid()
+    elif mode == "process":
+        async with OpcUaProcess(device, loops=loops, port=0) as opc:
+            yield opc, opc.process.pid
+    else:
+        async with OpcUaServer(LocalSource(device), loops=loops, port=0) as opc:
+            yield opc, os.getpid()
+
+
+async def _load_round(mode: str, n: int, clients: int, publish_ms: float, variables: list[str],
+                      seconds: float, profiler=None) -> dict:
+    """One window of the load (see the module docstring); ``profiler`` (cProfile) runs during the window."""
+    import numpy as np
+
     from valve_emulator.config import server_from_mapping
     from valve_emulator.device.server import EmulatorServer
-    from valve_emulator.opcua import OpcUaServer
 
     cfg = server_from_mapping(fleet_mapping(n))
     async with EmulatorServer(cfg, port=0, time_scale=1.0) as srv:
         for i in range(n):
             srv.device.bank.set_noise(i, 0.05)
         t0 = time.monotonic()
-        async with OpcUaServer(srv.device, loops=cfg.loops, port=0) as opc:
+        async with _opcua(mode, srv.device, cfg.loops) as (opc, pid):
             build = time.monotonic() - t0
             paths = [f"Unit{srv.device.units[i]}.{lp.name}" for i, lp in enumerate(cfg.loops)]
-            q = mp.Queue()
-            proc = mp.Process(target=_clients, args=(opc.url, srv.port, paths, clients, seconds, q), daemon=True)
-            proc.start()
-            loop = asyncio.get_running_loop()
-            msg = await loop.run_in_executor(None, q.get, True, 900)
-            assert msg[0] == "start"
+            q, go, procs = mp.Queue(), mp.Event(), []
+            for i in range(max(clients, 1)):   # one at a time: a session and its subscription, then the next
+                procs.append(mp.Process(target=_client, args=(opc.url if opc and clients else "", srv.port, paths,
+                                                              publish_ms, variables, seconds, i == 0, go, q),
+                                        daemon=True))
+                procs[-1].start()
+                await _each(q, 1, "ready", 1800)
+            go.set()
+            await _each(q, len(procs), "start", 600)
             srv.device.jitter = type(srv.device.jitter)(4096)
-            ticks0, overruns0, sent0, t0 = srv.device.ticks, srv.device.overruns, opc.notifications, time.monotonic()
-            msg = await loop.run_in_executor(None, q.get, True, seconds + 300)
+            sent0 = (await opc.counters()).notifications if opc else 0
+            ticks0, overruns0, t0 = srv.device.ticks, srv.device.overruns, time.monotonic()
+            cpu0, opc_cpu0 = _cpu(os.getpid()), _cpu(pid)
+            if profiler is not None:
+                profiler.enable()
+            results = await _each(q, len(procs), "counts", seconds + 300)
             elapsed = time.monotonic() - t0
+            if profiler is not None:
+                profiler.disable()
+            cpu, opc_cpu = _cpu(os.getpid()) - cpu0, _cpu(pid) - opc_cpu0
+            sent = (await opc.counters()).notifications - sent0 if opc else 0
             ticks, overruns = srv.device.ticks - ticks0, srv.device.overruns - overruns0
             lateness = srv.device.jitter.values()
-            proc.join(30)
-            if proc.is_alive():
-                proc.kill()
-            counts, polled = msg[1], msg[2]
-    expected = 2 * n * seconds * 1000 / PUBLISH_MS
-    import numpy as np
-
+            for proc in procs:
+                proc.join(30)
+                if proc.is_alive():
+                    proc.kill()
+            counts, polled = [r[1] for r in results], sum(r[2] for r in results)
+    expected = len(COUNTED) * n * seconds * 1000 / publish_ms
+    served = clients and opc is not None
     return {"build": build, "p50": float(np.percentile(lateness, 50)) * 1e3,
             "p99": float(np.percentile(lateness, 99)) * 1e3, "ticks": ticks / elapsed, "overruns": overruns,
-            "received": min(counts) / expected, "received_median": statistics.median(counts) / expected,
-            "handed": (opc.notifications - sent0) / clients / (expected * elapsed / seconds),
-            "polled": polled / seconds}
+            "received": min(counts) / expected if served else 1.0,
+            "received_median": statistics.median(counts) / expected if served else 1.0,
+            "device_cpu": cpu / elapsed, "opcua_cpu": opc_cpu / elapsed if mode == "process" else float("nan"),
+            "per_notification": 1e6 * opc_cpu / sent if sent and mode == "process" else float("nan"),
+            "sent": sent / elapsed, "polled": polled / seconds}
+
+
+def _profile(n: int, clients: int, publish_ms: float, variables: list[str], seconds: float) -> None:
+    """Where the OPC UA server's time goes: cProfile of the in-process server under the same load."""
+    import cProfile
+    import pstats
+
+    profiler = cProfile.Profile()
+    r = asyncio.run(_load_round("in-process", n, clients, publish_ms, variables, seconds, profiler))
+    stats = pstats.Stats(profiler)
+    waiting = {k: v for k, v in stats.stats.items() if k[2] in ("<method 'poll' of 'select.epoll' objects>",
+                                                                 "<method 'get' of '_queue.SimpleQueue' objects>")}
+    busy = {k: v for k, v in stats.stats.items() if k not in waiting}
+    total = sum(t[2] for t in busy.values())
+    sent = r["sent"] * seconds
+    print(f"\nProfile (in process, the {seconds:g} s window: {total:.1f} s busy, {sent:,.0f} notifications, "
+          f"{1e6 * total / max(sent, 1):.0f} µs of the event loop per notification): top functions by own time")
+    rows = sorted(busy.items(), key=lambda kv: kv[1][2], reverse=True)[:25]
+    print(table([(f"{Path(f).name}:{line} {fn}", f"{tt:.2f} s", f"{100 * tt / total:.1f} %", f"{nc:,}")
+                 for (f, line, fn), (_, nc, tt, _, _) in rows], ("function", "own time", "share", "calls")))
 
 
 def _attack_process(url: str, count: int, out_q) -> None:
@@ -146,11 +238,11 @@ async def _hostile(count: int) -> dict:
 
     from valve_emulator.config import server_from_mapping
     from valve_emulator.device.server import EmulatorServer
-    from valve_emulator.opcua import OpcUaServer
+    from valve_emulator.opcua import OpcUaProcess
 
     cfg = server_from_mapping(fleet_mapping(10))
     async with EmulatorServer(cfg, port=0, time_scale=1.0) as srv, \
-            OpcUaServer(srv.device, loops=cfg.loops, port=0) as opc:
+            OpcUaProcess(srv.device, loops=cfg.loops, port=0) as opc:
         q = mp.Queue()
         ticks0, overruns0, t0 = srv.device.ticks, srv.device.overruns, time.monotonic()
         proc = mp.Process(target=_attack_process, args=(opc.url, count, q), daemon=True)
@@ -179,35 +271,65 @@ async def _hostile(count: int) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--mode", choices=("process", "in-process"), default="process")
     p.add_argument("--loops", type=int, default=1000)
-    p.add_argument("--clients", type=int, default=10)
+    p.add_argument("--clients", type=int, default=5)
+    p.add_argument("--publish", type=float, default=1000.0, metavar="MS", help="publishing interval")
+    p.add_argument("--vars", default="pv,op,sp,mv", help="the variables of every loop each client monitors")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--rounds", type=int, default=3)
-    p.add_argument("--hostile", type=int, default=100_000)
+    p.add_argument("--hostile", type=int, default=25_000)
+    p.add_argument("--profile", action="store_true")
     args = p.parse_args(argv)
-    print(machine())
-    rounds = [asyncio.run(_load_round(args.loops, args.clients, args.seconds)) for _ in range(args.rounds)]
-    med = {k: statistics.median(r[k] for r in rounds) for k in rounds[0]}
-    print(f"\nLoad: {args.loops} loops at 10 Hz, {args.clients} OPC UA clients subscribed to every loop's pv and op "
-          f"(publishing {PUBLISH_MS} ms), one Modbus poller at 10 Hz; {args.seconds:g} s windows, "
-          f"median of {args.rounds}")
-    print(table([("address space build", f"{med['build']:.1f} s"),
-                 ("tick lateness p50 / p99", f"{med['p50']:.1f} / {med['p99']:.1f} ms (target p99 <= 5 ms)"),
-                 ("ticks per second, overruns", f"{med['ticks']:.2f}, {med['overruns']:.0f}"),
-                 ("notifications received, worst client",
-                  f"{100 * med['received']:.1f} % of expected (target >= 95 %)"),
-                 ("notifications received, median client", f"{100 * med['received_median']:.1f} %"),
-                 ("handed to each subscription by the server", f"{100 * med['handed']:.1f} %"),
-                 ("Modbus polls answered per second", f"{med['polled']:.1f}")], ("figure", "value")))
+    variables = args.vars.split(",")
+    print(machine(), f"load average {os.getloadavg()[0]:.1f}")
+    if args.rounds:
+        _load(args, variables)
+    if args.profile:
+        _profile(args.loops, args.clients, args.publish, variables, args.seconds)
     if args.hostile:
-        h = asyncio.run(_hostile(args.hostile))
-        print(f"\nHostile: {h['sent']:,} malformed OPC UA messages in {h['seconds']:.0f} s "
-              f"({h['sent'] / h['seconds']:,.0f}/s) from 4 threads of another process")
-        print(table([("connections the server closed itself", f"{h['closed']:,}"),
-                     ("ticks per second during the attack", f"{h['ticks']:.2f} (target 10 ± 1)"),
-                     ("overruns", str(h["overruns"])), ("tick task failed", str(h["error"] is not None)),
-                     ("normal reads (OPC UA + Modbus, 1/s) / failures", f"{h['reads']} / {h['failures']}")],
-                    ("figure", "value")))
+        _print_hostile(asyncio.run(_hostile(args.hostile)))
+
+
+def _load(args: argparse.Namespace, variables: list[str]) -> None:
+    """Rounds of the fleet without OPC UA and with it, alternating; their medians side by side."""
+    runs: dict[str, list[dict]] = {"none": [], args.mode: []}
+    for _ in range(args.rounds):
+        for mode in runs:
+            runs[mode].append(asyncio.run(_load_round(mode, args.loops, args.clients if mode != "none" else 0,
+                                                      args.publish, variables, args.seconds)))
+    med = {mode: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for mode, rs in runs.items()}
+    base, m = med["none"], med[args.mode]
+    print(f"\nLoad: {args.loops} loops at 10 Hz, {args.clients} OPC UA clients ({args.mode}) each monitoring "
+          f"{','.join(variables)} of every loop (publishing {args.publish:g} ms), one Modbus poller at 10 Hz; "
+          f"{args.seconds:g} s windows, median of {args.rounds} (baseline: the same without OPC UA, same run)")
+    print(table([("address space build", "", f"{m['build']:.1f} s"),
+                 ("tick lateness p50 / p99", f"{base['p50']:.1f} / {base['p99']:.1f} ms",
+                  f"{m['p50']:.1f} / {m['p99']:.1f} ms (target p99 within 1 ms of the baseline)"),
+                 ("ticks per second, overruns", f"{base['ticks']:.2f}, {base['overruns']:.0f}",
+                  f"{m['ticks']:.2f}, {m['overruns']:.0f}"),
+                 ("pv/op notifications received, worst client", "",
+                  f"{100 * m['received']:.1f} % of expected (target >= 99 %)"),
+                 ("pv/op notifications received, median client", "", f"{100 * m['received_median']:.1f} %"),
+                 ("notifications handed to subscriptions per second", "", f"{m['sent']:,.0f}"),
+                 ("device process CPU (s per s)", f"{base['device_cpu']:.2f}", f"{m['device_cpu']:.2f}"),
+                 ("OPC UA process CPU (s per s)", "", f"{m['opcua_cpu']:.2f}"),
+                 ("OPC UA CPU per notification", "", f"{m['per_notification']:.0f} µs"),
+                 ("Modbus polls answered per second", f"{base['polled']:.1f}", f"{m['polled']:.1f}")],
+                ("figure", "without OPC UA", "with OPC UA")))
+    for mode, rs in runs.items():
+        print(f"rounds ({mode}): p99 " + ", ".join(f"{r['p99']:.1f}" for r in rs) + " ms; received "
+              + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %")
+
+
+def _print_hostile(h: dict) -> None:
+    print(f"\nHostile: {h['sent']:,} malformed OPC UA messages in {h['seconds']:.0f} s "
+          f"({h['sent'] / h['seconds']:,.0f}/s) from 4 threads of another process")
+    print(table([("connections the server closed itself", f"{h['closed']:,}"),
+                 ("ticks per second during the attack", f"{h['ticks']:.2f} (target 10 ± 1)"),
+                 ("overruns", str(h["overruns"])), ("tick task failed", str(h["error"] is not None)),
+                 ("normal reads (OPC UA + Modbus, 1/s) / failures", f"{h['reads']} / {h['failures']}")],
+                ("figure", "value")))
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ from valve_emulator.device.registers import Scaling
 from valve_emulator.device.registers.export import KEPWARE_COLUMNS, export
 from valve_emulator.device.registers.mapping import register_map_of
 from valve_emulator.device.server import EmulatorServer
-from valve_emulator.opcua import NAMESPACE, OpcUaServer
+from valve_emulator.opcua import NAMESPACE, LocalSource, OpcUaServer
 
 pytestmark = pytest.mark.usefixtures("no_task_leak")
 
@@ -140,7 +140,7 @@ async def test_opc_ua_keeps_its_node_names_and_its_writes_show_in_the_configured
     """OPC UA is not a register interface: its nodes are the loop's quantities whatever map Modbus serves, and
     an OP written there reads back over Modbus in the profile's counts at once."""
     config = load_server(S7)
-    async with _server(S7) as srv, OpcUaServer(srv.device, loops=config.loops, port=0) as opc:
+    async with _server(S7) as srv, OpcUaServer(LocalSource(srv.device), loops=config.loops, port=0) as opc:
         srv.device.advance(10)
         async with Client(opc.url) as ua_client:
             ns = await ua_client.get_namespace_index(NAMESPACE)

@@ -4,6 +4,8 @@ import pytest
 
 from valve_emulator.config import server_from_mapping
 
+from .modes import MODES
+
 DEVICE = {
     "device": {"tick": 0.1},
     "loops": [
@@ -19,3 +21,10 @@ DEVICE = {
 @pytest.fixture
 def config():
     return server_from_mapping(DEVICE)
+
+
+
+@pytest.fixture(params=MODES)
+def opcua_mode(request):
+    """Each OPC UA test runs twice: in the device's process and in a process of its own."""
+    return request.param

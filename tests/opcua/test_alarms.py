@@ -13,9 +13,11 @@ from valve_emulator.device.malfunctions import parse_malfunction
 from valve_emulator.device.registers import AlarmBit, address_of
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.snapshots import SnapshotError, SnapshotStore
-from valve_emulator.opcua import OpcUaServer
+from valve_emulator.opcua import NAMESPACE
 from valve_emulator.opcua.alarms import SEVERITY_ACTIVE
 from valve_emulator.station.core import Station
+
+from .modes import serve_opcua
 
 HIGH, LOW, UNACKED = int(AlarmBit.PV_HIGH), int(AlarmBit.PV_LOW), int(AlarmBit.UNACKED)
 ACK = ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge)
@@ -74,11 +76,11 @@ async def _alarms_word(port: int, unit: int, table: str = "holding") -> int:
 
 
 @pytest.fixture
-async def served(config):
+async def served(opcua_mode, config):
     """(Modbus server, station, OPC UA server) on one device, time frozen (the test steps it)."""
     async with EmulatorServer(config, port=0, time_scale=0) as srv:
         station = Station(srv.device, snapshots=SnapshotStore())
-        async with OpcUaServer(srv.device, loops=config.loops, port=0, station=station) as opc:
+        async with serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, station=station) as opc:
             yield srv, station, opc
 
 
@@ -139,8 +141,9 @@ async def test_opc_ua_clients_receive_alarm_events_and_acknowledge_them(served):
         srv.device.advance(1)
         raised = await events.next("XV2")
         assert raised["EventType"] == ua.NodeId(ua.ObjectIds.AlarmConditionType)
-        assert raised["NodeId"] == ua.NodeId("Unit2.XV2.PvAlarm", opc.ns)
-        assert raised["SourceNode"] == ua.NodeId("Unit2.XV2", opc.ns)
+        ns = await client.get_namespace_index(NAMESPACE)
+        assert raised["NodeId"] == ua.NodeId("Unit2.XV2.PvAlarm", ns)
+        assert raised["SourceNode"] == ua.NodeId("Unit2.XV2", ns)
         assert (raised["ActiveState/Id"], raised["AckedState/Id"], raised["Retain"]) == (True, False, True)
         assert raised["Severity"] == SEVERITY_ACTIVE
         assert raised["Message"].Text == "XV2: PV 9.5 above its high limit 8"

@@ -9,9 +9,10 @@ from asyncua import Client, ua
 
 from valve_emulator.cli import main
 from valve_emulator.device.server import EmulatorServer
-from valve_emulator.opcua import NAMESPACE, OpcUaServer
+from valve_emulator.opcua import NAMESPACE
 from valve_emulator.opcua.history import HistoryError, history_seconds
 
+from .modes import serve_opcua
 from .test_opcua_interop import start_serve, stop
 
 
@@ -28,9 +29,9 @@ async def _ticks(device, times, *, each=10):
         await asyncio.sleep(0.1)
 
 
-async def test_history_read_returns_pv_op_sp_mv_of_the_last_period_in_order(config):
+async def test_history_read_returns_pv_op_sp_mv_of_the_last_period_in_order(opcua_mode, config):
     async with (EmulatorServer(config, port=0, time_scale=0) as srv,
-                OpcUaServer(srv.device, loops=config.loops, port=0, history=600) as opc,
+                serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, history=600) as opc,
                 Client(opc.url) as client):
         xv = await _variables(client, 2, "XV2")
         await xv["op"].write_value(ua.DataValue(ua.Variant(55.0, ua.VariantType.Double)))
@@ -54,9 +55,9 @@ async def test_history_read_returns_pv_op_sp_mv_of_the_last_period_in_order(conf
         assert type(err.value).__name__ == "BadHistoryOperationUnsupported"
 
 
-async def test_history_keeps_only_the_period(config):
+async def test_history_keeps_only_the_period(opcua_mode, config):
     async with (EmulatorServer(config, port=0, time_scale=0) as srv,
-                OpcUaServer(srv.device, loops=config.loops, port=0, history=1.0) as opc,
+                serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, history=1.0) as opc,
                 Client(opc.url) as client):
         xv = await _variables(client, 2, "XV2")
         await xv["op"].write_value(ua.DataValue(ua.Variant(55.0, ua.VariantType.Double)))
@@ -69,9 +70,9 @@ async def test_history_keeps_only_the_period(config):
     assert len(history) >= 2 and all(dv.SourceTimestamp >= cut for dv in history), history
 
 
-async def test_without_history_nothing_is_historized(config):
+async def test_without_history_nothing_is_historized(opcua_mode, config):
     async with (EmulatorServer(config, port=0, time_scale=0) as srv,
-                OpcUaServer(srv.device, loops=config.loops, port=0) as opc,
+                serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0) as opc,
                 Client(opc.url) as client):
         pv = (await _variables(client, 2, "XV2"))["pv"]
         assert (await pv.read_attribute(ua.AttributeIds.Historizing)).Value.Value is False

@@ -15,19 +15,20 @@ from pymodbus.client import AsyncModbusTcpClient
 from valve_emulator.device.certs import modbus_certificate
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.tls import server_context
-from valve_emulator.opcua import NAMESPACE, OpcUaServer
+from valve_emulator.opcua import NAMESPACE
 
 from .hostile import KINDS, attack
+from .modes import serve_opcua
 
 MESSAGES = 1600     # 200 of each kind
 
 
-async def test_malformed_opcua_and_failed_handshakes_harm_nothing(config, tmp_path):
+async def test_malformed_opcua_and_failed_handshakes_harm_nothing(opcua_mode, config, tmp_path):
     modbus_certificate(tmp_path, "server", server=True)
     async with EmulatorServer(config, port=0, time_scale=1.0) as srv:
         await srv.open_tls(server_context(tmp_path / "server.pem", tmp_path / "server-key.pem", tmp_path / "ca.pem"),
                            port=0)
-        async with OpcUaServer(srv.device, loops=config.loops, port=0) as opc:
+        async with serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0) as opc:
             ticks0, overruns0, t0 = srv.device.ticks, srv.device.overruns, time.monotonic()
             loop = asyncio.get_running_loop()
             # The attacker is another process, as it would be: in a thread of this one its four sender threads

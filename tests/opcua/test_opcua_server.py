@@ -13,10 +13,12 @@ from pymodbus.client import AsyncModbusTcpClient
 from valve_emulator.device.registers import REGISTERS, address_of
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.snapshots import SnapshotStore
-from valve_emulator.opcua import NAMESPACE, OpcUaError, OpcUaSecurity, OpcUaServer, hash_password
+from valve_emulator.opcua import NAMESPACE, OpcUaError, OpcUaSecurity, hash_password
 from valve_emulator.opcua.alarms import CONDITION_NAME
 from valve_emulator.opcua.server import BITS, VARIABLES
 from valve_emulator.station.core import Station
+
+from .modes import serve_opcua
 
 USERS = {"ines": ("instructor", hash_password("teach", iterations=1000)),
          "otto": ("operator", hash_password("run", iterations=1000))}
@@ -29,11 +31,11 @@ def _users():
 
 
 @pytest.fixture
-async def served(config):
+async def served(opcua_mode, config):
     """(Modbus server, OPC UA server) on one device, time frozen: the test steps it with ``device.advance``."""
     async with EmulatorServer(config, port=0, time_scale=0) as srv:
         station = Station(srv.device, snapshots=SnapshotStore())
-        async with OpcUaServer(srv.device, loops=config.loops, port=0, station=station) as opc:
+        async with serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, station=station) as opc:
             yield srv, opc
 
 
@@ -115,7 +117,7 @@ async def test_refused_writes_answer_a_bad_status_and_change_nothing(served):
             with pytest.raises(ua.UaStatusCodeError) as err:
                 await node.write_value(ua.DataValue(ua.Variant(value, variant)))
             assert (var, type(err.value).__name__) == (var, code)
-            assert opc.refused == refused
+            assert (await opc.counters()).refused == refused
     assert bytes(srv.device.image) == image
     srv.device.advance(1)
     assert float(srv.device.bank.op[1]) != 150.0 and float(srv.device.bank.S[0]) == 5.0
@@ -159,12 +161,13 @@ async def test_subscription_notifies_pv_after_ticks(served):
 
 
 @pytest.fixture
-async def secured(config, tmp_path):
+async def secured(opcua_mode, config, tmp_path):
     """Like ``served``, with a users file: no anonymous access."""
     async with EmulatorServer(config, port=0, time_scale=0) as srv:
         station = Station(srv.device, snapshots=SnapshotStore())
         security = OpcUaSecurity(users=_users())
-        async with OpcUaServer(srv.device, loops=config.loops, port=0, station=station, security=security) as opc:
+        async with serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, station=station,
+                               security=security) as opc:
             yield srv, opc
 
 
@@ -239,11 +242,11 @@ def test_beyond_loopback_needs_a_secure_policy_and_users(tmp_path):
     assert math.isfinite(1.0)
 
 
-async def test_stopping_opcua_ends_its_tasks_at_once(config, no_task_leak):
+async def test_stopping_opcua_ends_its_tasks_at_once(opcua_mode, config, no_task_leak):
     """asyncua's own stop waits for the once-a-second clock task to wake up; the server ends it instead, so that
     neither a user's shutdown nor a test waits a second for nothing."""
     async with EmulatorServer(config, port=0, time_scale=0) as srv:
-        opc = OpcUaServer(srv.device, loops=config.loops, port=0)
+        opc = serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0)
         await opc.start()
         started = time.monotonic()
         await opc.stop()
@@ -251,13 +254,13 @@ async def test_stopping_opcua_ends_its_tasks_at_once(config, no_task_leak):
 
 
 @pytest.mark.realtime
-async def test_starting_opcua_beside_a_running_device_costs_no_overrun(config):
+async def test_starting_opcua_beside_a_running_device_costs_no_overrun(opcua_mode, config):
     """Building the address space keeps the event loop busy for a while: the tick waits (frozen) instead of
     running late, and runs on afterwards."""
     async with EmulatorServer(config, port=0, time_scale=1.0) as srv:
         await srv.device.wait_for_tick(2)
         overruns = srv.device.overruns
-        async with OpcUaServer(srv.device, loops=config.loops, port=0):
+        async with serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0):
             assert not srv.device.frozen
             ticks = srv.device.ticks
             await srv.device.wait_for_tick(ticks + 3)

@@ -16,10 +16,11 @@ from valve_emulator.device.accounts import hash_password, load_users
 from valve_emulator.device.certs import opcua_certificate
 from valve_emulator.device.roles import RoleTable
 from valve_emulator.device.server import EmulatorServer
-from valve_emulator.opcua import NAMESPACE, OpcUaError, OpcUaSecurity, OpcUaServer, UsersError
+from valve_emulator.opcua import NAMESPACE, OpcUaError, OpcUaSecurity, UsersError
 from valve_emulator.opcua.server import APPLICATION_URI
 
 from .conftest import DEVICE
+from .modes import serve_opcua
 
 CLIENT_URI = "urn:valve-emulator:trust-test-client"
 PASSWORDS = {"vera": ("viewer", "look"), "otto": ("operator", "run"), "ines": ("instructor", "teach"),
@@ -56,11 +57,12 @@ async def _secure_client(url, files):
     return client
 
 
-async def test_an_unknown_client_certificate_is_rejected_and_trusted_once_moved(config, files, tmp_path, caplog):
+async def test_an_unknown_client_certificate_is_rejected_and_trusted_once_moved(opcua_mode, config, files, tmp_path,
+                                                                                caplog):
     caplog.set_level(logging.WARNING, logger="valve_emulator.opcua.trust")
     pki = tmp_path / "pki"
     async with EmulatorServer(config, port=0, time_scale=0) as srv, \
-            OpcUaServer(srv.device, loops=config.loops, port=0, security=_security(files, pki)) as opc:
+            serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, security=_security(files, pki)) as opc:
         with pytest.raises(ua.UaStatusCodeError) as err:
             async with await _secure_client(opc.url, files):
                 pass
@@ -75,15 +77,16 @@ async def test_an_unknown_client_certificate_is_rejected_and_trusted_once_moved(
         async with await _secure_client(opc.url, files) as client:
             ns = await client.get_namespace_index(NAMESPACE)
             assert ns > 0
-        assert (opc.trust_list.accepted, opc.trust_list.refused) == (1, 1)
+        counters = await opc.counters()
+        assert (counters.trust_accepted, counters.trust_refused) == (1, 1)
 
 
-async def test_a_client_whose_uri_is_not_its_certificates_is_refused_before_the_trust_list(config, files, tmp_path,
-                                                                                           caplog):
+async def test_a_client_whose_uri_is_not_its_certificates_is_refused_before_the_trust_list(opcua_mode, config, files,
+                                                                                           tmp_path, caplog):
     caplog.set_level(logging.WARNING, logger="valve_emulator.opcua.trust")
     pki = tmp_path / "pki"
     async with EmulatorServer(config, port=0, time_scale=0) as srv, \
-            OpcUaServer(srv.device, loops=config.loops, port=0, security=_security(files, pki)) as opc:
+            serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, security=_security(files, pki)) as opc:
         client = await _secure_client(opc.url, files)
         client.application_uri = "urn:someone:else"
         with pytest.raises(ua.UaStatusCodeError) as err:
@@ -113,14 +116,14 @@ async def test_a_certificate_signed_by_a_trusted_ca_is_accepted(config, tmp_path
     assert trust.is_trusted(client)
 
 
-async def test_trust_all_accepts_any_client_and_writes_nothing(config, files, tmp_path):
+async def test_trust_all_accepts_any_client_and_writes_nothing(opcua_mode, config, files, tmp_path):
     security = _security(files, None, trust_all=True)
     async with EmulatorServer(config, port=0, time_scale=0) as srv, \
-            OpcUaServer(srv.device, loops=config.loops, port=0, security=security) as opc:
+            serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, security=security) as opc:
         client = await _secure_client(opc.url, files)
         async with client:
             assert await client.get_namespace_index(NAMESPACE) > 0
-        assert opc.trust_list.accepted == 1
+        assert (await opc.counters()).trust_accepted == 1
     assert list(tmp_path.iterdir()) == []
 
 
@@ -158,11 +161,12 @@ WRITES = {"sp": (20.0, {"operator", "instructor"}), "kc": (0.5, {"instructor", "
 
 
 @pytest.mark.parametrize("user", list(PASSWORDS))
-async def test_each_user_writes_what_the_role_allows_and_nothing_else(roles_config, files, user):
+async def test_each_user_writes_what_the_role_allows_and_nothing_else(opcua_mode, roles_config, files, user):
     role, password = PASSWORDS[user]
     users = load_users(files / "users.yaml", RoleTable.from_config(roles_config))
     async with EmulatorServer(roles_config, port=0, time_scale=0) as srv, \
-            OpcUaServer(srv.device, loops=roles_config.loops, port=0, security=OpcUaSecurity(users=users)) as opc:
+            serve_opcua(opcua_mode, srv.device, loops=roles_config.loops, port=0,
+                        security=OpcUaSecurity(users=users)) as opc:
         client = Client(opc.url)
         client.set_user(user)
         client.set_password(password)
@@ -184,7 +188,7 @@ async def test_each_user_writes_what_the_role_allows_and_nothing_else(roles_conf
         assert (float(bank._sp[0]) == pytest.approx(20.0)) == ("sp" in _written(role))
         assert (float(bank.kc[0]) == pytest.approx(0.5)) == ("kc" in _written(role))
         assert (float(bank.S[0]) == pytest.approx(1.5)) == ("S" in _written(role))
-        assert opc.refused == len(WRITES) - len(_written(role))
+        assert (await opc.counters()).refused == len(WRITES) - len(_written(role))
 
 
 def _written(role):
@@ -203,7 +207,8 @@ def _openssl_client_certificate(d, uri):
                    check=True, capture_output=True)
 
 
-async def test_a_client_certificate_made_with_openssl_and_trusted_ahead_gets_a_session(config, files, tmp_path):
+async def test_a_client_certificate_made_with_openssl_and_trusted_ahead_gets_a_session(opcua_mode, config, files,
+                                                                                        tmp_path):
     tool("openssl", "apt-get install openssl")
     uri = "urn:example:my-client"
     _openssl_client_certificate(tmp_path, uri)
@@ -211,11 +216,12 @@ async def test_a_client_certificate_made_with_openssl_and_trusted_ahead_gets_a_s
     (pki / "trusted" / "certs").mkdir(parents=True)
     shutil.copy(tmp_path / "client.der", pki / "trusted" / "certs")
     async with EmulatorServer(config, port=0, time_scale=0) as srv, \
-            OpcUaServer(srv.device, loops=config.loops, port=0, security=_security(files, pki)) as opc:
+            serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, security=_security(files, pki)) as opc:
         client = Client(opc.url)
         await client.set_security_string(f"Basic256Sha256,SignAndEncrypt,{tmp_path / 'client.der'},"
                                          f"{tmp_path / 'client-key.pem'},{files / 'server.der'}")
         client.application_uri = uri
         async with client:
             assert await client.get_namespace_index(NAMESPACE) > 0
-    assert opc.trust_list.accepted == 1 and not any((pki / "rejected" / "certs").iterdir())
+        assert (await opc.counters()).trust_accepted == 1
+    assert not any((pki / "rejected" / "certs").iterdir())

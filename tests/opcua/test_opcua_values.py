@@ -10,8 +10,10 @@ import pytest
 from asyncua import Client, ua
 
 from valve_emulator.device.server import EmulatorServer
-from valve_emulator.opcua import NAMESPACE, OpcUaServer
+from valve_emulator.opcua import NAMESPACE
 from valve_emulator.opcua.units import UNITS, eu_information
+
+from .modes import serve_opcua
 
 CEFACT = "http://www.opcfoundation.org/UA/units/un/cefact"
 
@@ -50,10 +52,10 @@ def test_a_unit_text_unece_lacks_gets_no_guessed_code_and_no_units_none_at_all()
 
 
 @pytest.fixture
-async def served(config):
+async def served(opcua_mode, config):
     """(Modbus server, OPC UA server) on one device, time frozen: the test steps it with ``device.advance``."""
     async with (EmulatorServer(config, port=0, time_scale=0) as srv,
-                OpcUaServer(srv.device, loops=config.loops, port=0) as opc):
+                serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0) as opc):
         yield srv, opc
 
 

@@ -41,6 +41,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -255,23 +256,26 @@ def tls_settings(args: argparse.Namespace, config) -> tuple[int | None, object]:
                                 args.tls_ca or sec.ca)
 
 
-def _services(args: argparse.Namespace, config, *, opcua: int | None, security) -> Attach | None:
+def _services(args: argparse.Namespace, config, *, opcua: int | None, security,
+              failures: list[str]) -> Attach | None:
     """The instructor station (``--web``) and OPC UA (``--opcua``) beside the Modbus server, sharing one
     :class:`~valve_emulator.station.core.Station` (the HTTP pages and the OPC UA methods act on the same one);
-    None when neither is asked for. Entered, it opens their ports and yields the lines announcing them."""
+    None when neither is asked for. Entered, it opens their ports and yields the lines announcing them. A service
+    that ends unasked (the OPC UA process) adds a line to ``failures`` and stops the server."""
     if args.web is None and opcua is None:
         return None
 
     @contextlib.asynccontextmanager
     async def attach(srv) -> AsyncIterator[list[str]]:
         async with contextlib.AsyncExitStack() as stack:
-            yield await _start_services(srv, stack, args, config, opcua=opcua, security=security)
+            yield await _start_services(srv, stack, args, config, opcua=opcua, security=security,
+                                        failures=failures)
 
     return attach
 
 
 async def _start_services(srv, stack: contextlib.AsyncExitStack, args: argparse.Namespace, config, *,
-                          opcua: int | None, security) -> list[str]:
+                          opcua: int | None, security, failures: list[str]) -> list[str]:
     """Make the station and start the web pages and OPC UA over it (their stops pushed on ``stack``); return the
     lines announcing them. If a port is taken, the ``--snapshots`` folder made for the station is removed again:
     a server that did not start leaves nothing behind."""
@@ -285,7 +289,7 @@ async def _start_services(srv, stack: contextlib.AsyncExitStack, args: argparse.
         wanted = ((_start_web, args.web is not None), (_start_opcua, opcua is not None))
         lines = []
         for start in (start for start, asked in wanted if asked):
-            stop, line = await start(srv, station, config, args, port=opcua, security=security)
+            stop, line = await start(srv, station, config, args, port=opcua, security=security, failures=failures)
             stack.push_async_callback(stop)
             lines.append(line)
         return lines
@@ -310,32 +314,24 @@ async def _start_web(srv, station, config, args: argparse.Namespace, **_: object
                             f"http://{where}:{bound}/instructor")
 
 
-async def _start_opcua(srv, station, config, args: argparse.Namespace, *, port: int, security):
-    """Start the OPC UA server over ``srv``'s device (methods through ``station``); return its stop and the
-    line announcing its URL. A port in use is one error line: asyncua's own logged traceback is held back."""
-    from valve_emulator.opcua import OpcUaServer
+async def _start_opcua(srv, station, config, args: argparse.Namespace, *, port: int, security,
+                       failures: list[str]):
+    """Start the OPC UA server over ``srv``'s device (methods through ``station``) in a process of its own
+    (:class:`~valve_emulator.opcua.OpcUaProcess`); return its stop and the line announcing its URL, printed
+    once that process answers. A port in use is one error line. If the OPC UA process ends unasked, the server
+    stops as at Ctrl-C (the recording is closed) and ``serve`` exits with status 1."""
+    from valve_emulator.opcua import OpcUaProcess
+
+    def ended(code: int | None) -> None:
+        failures.append(f"the OPC UA process ended unexpectedly (exit code {code})")
+        srv.request_stop()
 
     history = opcua_history_seconds(args, port)
-    server = OpcUaServer(srv.device, loops=config.loops, host=args.host, port=port, security=security,
-                         station=station, history=history)
-    with opening(f"--opcua {port}", args.host), _quiet("asyncua.server.server"):
+    server = OpcUaProcess(srv.device, loops=config.loops, host=args.host, port=port, security=security,
+                          station=station, history=history, on_exit=ended)
+    with opening(f"--opcua {port}", args.host):
         await server.start()
     return server.stop, f"valve-emulator: OPC UA at {server.url} (policies {', '.join(server.security.policies)})"
-
-
-@contextlib.contextmanager
-def _quiet(logger: str):
-    """Drop ``logger``'s ERROR records (with their tracebacks) inside the block: the exception it raises says
-    the same in one line."""
-    def no_errors(record: logging.LogRecord) -> bool:
-        return record.levelno < logging.ERROR
-
-    log = logging.getLogger(logger)
-    log.addFilter(no_errors)
-    try:
-        yield
-    finally:
-        log.removeFilter(no_errors)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -391,10 +387,14 @@ def _run(args: argparse.Namespace) -> int:
     opcua_port, security = opcua_settings(args, cfg)
     opcua_history_seconds(args, opcua_port)  # refuse a bad --opcua-history before anything starts
     tls_port, tls_context = tls_settings(args, cfg)
+    failures: list[str] = []
     runner(serve(cfg, host=args.host, port=port, time_scale=args.time_scale, config_path=args.config,
                  record=args.record, record_units=args.record_unit, read_only=args.read_only,
                  max_connections=args.max_connections, process=process, rtu=args.rtu, serial=serial,
                  framer=args.framer, tls_port=tls_port, tls_context=tls_context,
-                 attach=_services(args, cfg, opcua=opcua_port, security=security)))
+                 attach=_services(args, cfg, opcua=opcua_port, security=security, failures=failures)))
+    if failures:
+        print(f"valve-emulator: stopped: {failures[0]}", file=sys.stderr, flush=True)
+        return 1
     print("valve-emulator: stopped", flush=True)
     return 0

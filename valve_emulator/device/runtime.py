@@ -43,7 +43,8 @@ _log = logging.getLogger("valve_emulator.serve")
 #: Services that run beside the Modbus server for as long as it runs: ``attach(server)`` is entered once the
 #: server's own ports are open and left before it stops (e.g. the instructor station's HTTP pages, an OPC UA
 #: server). Entering it opens the services' ports and yields the lines announcing them, which :func:`serve`
-#: prints after its "listening" line.
+#: prints after its "listening" line. A service that fails while the server runs calls
+#: ``server.request_stop()``: :func:`serve` then stops as at SIGTERM (the recording is closed).
 Attach = Callable[[Any], AbstractAsyncContextManager[Sequence[str]]]
 #: The embedded device served without a CONFIG (package data ``valve_emulator/data``).
 DEFAULT_DEVICE = "default_device.yaml"
@@ -210,6 +211,7 @@ async def serve(config, *, host: str, port: int, time_scale: float, ready=None, 
             srv = await _open_modbus(stack, config, host=host, port=port, time_scale=time_scale, framer=framer,
                                      rtu=rtu, serial=serial)
             notices = []
+            srv.request_stop = stop.set
             if tls_port is not None:
                 with opening(f"--tls-port {tls_port}", host):
                     bound = await srv.open_tls(tls_context, port=tls_port)

@@ -215,6 +215,10 @@ class Device:
         self.malfunctions = MalfunctionBank(bank) if hasattr(bank, "set_sensor") else None
         #: callables run after every tick with the device (keep them short: the tick waits for them)
         self.on_tick: list[Callable[[Device], None]] = []
+        #: callables run whenever the register image changed (a refresh after ticks, an accepted write, an alarm
+        #: word): what publishes the image to another process (:mod:`valve_emulator.opcua.shared`). Unlike
+        #: :attr:`on_tick` they leave quiet ticks to one compiled call; keep them to a copy.
+        self.image_listeners: list[Callable[[], None]] = []
         self.offsets = self.layout.offsets
         self.image = bytearray(self.layout.size)
         self._encode = ImageEncoder(scaling, self.image, self.offsets)
@@ -280,6 +284,7 @@ class Device:
         self._patch(self.image, int(self.offsets[index]), STANDARD, changes, index)
         if self.served is not self.image:
             self._patch(self.served, int(self.served_layout.offsets[index]), self.register_map, changes, index)
+        self._image_changed()
         return changes
 
     def _patch(self, image: bytearray, start: int, regmap: RegisterMap, changes: list[tuple[str, Any]],
@@ -334,6 +339,11 @@ class Device:
                                time=self.bank.sample_time,
                                alarms=None if self.alarms is None else self.alarms.words)
             self.served[:] = rows.astype(">u2").tobytes()
+        self._image_changed()
+
+    def _image_changed(self) -> None:
+        for listener in self.image_listeners:
+            listener()
 
     def _show_alarm(self, change: Any) -> None:
         """Write loop ``change.index``'s new alarm word into its ``alarms`` register (and the served map's)."""
@@ -345,6 +355,7 @@ class Device:
                 k = at + 2 * self.register_map.word_offset(reg.table, reg.address)
                 words = encode_value(reg, change.word, self.scaling, change.index)
                 self.served[k:k + 2 * reg.width] = np.asarray(words, dtype=">u2").tobytes()
+        self._image_changed()
 
     def tick(self, *, refresh: bool = True) -> None:
         """One tick now: apply pending writes, step the bank, refresh the image, wake waiters.

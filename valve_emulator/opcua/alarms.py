@@ -12,8 +12,9 @@ event and an OPC UA acknowledgement into the device's:
   false; ``Retain`` stays true until it is acknowledged too). Conditions that need attention are kept for
   ``ConditionRefresh`` (asyncua's own), so a client that subscribes later still sees them.
 - ``Acknowledge(EventId, Comment)`` (the standard method of ``AcknowledgeableConditionType``, called on the
-  condition object) acknowledges the loop's alarm through the station when there is one (the trainee's
-  evaluation records it, ``who: opcua``), else on the device. An EventId other than the condition's latest is
+  condition object) acknowledges the loop's alarm on the device
+  (:meth:`~valve_emulator.opcua.source.LocalSource.acknowledge_alarm`: through the station when there is one,
+  the trainee's evaluation records it, ``who: opcua``). An EventId other than the condition's latest is
   ``BadEventIdUnknown``; an alarm that needs no acknowledgement is ``BadConditionBranchAlreadyAcked``.
 """
 
@@ -46,7 +47,7 @@ class AlarmConditions:
 
     def __init__(self, adapter: Any) -> None:
         self.adapter = adapter
-        self.alarms = adapter.device.alarms
+        self.source = adapter.source
         self._changes: asyncio.Queue[AlarmChange] = asyncio.Queue()
         self._generators: dict[int, EventGenerator] = {}
         self._conditions: dict[ua.NodeId, int] = {}
@@ -58,7 +59,7 @@ class AlarmConditions:
 
     def _loop_node(self, index: int) -> ua.NodeId:
         """Loop ``index``'s object (``Unit1.FIC101``, as the adapter names it)."""
-        unit, name = int(self.adapter.device.units[index]), self.adapter.loops[index].name
+        unit, name = int(self.source.units[index]), self.adapter.loops[index].name
         return self.adapter._node_id(f"Unit{unit}.{name}")
 
     def condition_node(self, index: int) -> ua.NodeId:
@@ -69,7 +70,7 @@ class AlarmConditions:
     async def _add_condition_objects(self) -> None:
         server = self.adapter.server
         items, refs = [], []
-        for index in range(self.alarms.n):
+        for index in range(len(self.source.units)):
             node = self.condition_node(index)
             items.append(self.adapter._object_item(self._loop_node(index), node.Identifier, CONDITION_NAME))
             ref = ua.AddReferencesItem()
@@ -91,14 +92,14 @@ class AlarmConditions:
         await self.adapter.server.iserver.setup_condition_methods()
         self.adapter.server.link_method(self.adapter.server.get_node(
             ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge)), self._acknowledge)
-        self.alarms.listeners.append(self._changes.put_nowait)
-        for index in (self.alarms.words != 0).nonzero()[0].tolist():
-            self._changes.put_nowait(self.alarms.change(int(index)))
+        self.source.alarm_listeners.append(self._changes.put_nowait)
+        for change in self.source.raised_alarms():
+            self._changes.put_nowait(change)
         self._task = asyncio.get_running_loop().create_task(self._send(), name="valve-emulator-opcua-alarms")
 
     async def stop(self) -> None:
         with contextlib.suppress(ValueError):
-            self.alarms.listeners.remove(self._changes.put_nowait)
+            self.source.alarm_listeners.remove(self._changes.put_nowait)
         task, self._task = self._task, None
         if task is not None:
             task.cancel()
@@ -159,13 +160,8 @@ class AlarmConditions:
         latest = latest.Value if isinstance(latest, ua.Variant) else latest
         if latest is None or event_id.Value != latest:
             return ua.StatusCode(ua.StatusCodes.BadEventIdUnknown)
-        if not self.alarms.change(index).unacked:
+        if not await self.source.acknowledge_alarm(index):
             return ua.StatusCode(ua.StatusCodes.BadConditionBranchAlreadyAcked)
-        station, unit = self.adapter.station, int(self.adapter.device.units[index])
-        if station is not None and station.index_of(unit) == index:   # the station acknowledges by unit id
-            station.acknowledge(unit, who="opcua")
-        else:
-            self.alarms.acknowledge(index)
         text = comment.Value.Text if isinstance(comment.Value, ua.LocalizedText) else comment.Value
         _log.info("loop %s: PV alarm acknowledged over OPC UA (%s)", self.adapter.loops[index].name, text or "")
         return ua.StatusCode(ua.StatusCodes.Good)

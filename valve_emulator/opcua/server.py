@@ -1,8 +1,11 @@
 """OPC UA adapter: the same live loops as the Modbus server, as an OPC UA address space (asyncua).
 
 The only module that knows OPC UA's wire format and address-space types. It serves the
-:class:`~valve_emulator.device.tick.Device` that the Modbus server ticks, in the same process and event
-loop, so a value written over one protocol is read over the other after the next tick.
+:class:`~valve_emulator.device.tick.Device` that the Modbus server ticks through a
+:class:`~valve_emulator.opcua.source.DeviceSource`: in the device's process and event loop
+(:class:`~valve_emulator.opcua.source.LocalSource`), or in a process of its own fed from shared memory
+(:mod:`valve_emulator.opcua.process`, what ``serve --opcua`` runs). Either way a value written over one protocol
+is read over the other at once.
 
 Address space (namespace ``urn:valve-emulator``)::
 
@@ -21,7 +24,8 @@ Every variable is derived from the register map (:data:`~valve_emulator.device.r
 variable per quantity, named after the quantity's 16-bit register (``op_pct`` → ``op``), read from the
 register with the finest resolution (the float32 copy where there is one) and written through the first
 writable register, so an OPC UA write is checked by exactly the code that checks a Modbus write
-(:meth:`Device.write <valve_emulator.device.tick.Device.write>`). The bits are the ``status`` register's.
+(:meth:`Device.write <valve_emulator.device.tick.Device.write>`, in the device's process). The bits are the
+``status`` register's.
 
 Writes answer:
 
@@ -80,11 +84,12 @@ from valve_emulator.device.roles import OPERATOR, Role
 from valve_emulator.errors import UserError
 from valve_emulator.opcua.alarms import AlarmConditions
 from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
+from valve_emulator.opcua.source import DeviceSource, StationRefusal, finite_period
 from valve_emulator.opcua.trust import TrustList
 from valve_emulator.opcua.units import eu_information
 from valve_emulator.opcua.users import RoleRuleset, StationUser, UsersFile
 
-__all__ = ["OpcUaServer", "OpcUaSecurity", "NAMESPACE", "VARIABLES", "BITS", "OpcUaError"]
+__all__ = ["OpcUaServer", "OpcUaSecurity", "OpcUaCounters", "NAMESPACE", "VARIABLES", "BITS", "OpcUaError"]
 
 _log = logging.getLogger(__name__)
 
@@ -92,8 +97,11 @@ NAMESPACE = "urn:valve-emulator"
 APPLICATION_URI = "urn:valve-emulator:server"
 #: The publisher yields to the event loop after this many monitored variables ...
 YIELD_EVERY = 200
-#: ... and stops for this tick once it has used this share of the tick period.
+#: ... and stops for this tick once it has used this share of the tick period (in the device's process: the
+#: tick comes first) ...
 PUBLISH_BUDGET = 0.3
+#: ... or this share in a process of its own, where only asyncua's publishing and the clients' requests share it.
+PROCESS_PUBLISH_BUDGET = 0.7
 SECURE_POLICIES = ("Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
 
 
@@ -211,6 +219,24 @@ class OpcUaSecurity:
                              "users file, and drop policy None")
 
 
+@dataclass(frozen=True)
+class OpcUaCounters:
+    """What an OPC UA server has done so far: data-change notifications handed to subscriptions (one per
+    monitored item and change), ticks after which the publisher ran out of its budget, writes accepted and
+    refused, client certificates the trust list accepted and refused, alarm events sent."""
+
+    notifications: int = 0
+    deferred: int = 0
+    writes: int = 0
+    refused: int = 0
+    trust_accepted: int = 0
+    trust_refused: int = 0
+    alarm_events: int = 0
+
+
+#: A variable's value now: (value, variant type, status: None for Good).
+Sampler = Callable[[], tuple[Any, ua.VariantType, ua.StatusCode | None]]
+
 _GOOD = ua.StatusCode(ua.StatusCodes.Good)
 #: The status of an analog value outside its EURange (OPC UA Part 8: the value is outside the range defined for it).
 _EU_EXCEEDED = ua.StatusCode(ua.StatusCodes.UncertainEngineeringUnitsExceeded)
@@ -224,14 +250,14 @@ class TickClock:
     loop's latency, without a callback in the tick (``Device.on_tick`` would keep ``Device.advance`` from
     running quiet ticks as one compiled call). A restored snapshot counts as a new tick."""
 
-    def __init__(self, device: Any) -> None:
-        self.device = device
+    def __init__(self, source: DeviceSource) -> None:
+        self.source = source
         self._seen: tuple[int, float] | None = None
         self._at = datetime.now(UTC)
 
     def stamp(self) -> datetime:
         """When the current tick ran (the first time this clock saw it)."""
-        seen = (self.device.ticks, float(self.device.bank.sample_time))
+        seen = (self.source.ticks, self.source.sample_time)
         if seen != self._seen:
             self._seen, self._at = seen, datetime.now(UTC)
         return self._at
@@ -313,49 +339,51 @@ class _CheckedWrites(AttributeService):
                 self._adapter.refused += 1
                 results.append(ua.StatusCode(ua.StatusCodes.BadNotWritable))
                 continue
-            results.append(self._adapter.write(*target, item.Value, user))
+            results.append(await self._adapter.write(*target, item.Value, user))
         return results
 
 
 class OpcUaServer:
-    """Serve ``device`` over OPC UA: ``async with OpcUaServer(device, loops=..., port=0) as srv: srv.port``.
+    """Serve a device over OPC UA: ``async with OpcUaServer(LocalSource(device), loops=..., port=0) as srv``.
 
     Parameters
     ----------
-    device : the running :class:`~valve_emulator.device.tick.Device`.
+    source : the device (:class:`~valve_emulator.opcua.source.DeviceSource`): ``LocalSource(device, station)``
+        in this process, a ``RemoteSource`` in the OPC UA process; with a station, the station object has its
+        methods (Freeze, Run, ...).
     loops : the loop configs, in the device's order (names, PV units, PV range).
     host, port : where to listen (port 0: a free port, read back from :attr:`port`).
     security : :class:`OpcUaSecurity` (default: policy None, anonymous operators; loopback only).
-    station : an instructor station (``station.core.Station``) whose actions the methods call; None: no
-        methods.
     history : keep the last ``history`` seconds of every loop's PV, OP, SP and MV for HistoryRead
         (:mod:`~valve_emulator.opcua.history`), in SQLite at ``history_path`` (default in memory); None: none.
+    publish_budget : the share of each tick period the publisher may spend feeding subscriptions
+        (:data:`PUBLISH_BUDGET`; :data:`PROCESS_PUBLISH_BUDGET` in a process of its own).
     """
 
-    def __init__(self, device: Any, *, loops: Sequence[Any], host: str = "127.0.0.1", port: int = 0,
-                 security: OpcUaSecurity | None = None, station: Any = None, history: float | None = None,
-                 history_path: str = ":memory:") -> None:
-        self.device, self.loops, self.host, self.port = device, list(loops), host, int(port)
+    def __init__(self, source: DeviceSource, *, loops: Sequence[Any], host: str = "127.0.0.1", port: int = 0,
+                 security: OpcUaSecurity | None = None, history: float | None = None,
+                 history_path: str = ":memory:", publish_budget: float = PUBLISH_BUDGET) -> None:
+        self.source, self.loops, self.host, self.port = source, list(loops), host, int(port)
         #: seconds of PV, OP, SP and MV kept for HistoryRead (None: no history), in SQLite at history_path
         self.history, self.history_path = history, history_path
+        self.publish_budget = publish_budget
         self._historized: list[ua.NodeId] = []
         self.security = security or OpcUaSecurity()
         self.security.check(host)
-        self.station = station
         self.server: Server | None = None
         self.ns = 0
         #: NodeId -> (loop index, Variable) of every writable-or-not loop variable
         self.targets: dict[ua.NodeId, tuple[int, Variable]] = {}
         #: every node id this adapter created (for BadNotWritable on the others)
         self.node_ids: set[ua.NodeId] = set()
-        self._monitored: list[tuple[Any, int, Callable[[int], ua.DataValue]]] = []
+        self._monitored: list[tuple[Any, int, Sampler]] = []
         self._sent: dict[int, Any] = {}
         #: when the tick that made the served values ran (their SourceTimestamp)
-        self.tick_clock = TickClock(device)
+        self.tick_clock = TickClock(source)
         self._publisher: asyncio.Task | None = None
         self._log_filter = RepeatFilter()
-        self._active: list[tuple[Any, int, Callable[[], ua.DataValue]]] = []
-        self._readers: dict[ua.NodeId, Callable[..., ua.DataValue]] = {}
+        self._active: list[tuple[Any, int, Sampler]] = []
+        self._samplers: dict[ua.NodeId, Sampler] = {}
         self._dirty = True
         #: data-change notifications handed to subscriptions (one per monitored item and change)
         self.notifications = 0
@@ -370,11 +398,20 @@ class OpcUaServer:
         #: the loops' PV alarms as OPC UA conditions (:mod:`~valve_emulator.opcua.alarms`), once started
         self.alarm_conditions: AlarmConditions | None = None
 
+    async def counters(self) -> OpcUaCounters:
+        """What this server has done so far (async: the same call answers for a server in another process)."""
+        trust = self.trust_list
+        conditions = self.alarm_conditions
+        return OpcUaCounters(notifications=self.notifications, deferred=self.deferred, writes=self.writes,
+                             refused=self.refused, trust_accepted=trust.accepted if trust else 0,
+                             trust_refused=trust.refused if trust else 0,
+                             alarm_events=conditions.sent if conditions else 0)
+
     # --- values -----------------------------------------------------------------------------------------
 
     def _words(self, index: int, reg: Register) -> Sequence[int]:
-        start = int(self.device.offsets[index]) + 2 * reg.address
-        raw = self.device.image[start:start + 2 * reg.width]
+        start = int(self.source.offsets[index]) + 2 * reg.address
+        raw = self.source.image[start:start + 2 * reg.width]
         return [int.from_bytes(raw[k:k + 2], "big") for k in range(0, len(raw), 2)]
 
     def value(self, index: int, var: Variable) -> float | int:
@@ -382,10 +419,10 @@ class OpcUaServer:
         the double the tick computed where the image holds it as float32 (see :meth:`_double`)."""
         words = self._words(index, var.read)
         if var.read.width == 2:   # float32, or a counter, in the device's word order
-            value = from_words(words, var.read.type, self.device.scaling.word_order)
+            value = from_words(words, var.read.type, self.source.scaling.word_order)
             return self._double(index, var, value) if var.read.type is DataType.FLOAT32 else int(value)
         raw = words[0] - 65536 if var.read.type is DataType.INT16 and words[0] >= 32768 else words[0]
-        value = decode_value(var.read, raw, self.device.scaling, index)
+        value = decode_value(var.read, raw, self.source.scaling, index)
         if var.analog:
             return float(value) if math.isfinite(value) else 0.0
         return int(value)
@@ -397,20 +434,10 @@ class OpcUaServer:
         float32 it is the value, at full precision. Where they differ a write has changed the image since the
         tick: then the shortest decimal that reads back as that float32 (the written 61.3, not 61.29999924)."""
         single = np.float32(image)
-        computed = self._computed(index, var.first.quantity)
+        computed = self.source.computed(index, var.first.quantity)
         if computed is not None and np.float32(computed) == single:
             return computed
         return float(str(single))
-
-    def _computed(self, index: int, quantity: str) -> float | None:
-        """The double the last tick computed for a quantity the register image holds as float32."""
-        bank = self.device.bank
-        if quantity == "time":
-            return float(bank.sample_time)
-        if quantity == "sp" and not bank.has_controller[index]:
-            return 0.0   # the controller's registers read 0 on a loop without one
-        values = getattr(bank, quantity, None)
-        return None if values is None else float(values[index])
 
     def _data_value(self, value: Any, variant: ua.VariantType, status: ua.StatusCode | None = None) -> ua.DataValue:
         """The DataValue of a read or a notification: SourceTimestamp the tick that made the value, ServerTimestamp
@@ -418,24 +445,29 @@ class OpcUaServer:
         return _SharedDataValue(Value=ua.Variant(value, variant), StatusCode=status or _GOOD,
                                 SourceTimestamp=self.tick_clock.stamp(), ServerTimestamp=datetime.now(UTC))
 
-    def _reader(self, index: int, var: Variable, eu_range: tuple[float, float] | None) -> Callable[..., ua.DataValue]:
-        """The reader of an analog or integer variable; a value outside ``eu_range`` is Uncertain."""
+    def _sampler(self, index: int, var: Variable, eu_range: tuple[float, float] | None) -> Sampler:
+        """The sampler of an analog or integer variable; a value outside ``eu_range`` is Uncertain."""
+        variant = var.variant
         if eu_range is None:
-            return lambda *_: self._data_value(self.value(index, var), var.variant)
+            return lambda: (self.value(index, var), variant, None)
         lo, hi = eu_range
 
-        def read(*_: Any) -> ua.DataValue:
+        def sample() -> tuple[Any, ua.VariantType, ua.StatusCode | None]:
             value = self.value(index, var)
-            return self._data_value(value, var.variant, None if lo <= value <= hi else _EU_EXCEEDED)
+            return value, variant, None if lo <= value <= hi else _EU_EXCEEDED
 
-        return read
+        return sample
 
-    def _bit_reader(self, index: int, bit: Status) -> Callable[..., ua.DataValue]:
-        return lambda *_: self._data_value(bool(int(self.value(index, _STATUS)) & int(bit)), ua.VariantType.Boolean)
+    def _bit_sampler(self, index: int, bit: Status) -> Sampler:
+        return lambda: (bool(int(self.value(index, _STATUS)) & int(bit)), ua.VariantType.Boolean, None)
+
+    def _reader(self, sampler: Sampler) -> Callable[..., ua.DataValue]:
+        """What asyncua calls to read a variable: its sample now, as a DataValue."""
+        return lambda *_: self._data_value(*sampler())
 
     # --- writes ---------------------------------------------------------------------------------------
 
-    def write(self, index: int, var: Variable, dv: ua.DataValue, user: Any) -> ua.StatusCode:
+    async def write(self, index: int, var: Variable, dv: ua.DataValue, user: Any) -> ua.StatusCode:
         """One client write of ``var`` on loop ``index`` through ``Device.write``; the OPC UA status code."""
         if var.write is None:
             self.refused += 1
@@ -449,8 +481,8 @@ class OpcUaServer:
             self._refused_write(user, role, index, var)
             return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
         try:
-            words = encode_write(var.write, value, self.device.scaling, index)
-            self.device.write(index, var.write.address, words, role=role)
+            words = encode_write(var.write, value, self.source.scaling, index)
+            await self.source.write(index, var.write.address, words, role)
         except RegisterValueError:
             self.refused += 1
             return ua.StatusCode(ua.StatusCodes.BadOutOfRange)
@@ -575,15 +607,15 @@ class OpcUaServer:
             if historizing:
                 self._historized.append(node.RequestedNewNodeId)
             self.targets[node.RequestedNewNodeId] = (index, var)
-            self._readers[node.RequestedNewNodeId] = self._reader(index, var, self._eu_range(loop, var)
-                                                                  if var.analog else None)
+            self._samplers[node.RequestedNewNodeId] = self._sampler(index, var, self._eu_range(loop, var)
+                                                                    if var.analog else None)
             if var.analog:
                 items += self._analog_properties(node.RequestedNewNodeId, loop, var)
         for bit_name, (bit, true_state, false_state) in BITS.items():
             node = self._variable_item(obj.RequestedNewNodeId, bit_name, False, ua.VariantType.Boolean,
                                        ua.ObjectIds.TwoStateDiscreteType)
             items.append(node)
-            self._readers[node.RequestedNewNodeId] = self._bit_reader(index, bit)
+            self._samplers[node.RequestedNewNodeId] = self._bit_sampler(index, bit)
             for prop, text in (("TrueState", true_state), ("FalseState", false_state)):
                 items.append(self._variable_item(node.RequestedNewNodeId, prop, ua.LocalizedText(text),
                                                  ua.VariantType.LocalizedText, 0, prop=True))
@@ -606,13 +638,13 @@ class OpcUaServer:
     def _serve_values(self) -> None:
         """Answer reads of the loop variables from the register image, and watch them for subscriptions."""
         aspace = self.server.iserver.aspace
-        for node_id, reader in self._readers.items():
-            aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, reader)
+        for node_id, sampler in self._samplers.items():
+            aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, self._reader(sampler))
             attval = aspace._nodes[node_id].attributes[ua.AttributeIds.Value]
-            self._monitored.append((attval, len(self._monitored), reader))
+            self._monitored.append((attval, len(self._monitored), sampler))
 
     async def _add_methods(self, station_node: Any) -> None:
-        if self.station is None:
+        if not self.source.has_station:
             return
         methods = (
             ("Freeze", self._freeze, [], []),
@@ -629,43 +661,38 @@ class OpcUaServer:
 
     # --- the station's methods (instructors only: RoleRuleset refuses calls of operators) --------------
 
-    async def _guarded(self, action: Callable[[], Any]) -> list[ua.Variant] | ua.StatusCode:
-        """Run a station action; its refusal (``StationError``, which names the field) becomes BadNotFound
-        (an unknown snapshot) or BadInvalidArgument, and a result is handed back as JSON text."""
+    async def _guarded(self, action: str, argument: Any = None) -> list[ua.Variant] | ua.StatusCode:
+        """Run a station action; its refusal (:class:`~valve_emulator.opcua.source.StationRefusal`) becomes
+        BadNotFound (an unknown snapshot) or BadInvalidArgument, and a result is handed back as JSON text."""
         try:
-            result = action()
-            if asyncio.iscoroutine(result):
-                result = await result
-        except Exception as exc:
-            if not hasattr(exc, "field"):   # not the station's refusal: a bug, asyncua reports BadInternalError
-                raise
-            _log.info("OPC UA: station method refused: %s", exc)
-            code = ua.StatusCodes.BadNotFound if getattr(exc, "status", 400) == 404 else \
-                ua.StatusCodes.BadInvalidArgument
+            result = await self.source.station_action(action, argument)
+        except StationRefusal as exc:
+            _log.info("OPC UA: station method refused: %s", exc.args[0])
+            code = ua.StatusCodes.BadNotFound if exc.status == 404 else ua.StatusCodes.BadInvalidArgument
             return ua.StatusCode(code)   # asyncua answers a raised error as BadUnexpectedError
         return [] if result is None else [ua.Variant(json.dumps(result), ua.VariantType.String)]
 
     async def _freeze(self, parent: Any) -> list[ua.Variant] | ua.StatusCode:
-        return await self._guarded(self.station.freeze)
+        return await self._guarded("freeze")
 
     async def _run(self, parent: Any) -> list[ua.Variant] | ua.StatusCode:
-        return await self._guarded(self.station.run)
+        return await self._guarded("run")
 
     async def _set_speed(self, parent: Any, time_scale: ua.Variant) -> list[ua.Variant] | ua.StatusCode:
-        return await self._guarded(lambda: self.station.speed({"time_scale": time_scale.Value}))
+        return await self._guarded("speed", time_scale.Value)
 
     async def _snapshot(self, parent: Any, name: ua.Variant) -> list[ua.Variant] | ua.StatusCode:
-        return await self._guarded(lambda: self.station.save_snapshot({"name": name.Value}))
+        return await self._guarded("snapshot", name.Value)
 
     async def _restore(self, parent: Any, name: ua.Variant) -> list[ua.Variant] | ua.StatusCode:
-        return await self._guarded(lambda: self.station.restore_snapshot(name.Value))
+        return await self._guarded("restore", name.Value)
 
     async def _inject(self, parent: Any, body: ua.Variant) -> list[ua.Variant] | ua.StatusCode:
         try:
             parsed = json.loads(body.Value)
         except (TypeError, ValueError):
             return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
-        return await self._guarded(lambda: self.station.malfunction(parsed))
+        return await self._guarded("malfunction", parsed)
 
     # --- publishing ------------------------------------------------------------------------------------
 
@@ -676,19 +703,19 @@ class OpcUaServer:
         one). The tick comes first: the loop yields to the event loop every :data:`YIELD_EVERY` variables, and
         when a tick's share of work (:data:`PUBLISH_BUDGET` of the tick period) is spent it stops and goes on
         after the next tick where it stopped, so a subscription larger than the machine can feed gets every
-        variable's latest value less often instead of delaying the tick."""
-        device, seen, at = self.device, self.device.ticks, 0
+        variable's latest value less often instead of delaying the tick (or, in a process of its own, the
+        clients' requests)."""
+        source, seen, at = self.source, self.source.ticks, 0
         clock = time.perf_counter
         while True:
-            seen = await device.wait_for_tick(seen + 1)
+            seen = await source.wait_for_tick(seen + 1)
             self.tick_clock.stamp()   # the tick just ran: its time is now
             if self._dirty:
                 self._dirty, at = False, 0
                 self._active = [entry for entry in self._monitored if entry[0].datachange_callbacks]
-            period = device.period if math.isfinite(device.period) else float(device.bank.dt)
-            deadline, active, done = clock() + PUBLISH_BUDGET * period, self._active, 0
+            deadline, active, done = clock() + self.publish_budget * finite_period(source), self._active, 0
             while done < len(active):
-                attval, key, reader = active[at % len(active)]
+                attval, key, sample = active[at % len(active)]
                 at, done = (at + 1) % len(active), done + 1
                 if done % YIELD_EVERY == 0:
                     await asyncio.sleep(0)
@@ -698,11 +725,11 @@ class OpcUaServer:
                 callbacks = attval.datachange_callbacks
                 if not callbacks:
                     continue
-                dv = reader()
-                value = dv.Value.Value
-                if self._sent.get(key) == value:
+                value, variant, status = sample()
+                if self._sent.get(key) == value:   # unchanged: no DataValue made
                     continue
                 self._sent[key] = value
+                dv = self._data_value(value, variant, status)
                 self.notifications += len(callbacks)
                 for handle, callback in list(callbacks.items()):
                     try:
@@ -728,17 +755,9 @@ class OpcUaServer:
     # --- lifecycle -------------------------------------------------------------------------------------
 
     async def start(self) -> None:
-        """Build the address space and listen. A running device is frozen meanwhile (building a large address
-        space keeps the event loop busy for seconds) and runs on afterwards, so the build costs no overrun and
-        the simulated time simply waits for it."""
-        pause = self.device.running and not self.device.frozen
-        if pause:
-            await self.device.freeze()
-        try:
+        """Build the address space and listen, the device paused meanwhile (``source.paused``)."""
+        async with self.source.paused():
             await self._start()
-        finally:
-            if pause:
-                await self.device.resume()
 
     async def _start(self) -> None:
         for logger in _asyncua_loggers():
@@ -775,7 +794,7 @@ class OpcUaServer:
         station = self._object_item(objects, "ValveEmulator", "ValveEmulator")
         items, units = [station], {}
         for index, loop in enumerate(self.loops):
-            unit = int(self.device.units[index])
+            unit = int(self.source.units[index])
             if unit not in units:
                 units[unit] = self._object_item(station.RequestedNewNodeId, f"Unit{unit}", f"Unit{unit}")
                 items.append(units[unit])
@@ -785,7 +804,7 @@ class OpcUaServer:
         root = server.get_node(station.RequestedNewNodeId)
         await self._add_methods(root)
         self._track_monitored_items()
-        if getattr(self.device, "alarms", None) is not None:   # each loop's PV alarm as an AlarmConditionType condition
+        if self.source.has_alarms:   # each loop's PV alarm as an AlarmConditionType condition
             self.alarm_conditions = AlarmConditions(self)
             await self.alarm_conditions.start()
         await server.start()
