@@ -20,6 +20,7 @@ import itertools
 import logging
 import os
 import pickle
+import signal
 import socket
 import threading
 from collections.abc import AsyncIterator, Callable, Iterator, Sequence
@@ -152,7 +153,13 @@ class RemoteSource:
 def child_main(fd: int) -> None:
     """The OPC UA process's entry point (``python -m valve_emulator.opcua FD``, started by
     :class:`~valve_emulator.opcua.process.OpcUaProcess`): read the :class:`ChildSpec` from the socket ``fd``,
-    then serve until the device process closes it, and exit at once (nothing is left to tear down)."""
+    then serve until the device process closes it, and exit at once (nothing is left to tear down).
+
+    Ctrl-C in a terminal and a service manager's SIGTERM reach the whole process group; this process leaves them
+    to the device process, which stops it by closing the socket (a traceback here would only be noise, and an
+    early exit would be reported as the OPC UA process failing)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
     sock = socket.socket(fileno=fd)
     spec = read_first(sock)
     logging.basicConfig(level=spec.log_level,
