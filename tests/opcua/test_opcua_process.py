@@ -132,3 +132,26 @@ def test_serve_stops_cleanly_with_status_1_when_its_opcua_process_dies(tmp_path)
     assert "the OPC UA process ended unexpectedly" in err and "Traceback" not in err
     rows = record.read_text().splitlines()
     assert rows[0].startswith("t,") and len(rows) > 4 and rows[-1].count(",") == rows[0].count(",")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_signal_to_the_whole_process_group_stops_serve_and_its_opcua_process_quietly(sig):
+    """Ctrl-C in a terminal (and a service manager's SIGTERM) reaches every process of the group: the device
+    stops its OPC UA process itself, so the answer is the usual "stopped", status 0, no traceback from either."""
+    proc = subprocess.Popen([sys.executable, "-m", "valve_emulator", "serve", "--port", "0", "--opcua", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        lines = []
+        while not any(OPCUA_LINE.search(line) for line in lines):
+            line = proc.stdout.readline()
+            assert line, proc.communicate()[1][-2000:]
+            lines.append(line)
+        [child] = [p for p in psutil.Process(proc.pid).children() if "valve_emulator.opcua" in " ".join(p.cmdline())]
+        os.killpg(proc.pid, sig)
+        out, err = proc.communicate(timeout=30)
+        child.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err[-2000:]
+    assert "stopped" in out + err and "Traceback" not in err and "KeyboardInterrupt" not in err, err[-2000:]
