@@ -60,6 +60,19 @@ run on each loop:
      cause_rank` (an external disturbance at another period than the cycle's, a quantised PV, saturation, a
      flow characteristic, an actuator lag, a dead time); or "the linear model explains the loop".
 
+   * a ``no stiction`` answer that rests on the drifting-load noise model (the final model's free-run fit below
+     :data:`MIN_FIT`) is no call when the valve explains the record as well: the best valve option the search
+     tried (lowest BIC among those adding ``stiction`` or ``deadband`` with a band S of at least
+     :data:`NOISE_BANDS` OP noise σ, kept by :func:`~valve_emulator.diagnosis.explain.pipeline.explain` as
+     ``valve_alternative``) is scored against the final model under that noise model, and when its BIC is not
+     :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` worse, the answer is ``cannot tell``, its
+     reasons naming both: the cause that would have been named, and the valve with S and J. The free run cannot
+     tell a wandering load from a stuck valve, and the noise model that rescued the answer is the one question
+     the valve was not asked. Where the final model's free run predicts held-out PV (fit ≥ :data:`MIN_FIT`), the
+     answer does not rest on that noise model and stands: asking the valve there too would have contested
+     13 right answers on the independent simulator's healthy loops (aggressive PI, slow noisy valves, coarse
+     A/D) for 3 wrong ones (``docs/diagnosis.md``).
+
    The decision names no candidate: the causes come from the registry (their ``cause_rank``, a ``period``
    parameter), the tuning test is the registered candidate judged on the loop (``Kind.LOOP``).
 """
