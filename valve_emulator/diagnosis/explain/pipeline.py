@@ -288,11 +288,11 @@ def _fitted(s: Searched, frame: Frame) -> FittedLoop:
 
 
 def _valve_alternative(s: Searched, frame: Frame, least_band: float) -> ValveAlternative | None:
-    """The option of the search with the lowest BIC that adds valve friction with a band S of at least
-    ``least_band`` (OP's units), scored against the final model under the drifting-load noise model (None when
-    the search tried none): the valve as the alternative explanation a "no stiction" answer must beat."""
+    """The option of the search with the lowest BIC that adds valve friction (a candidate of the valve slot with a
+    band S) with S at least ``least_band`` (OP's units), scored against the final model under the drifting-load
+    noise model (None when the search tried none): the valve as the alternative a "no stiction" answer must beat."""
     tried = [(o.model, a) for rnd in s.rounds for o in rnd.options for a in o.model.active
-             if a.name in o.added and a.candidate.slot == "valve"]
+             if a.name in o.added and a.candidate.slot == "valve" and "S" in a.candidate.param_names]
     sized = [(m, a, frame.convert(a.candidate.dims, a.candidate.parameters(a.params))) for m, a in tried]
     sized = [(m, a, p) for m, a, p in sized if p["S"] >= least_band]
     if not sized:
