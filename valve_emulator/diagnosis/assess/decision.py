@@ -290,6 +290,11 @@ def _cause(d: Explanation, ad: Adequacy, tune: TuningAssessment | None, fits: st
                     ((Reason.LINEAR, "a linear valve and plant explain the loop"),), tuning=tune)
 
 
+#: What qualifies a "no stiction" answer the valve contests: the one thing that supported it.
+_ONLY_LOAD = ("the model found predicts held-out PV worse than their mean: only the drifting-load noise model "
+              "supports it")
+
+
 def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame) -> Decision:
     """``cannot tell``, naming both, when the best valve the search tried (with a band beyond OP noise) explains
     PV at least as well as the final model under the drifting-load noise model (its BIC not
@@ -297,13 +302,15 @@ def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame
     if valve is None or valve.load_delta_bic <= -DELTA_BIC:
         return named
     sticky = f"a sticky valve (S ≈ {_amount(valve.S, frame)}, J ≈ {_amount(valve.J, frame)})"
-    cause = named.reasons[0][1] if named.reasons else "a linear valve and plant"
-    why = (f"under a drifting-load noise model {sticky} explains PV at least as well as the model without it "
-           f"(ΔBIC {valve.load_delta_bic:.1f} for the valve; the answer without it needs the valve's BIC "
-           f"{DELTA_BIC:g} worse)")
-    return Decision(Answer.CANNOT_TELL, "", f"either {cause} or {sticky}: the model without the valve predicts "
-                    f"held-out PV worse than their mean and {why}, so the record cannot tell which",
-                    named.reasons[:1] + ((Reason(valve.physics), why),), tuning=named.tuning)
+    own = next(((code, text) for code, text in named.reasons if code is not Reason.SMALL_BAND),
+               (Reason.LINEAR, "a linear valve and plant explain the loop"))
+    why = (f"under a drifting-load noise model the valve explains PV at least as well as the model found (ΔBIC "
+           f"{valve.load_delta_bic:.1f} for the valve; a no-stiction answer needs the valve's BIC {DELTA_BIC:g} "
+           "worse)")
+    return Decision(Answer.CANNOT_TELL, "", f"either {own[1]} or {sticky}: the model found predicts held-out PV "
+                    f"worse than their mean, and {why}, so the record cannot tell which",
+                    (own, (Reason(valve.physics), f"{sticky} fits too: {why}"), (Reason.WEAK_EVIDENCE, _ONLY_LOAD)),
+                    tuning=named.tuning)
 
 
 def _tuning_decision(tune: TuningAssessment, also: str, fits: str,
