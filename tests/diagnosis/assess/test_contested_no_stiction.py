@@ -72,10 +72,6 @@ def test_cannot_tell_names_both_the_cause_and_the_valve_with_its_band(sticky_lev
     assert doc["friction"] is None and doc["strength"] is None
 
 
-def test_the_contested_answer_asks_for_a_stroke_test(sticky_level_loop):
-    assert sticky_level_loop.to_json()["action"]["code"] == "stroke_test_valve"
-
-
 def test_a_healthy_loop_whose_disturbance_explains_pv_better_than_any_valve_stays_no_stiction(healthy_level_loop):
     d = healthy_level_loop
     assert _rests_on_the_load_model(d)

@@ -290,11 +290,6 @@ def _cause(d: Explanation, ad: Adequacy, tune: TuningAssessment | None, fits: st
                     ((Reason.LINEAR, "a linear valve and plant explain the loop"),), tuning=tune)
 
 
-#: What qualifies a "no stiction" answer the valve contests: the one thing that supported it.
-_ONLY_LOAD = ("the model found predicts held-out PV worse than their mean: only the drifting-load noise model "
-              "supports it")
-
-
 def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame) -> Decision:
     """``cannot tell``, naming both, when the best valve the search tried (with a band beyond OP noise) explains
     PV at least as well as the final model under the drifting-load noise model (its BIC not
@@ -309,7 +304,7 @@ def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame
            "worse)")
     return Decision(Answer.CANNOT_TELL, "", f"either {own[1]} or {sticky}: the model found predicts held-out PV "
                     f"worse than their mean, and {why}, so the record cannot tell which",
-                    (own, (Reason(valve.physics), f"{sticky} fits too: {why}"), (Reason.WEAK_EVIDENCE, _ONLY_LOAD)),
+                    (own, (Reason(valve.physics), f"{sticky} fits too: {why}")),
                     tuning=named.tuning)
 
 
