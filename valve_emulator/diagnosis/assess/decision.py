@@ -60,6 +60,19 @@ run on each loop:
      cause_rank` (an external disturbance at another period than the cycle's, a quantised PV, saturation, a
      flow characteristic, an actuator lag, a dead time); or "the linear model explains the loop".
 
+   * a ``no stiction`` answer that rests on the drifting-load noise model (the final model's free-run fit below
+     :data:`MIN_FIT`) is no call when the valve explains the record as well: the best valve option the search
+     tried (lowest BIC among those adding ``stiction`` or ``deadband`` with a band S of at least
+     :data:`NOISE_BANDS` OP noise σ, kept by :func:`~valve_emulator.diagnosis.explain.pipeline.explain` as
+     ``valve_alternative``) is scored against the final model under that noise model, and when its BIC is not
+     :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` worse, the answer is ``cannot tell``, its
+     reasons naming both: the cause that would have been named, and the valve with S and J. The free run cannot
+     tell a wandering load from a stuck valve, and the noise model that rescued the answer is the one question
+     the valve was not asked. Where the final model's free run predicts held-out PV (fit ≥ :data:`MIN_FIT`), the
+     answer does not rest on that noise model and stands: asking the valve there too would have contested
+     13 right answers on the independent simulator's healthy loops (aggressive PI, slow noisy valves, coarse
+     A/D) for 3 wrong ones (``docs/diagnosis.md``).
+
    The decision names no candidate: the causes come from the registry (their ``cause_rank``, a ``period``
    parameter), the tuning test is the registered candidate judged on the loop (``Kind.LOOP``).
 """
@@ -79,7 +92,7 @@ from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.candidates.base import Kind
 from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
 from valve_emulator.diagnosis.explain.pipeline import explain
-from valve_emulator.diagnosis.explain.result import Explanation, Finding
+from valve_emulator.diagnosis.explain.result import Explanation, Finding, ValveAlternative
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.closed_loop import Declared
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES, UninformativeData
@@ -225,19 +238,12 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
         small = (f"a valve band S ≈ {_amount(S, frame)} fits, but it is below {NOISE_BANDS:g} OP noise σ "
                  f"({_amount(NOISE_BANDS * noise, frame)}), where the noise moves such a valve either way")
 
-    def because(answer: Answer, cause: str, own: tuple[tuple[Reason, str], ...], reason: str,
-                tuning: TuningAssessment | None = None) -> Decision:
-        """The decision with the small band, when one fits, before its reason and after its own reasons."""
-        if not small:
-            return Decision(answer, cause, reason, own, tuning=tuning)
-        return Decision(answer, cause, f"{small}; {reason}", own + ((Reason.SMALL_BAND, small),), tuning=tuning)
-
     load = d.input_delta_bic
     if not d.fit_after >= MIN_FIT:
         if load is None or not load >= DELTA_BIC:
             also = "" if load is None else (f", nor, under a drifting-load noise model, does it explain PV better "
                                             f"than the load alone (ΔBIC {load:.1f} < {DELTA_BIC:g})")
-            return because(Answer.CANNOT_TELL, "", ((Reason.NOT_EXPLAINED, "the best model found predicts "
+            return _because(small, Answer.CANNOT_TELL, "", ((Reason.NOT_EXPLAINED, "the best model found predicts "
                                                      f"held-out PV worse than their mean{also}"),),
                            "no valve friction that could matter improves the model, but the best model found "
                            f"predicts held-out PV worse than their mean (cross-validated fit {d.fit_after:.0f} % "
@@ -245,6 +251,22 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
                            "stiction shown")
         fits += (f"; a free run misses a drifting load, but under a drifting-load noise model the model explains "
                  f"PV (ΔBIC {load:.1f} against the load alone)")
+        return _valve_contest(_cause(d, ad, tune, fits, small), d.valve_alternative, frame)
+    return _cause(d, ad, tune, fits, small)
+
+
+def _because(small: str, answer: Answer, cause: str, own: tuple[tuple[Reason, str], ...], reason: str,
+             tuning: TuningAssessment | None = None) -> Decision:
+    """The decision with the ``small`` band's sentence, when one fits, before its reason and after its own
+    reasons."""
+    if not small:
+        return Decision(answer, cause, reason, own, tuning=tuning)
+    return Decision(answer, cause, f"{small}; {reason}", own + ((Reason.SMALL_BAND, small),), tuning=tuning)
+
+
+def _cause(d: Explanation, ad: Adequacy, tune: TuningAssessment | None, fits: str, small: str) -> Decision:
+    """``no stiction`` and its cause (the last rule of step 4), after ``small``, the sentence of a band inside
+    OP noise when one fits."""
     ranked = _causes(d.findings)
     cycle = ad.facts.get("period", float("nan")) if ad.facts.get("oscillating") else float("nan")
     periodic = next((f for f in ranked if _periodic(f)), None)
@@ -252,18 +274,38 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
     if tune is not None and tune.aggressive and not (load_cycle and tune.load_alike):
         also = f"; also {ranked[0].description}" if ranked else ""
         named = _tuning_decision(tune, also, fits)
-        return because(named.answer, named.cause, named.reasons, named.reason, tune)
+        return _because(small, named.answer, named.cause, named.reasons, named.reason, tune)
     if load_cycle:
-        return because(Answer.NO_STICTION, periodic.physics, ((Reason(periodic.physics), periodic.description),),
-                       f"{periodic.description}, not the valve; {fits}", tune)
+        own = ((Reason(periodic.physics), periodic.description),)
+        return _because(small, Answer.NO_STICTION, periodic.physics, own, f"{periodic.description}, not the valve; "
+                        f"{fits}", tune)
     if ranked:
-        return because(Answer.NO_STICTION, ranked[0].physics, ((Reason(ranked[0].physics), ranked[0].description),),
-                       f"{ranked[0].description}; no valve friction that could matter; {fits}", tune)
+        own = ((Reason(ranked[0].physics), ranked[0].description),)
+        return _because(small, Answer.NO_STICTION, ranked[0].physics, own,
+                        f"{ranked[0].description}; no valve friction that could matter; {fits}", tune)
     if small:
-        return because(Answer.NO_STICTION, "linear", (), fits, tune)
+        return _because(small, Answer.NO_STICTION, "linear", (), fits, tune)
     return Decision(Answer.NO_STICTION, "linear", "a linear valve and plant explain the loop: no candidate physics "
                     f"improves the model significantly; {fits}",
                     ((Reason.LINEAR, "a linear valve and plant explain the loop"),), tuning=tune)
+
+
+def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame) -> Decision:
+    """``cannot tell``, naming both, when the best valve the search tried (with a band beyond OP noise) explains
+    PV at least as well as the final model under the drifting-load noise model (its BIC not
+    :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` worse); else the ``named`` cause stands."""
+    if valve is None or valve.load_delta_bic <= -DELTA_BIC:
+        return named
+    sticky = f"a sticky valve (S ≈ {_amount(valve.S, frame)}, J ≈ {_amount(valve.J, frame)})"
+    own = next(((code, text) for code, text in named.reasons if code is not Reason.SMALL_BAND),
+               (Reason.LINEAR, "a linear valve and plant explain the loop"))
+    why = (f"under a drifting-load noise model the valve explains PV at least as well as the model found (ΔBIC "
+           f"{valve.load_delta_bic:.1f} for the valve; a no-stiction answer needs the valve's BIC {DELTA_BIC:g} "
+           "worse)")
+    return Decision(Answer.CANNOT_TELL, "", f"either {own[1]} or {sticky}: the model found predicts held-out PV "
+                    f"worse than their mean, and {why}, so the record cannot tell which",
+                    (own, (Reason(valve.physics), f"{sticky} fits too: {why}")),
+                    tuning=named.tuning)
 
 
 def _tuning_decision(tune: TuningAssessment, also: str, fits: str,
@@ -422,7 +464,7 @@ def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str
     inner = replace(rec, op=frame.to_internal(rec.op), mv=None if rec.mv is None else frame.to_internal(rec.mv))
     try:
         d = explain(inner, None, candidates=_searched(rec.op, frame), progress=progress, frame=frame,
-                    declared=declared)
+                    declared=declared, least_band=NOISE_BANDS * noise)
     except UninformativeData as exc:  # e.g. PV constant over the fit part: the data cannot decide
         return Assessment(source=src, decision=Answer.CANNOT_TELL, cause="", reason=exc.reason, adequacy=ad,
                           reasons=((Reason.UNINFORMATIVE, exc.reason),), notes=notes, op_noise=noise,

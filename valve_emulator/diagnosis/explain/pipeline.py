@@ -44,7 +44,7 @@ from valve_emulator.diagnosis.explain.findings import findings, param_text, stic
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
 from valve_emulator.diagnosis.explain.onset import acting_part, post_onset_split, suspect_onset
 from valve_emulator.diagnosis.explain.prior import dead_time_move, nominal_gain, settle
-from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, RankRow, Traces
+from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, RankRow, Traces, ValveAlternative
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
 from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.closed_loop import Declared, identification
@@ -60,7 +60,7 @@ from valve_emulator.diagnosis.fit.data import (
 )
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame
-from valve_emulator.diagnosis.fit.load_check import family_delta_bic, input_delta_bic
+from valve_emulator.diagnosis.fit.load_check import family_delta_bic, input_delta_bic, load_delta_bic
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.diagnosis.fit.scorer import Scorer, library_burn_in
@@ -287,10 +287,26 @@ def _fitted(s: Searched, frame: Frame) -> FittedLoop:
                       frame=None if frame.identity else frame)
 
 
+def _valve_alternative(s: Searched, frame: Frame, least_band: float) -> ValveAlternative | None:
+    """The option of the search with the lowest BIC that adds valve friction (a candidate of the valve slot with a
+    band S) with S at least ``least_band`` (OP's units), scored against the final model under the drifting-load
+    noise model (None when the search tried none): the valve as the alternative a "no stiction" answer must beat."""
+    tried = [(o.model, a) for rnd in s.rounds for o in rnd.options for a in o.model.active
+             if a.name in o.added and a.candidate.slot == "valve" and "S" in a.candidate.param_names]
+    sized = [(m, a, frame.convert(a.candidate.dims, a.candidate.parameters(a.params))) for m, a in tried]
+    sized = [(m, a, p) for m, a, p in sized if p["S"] >= least_band]
+    if not sized:
+        return None
+    model, act, params = min(sized, key=lambda x: x[0].bic)
+    return ValveAlternative(physics=act.name, S=float(params["S"]), J=float(params.get("J", 0.0)),
+                            load_delta_bic=load_delta_bic(s.fitter.scorer, s.model, model))
+
+
 def explain(recording: Recording, nominal: LoopConfig | None = None, *,
             candidates: Sequence[str] | None = None,
             progress: Callable[[str], None] | None = None, validation: str | None = None,
-            frame: Frame | None = None, declared: Declared | None = None) -> Explanation:
+            frame: Frame | None = None, declared: Declared | None = None,
+            least_band: float | None = None) -> Explanation:
     """Explain what the nominal model leaves out (see the module docstring).
 
     Parameters
@@ -305,6 +321,8 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
         the traces and :meth:`~Explanation.predict` are then in OP's own units. Default: OP is % travel.
     declared : without a nominal model, what the user declares about the loop (its type, whether the plant
         integrates, the controller's action; :class:`~valve_emulator.diagnosis.fit.closed_loop.Declared`).
+    least_band : with two-fold validation, the least valve band S (OP's units) that could matter: the best valve
+        option the search tried with at least that band is kept as :attr:`Explanation.valve_alternative`.
 
     Raises
     ------
@@ -343,4 +361,6 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
                        plant=plant, fitted=_fitted(s, frame),
                        input_delta_bic=input_delta_bic(s.fitter.scorer, model) if validation == "twofold" else None,
                        linear_tests=s.tests + dead_time_move(found, nom.delay, st.delay),
-                       identification=None if nom.identification is None else nom.identification.as_dict())
+                       identification=None if nom.identification is None else nom.identification.as_dict(),
+                       valve_alternative=(_valve_alternative(s, frame, least_band)
+                                          if least_band is not None and validation == "twofold" else None))

@@ -20,7 +20,7 @@ from valve_emulator.diagnosis.explain.locate import Located
 from valve_emulator.diagnosis.explain.onset import Onset
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 
-__all__ = ["Finding", "LinearMove", "RankRow", "Traces", "Explanation", "verdict"]
+__all__ = ["Finding", "LinearMove", "RankRow", "Traces", "ValveAlternative", "Explanation", "verdict"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -154,6 +154,28 @@ class Traces:
     surface_best: tuple[float, float] | None = None
 
 
+@dataclass(frozen=True)
+class ValveAlternative:
+    """The valve the search tried and did not keep, as an alternative explanation (plant data only).
+
+    The option of the search with the lowest BIC that adds valve friction with a band of at least the least
+    band asked for (a band that could matter), scored against the final model under the drifting-load noise
+    model (:func:`~valve_emulator.diagnosis.fit.load_check.load_delta_bic`): ``load_delta_bic`` is the final
+    model's BIC minus the option's, so positive when the valve explains PV *better*.
+
+    Attributes
+    ----------
+    physics : ``stiction`` or ``deadband``.
+    S, J : the band and jump in OP's units (J = 0 for a deadband).
+    load_delta_bic : BIC of the final model minus BIC of the option, under the drifting-load noise model.
+    """
+
+    physics: str
+    S: float
+    J: float
+    load_delta_bic: float
+
+
 def verdict(findings: tuple[Finding, ...], fit_before: float, fit_after: float, *, given: bool) -> str:
     """The plain-language verdict (see the module docstring of :mod:`valve_emulator.diagnosis`)."""
     subject = "the model" if given else "the linear model identified from the data"
@@ -197,6 +219,9 @@ class Explanation:
     identification : without a model, how the linear part was identified: ``constraints`` (one sentence each:
         causality, the gain's sign and where it came from, the plant's family), ``gain_sign``, ``integrating``
         (as declared, or None), ``max_delay`` (an integrating plant's dead-time bound, or None); None with a model.
+    valve_alternative : plant data, when asked for (``least_band`` of
+        :func:`~valve_emulator.diagnosis.explain.pipeline.explain`) and the search tried one: the best valve
+        option with a band that could matter (:class:`ValveAlternative`).
     """
 
     source: str
@@ -216,6 +241,7 @@ class Explanation:
     input_delta_bic: float | None = None
     linear_tests: tuple[LinearMove, ...] = ()
     identification: dict | None = None
+    valve_alternative: ValveAlternative | None = None
 
     @property
     def moved(self) -> tuple[LinearMove, ...]:
