@@ -197,5 +197,9 @@ STRENGTH = (drawn("level_sticky", 32, 22, family_index=False)
             + drawn("flow_sticky", 7, 22)
             + drawn("aggressive_pi", 1, 6)
             + [d for family in ("slow_noisy_valve", "coarse_ad", "healthy_flow") for d in drawn(family, 2032, 6)])
+#: Level loops with a healthy valve (the same loops as ``level_sticky`` without friction), with and without the
+#: model: where a stiction call on a level loop must not come from.
+HEALTHY_LEVEL = drawn("healthy_level", 2032, 8)
 #: Every draw of every set, once, in a stable order.
-ALL = list(dict.fromkeys(LEVEL + LATE_ONSET + AGGRESSIVE_MODEL + AGGRESSIVE_PLANT + COVERAGE + STRENGTH))
+ALL = list(dict.fromkeys(LEVEL + LATE_ONSET + AGGRESSIVE_MODEL + AGGRESSIVE_PLANT + COVERAGE + STRENGTH
+                         + HEALTHY_LEVEL))

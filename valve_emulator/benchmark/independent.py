@@ -665,10 +665,15 @@ def _healthy_flow(rng):
     return loop, {"expected": "no_stiction"}
 
 
+def _healthy_level(rng):
+    loop, _ = _level_sticky(rng)
+    return replace(loop, valve=Valve()), {"expected": "no_stiction"}
+
+
 FAMILIES: dict[str, Callable] = {
     "level_sticky": _level_sticky, "late_onset": _late_onset, "aggressive_pi": _aggressive_pi,
     "slow_noisy_valve": _slow_noisy_valve, "coarse_ad": _coarse_ad, "flow_sticky": _flow_sticky,
-    "healthy_flow": _healthy_flow,
+    "healthy_flow": _healthy_flow, "healthy_level": _healthy_level,   # a new family goes last: draws keep their entropy
 }
 """Named families of loops; :func:`draw` documents what each holds."""
 
@@ -700,8 +705,9 @@ def draw(family: str, rng: np.random.Generator) -> tuple[Recording, dict, dict]:
     (actuator lag 3–10 s, friction S 0.2–0.6 %, noisy PV; expected "no stiction": S below
     :data:`MATERIAL_S`); ``coarse_ad`` (a healthy valve, PV quantised to 0.2–0.5, a drifting load);
     ``flow_sticky`` (a fast first-order flow loop, S 1–5 %, J 0.2–1.2 S); ``healthy_flow`` (the same
-    loop, a healthy valve, a load oscillating with a 10–60 s period). Friction is data-driven or Karnopp, with
-    or without an actuator lag, in either order, drawn. The truth has ``expected`` (``stiction`` or
+    loop, a healthy valve, a load oscillating with a 10–60 s period); ``healthy_level`` (a ``level_sticky``
+    loop with a healthy valve: a PI on an integrating plant under a wandering load). Friction is data-driven or
+    Karnopp, with or without an actuator lag, in either order, drawn. The truth has ``expected`` (``stiction`` or
     ``no_stiction``), ``tuning`` (True where aggressive tuning is the cause), S, J and every parameter.
     """
     if family not in FAMILIES:
