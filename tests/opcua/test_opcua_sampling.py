@@ -9,7 +9,7 @@ from asyncua import Client
 
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.opcua import NAMESPACE
-from valve_emulator.opcua.server import next_due, revised_sampling
+from valve_emulator.opcua.server import first_due, next_due, revised_sampling
 
 from .modes import serve_opcua
 
@@ -93,5 +93,11 @@ def test_revised_sampling_honours_every_tick_below_a_tick_and_the_publishing_int
 def test_next_due_keeps_its_grid_through_late_ticks_and_restarts_after_falling_behind():
     assert next_due(10.0, 10.08, 1.0) == 11.0          # a late tick does not stretch the interval
     assert next_due(10.0, 11.5, 1.0) == 12.5           # a whole interval behind: from now
-    assert next_due(float("-inf"), 3.0, 1.0) == 4.0    # the first sample
     assert next_due(10.0, 10.0, 0.0) == 10.0           # every tick
+
+
+def test_first_samples_of_many_variables_spread_evenly_over_the_interval():
+    ticks = [int(10 * (first_due(0.0, 1.0, index) - 0.0)) for index in range(1000)]
+    per_tick = [ticks.count(k) for k in range(10)]
+    assert all(80 <= n <= 120 for n in per_tick), per_tick
+    assert first_due(5.0, 0.0, 7) == 5.0   # sampled every tick: due at once

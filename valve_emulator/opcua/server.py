@@ -288,6 +288,17 @@ def next_due(due: float, now: float, interval: float) -> float:
     return following if following > now else now + interval
 
 
+def first_due(now: float, interval: float, index: int) -> float:
+    """When a new group of variable ``index`` sampled every ``interval`` seconds is first due: at a phase of
+    the interval that spreads the variables evenly over it (the golden ratio's fractions), so that a thousand
+    loops sampled at 1 s cost a tenth of them every 0.1 s tick rather than all of them once a second. The
+    items' initial values need no sample: asyncua sends them when it creates the items."""
+    return now + interval * ((index * _GOLDEN) % 1.0)
+
+
+_GOLDEN = (math.sqrt(5) - 1) / 2
+
+
 @dataclass(frozen=True)
 class _Group:
     """The monitored items of one variable that share a sampling interval (s; 0: every tick): their data-change
@@ -753,10 +764,11 @@ class OpcUaServer:
         Only variables with a monitored item are read (the list is rebuilt when a client adds or deletes
         one), and only when one of their groups is due: an item sampled at 1 s is handed one value a second, the
         tick's latest, however fast the tick (a due time counts from half a tick early, so tick jitter does not
-        skip a sample). The tick comes first: the loop yields to the event loop every :data:`YIELD_EVERY`
-        variables, and when a tick's share of work (:data:`PUBLISH_BUDGET` of the tick period) is spent it stops
-        and goes on after the next tick where it stopped, so a subscription larger than the machine can feed gets
-        every variable's latest value less often instead of delaying the tick (or, in a process of its own, the
+        skip a sample; the variables' phases are spread over the interval, :func:`first_due`). The tick comes
+        first: the loop yields to the event loop every :data:`YIELD_EVERY` variables, and when a tick's share of
+        work (:data:`PUBLISH_BUDGET` of the tick period) is spent it stops and goes on after the next tick where
+        it stopped, so a subscription larger than the machine can feed gets every variable's latest value less
+        often instead of delaying the tick (or, in a process of its own, the
         clients' requests)."""
         source, seen, at = self.source, self.source.ticks, 0
         clock = time.perf_counter
@@ -784,7 +796,9 @@ class OpcUaServer:
         it changed since the group last got it."""
         sampled = dv = None
         for group in watch.groups:
-            due = self._due.get(group.key, -math.inf)
+            due = self._due.get(group.key)
+            if due is None:
+                due = self._due[group.key] = first_due(now, group.interval, group.key[0])
             if now < due - slack:
                 continue
             self._due[group.key] = next_due(due, now, group.interval)
