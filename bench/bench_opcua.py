@@ -79,7 +79,7 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
     for name in ("pymodbus", "asyncua"):
         logging.getLogger(name).setLevel(logging.ERROR)
 
-    async def session(count, ready):
+    async def session(count, lost, ready):
         client = Client(url, timeout=120)
         async with client:
             ns = await client.get_namespace_index("urn:valve-emulator")
@@ -87,6 +87,9 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
                 def datachange_notification(self, node, val, data):
                     if node.nodeid in count:
                         count[node.nodeid] += 1
+
+                def status_change_notification(self, status):   # the server ended the subscription
+                    lost.append(str(status.Status))
 
             subscription = await client.create_subscription(sub.publish_ms, Handler())
             nodes = [client.get_node(f"ns={ns};s={path}.{var}") for path in loops for var in sub.variables]
@@ -109,9 +112,9 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
             client.close()
 
     async def main():
-        count, polled, ready, tasks = {}, [0], asyncio.Event(), []
+        count, polled, ready, tasks, lost = {}, [0], asyncio.Event(), [], []
         if url:
-            task = asyncio.create_task(session(count, ready))
+            task = asyncio.create_task(session(count, lost, ready))
             tasks.append(task)
             waiting = asyncio.create_task(ready.wait())
             await asyncio.wait({task, waiting}, timeout=600, return_when=asyncio.FIRST_COMPLETED)
@@ -124,12 +127,13 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
         if poll:
             tasks.append(asyncio.create_task(modbus(polled)))
         await asyncio.sleep(3.0)                       # initial values and the first publishes settle
-        start, polled_before = dict(count), polled[0]
+        start, polled_before, lost_before = dict(count), polled[0], len(lost)
         out_q.put(("start",))
         await asyncio.sleep(seconds)
         got = [count[item] - start[item] for item in start]
         per_item = seconds * 1000 / sub.publish_ms
-        out_q.put(("counts", sum(min(n, per_item) for n in got), sum(got), polled[0] - polled_before))
+        out_q.put(("counts", sum(min(n, per_item) for n in got), sum(got), polled[0] - polled_before,
+                   lost[lost_before:]))
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -222,7 +226,8 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             "per_interval": statistics.median(raw) / expected if served else float("nan"),
             "device_cpu": cpu / elapsed, "opcua_cpu": opc_cpu / elapsed if mode == "process" else float("nan"),
             "per_notification": 1e6 * opc_cpu / sent if sent and mode == "process" else float("nan"),
-            "sent": sent / elapsed, "polled": polled / seconds}
+            "sent": sent / elapsed, "polled": polled / seconds,
+            "lost": sum(len(r[4]) for r in results), "statuses": sorted({x for r in results for x in r[4]})}
 
 
 def _profile(n: int, clients: int, sub: Subscribing, seconds: float) -> None:
@@ -322,7 +327,8 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
             runs[mode].append(asyncio.run(_load_round(mode, args.loops, args.clients if mode != "none" else 0,
                                                       sub, args.seconds)))
             print(f"load average {os.getloadavg()[0]:.1f} after a round ({mode})", flush=True)
-    med = {mode: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for mode, rs in runs.items()}
+    med = {mode: {k: statistics.median(r[k] for r in rs) for k in rs[0] if k != "statuses"}
+           for mode, rs in runs.items()}
     base, m = med["none"], med[args.mode]
     print(f"\nLoad: {args.loops} loops at 10 Hz, {args.clients} OPC UA clients ({args.mode}) each monitoring "
           f"{','.join(sub.variables)} of every loop (publishing {sub.publish_ms:g} ms, sampling "
@@ -346,7 +352,8 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
                 ("figure", "without OPC UA", "with OPC UA")))
     for mode, rs in runs.items():
         print(f"rounds ({mode}): p99 " + ", ".join(f"{r['p99']:.1f}" for r in rs) + " ms; received "
-              + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %")
+              + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %; subscriptions the server ended "
+              + "during the window " + ", ".join(f"{r['lost']} {'/'.join(r['statuses'])}" for r in rs))
 
 
 def _print_hostile(h: dict) -> None:
