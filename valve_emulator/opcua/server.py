@@ -283,9 +283,13 @@ def revised_sampling(requested_ms: float, publishing_ms: float, tick_ms: float) 
 def next_due(due: float, now: float, interval: float) -> float:
     """When the next sample of a group sampled every ``interval`` seconds is due, after one taken at ``now`` that
     was due at ``due``: on the group's own grid, so that a late tick does not stretch the interval, or an interval
-    from now when the publisher fell a whole interval behind (or for the first sample)."""
+    from now when the publisher fell a whole interval behind."""
     following = due + interval
     return following if following > now else now + interval
+
+
+#: The golden ratio's fraction: the phases k × _GOLDEN mod 1 of any number of variables are spread evenly.
+_GOLDEN = (math.sqrt(5) - 1) / 2
 
 
 def first_due(now: float, interval: float, index: int) -> float:
@@ -294,9 +298,6 @@ def first_due(now: float, interval: float, index: int) -> float:
     loops sampled at 1 s cost a tenth of them every 0.1 s tick rather than all of them once a second. The
     items' initial values need no sample: asyncua sends them when it creates the items."""
     return now + interval * ((index * _GOLDEN) % 1.0)
-
-
-_GOLDEN = (math.sqrt(5) - 1) / 2
 
 
 @dataclass(frozen=True)
