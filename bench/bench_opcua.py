@@ -50,6 +50,8 @@ from bench_scale import fleet_mapping  # noqa: E402
 from common import machine, table  # noqa: E402
 
 COUNTED = ("pv", "op")
+#: Seconds between the clients' probes of the server, and the probe's timeout (asyncua's default: 1 s).
+WATCHDOG = 5.0
 
 
 @dataclass(frozen=True)
@@ -80,7 +82,10 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
         logging.getLogger(name).setLevel(logging.ERROR)
 
     async def session(count, lost, ready):
-        client = Client(url, timeout=120)
+        # asyncua's client probes the server every watchdog interval and, by default, drops its session when a
+        # probe takes over 1 s -- which the client's own event loop, decoding a publish of thousands of values
+        # on a loaded 2-core machine, causes itself: 5 s, as a SCADA client's keep-alive would be
+        client = Client(url, timeout=120, watchdog_intervall=WATCHDOG)
         async with client:
             ns = await client.get_namespace_index("urn:valve-emulator")
             class Handler:
