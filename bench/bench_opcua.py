@@ -93,7 +93,7 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
                     if node.nodeid in count:
                         count[node.nodeid] += 1
 
-                def status_change_notification(self, status):   # the server ended the subscription
+                def status_change_notification(self, status):   # ended: BadShutdown from the watchdog
                     lost.append(str(status.Status))
 
             subscription = await client.create_subscription(sub.publish_ms, Handler())
@@ -357,7 +357,7 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
                 ("figure", "without OPC UA", "with OPC UA")))
     for mode, rs in runs.items():
         print(f"rounds ({mode}): p99 " + ", ".join(f"{r['p99']:.1f}" for r in rs) + " ms; received "
-              + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %; subscriptions the server ended "
+              + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %; subscriptions ended (status change) "
               + "during the window " + ", ".join(f"{r['lost']} {'/'.join(r['statuses'])}" for r in rs))
 
 
