@@ -1,17 +1,23 @@
 """OPC UA beside Modbus under load, and under hostile input.
 
     python bench/bench_opcua.py [--mode process|in-process] [--loops 1000] [--clients 5] [--publish 1000]
-        [--vars pv,op,sp,mv] [--seconds 10] [--rounds 3] [--hostile 25000] [--profile]
+        [--sampling MS] [--queue 1] [--vars pv,op,sp,mv] [--seconds 10] [--rounds 3] [--hostile 25000] [--profile]
 
 **Load.** The device (``--loops`` loops of a fleet, tick 0.1 s, real time, PV measurement noise on every loop
 so that PV and OP change at every tick) runs in this process; its OPC UA server runs in a process of its own
 (``--mode process``, what ``valve-emulator serve --opcua`` runs) or in this process's event loop
-(``--mode in-process``). A third process opens ``--clients`` OPC UA sessions (asyncua), each with one
-subscription (publishing interval ``--publish`` ms) monitoring ``--vars`` of every loop, and one Modbus client
-polling 125 holding registers at 10 Hz. Over a ``--seconds`` window: the tick's lateness against its absolute
-deadline (p50, p99) beside the same fleet and poller without OPC UA measured in the same run (target: within
-1 ms of it, 10 ticks/s, no overrun), and the pv/op notifications each client received against the expected
-``2 × loops × seconds / publishing interval`` (both change every tick; target >= 99 %). Also the CPU time of
+(``--mode in-process``). Other processes open ``--clients`` OPC UA sessions (asyncua), each with one
+subscription (publishing interval ``--publish`` ms) monitoring ``--vars`` of every loop as a SCADA client does
+(sampling interval ``--sampling`` ms, by default the publishing interval, and queue size ``--queue``, by default
+1: the latest value), and one Modbus client polling 125 holding registers at 10 Hz. Over a ``--seconds``
+window: the tick's lateness against its absolute deadline (p50, p99) beside the same fleet and poller without
+OPC UA measured in the same run (target: within 1 ms of it, 10 ticks/s, no overrun), and the share of the
+pv/op values each client received: every pv/op item should bring one new value per publishing interval (both
+change every tick), ``seconds / publishing interval`` per item in the window; an item's count is capped at
+that, so that a client handed several values of one item per interval (sampling 0, a longer queue) cannot make
+up for items it missed and "received" cannot exceed 100 % (target >= 99 %). Beside it, uncapped, the pv/op
+notifications per item and publishing interval the median client got (1 when sampling honours the publishing
+interval; about publishing interval / tick with ``--sampling 0 --queue 0``). Also the CPU time of
 the device process and of the OPC UA process per second, and the OPC UA process's CPU per notification
 handed to a subscription (the cost of a notification, and so the cores a load needs). Medians over
 ``--rounds``. ``--profile`` profiles the OPC UA server in process (cProfile) and prints where its time goes.
@@ -33,6 +39,7 @@ import os
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,14 +50,28 @@ from bench_scale import fleet_mapping  # noqa: E402
 from common import machine, table  # noqa: E402
 
 COUNTED = ("pv", "op")
+#: Seconds between the clients' probes of the server, and the probe's timeout (asyncua's default: 1 s).
+WATCHDOG = 5.0
 
 
-def _client(url: str, modbus_port: int, loops: list[str], publish_ms: float, variables: list[str], seconds: float,
-            poll: bool, go, out_q) -> None:
-    """One OPC UA session (none without ``url``) subscribed to ``variables`` of every loop, and with ``poll`` a
-    Modbus poller, in a process of its own (asyncua's client costs about as much per notification as its
+@dataclass(frozen=True)
+class Subscribing:
+    """What each OPC UA client subscribes to: ``variables`` of every loop, one subscription publishing every
+    ``publish_ms``, each item sampled every ``sampling_ms`` with a queue of ``queue`` values."""
+
+    variables: tuple[str, ...]
+    publish_ms: float
+    sampling_ms: float
+    queue: int
+
+
+def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seconds: float, poll: bool, go,
+            out_q) -> None:
+    """One OPC UA session (none without ``url``) subscribed to ``sub.variables`` of every loop, and with ``poll``
+    a Modbus poller, in a process of its own (asyncua's client costs about as much per notification as its
     server: clients sharing a process would be what limits the count). Puts ``ready`` once subscribed, waits
-    for ``go``, then counts the notifications of pv and op for ``seconds`` after 3 s of settling."""
+    for ``go``, then counts the notifications of each pv and op item for ``seconds`` after 3 s of settling and
+    puts (counts capped at one per publishing interval, counts, Modbus polls)."""
     import logging
 
     from asyncua import Client
@@ -60,22 +81,27 @@ def _client(url: str, modbus_port: int, loops: list[str], publish_ms: float, var
     for name in ("pymodbus", "asyncua"):
         logging.getLogger(name).setLevel(logging.ERROR)
 
-    async def session(count, ready):
-        client = Client(url, timeout=120)
+    async def session(count, lost, ready):
+        # asyncua's client probes the server every watchdog interval and, by default, drops its session when a
+        # probe takes over 1 s -- which the client's own event loop, decoding a publish of thousands of values
+        # on a loaded 2-core machine, causes itself: 5 s, as a SCADA client's keep-alive would be
+        client = Client(url, timeout=120, watchdog_intervall=WATCHDOG)
         async with client:
             ns = await client.get_namespace_index("urn:valve-emulator")
-            counted = set()
-
             class Handler:
                 def datachange_notification(self, node, val, data):
-                    if node.nodeid in counted:
-                        count[0] += 1
+                    if node.nodeid in count:
+                        count[node.nodeid] += 1
 
-            sub = await client.create_subscription(publish_ms, Handler())
-            nodes = [client.get_node(f"ns={ns};s={path}.{var}") for path in loops for var in variables]
-            counted.update(n.nodeid for n in nodes if n.nodeid.Identifier.rsplit(".", 1)[1] in COUNTED)
+                def status_change_notification(self, status):   # ended: BadShutdown from the watchdog
+                    lost.append(str(status.Status))
+
+            subscription = await client.create_subscription(sub.publish_ms, Handler())
+            nodes = [client.get_node(f"ns={ns};s={path}.{var}") for path in loops for var in sub.variables]
+            count.update((n.nodeid, 0) for n in nodes if n.nodeid.Identifier.rsplit(".", 1)[1] in COUNTED)
             for k in range(0, len(nodes), 500):
-                await sub.subscribe_data_change(nodes[k:k + 500])
+                await subscription.subscribe_data_change(nodes[k:k + 500], queuesize=sub.queue,
+                                                         sampling_interval=sub.sampling_ms)
             ready.set()
             await asyncio.sleep(3600)
 
@@ -91,9 +117,9 @@ def _client(url: str, modbus_port: int, loops: list[str], publish_ms: float, var
             client.close()
 
     async def main():
-        count, polled, ready, tasks = [0], [0], asyncio.Event(), []
+        count, polled, ready, tasks, lost = {}, [0], asyncio.Event(), [], []
         if url:
-            task = asyncio.create_task(session(count, ready))
+            task = asyncio.create_task(session(count, lost, ready))
             tasks.append(task)
             waiting = asyncio.create_task(ready.wait())
             await asyncio.wait({task, waiting}, timeout=600, return_when=asyncio.FIRST_COMPLETED)
@@ -106,10 +132,13 @@ def _client(url: str, modbus_port: int, loops: list[str], publish_ms: float, var
         if poll:
             tasks.append(asyncio.create_task(modbus(polled)))
         await asyncio.sleep(3.0)                       # initial values and the first publishes settle
-        start, polled_before = count[0], polled[0]
+        start, polled_before, lost_before = dict(count), polled[0], len(lost)
         out_q.put(("start",))
         await asyncio.sleep(seconds)
-        out_q.put(("counts", count[0] - start, polled[0] - polled_before))
+        got = [count[item] - start[item] for item in start]
+        per_item = seconds * 1000 / sub.publish_ms
+        out_q.put(("counts", sum(min(n, per_item) for n in got), sum(got), polled[0] - polled_before,
+                   lost[lost_before:]))
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -151,8 +180,7 @@ async def _opcua(mode: str, device, loops):
             yield opc, os.getpid()
 
 
-async def _load_round(mode: str, n: int, clients: int, publish_ms: float, variables: list[str],
-                      seconds: float, profiler=None) -> dict:
+async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds: float, profiler=None) -> dict:
     """One window of the load (see the module docstring); ``profiler`` (cProfile) runs during the window."""
     import numpy as np
 
@@ -170,8 +198,7 @@ async def _load_round(mode: str, n: int, clients: int, publish_ms: float, variab
             q, go, procs = mp.Queue(), mp.Event(), []
             for i in range(max(clients, 1)):   # one at a time: a session and its subscription, then the next
                 procs.append(mp.Process(target=_client, args=(opc.url if opc and clients else "", srv.port, paths,
-                                                              publish_ms, variables, seconds, i == 0, go, q),
-                                        daemon=True))
+                                                              sub, seconds, i == 0, go, q), daemon=True))
                 procs[-1].start()
                 await _each(q, 1, "ready", 1800)
             go.set()
@@ -194,25 +221,27 @@ async def _load_round(mode: str, n: int, clients: int, publish_ms: float, variab
                 proc.join(30)
                 if proc.is_alive():
                     proc.kill()
-            counts, polled = [r[1] for r in results], sum(r[2] for r in results)
-    expected = len(COUNTED) * n * seconds * 1000 / publish_ms
+            counts, raw, polled = [r[1] for r in results], [r[2] for r in results], sum(r[3] for r in results)
+    expected = len(COUNTED) * n * seconds * 1000 / sub.publish_ms
     served = clients and opc is not None
     return {"build": build, "p50": float(np.percentile(lateness, 50)) * 1e3,
             "p99": float(np.percentile(lateness, 99)) * 1e3, "ticks": ticks / elapsed, "overruns": overruns,
             "received": min(counts) / expected if served else 1.0,
             "received_median": statistics.median(counts) / expected if served else 1.0,
+            "per_interval": statistics.median(raw) / expected if served else float("nan"),
             "device_cpu": cpu / elapsed, "opcua_cpu": opc_cpu / elapsed if mode == "process" else float("nan"),
             "per_notification": 1e6 * opc_cpu / sent if sent and mode == "process" else float("nan"),
-            "sent": sent / elapsed, "polled": polled / seconds}
+            "sent": sent / elapsed, "polled": polled / seconds,
+            "lost": sum(len(r[4]) for r in results), "statuses": sorted({x for r in results for x in r[4]})}
 
 
-def _profile(n: int, clients: int, publish_ms: float, variables: list[str], seconds: float) -> None:
+def _profile(n: int, clients: int, sub: Subscribing, seconds: float) -> None:
     """Where the OPC UA server's time goes: cProfile of the in-process server under the same load."""
     import cProfile
     import pstats
 
     profiler = cProfile.Profile()
-    r = asyncio.run(_load_round("in-process", n, clients, publish_ms, variables, seconds, profiler))
+    r = asyncio.run(_load_round("in-process", n, clients, sub, seconds, profiler))
     stats = pstats.Stats(profiler)
     waiting = {k: v for k, v in stats.stats.items() if k[2] in ("<method 'poll' of 'select.epoll' objects>",
                                                                  "<method 'get' of '_queue.SimpleQueue' objects>")}
@@ -275,33 +304,40 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--loops", type=int, default=1000)
     p.add_argument("--clients", type=int, default=5)
     p.add_argument("--publish", type=float, default=1000.0, metavar="MS", help="publishing interval")
+    p.add_argument("--sampling", type=float, default=None, metavar="MS",
+                   help="each item's sampling interval (default: the publishing interval; 0: every tick)")
+    p.add_argument("--queue", type=int, default=1, help="each item's queue size (0: the server's maximum)")
     p.add_argument("--vars", default="pv,op,sp,mv", help="the variables of every loop each client monitors")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--hostile", type=int, default=25_000)
     p.add_argument("--profile", action="store_true")
     args = p.parse_args(argv)
-    variables = args.vars.split(",")
+    sub = Subscribing(variables=tuple(args.vars.split(",")), publish_ms=args.publish,
+                      sampling_ms=args.publish if args.sampling is None else args.sampling, queue=args.queue)
     print(machine(), f"load average {os.getloadavg()[0]:.1f}")
     if args.rounds:
-        _load(args, variables)
+        _load(args, sub)
     if args.profile:
-        _profile(args.loops, args.clients, args.publish, variables, args.seconds)
+        _profile(args.loops, args.clients, sub, args.seconds)
     if args.hostile:
         _print_hostile(asyncio.run(_hostile(args.hostile)))
 
 
-def _load(args: argparse.Namespace, variables: list[str]) -> None:
+def _load(args: argparse.Namespace, sub: Subscribing) -> None:
     """Rounds of the fleet without OPC UA and with it, alternating; their medians side by side."""
     runs: dict[str, list[dict]] = {"none": [], args.mode: []}
     for _ in range(args.rounds):
         for mode in runs:
             runs[mode].append(asyncio.run(_load_round(mode, args.loops, args.clients if mode != "none" else 0,
-                                                      args.publish, variables, args.seconds)))
-    med = {mode: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for mode, rs in runs.items()}
+                                                      sub, args.seconds)))
+            print(f"load average {os.getloadavg()[0]:.1f} after a round ({mode})", flush=True)
+    med = {mode: {k: statistics.median(r[k] for r in rs) for k in rs[0] if k != "statuses"}
+           for mode, rs in runs.items()}
     base, m = med["none"], med[args.mode]
     print(f"\nLoad: {args.loops} loops at 10 Hz, {args.clients} OPC UA clients ({args.mode}) each monitoring "
-          f"{','.join(variables)} of every loop (publishing {args.publish:g} ms), one Modbus poller at 10 Hz; "
+          f"{','.join(sub.variables)} of every loop (publishing {sub.publish_ms:g} ms, sampling "
+          f"{sub.sampling_ms:g} ms, queue {sub.queue}), one Modbus poller at 10 Hz; "
           f"{args.seconds:g} s windows, median of {args.rounds} (baseline: the same without OPC UA, same run)")
     print(table([("address space build", "", f"{m['build']:.1f} s"),
                  ("tick lateness p50 / p99", f"{base['p50']:.1f} / {base['p99']:.1f} ms",
@@ -311,6 +347,8 @@ def _load(args: argparse.Namespace, variables: list[str]) -> None:
                  ("pv/op notifications received, worst client", "",
                   f"{100 * m['received']:.1f} % of expected (target >= 99 %)"),
                  ("pv/op notifications received, median client", "", f"{100 * m['received_median']:.1f} %"),
+                 ("pv/op notifications per item and publishing interval, median client (uncapped)", "",
+                  f"{m['per_interval']:.2f}"),
                  ("notifications handed to subscriptions per second", "", f"{m['sent']:,.0f}"),
                  ("device process CPU (s per s)", f"{base['device_cpu']:.2f}", f"{m['device_cpu']:.2f}"),
                  ("OPC UA process CPU (s per s)", "", f"{m['opcua_cpu']:.2f}"),
@@ -319,7 +357,8 @@ def _load(args: argparse.Namespace, variables: list[str]) -> None:
                 ("figure", "without OPC UA", "with OPC UA")))
     for mode, rs in runs.items():
         print(f"rounds ({mode}): p99 " + ", ".join(f"{r['p99']:.1f}" for r in rs) + " ms; received "
-              + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %")
+              + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %; subscriptions ended (status change) "
+              + "during the window " + ", ".join(f"{r['lost']} {'/'.join(r['statuses'])}" for r in rs))
 
 
 def _print_hostile(h: dict) -> None:

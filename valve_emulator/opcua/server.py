@@ -38,7 +38,9 @@ Writes answer:
 
 Values are read at request time from the register image (so a read sees a write at once, as over Modbus),
 float32 registers as the double the tick computed (:meth:`OpcUaServer.value`); subscriptions are fed after
-every tick with the values that changed. Each analog item has EngineeringUnits with its UNECE code
+every tick with the values that changed, each monitored item at its sampling interval (:func:`revised_sampling`:
+0 is every tick, -1 the subscription's publishing interval), so a client sampling at 1 s costs one notification
+per item per second whatever the tick. Each analog item has EngineeringUnits with its UNECE code
 (:mod:`~valve_emulator.opcua.units`) and, where it has one, an EURange; a value outside it is
 ``UncertainEngineeringUnitsExceeded``. ``SourceTimestamp`` is the wall-clock time of the tick that made the
 value (:class:`TickClock`), ``ServerTimestamp`` the time it was read or sent.
@@ -63,6 +65,7 @@ from typing import Any
 
 import numpy as np
 from asyncua import Server, ua
+from asyncua.common.callback import CallbackType
 from asyncua.server.address_space import AttributeService
 
 from valve_emulator.device.guard import RefusalLog, is_loopback
@@ -89,7 +92,8 @@ from valve_emulator.opcua.trust import TrustList
 from valve_emulator.opcua.units import eu_information
 from valve_emulator.opcua.users import RoleRuleset, StationUser, UsersFile
 
-__all__ = ["OpcUaServer", "OpcUaSecurity", "OpcUaCounters", "NAMESPACE", "VARIABLES", "BITS", "OpcUaError"]
+__all__ = ["OpcUaServer", "OpcUaSecurity", "OpcUaCounters", "NAMESPACE", "VARIABLES", "BITS", "OpcUaError",
+           "revised_sampling"]
 
 _log = logging.getLogger(__name__)
 
@@ -263,6 +267,59 @@ class TickClock:
         return self._at
 
 
+def revised_sampling(requested_ms: float, publishing_ms: float, tick_ms: float) -> tuple[float, float]:
+    """The sampling interval a monitored item gets (OPC UA Part 4, MonitoredItem parameters): (the interval the
+    publisher honours, the interval reported to the client), in ms.
+
+    A negative (or not a number) request is the subscription's publishing interval; 0 is "the fastest practical
+    rate", every tick, and so is anything shorter than a tick, reported as the tick. asyncua itself reports every
+    item's sampling interval as its subscription's publishing interval and hands it every change."""
+    if not math.isfinite(requested_ms) or requested_ms < 0:
+        requested_ms = publishing_ms
+    honoured = requested_ms if requested_ms > tick_ms else 0.0
+    return honoured, max(requested_ms, tick_ms)
+
+
+def next_due(due: float, now: float, interval: float) -> float:
+    """When the next sample of a group sampled every ``interval`` seconds is due, after one taken at ``now`` that
+    was due at ``due``: on the group's own grid, so that a late tick does not stretch the interval, or an interval
+    from now when the publisher fell a whole interval behind."""
+    following = due + interval
+    return following if following > now else now + interval
+
+
+#: The golden ratio's fraction: the phases k × _GOLDEN mod 1 of any number of variables are spread evenly.
+_GOLDEN = (math.sqrt(5) - 1) / 2
+
+
+def first_due(now: float, interval: float, index: int) -> float:
+    """When a new group of variable ``index`` sampled every ``interval`` seconds is first due: at a phase of
+    the interval that spreads the variables evenly over it (the golden ratio's fractions), so that a thousand
+    loops sampled at 1 s cost a tenth of them every 0.1 s tick rather than all of them once a second. The
+    items' initial values need no sample: asyncua sends them when it creates the items."""
+    return now + interval * ((index * _GOLDEN) % 1.0)
+
+
+@dataclass(frozen=True)
+class _Group:
+    """The monitored items of one variable that share a sampling interval (s; 0: every tick): their data-change
+    callbacks' handles, and ``key`` (variable, interval) under which the group's due time and last value are kept."""
+
+    key: tuple[int, float]
+    interval: float
+    handles: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class _Watch:
+    """A monitored variable: its value attribute (whose data-change callbacks are the monitored items), its
+    sampler and its monitored items grouped by sampling interval."""
+
+    attval: Any
+    sample: Sampler
+    groups: tuple[_Group, ...]
+
+
 class _SharedDataValue(ua.DataValue):
     """A DataValue this server makes fresh for every read and notification and never changes afterwards.
 
@@ -377,12 +434,17 @@ class OpcUaServer:
         #: every node id this adapter created (for BadNotWritable on the others)
         self.node_ids: set[ua.NodeId] = set()
         self._monitored: list[tuple[Any, int, Sampler]] = []
-        self._sent: dict[int, Any] = {}
+        #: per group of monitored items (:class:`_Group`): the value last handed to it and when its next sample
+        #: is due (perf_counter seconds)
+        self._sent: dict[tuple[int, float], Any] = {}
+        self._due: dict[tuple[int, float], float] = {}
+        #: data-change callback handle -> the sampling interval (s) its monitored item is honoured at
+        self._intervals: dict[int, float] = {}
         #: when the tick that made the served values ran (their SourceTimestamp)
         self.tick_clock = TickClock(source)
         self._publisher: asyncio.Task | None = None
         self._log_filter = RepeatFilter()
-        self._active: list[tuple[Any, int, Sampler]] = []
+        self._active: list[_Watch] = []
         self._samplers: dict[ua.NodeId, Sampler] = {}
         self._dirty = True
         #: data-change notifications handed to subscriptions (one per monitored item and change)
@@ -697,13 +759,17 @@ class OpcUaServer:
     # --- publishing ------------------------------------------------------------------------------------
 
     async def _publish(self) -> None:
-        """After every tick, hand the monitored variables whose value changed to their subscriptions.
+        """After every tick, hand each group of monitored items whose sample is due the variable's value, when it
+        changed since the group last got it.
 
         Only variables with a monitored item are read (the list is rebuilt when a client adds or deletes
-        one). The tick comes first: the loop yields to the event loop every :data:`YIELD_EVERY` variables, and
-        when a tick's share of work (:data:`PUBLISH_BUDGET` of the tick period) is spent it stops and goes on
-        after the next tick where it stopped, so a subscription larger than the machine can feed gets every
-        variable's latest value less often instead of delaying the tick (or, in a process of its own, the
+        one), and only when one of their groups is due: an item sampled at 1 s is handed one value a second, the
+        tick's latest, however fast the tick (a due time counts from half a tick early, so tick jitter does not
+        skip a sample; the variables' phases are spread over the interval, :func:`first_due`). The tick comes
+        first: the loop yields to the event loop every :data:`YIELD_EVERY` variables, and when a tick's share of
+        work (:data:`PUBLISH_BUDGET` of the tick period) is spent it stops and goes on after the next tick where
+        it stopped, so a subscription larger than the machine can feed gets every variable's latest value less
+        often instead of delaying the tick (or, in a process of its own, the
         clients' requests)."""
         source, seen, at = self.source, self.source.ticks, 0
         clock = time.perf_counter
@@ -712,30 +778,87 @@ class OpcUaServer:
             self.tick_clock.stamp()   # the tick just ran: its time is now
             if self._dirty:
                 self._dirty, at = False, 0
-                self._active = [entry for entry in self._monitored if entry[0].datachange_callbacks]
-            deadline, active, done = clock() + self.publish_budget * finite_period(source), self._active, 0
+                self._active = self._watches()
+            period = finite_period(source)
+            now = clock()
+            deadline, active, done = now + self.publish_budget * period, self._active, 0
             while done < len(active):
-                attval, key, sample = active[at % len(active)]
+                watch = active[at % len(active)]
                 at, done = (at + 1) % len(active), done + 1
                 if done % YIELD_EVERY == 0:
                     await asyncio.sleep(0)
                     if clock() > deadline:
                         self.deferred += 1
                         break
-                callbacks = attval.datachange_callbacks
-                if not callbacks:
+                await self._feed(watch, now, period / 2)
+
+    async def _feed(self, watch: _Watch, now: float, slack: float) -> None:
+        """Hand the groups of ``watch`` that are due at ``now`` (``slack`` seconds early counts) its value, where
+        it changed since the group last got it."""
+        sampled = dv = None
+        for group in watch.groups:
+            due = self._due.get(group.key)
+            if due is None:
+                due = self._due[group.key] = first_due(now, group.interval, group.key[0])
+            if now < due - slack:
+                continue
+            self._due[group.key] = next_due(due, now, group.interval)
+            if sampled is None:
+                sampled = watch.sample()
+            if self._sent.get(group.key) == sampled[0]:   # unchanged: no DataValue made
+                continue
+            self._sent[group.key] = sampled[0]
+            dv = dv or self._data_value(*sampled)
+            callbacks = watch.attval.datachange_callbacks
+            for handle in group.handles:
+                callback = callbacks.get(handle)
+                if callback is None:   # deleted since the list was built
                     continue
-                value, variant, status = sample()
-                if self._sent.get(key) == value:   # unchanged: no DataValue made
-                    continue
-                self._sent[key] = value
-                dv = self._data_value(value, variant, status)
-                self.notifications += len(callbacks)
-                for handle, callback in list(callbacks.items()):
-                    try:
-                        await callback(handle, dv)
-                    except Exception:   # one broken subscription must not stop the others
-                        _log.exception("OPC UA: a data-change notification failed")
+                self.notifications += 1
+                try:
+                    await callback(handle, dv)
+                except Exception:   # one broken subscription must not stop the others
+                    _log.exception("OPC UA: a data-change notification failed")
+
+    def _watches(self) -> list[_Watch]:
+        """The monitored variables, their items grouped by sampling interval; the due times and last values of
+        groups that no longer exist are forgotten."""
+        watches = []
+        for attval, key, sample in self._monitored:
+            by_interval: dict[float, list[int]] = {}
+            for handle in attval.datachange_callbacks:
+                by_interval.setdefault(self._intervals.get(handle, 0.0), []).append(handle)
+            if by_interval:
+                groups = tuple(_Group((key, interval), interval, tuple(handles))
+                               for interval, handles in sorted(by_interval.items()))
+                watches.append(_Watch(attval, sample, groups))
+        keys = {group.key for watch in watches for group in watch.groups}
+        self._due = {k: v for k, v in self._due.items() if k in keys}
+        self._sent = {k: v for k, v in self._sent.items() if k in keys}
+        return watches
+
+    def _sampling_requested(self, event: Any, _dispatcher: Any) -> None:
+        """Note the sampling interval of each monitored item a client created or modified (asyncua's
+        ItemSubscriptionCreated/Modified server callback, run before the answer is sent), and report the interval
+        :func:`revised_sampling` gives it as its RevisedSamplingInterval."""
+        params = event.request_params
+        subscription = self.server.iserver.subscription_service.subscriptions.get(params.SubscriptionId)
+        if subscription is None:
+            return
+        items = subscription.monitored_item_srv._monitored_items
+        publishing_ms = subscription.data.RevisedPublishingInterval
+        tick_ms = 1000 * finite_period(self.source)
+        created = isinstance(params, ua.CreateMonitoredItemsParameters)
+        requests = params.ItemsToCreate if created else params.ItemsToModify
+        for request, result in zip(requests, event.response_params, strict=False):
+            mdata = items.get(result.MonitoredItemId if created else request.MonitoredItemId)
+            if not result.StatusCode.is_good() or mdata is None or mdata.callback_handle is None:
+                continue   # refused, or an event item
+            honoured, reported = revised_sampling(request.RequestedParameters.SamplingInterval, publishing_ms,
+                                                  tick_ms)
+            self._intervals[mdata.callback_handle] = honoured / 1000
+            result.RevisedSamplingInterval = reported
+        self._dirty = True
 
     def _track_monitored_items(self) -> None:
         """Mark the list of monitored variables stale whenever asyncua adds or removes a data-change callback."""
@@ -746,9 +869,10 @@ class OpcUaServer:
             self._dirty = True
             return add(*args, **kwargs)
 
-        def deleted(*args: Any, **kwargs: Any) -> Any:
+        def deleted(handle: int, *args: Any, **kwargs: Any) -> Any:
             self._dirty = True
-            return delete(*args, **kwargs)
+            self._intervals.pop(handle, None)
+            return delete(handle, *args, **kwargs)
 
         aspace.add_datachange_callback, aspace.delete_datachange_callback = added, deleted
 
@@ -804,6 +928,8 @@ class OpcUaServer:
         root = server.get_node(station.RequestedNewNodeId)
         await self._add_methods(root)
         self._track_monitored_items()
+        for created_or_modified in (CallbackType.ItemSubscriptionCreated, CallbackType.ItemSubscriptionModified):
+            server.subscribe_server_callback(created_or_modified, self._sampling_requested)
         if self.source.has_alarms:   # each loop's PV alarm as an AlarmConditionType condition
             self.alarm_conditions = AlarmConditions(self)
             await self.alarm_conditions.start()
