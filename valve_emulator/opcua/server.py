@@ -84,10 +84,11 @@ from valve_emulator.device.registers import (
 )
 from valve_emulator.device.registers.codec import decode_value
 from valve_emulator.device.roles import OPERATOR, Role
+from valve_emulator.device.tick import Device
 from valve_emulator.errors import UserError
 from valve_emulator.opcua.alarms import AlarmConditions
 from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
-from valve_emulator.opcua.source import DeviceSource, StationRefusal, finite_period
+from valve_emulator.opcua.source import DeviceSource, LocalSource, StationRefusal, finite_period
 from valve_emulator.opcua.trust import TrustList
 from valve_emulator.opcua.units import eu_information
 from valve_emulator.opcua.users import RoleRuleset, StationUser, UsersFile
@@ -401,13 +402,14 @@ class _CheckedWrites(AttributeService):
 
 
 class OpcUaServer:
-    """Serve a device over OPC UA: ``async with OpcUaServer(LocalSource(device), loops=..., port=0) as srv``.
+    """Serve a device over OPC UA: ``async with OpcUaServer(device, loops=..., port=0) as srv``.
 
     Parameters
     ----------
     source : the device (:class:`~valve_emulator.opcua.source.DeviceSource`): ``LocalSource(device, station)``
         in this process, a ``RemoteSource`` in the OPC UA process; with a station, the station object has its
-        methods (Freeze, Run, ...).
+        methods (Freeze, Run, ...). A :class:`~valve_emulator.device.tick.Device` itself is served in this
+        process without a station (``LocalSource(device)``).
     loops : the loop configs, in the device's order (names, PV units, PV range).
     host, port : where to listen (port 0: a free port, read back from :attr:`port`).
     security : :class:`OpcUaSecurity` (default: policy None, anonymous operators; loopback only).
@@ -420,6 +422,8 @@ class OpcUaServer:
     def __init__(self, source: DeviceSource, *, loops: Sequence[Any], host: str = "127.0.0.1", port: int = 0,
                  security: OpcUaSecurity | None = None, history: float | None = None,
                  history_path: str = ":memory:", publish_budget: float = PUBLISH_BUDGET) -> None:
+        if isinstance(source, Device):
+            source = LocalSource(source)
         self.source, self.loops, self.host, self.port = source, list(loops), host, int(port)
         #: seconds of PV, OP, SP and MV kept for HistoryRead (None: no history), in SQLite at history_path
         self.history, self.history_path = history, history_path
