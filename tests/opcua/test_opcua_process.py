@@ -106,23 +106,30 @@ async def test_a_killed_opcua_process_is_reported_and_the_device_goes_on(config,
     assert any("ended unexpectedly" in r.getMessage() for r in caplog.records)
 
 
+def _serve_with_opcua(*args: str, **popen) -> tuple[subprocess.Popen, psutil.Process]:
+    """``serve --port 0 --opcua 0 ARGS`` started and read up to its OPC UA line; (the process, its OPC UA process)."""
+    proc = subprocess.Popen([sys.executable, "-m", "valve_emulator", "serve", "--port", "0", "--opcua", "0", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
+    lines: list[str] = []
+    while not any(OPCUA_LINE.search(line) for line in lines):
+        line = proc.stdout.readline()
+        if not line:
+            proc.kill()
+            raise AssertionError(proc.communicate()[1][-2000:])
+        lines.append(line)
+    [child] = [p for p in psutil.Process(proc.pid).children() if "valve_emulator.opcua" in " ".join(p.cmdline())]
+    return proc, child
+
+
 def test_serve_stops_cleanly_with_status_1_when_its_opcua_process_dies(tmp_path):
     """The recording is closed as at Ctrl-C: every row written so far is there."""
     record = tmp_path / "rec.csv"
-    proc = subprocess.Popen([sys.executable, "-m", "valve_emulator", "serve", "--port", "0", "--time-scale", "10",
-                             "--opcua", "0", "--record", str(record)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc, child = _serve_with_opcua("--time-scale", "10", "--record", str(record))
     try:
-        lines = []
-        while not any(OPCUA_LINE.search(line) for line in lines):
-            line = proc.stdout.readline()
-            assert line, proc.communicate()[1][-2000:]
-            lines.append(line)
         deadline = time.monotonic() + 30
         while not (record.exists() and record.read_text().count("\n") > 3):   # a few rows recorded
             assert proc.poll() is None and time.monotonic() < deadline
             time.sleep(0.2)
-        [child] = [p for p in psutil.Process(proc.pid).children() if "valve_emulator.opcua" in " ".join(p.cmdline())]
         child.kill()
         out, err = proc.communicate(timeout=30)
     finally:
@@ -138,15 +145,8 @@ def test_serve_stops_cleanly_with_status_1_when_its_opcua_process_dies(tmp_path)
 def test_a_signal_to_the_whole_process_group_stops_serve_and_its_opcua_process_quietly(sig):
     """Ctrl-C in a terminal (and a service manager's SIGTERM) reaches every process of the group: the device
     stops its OPC UA process itself, so the answer is the usual "stopped", status 0, no traceback from either."""
-    proc = subprocess.Popen([sys.executable, "-m", "valve_emulator", "serve", "--port", "0", "--opcua", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc, child = _serve_with_opcua(start_new_session=True)
     try:
-        lines = []
-        while not any(OPCUA_LINE.search(line) for line in lines):
-            line = proc.stdout.readline()
-            assert line, proc.communicate()[1][-2000:]
-            lines.append(line)
-        [child] = [p for p in psutil.Process(proc.pid).children() if "valve_emulator.opcua" in " ".join(p.cmdline())]
         os.killpg(proc.pid, sig)
         out, err = proc.communicate(timeout=30)
         child.wait(timeout=10)
