@@ -68,7 +68,7 @@ from typing import ClassVar
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainCandidate, ChainContext
-from valve_emulator.diagnosis.fit.cost import bic
+from valve_emulator.diagnosis.fit.cost import ar1_bic
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.linear import highpass
@@ -400,11 +400,7 @@ def bic_after(problem: Problem, model: Model, start: int) -> float:
     if problem.prefilter is not None:
         r = highpass(r, problem.prefilter)
     w0, w1 = problem.train
-    r = r[max(w0, start):w1]
-    den = float(r[:-1] @ r[:-1])
-    rho = float(np.clip(r[1:] @ r[:-1] / den, -0.999, 0.999)) if den > 0 else 0.0
-    w = r[1:] - rho * r[:-1]
-    return bic(float(w @ w), w.size, model.k + 1)
+    return ar1_bic(r[max(w0, start):w1], model.k)
 
 
 def acting_part(problem: Problem, model: Model, pv_before: np.ndarray, findings: tuple) -> tuple:

@@ -38,7 +38,7 @@ import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
 from valve_emulator.diagnosis.fit.chain import Active, run_chain
-from valve_emulator.diagnosis.fit.cost import bic
+from valve_emulator.diagnosis.fit.cost import ar1_bic, bic
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.linear import (
     LinearFit,
@@ -166,11 +166,7 @@ class Scorer:
         """BIC under an AR(1) error (see the module docstring), on the fit part, in the search's domain."""
         r = residual if self.lam is None else highpass(residual, self.lam)
         w0, w1 = self.p.train
-        r = r[w0:w1]
-        den = float(r[:-1] @ r[:-1])
-        rho = float(np.clip(r[1:] @ r[:-1] / den, -0.999, 0.999)) if den > 0 else 0.0
-        w = r[1:] - rho * r[:-1]
-        return bic(float(w @ w), w.size, k + 1)
+        return ar1_bic(r[w0:w1], k)
 
     def prior_penalty(self, st: LinearStructure) -> float:
         """The weak prior of :func:`~valve_emulator.diagnosis.fit.linear.polish`, for comparing pole sets."""
