@@ -794,12 +794,16 @@ class OpcUaServer:
                     if clock() > deadline:
                         self.deferred += 1
                         break
-                await self._feed(watch, now, period / 2)
+                changed = self._changed(watch, now, period / 2)
+                if changed:
+                    await self._hand(watch, *changed)
 
-    async def _feed(self, watch: _Watch, now: float, slack: float) -> None:
-        """Hand the groups of ``watch`` that are due at ``now`` (``slack`` seconds early counts) its value, where
-        it changed since the group last got it."""
-        sampled = dv = None
+    def _changed(self, watch: _Watch, now: float, slack: float) -> tuple[ua.DataValue, list[_Group]] | None:
+        """The value of ``watch`` and its groups due at ``now`` (``slack`` seconds early counts) that have not had
+        it yet (their due times and last values moved on), or None: most variables on most ticks, which then cost
+        no coroutine."""
+        sampled = None
+        groups = []
         for group in watch.groups:
             due = self._due.get(group.key)
             if due is None:
@@ -812,8 +816,13 @@ class OpcUaServer:
             if self._sent.get(group.key) == sampled[0]:   # unchanged: no DataValue made
                 continue
             self._sent[group.key] = sampled[0]
-            dv = dv or self._data_value(*sampled)
-            callbacks = watch.attval.datachange_callbacks
+            groups.append(group)
+        return (self._data_value(*sampled), groups) if groups else None
+
+    async def _hand(self, watch: _Watch, dv: ua.DataValue, groups: list[_Group]) -> None:
+        """Hand ``dv`` to the monitored items of ``groups``."""
+        callbacks = watch.attval.datachange_callbacks
+        for group in groups:
             for handle in group.handles:
                 callback = callbacks.get(handle)
                 if callback is None:   # deleted since the list was built
