@@ -25,9 +25,10 @@ and where the residual says the physics may start late: the whole-record option'
 the second half of the fit part (:data:`EARLY_SHARE`). Then:
 
 1. **coarse**: the candidate's coarse grid at each onset :data:`NEAR` the suspected one (else at each of
-   :data:`ONSETS` fractions of the fit part), scored at the poles of the model being extended and of the
-   candidate's own whole-record option (the onset and the band trade off: a coarse grid over both, not a
-   line search from the whole-record fit);
+   :data:`ONSETS` fractions of the fit part), scored at the poles of the model being extended, of the
+   candidate's own whole-record option and, with a model, at the nominal linear part (the onset and the band
+   trade off: a coarse grid over both, not a line search from the whole-record fit; around a linear part
+   whose gain leans on a wandering load the best late band is too small to count);
 2. **scan**: the candidate's global scan (fine in S for stiction) at the best onset;
 3. **refine**: the fitter's refinement of the candidate's parameters, its fine grid also moving the onset
    by :attr:`LateOnset.onset_step` of the record (twice), the
@@ -42,18 +43,23 @@ Why only with a model where no onset is suspected: without one the linear part i
 record, and a band acting late at any of the coarse onsets trades off against it (on the shared plant windows
 it named a healthy level valve sticky, where the whole-record search did not).
 
-The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option beside the whole-record
-ones. Where an onset was suspected, a whole-record option of physics that may start late (alone or with a
-free dead time) stays only if it beats the best late option (where that one counts against the model being
-extended), significant against it and 10 lower in BIC under
-the drifting-load noise model too (:meth:`~valve_emulator.diagnosis.explain.search.Search.late_first`): before
-a valve starts to stick the controller moves OP to cancel a wandering load while PV holds its set point, so
-in the search's free-run cost a valve stuck there fits that part *better* than the healthy one, and BIC alone
-cannot ask for the onset. Where none was, the late option replaces the whole-record one when it lowers BIC by
-twice the search's own threshold (the onset is then a change point, the best of many positions; preferring
-it whenever the whole-record one was not better by the threshold located wrong onsets as often as right
-ones). Once a finding starts late, later additions must also lower the BIC of the part after the onset
-(:func:`bic_after`).
+Where an onset was suspected the fit is also made under the drifting-load noise model
+(:func:`load_onset_option`): the grids scored through that model's prefilter, the linear part fitted again in
+the search's domain afterwards.
+
+The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late options beside the whole-record
+ones. Where an onset was suspected, a late option counts against the model being extended by the significance
+rule or by a BIC 10 lower under the drifting-load noise model; of the late options that count, the fit of each
+physics with the better held-out fit stands for it and the physics with the lowest BIC leads; every other
+option stays only if it beats that one, significant against it and 10 lower in BIC under the drifting-load
+noise model too (:meth:`~valve_emulator.diagnosis.explain.search.Search.late_first`): before a valve starts to
+stick the controller moves OP to cancel a wandering load while PV holds its set point, so in the search's
+free-run cost a valve stuck there — or a linear part whose gain shrinks — fits that part *better* than the
+healthy one, and the free run alone cannot ask for the onset. Where none was, the late option replaces the
+whole-record one when it lowers BIC by twice the search's own threshold (the onset is then a change point, the
+best of many positions; preferring it whenever the whole-record one was not better by the threshold located
+wrong onsets as often as right ones). Once a finding starts late, later additions must also lower the BIC of
+the part after the onset (:func:`bic_after`) and the BIC under the drifting-load noise model.
 
 What the answer says (:func:`acting_part`): the onset, and the fits (%) of the model without the finding and of
 the final model on the samples from the onset on, so that the finding is judged where it acts and is not
