@@ -110,8 +110,10 @@ class Search:
         Where no change point was located before the search, the late option replaces the whole-record one
         when it lowers BIC by at least twice :data:`DELTA_BIC`: the onset is then searched over the record,
         and the best of many positions gains likelihood from noise alone more than one parameter does. Where
-        one was (``suspected``), the onset is searched only near it and the late option joins the options;
-        which whole-record options stay beside it the round decides (:meth:`late_first`)."""
+        one was (``suspected``), the onset is searched only near it and the late option joins the options,
+        fitted twice: in the free run and through the drifting-load noise model's prefilter
+        (:func:`~valve_emulator.diagnosis.explain.onset.load_onset_option`); which one stands for the physics,
+        and which other options stay beside it, the round decides (:meth:`late_first`)."""
         single = next((o for o in options if o.added == (cand.name,)), None)
         late = None if single is None else onset_option(self.fitter, model, cand, single, self.suspected)
         if self.suspected is None:
