@@ -9,17 +9,17 @@ an ideal valve) and as plant data (no model, OP declared as % travel).
 The property asked for: the onset within 10 % of the record, S and J within 25 % and no finding besides the
 valve's own (its friction, and an actuator lag where the loop has one) in at least 9 draws of 10. J is judged
 against the J of the 2005 valve that best reproduces the drawn valve's own stem travel (:func:`valve_2005`):
-the drawn valve's J is not that J in 8 draws of 20. It is not met: measured 1/20 with a model and 6/20 without
-(strict xfails below). What holds is checked at the rates measured (seed 32): the change point locates the
-onset before any fit in 17 draws of 20; the answer is stiction in 15/20 with a model and 16/20 without; an
-onset it reports is within a tenth of the record in 8 of 10 with a model and 12 of 13 without; stiction from
-an onset within a tenth, with S within 25 %, in 7/20 both ways. What stands in the way, measured: with a model
-the linear part re-fitted around the nominal chain leans on the controller's correlation with a wandering
-load (its gain falls several-fold: 5 no-stiction answers, dead-time and disturbance findings); a deadband
-(J = 0) is chosen over stiction in 2 draws with a model and 6 without; a late valve that does not count
-against the model without it, so the whole-record one stays (3 with a model, 1 without); extra dead-time,
-disturbance, lag and characteristic findings that hold after the onset too (6 draws with a model, 3 without);
-J off where an actuator lag smooths the slip.
+the drawn valve's J is not that J in 8 draws of 20. It is not met: measured 5/20 with a model and 7/20 without
+(strict xfails below). What holds is checked at the rates measured (seed 32), one draw of slack each: the change
+point locates the onset before any fit in 17 draws of 20; the answer is stiction in 19/20 both ways; an onset it
+reports is within a tenth of the record in 16 of 18 both ways; stiction from an onset within a tenth, with S
+within 25 %, in 15/20 with a model and 12/20 without. What stands in the way, measured (a draw may miss for
+several reasons): J off by more than 25 % (11 draws with a model, 8 without; 7 with a model miss on J alone:
+Karnopp stems whose slip the 2005 valve does not reproduce, J traded against the linear part's gain); extra
+dead-time, saturation, disturbance and characteristic findings that hold after the onset under both noise models
+(5 with a model, 4 without); a deadband (J = 0) chosen over stiction (2 with a model, 5 without); S off by more
+than 25 % (3 and 5); the change point a fifth of the record early (one loop that starts to cycle long after its
+valve starts to stick, both ways, and one more each way); no onset reported (2 each way).
 
 Time: about 4 minutes for the 20 draws, both ways (about 3 s a diagnosis on an idle core; 15–30 s on a machine
 shared by six processes).
@@ -162,27 +162,36 @@ def test_the_onset_is_located_before_any_fit_within_a_tenth_of_the_record():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least", "wrong"), [("model", 8, 2), ("plant", 12, 1)])
+@pytest.mark.parametrize(("mode", "least", "wrong"), [("model", 15, 3), ("plant", 15, 3)])
 def test_an_onset_the_answer_reports_is_within_a_tenth_of_the_record(mode, least, wrong):
-    """Measured: 8 of 10 reported onsets with a model, 12 of 13 without. The misses: the change point's (900 s
-    for 1679 s, both ways) and, with a model, a deadband started late where no change point was located."""
+    """Measured: 16 of 18 reported onsets both ways. The misses: the change point's (1080 s for 1679 s, both
+    ways; with a model also 1733 s for 2385 s, without 2310 s for 2009 s, just over a tenth)."""
     reported = [o.onset_err for o in _outcomes(mode) if o.onset_err is not None]
     assert sum(e <= ONSET_TOL for e in reported) >= least
     assert sum(e > ONSET_TOL for e in reported) <= wrong
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 7), ("plant", 7)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 18), ("plant", 18)])
+def test_a_valve_that_starts_to_stick_part_way_is_answered_stiction(mode, least):
+    """Measured 19/20 both ways: a valve that starts late counts where the free run alone would not let it
+    (under the drifting-load noise model, :meth:`~valve_emulator.diagnosis.explain.search.Search.late_counts`)."""
+    assert _count(mode, lambda o: o.answer == "stiction") >= least
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("mode", "least"), [("model", 14), ("plant", 11)])
 def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode, least):
     """The part of the property the search reaches: the answer is stiction, from an onset within a tenth of the
-    record, with S within 25 % (J and the other findings are left to the strict xfail below)."""
+    record, with S within 25 % (J and the other findings are left to the strict xfail below). Measured 15/20 with
+    a model, 12/20 without."""
     reached = _count(mode, lambda o: o.answer == "stiction" and o.onset_err is not None and o.onset_err <= ONSET_TOL
                      and o.S_err is not None and o.S_err <= SIZE_TOL)
     assert reached >= least
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured 1/20 with a model and 6/20 without (see the module docstring)")
+@pytest.mark.xfail(strict=True, reason="measured 5/20 with a model and 7/20 without (see the module docstring)")
 @pytest.mark.parametrize("mode", ["model", "plant"])
 def test_onset_and_size_within_tolerance_and_nothing_else_in_nine_draws_of_ten(mode):
     assert _count(mode, lambda o: o.holds) >= 0.9 * DRAWS

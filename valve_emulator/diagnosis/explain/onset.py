@@ -25,9 +25,10 @@ and where the residual says the physics may start late: the whole-record option'
 the second half of the fit part (:data:`EARLY_SHARE`). Then:
 
 1. **coarse**: the candidate's coarse grid at each onset :data:`NEAR` the suspected one (else at each of
-   :data:`ONSETS` fractions of the fit part), scored at the poles of the model being extended and of the
-   candidate's own whole-record option (the onset and the band trade off: a coarse grid over both, not a
-   line search from the whole-record fit);
+   :data:`ONSETS` fractions of the fit part), scored at the poles of the model being extended, of the
+   candidate's own whole-record option and, with a model, at the nominal linear part (the onset and the band
+   trade off: a coarse grid over both, not a line search from the whole-record fit; around a linear part
+   whose gain leans on a wandering load the best late band is too small to count);
 2. **scan**: the candidate's global scan (fine in S for stiction) at the best onset;
 3. **refine**: the fitter's refinement of the candidate's parameters, its fine grid also moving the onset
    by :attr:`LateOnset.onset_step` of the record (twice), the
@@ -42,18 +43,23 @@ Why only with a model where no onset is suspected: without one the linear part i
 record, and a band acting late at any of the coarse onsets trades off against it (on the shared plant windows
 it named a healthy level valve sticky, where the whole-record search did not).
 
-The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late option beside the whole-record
-ones. Where an onset was suspected, a whole-record option of physics that may start late (alone or with a
-free dead time) stays only if it beats the best late option (where that one counts against the model being
-extended), significant against it and 10 lower in BIC under
-the drifting-load noise model too (:meth:`~valve_emulator.diagnosis.explain.search.Search.late_first`): before
-a valve starts to stick the controller moves OP to cancel a wandering load while PV holds its set point, so
-in the search's free-run cost a valve stuck there fits that part *better* than the healthy one, and BIC alone
-cannot ask for the onset. Where none was, the late option replaces the whole-record one when it lowers BIC by
-twice the search's own threshold (the onset is then a change point, the best of many positions; preferring
-it whenever the whole-record one was not better by the threshold located wrong onsets as often as right
-ones). Once a finding starts late, later additions must also lower the BIC of the part after the onset
-(:func:`bic_after`).
+Where an onset was suspected the fit is also made under the drifting-load noise model
+(:func:`load_onset_option`): the grids scored through that model's prefilter, the linear part fitted again in
+the search's domain afterwards.
+
+The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late options beside the whole-record
+ones. Where an onset was suspected, a late option counts against the model being extended by the significance
+rule or by a BIC 10 lower under the drifting-load noise model; of the late options that count, the fit of each
+physics with the better held-out fit stands for it and the physics with the lowest BIC leads; every other
+option stays only if it beats that one, significant against it and 10 lower in BIC under the drifting-load
+noise model too (:meth:`~valve_emulator.diagnosis.explain.search.Search.late_first`): before a valve starts to
+stick the controller moves OP to cancel a wandering load while PV holds its set point, so in the search's
+free-run cost a valve stuck there — or a linear part whose gain shrinks — fits that part *better* than the
+healthy one, and the free run alone cannot ask for the onset. Where none was, the late option replaces the
+whole-record one when it lowers BIC by twice the search's own threshold (the onset is then a change point, the
+best of many positions; preferring it whenever the whole-record one was not better by the threshold located
+wrong onsets as often as right ones). Once a finding starts late, later additions must also lower the BIC of
+the part after the onset (:func:`bic_after`) and the BIC under the drifting-load noise model.
 
 What the answer says (:func:`acting_part`): the onset, and the fits (%) of the model without the finding and of
 the final model on the samples from the onset on, so that the finding is judged where it acts and is not
@@ -72,11 +78,13 @@ from valve_emulator.diagnosis.fit.cost import ar1_bic
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.linear import highpass
+from valve_emulator.diagnosis.fit.load_check import load_bic
 from valve_emulator.diagnosis.fit.records import Model, Option
+from valve_emulator.diagnosis.fit.scorer import Scorer
 
 __all__ = ["ONSETS", "EARLY_SHARE", "MIN_BAND", "BLOCKS", "MIN_RISE", "MIN_SHARE", "MIN_ACTING", "NEAR", "LateOnset",
            "Onset", "Suspected", "suspect_onset", "post_onset_split", "onset_option", "acting_part", "onset_of",
-           "late_start", "bic_after"]
+           "late_start", "bic_after", "load_onset_option"]
 
 #: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
 #: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
@@ -345,15 +353,53 @@ def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
         return None
     if suspected is None and (not fitter.nominal.given or _early_share(fitter.p, model, plain.model) >= EARLY_SHARE):
         return None
-    late = LateOnset(cand)
+    return _late_fit(fitter, fitter, model, cand, plain, suspected)
+
+
+def load_onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
+                      suspected: Suspected) -> Option | None:
+    """:func:`onset_option` at a located onset, with the late valve's parameters fitted under the
+    drifting-load noise model (:mod:`~valve_emulator.diagnosis.fit.load_check`): the grids are scored on PV
+    and the chain's output through the prefilter of that model at the λ that suits ``model`` best, then the
+    linear part is fitted again in the search's own domain. None as :func:`onset_option`.
+
+    Why: before the onset the controller cancels a wandering load with OP while PV holds its set point, and
+    the free run replays those moves into PV swings that never happened. Around the linear part it fits, the
+    free run's best late valve is then a band too small to count (it stays close to the healthy valve that
+    replays least): on the independent ``late_onset`` loops with their model, a valve of S = 3.4 % from t =
+    634 s was fitted with a band below a twentieth of OP's span. Through the noise model's prefilter the
+    load is forgotten within its time scale, and the band is fitted to the cycles the valve makes."""
+    if not getattr(cand, "may_start_late", False) or plain.added != (cand.name,):
+        return None
+    lam = load_bic(fitter.scorer, model)[1]
     scorer = fitter.scorer
+    through = Fitter(Scorer(replace(fitter.p, prefilter=lam), scorer.nominal, scorer.library))
+    return _late_fit(through, fitter, model, cand, plain, suspected)
+
+
+def _structures(fitter: Fitter, model: Model, plain: Option) -> list:
+    """Linear parts the coarse stage of a late fit tries: the model's, the whole-record option's and, with a
+    nominal model, the nominal one at the model's dead time."""
+    out = [model.fit.structure, plain.model.fit.structure]
+    if fitter.nominal.given:
+        out.append(replace(fitter.nominal.structure, delay=model.fit.structure.delay))
+    return list({id(s): s for s in out}.values())
+
+
+def _late_fit(searching: Fitter, fitter: Fitter, model: Model, cand: ChainCandidate, plain: Option,
+              suspected: Suspected | None) -> Option | None:
+    """The late option of ``cand`` searched by ``searching`` (coarse, scan, refine; module docstring) and
+    scored by ``fitter`` (the search's own: when the two differ, the linear part is fitted again in its
+    domain)."""
+    late = LateOnset(cand)
+    scorer = searching.scorer
     ctx, aim = scorer.ctx(model), scorer.aim(model)
     active = model.by_slot()
-    rows = _coarse_rows(fitter, cand, ctx, suspected)
+    rows = _coarse_rows(searching, cand, ctx, suspected)
     if rows.size == 0:
         return None
     best = None
-    for st in {id(s): s for s in (model.fit.structure, plain.model.fit.structure)}.values():
+    for st in _structures(searching, model, plain):
         sse, _ = scorer.sse_grid(active, ctx, late, rows, st, None, aim)
         i = int(np.argmin(sse[:, 0]))
         if best is None or sse[i, 0] < best[0]:
@@ -366,10 +412,13 @@ def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
         sse, _ = scorer.sse_grid(active, ctx, late, scan, st, None, aim)
         row = scan[int(np.argmin(sse[:, 0]))]
         scan_surface = fitter.surface(cand.name, scan, sse[:, 0])
-    r = fitter.refine(model, late, row, st, model.delay_free, joint=False)
+    r = searching.refine(model, late, row, st, model.delay_free, joint=False)
     if not _material(cand, r.active[cand.slot].params, ctx.op_span):
         return None
-    m = scorer.model(r.active, r.fit, model.delay_free, r.flow, target=aim.y)
+    own = fitter.scorer
+    target = own.aim(model)
+    fit = r.fit if searching is fitter else own.polish(r.flow, r.fit.structure, model.delay_free, target)
+    m = own.model(r.active, fit, model.delay_free, r.flow, target=target.y)
     return Option(added=(cand.name,), model=m, coarse=None, scan=scan_surface, fine=r.fine)
 
 
