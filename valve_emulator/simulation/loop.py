@@ -308,6 +308,18 @@ class LoopBank:
     def td(self) -> np.ndarray:
         return self._pid.td
 
+    def image_arrays(self) -> tuple[np.ndarray, ...]:
+        """What the device's register image shows, as the bank's own arrays (no copies; read only):
+        ``op, valve state (n, NSTATE), flow, pv, sp, kc, 1/ti, td, S, J, load, noise_std, controller auto,
+        has_controller, frozen``.
+
+        The compiled encoder derives ``mv``, ``stuck``, ``ti``, the saturation flags and ``auto`` from them itself:
+        at one loop the properties' copies and numpy expressions cost several times the encoding. Tuning and
+        ``pv`` are replaced by new arrays as the bank runs, so ask again at every sample."""
+        kc, ti_inv, td, auto = self._pid.live_settings()
+        return (self.op, self._vstate, self.flow, self.pv, self._sp, kc, ti_inv, td, self._S, self._J, self.load,
+                self.noise_std, auto, self.has_controller, self.frozen)
+
     # -- commands (the device's instructor and operator writes) -----------------------------------------------
     def set_valve(self, i: int, *, S: float | None = None, J: float | None = None) -> None:
         """Change stiction of loop ``i``; it takes effect at the next sample."""
