@@ -308,7 +308,7 @@ class Device:
         if value is None:
             return None
         self._queue(index, plan.quantity, value)
-        plan.show(value, self.scaling)
+        plan.show(value)
         self._image_changed()
         return plan.quantity, value
 

@@ -30,7 +30,7 @@ from valve_emulator.device.registers import (
     Register,
     Scaling,
     decode_value,
-    encode_value,
+    value_encoder,
     write_range,
 )
 from valve_emulator.device.registers.mapping import RegisterMap
@@ -40,15 +40,15 @@ __all__ = ["WritePlan", "write_plan"]
 #: Quantities whose write also flips a bit of the ``status`` register: read-modify-write, the general way.
 _FLIPS_STATUS = frozenset({"auto", "fault"})
 _ONE_WORD = (DataType.UINT16, DataType.INT16)
-_WORDS = {width: f">{width}H" for width in (1, 2, 4)}   # struct formats of a register's big-endian words
 
 
 @dataclass(frozen=True)
 class WritePlan:
     """The accepted write of one word to register :attr:`register` of loop :attr:`index`.
 
-    ``shows`` holds, for each image the write is shown in, the byte offset of the loop's row there and the
-    ``(word of the row, register)`` of every register that shows the quantity.
+    ``shows`` holds, for each image the write is shown in, the byte offset of the loop's row there and, for
+    every register that shows the quantity, the word of the row it starts at, the :mod:`struct` format of its
+    words and its :func:`~valve_emulator.device.registers.value_encoder`.
     """
 
     index: int
@@ -57,7 +57,7 @@ class WritePlan:
     high: int
     unauthenticated: bool    # may a client without credentials write it?
     manual_only: bool        # OP of a loop with a controller: refused while the controller is in auto
-    shows: tuple[tuple[bytearray, int, tuple[tuple[int, Register], ...]], ...]
+    shows: tuple[tuple[bytearray, int, tuple[tuple[int, str, Callable[[Any], tuple[int, ...]]], ...]], ...]
 
     @property
     def quantity(self) -> str:
@@ -78,12 +78,11 @@ class WritePlan:
             return None
         return decode_value(self.register, raw, scaling, self.index)
 
-    def show(self, value: float, scaling: Scaling) -> None:
+    def show(self, value: float) -> None:
         """Write the words of every register showing the quantity's new ``value`` into the images."""
         for image, start, registers in self.shows:
-            for at, reg in registers:
-                words = encode_value(reg, value, scaling, self.index)
-                struct.pack_into(_WORDS[len(words)], image, start + 2 * at, *words)
+            for at, words, encoder in registers:
+                struct.pack_into(words, image, start + 2 * at, *encoder(value))
 
 
 def write_plan(maps: tuple[tuple[RegisterMap, bytearray, int], ...], regmap: RegisterMap, scaling: Scaling,
@@ -100,7 +99,8 @@ def write_plan(maps: tuple[tuple[RegisterMap, bytearray, int], ...], regmap: Reg
         return None
     shows = []
     for shown_map, image, start in maps:
-        registers = tuple((shown_map.word_offset(r.table, r.address), r) for r in shown_map.showing(reg.quantity))
+        registers = tuple((shown_map.word_offset(r.table, r.address), f">{r.width}H", value_encoder(r, scaling, index))
+                          for r in shown_map.showing(reg.quantity))
         shows.append((image, start, registers))
     low, high = write_range(reg, scaling, index)
     return WritePlan(index=index, register=reg, low=int(low), high=int(high),
