@@ -304,7 +304,7 @@ class Device:
         plan = self._write_plan(regmap, index, address)
         if plan is None:
             return None
-        value = plan.accept(word, role, lambda: self.effective_auto(index), self.scaling)
+        value = plan.accept(word, role, self.effective_auto)
         if value is None:
             return None
         self._queue(index, plan.quantity, value)

@@ -29,7 +29,7 @@ from valve_emulator.device.registers import (
     R,
     Register,
     Scaling,
-    decode_value,
+    value_decoder,
     value_encoder,
     write_range,
 )
@@ -57,26 +57,27 @@ class WritePlan:
     high: int
     unauthenticated: bool    # may a client without credentials write it?
     manual_only: bool        # OP of a loop with a controller: refused while the controller is in auto
+    decode: Callable[[int], Any]   # the raw word's physical value (value_decoder)
     shows: tuple[tuple[bytearray, int, tuple[tuple[int, str, Callable[[Any], tuple[int, ...]]], ...]], ...]
 
     @property
     def quantity(self) -> str:
         return self.register.quantity
 
-    def accept(self, word: int, role: Any, auto: Callable[[], bool], scaling: Scaling) -> Any:
+    def accept(self, word: int, role: Any, auto: Callable[[int], bool]) -> Any:
         """The physical value the write of ``word`` by ``role`` sets, or ``None`` where the general way must
-        judge it (it may refuse). ``auto()`` tells whether the loop's controller is in auto (asked only for
+        judge it (it may refuse). ``auto(index)`` tells whether the loop's controller is in auto (asked only for
         OP of a loop with a controller)."""
         if not (role.may_write(self.register.quantity) if role is not None else self.unauthenticated):
             return None
-        if self.manual_only and auto():
+        if self.manual_only and auto(self.index):
             return None
         if not 0 <= word <= 0xFFFF:
             return None
         raw = word - 0x10000 if self.register.type is DataType.INT16 and word >= 0x8000 else word
         if not self.low <= raw <= self.high:
             return None
-        return decode_value(self.register, raw, scaling, self.index)
+        return self.decode(raw)
 
     def show(self, value: float) -> None:
         """Write the words of every register showing the quantity's new ``value`` into the images."""
@@ -105,5 +106,5 @@ def write_plan(maps: tuple[tuple[RegisterMap, bytearray, int], ...], regmap: Reg
     low, high = write_range(reg, scaling, index)
     return WritePlan(index=index, register=reg, low=int(low), high=int(high),
                      unauthenticated=reg.access is not RW_INSTRUCTOR, manual_only=reg.quantity == "op" and has_ctl,
-                     shows=tuple(shows))
+                     decode=value_decoder(reg, scaling, index), shows=tuple(shows))
 

@@ -273,9 +273,6 @@ class LoopBank:
         self.op = op_init.astype(float)
         self.flow = flow0.copy()
         self._u_in = np.zeros(n)
-        #: no disturbance, no noise: read only, so not part of the bank's state (:meth:`state`)
-        self._zeros = np.zeros(n)
-        self._zeros.flags.writeable = False
         self._valve_args = (self._S, self._J, self._R, self._codes, self._vstate)
 
     # -- read-only views ------------------------------------------------------------------------------------
@@ -514,7 +511,8 @@ class LoopBank:
         disturbance generators run only when a loop has a disturbance (as :meth:`run` does).
         """
         t = self.k * self.dt
-        dist = self._zeros if self._disturbance is None else self._disturbance(t)
+        # writable zeros, not a read-only constant: numba would compile the kernel a second time for those
+        dist = np.zeros(self.n) if self._disturbance is None else self._disturbance(t)
         unit = None if self._noise is None else self._unit_noise(1)[0]
         pv_meas = np.empty(self.n)
         code = self._sensed_step(t, dist, unit, pv_meas)
@@ -533,7 +531,7 @@ class LoopBank:
         """:func:`sensed_step_kernel` on the bank at time ``t`` with this sample's disturbance and unit normals
         (``None``: no noise streams yet)."""
         return sensed_step_kernel(self._sp_next, t + 1e-9 * self.dt, unit is None,
-                                  self._zeros if unit is None else unit, self.noise_std, self.pv_bias,
+                                  np.zeros(self.n) if unit is None else unit, self.noise_std, self.pv_bias,
                                   self.pv_stuck, self.load, dist, self._sp, self.op_external, self.has_controller,
                                   self.frozen, *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in)
 

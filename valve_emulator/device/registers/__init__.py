@@ -149,6 +149,7 @@ from valve_emulator.device.registers.codec import (
     patch,
     patches,
     status_word,
+    value_decoder,
     value_encoder,
     write_range,
 )
@@ -202,6 +203,7 @@ __all__ = [
     "split32",
     "status_word",
     "to_words",
+    "value_decoder",
     "value_encoder",
     "write_range",
 ]

@@ -55,7 +55,8 @@ from valve_emulator.device.registers.table import (
 from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, from_words, split32, split_words
 
 __all__ = ["WritePermission", "decode_value", "decode_write", "encode_loop", "encode_value", "encode_write",
-           "loop_values", "patch", "patches", "physical_range", "status_word", "value_encoder", "write_range"]
+           "loop_values", "patch", "patches", "physical_range", "status_word", "value_decoder", "value_encoder",
+           "write_range"]
 
 _STATUS: Final = address_of("status")
 # Written quantities that also flip a status bit: quantity -> (bit, is the bit set for this value?)
@@ -146,6 +147,9 @@ def _raw_encoder(reg: Register, scaling: Scaling, index: int) -> Callable[[Any],
     if conversion is Conversion.FLAG:
         return lambda value: 1 if value else 0
     scaled, (lo, hi) = _scaler(reg, scaling, index), reg.read_range
+    if conversion is Conversion.LINEAR and not reg.zero_is_off:   # the usual register, in one expression
+        scale = reg.scale
+        return lambda value: _round_clip(float(value) * scale, lo, hi)
     if reg.zero_is_off:   # 0: off (a value that is not finite and > 0)
         return lambda value: _round_clip(scaled(float(value)), lo, hi) if math.isfinite(value) and value > 0 else 0
     return lambda value: _round_clip(scaled(float(value)), lo, hi)
@@ -289,25 +293,32 @@ def physical_range(quantity: str, scaling: Scaling, index: int) -> tuple[float, 
 
 def decode_value(reg: Register, raw: int, scaling: Scaling, index: int) -> Any:
     """The physical value of a written raw word (``raw`` signed for ``int16``); inverse of :func:`encode_value`."""
+    return value_decoder(reg, scaling, index)(raw)
+
+
+def value_decoder(reg: Register, scaling: Scaling, index: int) -> Callable[[int], Any]:
+    """:func:`decode_value` of register ``reg`` on loop ``index`` as a function of the raw word, its rules looked
+    up once (the expressions are the rule's, term for term)."""
     conversion = reg.conversion
     if conversion is Conversion.COUNTS:
         (e_lo, e_hi), (lo, hi) = _span(reg, scaling, index), reg.counts
-        return e_lo + (raw - lo) * (e_hi - e_lo) / (hi - lo)
+        return lambda raw: e_lo + (raw - lo) * (e_hi - e_lo) / (hi - lo)
+    scale = reg.scale
     if conversion is Conversion.LOOP_CURRENT:
-        lo, hi = scaling.op_limits[index]
-        return float(np.clip(scaling.tables[index].to_pct(raw / reg.scale), lo, hi))
+        (lo, hi), table = scaling.op_limits[index], scaling.tables[index]
+        return lambda raw: float(np.clip(table.to_pct(raw / scale), lo, hi))
     if conversion is Conversion.PV_RANGE:
         lo, hi = scaling.pv_lo[index], scaling.pv_hi[index]
-        return float(lo + raw * (hi - lo) / (reg.scale * 100.0))
+        return lambda raw: float(lo + raw * (hi - lo) / (scale * 100.0))
     if conversion is Conversion.PV_SPAN:   # % of the PV range x scale -> PV units, what the loop bank takes
-        return raw / (reg.scale * 100.0) * float(scaling.pv_hi[index] - scaling.pv_lo[index])
+        return lambda raw: raw / (scale * 100.0) * float(scaling.pv_hi[index] - scaling.pv_lo[index])
     if conversion is Conversion.FLAG:
-        return bool(raw)
+        return bool
     if conversion in (Conversion.BITS, Conversion.COUNTER):
-        return int(raw)
-    if reg.zero_is_off and raw == 0:
-        return math.inf
-    return raw / reg.scale
+        return int
+    if reg.zero_is_off:
+        return lambda raw: math.inf if raw == 0 else raw / scale
+    return lambda raw: raw / scale
 
 
 class WritePermission(Protocol):
