@@ -6,9 +6,10 @@ Run: ``python bench/bench_lockstep.py [--rounds 3] [--requests 2000] [--before /
 controller, so OP is writable); one raw-socket client in this process (blocking socket, ``TCP_NODELAY``, one
 request outstanding, no Modbus library) measures, one request at a time:
 
-- the time to an answer of a 10-register read (FC3), of a write of OP (FC6), of ``step`` = 1, 5 and 10 (their
-  ticks run before the write is answered), each sent back to back, medians per round, and the ratios
-  write / read and step / write *of the same round*;
+- the time to an answer of an FC8 echo (the floor: the wire, the event loop and the client, the server doing
+  nothing), of a 10-register read (FC3), of a write of OP (FC6), of ``step`` = 1, 5 and 10 (their ticks run
+  before the write is answered) and of FC23 (``step`` = 1 and read PV), each sent back to back, medians per
+  round, and the ratios write / read and step / write *of the same round*;
 - the steps/s of a scan of read PV + write OP + ``step`` = 1 (three round trips; 1 / the median scan, and over
   the whole run), the time to each of its three answers, the same scan with FC23 (write OP, then one FC23
   request that writes ``step`` and reads PV after the tick: two round trips) and with pymodbus' client, and the
@@ -121,6 +122,11 @@ def fc23_pdu(read_address: int, read_count: int, write_address: int, value: int)
     return struct.pack(">BHHHHBH", 23, read_address, read_count, write_address, 1, 2, value)
 
 
+def echo_pdu(k: int) -> bytes:
+    """FC8 sub-function 0 (return query data): the server answers with the request, changing nothing."""
+    return struct.pack(">BHH", 8, 0, k & 0xFFFF)
+
+
 def op_value(k: int) -> int:
     """An OP write that changes at every scan (40.00 .. 59.99 %), as a controller's output would."""
     return 4000 + k % 2000
@@ -202,11 +208,13 @@ def pymodbus_scans(c: Client, n: int) -> float:
 
 #: name, unit, ``fn(client, n) -> figure``
 CASES: tuple[tuple[str, str, Callable[[Client, int], float]], ...] = (
+    ("FC8 echo (the floor: an answer that does nothing)", "µs", lambda c, n: 1e6 * latency(c, echo_pdu, n)),
     ("read 10 registers (FC3)", "µs", lambda c, n: 1e6 * latency(c, lambda k: read_pdu(0, 10), n)),
     ("write OP (FC6)", "µs", lambda c, n: 1e6 * latency(c, lambda k: write_pdu(OP, op_value(k)), n)),
     ("write step = 1 (FC6)", "µs", lambda c, n: 1e6 * latency(c, lambda k: write_pdu(STEP, 1), n)),
     ("write step = 5 (FC6)", "µs", lambda c, n: 1e6 * latency(c, lambda k: write_pdu(STEP, 5), n)),
     ("write step = 10 (FC6)", "µs", lambda c, n: 1e6 * latency(c, lambda k: write_pdu(STEP, 10), n)),
+    ("FC23: step = 1 and read PV", "µs", lambda c, n: 1e6 * latency(c, lambda k: fc23_pdu(PV_F32, 2, STEP, 1), n)),
     ("scan: read PV + write OP + step = 1", "steps/s", lambda c, n: rate(c, scan_three, n)),
     ("the same scan, n / the whole run's time", "steps/s", lambda c, n: whole_run_rate(c, scan_three, n)),
     ("scan: write OP + FC23 (step = 1, read PV)", "steps/s", lambda c, n: rate(c, scan_fc23, n)),
@@ -263,7 +271,7 @@ def server_cpu(number: int, repeats: int = 5) -> dict[str, float]:
     def frame(pdu: bytes) -> bytes:
         return struct.pack(">HHHB", 1, 0, len(pdu) + 1, UNIT) + pdu
 
-    cases = {"read 10 registers": [frame(read_pdu(0, 10))],
+    cases = {"FC8 echo": [frame(echo_pdu(k)) for k in range(100)], "read 10 registers": [frame(read_pdu(0, 10))],
              "write OP": [frame(write_pdu(OP, op_value(k))) for k in range(100)],
              "step = 1": [frame(write_pdu(STEP, 1))], "step = 5": [frame(write_pdu(STEP, 5))],
              "step = 10": [frame(write_pdu(STEP, 10))],
@@ -420,10 +428,16 @@ def summary(values: list[float]) -> str:
 
 
 def ratios(rounds: list[dict[str, float]]) -> list[tuple[str, str]]:
-    """The issue's two ratios, each taken within one round, then summarised over the rounds."""
-    write = [r["write OP (FC6)"] / r["read 10 registers (FC3)"] for r in rounds]
-    step = [r["write step = 1 (FC6)"] / r["write OP (FC6)"] for r in rounds]
-    return [("write OP / read", summary(write)), ("step = 1 / write OP", summary(step))]
+    """The issue's two ratios and the read's and write's over the floor, each taken within one round, then
+    summarised over the rounds."""
+    def ratio(over: str, under: str) -> str:
+        return summary([r[over] / r[under] for r in rounds])
+
+    floor = "FC8 echo (the floor: an answer that does nothing)"
+    return [("write OP / read", ratio("write OP (FC6)", "read 10 registers (FC3)")),
+            ("step = 1 / write OP", ratio("write step = 1 (FC6)", "write OP (FC6)")),
+            ("read / FC8 echo", ratio("read 10 registers (FC3)", floor)),
+            ("write OP / FC8 echo", ratio("write OP (FC6)", floor))]
 
 
 def main(argv: list[str] | None = None) -> int:

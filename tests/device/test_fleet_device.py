@@ -8,7 +8,15 @@ import pytest
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.image import ImageLayout
 from valve_emulator.device.record import TickRecorder
-from valve_emulator.device.registers import BLOCK_STRIDE, N_REGISTERS, Scaling, address_of, encode, encode_image
+from valve_emulator.device.registers import (
+    BLOCK_STRIDE,
+    N_REGISTERS,
+    Scaling,
+    address_of,
+    encode,
+    encode_image,
+    encode_loop,
+)
 from valve_emulator.device.server import EmulatorServer
 from valve_emulator.device.tick import Device
 from valve_emulator.simulation.loop import LoopBank
@@ -159,6 +167,39 @@ def test_encode_image_writes_each_loop_at_its_offset_and_leaves_the_alarms_word_
         row = np.frombuffer(image, ">u2", N_REGISTERS, int(off)).tolist()
         assert row[:alarms] == words[i].tolist()[:alarms]
         assert row[alarms] == 0xAAAA           # the PV alarms are the device's (Device.alarms), not the encoder's
+
+
+def test_a_loop_bank_encodes_from_its_own_arrays_as_the_codec_reads_its_properties():
+    """The encoder reads a bank's live arrays and derives mv, stuck, ti, the saturation flags, auto and the loop
+    current itself: the same words as the plain-Python codec reading the bank's properties, loop by loop, in
+    auto and manual, without integral action, saturated, seized, loaded, noisy and through a custom mA table."""
+    cfg = server_from_mapping({
+        "device": {"tick": 0.1},
+        "loops": [
+            {"unit": 1, "valve": {"S": 5.0, "J": 2.0}, "plant": {"fopdt": {"gain": 3.0, "tau": 10.0}},
+             "controller": {"kc": 0.2, "ti": 10.0, "td": 0.5}},
+            {"unit": 2, "valve": {"S": 3.0, "J": 1.0, "ma_table": [[4.0, 100.0], [20.0, 0.0]]},
+             "plant": {"integrator": {"gain": 0.1}, "pv0": 50.0}},
+            {"unit": 3, "valve": {"S": 0.0, "J": 0.0}, "plant": {"fopdt": {"gain": 1.0, "tau": 2.0}},
+             "controller": {"kc": 1.0, "ti": 5.0, "mode": "manual"}},
+            {"unit": 4, "valve": {"S": 4.0, "J": 4.0, "op0": 30.0}, "plant": {"fopdt": {"gain": 1.0, "tau": 2.0}}},
+        ]})
+    bank = LoopBank(cfg.loops, dt=0.1)
+    scaling = Scaling.from_config(cfg)
+    bank.set_tuning(0, ti=float("inf"))
+    bank.set_manual_op(2, 100.0)
+    bank.op_external[1], bank.op_external[3] = 0.0, 57.3
+    bank.set_frozen(3, True)
+    bank.set_load(1, 2.5)
+    bank.set_noise(3, 0.25)
+    seen = set()
+    for k in range(30):
+        bank.step()
+        words = encode(bank, scaling, tick=k, overruns=1, time=bank.sample_time)
+        for i in range(bank.n):
+            assert list(words[i]) == list(encode_loop(bank, scaling, i, tick=k, overruns=1, time=bank.sample_time))
+        seen |= {("stuck", bool(s)) for s in bank.stuck} | {("sat", bool(s)) for s in bank.sat_high | bank.sat_low}
+    assert seen == {("stuck", True), ("stuck", False), ("sat", True), ("sat", False)}   # both sides of each flag
 
 
 def test_tick_time_is_recorded_and_blocked_devices_cannot_be_recorded(tmp_path):

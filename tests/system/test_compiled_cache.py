@@ -99,7 +99,8 @@ def test_a_read_only_install_caches_outside_the_package(tmp_path):
         shutil.rmtree(target, ignore_errors=True)
 
 
-# Runs what a user runs first — simulate a loop, diagnose the recording with and without a model, tick a device —
+# Runs what a user runs first — simulate a loop, diagnose the recording with and without a model, tick a device
+# (a quiet run of ticks and a single one) —
 # and counts the kernels that had to be compiled (cache misses) and loaded (hits) across the whole package.
 FIRST_USE = """
 import json, sys
@@ -112,7 +113,9 @@ table1 = sys.argv[1]
 assert main(["simulate", table1 + "/level_overshoot.yaml", "--out", "rec.csv", "--duration", "900"]) == 0
 assert main(["diagnose", "rec.csv", "--json", "plant.json"]) == 0
 assert main(["diagnose", "rec.csv", "--model", table1 + "/level_no_stiction.yaml", "--json", "m.json"]) == 0
-Device.from_config(load_server_or_default(None), time_scale=0.0).advance(5)
+device = Device.from_config(load_server_or_default(None), time_scale=0.0)
+device.advance(5)
+device.advance(1)   # one tick on its own, as a lockstep step = 1 runs it
 stats = kernel_cache_stats()
 print(json.dumps({"hits": sum(h for h, _ in stats.values()),
                   "misses": {name: m for name, (_, m) in stats.items() if m}}))

@@ -400,6 +400,8 @@ class EmulatorServer:
                 answer = self._read_fast(frame)
                 if answer is not None:
                     return answer
+            elif frame[7] == 6 and self._write_fast(frame, role):
+                return frame[:2] + b"\x00\x00" + frame[4:]   # the answer echoes the request
         return _mbap(frame, self.answer(frame[6], frame[7:], role, peer=peer, client=client))
 
     def _read_fast(self, frame: bytes) -> bytes | None:
@@ -429,6 +431,23 @@ class EmulatorServer:
         if len(self._reads) < _KNOWN_READS:
             self._reads[frame[6:12]] = (start, start + n, head)
         return frame[:4] + head + self.device.served[start:start + n]
+
+    def _write_fast(self, frame: bytes, role: Role) -> bool:
+        """Carry out a well-formed FC6 write of a unit register that the device accepts from the tables of its
+        address (:meth:`Device.write_served_word`): ``True``. ``False``: nothing done, the general path answers
+        it (refusals, the clock's registers, a read-only server, a write across blocks)."""
+        region = self._regions.get(frame[6])
+        address = (frame[8] << 8) | frame[9]
+        if region is None or address >= COMM_BASE or self._read_only:
+            return False
+        try:
+            index, offset = self.device.served_layout.locate_write(frame[6], address, 1)
+        except RegisterError:
+            return False
+        if not self.device.write_served_word(index, offset, (frame[10] << 8) | frame[11], role=role):
+            return False
+        self.requests += 1
+        return True
 
     def handle_faulted(self, frame: bytes, role: Role, state: CommState, *, peer: str = "",
                        client: str = "") -> bytes | None:

@@ -85,6 +85,7 @@ from valve_emulator.device.registers.columns import encode_rows
 from valve_emulator.device.registers.kernel import ImageEncoder
 from valve_emulator.device.registers.mapping import STANDARD, RegisterMap, register_map_of
 from valve_emulator.device.snapshots import Snapshot, SnapshotError
+from valve_emulator.device.write_plan import WritePlan, write_plan
 
 __all__ = ["JitterBuffer", "Device", "TICK_TASK_NAME"]
 
@@ -206,6 +207,7 @@ class Device:
         self.error: BaseException | None = None
         self._clock, self._sleep = clock, sleep
         self._pending: dict[tuple[int, str], float] = {}
+        self._plans: dict[tuple[bool, int, int], WritePlan | None] = {}   # see _write_plan
         self._waiters: list[tuple[int, int, asyncio.Future]] = []
         self._seq = itertools.count()
         self._task: asyncio.Task | None = None
@@ -275,17 +277,58 @@ class Device:
 
     def _write(self, regmap: RegisterMap, index: int, address: int, values: Sequence[int],
                role: Any) -> list[tuple[str, float]]:
+        if len(values) == 1:
+            change = self._planned(regmap, index, address, values[0], role)
+            if change is not None:
+                return [change]
         # the mode matters only to a loop with a controller: asking the bank costs more than the rest of a check
         auto = bool(self.scaling.has_controller[index]) and self.effective_auto(index)
         changes = decode_write(address, values, self.scaling, index, role=role, auto=auto, regmap=regmap)
         for quantity, value in changes:
-            self._pending.pop((index, quantity), None)  # re-insert: keep arrival order for the tick
-            self._pending[(index, quantity)] = value
+            self._queue(index, quantity, value)
         self._patch(self.image, int(self.offsets[index]), STANDARD, changes, index)
         if self.served is not self.image:
             self._patch(self.served, int(self.served_layout.offsets[index]), self.register_map, changes, index)
         self._image_changed()
         return changes
+
+    def write_served_word(self, index: int, address: int, word: int, *, role: Any = None) -> bool:
+        """A one-word :meth:`write_served` carried out from the tables of its address (:mod:`.write_plan`) when
+        they accept it: ``True``. ``False``: nothing changed and nothing refused, :meth:`write_served` judges it
+        (a Modbus server's quick way for FC6, the most frequent write)."""
+        return self._planned(self.register_map, index, address, word, role) is not None
+
+    def _planned(self, regmap: RegisterMap, index: int, address: int, word: int,
+                 role: Any) -> tuple[str, Any] | None:
+        """The change of a one-word write its plan accepts, queued and shown; ``None``: the general way."""
+        plan = self._write_plan(regmap, index, address)
+        if plan is None:
+            return None
+        value = plan.accept(word, role, self.effective_auto)
+        if value is None:
+            return None
+        self._queue(index, plan.quantity, value)
+        plan.show(value)
+        self._image_changed()
+        return plan.quantity, value
+
+    def _queue(self, index: int, quantity: str, value: Any) -> None:
+        """Queue an accepted change for the next tick (after any earlier change: arrival order is kept)."""
+        self._pending.pop((index, quantity), None)
+        self._pending[(index, quantity)] = value
+
+    def _write_plan(self, regmap: RegisterMap, index: int, address: int) -> WritePlan | None:
+        """The plan of a one-word write at ``address`` of ``regmap`` (the standard or the served map) on loop
+        ``index``, made at the first such write (the maps, scalings and images of a device never change)."""
+        key = (regmap is STANDARD, index, address)
+        try:
+            return self._plans[key]
+        except KeyError:
+            shown = [(STANDARD, self.image, int(self.offsets[index]))]
+            if self.served is not self.image:
+                shown.append((self.register_map, self.served, int(self.served_layout.offsets[index])))
+            plan = self._plans[key] = write_plan(tuple(shown), regmap, self.scaling, index, address)
+            return plan
 
     def _patch(self, image: bytearray, start: int, regmap: RegisterMap, changes: list[tuple[str, Any]],
                index: int) -> None:

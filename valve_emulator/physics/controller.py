@@ -338,6 +338,12 @@ class PIDBank:
                 self._dt, DERIVATIVE_FILTER, self._integral, self._deriv, self._pv_last, self._e_last,
                 self._u_last, self._op, self._auto, self._man_op, self._init)
 
+    def live_settings(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``kc``, ``1/ti`` (0: no integral action), ``td`` and ``auto`` as the bank's own arrays, not copies: for a
+        compiled reader at every sample (the device's image encoder), which must not write them. A change of tuning
+        replaces the arrays, so ask again each time."""
+        return self._kc, self._ti_inv, self._td, self._auto
+
     def kernel_output(self) -> np.ndarray:
         """The output array :func:`pid_step_kernel` writes, the one inside :meth:`kernel_args` (live state:
         for a caller that composes the kernel into its own compiled loop, not for reading -- use ``op``)."""

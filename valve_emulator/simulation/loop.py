@@ -59,7 +59,7 @@ from valve_emulator.physics.stiction import (
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.simulation import state as _state
 
-__all__ = ["LoopBank", "simulate_loop", "loop_step_kernel"]
+__all__ = ["LoopBank", "simulate_loop", "loop_step_kernel", "sensed_step_kernel"]
 
 _LINEAR, _EQUAL_PERCENTAGE, _QUICK_OPENING = (CHARACTERISTICS.index(k) for k in CHARACTERISTICS)
 
@@ -106,6 +106,39 @@ def loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, act
     if bad >= 0:
         return 10 + bad
     return 0
+
+
+#: :func:`sensed_step_kernel`'s answers when it has not stepped: the set-point schedule has a step due, or a loop
+#: has measurement noise and the noise streams do not exist yet (both handled in Python, then the call repeated).
+SP_DUE, NOISE_DUE = -1, -2
+
+
+@numba.njit(cache=True)
+def sensed_step_kernel(sp_next, due_by, noise_missing, unit_noise, noise_std, pv_bias, pv_stuck, load, disturbance,
+                       sp, op_ext, has_ctrl, frozen, pid, pid_op, actuator, valve, char_kind, char_r, flow_limits,
+                       plant, plant_pv, pv_meas, op, flow, u_in):  # pragma: no cover - compiled
+    """One sample of :meth:`LoopBank.step`: :func:`loop_step_kernel` with the measurement noise
+    ``unit_noise·noise_std + pv_bias`` (or a stuck transmitter's value) and the plant input's ``load +
+    disturbance`` composed here, element by element as numpy would.
+
+    Before anything changes it returns :data:`SP_DUE` when a set-point step is due (``sp_next <= due_by``)
+    and :data:`NOISE_DUE` when ``noise_missing`` and a loop is noisy; otherwise the step's code (0: done).
+    """
+    n = sp.shape[0]
+    for i in range(n):
+        if sp_next[i] <= due_by:
+            return SP_DUE
+        if noise_missing and noise_std[i] != 0.0:
+            return NOISE_DUE
+    noise = np.empty(n)
+    dist = np.empty(n)
+    for i in range(n):
+        noise[i] = unit_noise[i] * noise_std[i] + pv_bias[i]
+        if np.isfinite(pv_stuck[i]):
+            noise[i] = pv_stuck[i] - plant_pv[i]
+        dist[i] = load[i] + disturbance[i]
+    return loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, actuator, valve, char_kind,
+                            char_r, flow_limits, plant, plant_pv, pv_meas, op, flow, u_in)
 
 
 @numba.njit(cache=True)
@@ -308,6 +341,18 @@ class LoopBank:
     def td(self) -> np.ndarray:
         return self._pid.td
 
+    def image_arrays(self) -> tuple[np.ndarray, ...]:
+        """What the device's register image shows, as the bank's own arrays (no copies; read only):
+        ``op, valve state (n, NSTATE), flow, pv, sp, kc, 1/ti, td, S, J, load, noise_std, controller auto,
+        has_controller, frozen``.
+
+        The compiled encoder derives ``mv``, ``stuck``, ``ti``, the saturation flags and ``auto`` from them itself:
+        at one loop the properties' copies and numpy expressions cost several times the encoding. Tuning and
+        ``pv`` are replaced by new arrays as the bank runs, so ask again at every sample."""
+        kc, ti_inv, td, auto = self._pid.live_settings()
+        return (self.op, self._vstate, self.flow, self.pv, self._sp, kc, ti_inv, td, self._S, self._J, self.load,
+                self.noise_std, auto, self.has_controller, self.frozen)
+
     # -- commands (the device's instructor and operator writes) -----------------------------------------------
     def set_valve(self, i: int, *, S: float | None = None, J: float | None = None) -> None:
         """Change stiction of loop ``i``; it takes effect at the next sample."""
@@ -399,14 +444,6 @@ class LoopBank:
         if release:
             self.pv_stuck[i] = math.nan
 
-    def _sensor(self, noise: np.ndarray) -> np.ndarray:
-        """``noise`` plus the sensor faults, as the additive term of the measured PV (one sample)."""
-        noise = noise + self.pv_bias
-        stuck = np.isfinite(self.pv_stuck)
-        if stuck.any():
-            noise[stuck] = self.pv_stuck[stuck] - self._plant.pv[stuck]
-        return noise
-
     def follow_external(self, external: bool) -> None:
         """Let every valve follow the external OP (``op_external``, :meth:`run`'s ``op``) instead of its
         controller (``True``), or hand the valves back to their controllers (``False``): in auto, continuing
@@ -469,24 +506,34 @@ class LoopBank:
         """Advance every loop one sample ``dt``; afterwards ``pv``, ``op``, ``mv`` … describe sample k.
 
         The emulator's lockstep runs one of these per client request, so the work around the compiled step is
-        kept to what this bank has: a set-point schedule only when a step is due, the disturbance generators
-        only when a loop has a disturbance (as :meth:`run` does), the noise streams only once a loop is noisy.
+        kept to one compiled call (:func:`sensed_step_kernel`): it composes the noise, the sensor faults and
+        the load itself and tells when the set-point schedule or the noise streams need Python first; the
+        disturbance generators run only when a loop has a disturbance (as :meth:`run` does).
         """
         t = self.k * self.dt
-        if self._sp_next.min() <= t + 1e-9 * self.dt:
-            self._apply_sp_schedule(t)
-        dist = self.load + (0.0 if self._disturbance is None else self._disturbance(t))   # d + load, bit for bit
-        if self._noise is None and not self.noise_std.any():
-            noise = self._sensor(np.zeros(self.n))
-        else:
-            noise = self._sensor(self._unit_noise(1)[0] * self.noise_std)
+        # writable zeros, not a read-only constant: numba would compile the kernel a second time for those
+        dist = np.zeros(self.n) if self._disturbance is None else self._disturbance(t)
+        unit = None if self._noise is None else self._unit_noise(1)[0]
         pv_meas = np.empty(self.n)
-        code = loop_step_kernel(self._sp, noise, dist, self.op_external, self.has_controller, self.frozen,
-                                *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in)
+        code = self._sensed_step(t, dist, unit, pv_meas)
+        while code in (SP_DUE, NOISE_DUE):   # rare: a set-point step, the first sample of a noisy loop
+            if code == SP_DUE:
+                self._apply_sp_schedule(t)
+            else:
+                unit = self._unit_noise(1)[0]   # creates the noise streams
+            code = self._sensed_step(t, dist, unit, pv_meas)
         if code != 0:
             raise ValueError(f"non-finite value in loop step at t = {t} s (code {code})")
         self.pv = pv_meas
         self.k += 1
+
+    def _sensed_step(self, t: float, dist: np.ndarray, unit: np.ndarray | None, pv_meas: np.ndarray) -> int:
+        """:func:`sensed_step_kernel` on the bank at time ``t`` with this sample's disturbance and unit normals
+        (``None``: no noise streams yet)."""
+        return sensed_step_kernel(self._sp_next, t + 1e-9 * self.dt, unit is None,
+                                  np.zeros(self.n) if unit is None else unit, self.noise_std, self.pv_bias,
+                                  self.pv_stuck, self.load, dist, self._sp, self.op_external, self.has_controller,
+                                  self.frozen, *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in)
 
     def run(self, steps: int, *, sp: np.ndarray | None = None, op: np.ndarray | None = None
             ) -> dict[str, np.ndarray]:

@@ -149,6 +149,8 @@ from valve_emulator.device.registers.codec import (
     patch,
     patches,
     status_word,
+    value_decoder,
+    value_encoder,
     write_range,
 )
 from valve_emulator.device.registers.errors import (
@@ -201,5 +203,7 @@ __all__ = [
     "split32",
     "status_word",
     "to_words",
+    "value_decoder",
+    "value_encoder",
     "write_range",
 ]

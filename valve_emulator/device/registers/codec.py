@@ -55,7 +55,8 @@ from valve_emulator.device.registers.table import (
 from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, from_words, split32, split_words
 
 __all__ = ["WritePermission", "decode_value", "decode_write", "encode_loop", "encode_value", "encode_write",
-           "loop_values", "patch", "patches", "physical_range", "status_word", "write_range"]
+           "loop_values", "patch", "patches", "physical_range", "status_word", "value_decoder", "value_encoder",
+           "write_range"]
 
 _STATUS: Final = address_of("status")
 # Written quantities that also flip a status bit: quantity -> (bit, is the bit set for this value?)
@@ -80,19 +81,26 @@ def _span(reg: Register, scaling: Scaling, index: int) -> tuple[float, float]:
 
 def _scaled(reg: Register, value: float, scaling: Scaling, index: int) -> float:
     """The unrounded raw value ``y`` of a scaled integer register (see the module docstring)."""
+    return _scaler(reg, scaling, index)(value)
+
+
+def _scaler(reg: Register, scaling: Scaling, index: int) -> Callable[[float], float]:
+    """:func:`_scaled` of register ``reg`` on loop ``index`` as a function of the value, its constants looked up
+    once (the expressions are the rule's, term for term, so every value gives the same number)."""
     conversion = reg.conversion
     if conversion is Conversion.COUNTS:
         (e_lo, e_hi), (lo, hi) = _span(reg, scaling, index), reg.counts
-        return lo + (value - e_lo) * (hi - lo) / (e_hi - e_lo)
+        return lambda value: lo + (value - e_lo) * (hi - lo) / (e_hi - e_lo)
     if conversion is Conversion.PV_RANGE:
         lo, k = _per_range(reg, scaling, index)
-        return (value - lo) * k
+        return lambda value: (value - lo) * k
     if conversion is Conversion.PV_SPAN:   # a width w reads like the PV lo + w
         lo, k = _per_range(reg, scaling, index)
-        return ((lo + value) - lo) * k
+        return lambda value: ((lo + value) - lo) * k
+    scale = reg.scale
     if conversion is Conversion.LOOP_CURRENT:
-        return scaling.op_to_ma_at(value, index) * reg.scale
-    return value * reg.scale
+        return lambda value: scaling.op_to_ma_at(value, index) * scale
+    return lambda value: value * scale
 
 
 def _round_clip(y: float, lo: int, hi: int) -> int:
@@ -111,25 +119,40 @@ def _cdab(reg: Register, scaling: Scaling) -> bool:
 
 def encode_value(reg: Register, value: Any, scaling: Scaling, index: int) -> tuple[int, ...]:
     """The ``reg.width`` words register ``reg`` shows for the physical ``value`` of loop ``index``."""
+    return value_encoder(reg, scaling, index)(value)
+
+
+def value_encoder(reg: Register, scaling: Scaling, index: int) -> Callable[[Any], tuple[int, ...]]:
+    """:func:`encode_value` of register ``reg`` on loop ``index`` as a function of the value, the register's rules
+    looked up once: for a caller that encodes the same register again and again (a write's echo in the image)."""
     cdab = _cdab(reg, scaling)
     if reg.type is DataType.FLOAT32:
-        return split32(float32_bits(float(value)), cdab)
+        return lambda value: split32(float32_bits(float(value)), cdab)
     if reg.type is DataType.FLOAT64:
-        return split_words(int.from_bytes(struct.pack(">d", float(value)), "big"), 4, cdab)
+        return lambda value: split_words(int.from_bytes(struct.pack(">d", float(value)), "big"), 4, cdab)
+    raw = _raw_encoder(reg, scaling, index)
+    if reg.width == 2:
+        return lambda value: split32(raw(value) & 0xFFFFFFFF, cdab)
+    return lambda value: (raw(value) & 0xFFFF,)
+
+
+def _raw_encoder(reg: Register, scaling: Scaling, index: int) -> Callable[[Any], int]:
+    """The raw integer an integer register shows for a value (before two's complement and word order)."""
     conversion = reg.conversion
     if conversion is Conversion.COUNTER:
-        raw = int(value) % (reg.type.raw_range[1] + 1)
-    elif conversion is Conversion.BITS:
-        raw = int(value)
-    elif conversion is Conversion.FLAG:
-        raw = 1 if value else 0
-    elif reg.zero_is_off and not (math.isfinite(value) and value > 0):
-        raw = 0
-    else:
-        raw = _round_clip(_scaled(reg, float(value), scaling, index), *reg.read_range)
-    if reg.width == 2:
-        return split32(raw & 0xFFFFFFFF, cdab)
-    return (raw & 0xFFFF,)
+        modulus = reg.type.raw_range[1] + 1
+        return lambda value: int(value) % modulus
+    if conversion is Conversion.BITS:
+        return int
+    if conversion is Conversion.FLAG:
+        return lambda value: 1 if value else 0
+    scaled, (lo, hi) = _scaler(reg, scaling, index), reg.read_range
+    if conversion is Conversion.LINEAR and not reg.zero_is_off:   # the usual register, in one expression
+        scale = reg.scale
+        return lambda value: _round_clip(float(value) * scale, lo, hi)
+    if reg.zero_is_off:   # 0: off (a value that is not finite and > 0)
+        return lambda value: _round_clip(scaled(float(value)), lo, hi) if math.isfinite(value) and value > 0 else 0
+    return lambda value: _round_clip(scaled(float(value)), lo, hi)
 
 
 def encode_write(reg: Register, value: float, scaling: Scaling, index: int) -> tuple[int, ...]:
@@ -270,25 +293,32 @@ def physical_range(quantity: str, scaling: Scaling, index: int) -> tuple[float, 
 
 def decode_value(reg: Register, raw: int, scaling: Scaling, index: int) -> Any:
     """The physical value of a written raw word (``raw`` signed for ``int16``); inverse of :func:`encode_value`."""
+    return value_decoder(reg, scaling, index)(raw)
+
+
+def value_decoder(reg: Register, scaling: Scaling, index: int) -> Callable[[int], Any]:
+    """:func:`decode_value` of register ``reg`` on loop ``index`` as a function of the raw word, its rules looked
+    up once (the expressions are the rule's, term for term)."""
     conversion = reg.conversion
     if conversion is Conversion.COUNTS:
         (e_lo, e_hi), (lo, hi) = _span(reg, scaling, index), reg.counts
-        return e_lo + (raw - lo) * (e_hi - e_lo) / (hi - lo)
+        return lambda raw: e_lo + (raw - lo) * (e_hi - e_lo) / (hi - lo)
+    scale = reg.scale
     if conversion is Conversion.LOOP_CURRENT:
-        lo, hi = scaling.op_limits[index]
-        return float(np.clip(scaling.tables[index].to_pct(raw / reg.scale), lo, hi))
+        (lo, hi), table = scaling.op_limits[index], scaling.tables[index]
+        return lambda raw: float(np.clip(table.to_pct(raw / scale), lo, hi))
     if conversion is Conversion.PV_RANGE:
         lo, hi = scaling.pv_lo[index], scaling.pv_hi[index]
-        return float(lo + raw * (hi - lo) / (reg.scale * 100.0))
+        return lambda raw: float(lo + raw * (hi - lo) / (scale * 100.0))
     if conversion is Conversion.PV_SPAN:   # % of the PV range x scale -> PV units, what the loop bank takes
-        return raw / (reg.scale * 100.0) * float(scaling.pv_hi[index] - scaling.pv_lo[index])
+        return lambda raw: raw / (scale * 100.0) * float(scaling.pv_hi[index] - scaling.pv_lo[index])
     if conversion is Conversion.FLAG:
-        return bool(raw)
+        return bool
     if conversion in (Conversion.BITS, Conversion.COUNTER):
-        return int(raw)
-    if reg.zero_is_off and raw == 0:
-        return math.inf
-    return raw / reg.scale
+        return int
+    if reg.zero_is_off:
+        return lambda raw: math.inf if raw == 0 else raw / scale
+    return lambda raw: raw / scale
 
 
 class WritePermission(Protocol):

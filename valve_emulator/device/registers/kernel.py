@@ -24,6 +24,7 @@ import numpy as np
 from valve_emulator.device.registers.scaling import Scaling
 from valve_emulator.device.registers.table import MAP_VERSION, N_REGISTERS, Conversion, Fault, Status, register
 from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, split32
+from valve_emulator.physics.stiction import MV, STUCK
 
 __all__ = ["ImageEncoder", "encode", "encode_image", "encode_words"]
 
@@ -168,15 +169,22 @@ class ImageEncoder:
         self.scaling = scaling
         self._words16 = np.frombuffer(image, dtype=np.uint16)  # native order: the kernel swaps bytes itself
         self._half = offsets // 2
+        self._linear_ma = scaling.linear_ma
 
     def __call__(self, state: Any, *, tick: int, overruns: int, time: float) -> None:
         scaling = self.scaling
+        # the codec's counters (modulo 2^32) and float32, as 32-bit patterns
+        counters = (int(tick) & 0xFFFFFFFF, int(overruns) & 0xFFFFFFFF, float32_bits(float(time)),
+                    scaling.word_order is CDAB, self._half, self._words16)
+        live = getattr(state, "image_arrays", None)
+        if live is not None:   # a loop bank: its own arrays, the derived values computed in the kernel
+            op, *rest = live()
+            ma = op if self._linear_ma else np.ascontiguousarray(scaling.op_to_ma(op), dtype=np.float64)
+            _encode_bank_kernel(op, ma, self._linear_ma, *rest, scaling.pv_lo, scaling.pv_hi, *counters)
+            return
         op, *rest = _inputs(state, scaling.n)
         _encode_kernel(op, np.ascontiguousarray(scaling.op_to_ma(op), dtype=np.float64), *rest,
-                       scaling.pv_lo, scaling.pv_hi,
-                       # the codec's counters (modulo 2^32) and float32, as 32-bit patterns
-                       int(tick) & 0xFFFFFFFF, int(overruns) & 0xFFFFFFFF, float32_bits(float(time)),
-                       scaling.word_order is CDAB, self._half, self._words16)
+                       scaling.pv_lo, scaling.pv_hi, *counters)
 
 
 def encode_words(state: Any, scaling: Scaling, *, tick: int, overruns: int, time: float) -> np.ndarray:
@@ -239,6 +247,48 @@ def _put32(img, at, bits, cdab):  # pragma: no cover - compiled
     _put(img, at + 1, second)
 
 
+@numba.njit(cache=True, inline="always")
+def _encode_row(m, k, img, b, op, ma, mv, flow, pv, sp, kc, ti, td, S, J, load, noise, stuck, sat_low, sat_high, c,
+                auto, frozen, pv_lo, pv_hi, tick, overruns, time, cdab, f32):  # pragma: no cover - compiled
+    """One loop's registers from its values, at word ``b`` of ``img``, by the cells ``m`` and constants ``k`` of
+    the table (the kernels pass their frozen ones: inlined, they are literals); ``f32`` is a float32 scratch of 4.
+
+    A module-level function, not one of :func:`_compile`'s closures: a kernel that calls a closure's compiled
+    function cannot be cached on disk."""
+    bits = f32.view(np.uint32)
+    a = auto and c
+    per_pv = k.pv_full / (pv_hi - pv_lo)
+    _put(img, b + m.op_pct.at, _word(op, m.op_pct))
+    _put(img, b + m.op_ma.at, _word(ma, m.op_ma))
+    _put(img, b + m.mv_pct.at, _word(mv, m.mv_pct))
+    _put(img, b + m.flow_pct.at, _word(flow, m.flow_pct))
+    _put(img, b + m.pv.at, _word((pv - pv_lo) * per_pv, m.pv))
+    # the controller's registers read 0 on a loop without one
+    _put(img, b + m.sp.at, _word((sp - pv_lo) * per_pv, m.sp) if c else 0)
+    _put(img, b + m.mode.at, 1 if a else 0)
+    _put(img, b + m.kc.at, _word(kc, m.kc) if c else 0)
+    _put(img, b + m.ti.at, _word(ti, m.ti) if (c and np.isfinite(ti) and ti > 0) else 0)   # 0: no integral
+    _put(img, b + m.td.at, _word(td, m.td) if c else 0)
+    _put(img, b + m.S.at, _word(S, m.S))
+    _put(img, b + m.J.at, _word(J, m.J))
+    _put(img, b + m.status.at, (k.stuck if stuck else k.moving) + (k.sat_low if sat_low else 0)
+         + (k.sat_high if sat_high else 0) + (k.controller if c else 0) + (k.auto if a else 0)
+         + (k.seized if frozen else 0))
+    _put(img, b + m.map_version.at, k.map_version)
+    _put32(img, b + m.tick.at, tick, cdab)
+    _put32(img, b + m.overruns.at, overruns, cdab)
+    _put32(img, b + m.time.at, time, cdab)
+    f32[0], f32[1], f32[2], f32[3] = op, mv, pv, (sp if c else 0.0)
+    _put32(img, b + m.op_f32.at, bits[0], cdab)
+    _put32(img, b + m.mv_f32.at, bits[1], cdab)
+    _put32(img, b + m.pv_f32.at, bits[2], cdab)
+    _put32(img, b + m.sp_f32.at, bits[3], cdab)
+    _put(img, b + m.load.at, _word(load, m.load))
+    # a width w in PV units reads like the PV lo + w (the codec's rule, kept float for float)
+    _put(img, b + m.noise.at, _word(((pv_lo + noise) - pv_lo) * per_pv, m.noise))
+    _put(img, b + m.fault.at, k.fault_seized if frozen else 0)
+
+
 def _compile(m: _Map, k: _Constants):
     """The kernel for the table's cells ``m`` and constants ``k``, which numba freezes as literals.
 
@@ -251,44 +301,29 @@ def _compile(m: _Map, k: _Constants):
                       auto, frozen, pv_lo, pv_hi, tick, overruns, time, cdab, word0,
                       img):  # pragma: no cover - compiled
         f32 = np.empty(4, np.float32)
-        bits = f32.view(np.uint32)
         for i in range(op.shape[0]):
-            b = word0[i]
-            c = ctl[i]
-            a = auto[i] and c
-            per_pv = k.pv_full / (pv_hi[i] - pv_lo[i])
-            _put(img, b + m.op_pct.at, _word(op[i], m.op_pct))
-            _put(img, b + m.op_ma.at, _word(ma[i], m.op_ma))
-            _put(img, b + m.mv_pct.at, _word(mv[i], m.mv_pct))
-            _put(img, b + m.flow_pct.at, _word(flow[i], m.flow_pct))
-            _put(img, b + m.pv.at, _word((pv[i] - pv_lo[i]) * per_pv, m.pv))
-            # the controller's registers read 0 on a loop without one
-            _put(img, b + m.sp.at, _word((sp[i] - pv_lo[i]) * per_pv, m.sp) if c else 0)
-            _put(img, b + m.mode.at, 1 if a else 0)
-            _put(img, b + m.kc.at, _word(kc[i], m.kc) if c else 0)
-            t = ti[i]
-            _put(img, b + m.ti.at, _word(t, m.ti) if (c and np.isfinite(t) and t > 0) else 0)   # 0: no integral
-            _put(img, b + m.td.at, _word(td[i], m.td) if c else 0)
-            _put(img, b + m.S.at, _word(S[i], m.S))
-            _put(img, b + m.J.at, _word(J[i], m.J))
-            _put(img, b + m.status.at, (k.stuck if stuck[i] else k.moving) + (k.sat_low if sat_low[i] else 0)
-                 + (k.sat_high if sat_high[i] else 0) + (k.controller if c else 0) + (k.auto if a else 0)
-                 + (k.seized if frozen[i] else 0))
-            _put(img, b + m.map_version.at, k.map_version)
-            _put32(img, b + m.tick.at, tick, cdab)
-            _put32(img, b + m.overruns.at, overruns, cdab)
-            _put32(img, b + m.time.at, time, cdab)
-            f32[0], f32[1], f32[2], f32[3] = op[i], mv[i], pv[i], (sp[i] if c else 0.0)
-            _put32(img, b + m.op_f32.at, bits[0], cdab)
-            _put32(img, b + m.mv_f32.at, bits[1], cdab)
-            _put32(img, b + m.pv_f32.at, bits[2], cdab)
-            _put32(img, b + m.sp_f32.at, bits[3], cdab)
-            _put(img, b + m.load.at, _word(load[i], m.load))
-            # a width w in PV units reads like the PV lo + w (the codec's rule, kept float for float)
-            _put(img, b + m.noise.at, _word(((pv_lo[i] + noise[i]) - pv_lo[i]) * per_pv, m.noise))
-            _put(img, b + m.fault.at, k.fault_seized if frozen[i] else 0)
+            _encode_row(m, k, img, word0[i], op[i], ma[i], mv[i], flow[i], pv[i], sp[i], kc[i], ti[i], td[i], S[i],
+                        J[i], load[i], noise[i], stuck[i], sat_low[i], sat_high[i], ctl[i], auto[i], frozen[i],
+                        pv_lo[i], pv_hi[i], tick, overruns, time, cdab, f32)
 
-    return encode_kernel
+    @numba.njit(cache=True)
+    def encode_bank_kernel(op, ma, linear_ma, valve, flow, pv, sp, kc, ti_inv, td, S, J, load, noise, auto, ctl,
+                           frozen, pv_lo, pv_hi, tick, overruns, time, cdab, word0,
+                           img):  # pragma: no cover - compiled
+        """:func:`encode_kernel` from a loop bank's own arrays (``LoopBank.image_arrays``): ``mv`` and ``stuck``
+        from the valve state, ``ti`` from ``1/ti``, the saturation flags from OP and, with ``linear_ma`` (no
+        custom mA table), the loop current ``4 + 0.16·OP`` -- the bank's properties' and the scaling's numbers,
+        computed here."""
+        f32 = np.empty(4, np.float32)
+        for i in range(op.shape[0]):
+            o = op[i]
+            inv = ti_inv[i]
+            _encode_row(m, k, img, word0[i], o, 4.0 + 0.16 * o if linear_ma else ma[i], valve[i, MV], flow[i], pv[i],
+                        sp[i], kc[i], np.inf if inv == 0.0 else 1.0 / inv, td[i], S[i], J[i], load[i], noise[i],
+                        valve[i, STUCK] == 1.0, o <= 0.0, o >= 100.0, ctl[i], auto[i], frozen[i], pv_lo[i],
+                        pv_hi[i], tick, overruns, time, cdab, f32)
+
+    return encode_kernel, encode_bank_kernel
 
 
-_encode_kernel = _compile(_MAP, _CONSTANTS)
+_encode_kernel, _encode_bank_kernel = _compile(_MAP, _CONSTANTS)

@@ -120,6 +120,11 @@ class Scaling:
 
     # --- the loop current, shared by the compiled encoder and the codec -------------------------------
 
+    @property
+    def linear_ma(self) -> bool:
+        """Is every unit's loop current the default ``4 + 0.16·OP`` mA (no custom mA table)?"""
+        return not self._custom
+
     def op_to_ma_at(self, op: float, index: int) -> float:
         """:meth:`op_to_ma` of one OP of unit ``index`` (a write's echo in the image), the same number."""
         if index not in self._custom:
