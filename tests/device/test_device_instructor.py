@@ -142,6 +142,7 @@ async def test_freeze_holds_simulated_time_and_the_tick_register():
         assert device.bank.sample_time > t
 
 
+@pytest.mark.realtime   # a wall-clock rate: it needs the machine alone, as .ci/run's realtime phase gives it
 async def test_speed_five_runs_five_times_faster_within_ten_percent():
     device = Device.from_config(_config(tick=0.05), time_scale=1.0)
     async with device:
