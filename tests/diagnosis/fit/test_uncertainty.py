@@ -1,11 +1,20 @@
-"""Intervals from a cost surface: the effective sample size of a coloured residual and a region cut by its grid."""
+"""Intervals from a cost surface: the effective sample size of a coloured residual, a region cut by its grid, the
+grid's step at the interval's ends, and the delete-a-block jackknife that widens an interval where blocks of the
+record disagree."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from valve_emulator.diagnosis.fit.uncertainty import effective_fraction, intervals, touches_edge
+from valve_emulator.diagnosis.fit.uncertainty import (
+    block_windows,
+    effective_fraction,
+    intervals,
+    jackknifed,
+    left_out_rows,
+    touches_edge,
+)
 
 
 def _ar1(rho: float, n: int, seed: int = 0) -> np.ndarray:
@@ -38,8 +47,8 @@ def test_a_slowly_wandering_error_is_counted_beyond_its_lag_one_correlation():
     assert effective_fraction(e) < 0.5 * (1 - rho1) / (1 + rho1)
 
 
-def _quadratic_surface(width: float, n: float):
-    x = np.linspace(-1.0, 1.0, 201)
+def _quadratic_surface(width: float, n: float, points: int = 20001):
+    x = np.linspace(-1.0, 1.0, points)
     sse = 1.0 + (x / width) ** 2   # N ln(SSE/SSE_min) ≈ N (x/width)² near 0
     return x[:, None], sse
 
@@ -58,3 +67,52 @@ def test_a_region_that_reaches_the_end_of_its_grid_is_said_to_touch_it():
     assert touches_edge(params, sse, 0.5, 1, 0) == (True, True)
     shifted = 1.0 + ((params[:, 0] - 0.99) / 0.1) ** 2
     assert touches_edge(params, shifted, 100.0, 1, 0) == (False, True)
+
+
+def test_an_interval_ends_at_the_first_grid_value_outside_the_region():
+    # On a grid of step 0.1 the region of SSE = 1 + x² (N = 100) holds -0.1..0.1 (N ln SSE ≤ 3.84 for
+    # |x| ≤ 0.198); its ends are the first values excluded, -0.2 and 0.2, not the last included ones widened by
+    # half a step: the truth may lie anywhere short of the first value excluded.
+    params, sse = _quadratic_surface(1.0, 100, points=21)
+    lo, hi = intervals(params, sse, 100.0, ("x",), 1)["x"]
+    assert lo == pytest.approx(-0.2) and hi == pytest.approx(0.2)
+
+
+def test_blocks_cut_the_window_into_consecutive_parts_of_equal_length():
+    windows = block_windows((100, 900), 8)
+    assert windows[0][0] == 100 and windows[-1][1] == 900
+    assert all(a[1] == b[0] for a, b in zip(windows, windows[1:]))
+    assert {b - a for a, b in windows} == {100}
+
+
+def _block_surfaces(optima: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Rows x = 0..10 (step 0.1) and each block's SSE, a parabola about that block's own optimum."""
+    x = np.round(np.arange(0.0, 10.0001, 0.1), 10)[:, None]
+    return x, np.array([1.0 + (x[:, 0] - m) ** 2 for m in optima])
+
+
+def test_each_left_out_estimate_is_the_best_row_of_the_other_blocks():
+    rows, sse = _block_surfaces([4.0, 6.0, 5.0, 5.0])
+    left = left_out_rows(rows, sse)[:, 0]
+    # the mean of the other three optima: 16/3, 14/3, 5, 5, on the grid of step 0.1
+    assert left == pytest.approx([5.3, 4.7, 5.0, 5.0], abs=1e-9)
+
+
+def test_blocks_that_agree_leave_the_interval_as_it_was():
+    rows, sse = _block_surfaces([5.0] * 8)
+    ivs = {"x": (4.6, 5.4)}
+    assert jackknifed(ivs, np.array([5.0]), left_out_rows(rows, sse), ("x",), (0,)) == ivs
+
+
+def test_blocks_that_disagree_widen_the_interval_by_the_jackknife_standard_error():
+    optima = [4.0, 6.0, 4.0, 6.0, 4.0, 6.0, 4.0, 6.0]
+    rows, sse = _block_surfaces(optima)
+    left = left_out_rows(rows, sse)
+    lo, hi = jackknifed({"x": (4.9, 5.1)}, np.array([5.0]), left, ("x",), (0,))["x"]
+    # left-out means 5 ∓ 1/7 (on the grid: 4.9 and 5.1); se = sqrt(7/8 · 8 · 0.1²) = 0.26, t₇ = 2.36
+    se = np.sqrt(7 / 8 * np.sum((left[:, 0] - left[:, 0].mean()) ** 2))
+    assert se == pytest.approx(np.sqrt(7) * 0.1, rel=1e-6)
+    assert lo == pytest.approx(5.0 - 2.3646 * se, rel=1e-3) and hi == pytest.approx(5.0 + 2.3646 * se, rel=1e-3)
+    # a name without an interval gets none, a single block changes nothing
+    assert "y" not in jackknifed({"x": (4.9, 5.1)}, np.array([5.0, 1.0]), np.hstack([left, left]), ("x", "y"), (0, 1))
+    assert jackknifed({"x": (4.9, 5.1)}, np.array([5.0]), left[:1], ("x",), (0,)) == {"x": (4.9, 5.1)}

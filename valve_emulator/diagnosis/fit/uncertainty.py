@@ -4,8 +4,10 @@ With Gaussian errors, :math:`-2\ln L = N \ln(\mathrm{SSE}/N) + c`, so the set of
 :math:`N \ln(\mathrm{SSE}/\mathrm{SSE}_{\min})` stays below the 95 % point of :math:`\chi^2_k` (k the
 candidate's parameters, the linear part re-fitted at every point) is an approximate 95 % confidence region
 (Wilks). Threshold parameters sit on boundaries and the cost is piecewise constant at fine scale, so the
-region is approximate; its extent on each axis, widened by half a grid step, is the reported interval.
-The held-out fit is the practical check that the interval is not optimistic.
+region is approximate. On each axis the interval runs from the first grid value outside the region below it
+to the first one outside above it: the region's true end lies somewhere between its last row inside and the
+next row out, and only the row out is known to be excluded (an end half a step out was missed by the truth,
+less than a step beyond, on three of 32 drawn sticky loops).
 
 The χ² bound assumes independent errors. A closed loop's residual is not: a wandering load, a plant the
 model matches only approximately and a friction law that is not the search's leave an error that is smooth over
@@ -14,19 +16,35 @@ residual's effective fraction (:func:`effective_fraction`, N_eff/N = 1/τ_int, t
 time) before it is compared with χ²; on the drawn sticky loops of the independent simulator
 (:mod:`~valve_emulator.benchmark.independent`) N_eff is one to five per cent of N, and without this scaling
 the intervals were ten times too narrow.
+
+Both assume the search's model is the plant's. Where it is not (a friction law, an actuator lag or a load the
+model does not have), the cost surface is shaped by the mismatch as much as by the noise, and the bias it leaves
+in the estimate changes along the record with the operating point and the load. The record itself shows how
+much, by the delete-a-block jackknife (Künsch, *Ann. Statist.* 17, 1989), which needs no error model: the fit
+part is cut into :data:`BLOCKS` consecutive blocks, the profile grid is scored on each with the linear part
+re-fitted on that block alone, the estimate is taken again with each block left out (:func:`left_out_rows`),
+and the spread of those B estimates gives the standard error
+:math:`\mathrm{se}^2 = \tfrac{B-1}{B}\sum_b (\hat\theta_{(b)} - \bar\theta)^2`. The interval is widened to
+hold :math:`\hat\theta \pm t_{B-1}\,\mathrm{se}` (:func:`jackknifed`). Where the model matches the plant the
+blocks agree and this changes nothing; on the drawn sticky loops it brought the intervals of S from 27 to 30
+covering of 32, their median width from 72 to 79 % of S.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.stats import chi2
+from scipy.stats import t as student_t
 
 from valve_emulator.diagnosis.fit.cost import relative_cost
 
-__all__ = ["LEVEL", "effective_fraction", "intervals", "touches_edge"]
+__all__ = ["BLOCKS", "LEVEL", "block_windows", "effective_fraction", "intervals", "jackknifed", "left_out_rows",
+           "touches_edge"]
 
 #: Confidence level of the reported intervals.
 LEVEL = 0.95
+#: Consecutive blocks of the fit part left out in turn by the jackknife (:func:`jackknifed`).
+BLOCKS = 8
 
 
 def effective_fraction(residual: np.ndarray) -> float:
@@ -78,6 +96,9 @@ def intervals(params: np.ndarray, sse: np.ndarray, n: float, names: tuple[str, .
     names : names of the columns of ``params`` to report.
     k : number of free parameters (degrees of freedom of the chi-square).
     axes : columns of ``params`` to report (default: the first ``len(names)``).
+
+    Each end is the first grid value beyond the region (see the module docstring), or the last one inside
+    widened by the grid's step where the grid ends.
     """
     axes = tuple(range(len(names))) if axes is None else axes
     inside = relative_cost(sse, n) <= chi2.ppf(LEVEL, k)
@@ -86,5 +107,39 @@ def intervals(params: np.ndarray, sse: np.ndarray, n: float, names: tuple[str, .
         values = np.unique(params[:, ax])
         step = float(np.min(np.diff(values))) if values.size > 1 else 0.0
         sel = params[inside, ax]
-        out[name] = (float(sel.min() - step / 2), float(sel.max() + step / 2))
+        out[name] = (float(sel.min() - step), float(sel.max() + step))
+    return out
+
+
+def block_windows(window: tuple[int, int], blocks: int = BLOCKS) -> list[tuple[int, int]]:
+    """``window`` cut into ``blocks`` consecutive windows of (nearly) equal length."""
+    edges = np.linspace(window[0], window[1], blocks + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def left_out_rows(params: np.ndarray, block_sse: np.ndarray) -> np.ndarray:
+    """The estimate with each block left out: per block b, the row of ``params`` (m, p) with the least SSE summed
+    over the other blocks (``block_sse`` (B, m), each block's SSE at each row)."""
+    others = block_sse.sum(axis=0)[None, :] - block_sse
+    return params[np.argmin(others, axis=1)]
+
+
+def jackknifed(ivs: dict[str, tuple[float, float]], estimate: np.ndarray, left_out: np.ndarray,
+               names: tuple[str, ...], axes: tuple[int, ...]) -> dict[str, tuple[float, float]]:
+    """``ivs`` widened to hold ``estimate ± t_{B−1} se`` per named parameter, se the delete-a-block jackknife's
+    standard error from the ``left_out`` estimates (B, p) (see the module docstring); the parameter of
+    ``names[i]`` is column ``axes[i]``. Names without an interval are left out; fewer than two blocks change
+    nothing."""
+    out = dict(ivs)
+    b = left_out.shape[0]
+    if b < 2:
+        return out
+    t = float(student_t.ppf(0.5 + LEVEL / 2, b - 1))
+    for name, ax in zip(names, axes):
+        if name not in out:
+            continue
+        col = left_out[:, ax]
+        se = float(np.sqrt((b - 1) / b * np.sum((col - col.mean()) ** 2)))
+        lo, hi = out[name]
+        out[name] = (min(lo, float(estimate[ax]) - t * se), max(hi, float(estimate[ax]) + t * se))
     return out
