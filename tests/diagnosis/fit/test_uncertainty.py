@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from valve_emulator.diagnosis.fit.uncertainty import (
     block_windows,
@@ -69,13 +70,23 @@ def test_a_region_that_reaches_the_end_of_its_grid_is_said_to_touch_it():
     assert touches_edge(params, shifted, 100.0, 1, 0) == (False, True)
 
 
-def test_an_interval_ends_at_the_first_grid_value_outside_the_region():
-    # On a grid of step 0.1 the region of SSE = 1 + x² (N = 100) holds -0.1..0.1 (N ln SSE ≤ 3.84 for
-    # |x| ≤ 0.198); its ends are the first values excluded, -0.2 and 0.2, not the last included ones widened by
-    # half a step: the truth may lie anywhere short of the first value excluded.
+def test_an_interval_ends_where_the_cost_crosses_its_bound_between_two_grid_values():
+    # On a grid of step 0.1 the region of SSE = 1 + x² (N = 100) holds -0.1..0.1; the exact crossing of
+    # N ln SSE = 3.84 is at |x| = 0.198. The interpolated end is there, not half a step past the last value inside
+    # (0.15): a truth at 0.19 is in the interval.
     params, sse = _quadratic_surface(1.0, 100, points=21)
     lo, hi = intervals(params, sse, 100.0, ("x",), 1)["x"]
-    assert lo == pytest.approx(-0.2) and hi == pytest.approx(0.2)
+    exact = np.sqrt(np.expm1(chi2.ppf(0.95, 1) / 100))
+    assert lo == pytest.approx(-exact, abs=0.005) and hi == pytest.approx(exact, abs=0.005)
+
+
+def test_an_interval_ends_at_least_half_a_grid_step_beyond_the_last_value_inside():
+    # A cost that jumps just past 0.1: the crossing interpolates to barely beyond 0.1, but the grid cannot say
+    # where between 0.1 and 0.2 the jump is, so the interval keeps half a step.
+    x = np.round(np.arange(-1.0, 1.0001, 0.1), 10)
+    sse = np.where(np.abs(x) <= 0.1 + 1e-9, 1.0, 1e6)
+    lo, hi = intervals(x[:, None], sse, 100.0, ("x",), 1)["x"]
+    assert lo == pytest.approx(-0.15) and hi == pytest.approx(0.15)
 
 
 def test_blocks_cut_the_window_into_consecutive_parts_of_equal_length():

@@ -236,8 +236,8 @@ def _deadband_as_stiction(fitter: Fitter, model: Model, act, n_eff: float) -> di
     S0, start = float(act.params[0]), float(act.params[-1])
     surf = _profile(fitter, model, act.slot, stc, np.array([S0, S0, start]), n_eff, (0, 1))
     ivs = intervals(surf.params, surf.sse, n_eff, ("S", "J"), stc.n_params, axes=(0, 1))
-    left_out = _left_out(fitter, model, act.slot, stc, surf.params)
-    return jackknifed(ivs, np.array([S0, 0.0, start]), left_out, ("S", "J"), (0, 1))
+    best = surf.params[int(np.argmin(surf.sse))]   # the band and slip this profile itself fits best
+    return jackknifed(ivs, best, _left_out(fitter, model, act.slot, stc, surf.params), ("S", "J"), (0, 1))
 
 
 def _on_edges(cand: Candidate, ctx, p: np.ndarray) -> dict[str, tuple[str, float]]:
