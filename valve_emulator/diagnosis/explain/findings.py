@@ -37,7 +37,9 @@ from valve_emulator.diagnosis.fit.uncertainty import (
     effective_fraction,
     intervals,
     jackknifed,
-    left_out_rows,
+    left_out,
+    optimum,
+    plausible,
     touches_edge,
 )
 
@@ -163,13 +165,16 @@ def _over_variants(results: list[tuple], penalties: np.ndarray, n_eff: float) ->
     return np.min([r[0].min(axis=1) * np.exp(p / max(n_eff, 1.0)) for r, p in zip(results, penalties)], axis=0)
 
 
-def _left_out(fitter: Fitter, model: Model, slot: str, cand: Candidate, rows: np.ndarray) -> np.ndarray:
-    """The delete-a-block jackknife's estimates of ``cand`` in ``slot`` (:func:`~valve_emulator.diagnosis.fit.
-    uncertainty.left_out_rows`): ``rows`` scored on each of the fit part's blocks with the rest of ``model`` held
-    as :func:`_score_rows` holds it and the linear part's gain and taps re-fitted on the block alone, at the
-    fitted poles (the profile's pole variants moved no jackknifed interval of the drawn sticky loops, and
-    cost three times the time)."""
+def _left_out(fitter: Fitter, model: Model, slot: str, cand: Candidate, surf: Surface, n_eff: float,
+              axes: tuple[int, ...]) -> np.ndarray:
+    """The delete-a-block jackknife's estimates of the columns ``axes`` of ``cand`` in ``slot``
+    (:func:`~valve_emulator.diagnosis.fit.uncertainty.left_out`), among the rows of the profile ``surf`` that the
+    whole record allows (:func:`~valve_emulator.diagnosis.fit.uncertainty.plausible`): each scored on each of
+    the fit part's blocks with the rest of ``model`` held as :func:`_score_rows` holds it, and the linear part's
+    gain and taps re-fitted on the block alone at the fitted poles (the profile's pole variants moved no
+    jackknifed interval of the drawn sticky loops, and cost three times the time)."""
     scorer = fitter.scorer
+    rows = surf.params[plausible(surf.sse, n_eff, cand.n_params)]
     rest, jobs, _ = _profile_jobs(scorer, model, slot)
     ctx, aim, p = scorer.ctx(model), scorer.aim(model), scorer.p
     blocks = [Scorer(replace(p, train=w), scorer.nominal, scorer.library) for w in block_windows(p.train)]
@@ -178,7 +183,7 @@ def _left_out(fitter: Fitter, model: Model, slot: str, cand: Candidate, rows: np
         flows = scorer.chain(rest, ctx, cand, rows[a:a + _JACKKNIFE_CHUNK])
         for i, block in enumerate(blocks):
             sse[i, a:a + flows.shape[1]] = block.sse_flows_all(flows, jobs[:1], aim)[0][0].min(axis=1)
-    return left_out_rows(rows, sse)
+    return left_out(rows, sse, axes)
 
 
 def _limits(cand: Candidate, ctx, surf: Surface, axis: int) -> tuple[float, float]:
@@ -236,8 +241,8 @@ def _deadband_as_stiction(fitter: Fitter, model: Model, act, n_eff: float) -> di
     S0, start = float(act.params[0]), float(act.params[-1])
     surf = _profile(fitter, model, act.slot, stc, np.array([S0, S0, start]), n_eff, (0, 1))
     ivs = intervals(surf.params, surf.sse, n_eff, ("S", "J"), stc.n_params, axes=(0, 1))
-    best = surf.params[int(np.argmin(surf.sse))]   # the band and slip this profile itself fits best
-    return jackknifed(ivs, best, _left_out(fitter, model, act.slot, stc, surf.params), ("S", "J"), (0, 1))
+    best = {"S": optimum(surf.params, surf.sse, 0), "J": optimum(surf.params, surf.sse, 1)}  # this profile's own
+    return jackknifed(ivs, best, _left_out(fitter, model, act.slot, stc, surf, n_eff, (0, 1)), ("S", "J"))
 
 
 def _on_edges(cand: Candidate, ctx, p: np.ndarray) -> dict[str, tuple[str, float]]:
@@ -278,8 +283,8 @@ def _intervals(fitter: Fitter, problem: Problem, model: Model, act, params: dict
     surf = _surface(fitter, model, act, n_eff, axes)
     ivs = intervals(surf.params, surf.sse, n_eff, names, cand.n_params, axes=axes) if names else {}
     if cand.kind is Kind.CHAIN and names:
-        left_out = _left_out(fitter, model, act.slot, cand, surf.params)
-        ivs = jackknifed(ivs, np.asarray(act.params, dtype=float), left_out, names, axes)
+        estimate = {k: float(act.params[ax]) for k, ax in zip(names, axes)}
+        ivs = jackknifed(ivs, estimate, _left_out(fitter, model, act.slot, cand, surf, n_eff, axes), names)
     if act.name == "deadband":
         band = _deadband_as_stiction(fitter, model, act, n_eff)
         ivs["S"] = (min(ivs["S"][0], band["S"][0]), max(ivs["S"][1], band["S"][1]))

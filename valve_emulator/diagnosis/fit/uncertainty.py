@@ -22,7 +22,8 @@ model does not have), the cost surface is shaped by the mismatch as much as by t
 in the estimate changes along the record with the operating point and the load. The record itself shows how
 much, by the delete-a-block jackknife (Künsch, *Ann. Statist.* 17, 1989), which needs no error model: the fit
 part is cut into :data:`BLOCKS` consecutive blocks, the profile grid is scored on each with the linear part
-re-fitted on that block alone, the estimate is taken again with each block left out (:func:`left_out_rows`),
+re-fitted on that block alone, the estimate is taken again with each block left out (:func:`left_out`; among
+the values the whole record allows at 99.9 %),
 and the spread of those B estimates gives the standard error
 :math:`\mathrm{se}^2 = \tfrac{B-1}{B}\sum_b (\hat\theta_{(b)} - \bar\theta)^2`. The interval is widened to
 hold :math:`\hat\theta \pm t_{B-1}\,\mathrm{se}` (:func:`jackknifed`). Where the model matches the plant the
@@ -39,13 +40,15 @@ from scipy.stats import t as student_t
 
 from valve_emulator.diagnosis.fit.cost import relative_cost
 
-__all__ = ["BLOCKS", "LEVEL", "block_windows", "effective_fraction", "intervals", "jackknifed", "left_out_rows",
-           "touches_edge"]
+__all__ = ["BLOCKS", "LEVEL", "PLAUSIBLE", "block_windows", "effective_fraction", "intervals", "jackknifed",
+           "left_out", "optimum", "plausible", "touches_edge"]
 
 #: Confidence level of the reported intervals.
 LEVEL = 0.95
 #: Consecutive blocks of the fit part left out in turn by the jackknife (:func:`jackknifed`).
 BLOCKS = 8
+#: Level of the profile region within which a left-out estimate is sought (:func:`left_out`).
+PLAUSIBLE = 0.999
 
 
 def effective_fraction(residual: np.ndarray) -> float:
@@ -135,29 +138,63 @@ def block_windows(window: tuple[int, int], blocks: int = BLOCKS) -> list[tuple[i
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
-def left_out_rows(params: np.ndarray, block_sse: np.ndarray) -> np.ndarray:
-    """The estimate with each block left out: per block b, the row of ``params`` (m, p) with the least SSE summed
-    over the other blocks (``block_sse`` (B, m), each block's SSE at each row)."""
+def optimum(params: np.ndarray, sse: np.ndarray, axis: int) -> float:
+    """Where the profile of ``sse`` along column ``axis`` of ``params`` is least: the grid value with the least
+    SSE (over the other columns), refined to the vertex of the parabola through it and its two neighbours.
+
+    On a grid the left-out estimates of the jackknife would otherwise move by whole steps, and one block that
+    tips the choice between two neighbouring values would read as a spread of a step.
+    """
+    values, which = np.unique(params[:, axis], return_inverse=True)
+    along = np.full(values.size, np.inf)
+    np.minimum.at(along, which, sse)
+    i = int(np.argmin(along))
+    if i == 0 or i == values.size - 1 or not np.all(np.isfinite(along[i - 1:i + 2])):
+        return float(values[i])
+    (x0, x1, x2), (y0, y1, y2) = values[i - 1:i + 2], along[i - 1:i + 2]
+    return float(np.clip(_vertex(x0, x1, x2, y0, y1, y2), x0, x2))
+
+
+def _vertex(x0: float, x1: float, x2: float, y0: float, y1: float, y2: float) -> float:
+    """The abscissa of the vertex of the parabola through three points (the middle one for a line)."""
+    num = (x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)
+    den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
+    return float(x1 - 0.5 * num / den) if den != 0.0 else float(x1)
+
+
+def plausible(sse: np.ndarray, n: float, k: int) -> np.ndarray:
+    """The rows of a surface the whole record does not exclude at the :data:`PLAUSIBLE` level (a mask)."""
+    return relative_cost(sse, n) <= chi2.ppf(PLAUSIBLE, k)
+
+
+def left_out(params: np.ndarray, block_sse: np.ndarray, axes: tuple[int, ...]) -> np.ndarray:
+    """The estimates with each block left out (B, len(axes)): per block b, the :func:`optimum` along each of
+    ``axes`` of the SSE summed over the other blocks (``block_sse`` (B, m): each block's SSE at each row of
+    ``params`` (m, p)).
+
+    Each block's linear part is its own, so the sum over blocks is a more pliable model than the whole record's
+    (an offset per block can stand in for a valve that never moves): ``params`` should hold only the rows the
+    whole record allows (:func:`plausible`), so that the jackknife measures how the estimate moves among them.
+    """
     others = block_sse.sum(axis=0)[None, :] - block_sse
-    return params[np.argmin(others, axis=1)]
+    return np.array([[optimum(params, row, ax) for ax in axes] for row in others])
 
 
-def jackknifed(ivs: dict[str, tuple[float, float]], estimate: np.ndarray, left_out: np.ndarray,
-               names: tuple[str, ...], axes: tuple[int, ...]) -> dict[str, tuple[float, float]]:
-    """``ivs`` widened to hold ``estimate ± t_{B−1} se`` per named parameter, se the delete-a-block jackknife's
-    standard error from the ``left_out`` estimates (B, p) (see the module docstring); the parameter of
-    ``names[i]`` is column ``axes[i]``. Names without an interval are left out; fewer than two blocks change
-    nothing."""
+def jackknifed(ivs: dict[str, tuple[float, float]], estimate: dict[str, float], left: np.ndarray,
+               names: tuple[str, ...]) -> dict[str, tuple[float, float]]:
+    """``ivs`` widened to hold ``estimate ± t_{B−1} se`` per name, se the delete-a-block jackknife's standard
+    error from the ``left``-out estimates (B, len(names), column i for ``names[i]``; see the module docstring).
+    Names without an interval are left out; fewer than two blocks change nothing."""
     out = dict(ivs)
-    b = left_out.shape[0]
+    b = left.shape[0]
     if b < 2:
         return out
     t = float(student_t.ppf(0.5 + LEVEL / 2, b - 1))
-    for name, ax in zip(names, axes):
+    for i, name in enumerate(names):
         if name not in out:
             continue
-        col = left_out[:, ax]
+        col = left[:, i]
         se = float(np.sqrt((b - 1) / b * np.sum((col - col.mean()) ** 2)))
         lo, hi = out[name]
-        out[name] = (min(lo, float(estimate[ax]) - t * se), max(hi, float(estimate[ax]) + t * se))
+        out[name] = (min(lo, estimate[name] - t * se), max(hi, estimate[name] + t * se))
     return out
