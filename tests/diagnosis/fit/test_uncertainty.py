@@ -13,7 +13,9 @@ from valve_emulator.diagnosis.fit.uncertainty import (
     effective_fraction,
     intervals,
     jackknifed,
-    left_out_rows,
+    left_out,
+    optimum,
+    plausible,
     touches_edge,
 )
 
@@ -102,28 +104,42 @@ def _block_surfaces(optima: list[float]) -> tuple[np.ndarray, np.ndarray]:
     return x, np.array([1.0 + (x[:, 0] - m) ** 2 for m in optima])
 
 
-def test_each_left_out_estimate_is_the_best_row_of_the_other_blocks():
+def test_the_optimum_of_a_surface_lies_between_its_grid_values():
+    x = np.round(np.arange(0.0, 10.0001, 0.1), 10)
+    assert optimum(x[:, None], (x - 5.03) ** 2, 0) == pytest.approx(5.03)
+    # on two columns, along each one the least over the other
+    grid = np.array([(a, b) for a in x[::10] for b in x[::10]])
+    sse = (grid[:, 0] - 3.3) ** 2 + 2.0 * (grid[:, 1] - 6.6) ** 2
+    assert optimum(grid, sse, 0) == pytest.approx(3.3) and optimum(grid, sse, 1) == pytest.approx(6.6)
+    # at the end of the grid it is the end
+    assert optimum(x[:, None], (x - 12.0) ** 2, 0) == 10.0
+
+
+def test_each_left_out_estimate_is_the_optimum_of_the_other_blocks():
     rows, sse = _block_surfaces([4.0, 6.0, 5.0, 5.0])
-    left = left_out_rows(rows, sse)[:, 0]
-    # the mean of the other three optima: 16/3, 14/3, 5, 5, on the grid of step 0.1
-    assert left == pytest.approx([5.3, 4.7, 5.0, 5.0], abs=1e-9)
+    # the mean of the other three optima
+    assert left_out(rows, sse, (0,))[:, 0] == pytest.approx([16 / 3, 14 / 3, 5.0, 5.0])
+
+
+def test_the_rows_the_whole_record_allows_are_those_inside_a_wide_region():
+    x = np.linspace(-1.0, 1.0, 201)
+    inside = plausible(1.0 + x ** 2, 100.0, 1)   # 100 ln(1 + x²) ≤ 10.83 (χ²₁ at 99.9 %)
+    assert np.abs(x[inside]).max() == pytest.approx(np.sqrt(np.expm1(10.83 / 100)), abs=0.01)
 
 
 def test_blocks_that_agree_leave_the_interval_as_it_was():
     rows, sse = _block_surfaces([5.0] * 8)
     ivs = {"x": (4.6, 5.4)}
-    assert jackknifed(ivs, np.array([5.0]), left_out_rows(rows, sse), ("x",), (0,)) == ivs
+    assert jackknifed(ivs, {"x": 5.0}, left_out(rows, sse, (0,)), ("x",)) == ivs
 
 
 def test_blocks_that_disagree_widen_the_interval_by_the_jackknife_standard_error():
-    optima = [4.0, 6.0, 4.0, 6.0, 4.0, 6.0, 4.0, 6.0]
-    rows, sse = _block_surfaces(optima)
-    left = left_out_rows(rows, sse)
-    lo, hi = jackknifed({"x": (4.9, 5.1)}, np.array([5.0]), left, ("x",), (0,))["x"]
-    # left-out means 5 ∓ 1/7 (on the grid: 4.9 and 5.1); se = sqrt(7/8 · 8 · 0.1²) = 0.26, t₇ = 2.36
-    se = np.sqrt(7 / 8 * np.sum((left[:, 0] - left[:, 0].mean()) ** 2))
-    assert se == pytest.approx(np.sqrt(7) * 0.1, rel=1e-6)
+    rows, sse = _block_surfaces([4.0, 6.0] * 4)
+    left = left_out(rows, sse, (0,))
+    # left-out means 5 ± 1/7: se = sqrt(7/8 · 8 · (1/7)²) = 0.378; t₇ = 2.3646
+    lo, hi = jackknifed({"x": (4.9, 5.1)}, {"x": 5.0}, left, ("x",))["x"]
+    se = np.sqrt(7) / 7
     assert lo == pytest.approx(5.0 - 2.3646 * se, rel=1e-3) and hi == pytest.approx(5.0 + 2.3646 * se, rel=1e-3)
     # a name without an interval gets none, a single block changes nothing
-    assert "y" not in jackknifed({"x": (4.9, 5.1)}, np.array([5.0, 1.0]), np.hstack([left, left]), ("x", "y"), (0, 1))
-    assert jackknifed({"x": (4.9, 5.1)}, np.array([5.0]), left[:1], ("x",), (0,)) == {"x": (4.9, 5.1)}
+    assert "y" not in jackknifed({"x": (4.9, 5.1)}, {"x": 5.0, "y": 1.0}, np.hstack([left, left]), ("x", "y"))
+    assert jackknifed({"x": (4.9, 5.1)}, {"x": 5.0}, left[:1], ("x",)) == {"x": (4.9, 5.1)}
