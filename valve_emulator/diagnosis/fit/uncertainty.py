@@ -27,7 +27,8 @@ the values the whole record allows at 99.9 %),
 and the spread of those B estimates gives the standard error
 :math:`\mathrm{se}^2 = \tfrac{B-1}{B}\sum_b (\hat\theta_{(b)} - \bar\theta)^2`. The interval is widened to
 hold :math:`\hat\theta \pm t_{B-1}\,\mathrm{se}` (:func:`jackknifed`). Where the model matches the plant the
-blocks agree and this changes nothing. On 40 drawn sticky loops (``tests/diagnosis/explain/
+blocks agree and this changes nothing. It is applied with a nominal model only: without one, a linear part
+identified per block can stand in for the valve (``explain/findings.py``). On 40 drawn sticky loops (``tests/diagnosis/explain/
 test_interval_coverage.py``) the two brought the intervals of S from 27 to 30 covering of 32, their median width
 from 72 to 76 % of S.
 """
@@ -116,8 +117,8 @@ def intervals(params: np.ndarray, sse: np.ndarray, n: float, names: tuple[str, .
         half = float(np.min(np.diff(values))) / 2 if values.size > 1 else 0.0
         inside = np.flatnonzero(along <= bound)
         lo, hi = int(inside[0]), int(inside[-1])
-        out[name] = (float(values[lo]) - _beyond(values, along, bound, lo, -1, half),
-                     float(values[hi]) + _beyond(values, along, bound, hi, +1, half))
+        out[name] = (float(values[lo] - _beyond(values, along, bound, lo, -1, half)),
+                     float(values[hi] + _beyond(values, along, bound, hi, +1, half)))
     return out
 
 
@@ -129,7 +130,7 @@ def _beyond(values: np.ndarray, along: np.ndarray, bound: float, i: int, way: in
     gap = abs(float(values[j] - values[i]))
     rise = along[j] - along[i]
     share = (bound - along[i]) / rise if np.isfinite(rise) and rise > 0 else 1.0
-    return max(half, min(1.0, share) * gap)
+    return float(max(half, min(1.0, share) * gap))
 
 
 def block_windows(window: tuple[int, int], blocks: int = BLOCKS) -> list[tuple[int, int]]:
@@ -196,5 +197,5 @@ def jackknifed(ivs: dict[str, tuple[float, float]], estimate: dict[str, float], 
         col = left[:, i]
         se = float(np.sqrt((b - 1) / b * np.sum((col - col.mean()) ** 2)))
         lo, hi = out[name]
-        out[name] = (min(lo, estimate[name] - t * se), max(hi, estimate[name] + t * se))
+        out[name] = (float(min(lo, estimate[name] - t * se)), float(max(hi, estimate[name] + t * se)))
     return out
