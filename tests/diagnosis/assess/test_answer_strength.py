@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import jsonschema
 import pytest
-from unseen_loops import ALL, HEALTHY_LEVEL, STRENGTH, diagnosed, diagnosed_all
+from unseen_loops import ALL, HEALTHY_LEVEL, HEALTHY_LEVEL_MORE, STRENGTH, diagnosed, diagnosed_all
 
 from valve_emulator.diagnosis.answers import VALVE_FRICTION
 from valve_emulator.diagnosis.report.schema import schema
@@ -63,3 +63,13 @@ def test_a_level_loop_with_a_healthy_valve_gets_no_strong_stiction_call():
     call asked for a regular oscillation (``decision.cycling``)."""
     strong = [d.draw.name for d in diagnosed_all(HEALTHY_LEVEL) if d.doc["strength"] == "strong"]
     assert not strong, f"strong stiction calls on healthy level loops: {strong}"
+
+
+def test_a_level_loop_with_a_healthy_valve_is_not_answered_stiction_as_plant_data_in_nine_of_ten():
+    """32 healthy level loops as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed). Measured: every
+    one of the 8 and 13 of the 24 were answered stiction before a call on a loop that does not cycle regularly
+    asked OP's swings to cross the band (``decision.band_crossings``); 1 of the 32 after (a healthy loop whose
+    wandering load made a regular oscillation). About 5 s a diagnosis (the 24 are read by this test only)."""
+    keys = [k for k in HEALTHY_LEVEL if k.mode == "plant"] + HEALTHY_LEVEL_MORE
+    called = [d.draw.name for d in diagnosed_all(keys) if d.doc["answer"] == "stiction"]
+    assert len(called) <= 0.1 * len(keys), f"{len(called)} of {len(keys)} answered stiction: {called}"

@@ -33,6 +33,12 @@ run on each loop:
      with the cause ``tuning``: a third explanation of the cycle that needs neither the valve nor the load
      (on the independent simulator's aggressive loops, contested valve bands were most of the loops whose
      tuning went unnamed).
+     A call on a loop that does not oscillate regularly (:func:`cycling`) also needs OP to cross the band: at
+     least :data:`CROSSING_SHARE` of OP's swings between turning points larger than S (:func:`band_crossings`);
+     else it is ``cannot tell``, naming the sticky valve and a healthy valve whose band stands in for the
+     controller's small answers to a wandering load. Under integral action a stuck valve is wound across its
+     band, so a sticky valve's OP swings cross it; on healthy level loops the band found swallowed nearly every
+     swing.
    * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
      its cross-validated free-run fit is below :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their
      mean) *and*, under the drifting-load noise model, it does not explain PV better than that noise model
@@ -88,7 +94,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
-from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy
+from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_swings
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.candidates.base import Kind
@@ -103,7 +109,8 @@ from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
-           "COARSE_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "coarse_pv", "cycling", "strength_with_model"]
+           "COARSE_SHARE", "CROSSING_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "band_crossings", "coarse_pv",
+           "cycling", "strength_with_model"]
 
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
@@ -117,6 +124,11 @@ MIN_FIT = 0.0
 CONTEST_BIC = 2.0 * DELTA_BIC
 #: A stiction call is only weak when PV changes on fewer than this share of the samples (see :func:`coarse_pv`).
 COARSE_SHARE = 0.5
+#: On a loop that does not oscillate regularly, a stiction call needs at least this share of OP's swings to be
+#: larger than the band S (:func:`band_crossings`). Measured on the independent simulator (2026-11-26, plant data):
+#: on 32 healthy level loops called stiction or not, at most 3 % of OP's swings crossed the band found; on the
+#: sticky level loops called stiction without a regular cycle, at least 19 %.
+CROSSING_SHARE = 0.1
 #: Held-out fit (points) valve friction must buy over a nominal model for a strong stiction answer ...
 MODEL_STRONG_GAIN = 20.0
 #: ... and over the identified linear valve on plant data: twice what any candidate needs to be accepted (on the
@@ -230,7 +242,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
         if NOISE_BANDS * noise <= S:
             contested = _contested(valve, S, fits, frame)
             if contested is None:
-                return _stiction(valve, S, fits, frame, ad)
+                return _uncrossed(valve, S, fits, frame, ad, rec.op) or _stiction(valve, S, fits, frame, ad)
             if tune is None or not tune.aggressive:
                 return contested
             unsure = (f"a valve band S ≈ {_amount(S, frame)} fits too, but a linear valve with a slowly drifting load "
@@ -341,6 +353,43 @@ def _stiction(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy) -
         reasons += ((Reason.WEAK_EVIDENCE, f"the friction buys only {gain:.2g} points of held-out fit, less than "
                                            f"{PLANT_STRONG_GAIN:g}"),)
     return Decision(Answer.STICTION, valve.physics, reason, reasons, S=S, J=J, intervals=ivs)
+
+
+def band_crossings(op: np.ndarray, S: float) -> float:
+    """The share of OP's swings (between turning points beyond OP's noise:
+    :func:`~valve_emulator.diagnosis.assess.adequacy.op_swings`) larger than the band ``S`` (OP's units; nan when OP
+    turns fewer than twice).
+
+    Why it matters: under integral action a stuck valve does not stay stuck. The error it leaves winds OP on
+    until OP has crossed the band and the valve slips, so a sticky valve's OP makes swings larger than its band
+    (in a limit cycle, every half period). A band that nearly all of OP's swings stay inside reads the
+    controller's ordinary small answers to a wandering load as a valve that does not move: on a PI-controlled
+    integrating plant that fits the load's drift better than a linear valve does, with no friction at all."""
+    sw = op_swings(op)
+    return float(np.mean(sw > S)) if sw.size else float("nan")
+
+
+def _uncrossed(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy, op: np.ndarray) -> Decision | None:
+    """``cannot tell``, naming both, when the loop does not oscillate regularly (:func:`cycling`) and fewer than
+    :data:`CROSSING_SHARE` of OP's swings cross the band (:func:`band_crossings`); None otherwise: the call stands.
+    A regular cycle is the stick-slip's own evidence and needs no such check (there OP's swings are the cycle's,
+    and a band the search over-sizes on a mis-identified plant still names the right valve)."""
+    if cycling(ad.facts):
+        return None
+    share = band_crossings(op, S)
+    if not share < CROSSING_SHARE:
+        return None
+    J = float(valve.parameters.get("J", 0.0))
+    sticky = f"a sticky valve (S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}; {fits})"
+    r = ad.facts.get("regularity", float("nan"))
+    why = (f"the loop does not oscillate regularly (regularity r = {r:.2f} ≤ 1), and only {100 * share:.0f} % of "
+           f"OP's swings cross the band "
+           f"(a sticky valve under integral action makes OP cross it: the error winds OP on until the valve slips; "
+           f"a call needs {100 * CROSSING_SHARE:g} %)")
+    healthy = "a healthy valve, the band standing in for the controller's small answers to a wandering load"
+    return Decision(Answer.CANNOT_TELL, "", f"either {sticky} or {healthy}: {why}, so the record cannot tell which",
+                    ((Reason(valve.physics), f"a sticky valve fits: S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}"),
+                     (Reason.WEAK_EVIDENCE, f"{healthy}: {why}")))
 
 
 def coarse_pv(facts: dict) -> bool:
