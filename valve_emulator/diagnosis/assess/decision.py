@@ -34,7 +34,8 @@ run on each loop:
      (on the independent simulator's aggressive loops, contested valve bands were most of the loops whose
      tuning went unnamed).
      A call on a loop that does not oscillate regularly (:func:`cycling`) also needs OP to cross the band: at
-     least :data:`CROSSING_SHARE` of OP's swings between turning points larger than S (:func:`band_crossings`);
+     least :data:`CROSSING_SHARE` of OP's swings between turning points larger than S (:func:`band_crossings`;
+     from the friction's onset on when it starts part-way);
      else it is ``cannot tell``, naming the sticky valve and a healthy valve whose band stands in for the
      controller's small answers to a wandering load. Under integral action a stuck valve is wound across its
      band, so a sticky valve's OP swings cross it; on healthy level loops the band found swallowed nearly every
@@ -243,7 +244,8 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
         if NOISE_BANDS * noise <= S:
             contested = _contested(valve, S, fits, frame)
             if contested is None:
-                return _uncrossed(valve, S, fits, frame, ad, rec.op) or _stiction(valve, S, fits, frame, ad)
+                uncrossed = _uncrossed(valve, S, fits, frame, ad, _acting(rec, valve))
+                return uncrossed or _stiction(valve, S, fits, frame, ad)
             if tune is None or not tune.aggressive:
                 return contested
             unsure = (f"a valve band S ≈ {_amount(S, frame)} fits too, but a linear valve with a slowly drifting load "
@@ -370,9 +372,18 @@ def band_crossings(op: np.ndarray, S: float) -> float:
     return float(np.mean(sw > S)) if sw.size else float("nan")
 
 
+def _acting(rec: Recording, finding: Finding) -> np.ndarray:
+    """OP where ``finding`` acts: from its onset on when it starts part-way, else the whole record (the healthy part
+    before an onset has no band to cross)."""
+    if finding.onset is None:
+        return rec.op
+    return rec.op[rec.t - rec.t[0] >= finding.onset.onset_s]
+
+
 def _uncrossed(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy, op: np.ndarray) -> Decision | None:
     """``cannot tell``, naming both, when the loop does not oscillate regularly (:func:`cycling`) and fewer than
-    :data:`CROSSING_SHARE` of OP's swings cross the band (:func:`band_crossings`); None otherwise: the call stands.
+    :data:`CROSSING_SHARE` of OP's swings (``op``: where the valve finding acts) cross the band
+    (:func:`band_crossings`); None otherwise: the call stands.
     A regular cycle is the stick-slip's own evidence and needs no such check (there OP's swings are the cycle's,
     and a band the search over-sizes on a mis-identified plant still names the right valve)."""
     if cycling(ad.facts):
