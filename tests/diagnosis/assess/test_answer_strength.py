@@ -65,11 +65,24 @@ def test_a_level_loop_with_a_healthy_valve_gets_no_strong_stiction_call():
     assert not strong, f"strong stiction calls on healthy level loops: {strong}"
 
 
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-26: 21 of 32 answered stiction (weak). Answering 'cannot "
+                                       "tell' when OP's swings hardly cross the band (decision.band_crossings) took 31 "
+                                       "of 32 off stiction, but also 19 of the 35 labelled stiction windows of the "
+                                       "shared plant data (per window 92 -> 67 %); it is a weak-evidence reason "
+                                       "instead")
 def test_a_level_loop_with_a_healthy_valve_is_not_answered_stiction_as_plant_data_in_nine_of_ten():
-    """32 healthy level loops as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed). Measured: every
-    one of the 8 and 13 of the 24 were answered stiction before a call on a loop that does not cycle regularly
-    asked OP's swings to cross the band (``decision.band_crossings``); 1 of the 32 after (a healthy loop whose
-    wandering load made a regular oscillation). About 5 s a diagnosis (the 24 are read by this test only)."""
+    """32 healthy level loops as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed). About 5 s a
+    diagnosis (the 24 are read by this test only)."""
     keys = [k for k in HEALTHY_LEVEL if k.mode == "plant"] + HEALTHY_LEVEL_MORE
     called = [d.draw.name for d in diagnosed_all(keys) if d.doc["answer"] == "stiction"]
     assert len(called) <= 0.1 * len(keys), f"{len(called)} of {len(keys)} answered stiction: {called}"
+
+
+def test_a_stiction_call_on_a_healthy_level_loop_says_that_op_hardly_crosses_its_band():
+    """The qualifier that stands in for the rule above: on every healthy level loop called stiction without a
+    regular oscillation, the reasons say that OP's swings hardly cross the band (at most 3 % did, measured)."""
+    keys = [k for k in HEALTHY_LEVEL if k.mode == "plant"] + HEALTHY_LEVEL_MORE
+    calls = [d for d in diagnosed_all(keys)
+             if d.doc["answer"] == "stiction" and not d.doc["oscillation"]["oscillating"]]
+    unsaid = [d.draw.name for d in calls if not any("cross the band" in r["sentence"] for r in d.doc["reasons"])]
+    assert calls and not unsaid, f"no band-crossing reason on {unsaid}"
