@@ -203,3 +203,6 @@ HEALTHY_LEVEL = drawn("healthy_level", 2032, 8)
 #: Every draw of every set, once, in a stable order.
 ALL = list(dict.fromkeys(LEVEL + LATE_ONSET + AGGRESSIVE_MODEL + AGGRESSIVE_PLANT + COVERAGE + STRENGTH
                          + HEALTHY_LEVEL))
+#: 24 more level loops with a healthy valve, as plant data, drawn with another seed: with ``HEALTHY_LEVEL``, the
+#: set on which a healthy level loop must not be answered stiction (not in ``ALL``: only that test reads it).
+HEALTHY_LEVEL_MORE = drawn("healthy_level", 7, 24, ("plant",))

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import jsonschema
 import pytest
-from unseen_loops import ALL, HEALTHY_LEVEL, STRENGTH, diagnosed, diagnosed_all
+from unseen_loops import ALL, HEALTHY_LEVEL, HEALTHY_LEVEL_MORE, STRENGTH, diagnosed, diagnosed_all
 
 from valve_emulator.diagnosis.answers import VALVE_FRICTION
 from valve_emulator.diagnosis.report.schema import schema
@@ -63,3 +63,26 @@ def test_a_level_loop_with_a_healthy_valve_gets_no_strong_stiction_call():
     call asked for a regular oscillation (``decision.cycling``)."""
     strong = [d.draw.name for d in diagnosed_all(HEALTHY_LEVEL) if d.doc["strength"] == "strong"]
     assert not strong, f"strong stiction calls on healthy level loops: {strong}"
+
+
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-26: 21 of 32 answered stiction (weak). Answering 'cannot "
+                                       "tell' when OP's swings hardly cross the band (decision.band_crossings) took 31 "
+                                       "of 32 off stiction, but also 19 of the 35 labelled stiction windows of the "
+                                       "shared plant data (per window 92 -> 67 %); it is a weak-evidence reason "
+                                       "instead")
+def test_a_level_loop_with_a_healthy_valve_is_not_answered_stiction_as_plant_data_in_nine_of_ten():
+    """32 healthy level loops as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed). About 5 s a
+    diagnosis (the 24 are read by this test only)."""
+    keys = [k for k in HEALTHY_LEVEL if k.mode == "plant"] + HEALTHY_LEVEL_MORE
+    called = [d.draw.name for d in diagnosed_all(keys) if d.doc["answer"] == "stiction"]
+    assert len(called) <= 0.1 * len(keys), f"{len(called)} of {len(keys)} answered stiction: {called}"
+
+
+def test_a_stiction_call_on_a_healthy_level_loop_says_that_op_hardly_crosses_its_band():
+    """The qualifier that stands in for the rule above: on every healthy level loop called stiction without a
+    regular oscillation, the reasons say that OP's swings hardly cross the band (at most 3 % did, measured)."""
+    keys = [k for k in HEALTHY_LEVEL if k.mode == "plant"] + HEALTHY_LEVEL_MORE
+    calls = [d for d in diagnosed_all(keys)
+             if d.doc["answer"] == "stiction" and not d.doc["oscillation"]["oscillating"]]
+    unsaid = [d.draw.name for d in calls if not any("cross the band" in r["sentence"] for r in d.doc["reasons"])]
+    assert calls and not unsaid, f"no band-crossing reason on {unsaid}"

@@ -14,7 +14,8 @@ import pytest
 import valve_emulator as ve
 from valve_emulator.benchmark.independent import Controller, Load, Loop, Measurement, Plant, Valve, draw, simulate
 from valve_emulator.diagnosis.answers import VALVE_FRICTION
-from valve_emulator.diagnosis.assess.decision import MIN_FIT, NOISE_BANDS
+from valve_emulator.diagnosis.assess.adequacy import op_swings, swings
+from valve_emulator.diagnosis.assess.decision import MIN_FIT, NOISE_BANDS, band_crossings
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 
 
@@ -78,3 +79,30 @@ def test_a_healthy_loop_whose_disturbance_explains_pv_better_than_any_valve_stay
     alternative = d.explanation.valve_alternative
     assert alternative is not None and alternative.load_delta_bic <= -DELTA_BIC
     assert str(d.answer) == "no_stiction" and d.cause == "disturbance", d.verdict
+
+
+def _triangle(amplitude: float, period: int, cycles: int, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    k = np.arange(period * cycles)
+    x = amplitude * (2.0 * np.abs(2.0 * ((k / period) % 1.0) - 1.0) - 1.0)
+    return 50.0 + x + np.random.default_rng(seed).normal(0.0, noise, x.size)
+
+
+def test_the_swings_of_a_noisy_triangle_are_its_peak_to_peak_travel():
+    op = _triangle(2.0, 100, 12, noise=0.05)
+    sw = op_swings(op)
+    assert sw.size == 22   # 23 turns inside the record: the swings before the first and after the last are unknown
+    assert np.all(np.abs(sw - 4.0) < 0.4), sw
+
+
+def test_noise_inside_the_hysteresis_makes_no_turn():
+    x = np.random.default_rng(1).uniform(-1.0, 1.0, 2000)
+    assert swings(x, 2.5).size == 0
+    assert swings(np.full(50, 3.0), 0.1).size == 0
+
+
+def test_a_band_is_crossed_by_the_swings_larger_than_it_and_by_no_others():
+    op = np.concatenate([_triangle(0.5, 40, 18, seed=2), _triangle(3.0, 200, 2, seed=3)])
+    share = band_crossings(op, 2.0)   # the small swings are 1 wide, the large ones 6
+    assert 0.05 < share < 0.2, share
+    assert band_crossings(op, 0.5) > 0.95
+    assert band_crossings(op, 7.0) == 0.0

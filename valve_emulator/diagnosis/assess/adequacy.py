@@ -39,12 +39,16 @@ from valve_emulator.diagnosis.fit.data import MIN_SAMPLES
 from valve_emulator.diagnosis.fit.frame import noise_sigma
 from valve_emulator.recordings.recording import Recording
 
-__all__ = ["Adequacy", "adequacy", "Cycle", "cycle", "longest_constant_run", "FLAT_SHARE", "EXCITATION"]
+__all__ = ["Adequacy", "adequacy", "Cycle", "cycle", "longest_constant_run", "swings", "op_swings", "FLAT_SHARE",
+           "EXCITATION", "TURN_BANDS"]
 
 #: PV (or OP) constant over at least this share of the record is "flat".
 FLAT_SHARE = 0.5
 #: OP's robust range must reach this many noise σ to count as excitation.
 EXCITATION = 10.0
+#: OP turns when it comes back by more than this many noise σ (the package's "beyond noise", as for the OP turning
+#: points of :mod:`~valve_emulator.diagnosis.explain.locate`).
+TURN_BANDS = 3.0
 
 
 def _step(x: np.ndarray) -> float:
@@ -62,6 +66,36 @@ def longest_constant_run(x: np.ndarray) -> int:
     change = np.flatnonzero(np.diff(x) != 0.0)
     edges = np.concatenate([[-1], change, [x.size - 1]])
     return int(np.max(np.diff(edges)))
+
+
+def swings(x: np.ndarray, turn: float) -> np.ndarray:
+    """The sizes of ``x``'s swings: the travel between consecutive turning points, a turn counting when ``x``
+    comes back from its latest extreme by more than ``turn`` (a hysteresis, so that noise smaller than it makes
+    no turning point). The swing before the first turn and the one still running at the end are left out
+    (where they start or end is not known). Empty when ``x`` turns fewer than twice."""
+    x = np.asarray(x, dtype=float)
+    turns: list[float] = []
+    direction, ext, lo, hi = 0, 0.0, x[0] if x.size else 0.0, x[0] if x.size else 0.0
+    for v in x:  # a small state machine over a 1-D array: clearer than vectorised tricks
+        if direction == 0:  # no direction until x has moved by more than ``turn``
+            lo, hi = min(lo, v), max(hi, v)
+            if hi - lo > turn:
+                direction, ext = (1, hi) if v == hi else (-1, lo)
+        elif direction * (v - ext) > 0:
+            ext = v
+        elif direction * (ext - v) > turn:
+            turns.append(ext)
+            direction, ext = -direction, v
+    return np.abs(np.diff(turns))
+
+
+def op_swings(op: np.ndarray) -> np.ndarray:
+    """OP's :func:`swings`, a turn counting beyond :data:`TURN_BANDS` noise σ
+    (:func:`~valve_emulator.diagnosis.fit.frame.noise_sigma`; OP's resolution for an OP that mostly holds its
+    value)."""
+    op = np.asarray(op, dtype=float)
+    noise = noise_sigma(op)
+    return swings(op, TURN_BANDS * (noise if noise > 0 else _step(op)))
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,13 @@ run on each loop:
      with the cause ``tuning``: a third explanation of the cycle that needs neither the valve nor the load
      (on the independent simulator's aggressive loops, contested valve bands were most of the loops whose
      tuning went unnamed).
+     A weak call on a loop that does not oscillate regularly (:func:`cycling`) also says when OP hardly crosses
+     the band: fewer than :data:`CROSSING_SHARE` of OP's swings between turning points larger than S
+     (:func:`band_crossings`; from the friction's onset on when it starts part-way). Under integral action a
+     stuck valve is wound across its band, so a sticky valve's OP swings cross it; on healthy level loops the
+     band found swallowed nearly every swing. It qualifies the call and does not change it: as a rule
+     (``cannot tell``) it took 31 of 32 healthy level loops off stiction, and 19 of the 35 labelled stiction
+     windows of the shared plant data too, whose bands OP's swings also never crossed (``docs/diagnosis.md``).
    * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
      its cross-validated free-run fit is below :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their
      mean) *and*, under the drifting-load noise model, it does not explain PV better than that noise model
@@ -88,7 +95,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
-from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy
+from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_swings
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.candidates.base import Kind
@@ -103,7 +110,8 @@ from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
-           "COARSE_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "coarse_pv", "cycling", "strength_with_model"]
+           "COARSE_SHARE", "CROSSING_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "band_crossings", "coarse_pv",
+           "cycling", "strength_with_model"]
 
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
@@ -117,6 +125,12 @@ MIN_FIT = 0.0
 CONTEST_BIC = 2.0 * DELTA_BIC
 #: A stiction call is only weak when PV changes on fewer than this share of the samples (see :func:`coarse_pv`).
 COARSE_SHARE = 0.5
+#: On a loop that does not oscillate regularly, a stiction call says so when fewer than this share of OP's swings
+#: are larger than the band S (:func:`band_crossings`). Measured on the independent simulator (2026-11-26, plant data):
+#: on the 36 healthy loops (35 level loops, one on a coarse A/D) called stiction without a regular cycle, at most
+#: 3 % of OP's swings crossed the band found; on the sticky loops so called, at least 9 % (a flow loop whose band
+#: came out at 1.7 times the truth; 19 % on level loops). One swing in twenty sits between.
+CROSSING_SHARE = 0.05
 #: Held-out fit (points) valve friction must buy over a nominal model for a strong stiction answer ...
 MODEL_STRONG_GAIN = 20.0
 #: ... and over the identified linear valve on plant data: twice what any candidate needs to be accepted (on the
@@ -230,7 +244,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
         if NOISE_BANDS * noise <= S:
             contested = _contested(valve, S, fits, frame)
             if contested is None:
-                return _stiction(valve, S, fits, frame, ad)
+                return _stiction(valve, S, fits, frame, ad, _acting(rec, valve))
             if tune is None or not tune.aggressive:
                 return contested
             unsure = (f"a valve band S ≈ {_amount(S, frame)} fits too, but a linear valve with a slowly drifting load "
@@ -322,8 +336,8 @@ def _tuning_decision(tune: TuningAssessment, also: str, fits: str,
                     tuning=tune)
 
 
-def _stiction(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy) -> Decision:
-    """The stiction answer for valve friction whose band is beyond OP noise."""
+def _stiction(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy, op: np.ndarray) -> Decision:
+    """The stiction answer for valve friction whose band is beyond OP noise (``op``: OP where the friction acts)."""
     J = float(valve.parameters.get("J", 0.0))
     ivs = {k: v for k, v in valve.intervals.items() if k in ("S", "J")}
     iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
@@ -335,12 +349,46 @@ def _stiction(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy) -
     if coarse_pv(ad.facts):
         reasons += ((Reason.WEAK_EVIDENCE, _coarse_text(ad.facts)),)
     if not cycling(ad.facts):
-        reasons += ((Reason.WEAK_EVIDENCE, _no_cycle_text(ad.facts)),)
+        reasons += ((Reason.WEAK_EVIDENCE, _no_cycle_text(ad.facts)),) + _uncrossed(op, S)
     gain = valve.fit_with - valve.fit_without
     if gain < PLANT_STRONG_GAIN:
         reasons += ((Reason.WEAK_EVIDENCE, f"the friction buys only {gain:.2g} points of held-out fit, less than "
                                            f"{PLANT_STRONG_GAIN:g}"),)
     return Decision(Answer.STICTION, valve.physics, reason, reasons, S=S, J=J, intervals=ivs)
+
+
+def band_crossings(op: np.ndarray, S: float) -> float:
+    """The share of OP's swings (between turning points beyond OP's noise:
+    :func:`~valve_emulator.diagnosis.assess.adequacy.op_swings`) larger than the band ``S`` (OP's units; nan when OP
+    turns fewer than twice).
+
+    Why it matters: under integral action a stuck valve does not stay stuck. The error it leaves winds OP on
+    until OP has crossed the band and the valve slips, so a sticky valve's OP makes swings larger than its band
+    (in a limit cycle, every half period). A band that nearly all of OP's swings stay inside reads the
+    controller's ordinary small answers to a wandering load as a valve that does not move: on a PI-controlled
+    integrating plant that fits the load's drift better than a linear valve does, with no friction at all."""
+    sw = op_swings(op)
+    return float(np.mean(sw > S)) if sw.size else float("nan")
+
+
+def _acting(rec: Recording, finding: Finding) -> np.ndarray:
+    """OP where ``finding`` acts: from its onset on when it starts part-way, else the whole record (the healthy part
+    before an onset has no band to cross)."""
+    if finding.onset is None:
+        return rec.op
+    return rec.op[rec.t - rec.t[0] >= finding.onset.onset_s]
+
+
+def _uncrossed(op: np.ndarray, S: float) -> tuple[tuple[Reason, str], ...]:
+    """The weak-evidence reason of a call whose band fewer than :data:`CROSSING_SHARE` of OP's swings cross
+    (:func:`band_crossings`; none otherwise), for a loop that does not oscillate regularly."""
+    share = band_crossings(op, S)
+    if not share < CROSSING_SHARE:
+        return ()
+    return ((Reason.WEAK_EVIDENCE, f"only {100 * share:.0f} % of OP's swings cross the band (a sticky valve under "
+                                   "integral action makes OP cross it: the error winds OP on until the valve slips), "
+                                   "so a healthy valve whose band stands in for the controller's small answers to a "
+                                   "wandering load fits the record too"),)
 
 
 def coarse_pv(facts: dict) -> bool:

@@ -69,6 +69,12 @@ from valve_emulator.recordings.recording import Recording
 
 __all__ = ["explain", "RULE", "RULE_TWOFOLD"]
 
+#: The most BIC (under the drifting-load noise model) the integrating plant's linear part may lose against the
+#: self-regulating one's when the search held integrating is kept (:func:`_integrating_or_not`). Measured on the
+#: independent simulator (2026-11-26, plant data): sticky level loops held integrating lost at most 72 there; the
+#: healthy flow loop under a sine load that the held search took as a sticky level loop lost 2705.
+HELD_LINEAR_LOSS = 20.0 * DELTA_BIC
+
 RULE = (f"An addition counts when BIC (N ln σ̂² + k ln N on the fit part) falls by at least {DELTA_BIC:g} and the "
         f"free-run fit on the held-out last {100 * HELD_OUT:g} % rises by at least {DELTA_FIT:g} points, against the "
         "current model and against each of its own sub-options; the lowest-BIC option that counts is added.")
@@ -206,6 +212,11 @@ def _integrating_or_not(free: Searched, held: Searched) -> Searched:
     predicts), so both are also scored on PV itself, as one-step predictions under a random-walk load: there a
     first-order flow loop keeps its plant, while the free run of PV, which no integrating model can match on a
     loop whose load wanders, would reject a level loop's right plant as readily.
+
+    The integrator must also be a plant on its own: when its linear part (no candidate) explains PV under that
+    noise model worse than the free family's linear part by more than :data:`HELD_LINEAR_LOSS`, the held search
+    won through its candidates, which then stand in for the plant (a first-order flow loop under a sinusoidal
+    load was held integrating, and a stiction with J twice S fitted the load's cycle).
     """
     ours = with_cv(held.fitter.scorer, held.model).heldout
     theirs = cross_validated_fit(held.fitter.scorer, free.model)
@@ -214,6 +225,8 @@ def _integrating_or_not(free: Searched, held: Searched) -> Searched:
     better = family_delta_bic((free.fitter.scorer, free.model), (held.fitter.scorer, held.model))
     if not better >= DELTA_BIC:
         return free
+    if family_delta_bic((free.fitter.scorer, _base(free)), (held.fitter.scorer, _base(held))) < -HELD_LINEAR_LOSS:
+        return free
     ident = held.nominal.identification
     said = tuple(c for c in ident.constraints if "plant (declared)" not in c) + (
         f"integrating plant: through the high-pass prefilter, the search holding an integrator predicts held-out "
@@ -221,6 +234,11 @@ def _integrating_or_not(free: Searched, held: Searched) -> Searched:
         f"drifting-load noise model it explains PV better (ΔBIC {better:.0f})",)
     nominal = replace(held.nominal, identification=replace(ident, integrating=None, constraints=said))
     return replace(held, nominal=nominal)
+
+
+def _base(s: Searched) -> Model:
+    """The linear model a search started from (its first round's baseline; the final model without rounds)."""
+    return s.rounds[0].baseline if s.rounds else s.model
 
 
 def _before(s: Searched, base: Model) -> tuple[np.ndarray, float, int]:
