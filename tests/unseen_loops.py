@@ -200,9 +200,9 @@ STRENGTH = (drawn("level_sticky", 32, 22, family_index=False)
 #: Level loops with a healthy valve (the same loops as ``level_sticky`` without friction), with and without the
 #: model: where a stiction call on a level loop must not come from.
 HEALTHY_LEVEL = drawn("healthy_level", 2032, 8)
+#: 24 more level loops with a healthy valve, as plant data, drawn with another seed: with ``HEALTHY_LEVEL``, the
+#: set on which a healthy level loop must not be answered stiction, and part of the answer's calibration.
+HEALTHY_LEVEL_MORE = drawn("healthy_level", 7, 24, ("plant",))
 #: Every draw of every set, once, in a stable order.
 ALL = list(dict.fromkeys(LEVEL + LATE_ONSET + AGGRESSIVE_MODEL + AGGRESSIVE_PLANT + COVERAGE + STRENGTH
-                         + HEALTHY_LEVEL))
-#: 24 more level loops with a healthy valve, as plant data, drawn with another seed: with ``HEALTHY_LEVEL``, the
-#: set on which a healthy level loop must not be answered stiction (not in ``ALL``: only that test reads it).
-HEALTHY_LEVEL_MORE = drawn("healthy_level", 7, 24, ("plant",))
+                         + HEALTHY_LEVEL + HEALTHY_LEVEL_MORE))

@@ -48,8 +48,11 @@ def test_the_document_is_valid_and_carries_its_oscillation_and_action(key):
 
 
 def test_stiction_calls_marked_strong_are_right_in_at_least_95_percent():
+    """Over the calibration's set and every healthy level loop drawn (where a wrong call would come from: a
+    healthy level loop is still answered stiction, weak, see below)."""
+    keys = STRENGTH + HEALTHY_LEVEL + HEALTHY_LEVEL_MORE
     strong = [(d.doc["answer"] == d.truth["expected"], d.draw.name, d.doc["verdict"])
-              for d in diagnosed_all(STRENGTH) if d.doc["strength"] == "strong"]
+              for d in diagnosed_all(keys) if d.doc["strength"] == "strong"]
     right = sum(ok for ok, _, _ in strong)
     wrong = [(name, verdict) for ok, name, verdict in strong if not ok]
     assert right >= 0.95 * len(strong), f"{right}/{len(strong)} strong calls right; wrong: {wrong}"
@@ -60,7 +63,9 @@ def test_a_level_loop_with_a_healthy_valve_gets_no_strong_stiction_call():
     """The calibration's set above has no healthy level loop. On these a PI on an integrating plant under a
     wandering load rings without friction, and a valve band that lets OP's small reversals pass without moving
     PV fits the load's drift: every one was called stiction as plant data, 10 of the 16 strong, before a strong
-    call asked for a regular oscillation (``decision.cycling``)."""
+    call asked for a regular oscillation (``decision.cycling``). Of the 24 more drawn with another seed, one
+    (7.7.16) is called strong: its wandering load makes a regular oscillation (r 2.53); it counts in the
+    calibration above."""
     strong = [d.draw.name for d in diagnosed_all(HEALTHY_LEVEL) if d.doc["strength"] == "strong"]
     assert not strong, f"strong stiction calls on healthy level loops: {strong}"
 
