@@ -35,6 +35,7 @@ import numpy as np
 
 from valve_emulator.detectors.base import oscillation
 from valve_emulator.diagnosis.answers import Reason
+from valve_emulator.diagnosis.explain.locate import turning_points
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES
 from valve_emulator.diagnosis.fit.frame import noise_sigma
 from valve_emulator.recordings.recording import Recording
@@ -70,23 +71,12 @@ def longest_constant_run(x: np.ndarray) -> int:
 
 def swings(x: np.ndarray, turn: float) -> np.ndarray:
     """The sizes of ``x``'s swings: the travel between consecutive turning points, a turn counting when ``x``
-    comes back from its latest extreme by more than ``turn`` (a hysteresis, so that noise smaller than it makes
-    no turning point). The swing before the first turn and the one still running at the end are left out
+    comes back from its latest extreme by more than ``turn``
+    (:func:`~valve_emulator.diagnosis.explain.locate.turning_points`, a hysteresis, so that noise smaller than it
+    makes no turning point). The swing before the first turn and the one still running at the end are left out
     (where they start or end is not known). Empty when ``x`` turns fewer than twice."""
     x = np.asarray(x, dtype=float)
-    turns: list[float] = []
-    direction, ext, lo, hi = 0, 0.0, x[0] if x.size else 0.0, x[0] if x.size else 0.0
-    for v in x:  # a small state machine over a 1-D array: clearer than vectorised tricks
-        if direction == 0:  # no direction until x has moved by more than ``turn``
-            lo, hi = min(lo, v), max(hi, v)
-            if hi - lo > turn:
-                direction, ext = (1, hi) if v == hi else (-1, lo)
-        elif direction * (v - ext) > 0:
-            ext = v
-        elif direction * (ext - v) > turn:
-            turns.append(ext)
-            direction, ext = -direction, v
-    return np.abs(np.diff(turns))
+    return np.abs(np.diff(x[turning_points(x, turn)]))
 
 
 def op_swings(op: np.ndarray) -> np.ndarray:

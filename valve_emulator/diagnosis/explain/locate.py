@@ -31,7 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SHARE", "MAX_WINDOWS", "Alignment", "Located", "locate", "condition_masks", "energy_windows"]
+__all__ = ["SHARE", "MAX_WINDOWS", "Alignment", "Located", "locate", "condition_masks", "energy_windows",
+           "turning_points"]
 
 #: Share of the residual energy the windows must hold.
 SHARE = 0.5
@@ -112,30 +113,43 @@ def energy_windows(t: np.ndarray, energy: np.ndarray, w: int) -> tuple[list[tupl
     return [(float(t[a]), float(t[b - 1])) for a, b in sorted(runs)], keep
 
 
+def turning_points(x: np.ndarray, h: float) -> np.ndarray:
+    """Indices of ``x``'s turning points with hysteresis ``h``: an extreme counts as a turn once ``x`` has come
+    back from it by more than ``h``, so that noise smaller than ``h`` makes none. Before the first turn ``x`` has
+    no direction until it has moved by more than ``h``; the extreme still running at the end is not a turn."""
+    x = np.asarray(x, dtype=float)
+    turns: list[int] = []
+    if x.size == 0:
+        return np.array(turns, dtype=int)
+    lo = hi = ext = x[0]
+    k_lo = k_hi = k_ext = 0
+    direction = 0  # unknown until x has moved by more than h
+    for k in range(1, x.size):  # a small state machine over a 1-D array: clearer than vectorised tricks
+        v = x[k]
+        if direction == 0:
+            if v > hi:
+                hi, k_hi = v, k
+            if v < lo:
+                lo, k_lo = v, k
+            if hi - lo > h:
+                direction = 1 if k_hi > k_lo else -1
+                ext, k_ext = (hi, k_hi) if direction == 1 else (lo, k_lo)
+        elif direction * (v - ext) > 0:
+            ext, k_ext = v, k
+        elif direction * (ext - v) > h:
+            turns.append(k_ext)
+            direction = -direction
+            ext, k_ext = v, k
+    return np.array(turns, dtype=int)
+
+
 def _reversal_mask(op: np.ndarray, horizon: int, span: float) -> np.ndarray:
     dop = np.diff(op)
     noise = 1.4826 * np.median(np.abs(dop - np.median(dop))) / np.sqrt(2.0)
     h = max(3.0 * noise, 0.05 * span, 1e-9)
     mask = np.zeros(op.size, dtype=bool)
-    lo = hi = ext = op[0]
-    k_lo = k_hi = k_ext = 0
-    direction = 0  # unknown until OP has moved by more than h
-    for k in range(1, op.size):  # a small state machine over a 1-D array: clearer than vectorised tricks
-        x = op[k]
-        if direction == 0:
-            if x > hi:
-                hi, k_hi = x, k
-            if x < lo:
-                lo, k_lo = x, k
-            if hi - lo > h:
-                direction = 1 if k_hi > k_lo else -1
-                ext, k_ext = (hi, k_hi) if direction == 1 else (lo, k_lo)
-        elif direction * (x - ext) > 0:
-            ext, k_ext = x, k
-        elif direction * (ext - x) > h:
-            mask[k_ext:k_ext + horizon] = True
-            direction = -direction
-            ext, k_ext = x, k
+    for k in turning_points(op, h):
+        mask[k:k + horizon] = True
     return mask
 
 
