@@ -343,13 +343,18 @@ def _material(cand: ChainCandidate, params: np.ndarray, op_span: float) -> bool:
     return not sized or params[sized[0]] >= MIN_BAND * op_span
 
 
+def _lateable(cand: Candidate, plain: Option) -> bool:
+    """Whether ``cand`` may start late and ``plain`` adds it alone (not with a freed dead time)."""
+    return getattr(cand, "may_start_late", False) and plain.added == (cand.name,)
+
+
 def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
                  suspected: Suspected | None = None) -> Option | None:
     """``cand`` added to ``model`` acting from a fitted onset on (see the module docstring); None for a
     candidate that cannot start late or an option that frees the dead time with it, and, where no onset was
     ``suspected`` (:func:`suspect_onset`), without a nominal model or when the whole-record option's gain is
     not mostly late."""
-    if not getattr(cand, "may_start_late", False) or plain.added != (cand.name,):
+    if not _lateable(cand, plain):
         return None
     if suspected is None and (not fitter.nominal.given or _early_share(fitter.p, model, plain.model) >= EARLY_SHARE):
         return None
@@ -369,7 +374,7 @@ def load_onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Opti
     replays least): on the independent ``late_onset`` loops with their model, a valve of S = 3.4 % from t =
     634 s was fitted with a band below a twentieth of OP's span. Through the noise model's prefilter the
     load is forgotten within its time scale, and the band is fitted to the cycles the valve makes."""
-    if not getattr(cand, "may_start_late", False) or plain.added != (cand.name,):
+    if not _lateable(cand, plain):
         return None
     lam = load_bic(fitter.scorer, model)[1]
     scorer = fitter.scorer
