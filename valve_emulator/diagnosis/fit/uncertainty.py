@@ -110,15 +110,22 @@ def intervals(params: np.ndarray, sse: np.ndarray, n: float, names: tuple[str, .
     bound = chi2.ppf(LEVEL, k)
     out = {}
     for name, ax in zip(names, axes):
-        values, which = np.unique(params[:, ax], return_inverse=True)
-        along = np.full(values.size, np.inf)
-        np.minimum.at(along, which, cost)
+        values, along = _along(params, cost, ax)
         half = float(np.min(np.diff(values))) / 2 if values.size > 1 else 0.0
         inside = np.flatnonzero(along <= bound)
         lo, hi = int(inside[0]), int(inside[-1])
         out[name] = (float(values[lo] - _beyond(values, along, bound, lo, -1, half)),
                      float(values[hi] + _beyond(values, along, bound, hi, +1, half)))
     return out
+
+
+def _along(params: np.ndarray, cost: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """The profile of ``cost`` along column ``axis`` of ``params``: the column's distinct values, ascending, and
+    the least cost over the rows at each (the other columns minimised out)."""
+    values, which = np.unique(params[:, axis], return_inverse=True)
+    along = np.full(values.size, np.inf)
+    np.minimum.at(along, which, cost)
+    return values, along
 
 
 def _beyond(values: np.ndarray, along: np.ndarray, bound: float, i: int, way: int, half: float) -> float:
@@ -145,9 +152,7 @@ def optimum(params: np.ndarray, sse: np.ndarray, axis: int) -> float:
     On a grid the left-out estimates of the jackknife would otherwise move by whole steps, and one block that
     tips the choice between two neighbouring values would read as a spread of a step.
     """
-    values, which = np.unique(params[:, axis], return_inverse=True)
-    along = np.full(values.size, np.inf)
-    np.minimum.at(along, which, sse)
+    values, along = _along(params, sse, axis)
     i = int(np.argmin(along))
     if i == 0 or i == values.size - 1 or not np.all(np.isfinite(along[i - 1:i + 2])):
         return float(values[i])
