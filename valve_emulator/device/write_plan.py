@@ -5,7 +5,7 @@ few registers of the same loops again and again. :func:`~valve_emulator.device.r
 the register row, checks the register's access, the role, the controller's mode and the value's range, and
 :func:`~valve_emulator.device.registers.patches` finds the registers that show the quantity, at every write.
 A :class:`WritePlan` holds what of that depends only on the loop and the address -- the row, the raw range,
-the unauthenticated client's permission, the byte offsets of the registers that show the quantity -- so a
+the byte offsets of the registers that show the quantity -- so a
 write that is accepted costs the role's check, the value's decoding and the encoding of those registers.
 
 A plan only ever *accepts*: a write it does not accept (refused by the role, OP while the controller is in
@@ -23,7 +23,6 @@ from typing import Any
 
 from valve_emulator.device.registers import (
     RW_CONTROLLER,
-    RW_INSTRUCTOR,
     Conversion,
     DataType,
     R,
@@ -31,6 +30,7 @@ from valve_emulator.device.registers import (
     Scaling,
     value_decoder,
     value_encoder,
+    writable_by,
     write_range,
 )
 from valve_emulator.device.registers.mapping import RegisterMap
@@ -55,7 +55,6 @@ class WritePlan:
     register: Register
     low: int                 # the raw range a write may take on this loop
     high: int
-    unauthenticated: bool    # may a client without credentials write it?
     manual_only: bool        # OP of a loop with a controller: refused while the controller is in auto
     decode: Callable[[int], Any]   # the raw word's physical value (value_decoder)
     shows: tuple[tuple[bytearray, int, tuple[tuple[int, str, Callable[[Any], tuple[int, ...]]], ...]], ...]
@@ -68,7 +67,7 @@ class WritePlan:
         """The physical value the write of ``word`` by ``role`` sets, or ``None`` where the general way must
         judge it (it may refuse). ``auto(index)`` tells whether the loop's controller is in auto (asked only for
         OP of a loop with a controller)."""
-        if not (role.may_write(self.register.quantity) if role is not None else self.unauthenticated):
+        if not writable_by(self.register, role):
             return None
         if self.manual_only and auto(self.index):
             return None
@@ -105,6 +104,6 @@ def write_plan(maps: tuple[tuple[RegisterMap, bytearray, int], ...], regmap: Reg
         shows.append((image, start, registers))
     low, high = write_range(reg, scaling, index)
     return WritePlan(index=index, register=reg, low=int(low), high=int(high),
-                     unauthenticated=reg.access is not RW_INSTRUCTOR, manual_only=reg.quantity == "op" and has_ctl,
+                     manual_only=reg.quantity == "op" and has_ctl,
                      decode=value_decoder(reg, scaling, index), shows=tuple(shows))
 

@@ -151,6 +151,7 @@ from valve_emulator.device.registers.codec import (
     status_word,
     value_decoder,
     value_encoder,
+    writable_by,
     write_range,
 )
 from valve_emulator.device.registers.errors import (
@@ -204,6 +205,7 @@ __all__ = [
     "status_word",
     "to_words",
     "value_decoder",
+    "writable_by",
     "value_encoder",
     "write_range",
 ]

@@ -56,7 +56,7 @@ from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, 
 
 __all__ = ["WritePermission", "decode_value", "decode_write", "encode_loop", "encode_value", "encode_write",
            "loop_values", "patch", "patches", "physical_range", "status_word", "value_decoder", "value_encoder",
-           "write_range"]
+           "writable_by", "write_range"]
 
 _STATUS: Final = address_of("status")
 # Written quantities that also flip a status bit: quantity -> (bit, is the bit set for this value?)
@@ -266,6 +266,12 @@ def patches(read: Callable[[int, int], Sequence[int]], quantity: str, value: Any
             yield at, encode_value(reg, status, scaling, index)
 
 
+def writable_by(reg: Register, role: Any) -> bool:
+    """Whether ``role`` may write register ``reg``: by its permissions, or for a client without credentials
+    (``None``) every writable register but the instructor's."""
+    return role.may_write(reg.quantity) if role is not None else reg.access is not RW_INSTRUCTOR
+
+
 def write_range(reg: Register, scaling: Scaling, index: int) -> tuple[int, int]:
     """Raw range a write to ``reg`` may take on loop ``index`` (OP registers: within the loop's op_limits)."""
     if reg.conversion is Conversion.COUNTS:
@@ -372,7 +378,7 @@ def decode_write(address: int, values: Sequence[int], scaling: Scaling, index: i
             refusal = "is read-only"
         elif reg.access is RW_CONTROLLER and not has_ctl:
             refusal = "needs an internal controller; this loop has none"
-        elif not (role.may_write(reg.quantity) if role is not None else reg.access is not RW_INSTRUCTOR):
+        elif not writable_by(reg, role):
             refusal = "is not writable by role " + repr("unauthenticated" if role is None else role.name)
         elif reg.quantity == "op" and has_ctl and auto:
             refusal = "is writable only while the controller is in manual"
