@@ -21,6 +21,8 @@ from valve_emulator.diagnosis.report.schema import schema
 pytestmark = pytest.mark.slow
 #: Strong calls the calibration needs before its rate means anything.
 MIN_STRONG = 40
+#: Every healthy level loop drawn, as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed).
+HEALTHY_LEVEL_AS_PLANT_DATA = [k for k in HEALTHY_LEVEL if k.mode == "plant"] + HEALTHY_LEVEL_MORE
 _EACH = pytest.mark.parametrize("key", ALL, ids=lambda d: d.name)
 
 
@@ -78,7 +80,7 @@ def test_a_level_loop_with_a_healthy_valve_gets_no_strong_stiction_call():
 def test_a_level_loop_with_a_healthy_valve_is_not_answered_stiction_as_plant_data_in_nine_of_ten():
     """32 healthy level loops as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed). About 5 s a
     diagnosis (the 24 are read by this test only)."""
-    keys = [k for k in HEALTHY_LEVEL if k.mode == "plant"] + HEALTHY_LEVEL_MORE
+    keys = HEALTHY_LEVEL_AS_PLANT_DATA
     called = [d.draw.name for d in diagnosed_all(keys) if d.doc["answer"] == "stiction"]
     assert len(called) <= 0.1 * len(keys), f"{len(called)} of {len(keys)} answered stiction: {called}"
 
@@ -86,7 +88,7 @@ def test_a_level_loop_with_a_healthy_valve_is_not_answered_stiction_as_plant_dat
 def test_a_stiction_call_on_a_healthy_level_loop_says_that_op_hardly_crosses_its_band():
     """The qualifier that stands in for the rule above: on every healthy level loop called stiction without a
     regular oscillation, the reasons say that OP's swings hardly cross the band (at most 3 % did, measured)."""
-    keys = [k for k in HEALTHY_LEVEL if k.mode == "plant"] + HEALTHY_LEVEL_MORE
+    keys = HEALTHY_LEVEL_AS_PLANT_DATA
     calls = [d for d in diagnosed_all(keys)
              if d.doc["answer"] == "stiction" and not d.doc["oscillation"]["oscillating"]]
     unsaid = [d.draw.name for d in calls if not any("cross the band" in r["sentence"] for r in d.doc["reasons"])]
