@@ -99,7 +99,8 @@ async def test_node_red_runs_the_exported_flow_reading_pv_and_writing_op(tmp_pat
                         item = json.loads(line)
                         seen[item["topic"]] = item["value"]
                 srv.device.advance(1)
-                if "pv" in seen and srv.device.bank.op_external[0] == pytest.approx(OP):
+                # PV and MV are separate polls, written as they come: wait for both, not only the first
+                if {"pv", "mv"} <= seen.keys() and srv.device.bank.op_external[0] == pytest.approx(OP):
                     break
         finally:
             log = await _stop(proc)
