@@ -47,7 +47,7 @@ def test_diagnose_writes_verdict_json_report_and_figure(files, tmp_path, capsys)
     assert [r["code"] for r in data["reasons"]] == ["stiction"] and data["friction"]["physics"] == "stiction"
     assert [f["physics"] for f in data["findings"]] == ["stiction"]
     finding = data["findings"][0]
-    assert list(finding) == ["physics", "parameters", "windows", "evidence"]
+    assert list(finding) == ["physics", "parameters", "intervals", "windows", "evidence"]
     assert set(finding["parameters"]) == {"S", "J"}
     assert all(len(w) == 2 and w[0] <= w[1] for w in finding["windows"]) and finding["windows"]
     assert data["fit_after"] > data["fit_before"] + 20

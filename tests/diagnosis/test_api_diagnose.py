@@ -99,7 +99,7 @@ def test_to_json_round_trips_with_the_documented_keys(diagnosis):
     assert json.loads(json.dumps(data)) == data
     assert list(data) == ["answer", "strength", "reasons", "friction", "source", "action", "oscillation",
                           "fit_before", "fit_after", "findings", "verdict", "linear_part"]   # linear_part: with a model
-    assert set(data["findings"][0]) == {"physics", "parameters", "windows", "evidence"}
+    assert set(data["findings"][0]) == {"physics", "parameters", "intervals", "windows", "evidence"}
     assert diagnosis.report().startswith("# Diagnosis of ")
 
 

@@ -12,8 +12,6 @@ disagree on 27 of 32 (:mod:`~valve_emulator.diagnosis.fit.uncertainty`).
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 import pytest
 from unseen_loops import COVERAGE, Diagnosed, diagnosed_all
@@ -30,9 +28,6 @@ MIN_J = 0.5
 #: Lag findings reported as a value (with a closed interval) there must be at least this many of.
 LAGS = 3
 
-#: The interval of a finding's evidence sentence: "95 % interval tau 0.1–1.11" (a bound, "tau ≥ 30", is no value).
-_LAG_INTERVAL = re.compile(r"95 % interval tau (-?[\d.e+-]+)–(-?[\d.e+-]+)")
-
 
 def _covered(d: Diagnosed) -> dict[str, bool]:
     truth, friction = d.truth, d.doc["friction"]
@@ -43,10 +38,9 @@ def _covered(d: Diagnosed) -> dict[str, bool]:
                 continue
             lo, hi = friction["travel"][key]["interval"]
             out[key] = bool(lo <= truth[key] <= hi)
-    for finding in d.doc["findings"]:
-        found = _LAG_INTERVAL.search(finding["evidence"]) if finding["physics"] == "actuator_lag" else None
-        if found:
-            lo, hi = float(found[1]), float(found[2])
+    lags = [f["intervals"].get("tau", [None, None]) for f in d.doc["findings"] if f["physics"] == "actuator_lag"]
+    for lo, hi in lags:
+        if None not in (lo, hi):     # an open end is a bound (tau on an edge of the range searched), no value
             out["lag"] = bool(lo <= truth["valve"]["actuator_lag"] <= hi)
     return out
 
