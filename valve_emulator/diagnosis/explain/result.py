@@ -60,7 +60,12 @@ class Finding:
     onset: Onset | None = None
 
     def to_json(self) -> dict:
-        out = {"physics": self.physics, "parameters": dict(self.parameters),
+        """The finding in the diagnosis document: ``physics``, ``parameters``, ``intervals`` (the 95 % interval
+        of each numeric parameter that has one, in the units of its value, :func:`_interval_json`),
+        ``windows``, ``evidence`` and, for physics that starts part-way, ``onset``."""
+        numeric = {k: v for k, v in self.parameters.items() if isinstance(v, (int, float)) and np.isfinite(v)}
+        intervals = {k: _interval_json(*self.intervals[k], numeric[k]) for k in numeric if k in self.intervals}
+        out = {"physics": self.physics, "parameters": dict(self.parameters), "intervals": intervals,
                "windows": [[round(a, 6), round(b, 6)] for a, b in self.windows], "evidence": self.evidence}
         if self.onset is not None:
             out["onset"] = self.onset.to_json()
@@ -118,6 +123,15 @@ class LinearMove:
                 "fitted": _num(self.fitted), "proposed": _num(self.proposed), "moved": self.moved,
                 "delta_bic": round(self.delta_bic, 2), "fit_held": _num(self.fit_held, 2),
                 "fit_moved": _num(self.fit_moved, 2)}
+
+
+def _interval_json(lo: float, hi: float, value: float) -> list:
+    """A 95 % interval for the JSON: each end to 6 significant digits (as ``friction``'s), never rounded past the
+    ``value`` it holds, and an infinite end (the far side of a parameter on an edge of the range searched: a
+    bound, not a value) null."""
+    low = min(float(f"{lo:.6g}"), value) if np.isfinite(lo) else None
+    high = max(float(f"{hi:.6g}"), value) if np.isfinite(hi) else None
+    return [low, high]
 
 
 def _num(x: float, digits: int = 6) -> float | None:

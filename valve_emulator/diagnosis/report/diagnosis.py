@@ -60,26 +60,6 @@ def _friction_json(f: Finding | None, frame: Frame) -> dict | None:
     return out
 
 
-def _ends(lo: float, hi: float, value: float) -> list:
-    """A 95 % interval for the JSON: each end to 6 significant digits (as ``friction``'s), never rounded past the
-    ``value`` it holds, and an infinite end (the far side of a parameter on an edge of the range searched: a
-    bound, not a value) null."""
-    low = min(_sig(lo), value) if np.isfinite(lo) else None
-    high = max(_sig(hi), value) if np.isfinite(hi) else None
-    return [low, high]
-
-
-def _finding_json(f: Finding) -> dict:
-    """A finding's JSON (:meth:`~valve_emulator.diagnosis.explain.result.Finding.to_json`) with ``intervals``
-    after ``parameters``: the 95 % interval of each numeric parameter that has one, in the units of its value
-    (the finding's intervals are converted to OP's units with its parameters, see
-    :func:`~valve_emulator.diagnosis.explain.findings.findings`)."""
-    base = f.to_json()
-    numeric = {k: v for k, v in f.parameters.items() if isinstance(v, (int, float)) and np.isfinite(v)}
-    intervals = {k: _ends(*f.intervals[k], numeric[k]) for k in numeric if k in f.intervals}
-    return {"physics": base.pop("physics"), "parameters": base.pop("parameters"), "intervals": intervals, **base}
-
-
 @dataclass(frozen=True, eq=False, kw_only=True)
 class Diagnosis:
     """What :func:`valve_emulator.diagnose` found (see the module docstring).
@@ -234,9 +214,9 @@ class Diagnosis:
         estimate with 95 % intervals and units, or null), ``source``, ``action`` (``code``, ``words``),
         ``oscillation`` (the summary, :class:`~valve_emulator.diagnosis.assess.adequacy.Cycle`), then
         ``fit_before``, ``fit_after``, ``findings`` (each with its parameters' 95 % ``intervals``,
-        :func:`_finding_json`) and ``verdict``."""
+        :meth:`~valve_emulator.diagnosis.explain.result.Finding.to_json`) and ``verdict``."""
         base = self.assessment.to_json() if self.assessment is not None else self.explanation.to_json()
-        base["findings"] = [_finding_json(f) for f in self.findings]
+        base["findings"] = [f.to_json() for f in self.findings]
         strength = self.strength
         head = {"answer": str(self.answer), "strength": None if strength is None else str(strength),
                 "reasons": [{"code": str(c), "sentence": s} for c, s in self.reasons],
