@@ -8,18 +8,22 @@ an ideal valve) and as plant data (no model, OP declared as % travel).
 
 The property asked for: the onset within 10 % of the record, S and J within 25 % and no finding besides the
 valve's own (its friction, and an actuator lag where the loop has one) in at least 9 draws of 10. J is judged
-against the J of the 2005 valve that best reproduces the drawn valve's own stem travel (:func:`valve_2005`):
-the drawn valve's J is not that J in 8 draws of 20. It is not met: measured 5/20 with a model and 7/20 without
-(strict xfails below). What holds is checked at the rates measured (seed 32), one draw of slack each: the change
-point locates the onset before any fit in 17 draws of 20; the answer is stiction in 19/20 both ways; an onset it
-reports is within a tenth of the record in 16 of 18 both ways; stiction from an onset within a tenth, with S
-within 25 %, in 15/20 with a model and 12/20 without. What stands in the way, measured (a draw may miss for
-several reasons): J off by more than 25 % (11 draws with a model, 8 without; 7 with a model miss on J alone:
-Karnopp stems whose slip the 2005 valve does not reproduce, J traded against the linear part's gain); extra
-dead-time, saturation, disturbance and characteristic findings that hold after the onset under both noise models
-(5 with a model, 4 without); a deadband (J = 0) chosen over stiction (2 with a model, 5 without); S off by more
-than 25 % (3 and 5); the change point a fifth of the record early (one loop that starts to cycle long after its
-valve starts to stick, both ways, and one more each way); no onset reported (2 each way).
+against the Js the drawn valve may be said to have (:func:`j_error`): its drawn J, and the J of every 2005 valve
+that reproduces its own stem travel about as well as the best one (:func:`j_2005_range`) — on Karnopp stems the
+stem's travel leaves J undetermined (J = 0 does about as well in 5 draws of 20). It is not met: measured 9/20
+both ways (strict xfails below; 5/20 and 7/20 against the single best 2005 J). What holds is checked at the
+rates measured (seed 32), one draw of slack each: the change point locates the onset before any fit in 17 draws
+of 20; the answer is stiction in 19/20 both ways; an onset it reports is within a tenth of the record in 16 of
+18 both ways; stiction from an onset within a tenth, with S within 25 %, in 15/20 with a model and 12/20
+without; the whole property in 9/20 both ways. What stands in the way, measured (a draw may miss for several
+reasons; with a model / without): extra findings (5 / 4; on the draws that miss for them alone, 3 / 4, each
+holds after the onset under both noise models and raises the held-out fit after it by 1.2 to 21 points: a dead
+time standing in for the valve's own actuator lag, a saturation and a dead time beside a Karnopp stem, a slow
+disturbance for the wandering load, the plant's second lag as an actuator lag, an equal-percentage
+characteristic); S off by more than 25 % (3 / 5; without a model two of them level loops identified as
+self-regulating with a dead time over 30 s); J off the range (5 / 4; alone 3 / 0); the onset a fifth of the
+record early (2 / 2) or none reported (2 / 2); a ``no_stiction`` answer (1 / 1: with a model a level loop whose
+late fits settle on a band below a twentieth of OP's span, without one a loop where no change point is located).
 
 Time: about 4 minutes for the 20 draws, both ways (about 3 s a diagnosis on an idle core; 15–30 s on a machine
 shared by six processes).
@@ -42,6 +46,10 @@ DRAWS = 20
 SEED = 32
 #: The tolerances of the property: the onset within this fraction of the record, S and J within this fraction.
 ONSET_TOL, SIZE_TOL = 0.10, 0.25
+#: A 2005 valve reproduces a drawn valve's stem about as well as the best one when its RMS is within this
+#: fraction of the best's (:func:`j_2005_range`; the property holds in 9/20 draws both ways at 5 % as at 10 %,
+#: in 10/20 with a model and 9/20 without at 20 %).
+AS_WELL = 0.10
 
 
 def _loop(i: int) -> tuple:
@@ -59,17 +67,11 @@ def _stem_rms(op: np.ndarray, mv: np.ndarray, S: np.ndarray, J: np.ndarray) -> n
 
 
 @functools.cache
-def valve_2005(i: int) -> tuple[float, float]:
-    """The (S, J) of the 2005 valve (:mod:`valve_emulator.physics.stiction`, the model the diagnosis reports)
-    that best reproduces draw ``i``'s own stem travel from its OP after the onset: no plant, no noise, the
-    actuator lag applied to OP where it acts before the friction, OP taken as it is or one sample earlier.
-
-    Why: the drawn valve is a Karnopp stem or a data-driven valve written from its definition, whose S and J
-    are defined as the 2005 model's, but whose cycles differ in detail (a Karnopp stem re-sticks during slow
-    motion, the data-driven one rests after 1.5 samples of a held input). Fitted to the valve's own OP→MV,
-    the 2005 model reproduces S but not J: its J misses the drawn J by more than 25 % in 8 draws of 20
-    (:func:`test_the_2005_valve_fitted_to_the_drawn_valve_alone_reproduces_its_S_but_not_always_its_J`),
-    so the drawn J cannot be the measure of a diagnosis' J; this one can."""
+def _stem_fits(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The (S, J) grid of 2005 valves (:mod:`valve_emulator.physics.stiction`, the model the diagnosis reports)
+    and the RMS of each against draw ``i``'s own stem travel from its OP after the onset (:func:`_stem_rms`):
+    no plant, no noise, the actuator lag applied to OP where it acts before the friction, OP taken as it is or
+    one sample earlier (the better of the two)."""
     rec, truth, _ = _loop(i)
     valve = truth["valve"]
     k0 = int(np.ceil(truth["onset"] / rec.dt)) + 1
@@ -79,17 +81,53 @@ def valve_2005(i: int) -> tuple[float, float]:
     mv = np.asarray(truth["mv"], dtype=float)[k0:]
     S, J = (a.ravel() for a in np.meshgrid(truth["S"] * np.linspace(0.3, 2.0, 69),
                                            truth["S"] * np.linspace(0.0, 1.6, 41)))
-    best = min((float(e[j]), float(S[j]), float(J[j]))
-               for e in (_stem_rms(op[k0 - shift:op.size - shift], mv, S, J) for shift in (0, 1))
-               for j in [int(np.argmin(e))])
-    return best[1], best[2]
+    rms = np.minimum(*(_stem_rms(op[k0 - shift:op.size - shift], mv, S, J) for shift in (0, 1)))
+    return S, J, rms
+
+
+@functools.cache
+def valve_2005(i: int) -> tuple[float, float]:
+    """The (S, J) of the 2005 valve that best reproduces draw ``i``'s own stem travel (:func:`_stem_fits`).
+
+    Why: the drawn valve is a Karnopp stem or a data-driven valve written from its definition, whose S and J
+    are defined as the 2005 model's, but whose cycles differ in detail (a Karnopp stem re-sticks during slow
+    motion, the data-driven one rests after 1.5 samples of a held input). Fitted to the valve's own OP→MV,
+    the 2005 model reproduces S but not J: its J misses the drawn J by more than 25 % in 8 draws of 20
+    (:func:`test_the_2005_valve_fitted_to_the_drawn_valve_alone_reproduces_its_S_but_not_always_its_J`)."""
+    S, J, rms = _stem_fits(i)
+    j = int(np.argmin(rms))
+    return float(S[j]), float(J[j])
+
+
+@functools.cache
+def j_2005_range(i: int) -> tuple[float, float]:
+    """The least and largest J of the 2005 valves (any S) that reproduce draw ``i``'s stem travel with an RMS
+    within :data:`AS_WELL` of the best one's (:func:`_stem_fits`).
+
+    Why a range: the best 2005 valve's RMS is the floor the model's mismatch sets, and where the stem's travel
+    hardly depends on J that floor is met by very different Js: on 5 draws of 20 a 2005 valve with J = 0
+    reproduces the stem within a tenth of the best (four Karnopp stems and one data-driven valve of J/S = 0.2),
+    and on 5 the range is wider than the ±25 % the property allows
+    (:func:`test_the_stem_travel_leaves_the_2005_J_undetermined_in_a_quarter_of_the_draws`): a single best J
+    is then an accident of the grid, not a truth to judge a diagnosis by."""
+    _, J, rms = _stem_fits(i)
+    near = J[rms <= (1.0 + AS_WELL) * rms.min()]
+    return float(near.min()), float(near.max())
+
+
+def _j_scale(i: int) -> float:
+    """The scale J errors of draw ``i`` are measured on: the larger of the best 2005 J and the drawn J."""
+    return max(valve_2005(i)[1], _loop(i)[1]["J"])
 
 
 def j_error(J: float, i: int) -> float:
-    """Error of a diagnosed J against the J a 2005 valve has for draw ``i`` (:func:`valve_2005`), relative to
-    the larger of that J and the drawn one (a drawn valve whose 2005 J is 0 is judged on the drawn J's scale)."""
-    J_2005, J_drawn = valve_2005(i)[1], _loop(i)[1]["J"]
-    return abs(J - J_2005) / max(J_2005, J_drawn)
+    """Distance of a diagnosed J from the Js draw ``i``'s valve may be said to have — the drawn J, and the
+    range of 2005 valves that reproduce its stem about as well as the best (:func:`j_2005_range`), and anything
+    between — relative to :func:`_j_scale` (a valve whose best 2005 J is 0 is judged on the drawn J's scale)."""
+    lo, hi = j_2005_range(i)
+    J_drawn = _loop(i)[1]["J"]
+    lo, hi = min(lo, J_drawn), max(hi, J_drawn)
+    return max(lo - J, J - hi, 0.0) / _j_scale(i)
 
 
 @dataclass(frozen=True)
@@ -151,6 +189,22 @@ def test_the_2005_valve_fitted_to_the_drawn_valve_alone_reproduces_its_S_but_not
 
 
 @pytest.mark.slow
+def test_the_stem_travel_leaves_the_2005_J_undetermined_in_a_quarter_of_the_draws():
+    """Why J is judged against a range (:func:`j_2005_range`): 2005 valves that reproduce the drawn valve's own
+    stem travel within a tenth of the best one's RMS have Js spread wider than the ±25 % the property allows in
+    5 draws of 20 (four Karnopp stems), and one with J = 0 among them in 5; in 13 draws the range lies within
+    the best J ± 25 %, and there the range and the best J judge alike."""
+    ranges = [j_2005_range(i) for i in range(DRAWS)]
+    wide = sum(hi - lo > 2 * SIZE_TOL * _j_scale(i) for i, (lo, hi) in enumerate(ranges))
+    zero = sum(lo == 0.0 for lo, _ in ranges)
+    tight = sum(valve_2005(i)[1] * (1 - SIZE_TOL) <= lo and hi <= valve_2005(i)[1] * (1 + SIZE_TOL)
+                for i, (lo, hi) in enumerate(ranges))
+    assert 4 <= wide <= 6
+    assert zero >= 4
+    assert tight >= 12
+
+
+@pytest.mark.slow
 def test_the_onset_is_located_before_any_fit_within_a_tenth_of_the_record():
     """The change point in the control error's energy alone (no model, no search): measured 17/20."""
     hits = 0
@@ -191,7 +245,15 @@ def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured 5/20 with a model and 7/20 without (see the module docstring)")
+@pytest.mark.parametrize(("mode", "least"), [("model", 8), ("plant", 8)])
+def test_onset_size_and_nothing_else_at_the_rate_reached(mode, least):
+    """The whole property, at the rate the search reaches: measured 9/20 both ways (J judged against the drawn
+    J and the 2005 range, :func:`j_error`; 5/20 and 7/20 against the single best 2005 J)."""
+    assert _count(mode, lambda o: o.holds) >= least
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured 9/20 both ways (see the module docstring)")
 @pytest.mark.parametrize("mode", ["model", "plant"])
 def test_onset_and_size_within_tolerance_and_nothing_else_in_nine_draws_of_ten(mode):
     assert _count(mode, lambda o: o.holds) >= 0.9 * DRAWS
