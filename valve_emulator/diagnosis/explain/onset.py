@@ -173,10 +173,12 @@ class LateOnset(ChainCandidate):
         starts = np.clip(np.round(params[:, -1] / ctx.dt).astype(np.int64), 0, T)
         out = np.empty((T, n))
         for k0 in np.unique(starts):
-            rows = np.flatnonzero(starts == k0)
-            xs = x if x.ndim == 1 else x[:, rows]
-            out[:, rows] = xs[:, None] if x.ndim == 1 else xs
-            if T - k0 >= 2:  # the inner candidate acts from the onset sample on, started there
+            rows = _as_slice(np.flatnonzero(starts == k0))
+            xs = x if x.ndim == 1 else np.ascontiguousarray(x[:, rows])
+            acts = T - k0 >= 2   # the inner candidate acts from the onset sample on, started there
+            until = k0 if acts else T
+            out[:until, rows] = xs[:until, None] if x.ndim == 1 else xs[:until]
+            if acts:
                 out[k0:, rows] = self.inner.apply(xs[k0:], params[rows, :-1], ctx)
         return out
 
@@ -185,6 +187,14 @@ class LateOnset(ChainCandidate):
 
     def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
         return f"{self.inner.describe(p[:-1], nominal, units)}, from t ≈ {p[-1]:.4g} s on"
+
+
+def _as_slice(rows: np.ndarray) -> slice | np.ndarray:
+    """Sorted row indices as a slice when they are one contiguous run (the usual case: a grid's rows at one
+    onset), whose columns numpy copies in blocks instead of one index at a time."""
+    if rows.size and rows[-1] - rows[0] + 1 == rows.size:
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return rows
 
 
 @dataclass(frozen=True)
