@@ -12,7 +12,8 @@ Locating the onset before the fit (:func:`suspect_onset`)
 A valve that starts to stick makes a healthy loop cycle from then on: the energy of the control error
 ``SP − PV`` steps up. The record is cut into :data:`BLOCKS` blocks, and the least-squares step in the mean
 of their log energies is the change point; it is *suspected* when the energy rises by :data:`MIN_RISE` (in
-log) and the step explains :data:`MIN_SHARE` of the variance (without a set point, PV's fast part stands in).
+log) and the step explains :data:`MIN_SHARE` of the variance (without a set point, PV's fast part stands in:
+PV less its moving mean over a tenth of the record or two of its cycles, whichever is longer).
 Where one is suspected so late that the usual split (the last 30 % held out) would leave less than
 :data:`MIN_ACTING` of the record after it to fit, with a model (``"split"`` validation) the held-out part is
 the last 30 % of the part after it (:func:`post_onset_split`): a valve that starts to stick after 60 % of the
@@ -74,6 +75,7 @@ from typing import ClassVar
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainCandidate, ChainContext
+from valve_emulator.diagnosis.explain.locate import turning_points
 from valve_emulator.diagnosis.fit.cost import ar1_bic
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent
 from valve_emulator.diagnosis.fit.fitter import Fitter
@@ -171,10 +173,12 @@ class LateOnset(ChainCandidate):
         starts = np.clip(np.round(params[:, -1] / ctx.dt).astype(np.int64), 0, T)
         out = np.empty((T, n))
         for k0 in np.unique(starts):
-            rows = np.flatnonzero(starts == k0)
-            xs = x if x.ndim == 1 else x[:, rows]
-            out[:, rows] = xs[:, None] if x.ndim == 1 else xs
-            if T - k0 >= 2:  # the inner candidate acts from the onset sample on, started there
+            rows = _as_slice(np.flatnonzero(starts == k0))
+            xs = x if x.ndim == 1 else np.ascontiguousarray(x[:, rows])
+            acts = T - k0 >= 2   # the inner candidate acts from the onset sample on, started there
+            until = k0 if acts else T
+            out[:until, rows] = xs[:until, None] if x.ndim == 1 else xs[:until]
+            if acts:
                 out[k0:, rows] = self.inner.apply(xs[k0:], params[rows, :-1], ctx)
         return out
 
@@ -183,6 +187,14 @@ class LateOnset(ChainCandidate):
 
     def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
         return f"{self.inner.describe(p[:-1], nominal, units)}, from t ≈ {p[-1]:.4g} s on"
+
+
+def _as_slice(rows: np.ndarray) -> slice | np.ndarray:
+    """Sorted row indices as a slice when they are one contiguous run (the usual case: a grid's rows at one
+    onset), whose columns numpy copies in blocks instead of one index at a time."""
+    if rows.size and rows[-1] - rows[0] + 1 == rows.size:
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return rows
 
 
 @dataclass(frozen=True)
@@ -256,11 +268,35 @@ def _moving_mean(x: np.ndarray, w: int) -> np.ndarray:
     return (c[hi] - c[lo]) / np.maximum(hi - lo, 1)
 
 
+def _cycle_period(x: np.ndarray) -> float | None:
+    """Period (samples) of ``x``'s largest swings: twice the median spacing of its turning points with a
+    hysteresis of half its 5–95 % range; None with fewer than three turns."""
+    lo, hi = np.percentile(x, [5.0, 95.0])
+    turns = turning_points(x, 0.5 * float(hi - lo))
+    return 2.0 * float(np.median(np.diff(turns))) if turns.size >= 3 else None
+
+
+def _fast_part(pv: np.ndarray) -> np.ndarray:
+    """PV less its moving mean over a tenth of the record, or over two of PV's cycles where those are longer
+    (at most half the record).
+
+    Over a window shorter than the loop's cycle the moving mean follows PV through a long dwell, and the
+    fast part falls to the noise there: a sticky loop's first, slower cycle (a valve that rests longer before
+    it first slips) then reads as a quiet stretch before a change (the proof cases' concentration loop at
+    1,000 samples, a cycle of about 230 s against a window of 100, was answered as sticking from t ≈ 210 s
+    on)."""
+    w = max(1, pv.size // 10)
+    period = _cycle_period(pv)
+    if period is not None:
+        w = max(w, min(int(round(2.0 * period)), pv.size // 2))
+    return pv - _moving_mean(pv, w)
+
+
 def suspect_onset(pv: np.ndarray, sp: np.ndarray | None = None, *, start: int = 0) -> Suspected | None:
     """Where a loop's control error steps up for good, if it does: a valve that starts to stick part-way
     makes a healthy loop cycle from then on.
 
-    The squared control error ``(SP − PV)²`` (without a set point: PV less its mean over a tenth of the record)
+    The squared control error ``(SP − PV)²`` (without a set point: PV's fast part, :func:`_fast_part`)
     is averaged over :data:`BLOCKS` blocks; the least-squares step in the mean of their logs (the log keeps
     one set-point response from weighing like a lasting cycle) is the change point. It counts when the
     energy rises by :data:`MIN_RISE` at least and the step explains :data:`MIN_SHARE` of the variance, away
@@ -276,7 +312,7 @@ def suspect_onset(pv: np.ndarray, sp: np.ndarray | None = None, *, start: int = 
     if has_sp:
         e, signal = (np.asarray(sp, dtype=float) - pv) ** 2, "SP − PV"
     else:
-        e, signal = (pv - _moving_mean(pv, max(1, pv.size // 10))) ** 2, "PV"
+        e, signal = _fast_part(pv) ** 2, "PV"
     b, w = _log_blocks(e, BLOCKS)
     first = start
     if has_sp:
