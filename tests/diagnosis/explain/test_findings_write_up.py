@@ -24,12 +24,12 @@ def _model(*actives: Active, y_hat: np.ndarray | None = None) -> Model:
                  y_hat=np.zeros(1) if y_hat is None else y_hat, flow=np.zeros(1))
 
 
-def _stiction_option(sse: np.ndarray, best=(2.0, 1.0)) -> Option:
+def _stiction_option(sse: np.ndarray, best=(2.0, 1.0), load_model: bool = False) -> Option:
     # Rows (S, J, start): two starts for each (S, J) on a 2 × 3 grid.
     rows = np.array([(s, j, st) for st in (0.0, 1.0) for j in (0.0, 1.0) for s in (1.0, 2.0, 3.0)])
     model = _model(Active(STICTION, np.array([*best, 0.0])))
     return Option(added=("stiction",), model=model, coarse=None,
-                  scan=Surface(candidate="stiction", params=rows, sse=sse, n=100), fine=None)
+                  scan=Surface(candidate="stiction", params=rows, sse=sse, n=100, load_model=load_model), fine=None)
 
 
 def test_the_stiction_picture_is_the_delta_bic_over_s_and_j_of_the_best_start():
@@ -39,7 +39,8 @@ def test_the_stiction_picture_is_the_delta_bic_over_s_and_j_of_the_best_start():
     sse[0 + 6] = 2.0        # S = 1, J = 0, start 1: better than start 0's 4.0
     option = _stiction_option(sse)
     rounds = [Round(baseline=_model(), options=(option,), chosen=option)]
-    (S, J, grid), best = stiction_surface(rounds, 100)
+    (S, J, grid), best, load_model = stiction_surface(rounds, 100)
+    assert not load_model
     assert S.tolist() == [1.0, 2.0, 3.0] and J.tolist() == [0.0, 1.0] and best == (2.0, 1.0)
     assert grid[1, 1] == 0.0
     assert grid[0, 0] == pytest.approx(100 * np.log(2.0))
@@ -55,7 +56,14 @@ def test_the_stiction_picture_comes_from_the_round_that_accepted_stiction():
               Round(baseline=_model(), options=(accepted,), chosen=accepted)]
     assert stiction_surface(rounds, 100)[1] == (3.0, 1.0)
     assert stiction_surface(rounds[:1] + [Round(baseline=_model(), options=(), chosen=None)], 100)[1] == (1.0, 0.0)
-    assert stiction_surface([Round(baseline=_model(), options=(other,), chosen=None)], 100) == (None, None)
+    assert stiction_surface([Round(baseline=_model(), options=(other,), chosen=None)], 100) == (None, None, False)
+
+
+def test_the_stiction_picture_says_when_its_scan_was_scored_through_the_drifting_load_noise_model():
+    """A late valve's second fit scores its scan through the noise model's prefilter: the figure must say so,
+    since its ΔBIC are not the free run's."""
+    late = _stiction_option(np.linspace(1.0, 2.0, 12), load_model=True)
+    assert stiction_surface([Round(baseline=_model(), options=(late,), chosen=late)], 100)[2] is True
 
 
 def test_an_autocorrelated_residual_counts_fewer_effective_samples_with_and_without_a_model():

@@ -68,7 +68,10 @@ def param_text(model: Model, added: tuple[str, ...], frame: Frame | None = None)
 
 
 def stiction_surface(rounds: list[Round], n: int):
-    """ΔBIC over (S, J) from the stiction scan of the round that accepted stiction (else round 1)."""
+    """ΔBIC over (S, J) from the stiction scan of the round that accepted stiction (else round 1), the best
+    (S, J) of that option, and whether the scan was scored through the drifting-load noise model
+    (:attr:`Surface.load_model <valve_emulator.diagnosis.fit.records.Surface>`); ``None, None, False`` when no
+    stiction option was scanned."""
     pick = None
     for rnd in rounds:
         for o in rnd.options:
@@ -76,7 +79,7 @@ def stiction_surface(rounds: list[Round], n: int):
             if o.added == ("stiction",) and o.scan is not None and (pick is None or accepted):
                 pick = o
     if pick is None:
-        return None, None
+        return None, None, False
     P, sse = pick.scan.params, pick.scan.sse
     S, J = np.unique(P[:, 0]), np.unique(P[:, 1])
     cost = relative_cost(sse, n)
@@ -85,7 +88,7 @@ def stiction_surface(rounds: list[Round], n: int):
     for a, b, c in zip(iJ, iS, cost):
         grid[a, b] = c if np.isnan(grid[a, b]) else min(grid[a, b], c)
     best = pick.model.by_slot()["valve"].params
-    return (S, J, grid), (float(best[0]), float(best[1]))
+    return (S, J, grid), (float(best[0]), float(best[1])), pick.scan.load_model
 
 
 def _interval_text(name: str, lo: float, hi: float) -> str:

@@ -452,7 +452,7 @@ def _late_fit(searching: Fitter, fitter: Fitter, model: Model, cand: ChainCandid
         scan = LateOnset.with_onset(scan, row[-1])
         sse, _ = scorer.sse_grid(active, ctx, late, scan, st, None, aim)
         row = scan[int(np.argmin(sse[:, 0]))]
-        scan_surface = fitter.surface(cand.name, scan, sse[:, 0])
+        scan_surface = replace(fitter.surface(cand.name, scan, sse[:, 0]), load_model=searching is not fitter)
     r = searching.refine(model, late, row, st, model.delay_free, joint=False)
     if not _material(cand, r.active[cand.slot].params, ctx.op_span):
         return None

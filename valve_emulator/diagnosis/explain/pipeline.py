@@ -286,7 +286,7 @@ def _traces(s: Searched, base: Model, pv_before: np.ndarray, test_start: int, fr
     valve_only = {k: v for k, v in model.by_slot().items() if k in ("actuator", "valve")}
     mv = run_chain(problem.op, valve_only, replace(ctx, characteristic=("linear", DEFAULT_RANGEABILITY)),
                    nominal_valve=(nom.S, nom.J))[:, 0]
-    surface, surface_best = stiction_surface(s.rounds, problem.n_fit)
+    surface, surface_best, surface_load_model = stiction_surface(s.rounds, problem.n_fit)
     if surface is not None and not frame.identity:
         surface = (surface[0] / frame.gain, surface[1] / frame.gain, surface[2])
         surface_best = (surface_best[0] / frame.gain, surface_best[1] / frame.gain)
@@ -294,7 +294,8 @@ def _traces(s: Searched, base: Model, pv_before: np.ndarray, test_start: int, fr
     return Traces(t=problem.t, op=back(problem.op), pv=problem.pv, pv_before=pv_before,
                   pv_base=problem.to_pv(base.y_hat), pv_after=problem.to_pv(model.y_hat),
                   mv_after=back(mv), flow_after=back(model.flow),
-                  test_start=test_start, surface=surface, surface_best=surface_best)
+                  test_start=test_start, surface=surface, surface_best=surface_best,
+                  surface_load_model=surface_load_model)
 
 
 def _fitted(s: Searched, frame: Frame) -> FittedLoop:

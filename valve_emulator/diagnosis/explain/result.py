@@ -166,6 +166,7 @@ class Traces:
     test_start: int
     surface: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # S, J, ΔBIC over (S, J)
     surface_best: tuple[float, float] | None = None
+    surface_load_model: bool = False   # the surface scored through the drifting-load noise model (a late fit's)
 
 
 @dataclass(frozen=True)

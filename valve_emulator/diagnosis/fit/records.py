@@ -40,12 +40,17 @@ class Model:
 
 @dataclass(frozen=True, eq=False, kw_only=True)
 class Surface:
-    """Fit-part SSE over a candidate's parameter rows (minimised over the delays the option allowed)."""
+    """Fit-part SSE over a candidate's parameter rows (minimised over the delays the option allowed).
+
+    ``load_model``: the SSE was scored through the drifting-load noise model's prefilter (a late valve's second
+    fit, :func:`~valve_emulator.diagnosis.explain.onset.load_onset_option`), not in the search's own domain; its
+    shape over the rows is comparable, its numbers are not the search's."""
 
     candidate: str
     params: np.ndarray
     sse: np.ndarray
     n: int
+    load_model: bool = False
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)

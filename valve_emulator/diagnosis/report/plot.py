@@ -155,6 +155,9 @@ def plot_diagnosis(d: Explanation, path: str | os.PathLike, *, recording: Record
             ax.plot(*tr.surface_best, marker="x", color="r", ms=10, mew=2,
                     label="estimate" if accepted else "best of the search (not accepted)")
             ax.legend(fontsize=8, loc="upper left")
-        ax.set(title="Stiction cost surface over (S, J)" + ("" if accepted else " — stiction not accepted"),
+        title = "Stiction cost surface over (S, J)" + ("" if accepted else " — stiction not accepted")
+        if tr.surface_load_model:
+            title += "\n(scored through the drifting-load noise model)"
+        ax.set(title=title,
                xlabel=f"S ({units})", ylabel=f"J ({units})", ylim=(J[0], J[-1]))
     fig.savefig(path, dpi=110)
