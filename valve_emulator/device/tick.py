@@ -224,6 +224,14 @@ class Device:
         self.offsets = self.layout.offsets
         self.image = bytearray(self.layout.size)
         self._encode = ImageEncoder(scaling, self.image, self.offsets)
+        #: a tick that refreshes the image: the bank's step and the encoding in one compiled call, when the bank
+        #: keeps its state packed (:mod:`.tick_kernel`); None: ``bank.step()``, then the encoder
+        self._step_encode: Callable[..., None] | None = None
+        if hasattr(bank, "step_by"):   # a loop bank: the simulation it imports is loaded already
+            from valve_emulator.device.tick_kernel import SteppingEncoder
+
+            if SteppingEncoder.fits(bank, scaling):
+                self._step_encode = SteppingEncoder(scaling, self.image, self.offsets).step
         self.register_map = register_map
         if register_map.standard:
             self.served_layout, self.served = self.layout, self.image
@@ -375,6 +383,10 @@ class Device:
 
     def _refresh(self) -> None:
         self._encode(self.bank, tick=self.ticks, overruns=self.overruns, time=self.bank.sample_time)
+        self._encoded()
+
+    def _encoded(self) -> None:
+        """What follows an encoding of the image: the alarms, a configured map's rows, the listeners."""
         if self.alarms is not None:
             self.alarms.update(self.bank.pv)
         if self.served is not self.image:   # a configured map: every loop's row (one per unit, back to back)
@@ -411,9 +423,16 @@ class Device:
         self._apply_pending()
         if self.malfunctions is not None:
             self.malfunctions.apply(self.bank.t)
-        self.bank.step()
-        self.ticks += 1
-        if refresh or self.on_tick:   # a callback may read the image
+        if not (refresh or self.on_tick):   # (a callback may read the image)
+            self.bank.step()
+            self.ticks += 1
+        elif self._step_encode is not None:
+            self._step_encode(self.bank, self.ticks + 1, self.overruns)
+            self.ticks += 1
+            self._encoded()
+        else:
+            self.bank.step()
+            self.ticks += 1
             self._refresh()
         for callback in self.on_tick:
             callback(self)
