@@ -420,8 +420,9 @@ class Device:
         refresh after the last tick shows what one after every tick would.
         """
         start = self._clock()
-        self._apply_pending()
-        if self.malfunctions is not None:
+        if self._pending:
+            self._apply_pending()
+        if self.malfunctions is not None and self.malfunctions.ramping:
             self.malfunctions.apply(self.bank.t)
         if not (refresh or self.on_tick):   # (a callback may read the image)
             self.bank.step()
@@ -437,7 +438,8 @@ class Device:
         for callback in self.on_tick:
             callback(self)
         self.tick_time.add(self._clock() - start)
-        self._wake()
+        if self._waiters:
+            self._wake()
 
     def _wake(self) -> None:
         """Resolve the waiters of every tick count reached."""
