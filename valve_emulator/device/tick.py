@@ -19,6 +19,9 @@ accumulates. Each tick
 3. re-encodes the register image of every loop (one compiled pass,
    :class:`~valve_emulator.device.registers.kernel.ImageEncoder`, the compiled ``encode_image`` bound to the image).
 
+With a ``LoopBank`` (whose state is packed in a few arrays) and the standard loop current, 2 and 3 are one
+compiled call (:class:`~valve_emulator.device.tick_kernel.SteppingEncoder`): what a lockstep ``step`` = 1 waits for.
+
 At plant scale the tick's own compute time matters as much as its lateness: while it runs, no request is
 answered. :attr:`Device.tick_time` keeps the duration of each tick (steps 1–3) next to the lateness.
 

@@ -61,7 +61,7 @@ from valve_emulator.recordings.recording import Recording
 from valve_emulator.simulation import state as _state
 
 __all__ = ["LoopBank", "PackedState", "simulate_loop", "loop_step_kernel", "sensed_step_kernel", "packed_step_kernel",
-           "ROWS", "BOOL_ROWS"]
+           "ROWS", "BOOL_ROWS", "INT_ROWS"]
 
 _LINEAR, _EQUAL_PERCENTAGE, _QUICK_OPENING = (CHARACTERISTICS.index(k) for k in CHARACTERISTICS)
 
@@ -146,7 +146,7 @@ def sensed_step_kernel(sp_next, due_by, noise_missing, unit_noise, noise_std, pv
 #: The bank's float state, one row each of :attr:`PackedState.floats` (n loops wide): row name -> (the sub-bank
 #: that names it, ``""`` for the bank itself, and its attribute there). The attributes are views of their rows,
 #: so the sub-banks, :meth:`LoopBank.run` and the snapshots (which find state by attribute) see one storage.
-_FLOAT_ROWS: dict[str, tuple[str, str]] = {
+_FLOAT_ATTRS: dict[str, tuple[str, str]] = {
     "sp_next": ("", "_sp_next"), "noise_std": ("", "noise_std"), "pv_bias": ("", "pv_bias"),
     "pv_stuck": ("", "pv_stuck"), "load": ("", "load"), "sp": ("", "_sp"), "op_external": ("", "op_external"),
     "S": ("", "_S"), "J": ("", "_J"), "R": ("", "_R"), "char_r": ("", "_char_r"), "act_tau": ("", "_act_tau"),
@@ -163,19 +163,19 @@ _FLOAT_ROWS: dict[str, tuple[str, str]] = {
 #: Rows of no attribute: this sample's disturbance and unit normals (inputs :meth:`LoopBank.step` fills when a
 #: loop has them), and the PV measured by a step, kept until the step is known to have succeeded.
 _SCRATCH_ROWS = ("dist", "unit", "pv_new")
-_BOOL_ROWS = {"has_controller": ("", "has_controller"), "frozen": ("", "frozen"), "auto": ("_pid", "_auto"),
+_BOOL_ATTRS = {"has_controller": ("", "has_controller"), "frozen": ("", "frozen"), "auto": ("_pid", "_auto"),
               "init": ("_pid", "_init")}
 #: Integer rows; the plant's ring head is the first element of its row (``_plant._head`` a view of shape (1,)).
-_INT_ROWS = {"codes": ("", "_codes"), "char_kind": ("", "_char_kind"), "m": ("_plant", "_m"),
+_INT_ATTRS = {"codes": ("", "_codes"), "char_kind": ("", "_char_kind"), "m": ("_plant", "_m"),
              "head": ("_plant", "_head")}
 #: The plant's (n, order) arrays, one plane each of :attr:`PackedState.plant_vectors`.
 _PLANT_PLANES = ("_B0", "_B1", "_C", "_x")
 
 #: Row numbers by name: ``ROWS.kc`` is the row of the controller gains in :attr:`PackedState.floats`
 #: (a tuple of ints: compiled code reads them as constants).
-ROWS = namedtuple("FloatRows", [*_FLOAT_ROWS, *_SCRATCH_ROWS])(*range(len(_FLOAT_ROWS) + len(_SCRATCH_ROWS)))
-BOOL_ROWS = namedtuple("BoolRows", list(_BOOL_ROWS))(*range(len(_BOOL_ROWS)))
-_I = namedtuple("IntRows", list(_INT_ROWS))(*range(len(_INT_ROWS)))
+ROWS = namedtuple("FloatRows", [*_FLOAT_ATTRS, *_SCRATCH_ROWS])(*range(len(_FLOAT_ATTRS) + len(_SCRATCH_ROWS)))
+BOOL_ROWS = namedtuple("BoolRows", list(_BOOL_ATTRS))(*range(len(_BOOL_ATTRS)))
+INT_ROWS = namedtuple("IntRows", list(_INT_ATTRS))(*range(len(_INT_ATTRS)))
 
 
 class PackedState(NamedTuple):
@@ -185,7 +185,7 @@ class PackedState(NamedTuple):
 
     floats: np.ndarray         # (len(ROWS), n): the rows of ROWS
     bools: np.ndarray          # (len(BOOL_ROWS), n)
-    ints: np.ndarray           # (4, n): stiction model codes, characteristic kinds, plant delays, ring head
+    ints: np.ndarray           # (len(INT_ROWS), n): stiction model codes, characteristic kinds, plant delays, ring head
     valve: np.ndarray          # (n, NSTATE): the stiction state machines
     flow_limits: np.ndarray    # (n, 2)
     plant_A: np.ndarray        # (n, order, order)
@@ -207,14 +207,15 @@ def packed_step_kernel(floats, bools, ints, valve, flow_limits, plant_A, plant_v
            DERIVATIVE_FILTER, F[ROWS.integral], F[ROWS.deriv], F[ROWS.pv_last], F[ROWS.e_last], F[ROWS.u_last],
            F[ROWS.pid_op], B[BOOL_ROWS.auto], F[ROWS.man_op], B[BOOL_ROWS.init])
     actuator = (F[ROWS.act_tau], F[ROWS.act_a], F[ROWS.act_w], F[ROWS.act_state])
-    valve_args = (F[ROWS.S], F[ROWS.J], F[ROWS.R], ints[_I.codes], valve)
-    plant = (F[ROWS.u0], F[ROWS.pv0], plant_A, P[0], P[1], P[2], F[ROWS.D], ints[_I.m], plant_buf, ints[_I.head],
-             P[3], F[ROWS.ud], F[ROWS.plant_pv], plant_work)
+    valve_args = (F[ROWS.S], F[ROWS.J], F[ROWS.R], ints[INT_ROWS.codes], valve)
+    plant = (F[ROWS.u0], F[ROWS.pv0], plant_A, P[0], P[1], P[2], F[ROWS.D], ints[INT_ROWS.m], plant_buf,
+             ints[INT_ROWS.head], P[3], F[ROWS.ud], F[ROWS.plant_pv], plant_work)
     code = sensed_step_kernel(F[ROWS.sp_next], t + 1e-9 * dt, noise_missing, F[ROWS.unit], F[ROWS.noise_std],
                               F[ROWS.pv_bias], F[ROWS.pv_stuck], F[ROWS.load], F[ROWS.dist], F[ROWS.sp],
                               F[ROWS.op_external], B[BOOL_ROWS.has_controller], B[BOOL_ROWS.frozen], pid,
-                              F[ROWS.pid_op], actuator, valve_args, ints[_I.char_kind], F[ROWS.char_r], flow_limits,
-                              plant, F[ROWS.plant_pv], F[ROWS.pv_new], F[ROWS.op], F[ROWS.flow], F[ROWS.u_in])
+                              F[ROWS.pid_op], actuator, valve_args, ints[INT_ROWS.char_kind], F[ROWS.char_r],
+                              flow_limits, plant, F[ROWS.plant_pv], F[ROWS.pv_new], F[ROWS.op], F[ROWS.flow],
+                              F[ROWS.u_in])
     if code == 0:
         F[ROWS.pv, :] = F[ROWS.pv_new]
     return code
@@ -234,11 +235,11 @@ def _pack(bank: LoopBank) -> PackedState:
             setattr(owner, attr, view)
 
     floats = np.zeros((len(ROWS), n))
-    adopt(floats, _FLOAT_ROWS)
+    adopt(floats, _FLOAT_ATTRS)
     bools = np.zeros((len(BOOL_ROWS), n), dtype=np.bool_)
-    adopt(bools, _BOOL_ROWS)
-    ints = np.zeros((len(_I), n), dtype=np.int64)
-    adopt(ints, _INT_ROWS)
+    adopt(bools, _BOOL_ATTRS)
+    ints = np.zeros((len(INT_ROWS), n), dtype=np.int64)
+    adopt(ints, _INT_ATTRS)
     vectors = np.stack([getattr(plant, name) for name in _PLANT_PLANES])
     for j, name in enumerate(_PLANT_PLANES):
         setattr(plant, name, vectors[j])
