@@ -53,9 +53,11 @@ class SteppingEncoder(ImageEncoder):
                      self._cdab, self._half, self._words16)
 
 
-def _compile(m: _Map, k: _Constants):
+def _compile(m: _Map, k: _Constants, rows: tuple, bool_rows: tuple):
     """The kernel for the register table's cells ``m`` and constants ``k`` (literals, as in
-    :func:`.registers.kernel._compile`, whose encoder this repeats after the step)."""
+    :func:`.registers.kernel._compile`, whose encoder this repeats after the step) and the loop bank's row numbers
+    ``rows`` and ``bool_rows``: closure variables, on whose values numba keys its on-disk cache, so that a bank
+    whose rows moved compiles a new kernel instead of loading one that reads the old rows."""
 
     @numba.njit(cache=True)
     def step_encode_kernel(floats, bools, ints, valve, flow_limits, plant_A, plant_vectors, plant_buf, plant_work, t,
@@ -68,10 +70,10 @@ def _compile(m: _Map, k: _Constants):
         if code != 0:
             return code
         F, B = floats, bools
-        op, flow, pv, sp = F[ROWS.op], F[ROWS.flow], F[ROWS.pv], F[ROWS.sp]
-        kc, ti_inv, td, S, J = F[ROWS.kc], F[ROWS.ti_inv], F[ROWS.td], F[ROWS.S], F[ROWS.J]
-        load, noise = F[ROWS.load], F[ROWS.noise_std]
-        auto, ctl, frozen = B[BOOL_ROWS.auto], B[BOOL_ROWS.has_controller], B[BOOL_ROWS.frozen]
+        op, flow, pv, sp = F[rows.op], F[rows.flow], F[rows.pv], F[rows.sp]
+        kc, ti_inv, td, S, J = F[rows.kc], F[rows.ti_inv], F[rows.td], F[rows.S], F[rows.J]
+        load, noise = F[rows.load], F[rows.noise_std]
+        auto, ctl, frozen = B[bool_rows.auto], B[bool_rows.has_controller], B[bool_rows.frozen]
         f32 = np.empty(4, np.float32)
         f32[0] = t
         time = f32.view(np.uint32)[0]
@@ -87,4 +89,4 @@ def _compile(m: _Map, k: _Constants):
     return step_encode_kernel
 
 
-_step_encode_kernel = _compile(_MAP, _CONSTANTS)
+_step_encode_kernel = _compile(_MAP, _CONSTANTS, ROWS, BOOL_ROWS)

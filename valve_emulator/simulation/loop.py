@@ -173,9 +173,13 @@ _PLANT_PLANES = ("_B0", "_B1", "_C", "_x")
 
 #: Row numbers by name: ``ROWS.kc`` is the row of the controller gains in :attr:`PackedState.floats`
 #: (a tuple of ints: compiled code reads them as constants).
-ROWS = namedtuple("FloatRows", [*_FLOAT_ATTRS, *_SCRATCH_ROWS])(*range(len(_FLOAT_ATTRS) + len(_SCRATCH_ROWS)))
-BOOL_ROWS = namedtuple("BoolRows", list(_BOOL_ATTRS))(*range(len(_BOOL_ATTRS)))
-INT_ROWS = namedtuple("IntRows", list(_INT_ATTRS))(*range(len(_INT_ATTRS)))
+#: (Classes of their own names, so that a kernel holding them in a closure can be cached.)
+FloatRows = namedtuple("FloatRows", [*_FLOAT_ATTRS, *_SCRATCH_ROWS])
+BoolRows = namedtuple("BoolRows", list(_BOOL_ATTRS))
+IntRows = namedtuple("IntRows", list(_INT_ATTRS))
+ROWS = FloatRows(*range(len(FloatRows._fields)))
+BOOL_ROWS = BoolRows(*range(len(BoolRows._fields)))
+INT_ROWS = IntRows(*range(len(IntRows._fields)))
 
 
 class PackedState(NamedTuple):
@@ -456,8 +460,8 @@ class LoopBank:
         has_controller, frozen``.
 
         The compiled encoder derives ``mv``, ``stuck``, ``ti``, the saturation flags and ``auto`` from them itself:
-        at one loop the properties' copies and numpy expressions cost several times the encoding. Tuning and
-        ``pv`` are replaced by new arrays as the bank runs, so ask again at every sample."""
+        at one loop the properties' copies and numpy expressions cost several times the encoding. They are arrays
+        of :attr:`packed` (most of them its rows), changed in place as the bank runs."""
         kc, ti_inv, td, auto = self._pid.live_settings()
         return (self.op, self._vstate, self.flow, self.pv, self._sp, kc, ti_inv, td, self._S, self._J, self.load,
                 self.noise_std, auto, self.has_controller, self.frozen)
