@@ -24,7 +24,8 @@ Figures are medians over the rounds with their spread (min–max).
 
 ``--answers N [--before CHECKOUT]``: instead of timing, N random request frames (every function code, refused
 and malformed ones, steps of 0 to 300 ticks, two roles) answered in-process by a lockstep device of 10 loops on
-4 units (a unit without a loop asked too) and by one serving the Modbus float32 CDAB and S7 counts profiles;
+4 units (a unit without a loop asked too), with and without a custom mA table (without one, a tick steps and
+encodes in one compiled call), and by one serving the Modbus float32 CDAB and S7 counts profiles;
 prints the SHA-256 of every answer and of both register images after every request, for each checkout: a
 faster request path must give the same digest.
 """
@@ -297,19 +298,32 @@ def timeit_runs(fn: Callable[[], object], repeats: int, number: int) -> list[flo
 
 
 def _answers_servers() -> list:
-    """The lockstep servers :func:`answers_digest` asks: 10 loops on 4 units, then the two profiles' maps."""
-    from valve_emulator.config import server_from_mapping
+    """The lockstep servers :func:`answers_digest` asks: 10 loops on 4 units, one with a custom mA table, the
+    same fleet without it (a tick is then one compiled call that steps and encodes), then the two profiles' maps."""
     from valve_emulator.device.runtime import load_server_or_default, with_device
     from valve_emulator.device.server import EmulatorServer
 
-    fleet = server_from_mapping({
+    servers = [EmulatorServer(_fleet(ma_table)) for ma_table in (True, False)]
+    for profile in ("modicon_float_cdab", "s7_analog"):
+        config = load_server_or_default(ROOT / "configs" / "profiles" / f"{profile}.yaml")
+        servers.append(EmulatorServer(with_device(config, lockstep=True)))
+    return servers
+
+
+def _fleet(ma_table: bool) -> Any:
+    """A lockstep fleet of 10 loops on 4 units: noise, a sine disturbance, set-point steps, an integrating plant,
+    manual controllers; with ``ma_table`` the second loop has a custom mA table."""
+    from valve_emulator.config import server_from_mapping
+
+    table = {"ma_table": [[4.0, 0.0], [12.0, 40.0], [20.0, 100.0]]} if ma_table else {}
+    return server_from_mapping({
         "device": {"tick": 0.1, "instructor_writes": True, "lockstep": True},
         "loops": [
             {"unit": 1, "valve": {"S": 5.0, "J": 2.0},
              "plant": {"fopdt": {"gain": 3.0, "tau": 10.0, "delay": 1.0}, "noise": 0.02,
                        "disturbance": {"type": "sine", "amplitude": 2.0, "period": 5.0}},
              "controller": {"kc": 0.2, "ti": 10.0, "sp_steps": [[0.5, 1.0], [3.0, 2.0]]}},
-            {"unit": 2, "valve": {"S": 3.0, "J": 1.0, "ma_table": [[4.0, 0.0], [12.0, 40.0], [20.0, 100.0]]},
+            {"unit": 2, "valve": {"S": 3.0, "J": 1.0, **table},
              "plant": {"integrator": {"gain": 0.1}, "pv0": 50.0}},
         ],
         "fleet": {"count": 8, "loops_per_unit": 4, "seed": 3,
@@ -317,11 +331,6 @@ def _answers_servers() -> list:
                            "plant": {"fopdt": {"gain": 1.0, "tau": 4.0, "delay": 0.3}},
                            "controller": {"kc": 0.5, "ti": 5.0, "mode": "manual"}},
                   "vary": {"S": [0.5, 3.0], "gain": [0.5, 2.0]}}})
-    servers = [EmulatorServer(fleet)]
-    for profile in ("modicon_float_cdab", "s7_analog"):
-        config = load_server_or_default(ROOT / "configs" / "profiles" / f"{profile}.yaml")
-        servers.append(EmulatorServer(with_device(config, lockstep=True)))
-    return servers
 
 
 def _random_pdu(rng: Any, step_heavy: bool) -> bytes:

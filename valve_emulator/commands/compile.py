@@ -57,13 +57,13 @@ def _simulate() -> None:
 
 
 def _serve() -> None:
-    """The default device (its loop bank and register image), advanced a few ticks without a network: three in
+    """The default device (its loop bank and register image), advanced a few ticks without a network: some in
     one compiled run, as a quiet ``advance`` runs them, and one on its own, as a tick or a lockstep ``step`` = 1."""
     from valve_emulator.device.runtime import load_server_or_default
-    from valve_emulator.device.tick import Device
+    from valve_emulator.device.tick import QUIET_MIN, Device
 
     device = Device.from_config(load_server_or_default(None), time_scale=0.0)
-    device.advance(3)
+    device.advance(QUIET_MIN)
     device.advance(1)
 
 

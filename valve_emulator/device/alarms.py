@@ -110,6 +110,9 @@ def _update_words(pv, lo, hi, words, changed):  # pragma: no cover - compiled
 
 
 assert (int(AlarmBit.PV_HIGH), int(AlarmBit.PV_LOW), int(AlarmBit.UNACKED)) == (1, 2, 4)   # the kernel's bits
+#: :meth:`PvAlarms.update`'s answer when no word changed (read only: one array for every such tick)
+_NONE_CHANGED = np.zeros(0, dtype=np.int64)
+_NONE_CHANGED.setflags(write=False)
 
 
 class PvAlarms:
@@ -151,9 +154,10 @@ class PvAlarms:
         """Compare every loop's ``pv`` with its limits; returns the indices whose word changed."""
         self._pv = np.ascontiguousarray(pv, dtype=np.float64)
         count = _update_words(self._pv, self.lo, self.hi, self.words, self._changed)
+        if not count:   # the usual tick
+            return _NONE_CHANGED
         changed = self._changed[:count].copy()
-        if count:
-            self._notify(changed, acknowledged=False)
+        self._notify(changed, acknowledged=False)
         return changed
 
     def acknowledge(self, index: int) -> bool:

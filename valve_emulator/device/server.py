@@ -129,6 +129,7 @@ _CODE_OF = ((RegisterValueError, ExcCodes.ILLEGAL_VALUE), (RegisterAccessError, 
             (RegisterAddressError, ExcCodes.ILLEGAL_ADDRESS))
 _REGISTER_NAME = re.compile(r"\bregister (\w+)")
 _STEP = CLOCK_REGISTERS[0]
+_STEP_ADDRESS = _STEP.address.to_bytes(2, "big")   # as a request carries it
 
 #: ``device`` settings :meth:`EmulatorServer.reconfigure` applies to a running server.
 LIVE_DEVICE_KEYS = ("read_only", "instructor_writes", "instructor_hosts", "max_connections", "idle_timeout",
@@ -400,8 +401,13 @@ class EmulatorServer:
                 answer = self._read_fast(frame)
                 if answer is not None:
                     return answer
-            elif frame[7] == 6 and self._write_fast(frame, role):
-                return frame[:2] + b"\x00\x00" + frame[4:]   # the answer echoes the request
+            elif frame[7] == 6:
+                if frame[8:10] == _STEP_ADDRESS:
+                    answer = self._step_fast(frame, role, peer)
+                    if answer is not None:
+                        return answer
+                elif self._write_fast(frame, role):
+                    return frame[:2] + b"\x00\x00" + frame[4:]   # the answer echoes the request
         return _mbap(frame, self.answer(frame[6], frame[7:], role, peer=peer, client=client))
 
     def _read_fast(self, frame: bytes) -> bytes | None:
@@ -448,6 +454,23 @@ class EmulatorServer:
             return False
         self.requests += 1
         return True
+
+    def _step_fast(self, frame: bytes, role: Role, peer: str) -> bytes | None:
+        """The answer frame to a well-formed FC6 write of the clock's ``step`` that the general path would carry
+        out (:meth:`_step`): its ticks run, then the echo, or the exception answer to a tick that failed, as
+        :meth:`_answer` gives it. ``None``: nothing done, the general path answers (refusals, with their
+        messages). A lockstep client sends one of these per tick: the general path's checks cost a third of a
+        tick."""
+        unit = frame[6]
+        if (unit not in self._regions or self._read_only or not self.comm.covers(unit, _STEP.address)
+                or not role.may_write("step") or not self.device.lockstep):
+            return None
+        self.requests += 1
+        try:
+            self.device.advance((frame[10] << 8) | frame[11])
+        except Exception as exc:
+            return _mbap(frame, self._failed(6, unit, exc, frame[7:], peer))
+        return frame[:2] + b"\x00\x00" + frame[4:]   # the answer echoes the request
 
     def handle_faulted(self, frame: bytes, role: Role, state: CommState, *, peer: str = "",
                        client: str = "") -> bytes | None:
@@ -511,14 +534,19 @@ class EmulatorServer:
             if fc in _OWN_DECODING:
                 return self._execute_raw(fc, pdu, unit, region, role)
             return self._execute(fc, pdu, unit, region, role)
-        except RegisterError as exc:
+        except Exception as exc:
+            return self._failed(fc, unit, exc, pdu, peer)
+
+    def _failed(self, fc: int, unit: int, exc: Exception, pdu: bytes, peer: str) -> bytes:
+        """The exception answer to request ``pdu`` that raised ``exc`` (called in its ``except`` block)."""
+        if isinstance(exc, RegisterError):
             code = next(c for cls, c in _CODE_OF if isinstance(exc, cls))
             return self._refuse(fc, code, unit, exc, pdu, peer)
-        except _Refused as exc:
+        if isinstance(exc, _Refused):
             return self._refuse(fc, exc.code, unit, exc, pdu, peer)
-        except Exception as exc:  # a bug, not a client error: say so loudly, answer, keep serving
-            _log.exception("unit %d fc %d: request failed", unit, fc)
-            return self._refuse(fc, ExcCodes.DEVICE_FAILURE, unit, exc, pdu, peer)
+        # a bug, not a client error: say so loudly, answer, keep serving
+        _log.exception("unit %d fc %d: request failed", unit, fc)
+        return self._refuse(fc, ExcCodes.DEVICE_FAILURE, unit, exc, pdu, peer)
 
     def _refuse(self, fc: int, code: int, unit: int, reason: Exception, pdu: bytes, peer: str) -> bytes:
         self.exceptions += 1

@@ -330,10 +330,12 @@ class PIDBank:
         # Keep the last unsaturated output: kc_old(e + I_old + td_old d) = kc_new(e + I_new + td_new d).
         i_new = self._kc * (e + self._integral + self._td * d) / kc_new - e - td_new * d
         self._integral[sel] = i_new[sel]
-        self._kc, self._td, self._ti_inv = kc_new, td_new, ti_inv_new
+        # in place: a loop bank keeps these arrays as rows of its own (see kernel_args)
+        self._kc[:], self._td[:], self._ti_inv[:] = kc_new, td_new, ti_inv_new
 
     def kernel_args(self) -> tuple:
-        """Arguments of :func:`pid_step_kernel` after ``pv``; the arrays are the bank's live state."""
+        """Arguments of :func:`pid_step_kernel` after ``pv``; the arrays are the bank's live state, changed only in
+        place (a loop bank may hold them as rows of one array)."""
         return (self._kc, self._ti_inv, self._td, self._bias, self._sign, self._op_min, self._op_max,
                 self._dt, DERIVATIVE_FILTER, self._integral, self._deriv, self._pv_last, self._e_last,
                 self._u_last, self._op, self._auto, self._man_op, self._init)
@@ -341,7 +343,7 @@ class PIDBank:
     def live_settings(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``kc``, ``1/ti`` (0: no integral action), ``td`` and ``auto`` as the bank's own arrays, not copies: for a
         compiled reader at every sample (the device's image encoder), which must not write them. A change of tuning
-        replaces the arrays, so ask again each time."""
+        writes them in place."""
         return self._kc, self._ti_inv, self._td, self._auto
 
     def kernel_output(self) -> np.ndarray:

@@ -464,8 +464,6 @@ class PlantBank:
         self._ud = np.zeros(n)
         self._pv = self._pv0.copy()
         self._work = np.zeros(p)
-        self._pv_view = self._pv.view()
-        self._pv_view.setflags(write=False)
         self.reset(self._u0)
 
     @property
@@ -481,7 +479,9 @@ class PlantBank:
     @property
     def pv(self) -> np.ndarray:
         """Noise-free PV at the current sample instant (read-only view, length n)."""
-        return self._pv_view
+        view = self._pv.view()
+        view.setflags(write=False)
+        return view
 
     def reset(self, u_init: ArrayLike) -> None:
         """Put every plant at rest for the constant input ``u_init`` (scalar or (n,)).

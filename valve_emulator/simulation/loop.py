@@ -28,15 +28,16 @@ valve's. Without those keys the loop starts exactly as before.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 from collections.abc import Sequence
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import numba
 import numpy as np
 
 from valve_emulator.config import LoopConfig, ValveConfig
 from valve_emulator.physics.actuator import actuator_output, lag_coefficients
-from valve_emulator.physics.controller import PIDBank, pid_step_kernel
+from valve_emulator.physics.controller import DERIVATIVE_FILTER, PIDBank, pid_step_kernel
 from valve_emulator.physics.disturbance import BLOCK as NORMALS_BLOCK
 from valve_emulator.physics.disturbance import DisturbanceBank, NoiseBank
 from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_functions_to_zoh
@@ -59,7 +60,8 @@ from valve_emulator.physics.stiction import (
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.simulation import state as _state
 
-__all__ = ["LoopBank", "simulate_loop", "loop_step_kernel", "sensed_step_kernel"]
+__all__ = ["LoopBank", "PackedState", "simulate_loop", "loop_step_kernel", "sensed_step_kernel", "packed_step_kernel",
+           "ROWS", "BOOL_ROWS", "INT_ROWS"]
 
 _LINEAR, _EQUAL_PERCENTAGE, _QUICK_OPENING = (CHARACTERISTICS.index(k) for k in CHARACTERISTICS)
 
@@ -139,6 +141,114 @@ def sensed_step_kernel(sp_next, due_by, noise_missing, unit_noise, noise_std, pv
         dist[i] = load[i] + disturbance[i]
     return loop_step_kernel(sp, noise, dist, op_ext, has_ctrl, frozen, pid, pid_op, actuator, valve, char_kind,
                             char_r, flow_limits, plant, plant_pv, pv_meas, op, flow, u_in)
+
+
+#: The bank's float state, one row each of :attr:`PackedState.floats` (n loops wide): row name -> (the sub-bank
+#: that names it, ``""`` for the bank itself, and its attribute there). The attributes are views of their rows,
+#: so the sub-banks, :meth:`LoopBank.run` and the snapshots (which find state by attribute) see one storage.
+_FLOAT_ATTRS: dict[str, tuple[str, str]] = {
+    "sp_next": ("", "_sp_next"), "noise_std": ("", "noise_std"), "pv_bias": ("", "pv_bias"),
+    "pv_stuck": ("", "pv_stuck"), "load": ("", "load"), "sp": ("", "_sp"), "op_external": ("", "op_external"),
+    "S": ("", "_S"), "J": ("", "_J"), "R": ("", "_R"), "char_r": ("", "_char_r"), "act_tau": ("", "_act_tau"),
+    "act_a": ("", "_act_a"), "act_w": ("", "_act_w"), "act_state": ("", "_act_state"), "pv": ("", "pv"),
+    "op": ("", "op"), "flow": ("", "flow"), "u_in": ("", "_u_in"),
+    "kc": ("_pid", "_kc"), "ti_inv": ("_pid", "_ti_inv"), "td": ("_pid", "_td"), "bias": ("_pid", "_bias"),
+    "sign": ("_pid", "_sign"), "op_min": ("_pid", "_op_min"), "op_max": ("_pid", "_op_max"),
+    "integral": ("_pid", "_integral"), "deriv": ("_pid", "_deriv"), "pv_last": ("_pid", "_pv_last"),
+    "e_last": ("_pid", "_e_last"), "u_last": ("_pid", "_u_last"), "pid_op": ("_pid", "_op"),
+    "man_op": ("_pid", "_man_op"),
+    "u0": ("_plant", "_u0"), "pv0": ("_plant", "_pv0"), "D": ("_plant", "_D"), "ud": ("_plant", "_ud"),
+    "plant_pv": ("_plant", "_pv"),
+}
+#: Rows of no attribute: this sample's disturbance and unit normals (inputs :meth:`LoopBank.step` fills when a
+#: loop has them), and the PV measured by a step, kept until the step is known to have succeeded.
+_SCRATCH_ROWS = ("dist", "unit", "pv_new")
+_BOOL_ATTRS = {"has_controller": ("", "has_controller"), "frozen": ("", "frozen"), "auto": ("_pid", "_auto"),
+              "init": ("_pid", "_init")}
+#: Integer rows; the plant's ring head is the first element of its row (``_plant._head`` a view of shape (1,)).
+_INT_ATTRS = {"codes": ("", "_codes"), "char_kind": ("", "_char_kind"), "m": ("_plant", "_m"),
+             "head": ("_plant", "_head")}
+#: The plant's (n, order) arrays, one plane each of :attr:`PackedState.plant_vectors`.
+_PLANT_PLANES = ("_B0", "_B1", "_C", "_x")
+
+#: Row numbers by name: ``ROWS.kc`` is the row of the controller gains in :attr:`PackedState.floats`
+#: (a tuple of ints: compiled code reads them as constants).
+#: (Classes of their own names, so that a kernel holding them in a closure can be cached.)
+FloatRows = namedtuple("FloatRows", [*_FLOAT_ATTRS, *_SCRATCH_ROWS])
+BoolRows = namedtuple("BoolRows", list(_BOOL_ATTRS))
+IntRows = namedtuple("IntRows", list(_INT_ATTRS))
+ROWS = FloatRows(*range(len(FloatRows._fields)))
+BOOL_ROWS = BoolRows(*range(len(BoolRows._fields)))
+INT_ROWS = IntRows(*range(len(IntRows._fields)))
+
+
+class PackedState(NamedTuple):
+    """A loop bank's whole state in nine arrays -- the arguments of :func:`packed_step_kernel` before its
+    scalars. At one loop a compiled call's cost is mostly numba unboxing its array arguments (about 50 ns
+    each): a step from these costs a fifth of one given every array of the bank (some 60)."""
+
+    floats: np.ndarray         # (len(ROWS), n): the rows of ROWS
+    bools: np.ndarray          # (len(BOOL_ROWS), n)
+    ints: np.ndarray           # (len(INT_ROWS), n): stiction model codes, characteristic kinds, plant delays, ring head
+    valve: np.ndarray          # (n, NSTATE): the stiction state machines
+    flow_limits: np.ndarray    # (n, 2)
+    plant_A: np.ndarray        # (n, order, order)
+    plant_vectors: np.ndarray  # (4, n, order): B0, B1, C and the state x
+    plant_buf: np.ndarray      # (n, ring length): the dead-time ring buffers
+    plant_work: np.ndarray     # (order,) scratch
+
+
+@numba.njit(cache=True)
+def packed_step_kernel(floats, bools, ints, valve, flow_limits, plant_A, plant_vectors, plant_buf, plant_work, t, dt,
+                       noise_missing):  # pragma: no cover - compiled
+    """:func:`sensed_step_kernel` on a bank's :class:`PackedState` at time ``t``: the same codes, the same
+    arithmetic. The rows ``dist`` and ``unit`` hold this sample's disturbance and unit normals (``unit`` is
+    zeroed here while ``noise_missing``); the measured PV lands in row ``pv`` only once the step succeeded."""
+    F, B, P = floats, bools, plant_vectors
+    if noise_missing:
+        F[ROWS.unit, :] = 0.0
+    pid = (F[ROWS.kc], F[ROWS.ti_inv], F[ROWS.td], F[ROWS.bias], F[ROWS.sign], F[ROWS.op_min], F[ROWS.op_max], dt,
+           DERIVATIVE_FILTER, F[ROWS.integral], F[ROWS.deriv], F[ROWS.pv_last], F[ROWS.e_last], F[ROWS.u_last],
+           F[ROWS.pid_op], B[BOOL_ROWS.auto], F[ROWS.man_op], B[BOOL_ROWS.init])
+    actuator = (F[ROWS.act_tau], F[ROWS.act_a], F[ROWS.act_w], F[ROWS.act_state])
+    valve_args = (F[ROWS.S], F[ROWS.J], F[ROWS.R], ints[INT_ROWS.codes], valve)
+    plant = (F[ROWS.u0], F[ROWS.pv0], plant_A, P[0], P[1], P[2], F[ROWS.D], ints[INT_ROWS.m], plant_buf,
+             ints[INT_ROWS.head], P[3], F[ROWS.ud], F[ROWS.plant_pv], plant_work)
+    code = sensed_step_kernel(F[ROWS.sp_next], t + 1e-9 * dt, noise_missing, F[ROWS.unit], F[ROWS.noise_std],
+                              F[ROWS.pv_bias], F[ROWS.pv_stuck], F[ROWS.load], F[ROWS.dist], F[ROWS.sp],
+                              F[ROWS.op_external], B[BOOL_ROWS.has_controller], B[BOOL_ROWS.frozen], pid,
+                              F[ROWS.pid_op], actuator, valve_args, ints[INT_ROWS.char_kind], F[ROWS.char_r],
+                              flow_limits, plant, F[ROWS.plant_pv], F[ROWS.pv_new], F[ROWS.op], F[ROWS.flow],
+                              F[ROWS.u_in])
+    if code == 0:
+        F[ROWS.pv, :] = F[ROWS.pv_new]
+    return code
+
+
+def _pack(bank: LoopBank) -> PackedState:
+    """Move the bank's state arrays (and its controller's and plant's) into the rows of a :class:`PackedState`,
+    each attribute becoming a view of its row: one storage, reached by name or by one compiled call."""
+    n, plant = bank.n, bank._plant
+
+    def adopt(rows: np.ndarray, table: dict[str, tuple[str, str]]) -> None:
+        for r, (owner_name, attr) in enumerate(table.values()):
+            owner = getattr(bank, owner_name) if owner_name else bank
+            old = getattr(owner, attr)
+            view = rows[r, :old.size]   # the ring head is one number: the first of its row
+            view[:] = old
+            setattr(owner, attr, view)
+
+    floats = np.zeros((len(ROWS), n))
+    adopt(floats, _FLOAT_ATTRS)
+    bools = np.zeros((len(BOOL_ROWS), n), dtype=np.bool_)
+    adopt(bools, _BOOL_ATTRS)
+    ints = np.zeros((len(INT_ROWS), n), dtype=np.int64)
+    adopt(ints, _INT_ATTRS)
+    vectors = np.stack([getattr(plant, name) for name in _PLANT_PLANES])
+    for j, name in enumerate(_PLANT_PLANES):
+        setattr(plant, name, vectors[j])
+    return PackedState(floats, bools, ints, bank._vstate, bank._flow_limits, plant._A, vectors, plant._buf,
+                       plant._work)
 
 
 @numba.njit(cache=True)
@@ -273,6 +383,9 @@ class LoopBank:
         self.op = op_init.astype(float)
         self.flow = flow0.copy()
         self._u_in = np.zeros(n)
+        #: the state above as a few arrays (its attributes are views of their rows): what one compiled call of
+        #: :func:`packed_step_kernel` steps; a tuple, which the snapshots do not walk (they find the views)
+        self.packed = _pack(self)
         self._valve_args = (self._S, self._J, self._R, self._codes, self._vstate)
 
     # -- read-only views ------------------------------------------------------------------------------------
@@ -347,8 +460,8 @@ class LoopBank:
         has_controller, frozen``.
 
         The compiled encoder derives ``mv``, ``stuck``, ``ti``, the saturation flags and ``auto`` from them itself:
-        at one loop the properties' copies and numpy expressions cost several times the encoding. Tuning and
-        ``pv`` are replaced by new arrays as the bank runs, so ask again at every sample."""
+        at one loop the properties' copies and numpy expressions cost several times the encoding. They are arrays
+        of :attr:`packed` (most of them its rows), changed in place as the bank runs."""
         kc, ti_inv, td, auto = self._pid.live_settings()
         return (self.op, self._vstate, self.flow, self.pv, self._sp, kc, ti_inv, td, self._S, self._J, self.load,
                 self.noise_std, auto, self.has_controller, self.frozen)
@@ -465,7 +578,7 @@ class LoopBank:
         starts the plants afresh: an integrating plant would otherwise carry what the pre-roll fed it.
         """
         self._plant.reset(self.flow + self.load)
-        self.pv = self._plant.pv.copy()
+        self.pv[:] = self._plant.pv
 
     # -- snapshots --------------------------------------------------------------------------------------------
     #: The fields of :meth:`state` that may hold a non-finite number, and what it means there. Every other
@@ -506,34 +619,35 @@ class LoopBank:
         """Advance every loop one sample ``dt``; afterwards ``pv``, ``op``, ``mv`` … describe sample k.
 
         The emulator's lockstep runs one of these per client request, so the work around the compiled step is
-        kept to one compiled call (:func:`sensed_step_kernel`): it composes the noise, the sensor faults and
-        the load itself and tells when the set-point schedule or the noise streams need Python first; the
-        disturbance generators run only when a loop has a disturbance (as :meth:`run` does).
+        kept to one compiled call of a dozen arguments (:func:`packed_step_kernel` on :attr:`packed`): it
+        composes the noise, the sensor faults and the load itself and tells when the set-point schedule or the
+        noise streams need Python first; the disturbance generators run only when a loop has a disturbance (as
+        :meth:`run` does).
         """
+        self.step_by(packed_step_kernel)
+
+    def step_by(self, kernel, *args) -> None:
+        """:meth:`step` by the compiled ``kernel(*packed, t, dt, noise_missing, *args)``: :func:`packed_step_kernel`
+        itself, or a kernel that calls it first and, only where it returned 0, does more in the same call (the
+        device's tick encodes its register image there). It answers as :func:`packed_step_kernel` does."""
         t = self.k * self.dt
-        # writable zeros, not a read-only constant: numba would compile the kernel a second time for those
-        dist = np.zeros(self.n) if self._disturbance is None else self._disturbance(t)
-        unit = None if self._noise is None else self._unit_noise(1)[0]
-        pv_meas = np.empty(self.n)
-        code = self._sensed_step(t, dist, unit, pv_meas)
+        floats = self.packed.floats
+        if self._disturbance is not None:
+            floats[ROWS.dist] = self._disturbance(t)
+        missing = self._noise is None
+        if not missing:
+            floats[ROWS.unit] = self._unit_noise(1)[0]
+        code = kernel(*self.packed, t, self.dt, missing, *args)
         while code in (SP_DUE, NOISE_DUE):   # rare: a set-point step, the first sample of a noisy loop
             if code == SP_DUE:
                 self._apply_sp_schedule(t)
             else:
-                unit = self._unit_noise(1)[0]   # creates the noise streams
-            code = self._sensed_step(t, dist, unit, pv_meas)
+                floats[ROWS.unit] = self._unit_noise(1)[0]   # creates the noise streams
+                missing = False
+            code = kernel(*self.packed, t, self.dt, missing, *args)
         if code != 0:
             raise ValueError(f"non-finite value in loop step at t = {t} s (code {code})")
-        self.pv = pv_meas
         self.k += 1
-
-    def _sensed_step(self, t: float, dist: np.ndarray, unit: np.ndarray | None, pv_meas: np.ndarray) -> int:
-        """:func:`sensed_step_kernel` on the bank at time ``t`` with this sample's disturbance and unit normals
-        (``None``: no noise streams yet)."""
-        return sensed_step_kernel(self._sp_next, t + 1e-9 * self.dt, unit is None,
-                                  np.zeros(self.n) if unit is None else unit, self.noise_std, self.pv_bias,
-                                  self.pv_stuck, self.load, dist, self._sp, self.op_external, self.has_controller,
-                                  self.frozen, *self._kernel_args(), pv_meas, self.op, self.flow, self._u_in)
 
     def run(self, steps: int, *, sp: np.ndarray | None = None, op: np.ndarray | None = None
             ) -> dict[str, np.ndarray]:
@@ -581,7 +695,7 @@ class LoopBank:
             raise ValueError(f"non-finite value in loop step at t = {times[bad]} s")
         self.k += steps
         if steps:
-            self.pv = pv_meas.copy()
+            self.pv[:] = pv_meas
         return {"t": times, "sp": sp, **out, "stuck": stuck}
 
     def _replayed(self, name: str, values: np.ndarray, steps: int) -> np.ndarray:
