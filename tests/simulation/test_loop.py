@@ -121,6 +121,23 @@ def test_bank_equals_loops_alone_and_step_equals_run():
     np.testing.assert_array_equal(np.array([s[2] for s in stepped]), together["pv"])
 
 
+def test_a_state_captured_before_pending_set_point_steps_restores_and_continues_sample_for_sample():
+    """The schedule's pending steps are (t, value) tuples in memory (lists once read from a snapshot file):
+    both are state a restore accepts, and the restored bank meets the later steps as the original does."""
+    cfg = table1("concentration", "undershoot")
+    cfg = replace(cfg, controller=replace(cfg.controller, sp_steps=((20.0, cfg.controller.sp + 2.0),
+                                                                    (60.0, cfg.controller.sp - 1.0))))
+    original, restored = LoopBank([cfg]), LoopBank([cfg])
+    for _ in range(5):
+        original.step()
+    restored.set_state(original.state())
+    for _ in range(int(100.0 / cfg.simulation.dt)):
+        original.step()
+        restored.step()
+        np.testing.assert_array_equal(restored.pv, original.pv)
+    assert original.sp[0] == cfg.controller.sp - 1.0
+
+
 def test_external_op_is_held_and_drives_the_plant():
     cfg = replace(table1("concentration", "undershoot"), controller=None)
     bank = LoopBank([cfg], dt=0.1)

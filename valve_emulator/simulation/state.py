@@ -158,7 +158,7 @@ def _fits(now: Any, value: Any) -> bool:
 
 
 def _numbers_at_leaves(value: Any) -> bool:
-    if isinstance(value, list):
+    if isinstance(value, (list, tuple)):   # tuples in memory (a set-point step's (t, value)), lists from JSON
         return all(_numbers_at_leaves(v) for v in value)
     return value is None or isinstance(value, numbers.Real) and not isinstance(value, bool)
 
