@@ -56,6 +56,7 @@ async def test_freeze_holds_simulated_time_and_the_modbus_tick(station_for, clie
     assert await _tick_register(modbus) > tick0
 
 
+@pytest.mark.realtime   # a wall-clock rate: with the other tests beside it, it measured the machine
 async def test_speed_five_runs_five_times_faster_within_ten_percent(station_for):
     srv, station, client = await station_for(station_config(tick=0.05), time_scale=1.0)
     await srv.device.wait_for_tick(2)
