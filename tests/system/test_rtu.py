@@ -201,6 +201,7 @@ def _send_in_two_parts(port, gaps):
     return answers
 
 
+@pytest.mark.realtime   # a 22 ms silence between t1.5 and t3.5: 8 ms either side, which a loaded machine eats
 async def test_a_silence_inside_a_frame_discards_it(make_server, pty_pair):
     server_end, client_end = pty_pair
     settings = SerialSettings(baud=1200)                # t1.5 = 13.75 ms, t3.5 = 32.1 ms
