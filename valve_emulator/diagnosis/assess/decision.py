@@ -106,12 +106,14 @@ from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.closed_loop import Declared
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES, UninformativeData
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, noise_sigma
+from valve_emulator.diagnosis.fit.linear import LinearStructure
+from valve_emulator.diagnosis.fit.load_check import Swallowed, swallowed
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
-           "COARSE_SHARE", "CROSSING_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "band_crossings", "coarse_pv",
-           "cycling", "strength_with_model"]
+           "COARSE_SHARE", "CROSSING_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "band_crossings", "band_leaks",
+           "coarse_pv", "cycling", "strength_with_model"]
 
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
@@ -242,7 +244,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
     if valve is not None:
         S = float(valve.parameters["S"])
         if NOISE_BANDS * noise <= S:
-            contested = _contested(valve, S, fits, frame)
+            contested = _contested(valve, S, fits, frame) or _healthy_alike(rec, d, valve, S, fits, frame, ad)
             if contested is None:
                 return _stiction(valve, S, fits, frame, ad, _acting(rec, valve))
             if tune is None or not tune.aggressive:
@@ -451,6 +453,52 @@ def _contested(valve: Finding, S: float, fits: str, frame: Frame) -> Decision | 
     return Decision(Answer.CANNOT_TELL, "", f"{either}: {better}, so the record cannot tell which",
                     ((Reason(valve.physics), f"a sticky valve fits: S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}"),
                      (Reason.WEAK_EVIDENCE, f"a linear valve with a drifting load: {better}")))
+
+
+def _healthy_alike(rec: Recording, d: Explanation, valve: Finding, S: float, fits: str, frame: Frame,
+                   ad: Adequacy) -> Decision | None:
+    """``cannot tell``, naming both, when two independent signs say a healthy valve fits the record too (None
+    otherwise: the call stands): the loop does not oscillate regularly (:func:`cycling`), fewer than
+    :data:`CROSSING_SHARE` of OP's swings cross the band (:func:`band_crossings`), *and* the moves of OP inside
+    the band reach PV (:func:`band_leaks`). Under integral action a stuck valve is wound across its band, and
+    while it holds, OP's moves leave PV alone; a band that OP hardly crosses and whose swallowed moves still
+    move PV is the controller's small answers to a wandering load read as a valve that does not move."""
+    op = _acting(rec, valve)
+    share = band_crossings(op, S)
+    if cycling(ad.facts) or not share < CROSSING_SHARE:
+        return None
+    leak = band_leaks(d, valve)
+    if leak is None or not (leak.delta_bic >= DELTA_BIC and leak.share > 0.0):
+        return None
+    J = float(valve.parameters.get("J", 0.0))
+    sticky = f"a sticky valve (S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}; {fits})"
+    healthy = (f"only {100 * share:.0f} % of OP's swings cross the band, and OP's moves inside it reach PV "
+               f"(ΔBIC {leak.delta_bic:.1f} under a drifting-load noise model; {100 * leak.share:.0f} % of their "
+               "effect through the valve's own), where a stuck valve would leave PV alone")
+    return Decision(Answer.CANNOT_TELL, "", f"either {sticky} or a healthy valve answering a wandering load: "
+                    f"{healthy}, so the record cannot tell which",
+                    ((Reason(valve.physics), f"a sticky valve fits: S ≈ {_amount(S, frame)}, J ≈ "
+                                             f"{_amount(J, frame)}"),
+                     (Reason.WEAK_EVIDENCE, f"a healthy valve fits too: {healthy}")))
+
+
+def band_leaks(d: Explanation, valve: Finding) -> Swallowed | None:
+    """Whether the moves of OP that ``valve``'s band swallows reach PV
+    (:func:`~valve_emulator.diagnosis.fit.load_check.swallowed`): the recorded OP and PV and the valve's output
+    in the final model (``d.traces``), through the identified plant (``d.plant``), from the friction's onset (when
+    it starts part-way) plus the plant's settling time (its dead time and three time constants) on. None without
+    an identified plant or with too short a record left."""
+    tr, p = d.traces, d.plant
+    if not p or tr.t.size < 3:
+        return None
+    dt = float(tr.t[1] - tr.t[0])
+    structure = LinearStructure(taus=tuple(p["taus"]), integrating=bool(p["integrating"]), delay=float(p["delay"]))
+    onset = 0 if valve.onset is None else int(np.searchsorted(tr.t - tr.t[0], valve.onset.onset_s))
+    start = onset + int(np.ceil((structure.delay + 3.0 * sum(structure.taus)) / dt)) + 1
+    if tr.t.size - start < MIN_SAMPLES // 2:
+        return None
+    return swallowed(np.asarray(tr.pv, float), np.asarray(tr.op, float), np.asarray(tr.mv_after, float),
+                     structure, dt, start)
 
 
 def assess(recording: Recording, *, progress: Callable[[str], None] | None = None) -> Assessment:
