@@ -72,11 +72,12 @@ def test_a_level_loop_with_a_healthy_valve_gets_no_strong_stiction_call():
     assert not strong, f"strong stiction calls on healthy level loops: {strong}"
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-26: 9 of 32 answered stiction (21 before a call whose band OP "
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-26: 6 of 32 answered stiction (21 before a call whose band OP "
                                        "hardly crosses and whose swallowed moves reach PV became 'cannot tell', "
-                                       "decision.band_leaks): on 7 of the 9 the band's swallowed moves explain PV by "
-                                       "less than ΔBIC 10, one's friction starts too late to test, one (7.7.16) "
-                                       "oscillates regularly")
+                                       "decision.band_leaks): on 4 of the 6 the swallowed moves explain PV by less "
+                                       "than ΔBIC 10 through the identified plant and not as well through an "
+                                       "integrator, one's friction starts too late to test, one (7.7.16) oscillates "
+                                       "regularly")
 def test_a_level_loop_with_a_healthy_valve_is_not_answered_stiction_as_plant_data_in_nine_of_ten():
     """32 healthy level loops as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed). About 5 s a
     diagnosis (the 24 are read by this test only)."""
@@ -86,11 +87,11 @@ def test_a_level_loop_with_a_healthy_valve_is_not_answered_stiction_as_plant_dat
 
 
 def test_most_level_loops_with_a_healthy_valve_are_not_answered_stiction_as_plant_data():
-    """A floor under the rate measured (23 of 32 not answered stiction), so that a change that calls healthy level
+    """A floor under the rate measured (26 of 32 not answered stiction), so that a change that calls healthy level
     loops stiction again is seen."""
     keys = HEALTHY_LEVEL_AS_PLANT_DATA
     called = [d.draw.name for d in diagnosed_all(keys) if d.doc["answer"] == "stiction"]
-    assert len(called) <= 10, f"{len(called)} of {len(keys)} answered stiction: {called}"
+    assert len(called) <= 8, f"{len(called)} of {len(keys)} answered stiction: {called}"
 
 
 def test_a_band_op_hardly_crosses_whose_swallowed_moves_reach_pv_is_cannot_tell_naming_both():
@@ -99,7 +100,7 @@ def test_a_band_op_hardly_crosses_whose_swallowed_moves_reach_pv_is_cannot_tell_
     keys = HEALTHY_LEVEL_AS_PLANT_DATA
     taken = [d for d in diagnosed_all(keys) if d.doc["answer"] == "cannot_tell"
              and any("reach PV" in r["sentence"] for r in d.doc["reasons"])]
-    assert len(taken) >= 10, f"{len(taken)} calls taken back"
+    assert len(taken) >= 13, f"{len(taken)} calls taken back"
     for d in taken:
         codes = [r["code"] for r in d.doc["reasons"]]
         assert codes[0] in VALVE_FRICTION and "weak_evidence" in codes, (d.draw.name, d.doc["reasons"])

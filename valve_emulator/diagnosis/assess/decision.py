@@ -115,13 +115,13 @@ from valve_emulator.diagnosis.fit.closed_loop import Declared
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES, UninformativeData
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, noise_sigma
 from valve_emulator.diagnosis.fit.linear import LinearStructure
-from valve_emulator.diagnosis.fit.load_check import Swallowed, swallowed
+from valve_emulator.diagnosis.fit.load_check import swallowed
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
            "COARSE_SHARE", "CROSSING_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "band_crossings", "band_leaks",
-           "coarse_pv", "cycling", "strength_with_model"]
+           "coarse_pv", "Leak", "cycling", "strength_with_model"]
 
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
@@ -476,13 +476,12 @@ def _healthy_alike(rec: Recording, d: Explanation, valve: Finding, S: float, fit
     if cycling(ad.facts) or not share < CROSSING_SHARE:
         return None
     leak = band_leaks(d, valve)
-    if leak is None or not (leak.delta_bic >= DELTA_BIC and leak.share > 0.0):
+    if leak is None:
         return None
     J = float(valve.parameters.get("J", 0.0))
     sticky = f"a sticky valve (S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}; {fits})"
     healthy = (f"only {100 * share:.0f} % of OP's swings cross the band, and OP's moves inside it reach PV "
-               f"(ΔBIC {leak.delta_bic:.1f} under a drifting-load noise model; {100 * leak.share:.0f} % of their "
-               "effect through the valve's own), where a stuck valve would leave PV alone")
+               f"{leak.words}, where a stuck valve would leave PV alone")
     return Decision(Answer.CANNOT_TELL, "", f"either {sticky} or a healthy valve answering a wandering load: "
                     f"{healthy}, so the record cannot tell which",
                     ((Reason(valve.physics), f"a sticky valve fits: S ≈ {_amount(S, frame)}, J ≈ "
@@ -490,23 +489,58 @@ def _healthy_alike(rec: Recording, d: Explanation, valve: Finding, S: float, fit
                      (Reason.WEAK_EVIDENCE, f"a healthy valve fits too: {healthy}")))
 
 
-def band_leaks(d: Explanation, valve: Finding) -> Swallowed | None:
+@dataclass(frozen=True)
+class Leak:
+    """OP's moves inside a valve band that reach PV (:func:`band_leaks`): by how much (ΔBIC under the
+    drifting-load noise model), what share of the valve's own effect, and whether through an integrator held in
+    place of a self-regulating identified plant (``held``)."""
+
+    delta_bic: float
+    share: float
+    held: bool
+
+    @property
+    def words(self) -> str:
+        through = ("through an integrating plant (the identified plant is self-regulating; a healthy valve through "
+                   "an integrator explains PV at least as well as the sticky one through it)" if self.held else
+                   "through the identified plant")
+        return (f"{through}: ΔBIC {self.delta_bic:.1f} under a drifting-load noise model, {100 * self.share:.0f} % "
+                "of their effect through the valve's own")
+
+
+def band_leaks(d: Explanation, valve: Finding) -> Leak | None:
     """Whether the moves of OP that ``valve``'s band swallows reach PV
-    (:func:`~valve_emulator.diagnosis.fit.load_check.swallowed`): the recorded OP and PV and the valve's output
-    in the final model (``d.traces``), through the identified plant (``d.plant``), from the friction's onset (when
-    it starts part-way) plus the plant's settling time (its dead time and three time constants) on. None without
-    an identified plant or with too short a record left."""
+    (:func:`~valve_emulator.diagnosis.fit.load_check.swallowed`; None when they do not, or cannot be tested): the
+    recorded OP and PV and the valve's output in the final model (``d.traces``), from the friction's onset (when
+    it starts part-way) plus the plant's settling time (its dead time and three time constants) on,
+
+    - through the identified plant (``d.plant``): they explain PV better by ΔBIC ≥
+      :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (a candidate's rule), or
+    - when that plant is self-regulating, through an integrator with its dead time: the valve with its swallowed
+      moves explains PV at least as well (ΔBIC ≥ 0, the rule of an alternative explanation) as the valve alone
+      through the identified plant. An integrating plant is hard to recognise on PV under a wandering load
+      (``docs/diagnosis.md``), and the healthy level loops called stiction were identified first-order,
+
+    in either case with the sign of the valve's own moves."""
     tr, p = d.traces, d.plant
     if not p or tr.t.size < 3:
         return None
     dt = float(tr.t[1] - tr.t[0])
-    structure = LinearStructure(taus=tuple(p["taus"]), integrating=bool(p["integrating"]), delay=float(p["delay"]))
+    plant = LinearStructure(taus=tuple(p["taus"]), integrating=bool(p["integrating"]), delay=float(p["delay"]))
     onset = 0 if valve.onset is None else int(np.searchsorted(tr.t - tr.t[0], valve.onset.onset_s))
-    start = onset + int(np.ceil((structure.delay + 3.0 * sum(structure.taus)) / dt)) + 1
+    start = onset + int(np.ceil((plant.delay + 3.0 * sum(plant.taus)) / dt)) + 1
     if tr.t.size - start < MIN_SAMPLES // 2:
         return None
-    return swallowed(np.asarray(tr.pv, float), np.asarray(tr.op, float), np.asarray(tr.mv_after, float),
-                     structure, dt, start)
+    pv, op, mv = (np.asarray(x, dtype=float) for x in (tr.pv, tr.op, tr.mv_after))
+    own = swallowed(pv, op, mv, plant, dt, start)
+    if own.delta_bic >= DELTA_BIC and own.share > 0.0:
+        return Leak(own.delta_bic, own.share, held=False)
+    if plant.integrating:
+        return None
+    held = swallowed(pv, op, mv, LinearStructure(integrating=True, delay=plant.delay), dt, start)
+    if own.bic_valve - held.bic_leaking >= 0.0 and held.share > 0.0:
+        return Leak(own.bic_valve - held.bic_leaking, held.share, held=True)
+    return None
 
 
 def assess(recording: Recording, *, progress: Callable[[str], None] | None = None) -> Assessment:

@@ -144,15 +144,22 @@ class Swallowed:
 
     Attributes
     ----------
-    delta_bic : BIC of PV from the valve's output alone minus BIC with OP's swallowed moves let through the same
-        plant too, both under the drifting-load noise model (positive: the swallowed moves explain PV).
+    bic_valve : BIC of PV from the valve's output alone, through the plant, under the drifting-load noise model.
+    bic_leaking : the same with OP's swallowed moves let through the same plant too, with a coefficient of their
+        own.
     share : how much of the swallowed moves reach PV, relative to the valve's own moves (the ratio of their
         fitted coefficients: 1 for a valve that passes every move, 0 for one that is stuck while OP moves
         inside its band).
     """
 
-    delta_bic: float
+    bic_valve: float
+    bic_leaking: float
     share: float
+
+    @property
+    def delta_bic(self) -> float:
+        """How much better the swallowed moves explain PV (positive: they do)."""
+        return self.bic_valve - self.bic_leaking
 
 
 def _through(u: np.ndarray, structure: LinearStructure, dt: float) -> np.ndarray:
@@ -191,7 +198,7 @@ def swallowed(pv: np.ndarray, op: np.ndarray, valve: np.ndarray, structure: Line
         if fit < best_with:
             best_with = fit
             share = float(with_[1] / with_[0]) if with_[0] != 0.0 else float("nan")
-    return Swallowed(delta_bic=best_without - best_with, share=share)
+    return Swallowed(bic_valve=best_without, bic_leaking=best_with, share=share)
 
 
 def _least_squares(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
