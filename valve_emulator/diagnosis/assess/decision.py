@@ -41,13 +41,14 @@ run on each loop:
      (``cannot tell``) it took 31 of 32 healthy level loops off stiction, and 19 of the 35 labelled stiction
      windows of the shared plant data too, whose bands OP's swings also never crossed (``docs/diagnosis.md``).
      With a second, independent sign it is a rule: when, besides, the moves of OP inside the band reach PV
-     (:func:`band_leaks`: PV explained better, by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`
-     under the drifting-load noise model, when what the band swallows is let through the identified plant too,
-     with the sign of the valve's own moves), the call is ``cannot tell``, naming the sticky valve and the
-     healthy one (:func:`_healthy_alike`). A stuck valve leaves PV alone while OP moves inside its band; a band
-     that stands in for the controller's answers to a wandering load does not. Measured (2026-11-26, plant
-     data): 12 of the 21 healthy level loops called stiction taken back, none of the 27 sticky level calls, and
-     2 of the 80 shared plant windows, one of them the one labelled healthy window called stiction.
+     (:func:`band_leaks`: under the drifting-load noise model, what the band swallows, let through the identified
+     plant too, explains PV better by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`, or, a
+     self-regulating plant identified, the valve with it through an integrator explains PV at least as well),
+     the call is ``cannot tell``, naming the sticky valve and the healthy one (:func:`_healthy_alike`). A stuck
+     valve leaves PV alone while OP moves inside its band; a band that stands in for the controller's answers to
+     a wandering load does not. Measured (2026-11-26, plant data): 15 of the 21 healthy level loops called
+     stiction taken back, none of the 27 sticky level calls, and 2 of the 80 shared plant windows, one of them
+     the one labelled healthy window called stiction.
    * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
      its cross-validated free-run fit is below :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their
      mean) *and*, under the drifting-load noise model, it does not explain PV better than that noise model
