@@ -502,9 +502,9 @@ class Leak:
 
     @property
     def words(self) -> str:
-        through = ("through an integrating plant (the identified plant is self-regulating; a healthy valve through "
-                   "an integrator explains PV at least as well as the sticky one through it)" if self.held else
-                   "through the identified plant")
+        through = ("through an integrating plant (the identified plant is self-regulating; through an integrator the "
+                   "valve with its swallowed moves explains PV at least as well as the valve alone through the "
+                   "identified plant)" if self.held else "through the identified plant")
         return (f"{through}: ΔBIC {self.delta_bic:.1f} under a drifting-load noise model, {100 * self.share:.0f} % "
                 "of their effect through the valve's own")
 
