@@ -37,9 +37,18 @@ run on each loop:
      the band: fewer than :data:`CROSSING_SHARE` of OP's swings between turning points larger than S
      (:func:`band_crossings`; from the friction's onset on when it starts part-way). Under integral action a
      stuck valve is wound across its band, so a sticky valve's OP swings cross it; on healthy level loops the
-     band found swallowed nearly every swing. It qualifies the call and does not change it: as a rule
+     band found swallowed nearly every swing. Alone it qualifies the call and does not change it: as a rule
      (``cannot tell``) it took 31 of 32 healthy level loops off stiction, and 19 of the 35 labelled stiction
      windows of the shared plant data too, whose bands OP's swings also never crossed (``docs/diagnosis.md``).
+     With a second, independent sign it is a rule: when, besides, the moves of OP inside the band reach PV
+     (:func:`band_leaks`: under the drifting-load noise model, what the band swallows, let through the identified
+     plant too, explains PV better by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`, or, a
+     self-regulating plant identified, the valve with it through an integrator explains PV at least as well),
+     the call is ``cannot tell``, naming the sticky valve and the healthy one (:func:`_healthy_alike`). A stuck
+     valve leaves PV alone while OP moves inside its band; a band that stands in for the controller's answers to
+     a wandering load does not. Measured (2026-11-26, plant data): 15 of the 21 healthy level loops called
+     stiction taken back, none of the 27 sticky level calls, and 2 of the 80 shared plant windows, one of them
+     the one labelled healthy window called stiction.
    * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
      its cross-validated free-run fit is below :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their
      mean) *and*, under the drifting-load noise model, it does not explain PV better than that noise model
@@ -106,12 +115,14 @@ from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.closed_loop import Declared
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES, UninformativeData
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, noise_sigma
+from valve_emulator.diagnosis.fit.linear import LinearStructure
+from valve_emulator.diagnosis.fit.load_check import swallowed
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
-           "COARSE_SHARE", "CROSSING_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "band_crossings", "coarse_pv",
-           "cycling", "strength_with_model"]
+           "COARSE_SHARE", "CROSSING_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "band_crossings", "band_leaks",
+           "coarse_pv", "Leak", "cycling", "strength_with_model"]
 
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
@@ -242,7 +253,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
     if valve is not None:
         S = float(valve.parameters["S"])
         if NOISE_BANDS * noise <= S:
-            contested = _contested(valve, S, fits, frame)
+            contested = _contested(valve, S, fits, frame) or _healthy_alike(rec, d, valve, S, fits, frame, ad)
             if contested is None:
                 return _stiction(valve, S, fits, frame, ad, _acting(rec, valve))
             if tune is None or not tune.aggressive:
@@ -451,6 +462,86 @@ def _contested(valve: Finding, S: float, fits: str, frame: Frame) -> Decision | 
     return Decision(Answer.CANNOT_TELL, "", f"{either}: {better}, so the record cannot tell which",
                     ((Reason(valve.physics), f"a sticky valve fits: S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}"),
                      (Reason.WEAK_EVIDENCE, f"a linear valve with a drifting load: {better}")))
+
+
+def _healthy_alike(rec: Recording, d: Explanation, valve: Finding, S: float, fits: str, frame: Frame,
+                   ad: Adequacy) -> Decision | None:
+    """``cannot tell``, naming both, when two independent signs say a healthy valve fits the record too (None
+    otherwise: the call stands): the loop does not oscillate regularly (:func:`cycling`), fewer than
+    :data:`CROSSING_SHARE` of OP's swings cross the band (:func:`band_crossings`), *and* the moves of OP inside
+    the band reach PV (:func:`band_leaks`). Under integral action a stuck valve is wound across its band, and
+    while it holds, OP's moves leave PV alone; a band that OP hardly crosses and whose swallowed moves still
+    move PV is the controller's small answers to a wandering load read as a valve that does not move."""
+    op = _acting(rec, valve)
+    share = band_crossings(op, S)
+    if cycling(ad.facts) or not share < CROSSING_SHARE:
+        return None
+    leak = band_leaks(d, valve)
+    if leak is None:
+        return None
+    J = float(valve.parameters.get("J", 0.0))
+    sticky = f"a sticky valve (S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}; {fits})"
+    healthy = (f"only {100 * share:.0f} % of OP's swings cross the band, and OP's moves inside it reach PV "
+               f"{leak.words}, where a stuck valve would leave PV alone")
+    return Decision(Answer.CANNOT_TELL, "", f"either {sticky} or a healthy valve answering a wandering load: "
+                    f"{healthy}, so the record cannot tell which",
+                    ((Reason(valve.physics), f"a sticky valve fits: S ≈ {_amount(S, frame)}, J ≈ "
+                                             f"{_amount(J, frame)}"),
+                     (Reason.WEAK_EVIDENCE, f"a healthy valve fits too: {healthy}")))
+
+
+@dataclass(frozen=True)
+class Leak:
+    """OP's moves inside a valve band that reach PV (:func:`band_leaks`): by how much (ΔBIC under the
+    drifting-load noise model), what share of the valve's own effect, and whether through an integrator held in
+    place of a self-regulating identified plant (``held``)."""
+
+    delta_bic: float
+    share: float
+    held: bool
+
+    @property
+    def words(self) -> str:
+        through = ("through an integrating plant (the identified plant is self-regulating; through an integrator the "
+                   "valve with its swallowed moves explains PV at least as well as the valve alone through the "
+                   "identified plant)" if self.held else "through the identified plant")
+        return (f"{through}: ΔBIC {self.delta_bic:.1f} under a drifting-load noise model, {100 * self.share:.0f} % "
+                "of their effect through the valve's own")
+
+
+def band_leaks(d: Explanation, valve: Finding) -> Leak | None:
+    """Whether the moves of OP that ``valve``'s band swallows reach PV
+    (:func:`~valve_emulator.diagnosis.fit.load_check.swallowed`; None when they do not, or cannot be tested): the
+    recorded OP and PV and the valve's output in the final model (``d.traces``), from the friction's onset (when
+    it starts part-way) plus the plant's settling time (its dead time and three time constants) on,
+
+    - through the identified plant (``d.plant``): they explain PV better by ΔBIC ≥
+      :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (a candidate's rule), or
+    - when that plant is self-regulating, through an integrator with its dead time: the valve with its swallowed
+      moves explains PV at least as well (ΔBIC ≥ 0, the rule of an alternative explanation) as the valve alone
+      through the identified plant. An integrating plant is hard to recognise on PV under a wandering load
+      (``docs/diagnosis.md``), and the healthy level loops called stiction were identified first-order,
+
+    in either case with the sign of the valve's own moves."""
+    tr, p = d.traces, d.plant
+    if not p or tr.t.size < 3:
+        return None
+    dt = float(tr.t[1] - tr.t[0])
+    plant = LinearStructure(taus=tuple(p["taus"]), integrating=bool(p["integrating"]), delay=float(p["delay"]))
+    onset = 0 if valve.onset is None else int(np.searchsorted(tr.t - tr.t[0], valve.onset.onset_s))
+    start = onset + int(np.ceil((plant.delay + 3.0 * sum(plant.taus)) / dt)) + 1
+    if tr.t.size - start < MIN_SAMPLES // 2:
+        return None
+    pv, op, mv = (np.asarray(x, dtype=float) for x in (tr.pv, tr.op, tr.mv_after))
+    own = swallowed(pv, op, mv, plant, dt, start)
+    if own.delta_bic >= DELTA_BIC and own.share > 0.0:
+        return Leak(own.delta_bic, own.share, held=False)
+    if plant.integrating:
+        return None
+    held = swallowed(pv, op, mv, LinearStructure(integrating=True, delay=plant.delay), dt, start)
+    if own.bic_valve - held.bic_leaking >= 0.0 and held.share > 0.0:
+        return Leak(own.bic_valve - held.bic_leaking, held.share, held=True)
+    return None
 
 
 def assess(recording: Recording, *, progress: Callable[[str], None] | None = None) -> Assessment:

@@ -35,15 +35,17 @@ random-walk load give ΔBIC ≤ 3, sticky ones (with or without such a load) sev
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from valve_emulator.diagnosis.fit.cost import bic
-from valve_emulator.diagnosis.fit.linear import LinearStructure, highpass, polish
+from valve_emulator.diagnosis.fit.linear import LinearStructure, filter_inputs, highpass, polish, split_delay
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.scorer import Scorer
 
-__all__ = ["LAMBDAS", "family_delta_bic", "input_delta_bic", "load_bic", "load_bic_of", "load_delta_bic",
-           "noise_only_bic"]
+__all__ = ["LAMBDAS", "Swallowed", "family_delta_bic", "input_delta_bic", "load_bic", "load_bic_of",
+           "load_delta_bic", "noise_only_bic", "swallowed"]
 
 #: The noise model's λ searched (0: a pure random-walk load; 0.98: a load that wanders over ~50 samples).
 LAMBDAS = (0.0, 0.3, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98)
@@ -134,3 +136,73 @@ def input_delta_bic(scorer: Scorer, model: Model) -> float:
     and the same ΔBIC rule as the strength of a stiction call.
     """
     return noise_only_bic(scorer.p.y, scorer.p.train) - load_bic(scorer, model)[0]
+
+
+@dataclass(frozen=True)
+class Swallowed:
+    """Whether the moves of OP that a valve band swallows reach PV (:func:`swallowed`).
+
+    Attributes
+    ----------
+    bic_valve : BIC of PV from the valve's output alone, through the plant, under the drifting-load noise model.
+    bic_leaking : the same with OP's swallowed moves let through the same plant too, with a coefficient of their
+        own.
+    share : how much of the swallowed moves reach PV, relative to the valve's own moves (the ratio of their
+        fitted coefficients: 1 for a valve that passes every move, 0 for one that is stuck while OP moves
+        inside its band).
+    """
+
+    bic_valve: float
+    bic_leaking: float
+    share: float
+
+    @property
+    def delta_bic(self) -> float:
+        """How much better the swallowed moves explain PV (positive: they do)."""
+        return self.bic_valve - self.bic_leaking
+
+
+def _through(u: np.ndarray, structure: LinearStructure, dt: float) -> np.ndarray:
+    """``u`` through the plant's poles and dead time (the first tap of the search's regressors, unit gain)."""
+    z = filter_inputs(u, structure, dt)
+    m, f = split_delay(structure.delay / dt)
+    out = np.concatenate([np.full(m, z[0]), z[:z.size - m]]) if m else z
+    if f > 0.0:
+        out = (1.0 - f) * out + f * np.concatenate([[out[0]], out[:-1]])
+    return out
+
+
+def swallowed(pv: np.ndarray, op: np.ndarray, valve: np.ndarray, structure: LinearStructure, dt: float,
+              start: int) -> Swallowed:
+    """Do the moves of OP that a valve band swallows reach PV? PV from ``start`` on, under the drifting-load
+    noise model (λ of :data:`LAMBDAS` chosen by BIC for each), regressed on the valve's output ``valve`` through
+    the identified plant ``structure``, then on that and on what the valve swallows (``op − valve``) through the
+    same plant, each with its own coefficient.
+
+    Why: a band S fitted to a loop says the valve holds while OP moves inside it. Where the valve really is
+    stuck, those moves leave PV alone (a coefficient near 0); where it is healthy and the band stands in for
+    something else (the controller's small answers to a wandering load, on a level loop), they move PV as the
+    valve's own moves do. The test asks the band's claim directly, in the one-step view that a wandering load
+    does not fool (the noise model of :func:`load_delta_bic`)."""
+    through_valve, through_rest = _through(valve, structure, dt), _through(op - valve, structure, dt)
+    best_without = best_with = float("inf")
+    share = float("nan")
+    for lam in LAMBDAS:
+        y = highpass(pv, lam)[start:]
+        a, b = highpass(through_valve, lam)[start:], highpass(through_rest, lam)[start:]
+        one = np.ones_like(y)
+        without, sse0 = _least_squares(np.column_stack([a, one]), y)
+        with_, sse1 = _least_squares(np.column_stack([a, b, one]), y)
+        best_without = min(best_without, bic(sse0, y.size, 3))
+        fit = bic(sse1, y.size, 4)
+        if fit < best_with:
+            best_with = fit
+            share = float(with_[1] / with_[0]) if with_[0] != 0.0 else float("nan")
+    return Swallowed(bic_valve=best_without, bic_leaking=best_with, share=share)
+
+
+def _least_squares(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
+    """Coefficients and residual sum of squares of ``y`` on the columns of ``x``."""
+    beta, *_ = np.linalg.lstsq(x, y, rcond=None)
+    r = y - x @ beta
+    return beta, float(r @ r)

@@ -1,0 +1,56 @@
+"""Do the moves of OP that a valve band swallows reach PV? (``fit.load_check.swallowed``, read by the answer's
+``decision.band_leaks``.)
+
+A level (an integrating plant) under a random-walk load, fed through a valve that is either healthy or has a
+dead band. The band the test is asked about is the same in both: OP's moves inside it reach PV when the valve is
+healthy, and leave PV alone when the valve really holds them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
+from valve_emulator.diagnosis.fit.linear import LinearStructure
+from valve_emulator.diagnosis.fit.load_check import swallowed
+
+DT = 1.0
+PLANT = LinearStructure(integrating=True, delay=2.0)
+
+
+def _band(op: np.ndarray, S: float) -> np.ndarray:
+    """A valve that holds until OP has moved S beyond it (a play operator: a dead band of width S)."""
+    out = np.empty_like(op)
+    x = op[0]
+    for k, u in enumerate(op):
+        x = min(max(x, u - S / 2), u + S / 2)
+        out[k] = x
+    return out
+
+
+def _level(seed: int, healthy: bool, S: float = 3.0, n: int = 2000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """OP wandering over about ten times the band with small fast moves on top, the claimed band's output, and
+    the level PV: the integral of the valve's flow (healthy: OP itself), delayed 2 s, plus a random-walk load
+    and measurement noise."""
+    rng = np.random.default_rng(seed)
+    op = 50 + np.cumsum(rng.normal(0, 0.4, n)) + rng.normal(0, 0.5, n)
+    claimed = _band(op, S)
+    flow = op if healthy else claimed
+    load = np.cumsum(rng.normal(0, 0.01, n))
+    pv = np.cumsum(0.03 * DT * np.concatenate([np.full(3, flow[0]), flow[:-3]])) + np.cumsum(load) * 0.01
+    return pv + rng.normal(0, 0.05, n), op, claimed
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_moves_a_healthy_valve_passes_reach_pv_through_a_band_it_does_not_have(seed):
+    pv, op, claimed = _level(seed, healthy=True)
+    leak = swallowed(pv, op, claimed, PLANT, DT, start=50)
+    assert leak.delta_bic >= DELTA_BIC and 0.5 < leak.share < 1.5, leak
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_moves_a_stuck_valve_holds_do_not_reach_pv(seed):
+    pv, op, claimed = _level(seed, healthy=False)
+    leak = swallowed(pv, op, claimed, PLANT, DT, start=50)
+    assert leak.delta_bic < DELTA_BIC and abs(leak.share) < 0.2, leak
