@@ -31,7 +31,6 @@ _REALTIME = {
     "system/test_hostile_input.py",
     "system/test_robustness_fuzz.py",
     "system/test_clients_e2e.py",
-    "opcua/test_opcua_hostile.py",
 }
 
 
