@@ -89,11 +89,15 @@ def test_a_well_tuned_linear_loop_is_not_called_stiction_or_tuning():
     assert a.decision == "no_stiction" and a.cause not in ("tuning", "stiction", "deadband"), a.verdict
 
 
-@pytest.mark.xfail(strict=True, reason="known limitation (docs/real-data.md): the search's output-error identification "
-                                       "has no load model, and a stuck valve explains PV staying at SP while OP "
-                                       "drifts; the call is then qualified weak (tests/diagnosis/test_load_check.py)")
 def test_a_linear_loop_compensating_a_drifting_load_is_not_called_stiction():
-    # Between set-point steps the controller answers a random-walk load: OP drifts while PV stays at SP.
+    """Between set-point steps the controller answers a random-walk load: OP drifts while PV stays at SP. The
+    search's output-error fit credits a stuck valve with PV's indifference (a band of about 2 % OP), but OP's
+    moves inside that band reach PV through the identified plant (the band leaks,
+    :func:`~valve_emulator.diagnosis.assess.decision.band_leaks`): not a stiction call, and the answer names
+    both explanations when it cannot tell."""
     rec = simulate([2.0], [12.0, 1.0], 4.0, 0.5, 12.0, sp_steps=STEPS_300,
                    disturbance={"type": "random_walk", "std": 0.05})
-    assert assess(rec).decision != "stiction"
+    a = assess(rec)
+    assert a.decision != "stiction", a.verdict
+    if a.decision == "cannot_tell":
+        assert "sticky valve" in a.verdict and "healthy valve" in a.verdict
