@@ -59,6 +59,7 @@ __all__ = [
     "input_grid_sse",
     "delay_grid_sse",
     "split_delay",
+    "delayed_regressors",
     "fit_one",
     "on_pv",
     "sse_one",
@@ -165,7 +166,7 @@ class LinearFit:
         ``record_length`` so that the offset and trend keep their meaning.
         """
         z = filter_inputs(u, self.structure, dt, mean=level)
-        x = _delayed_regressors(z, self.structure.delay / dt, self.structure.ntaps)
+        x = delayed_regressors(z, self.structure.delay / dt, self.structure.ntaps)
         T = u.shape[0]
         return x @ self.taps + self.offset + self.trend * (np.arange(T) / (record_length or T))
 
@@ -269,7 +270,7 @@ def _shift(z: np.ndarray, s: int) -> np.ndarray:
     return out
 
 
-def _delayed_regressors(z: np.ndarray, delay_samples: float, ntaps: int) -> np.ndarray:
+def delayed_regressors(z: np.ndarray, delay_samples: float, ntaps: int) -> np.ndarray:
     """Columns ``z_{k-d-j}`` for a possibly fractional delay ``d = m + f`` (linear interpolation).
 
     Interpolating the filtered input between samples is the first-order (in Δt/τ) form of the exact
@@ -315,7 +316,7 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
     if prefilter is not None:
         z, y = highpass(z, prefilter), highpass(y, prefilter)
         extra = None if extra is None else highpass(extra, prefilter)
-    x = _delayed_regressors(z, structure.delay / dt, structure.ntaps)
+    x = delayed_regressors(z, structure.delay / dt, structure.ntaps)
     trend = structure.integrating and prefilter is None
     if structure.gain is not None:
         return _fit_held_gain(x, y, window, structure, trend, extra)
@@ -347,7 +348,7 @@ def on_pv(fit: LinearFit, u: np.ndarray, y: np.ndarray, window: tuple[int, int],
     st = fit.structure
     if st.sign == 0 or st.sign * level.gain > 0.0 or st.sign * fit.gain <= 0.0:
         return level
-    x = _delayed_regressors(filter_inputs(u, st, dt), st.delay / dt, st.ntaps)
+    x = delayed_regressors(filter_inputs(u, st, dt), st.delay / dt, st.ntaps)
     X = _regressors(np.zeros((u.shape[0], 0)), st.integrating, None)
     w0, w1 = window
     rest = y[w0:w1] - x[w0:w1] @ fit.taps

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from valve_emulator.diagnosis.fit.cost import bic
-from valve_emulator.diagnosis.fit.linear import LinearStructure, filter_inputs, highpass, polish, split_delay
+from valve_emulator.diagnosis.fit.linear import LinearStructure, delayed_regressors, filter_inputs, highpass, polish
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.scorer import Scorer
 
@@ -164,12 +164,7 @@ class Swallowed:
 
 def _through(u: np.ndarray, structure: LinearStructure, dt: float) -> np.ndarray:
     """``u`` through the plant's poles and dead time (the first tap of the search's regressors, unit gain)."""
-    z = filter_inputs(u, structure, dt)
-    m, f = split_delay(structure.delay / dt)
-    out = np.concatenate([np.full(m, z[0]), z[:z.size - m]]) if m else z
-    if f > 0.0:
-        out = (1.0 - f) * out + f * np.concatenate([[out[0]], out[:-1]])
-    return out
+    return delayed_regressors(filter_inputs(u, structure, dt), structure.delay / dt, 1)[:, 0]
 
 
 def swallowed(pv: np.ndarray, op: np.ndarray, valve: np.ndarray, structure: LinearStructure, dt: float,
