@@ -6,7 +6,7 @@ of the bank's step and the image encoder paid that twice, for some 60 arrays. A
 :class:`~valve_emulator.simulation.loop.LoopBank` keeps its state in a dozen arrays
 (:class:`~valve_emulator.simulation.loop.PackedState`), so :class:`SteppingEncoder` hands those, and the image,
 to one kernel that steps the bank (:func:`~valve_emulator.simulation.loop.packed_step_kernel`, the bank's own
-step) and then writes every loop's registers with the encoder's own row (:func:`.registers.kernel._encode_row`):
+step) and then writes every loop's registers with the encoder's own rows (:func:`.registers.kernel._encode_bank_rows`):
 the same state and the same words as a step followed by :class:`~.registers.kernel.ImageEncoder`, in one call.
 
 Only for the standard loop current (no custom mA table: ``4 + 0.16·OP``, computed in the kernel); a bank with a
@@ -20,10 +20,16 @@ from typing import Any
 import numba
 import numpy as np
 
-from valve_emulator.device.registers.kernel import _CONSTANTS, _MAP, ImageEncoder, _Constants, _encode_row, _Map
+from valve_emulator.device.registers.kernel import (
+    _CONSTANTS,
+    _MAP,
+    ImageEncoder,
+    _Constants,
+    _encode_bank_rows,
+    _Map,
+)
 from valve_emulator.device.registers.scaling import Scaling
 from valve_emulator.device.registers.words import CDAB
-from valve_emulator.physics.stiction import MV, STUCK
 from valve_emulator.simulation.loop import BOOL_ROWS, ROWS, packed_step_kernel
 
 __all__ = ["SteppingEncoder"]
@@ -55,7 +61,7 @@ class SteppingEncoder(ImageEncoder):
 
 def _compile(m: _Map, k: _Constants, rows: tuple, bool_rows: tuple):
     """The kernel for the register table's cells ``m`` and constants ``k`` (literals, as in
-    :func:`.registers.kernel._compile`, whose encoder this repeats after the step) and the loop bank's row numbers
+    :func:`.registers.kernel._compile`, whose bank encoder this calls after the step) and the loop bank's row numbers
     ``rows`` and ``bool_rows``: closure variables, on whose values numba keys its on-disk cache, so that a bank
     whose rows moved compiles a new kernel instead of loading one that reads the old rows."""
 
@@ -70,20 +76,13 @@ def _compile(m: _Map, k: _Constants, rows: tuple, bool_rows: tuple):
         if code != 0:
             return code
         F, B = floats, bools
-        op, flow, pv, sp = F[rows.op], F[rows.flow], F[rows.pv], F[rows.sp]
-        kc, ti_inv, td, S, J = F[rows.kc], F[rows.ti_inv], F[rows.td], F[rows.S], F[rows.J]
-        load, noise = F[rows.load], F[rows.noise_std]
-        auto, ctl, frozen = B[bool_rows.auto], B[bool_rows.has_controller], B[bool_rows.frozen]
-        f32 = np.empty(4, np.float32)
+        f32 = np.empty(1, np.float32)
         f32[0] = t
-        time = f32.view(np.uint32)[0]
-        for i in range(op.shape[0]):
-            o = op[i]
-            inv = ti_inv[i]
-            _encode_row(m, k, img, word0[i], o, 4.0 + 0.16 * o, valve[i, MV], flow[i], pv[i], sp[i], kc[i],
-                        np.inf if inv == 0.0 else 1.0 / inv, td[i], S[i], J[i], load[i], noise[i],
-                        valve[i, STUCK] == 1.0, o <= 0.0, o >= 100.0, ctl[i], auto[i], frozen[i], pv_range[0, i],
-                        pv_range[1, i], tick, overruns, time, cdab, f32)
+        op = F[rows.op]
+        _encode_bank_rows(m, k, img, word0, op, op, True, valve, F[rows.flow], F[rows.pv], F[rows.sp], F[rows.kc],
+                          F[rows.ti_inv], F[rows.td], F[rows.S], F[rows.J], F[rows.load], F[rows.noise_std],
+                          B[bool_rows.auto], B[bool_rows.has_controller], B[bool_rows.frozen], pv_range[0],
+                          pv_range[1], tick, overruns, f32.view(np.uint32)[0], cdab)
         return 0
 
     return step_encode_kernel

@@ -289,6 +289,23 @@ def _encode_row(m, k, img, b, op, ma, mv, flow, pv, sp, kc, ti, td, S, J, load, 
     _put(img, b + m.fault.at, k.fault_seized if frozen else 0)
 
 
+@numba.njit(cache=True, inline="always")
+def _encode_bank_rows(m, k, img, word0, op, ma, linear_ma, valve, flow, pv, sp, kc, ti_inv, td, S, J, load, noise,
+                      auto, ctl, frozen, pv_lo, pv_hi, tick, overruns, time, cdab):  # pragma: no cover - compiled
+    """Every loop's registers (:func:`_encode_row`) from a loop bank's own arrays: ``mv`` and ``stuck`` from the
+    valve state, ``ti`` from ``1/ti``, the saturation flags from OP and, with ``linear_ma`` (no custom mA table),
+    the loop current ``4 + 0.16·OP`` -- the bank's properties' and the scaling's numbers, computed here. The image
+    encoder's bank kernel and the device's one-call tick (:mod:`valve_emulator.device.tick_kernel`) both call it."""
+    f32 = np.empty(4, np.float32)
+    for i in range(op.shape[0]):
+        o = op[i]
+        inv = ti_inv[i]
+        _encode_row(m, k, img, word0[i], o, 4.0 + 0.16 * o if linear_ma else ma[i], valve[i, MV], flow[i], pv[i],
+                    sp[i], kc[i], np.inf if inv == 0.0 else 1.0 / inv, td[i], S[i], J[i], load[i], noise[i],
+                    valve[i, STUCK] == 1.0, o <= 0.0, o >= 100.0, ctl[i], auto[i], frozen[i], pv_lo[i],
+                    pv_hi[i], tick, overruns, time, cdab, f32)
+
+
 def _compile(m: _Map, k: _Constants):
     """The kernel for the table's cells ``m`` and constants ``k``, which numba freezes as literals.
 
@@ -310,18 +327,10 @@ def _compile(m: _Map, k: _Constants):
     def encode_bank_kernel(op, ma, linear_ma, valve, flow, pv, sp, kc, ti_inv, td, S, J, load, noise, auto, ctl,
                            frozen, pv_lo, pv_hi, tick, overruns, time, cdab, word0,
                            img):  # pragma: no cover - compiled
-        """:func:`encode_kernel` from a loop bank's own arrays (``LoopBank.image_arrays``): ``mv`` and ``stuck``
-        from the valve state, ``ti`` from ``1/ti``, the saturation flags from OP and, with ``linear_ma`` (no
-        custom mA table), the loop current ``4 + 0.16·OP`` -- the bank's properties' and the scaling's numbers,
-        computed here."""
-        f32 = np.empty(4, np.float32)
-        for i in range(op.shape[0]):
-            o = op[i]
-            inv = ti_inv[i]
-            _encode_row(m, k, img, word0[i], o, 4.0 + 0.16 * o if linear_ma else ma[i], valve[i, MV], flow[i], pv[i],
-                        sp[i], kc[i], np.inf if inv == 0.0 else 1.0 / inv, td[i], S[i], J[i], load[i], noise[i],
-                        valve[i, STUCK] == 1.0, o <= 0.0, o >= 100.0, ctl[i], auto[i], frozen[i], pv_lo[i],
-                        pv_hi[i], tick, overruns, time, cdab, f32)
+        """:func:`encode_kernel` from a loop bank's own arrays (``LoopBank.image_arrays``,
+        :func:`_encode_bank_rows`)."""
+        _encode_bank_rows(m, k, img, word0, op, ma, linear_ma, valve, flow, pv, sp, kc, ti_inv, td, S, J, load, noise,
+                          auto, ctl, frozen, pv_lo, pv_hi, tick, overruns, time, cdab)
 
     return encode_kernel, encode_bank_kernel
 
