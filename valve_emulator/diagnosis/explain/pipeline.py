@@ -51,11 +51,14 @@ from valve_emulator.diagnosis.fit.closed_loop import Declared, identification
 from valve_emulator.diagnosis.fit.crossval import cross_validated_fit, with_cv
 from valve_emulator.diagnosis.fit.data import (
     HELD_OUT,
+    WIDEN,
     Problem,
+    delay_at_end,
     fit_percent,
     held_out_start,
     prefilter_for,
     prepare,
+    widens,
     with_burn_in,
 )
 from valve_emulator.diagnosis.fit.fitter import Fitter
@@ -127,14 +130,14 @@ class Searched:
 
 
 def _prepared(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
-              validation: str, stops: tuple[float, float], declared: Declared | None = None
+              validation: str, stops: tuple[float, float], declared: Declared | None = None, reach: int = 1
               ) -> tuple[Problem, Nominal]:
     """The recording checked and split, the nominal model (identified from the data without one, under the
     closed loop's constraints and what ``declared`` says of the loop) and the fit part started after every
     candidate's burn-in."""
     problem = prepare(recording, nominal_delay=nom.delay if nom else None,
                       settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter, validation=validation,
-                      stops=stops)
+                      stops=stops, reach=reach)
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
         constraints = identification(problem.op, problem.pv, recording.sp, declared, dt=problem.dt)
@@ -152,10 +155,12 @@ def _bounded_delays(problem: Problem, bound: float | None) -> Problem:
 
 
 def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
-                 validation: str, stops: tuple[float, float], declared: Declared | None = None) -> Searched:
-    """Prepare, (identify,) search, settle the nominal linear part: one pass in one cost domain."""
+                 validation: str, stops: tuple[float, float], declared: Declared | None = None,
+                 reach: int = 1) -> Searched:
+    """Prepare, (identify,) search, settle the nominal linear part: one pass in one cost domain (``reach``: see
+    :func:`~valve_emulator.diagnosis.fit.data.prepare`)."""
     problem, nom = _prepared(recording, nom, lib, say, prefilter=prefilter, validation=validation, stops=stops,
-                             declared=declared)
+                             declared=declared, reach=reach)
     suspected = suspect_onset(problem.pv, recording.sp)
     problem = post_onset_split(problem, suspected)
     fitter = Fitter(Scorer(problem, nom, lib))
@@ -180,11 +185,17 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
     lib = {k: v for k, v in lib.items() if k != "dead_time"}  # without a nominal model the dead time is identified
     out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
                        declared=declared)
+    reach = 1
+    if delay_at_end(out.problem, out.model.fit.structure.delay) and widens(out.problem):
+        say("the dead time sits on the end of the grid searched: searching again with the grid widened")
+        reach = WIDEN
+        out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
+                           declared=declared, reach=reach)
     st = out.model.fit.structure
     if st.integrating:
         say("the plant integrates: searching again on prefiltered PV")
         out = _search_once(recording, None, lib, say, prefilter=prefilter_for(st.delay + sum(st.taus), dt),
-                           validation=validation, stops=stops, declared=declared)
+                           validation=validation, stops=stops, declared=declared, reach=reach)
     ident = replace(out.nominal.identification, integrating=True)
     if (out.model.fit.structure.integrating or (declared is not None and declared.plant_integrates is not None)
             or ident.max_delay is None):
@@ -193,7 +204,7 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
     ipdt = identify(_bounded_delays(out.problem, ident.delay_bound(True)), constraints=ident).structure
     held = _search_once(recording, None, lib, say, prefilter=prefilter_for(ipdt.delay, dt),
                         validation=validation, stops=stops,
-                        declared=replace(declared or Declared(), integrating=True))
+                        declared=replace(declared or Declared(), integrating=True), reach=reach)
     return _integrating_or_not(out, held)
 
 

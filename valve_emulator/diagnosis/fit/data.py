@@ -30,7 +30,8 @@ from scipy.signal import lfilter
 from valve_emulator.recordings.recording import Recording, RecordingError
 
 __all__ = ["Problem", "prepare", "prefilter_for", "folds", "fold_windows", "held_out_start", "HELD_OUT", "MIN_SAMPLES",
-           "VALIDATIONS", "fit_percent", "UninformativeData", "with_burn_in", "BURN_CAP"]
+           "VALIDATIONS", "fit_percent", "UninformativeData", "with_burn_in", "BURN_CAP", "WIDEN", "delay_at_end",
+           "widens"]
 
 #: Fraction of the record, at its end, held out from fitting.
 HELD_OUT = 0.3
@@ -42,6 +43,10 @@ VALIDATIONS = ("split", "twofold")
 _BURN_MIN, _BURN_MAX = 0.05, 0.25
 #: Longest burn-in (fraction of the record) that candidates' initial states may claim (:func:`with_burn_in`).
 BURN_CAP = 0.35
+#: Without a model, how many times farther the dead-time grid reaches when a search on the usual grid (0..100
+#: samples, at most T/20) ends with its dead time on the grid's last point: an edge is not a value (widen the range,
+#: or report a bound). Twice as far, as the record allows (at most T/10 − 1 samples).
+WIDEN = 2
 
 
 class UninformativeData(RecordingError):
@@ -184,18 +189,33 @@ def fold_windows(T: int, w0: int) -> tuple[tuple[tuple[int, int], tuple[int, int
     return ((w0, a), (a, T)), ((b, T), (w0, b))
 
 
-def _delay_grid(dt: float, T: int, nominal_delay: float | None) -> np.ndarray:
-    """Dead times tried: around the nominal one (±max(4, nominal) samples), or 0..T/20 without a model."""
+def _delay_grid(dt: float, T: int, nominal_delay: float | None, reach: int = 1) -> np.ndarray:
+    """Dead times tried: around the nominal one (±max(4, nominal) samples), or without a model 0..min(100, T/20)
+    samples, ``reach`` times as far when widened (:data:`WIDEN`), never so far that the record is shorter than ten
+    times the longest dead time (:func:`prepare`'s need)."""
     if nominal_delay is None:
-        return np.arange(0, int(min(100, T // 20)) + 1)
+        return np.arange(0, int(min(100 * reach, (T // 20) * reach, T // 10 - 1)) + 1)
     d = int(round(nominal_delay / dt))
     r = int(min(50, max(4, d)))
     return np.arange(max(0, d - r), d + r + 1)
 
 
+def delay_at_end(problem: Problem, delay: float) -> bool:
+    """Whether a dead time (s) sits on the last point of the problem's dead-time grid (within half a sample):
+    the edge of the range searched, which says the dead time is at least that, not what it is."""
+    return delay >= (float(problem.delays.max()) - 0.5) * problem.dt
+
+
+def widens(problem: Problem) -> bool:
+    """Whether a problem without a model may have its dead-time grid widened (:data:`WIDEN`): it has not been
+    yet, and the record is long enough for a longer one."""
+    T = problem.T
+    return int(problem.delays.max()) == int(min(100, T // 20)) < int(_delay_grid(problem.dt, T, None, WIDEN).max())
+
+
 def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: float = 0.0,
             prefilter: float | None = None, validation: str = "split",
-            stops: tuple[float, float] = (0.0, 100.0)) -> Problem:
+            stops: tuple[float, float] = (0.0, 100.0), reach: int = 1) -> Problem:
     """Check a recording and split it (see the module docstring).
 
     Parameters
@@ -204,6 +224,8 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     nominal_delay : the nominal model's dead time (s), which centres the dead-time grid; None = no model.
     settle_time : the nominal plant's settling time (s), a lower bound for the burn-in.
     prefilter, stops : see :class:`Problem`.
+    reach : without a model, how many times the usual dead-time grid is searched (1, or :data:`WIDEN` when a fit
+        on the usual grid put its dead time on the grid's end).
     validation : ``"split"`` (hold out the last :data:`HELD_OUT`) or ``"twofold"`` (fit on all, cross-validate).
 
     Raises
@@ -217,7 +239,7 @@ def prepare(rec: Recording, *, nominal_delay: float | None = None, settle_time: 
     T = len(rec)
     src = rec.source or "recording"
     dt = rec.dt if T >= 2 else 1.0
-    delays = _delay_grid(dt, T, nominal_delay)
+    delays = _delay_grid(dt, T, nominal_delay, reach)
     need = max(MIN_SAMPLES, 10 * (int(delays.max()) + 1))
     if need > T:
         raise UninformativeData(src, f"line {T + 1}: {T} data row(s), the diagnosis needs at least {need} "
