@@ -111,7 +111,9 @@ def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame
     yes_no = lambda flag: "yes" if flag else "no"  # noqa: E731
     return {f"gain, PV per {per}" + (" per s" if st.integrating else ""): (nom_k, f"{k:.4g}"),
             "time constants (s)": (taus(nominal.structure) if nominal.given else "—", taus(st)),
-            "dead time (s)": (f"{nominal.delay:.4g}" if nominal.given else "—", f"{st.delay:.4g}"),
+            "dead time (s)": (f"{nominal.delay:.4g}" if nominal.given else "—",
+                              f"≥ {st.delay:.4g}" if not nominal.given and delay_at_end(problem, st.delay)
+                              else f"{st.delay:.4g}"),
             "integrating": (yes_no(nominal.structure.integrating) if nominal.given else "—", yes_no(st.integrating))}
 
 
@@ -382,7 +384,8 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     found = acting_part(problem, model, pv_before, found)
     st = model.fit.structure
     plant = {"gain": model.fit.gain * problem.y_scale * frame.gain, "taus": tuple(st.taus), "delay": st.delay,
-             "integrating": st.integrating, "validation": problem.validation}
+             "integrating": st.integrating, "validation": problem.validation,
+             "delay_is_bound": not nom.given and delay_at_end(problem, st.delay)}
     return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=_reported_fit(s, base),
                        fit_after=_reported_fit(s, model), findings=found, located=located,
                        linear=_linear_table(nom, model, problem, frame), ranking=_ranking(rounds, frame),

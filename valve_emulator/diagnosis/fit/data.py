@@ -201,9 +201,11 @@ def _delay_grid(dt: float, T: int, nominal_delay: float | None, reach: int = 1) 
 
 
 def delay_at_end(problem: Problem, delay: float) -> bool:
-    """Whether a dead time (s) sits on the last point of the problem's dead-time grid (within half a sample):
-    the edge of the range searched, which says the dead time is at least that, not what it is."""
-    return delay >= (float(problem.delays.max()) - 0.5) * problem.dt
+    """Whether a dead time (s) sits on the end of the problem's dead-time grid, within one sample of its last
+    point (the grid's step: the polish of a dead time between grid points stops at the last one, and one that
+    converged a fraction of a sample inside it was still held by it): the edge of the range searched, which
+    says the dead time is at least that, not what it is."""
+    return delay >= (float(problem.delays.max()) - 1.0) * problem.dt
 
 
 def widens(problem: Problem) -> bool:
