@@ -37,12 +37,13 @@ def test_a_dead_time_is_on_the_grids_end_only_within_one_sample_of_its_last_poin
 
 
 def test_a_dead_time_beyond_the_usual_grid_is_found_by_widening_it_not_reported_at_its_end():
-    plant = explain(_open_loop(150), candidates=[], validation="twofold").plant
-    assert abs(plant["delay"] - 150.0) < 3.0
-    assert not plant["delay_is_bound"]
+    e = explain(_open_loop(150), candidates=[], validation="twofold")
+    assert abs(e.plant["delay"] - 150.0) < 3.0
+    assert not e.plant["delay_is_bound"] and not e.identification["delay_is_bound"]
+    assert e.identification["delay_searched"] == 200.0
 
 
 def test_a_dead_time_beyond_even_the_widened_grid_is_reported_as_a_bound():
     e = explain(_open_loop(230), candidates=[], validation="twofold")
-    assert e.plant["delay_is_bound"] and e.plant["delay"] >= 199.5
+    assert e.plant["delay_is_bound"] and e.identification["delay_is_bound"] and e.plant["delay"] >= 199.0
     assert e.linear["dead time (s)"][1].startswith("≥ ")

@@ -394,6 +394,8 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
                        plant=plant, fitted=_fitted(s, frame),
                        input_delta_bic=input_delta_bic(s.fitter.scorer, model) if validation == "twofold" else None,
                        linear_tests=s.tests + dead_time_move(found, nom.delay, st.delay),
-                       identification=None if nom.identification is None else nom.identification.as_dict(),
+                       identification=None if nom.identification is None else {
+                           **nom.identification.as_dict(), "delay_searched": float(problem.delays.max()) * problem.dt,
+                           "delay_is_bound": plant["delay_is_bound"]},
                        valve_alternative=(_valve_alternative(s, frame, least_band)
                                           if least_band is not None and validation == "twofold" else None))

@@ -233,7 +233,9 @@ class Explanation:
         the data moved.
     identification : without a model, how the linear part was identified: ``constraints`` (one sentence each:
         causality, the gain's sign and where it came from, the plant's family), ``gain_sign``, ``integrating``
-        (as declared, or None), ``max_delay`` (an integrating plant's dead-time bound, or None); None with a model.
+        (as declared, or None), ``max_delay`` (an integrating plant's dead-time bound, or None),
+        ``delay_searched`` (the longest dead time tried, s) and ``delay_is_bound`` (the dead time sits on that
+        end: a bound, not a value); None with a model.
     valve_alternative : plant data, when asked for (``least_band`` of
         :func:`~valve_emulator.diagnosis.explain.pipeline.explain`) and the search tried one: the best valve
         option with a band that could matter (:class:`ValveAlternative`).
