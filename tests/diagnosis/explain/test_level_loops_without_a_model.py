@@ -36,16 +36,18 @@ def _found() -> int:
     return sum(d.doc["answer"] == "stiction" for d in diagnosed_all(LEVEL))
 
 
-@pytest.mark.xfail(strict=True, reason="measured 27 of 40 (22 while the search holding an integrator also had to "
-                   "predict held-out PV itself no worse; 19 before that search existed): on the rest no search finds "
-                   "the valve (a disturbance, a flow limit or a characteristic instead, or nothing; five of the 13 "
-                   "misses have a plant lag of 7-10 s, which the held integrator stands in for with dead time)")
+@pytest.mark.xfail(strict=True, reason="measured 29 of 40 (27 before a dead time on the grid's end widened the grid; "
+                   "22 while the search holding an integrator also had to predict held-out PV itself no worse; 19 "
+                   "before that search existed): on the rest no search finds the valve (a disturbance, a flow limit or "
+                   "a characteristic instead, or nothing), or a valve alternative explains PV better under the "
+                   "drifting-load model and the answer is cannot tell; three of the 11 misses have a plant lag of "
+                   "7-10 s, which a first-order plant with a dead time of half the cycle stands in for)")
 def test_stiction_is_found_in_nine_loops_of_ten():
     found = _found()
     assert found >= 0.9 * len(LEVEL), f"stiction found in {found} of {len(LEVEL)}"
 
 
 def test_stiction_is_found_in_most_loops():
-    """A floor under the rate measured (27 of 40), so that a change that loses level loops again is seen."""
+    """A floor under the rate measured (29 of 40), so that a change that loses level loops again is seen."""
     found = _found()
-    assert found >= 25, f"stiction found in {found} of {len(LEVEL)}"
+    assert found >= 27, f"stiction found in {found} of {len(LEVEL)}"
