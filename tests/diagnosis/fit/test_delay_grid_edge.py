@@ -10,7 +10,7 @@ from valve_emulator.diagnosis.fit.data import WIDEN, delay_at_end, prepare, wide
 from valve_emulator.recordings.recording import Recording
 
 
-def _open_loop(delay: int, T: int = 3000, tau: float = 20.0, seed: int = 3) -> Recording:
+def _open_loop(delay: int, T: int = 5000, tau: float = 20.0, seed: int = 3) -> Recording:
     """A first-order plant (τ = ``tau`` samples, gain 0.8) with ``delay`` samples of dead time, driven by a
     random square wave, and measured in white noise: no controller, so no inverse to lock onto."""
     rng = np.random.default_rng(seed)
@@ -21,13 +21,15 @@ def _open_loop(delay: int, T: int = 3000, tau: float = 20.0, seed: int = 3) -> R
     return Recording(np.arange(T, dtype=float), None, op, None, pv, source="long dead time")
 
 
-def test_the_dead_time_grid_without_a_model_widens_as_far_as_the_record_allows():
+def test_the_dead_time_grid_widens_past_its_100_sample_cap_as_far_as_the_record_allows_and_not_past_t_over_20():
     usual = prepare(_open_loop(10), validation="twofold")
     wide = prepare(_open_loop(10), validation="twofold", reach=WIDEN)
     assert usual.delays.max() == 100 and widens(usual)
     assert wide.delays.max() == 200 and not widens(wide)
-    short = prepare(_open_loop(10, T=400), validation="twofold", reach=WIDEN)
-    assert short.delays.max() < 40   # ten times the longest dead time must fit in the record
+    middling = prepare(_open_loop(10, T=2400), validation="twofold", reach=WIDEN)
+    assert middling.delays.max() == 200 and 10 * (middling.delays.max() + 1) <= middling.T
+    short = prepare(_open_loop(10, T=1000), validation="twofold")
+    assert short.delays.max() == 50 and not widens(short)   # T/20, not the cap: a dead time there is a bound
 
 
 def test_a_dead_time_is_on_the_grids_end_only_within_one_sample_of_its_last_point():
