@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.optimize import brentq, minimize_scalar
 
 from valve_emulator.benchmark.independent import FAMILIES, Plant, draw, loop_margins
 from valve_emulator.diagnosis.candidates.tuning import identify_pi, nominal_margins
@@ -38,6 +39,27 @@ def test_margins_of_a_delayed_integrator_under_p_control_are_the_textbook_ones()
     m = nominal_margins([K], [1.0, 0.0], theta, kc, None, 0.0, action="reverse", extra_delay=0.0)
     assert m.gain_margin == pytest.approx(math.pi / (2.0 * kc * K * theta), rel=1e-3)
     assert m.phase_margin == pytest.approx(90.0 - math.degrees(kc * K * theta), rel=1e-3)
+
+
+def test_margins_of_a_loop_whose_phase_starts_below_minus_180_degrees_are_on_the_right_branch():
+    # A PI on a double integrator with a lead, K(1 + sT)/s²·e^{−θs}: three integrators, so the phase starts near
+    # −270°, which np.angle reads as +90°. Margins from the textbook phase −270° + atan(ωTi) + atan(ωT) − ωθ:
+    # PM at |L| = 1, GM where the phase falls back through −180° (the loop is conditionally stable).
+    kc, ti, K, T, theta = 1.0, 40.0, 0.004, 20.0, 1.0
+
+    def loop(w):
+        s = 1j * w
+        return kc * (1.0 + 1.0 / (ti * s)) * K * (1.0 + s * T) / s**2 * np.exp(-s * theta)
+
+    def phase(w):
+        return -270.0 + math.degrees(math.atan(w * ti) + math.atan(w * T) - w * theta)
+
+    wc = brentq(lambda w: abs(loop(w)) - 1.0, 1e-4, 10.0)
+    top = minimize_scalar(lambda w: -phase(w), bounds=(1e-3, 10.0), method="bounded").x
+    wg = brentq(lambda w: phase(w) + 180.0, top, 10.0)
+    m = nominal_margins([K * T, K], [1.0, 0.0, 0.0], theta, kc, ti, 0.0, action="reverse", extra_delay=0.0)
+    assert m.phase_margin == pytest.approx(180.0 + phase(wc), rel=1e-3)
+    assert m.gain_margin == pytest.approx(1.0 / abs(loop(wg)), rel=1e-3)
 
 
 def test_margins_need_negative_feedback():

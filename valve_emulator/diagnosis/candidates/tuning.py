@@ -222,13 +222,26 @@ def loop_response(kc: float, ti: float, dt: float, gain: float, taus, delay: flo
     return c * g
 
 
+def loop_phase(L: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """The unwrapped phase (rad) of the loop response ``L`` on the ascending grid ``omega``, on the branch its
+    low frequencies fix: a loop of negative feedback whose magnitude falls as ω⁻ⁿ at the grid's first points
+    (n integrators: the PI's, an integrating plant's) has a phase near −n·90° there. ``np.angle`` alone
+    cannot tell −180° − ε from 180° − ε: a PI on an integrating plant starts at about −180°, and a start on the
+    wrong branch put every phase a turn too high (a phase margin of 384°, a gain margin read at −540°)."""
+    phase = np.unwrap(np.angle(L))
+    slope = np.log(np.abs(L[1]) / np.abs(L[0])) / np.log(omega[1] / omega[0])
+    integrators = max(0, int(round(-slope)))
+    turns = np.round((phase[0] + integrators * np.pi / 2.0) / (2.0 * np.pi))
+    return phase - 2.0 * np.pi * turns
+
+
 def margins(L: np.ndarray, omega: np.ndarray) -> Margins:
     """:class:`Margins` of the loop response ``L`` on the ascending frequency grid ``omega`` (rad/s): the
-    gain margin at the first crossing of −180° by the unwrapped phase, the phase margin at the first fall of
-    ``|L|`` through 1, each interpolated between the grid points around it."""
+    gain margin at the first crossing of −180° by the unwrapped phase (:func:`loop_phase`), the phase margin at
+    the first fall of ``|L|`` through 1, each interpolated between the grid points around it."""
     sens = 1.0 / np.abs(1.0 + L)
     peak = int(np.argmax(sens))
-    phase = np.unwrap(np.angle(L))
+    phase = loop_phase(L, omega)
     mag = np.abs(L)
     cross = np.flatnonzero((phase[:-1] > -np.pi) & (phase[1:] <= -np.pi))
     gm = float("inf")
