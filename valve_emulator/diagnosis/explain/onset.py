@@ -440,8 +440,11 @@ def _late_fit(searching: Fitter, fitter: Fitter, model: Model, cand: ChainCandid
     if rows.size == 0:
         return None
     best = None
-    for st in _structures(searching, model, plain):
-        sse, _ = scorer.sse_grid(active, ctx, late, rows, st, None, aim)
+    structures = _structures(searching, model, plain)
+    # Every structure scored on each chunk of rows as it leaves the chain: the rows' valves run once, not
+    # once per structure (the same numbers as a pass per structure).
+    scored = scorer.sse_jobs(active, ctx, late, rows, [(st, None) for st in structures], aim)
+    for st, (sse, _) in zip(structures, scored):
         i = int(np.argmin(sse[:, 0]))
         if best is None or sse[i, 0] < best[0]:
             best = (float(sse[i, 0]), rows[i], st)
