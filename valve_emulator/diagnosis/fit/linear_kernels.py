@@ -233,6 +233,15 @@ def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse):  # pragma: no
         if k < start:
             for j in range(nb):
                 R[kr, j] = u[0, b0 + j] - mean[j]
+        elif p == 1:   # one pole (every first-order hypothesis): the same two steps, in one loop
+            k1 = (k - 1) & rmask
+            a1 = alpha[1]
+            for j in range(nb):
+                r = gain * (u[k - 1, b0 + j] - mean[j])
+                r -= a1 * R[k1, j]
+                R[kr, j] = r
+                Z[kz, j] = r
+            return
         else:
             for j in range(nb):
                 R[kr, j] = gain * (u[k - 1, b0 + j] - mean[j])
