@@ -302,10 +302,10 @@ def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse):  # pragma: no
                         X[i, j] += Z[ki, j] * yk
 
     def add_cross_tile(k0):
-        """``add_cross_terms(k0, k0 + 7)`` of a whole tile of several columns: each X[i, j] takes the tile's eight products in
-        a register, added in sample order as above — the same sums, with X read and written once per tile
-        instead of once per sample (the loop over columns vectorises; a lag of 64 columns costs about 0.65 of
-        the sample-by-sample loop)."""
+        """``add_cross_terms(k0, k0 + 7)`` of a whole tile of several columns: each X[i, j] takes the tile's
+        eight products in a register, added in sample order as above — the same sums, with X read and written
+        once per tile instead of once per sample (the loop over columns vectorises; a lag of 64 columns costs
+        about 0.65 of the sample-by-sample loop)."""
         y0, y1, y2, y3 = y[k0], y[k0 + 1], y[k0 + 2], y[k0 + 3]
         y4, y5, y6, y7 = y[k0 + 4], y[k0 + 5], y[k0 + 6], y[k0 + 7]
         for i in range(nlag):
