@@ -193,3 +193,22 @@ def test_a_dead_time_scored_alone_is_its_column_of_the_dead_time_grid_bit_for_bi
     for d in (0, 4, 13, 20):
         alone = input_grid_sse(u, y, WINDOW, np.array([d]), structure, DT, prefilter=lam)
         assert np.array_equal(alone[:, 0], grid[:, d])
+
+
+@pytest.mark.parametrize("structure, lam", [
+    (LinearStructure(taus=(8.0,)), None),
+    (LinearStructure(taus=(12.0, 3.0)), None),
+    (LinearStructure(integrating=True), 0.95),
+])
+def test_columns_scored_together_score_as_each_column_alone_bit_for_bit(structure, lam):
+    # Several columns take their cross terms a tile of samples at a time, a lone column sample by sample; the
+    # window leaves a short last tile.
+    rng = np.random.default_rng(12)
+    u = np.column_stack([_input(s) for s in range(9)]) + rng.normal(size=(T, 9))
+    y = _plant_output(u[:, 3], [1.5], [8.0, 1.0], 4.0) + rng.normal(0.0, 0.1, T)
+    y = y if lam is None else highpass(y, lam)
+    window, delays = (61, 2099), np.arange(0, 31)
+    together = input_grid_sse(u, y, window, delays, structure, DT, prefilter=lam)
+    for j in range(u.shape[1]):
+        alone = input_grid_sse(u[:, j], y, window, delays, structure, DT, prefilter=lam)
+        assert alone[0].tobytes() == together[j].tobytes()

@@ -106,21 +106,22 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
     R = np.full(n, float(ctx.rest_samples))
     x2 = kernel_array(x2)
 
-    def run(group: np.ndarray, kk0: int, kk1: int) -> None:
-        # The valves are independent: a large group runs in parallel threads (the kernel releases the GIL).
-        def part(a: int, b: int) -> None:
-            i = group[a:b]
-            st = np.asfortranarray(state[i])
-            _run_valves(x2, K, kk0, kk1, i, S[i], J[i], R[i], codes[i], st, out)
-            state[i] = st
+    def part(a: int, b: int) -> None:
+        # Valves a..b-1 (a thread's share; the valves are independent and the kernel releases the GIL): those that
+        # start with the pre-roll first run through the mirrored pre-roll, then all of them through the record
+        # together, in column order (whole vectors, and each sample's MV written as one contiguous row).
+        valves = np.arange(a, b)
+        st = np.asfortranarray(state[a:b])
+        rolled = np.flatnonzero(pre[a:b])
+        if rolled.size:
+            i = valves[rolled]
+            st_pre = np.asfortranarray(st[rolled])
+            _run_valves(x2, K, 0, K, i, S[i], J[i], R[i], codes[i], st_pre, out)
+            st[rolled] = st_pre
+        _run_valves(x2, K, K, K + T, valves, S[a:b], J[a:b], R[a:b], codes[a:b], st, out)
 
-        workers = workers_for(group.size)
-        run_split(part, [group.size * w // workers for w in range(workers + 1)])
-
-    # The pre-roll valves first run through the mirrored pre-roll; then every valve runs through the record
-    # together, in column order (whole vectors, and each sample's MV written as one contiguous row).
-    run(np.flatnonzero(pre), 0, K)
-    run(np.arange(n), K, K + T)
+    workers = workers_for(n)
+    run_split(part, [n * w // workers for w in range(workers + 1)])
     return out
 
 

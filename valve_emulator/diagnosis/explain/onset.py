@@ -82,11 +82,11 @@ from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.linear import highpass
 from valve_emulator.diagnosis.fit.load_check import load_bic
 from valve_emulator.diagnosis.fit.records import Model, Option
-from valve_emulator.diagnosis.fit.scorer import Scorer
+from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
 
 __all__ = ["ONSETS", "EARLY_SHARE", "MIN_BAND", "BLOCKS", "MIN_RISE", "MIN_SHARE", "MIN_ACTING", "NEAR", "LateOnset",
            "Onset", "Suspected", "suspect_onset", "post_onset_split", "onset_option", "acting_part", "onset_of",
-           "late_start", "bic_after", "load_onset_option"]
+           "late_start", "bic_after", "load_onset_option", "late_options"]
 
 #: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
 #: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
@@ -394,7 +394,7 @@ def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
         return None
     if suspected is None and (not fitter.nominal.given or _early_share(fitter.p, model, plain.model) >= EARLY_SHARE):
         return None
-    return _late_fit(fitter, fitter, model, cand, plain, suspected)
+    return _late_fits([fitter], fitter, model, cand, plain, suspected)[0]
 
 
 def load_onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
@@ -412,10 +412,26 @@ def load_onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Opti
     load is forgotten within its time scale, and the band is fitted to the cycles the valve makes."""
     if not _lateable(cand, plain):
         return None
+    return _late_fits([_through_load(fitter, model)], fitter, model, cand, plain, suspected)[0]
+
+
+def late_options(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
+                 suspected: Suspected) -> tuple[Option | None, Option | None]:
+    """``(onset_option(...), load_onset_option(...))`` at a located onset, searched side by side: the two differ
+    only in the cost domain of their grids, so the coarse rows go through the chain once for both, and the scan
+    too where both coarse stages chose the same onset. The same options as the two calls."""
+    if not _lateable(cand, plain):
+        return None, None
+    late, through = _late_fits([fitter, _through_load(fitter, model)], fitter, model, cand, plain, suspected)
+    return late, through
+
+
+def _through_load(fitter: Fitter, model: Model) -> Fitter:
+    """A fitter of ``fitter``'s problem in the cost domain of the drifting-load noise model that suits ``model``
+    best (its prefilter at that λ)."""
     lam = load_bic(fitter.scorer, model)[1]
     scorer = fitter.scorer
-    through = Fitter(Scorer(replace(fitter.p, prefilter=lam), scorer.nominal, scorer.library))
-    return _late_fit(through, fitter, model, cand, plain, suspected)
+    return Fitter(Scorer(replace(fitter.p, prefilter=lam), scorer.nominal, scorer.library))
 
 
 def _structures(fitter: Fitter, model: Model, plain: Option) -> list:
@@ -427,32 +443,70 @@ def _structures(fitter: Fitter, model: Model, plain: Option) -> list:
     return list({id(s): s for s in out}.values())
 
 
-def _late_fit(searching: Fitter, fitter: Fitter, model: Model, cand: ChainCandidate, plain: Option,
-              suspected: Suspected | None) -> Option | None:
-    """The late option of ``cand`` searched by ``searching`` (coarse, scan, refine; module docstring) and
-    scored by ``fitter`` (the search's own: when the two differ, the linear part is fitted again in its
-    domain)."""
+def _late_fits(searchers: list[Fitter], fitter: Fitter, model: Model, cand: ChainCandidate, plain: Option,
+               suspected: Suspected | None) -> list[Option | None]:
+    """The late option of ``cand`` searched by each of ``searchers`` (coarse, scan, refine; module docstring) and
+    scored by ``fitter`` (the search's own: where a searcher differs, the linear part is fitted again in its
+    domain).
+
+    The searchers differ only in their cost domain (:func:`~valve_emulator.diagnosis.fit.scorer.
+    sse_jobs_shared`): each chunk of the coarse rows leaves the chain once and is scored for every searcher and
+    each of its linear structures, and so is the scan's for searchers whose coarse stages chose the same onset —
+    the numbers of a search of its own."""
     late = LateOnset(cand)
-    scorer = searching.scorer
-    ctx, aim = scorer.ctx(model), scorer.aim(model)
+    ctx = searchers[0].scorer.ctx(model)
     active = model.by_slot()
-    rows = _coarse_rows(searching, cand, ctx, suspected)
+    rows = _coarse_rows(searchers[0], cand, ctx, suspected)
     if rows.size == 0:
-        return None
-    best = None
-    for st in _structures(searching, model, plain):
-        sse, _ = scorer.sse_grid(active, ctx, late, rows, st, None, aim)
-        i = int(np.argmin(sse[:, 0]))
-        if best is None or sse[i, 0] < best[0]:
-            best = (float(sse[i, 0]), rows[i], st)
-    _, row, st = best
-    scan_surface = None
-    scan = cand.scan(ctx)
-    if scan is not None:
-        scan = LateOnset.with_onset(scan, row[-1])
-        sse, _ = scorer.sse_grid(active, ctx, late, scan, st, None, aim)
-        row = scan[int(np.argmin(sse[:, 0]))]
-        scan_surface = replace(fitter.surface(cand.name, scan, sse[:, 0]), load_model=searching is not fitter)
+        return [None] * len(searchers)
+    aims = [s.scorer.aim(model) for s in searchers]
+    structures = [_structures(s, model, plain) for s in searchers]
+    coarse = sse_jobs_shared(active, ctx, late, rows, [(s.scorer, [(st, None) for st in sts], aim)
+                                                       for s, sts, aim in zip(searchers, structures, aims)])
+    starts = []
+    for sts, scored in zip(structures, coarse):
+        best = None
+        for st, (sse, _) in zip(sts, scored):
+            i = int(np.argmin(sse[:, 0]))
+            if best is None or sse[i, 0] < best[0]:
+                best = (float(sse[i, 0]), rows[i], st)
+        starts.append(best[1:])
+    scans = _late_scans(searchers, aims, active, ctx, late, cand.scan(ctx), starts)
+    out = []
+    for searching, (row, st), scanned in zip(searchers, starts, scans):
+        scan_surface = None
+        if scanned is not None:
+            scan, sse = scanned
+            row = scan[int(np.argmin(sse))]
+            scan_surface = replace(fitter.surface(cand.name, scan, sse), load_model=searching is not fitter)
+        out.append(_late_refined(searching, fitter, model, late, row, st, ctx, scan_surface))
+    return out
+
+
+def _late_scans(searchers: list[Fitter], aims: list, active, ctx, late: LateOnset, scan: np.ndarray | None,
+                starts: list[tuple]) -> list[tuple | None]:
+    """Per searcher, the candidate's scan at the onset of its coarse start and the SSE of each row at the
+    start's linear structure (None without a scan); searchers at one onset share the chain's pass."""
+    out: list[tuple | None] = [None] * len(searchers)
+    if scan is None:
+        return out
+    at: dict[float, list[int]] = {}
+    for k, (row, _) in enumerate(starts):
+        at.setdefault(float(row[-1]), []).append(k)
+    for ks in at.values():
+        rows = LateOnset.with_onset(scan, starts[ks[0]][0][-1])
+        scored = sse_jobs_shared(active, ctx, late, rows, [(searchers[k].scorer, [(starts[k][1], None)], aims[k])
+                                                          for k in ks])
+        for k, [(sse, _)] in zip(ks, scored):
+            out[k] = (rows, sse[:, 0])
+    return out
+
+
+def _late_refined(searching: Fitter, fitter: Fitter, model: Model, late: LateOnset, row: np.ndarray,
+                  st, ctx: ChainContext, scan_surface) -> Option | None:
+    """The late option refined by ``searching`` from ``row`` at ``st`` and scored by ``fitter``; None when its band
+    is not material (:func:`_material`)."""
+    cand = late.inner
     r = searching.refine(model, late, row, st, model.delay_free, joint=False)
     if not _material(cand, r.active[cand.slot].params, ctx.op_span):
         return None

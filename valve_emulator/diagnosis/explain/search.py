@@ -42,8 +42,8 @@ from valve_emulator.diagnosis.explain.onset import (
     LateOnset,
     Suspected,
     bic_after,
+    late_options,
     late_start,
-    load_onset_option,
     onset_option,
 )
 from valve_emulator.diagnosis.fit.crossval import with_cv
@@ -115,13 +115,14 @@ class Search:
         (:func:`~valve_emulator.diagnosis.explain.onset.load_onset_option`); which one stands for the physics,
         and which other options stay beside it, the round decides (:meth:`late_first`)."""
         single = next((o for o in options if o.added == (cand.name,)), None)
-        late = None if single is None else onset_option(self.fitter, model, cand, single, self.suspected)
+        if single is None:
+            return options
         if self.suspected is None:
+            late = onset_option(self.fitter, model, cand, single)
             if late is None:
                 return options
             return [late if o is single and o.model.bic - late.model.bic >= 2 * DELTA_BIC else o for o in options]
-        through = None if single is None else load_onset_option(self.fitter, model, cand, single, self.suspected)
-        return [*options, *(o for o in (late, through) if o is not None)]
+        return [*options, *(o for o in late_options(self.fitter, model, cand, single, self.suspected) if o is not None)]
 
     def _starts_late(self, option: Option) -> bool:
         return any(isinstance(a.candidate, LateOnset) for a in option.model.active if a.name in option.added)

@@ -44,7 +44,7 @@ from valve_emulator.diagnosis.fit.linear import (
     polish,
 )
 
-__all__ = ["ITERATIONS", "Backfit", "backfit"]
+__all__ = ["ITERATIONS", "Backfit", "backfit", "backfit_sse"]
 
 #: Backfitting rounds with the linear structure held (then one polish and a final round).
 ITERATIONS = 4
@@ -129,6 +129,30 @@ def backfit(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], structure:
     fit = fit_one(flow, target, window, structure, dt, prefilter=prefilter)
     level = fit if prefilter is None else fit_one(flow, target, window, structure, dt)
     return Backfit(fit, level, target, params, cand.predict(level.predict(flow, dt), params, ctx))
+
+
+def backfit_sse(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float,
+                cand: Candidate, params: np.ndarray, ctx: ChainContext, *, prefilter: float | None = None,
+                iterations: int = ITERATIONS, delays: np.ndarray | None = None) -> float:
+    """``backfit(...).fit.sse`` of the quick form (no polish): what a grid row of an output candidate scores.
+
+    The same steps up to that fit, without those only a model needs (the fit in the PV domain, the predictions,
+    the candidate's final adjustment): a search scores dozens of rows and keeps one.
+    """
+    ctx = replace(ctx, window=tuple(window))
+    extra = cand.regressors(params, ctx)
+    if delays is not None:
+        structure = _best_delay(flow, y, window, structure, dt, delays, prefilter, extra)
+    if extra is not None:
+        return fit_one(flow, y, window, structure, dt, prefilter=prefilter, extra=extra).sse
+    level = fit_one(flow, y, window, structure, dt)
+    target = y
+    for _ in range(iterations):
+        target, params = cand.adjust(y, level.predict(flow, dt), params, ctx)
+        if delays is not None:
+            structure = _best_delay(flow, target, window, structure, dt, delays, prefilter)
+        level = fit_one(flow, target, window, structure, dt)
+    return fit_one(flow, target, window, structure, dt, prefilter=prefilter).sse
 
 
 def _joint(flow, y, window, structure, dt, cand, params, ctx, extra, prefilter, polish_kw, delays) -> Backfit:

@@ -28,7 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
-from valve_emulator.diagnosis.fit.backfit import backfit
+from valve_emulator.diagnosis.fit.backfit import backfit, backfit_sse
 from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.cost import log_sse, relative_cost
 from valve_emulator.diagnosis.fit.linear import LinearFit, LinearStructure, split_delay, sse_one
@@ -348,8 +348,8 @@ class Fitter:
         the dead time re-chosen from ``delays`` when given)."""
         ctx = replace(self.scorer.ctx(model), residual=self.p.y - model.y_hat)
         st = model.fit.structure if st is None else st
-        return np.array([backfit(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, r, ctx,
-                                 prefilter=self.scorer.lam, iterations=2, delays=delays).fit.sse for r in rows])
+        return np.array([backfit_sse(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, r, ctx,
+                                     prefilter=self.scorer.lam, iterations=2, delays=delays) for r in rows])
 
     def output_options(self, model: Model, cand: Candidate) -> list[Option]:
         """The option that adds an ``output`` candidate: its grid by quick backfits with the model's linear

@@ -53,7 +53,7 @@ from valve_emulator.diagnosis.fit.linear import (
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Model
 
-__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in"]
+__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "sse_jobs_shared"]
 
 #: Grid rows pushed through the chain at once. Bounds memory (5 MB per array at 10^4 samples), and the chain's
 #: output is then a contiguous block that the linear kernel reads from cache for every job (structure) scored on
@@ -232,3 +232,19 @@ class Scorer:
         d0 = int(round(d / self.p.dt))
         lo, hi = int(self.p.delays.min()), int(self.p.delays.max())
         return np.arange(max(lo, d0 - r), min(hi, d0 + r) + 1)
+
+
+def sse_jobs_shared(active, ctx, cand, grid: np.ndarray, tasks: list[tuple[Scorer, list[tuple], Aim]]
+                    ) -> list[list[tuple]]:
+    """:meth:`Scorer.sse_jobs` of one grid for several scorers of one problem that differ only in the cost domain
+    (the same data, nominal model and library; e.g. the search's own and one through a noise model's prefilter):
+    ``tasks`` holds ``(scorer, jobs, aim)``. Each chunk of rows goes through the chain once (the first scorer's;
+    the chain does not depend on the cost domain) and is scored for every task: per task, the numbers of its own
+    ``sse_jobs``."""
+    parts: list[list[list]] = [[] for _ in tasks]
+    for a in range(0, grid.shape[0], _CHUNK):
+        flows = tasks[0][0].chain(active, ctx, cand, grid[a:a + _CHUNK])
+        for part, (scorer, jobs, aim) in zip(parts, tasks):
+            part.append(scorer._score_chunks([flows], jobs, aim))
+    return [[(np.vstack([chunk[j][0] for chunk in part]), part[0][j][1]) for j in range(len(jobs))]
+            for part, (_, jobs, _) in zip(parts, tasks)]

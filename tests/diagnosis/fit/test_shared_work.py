@@ -1,0 +1,92 @@
+"""Work the search shares between steps gives each step its own numbers: the quick backfit's score, the chain's tail
+on a travel scale, one grid scored for several cost domains."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from valve_emulator.diagnosis.candidates import get
+from valve_emulator.diagnosis.candidates.base import ChainContext
+from valve_emulator.diagnosis.candidates.valve_start import valve_output
+from valve_emulator.diagnosis.fit.backfit import backfit, backfit_sse
+from valve_emulator.diagnosis.fit.chain import run_chain
+from valve_emulator.diagnosis.fit.data import prepare
+from valve_emulator.diagnosis.fit.linear import LinearStructure
+from valve_emulator.diagnosis.fit.nominal import Nominal
+from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
+from valve_emulator.recordings.recording import Recording
+
+T = 1200
+NOMINAL = Nominal(structure=LinearStructure(taus=(10.0,), delay=2.0), given=True, num=(2.0,), den=(10.0, 1.0))
+
+
+def _problem():
+    """A first-order plant (10 s, gain 2, dead time 2 s) driven by a random staircase, a sinusoidal load."""
+    rng = np.random.default_rng(3)
+    op = np.repeat(rng.uniform(30.0, 70.0, T // 25), 25)
+    a = np.exp(-0.1)
+    load = 0.8 * np.sin(2.0 * np.pi * np.arange(T) / 90.0)
+    pv = lfilter([0.0, 0.0, 0.0, 2.0 * (1.0 - a)], [1.0, -a], op - 50.0) + load + rng.normal(0.0, 0.05, T)
+    rec = Recording(np.arange(T, dtype=float), None, op, None, pv, source="mem.csv")
+    return prepare(rec, nominal_delay=2.0, settle_time=40.0)
+
+
+@pytest.mark.parametrize("name, prefilter, delays", [
+    ("disturbance", None, None),
+    ("disturbance", 0.97, np.arange(0, 6)),
+    ("quantization", None, np.arange(0, 6)),
+    ("quantization", 0.97, None),
+])
+def test_the_quick_backfits_score_is_the_backfits_sse(name, prefilter, delays):
+    problem = _problem()
+    cand = get(name)
+    scorer = Scorer(problem, NOMINAL, {})
+    flow = scorer.chain({}, scorer.ctx(None))[:, 0]
+    st = NOMINAL.structure
+    ctx = replace(scorer.ctx(None), residual=problem.y - np.mean(problem.y))
+    rows = cand.grid(ctx)
+    assert rows.shape[0] > 0
+    for row in rows[:4]:
+        full = backfit(flow, problem.y, problem.train, st, problem.dt, cand, row, ctx, prefilter=prefilter,
+                       iterations=2, delays=delays).fit.sse
+        quick = backfit_sse(flow, problem.y, problem.train, st, problem.dt, cand, row, ctx, prefilter=prefilter,
+                            iterations=2, delays=delays)
+        assert quick == full
+
+
+def test_the_chains_tail_on_a_travel_scale_is_travel_clip_and_back_bit_for_bit():
+    rng = np.random.default_rng(4)
+    ctx = ChainContext(dt=1.0, op=np.zeros(10), op_span=40.0, stops=(12.5, 83.0))
+    op = np.clip(50.0 + np.cumsum(rng.normal(0.0, 4.0, 500)), 0.0, 100.0)   # both stops crossed: the clip acts
+    lo, hi = ctx.stops
+
+    def tail(x):   # ChainContext.travel, the linear characteristic's clip, ChainContext.from_travel
+        return lo + np.clip((x - lo) * (100.0 / (hi - lo)), 0.0, 100.0) * ((hi - lo) / 100.0)
+
+    grid = np.column_stack([rng.uniform(0.5, 5.0, 7), rng.uniform(0.0, 2.0, 7), np.full(7, 1.0)])
+    mv = valve_output(op, grid[:, 0], grid[:, 1], grid[:, 2], ctx)
+    assert run_chain(op, {}, ctx, grid_candidate=get("stiction"), grid=grid).tobytes() == tail(mv).tobytes()
+    assert run_chain(op, {}, ctx)[:, 0].tobytes() == tail(op).tobytes()
+    assert tail(op).min() == lo and tail(op).max() == hi
+
+
+def test_one_grid_scored_for_two_cost_domains_has_the_numbers_of_each_alone():
+    problem = _problem()
+    own = Scorer(problem, NOMINAL, {})
+    through = Scorer(replace(problem, prefilter=0.97), NOMINAL, {})
+    stiction = get("stiction")
+    ctx = own.ctx(None)
+    grid = stiction.grid(ctx)[:150]   # three chunks, the last one short
+    jobs = [(NOMINAL.structure, None), (LinearStructure(taus=(20.0,), delay=2.0), np.arange(0, 5))]
+    tasks = [(own, jobs, own.aim(None)), (through, jobs[:1], through.aim(None))]
+    shared = sse_jobs_shared({}, ctx, stiction, grid, tasks)
+    for (scorer, task_jobs, aim), results in zip(tasks, shared):
+        alone = scorer.sse_jobs({}, ctx, stiction, grid, task_jobs, aim)
+        assert len(results) == len(alone)
+        for (sse, used), (sse_alone, used_alone) in zip(results, alone):
+            assert sse.tobytes() == sse_alone.tobytes() and np.array_equal(used, used_alone)
+    assert shared[0][0][0].tobytes() != shared[1][0][0].tobytes()   # the two domains do differ
