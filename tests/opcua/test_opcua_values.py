@@ -13,6 +13,7 @@ from valve_emulator.device.server import EmulatorServer
 from valve_emulator.opcua import NAMESPACE
 from valve_emulator.opcua.units import UNITS, eu_information
 
+from .conftest import ON_A_SHARED_SERVER, restored, shared_server
 from .modes import serve_opcua
 
 CEFACT = "http://www.opcfoundation.org/UA/units/un/cefact"
@@ -53,9 +54,22 @@ def test_a_unit_text_unece_lacks_gets_no_guessed_code_and_no_units_none_at_all()
 
 @pytest.fixture
 async def served(opcua_mode, config):
-    """(Modbus server, OPC UA server) on one device, time frozen: the test steps it with ``device.advance``."""
+    """(Modbus server, OPC UA server) on one device, time frozen: the test steps it with ``device.advance``.
+    A server of the test's own: the test reads the clock from its start or drives a PV out of its range."""
     async with (EmulatorServer(config, port=0, time_scale=0) as srv,
                 serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0) as opc):
+        yield srv, opc
+
+
+_shared_served = shared_server(with_station=False)
+
+
+@pytest.fixture
+def shared(_shared_served):
+    """Like ``served``, one server per mode for the module's tests that read its units or its timestamps; each
+    test gets the device back as it was before the previous one."""
+    srv, _, opc = _shared_served
+    with restored(srv.device):
         yield srv, opc
 
 
@@ -69,9 +83,10 @@ async def _property(node, name):
     return await (await node.get_child(f"0:{name}")).read_value()
 
 
-async def test_every_analog_variable_carries_its_unece_unit_and_range(served):
+@ON_A_SHARED_SERVER
+async def test_every_analog_variable_carries_its_unece_unit_and_range(shared):
     """FIC101's PV is in m3/h over 0..50; XV2's PV has no units."""
-    srv, opc = served
+    srv, opc = shared
     async with Client(opc.url) as client:
         fic = await _variables(client, 1, "FIC101")
         served_units = {name: (await _property(fic[name], "EngineeringUnits")) for name in
@@ -110,8 +125,9 @@ async def test_float32_registers_are_served_as_the_doubles_the_tick_computed(ser
         assert await xv["op"].read_value() == float(device.bank.op[1])
 
 
-async def test_source_timestamp_is_the_wall_clock_time_of_the_tick_and_server_timestamp_the_read(served):
-    srv, opc = served
+@ON_A_SHARED_SERVER
+async def test_source_timestamp_is_the_wall_clock_time_of_the_tick_and_server_timestamp_the_read(shared):
+    srv, opc = shared
     async with Client(opc.url) as client:
         time_node = (await _variables(client, 2, "XV2"))["time"]
         await asyncio.sleep(1.0)   # the server has been up a while: its start is not the tick's time
