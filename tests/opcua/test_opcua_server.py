@@ -154,8 +154,9 @@ async def test_operator_may_not_call_the_station_methods(shared):
     assert float(srv.device.bank.pv_bias[0]) == 0.0
 
 
-async def test_subscription_notifies_pv_after_ticks(served):
-    srv, opc = served
+@ON_A_SHARED_SERVER
+async def test_subscription_notifies_pv_after_ticks(shared):
+    srv, opc = shared
     got = []
 
     class Handler:
