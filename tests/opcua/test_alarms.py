@@ -17,6 +17,7 @@ from valve_emulator.opcua import NAMESPACE
 from valve_emulator.opcua.alarms import SEVERITY_ACTIVE
 from valve_emulator.station.core import Station
 
+from .conftest import ON_A_SHARED_SERVER, restored, shared_server
 from .modes import serve_opcua
 
 HIGH, LOW, UNACKED = int(AlarmBit.PV_HIGH), int(AlarmBit.PV_LOW), int(AlarmBit.UNACKED)
@@ -77,15 +78,28 @@ async def _alarms_word(port: int, unit: int, table: str = "holding") -> int:
 
 @pytest.fixture
 async def served(opcua_mode, config):
-    """(Modbus server, station, OPC UA server) on one device, time frozen (the test steps it)."""
+    """(Modbus server, station, OPC UA server) on one device, time frozen (the test steps it). A server of the
+    test's own: the test follows the OPC UA events of the alarm or counts the acknowledgements."""
     async with EmulatorServer(config, port=0, time_scale=0) as srv:
         station = Station(srv.device, snapshots=SnapshotStore())
         async with serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, station=station) as opc:
             yield srv, station, opc
 
 
-async def test_the_alarms_register_follows_pv_and_the_stations_acknowledgement(served):
-    srv, station, _ = served
+_shared_served = shared_server()
+
+
+@pytest.fixture
+def shared(_shared_served):
+    """Like ``served``, one server per mode for the module's tests that read the alarm over Modbus and the
+    station; each test gets the device (its alarms too) back as it was before the previous one."""
+    with restored(_shared_served[0].device):
+        yield _shared_served
+
+
+@ON_A_SHARED_SERVER
+async def test_the_alarms_register_follows_pv_and_the_stations_acknowledgement(shared):
+    srv, station, _ = shared
     _stick_sensor(srv.device, 2, 9.5)            # XV2: PV range -10..10, alarm limits -8..8
     srv.device.advance(1)
     assert await _alarms_word(srv.port, 2) == HIGH | UNACKED
@@ -98,8 +112,9 @@ async def test_the_alarms_register_follows_pv_and_the_stations_acknowledgement(s
     assert station.loops_state([1], instructor=False)[0]["alarm"] == "normal"
 
 
-async def test_a_snapshot_restores_the_alarm_and_a_forged_one_is_refused(served):
-    srv, station, _ = served
+@ON_A_SHARED_SERVER
+async def test_a_snapshot_restores_the_alarm_and_a_forged_one_is_refused(shared):
+    srv, station, _ = shared
     _stick_sensor(srv.device, 2, -9.0)
     srv.device.advance(1)
     snap = srv.device.snapshot("low")

@@ -18,6 +18,7 @@ from valve_emulator.opcua.alarms import CONDITION_NAME
 from valve_emulator.opcua.server import BITS, VARIABLES
 from valve_emulator.station.core import Station
 
+from .conftest import ON_A_SHARED_SERVER, restored, shared_server
 from .modes import serve_opcua
 
 USERS = {"ines": ("instructor", hash_password("teach", iterations=1000)),
@@ -32,11 +33,24 @@ def _users():
 
 @pytest.fixture
 async def served(opcua_mode, config):
-    """(Modbus server, OPC UA server) on one device, time frozen: the test steps it with ``device.advance``."""
+    """(Modbus server, OPC UA server) on one device, time frozen: the test steps it with ``device.advance``.
+    A server of the test's own: the test counts refusals from zero or follows the clock from its start."""
     async with EmulatorServer(config, port=0, time_scale=0) as srv:
         station = Station(srv.device, snapshots=SnapshotStore())
         async with serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, station=station) as opc:
             yield srv, opc
+
+
+_shared_served = shared_server()
+
+
+@pytest.fixture
+def shared(_shared_served):
+    """Like ``served``, one server per mode for the module's tests that count nothing; each test gets the
+    device back as it was before the previous one."""
+    srv, _, opc = _shared_served
+    with restored(srv.device):
+        yield srv, opc
 
 
 async def _loop_node(client, unit, name):
@@ -51,8 +65,9 @@ async def _modbus_read(port, name, unit):
         return rr.registers[0]
 
 
-async def test_address_space_is_the_register_map_with_units_and_ranges(served, config):
-    srv, opc = served
+@ON_A_SHARED_SERVER
+async def test_address_space_is_the_register_map_with_units_and_ranges(shared, config):
+    srv, opc = shared
     async with Client(opc.url) as client:
         loop, ns = await _loop_node(client, 1, "FIC101")
         names = {(await c.read_browse_name()).Name for c in await loop.get_children()}
@@ -78,8 +93,9 @@ async def test_address_space_is_the_register_map_with_units_and_ranges(served, c
         assert await pv.read_value() == pytest.approx(float(srv.device.bank.pv[0]), abs=1e-4)
 
 
-async def test_a_write_over_opcua_is_read_over_modbus_and_the_other_way(served):
-    srv, opc = served
+@ON_A_SHARED_SERVER
+async def test_a_write_over_opcua_is_read_over_modbus_and_the_other_way(shared):
+    srv, opc = shared
     async with Client(opc.url) as client:
         loop, ns = await _loop_node(client, 2, "XV2")
         op = await loop.get_child(f"{ns}:op")
@@ -123,8 +139,9 @@ async def test_refused_writes_answer_a_bad_status_and_change_nothing(served):
     assert float(srv.device.bank.op[1]) != 150.0 and float(srv.device.bank.S[0]) == 5.0
 
 
-async def test_operator_may_not_call_the_station_methods(served):
-    srv, opc = served
+@ON_A_SHARED_SERVER
+async def test_operator_may_not_call_the_station_methods(shared):
+    srv, opc = shared
     async with Client(opc.url) as client:
         ns = await client.get_namespace_index(NAMESPACE)
         station = await client.nodes.objects.get_child(f"{ns}:ValveEmulator")
@@ -137,8 +154,9 @@ async def test_operator_may_not_call_the_station_methods(served):
     assert float(srv.device.bank.pv_bias[0]) == 0.0
 
 
-async def test_subscription_notifies_pv_after_ticks(served):
-    srv, opc = served
+@ON_A_SHARED_SERVER
+async def test_subscription_notifies_pv_after_ticks(shared):
+    srv, opc = shared
     got = []
 
     class Handler:
@@ -160,15 +178,15 @@ async def test_subscription_notifies_pv_after_ticks(served):
         await sub.delete()
 
 
+_shared_secured = shared_server(security=OpcUaSecurity(users=_users()))
+
+
 @pytest.fixture
-async def secured(opcua_mode, config, tmp_path):
-    """Like ``served``, with a users file: no anonymous access."""
-    async with EmulatorServer(config, port=0, time_scale=0) as srv:
-        station = Station(srv.device, snapshots=SnapshotStore())
-        security = OpcUaSecurity(users=_users())
-        async with serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0, station=station,
-                               security=security) as opc:
-            yield srv, opc
+def secured(_shared_secured):
+    """Like ``shared``, with a users file: no anonymous access."""
+    srv, _, opc = _shared_secured
+    with restored(srv.device):
+        yield srv, opc
 
 
 async def _connect(url, user=None, password=None):
@@ -180,6 +198,7 @@ async def _connect(url, user=None, password=None):
     return client
 
 
+@ON_A_SHARED_SERVER
 async def test_with_users_anonymous_and_wrong_passwords_are_refused(secured):
     srv, opc = secured
     with pytest.raises(ua.UaStatusCodeError):
@@ -190,6 +209,7 @@ async def test_with_users_anonymous_and_wrong_passwords_are_refused(secured):
         await _connect(opc.url, "nobody", "teach")
 
 
+@ON_A_SHARED_SERVER
 async def test_operator_cannot_write_S_and_instructor_can_and_may_inject(secured):
     srv, opc = secured
     operator = await _connect(opc.url, "otto", "run")

@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 from asyncua import Client, ua
 
-from valve_emulator.device.server import EmulatorServer
 from valve_emulator.opcua import NAMESPACE
 from valve_emulator.opcua.units import UNITS, eu_information
 
-from .modes import serve_opcua
+from .conftest import ON_A_SHARED_SERVER, restored, shared_server
 
 CEFACT = "http://www.opcfoundation.org/UA/units/un/cefact"
 
@@ -51,11 +50,16 @@ def test_a_unit_text_unece_lacks_gets_no_guessed_code_and_no_units_none_at_all()
     assert eu_information("  ", own_namespace=NAMESPACE) is None
 
 
+_shared_served = shared_server(with_station=False)
+
+
 @pytest.fixture
-async def served(opcua_mode, config):
-    """(Modbus server, OPC UA server) on one device, time frozen: the test steps it with ``device.advance``."""
-    async with (EmulatorServer(config, port=0, time_scale=0) as srv,
-                serve_opcua(opcua_mode, srv.device, loops=config.loops, port=0) as opc):
+def shared(_shared_served):
+    """(Modbus server, OPC UA server) on one device, time frozen: the test steps it with ``device.advance``.
+    One server per mode for the module's tests; each test gets the device back as it was before the previous
+    one."""
+    srv, _, opc = _shared_served
+    with restored(srv.device):
         yield srv, opc
 
 
@@ -69,9 +73,10 @@ async def _property(node, name):
     return await (await node.get_child(f"0:{name}")).read_value()
 
 
-async def test_every_analog_variable_carries_its_unece_unit_and_range(served):
+@ON_A_SHARED_SERVER
+async def test_every_analog_variable_carries_its_unece_unit_and_range(shared):
     """FIC101's PV is in m3/h over 0..50; XV2's PV has no units."""
-    srv, opc = served
+    srv, opc = shared
     async with Client(opc.url) as client:
         fic = await _variables(client, 1, "FIC101")
         served_units = {name: (await _property(fic[name], "EngineeringUnits")) for name in
@@ -94,8 +99,9 @@ async def test_every_analog_variable_carries_its_unece_unit_and_range(served):
         assert (await _property(xv["op"], "EngineeringUnits")).UnitId == 20529
 
 
-async def test_float32_registers_are_served_as_the_doubles_the_tick_computed(served):
-    srv, opc = served
+@ON_A_SHARED_SERVER
+async def test_float32_registers_are_shared_as_the_doubles_the_tick_computed(shared):
+    srv, opc = shared
     device = srv.device
     async with Client(opc.url) as client:
         xv = await _variables(client, 2, "XV2")
@@ -110,8 +116,9 @@ async def test_float32_registers_are_served_as_the_doubles_the_tick_computed(ser
         assert await xv["op"].read_value() == float(device.bank.op[1])
 
 
-async def test_source_timestamp_is_the_wall_clock_time_of_the_tick_and_server_timestamp_the_read(served):
-    srv, opc = served
+@ON_A_SHARED_SERVER
+async def test_source_timestamp_is_the_wall_clock_time_of_the_tick_and_server_timestamp_the_read(shared):
+    srv, opc = shared
     async with Client(opc.url) as client:
         time_node = (await _variables(client, 2, "XV2"))["time"]
         await asyncio.sleep(1.0)   # the server has been up a while: its start is not the tick's time
@@ -125,9 +132,10 @@ async def test_source_timestamp_is_the_wall_clock_time_of_the_tick_and_server_ti
     assert (again.ServerTimestamp - first.ServerTimestamp).total_seconds() >= 0.5   # each read is stamped anew
 
 
-async def test_a_value_outside_its_engineering_range_is_uncertain(served):
+@ON_A_SHARED_SERVER
+async def test_a_value_outside_its_engineering_range_is_uncertain(shared):
     """XV2's PV range is -10..10; OP from 50 to 100 % adds about 50 % flow, and PV (gain 1) leaves the range."""
-    srv, opc = served
+    srv, opc = shared
     got = []
 
     class Handler:

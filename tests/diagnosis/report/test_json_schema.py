@@ -3,6 +3,7 @@ answer (stiction, no stiction, no response, cannot tell and each refusal), with 
 
 from __future__ import annotations
 
+import functools
 import json
 
 import jsonschema
@@ -78,6 +79,17 @@ def test_prove_writes_one_valid_document_per_case(tmp_path, capsys):
         _validate(json.loads(p.read_text(encoding="utf-8")))
 
 
+@functools.cache
+def _linear_text() -> str:
+    """The document of the linear plant's diagnosis, diagnosed once for the tests below."""
+    return json.dumps(ve.diagnose(PLANT["linear"]()).to_json())
+
+
+def _linear_document() -> dict:
+    """A copy of its own of the linear plant's document, for a test that breaks or extends it."""
+    return json.loads(_linear_text())
+
+
 @pytest.mark.parametrize("breakage", [
     lambda d: d.update(answer="no stiction"),                 # words, not the code
     lambda d: d.update(strength="weak"),                      # a strength without a stiction answer
@@ -85,7 +97,7 @@ def test_prove_writes_one_valid_document_per_case(tmp_path, capsys):
     lambda d: d.pop("friction"),
 ])
 def test_the_schema_rejects_a_broken_document(breakage):
-    doc = ve.diagnose(PLANT["linear"]()).to_json()
+    doc = _linear_document()
     breakage(doc)
     with pytest.raises(jsonschema.ValidationError):
         _validate(doc)
@@ -93,7 +105,7 @@ def test_the_schema_rejects_a_broken_document(breakage):
 
 def test_the_schema_takes_its_vocabulary_from_the_candidates_registered(monkeypatch):
     """A reason code of a candidate registered later is refused before its registration and valid after."""
-    doc = ve.diagnose(PLANT["linear"]()).to_json()
+    doc = _linear_document()
     doc["reasons"].append({"code": TOY, "sentence": "a valve stroking slowly"})
     with pytest.raises(jsonschema.ValidationError, match=TOY):
         _validate(doc)
