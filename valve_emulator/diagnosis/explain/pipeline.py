@@ -286,7 +286,7 @@ def _traces(s: Searched, base: Model, pv_before: np.ndarray, test_start: int, fr
     valve_only = {k: v for k, v in model.by_slot().items() if k in ("actuator", "valve")}
     mv = run_chain(problem.op, valve_only, replace(ctx, characteristic=("linear", DEFAULT_RANGEABILITY)),
                    nominal_valve=(nom.S, nom.J))[:, 0]
-    surface, surface_best, surface_load_model = stiction_surface(s.rounds, problem.n_fit)
+    surface, surface_best, surface_load_model = stiction_surface(s.rounds)
     if surface is not None and not frame.identity:
         surface = (surface[0] / frame.gain, surface[1] / frame.gain, surface[2])
         surface_best = (surface_best[0] / frame.gain, surface_best[1] / frame.gain)
