@@ -158,7 +158,9 @@ def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, p
                              declared=declared)
     suspected = suspect_onset(problem.pv, recording.sp)
     problem = post_onset_split(problem, suspected)
-    fitter = Fitter(Scorer(problem, nom, lib))
+    # Where the loop's behaviour changes part-way the record is not the same throughout: the coarse stages
+    # score all of it, not windows that would weigh the part after the change by how many fall there.
+    fitter = Fitter(Scorer(problem, nom, lib), windowed=suspected is None)
     search = Search(fitter, progress=say, suspected=suspected)
     model, rounds = search.run()
     if nom.given:

@@ -1,10 +1,11 @@
 r"""Which samples the coarse stages of a candidate search score: the whole fit part, or windows over it.
 
-The first two stages of every candidate search (:mod:`~valve_emulator.diagnosis.fit.fitter`: the coarse grid
-× pole hypotheses, the stiction scan) only choose where the refinement starts; the refinement, the polishes,
-BIC, the intervals and everything the answer reports are computed on the whole fit part. On a long record the
-two stages are most of the time (at 100,000 samples 2.5 + 7.3 s of 21.6), and they grow with the record while
-what they decide does not. So on a fit part of at least :data:`LONG` samples they score :data:`COUNT` windows
+The first stages of every candidate search (:mod:`~valve_emulator.diagnosis.fit.fitter`: the coarse grid
+× pole hypotheses, the stiction scan, the refinement's first pass) only choose where the refinement's last
+pass starts; that pass, the polishes, BIC, the intervals and everything the answer reports are computed on the
+whole fit part. On a long record the coarse grid and the scan alone are most of the time (at 100,000 samples
+2.5 + 7.3 s of 21.6), and they grow with the record while what they decide does not. So on a fit part of at
+least :data:`LONG` samples these stages score :data:`COUNT` windows
 of :data:`LENGTH` samples instead, spread evenly from the fit part's first sample to its last (the first window
 starts where the fit part starts, the last ends where it ends), each an SSE summed over the windows. Each window
 is its own sub-record: the chain and the linear filters start afresh :data:`LEAD_IN` samples before its scored
@@ -23,11 +24,17 @@ samples off). The windows here are three times longer than the shortest that hel
 Why evenly spread windows and not the record's first part: physics that starts late in a long record (a valve
 that begins to stick halfway) must reach the windows; the last window ends where the fit part ends. A stretch
 between two windows can be missed by these two stages, which then give the refinement a worse start; it is not
-lost, since every candidate is still refined and judged on the whole record.
+lost, since every candidate is still refined and judged on the whole record. But where the loop's behaviour is
+located to change part-way before the search (:func:`~valve_emulator.diagnosis.explain.onset.suspect_onset`),
+windows weigh the part after the change by how many of them fall there, not by its length: at 100,000 samples
+with a valve sticking from t = 70,000 s the first finding became a deadband instead of stiction from 68,125 s.
+Such a record's coarse stages score all of it (:class:`~valve_emulator.diagnosis.fit.fitter.Fitter`'s
+``windowed``).
 
-The refinement itself stays on the whole record: its grids scored on windows moved J from 2.01 to 1.41 with
-500-sample lead-ins (1.84 with 5,000), and the intervals' profile on windows widened J's interval from
-1.92–2.09 to 1.25–2.01.
+The refinement's first pass also scores the windows (from the scan's best row, it only has to come near the
+bottom); its second pass, the polishes, the centring and everything after are on the whole record. Both passes
+on windows moved J from 2.01 to 1.41 with 500-sample lead-ins (1.84 with 5,000), and the intervals' profile on
+windows widened J's interval from 1.92–2.09 to 1.25–2.01: those stay on the whole record.
 """
 
 from __future__ import annotations
