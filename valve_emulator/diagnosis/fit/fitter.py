@@ -278,8 +278,9 @@ class Fitter:
             grid = grids[ks[0]]
             scored: list = [None] * len(ks)
             for part in parts:
-                scored = _summed(scored, part.scorer.sse_jobs(active, part.ctx, cand, grid, [jobs[k] for k in ks],
-                                                              part.aim))
+                sc, ctx, aim = part.scorer, part.ctx, part.aim
+                scored = _summed(scored, [sc.sse_grid(active, ctx, cand, grid, *jobs[ks[0]], aim)] if len(ks) == 1
+                                 else sc.sse_jobs(active, ctx, cand, grid, [jobs[k] for k in ks], aim))
             for r, same_job in zip(scored, same_grid.values()):
                 for k in same_job:
                     out[k] = r
