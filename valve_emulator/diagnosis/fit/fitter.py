@@ -204,23 +204,21 @@ class Fitter:
         return self.refine_all(model, cand, [(best, st, free)], joint=joint)[0]
 
     def refine_all(self, model: Model, cand: Candidate, starts: list[tuple[np.ndarray, LinearStructure, bool]], *,
-                   joint: bool = True, first_on: tuple[Part, ...] | None = None) -> list[Refined]:
+                   joint: bool = True) -> list[Refined]:
         """:meth:`refine` of ``cand`` from each ``(best, structure, free)`` of ``starts``, stage by stage.
 
         The chain's output depends only on the grid, never on the linear structure or the dead time, and starts
         often share their grids (the θ-held and θ-free variants start from the same scan row, and refinements
         converge): at each stage every distinct grid is pushed through the chain once and scored for every start
         that uses it (:meth:`_score_grids`). Each start's numbers are those of refining it alone, and equal starts
-        (same row, structure and variant) are refined once. ``first_on``: the parts of the record the first
-        pass's grids are scored on (the coarse stages' windows); the second pass is on the whole record.
+        (same row, structure and variant) are refined once.
         """
         keys = [(best.tobytes(), repr(st), free) for best, st, free in starts]
         first: dict[tuple, int] = {}
         for k, key in enumerate(keys):
             first.setdefault(key, k)
         if len(first) < len(starts):
-            done = dict(zip(first, self.refine_all(model, cand, [starts[k] for k in first.values()], joint=joint,
-                                                   first_on=first_on)))
+            done = dict(zip(first, self.refine_all(model, cand, [starts[k] for k in first.values()], joint=joint)))
             return [done[key] for key in keys]
         active = model.by_slot()
         ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
@@ -231,11 +229,10 @@ class Fitter:
         flows: list[np.ndarray] = [None] * len(starts)  # type: ignore[list-item]
         grids: list[np.ndarray] = []
         scored: list[tuple] = []
-        whole = (Part(self.scorer, ctx, aim),)
-        for parts in (first_on or whole, whole):
+        for _ in range(2):
             grids = [cand.refine(ctx, b) for b in bests]
             jobs = [(st, self.scorer.near(st.delay, 2) if free else None) for st, free in zip(sts, frees)]
-            scored = self._score_grids(active, cand, grids, jobs, parts)
+            scored = self._score_grids(active, ctx, cand, grids, jobs, aim)
             rows = {}
             for k, (g, (sse, delays)) in enumerate(zip(grids, scored)):
                 i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
@@ -263,11 +260,9 @@ class Fitter:
             out.append(Refined(active=new_active, fit=fit, flow=flow, fine=fine))
         return out
 
-    def _score_grids(self, active, cand, grids: list[np.ndarray], jobs: list[tuple], parts: tuple[Part, ...]
-                     ) -> list[tuple]:
-        """``sse_grid`` of ``grids[k]`` for ``jobs[k]`` (structure, delays) summed over ``parts`` of the record,
-        every distinct grid through each part's chain once
-        (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.sse_jobs`, all its jobs at once)."""
+    def _score_grids(self, active, ctx, cand, grids: list[np.ndarray], jobs: list[tuple], aim: Aim) -> list[tuple]:
+        """``sse_grid`` of ``grids[k]`` for ``jobs[k]`` (structure, delays), every distinct grid through the chain
+        once (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.sse_jobs`, all its jobs at once)."""
         groups: dict[tuple, dict[tuple, list[int]]] = {}
         for k, (g, (st, delays)) in enumerate(zip(grids, jobs)):
             job = (repr(st), None if delays is None else delays.tobytes())
@@ -276,11 +271,8 @@ class Fitter:
         for same_grid in groups.values():
             ks = [k[0] for k in same_grid.values()]
             grid = grids[ks[0]]
-            scored: list = [None] * len(ks)
-            for part in parts:
-                sc, ctx, aim = part.scorer, part.ctx, part.aim
-                scored = _summed(scored, [sc.sse_grid(active, ctx, cand, grid, *jobs[ks[0]], aim)] if len(ks) == 1
-                                 else sc.sse_jobs(active, ctx, cand, grid, [jobs[k] for k in ks], aim))
+            scored = ([self.scorer.sse_grid(active, ctx, cand, grid, *jobs[ks[0]], aim)] if len(ks) == 1 else
+                      self.scorer.sse_jobs(active, ctx, cand, grid, [jobs[k] for k in ks], aim))
             for r, same_job in zip(scored, same_grid.values()):
                 for k in same_job:
                     out[k] = r
@@ -347,7 +339,7 @@ class Fitter:
         bests = list(bests)
         for axis in cand.threshold_axes:
             lines = [cand.line(ctx, best, axis) for best in bests]
-            scored = self._score_grids(active, cand, lines, [(st, None) for st in sts], (Part(self.scorer, ctx, aim),))
+            scored = self._score_grids(active, ctx, cand, lines, [(st, None) for st in sts], aim)
             for k, (rows, (sse, _)) in enumerate(zip(lines, scored)):
                 cost = relative_cost(sse[:, 0], self.p.n_fit)
                 i = int(np.argmin(cost))
@@ -436,8 +428,7 @@ class Fitter:
         p0s = [start.params if scanned.get((free, i)) is None else scan[int(np.argmin(scanned[(free, i)].sse))]
                for free, i, start in todo]
         refined = self.refine_all(model, cand, [(p0, start.structure, free)
-                                                for p0, (free, _, start) in zip(p0s, todo)], joint=False,
-                                  first_on=parts)
+                                                for p0, (free, _, start) in zip(p0s, todo)], joint=False)
         by_start = {(free, i): self._result(model, r, free, aim, scanned.get((free, i)))
                     for r, (free, i, _) in zip(refined, todo)}
         options = []
