@@ -19,6 +19,7 @@ from valve_emulator.benchmark.independent import (
 )
 from valve_emulator.config import loop_from_mapping
 from valve_emulator.diagnosis.candidates import get
+from valve_emulator.diagnosis.explain import pipeline
 from valve_emulator.diagnosis.fit import windows
 from valve_emulator.diagnosis.fit.data import prepare
 from valve_emulator.diagnosis.fit.fitter import Fitter
@@ -50,7 +51,7 @@ def test_a_windows_lead_in_is_cut_at_the_records_first_sample():
     assert ws[1].start - ws[1].lead == LEAD_IN
 
 
-def _long_problem(samples: int = 30_000):
+def _long_problem(samples: int = 40_000):
     case = CASES[0]
     rec, nominal, _ = generate(case, duration=samples - 1 + case.cut)
     nom = nominal_from_config(nominal, float(rec.t[1] - rec.t[0]))
@@ -99,10 +100,10 @@ def _answer(doc: dict) -> tuple:
 
 @pytest.mark.slow
 def test_a_long_record_gets_the_same_answer_s_j_and_intervals_as_when_scored_whole(monkeypatch):
-    """The proof cases' concentration loop (S = 5, J = 2) over 30,000 samples, its nominal model given:
+    """The proof cases' concentration loop (S = 5, J = 2) over 40,000 samples, its nominal model given:
     windowed coarse stages end in the same finding, parameters and intervals as the whole record scored."""
     case = CASES[0]
-    rec, nominal, _ = generate(case, duration=30_000 - 1 + case.cut)
+    rec, nominal, _ = generate(case, duration=40_000 - 1 + case.cut)
     windowed = _answer(diagnose(rec, nominal).to_json())
     monkeypatch.setattr(windows, "LONG", 10 ** 12)
     whole = _answer(diagnose(rec, nominal).to_json())
@@ -132,3 +133,21 @@ def test_a_valve_that_starts_to_stick_late_in_a_long_record_is_found_from_its_on
     onset = finding["onset"]
     assert abs(onset["onset_s"] - 70_000.0) <= 10_000.0
     assert onset["fit_after"] > onset["fit_before"] + 10.0
+
+
+@pytest.mark.parametrize("with_model", [True, False])
+def test_only_a_search_with_a_nominal_model_may_score_windows(monkeypatch, with_model):
+    """Without a model the coarse stage also chooses the poles, up to a tenth of the record: longer than a
+    window, so plant data are searched on the whole record whatever its length."""
+    made = []
+
+    class Recording(Fitter):
+        def __init__(self, scorer, *, windowed=True):
+            made.append(windowed)
+            super().__init__(scorer, windowed=windowed)
+
+    monkeypatch.setattr(pipeline, "Fitter", Recording)
+    case = CASES[0]
+    rec, nominal, _ = generate(case, duration=800 + case.cut)
+    pipeline.explain(rec, nominal if with_model else None)
+    assert made and all(w is with_model for w in made)

@@ -158,9 +158,11 @@ def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, p
                              declared=declared)
     suspected = suspect_onset(problem.pv, recording.sp)
     problem = post_onset_split(problem, suspected)
-    # Where the loop's behaviour changes part-way the record is not the same throughout: the coarse stages
-    # score all of it, not windows that would weigh the part after the change by how many fall there.
-    fitter = Fitter(Scorer(problem, nom, lib), windowed=suspected is None)
+    # Windows for a long record's coarse stages (fit/windows.py) only with a nominal model and where the loop's
+    # behaviour is not located to change part-way: without a model the coarse stage also chooses the poles,
+    # up to a tenth of the record, longer than a window; after a change windows would weigh the part after it
+    # by how many of them fall there.
+    fitter = Fitter(Scorer(problem, nom, lib), windowed=suspected is None and nom.given)
     search = Search(fitter, progress=say, suspected=suspected)
     model, rounds = search.run()
     if nom.given:

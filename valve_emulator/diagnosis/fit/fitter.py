@@ -108,7 +108,8 @@ class Fitter:
 
     def __init__(self, scorer: Scorer, *, windowed: bool = True) -> None:
         #: Whether a long record's coarse stages may score windows (:mod:`.windows`); False for a record whose
-        #: physics changes part-way (a located onset), which windows would weigh by how many fall after it.
+        #: physics changes part-way (a located onset), which windows would weigh by how many fall after it, and
+        #: without a nominal model (the poles the coarse stage chooses from are longer than a window).
         self.windowed = windowed
         self.scorer = scorer
 

@@ -17,8 +17,10 @@ decimated record changed the answer at every k tried (k = 2, 4, 8: a deadband, o
 J 1.82) — a stick-slip valve moves at single samples, and a coarser step shifts its slips and the dead-time
 grid. Windows of 500 samples (300 of lead-in) left all 28 documents of ``bench/diagnosis_identity.py --draws 1``
 identical; windows of 250 (150 of lead-in) changed six (a deadband for a valve without offset, a dead time two
-samples off). The windows here are three times longer than the shortest that held, with a longer lead-in: at
-100,000 samples they gave the same answer (S 5, J 2.005) as the whole record in 11.6 s instead of 21.6 s.
+samples off). Windows of 1,500 samples (500 of lead-in) gave the proof case's answer, S, J and intervals at
+30,000 and 100,000 samples, but on a sticky level loop of 40,000 samples (independent simulator, nominal model
+given) J 1.38 instead of 1.59 and one finding fewer; windows of 3,000 (1,000 of lead-in), the ones here, gave that
+loop's document as the whole record does.
 
 Why evenly spread windows and not the record's first part: physics that starts late in a long record (a valve
 that begins to stick halfway) must reach the windows; the last window ends where the fit part ends. A stretch
@@ -28,7 +30,10 @@ located to change part-way before the search (:func:`~valve_emulator.diagnosis.e
 windows weigh the part after the change by how many of them fall there, not by its length: at 100,000 samples
 with a valve sticking from t = 70,000 s the first finding became a deadband instead of stiction from 68,125 s.
 Such a record's coarse stages score all of it (:class:`~valve_emulator.diagnosis.fit.fitter.Fitter`'s
-``windowed``).
+``windowed``), and so do those of a record without a nominal model: there the coarse stage also chooses the
+linear part among pole hypotheses with time constants up to a tenth of the record, longer than a window, and a
+sticky flow loop of 40,000 samples as plant data got S 4.59 on windows of 1,500 and 4.81 on windows of 3,000
+instead of 5.08 (its interval 4.83–5.27) on the whole record.
 
 The refinement stays on the whole record: its two passes on windows moved J from 2.01 to 1.41 with 500-sample
 lead-ins (1.84 with 5,000); its first pass alone on these windows gave the same answer on the proof case at
@@ -54,9 +59,9 @@ __all__ = ["COUNT", "LEAD_IN", "LENGTH", "LONG", "Part", "Window", "coarse_parts
 #: Windows a long fit part is scored on by the coarse stages.
 COUNT = 4
 #: Scored samples of one window.
-LENGTH = 1500
+LENGTH = 3000
 #: Samples before a window's scored ones over which its chain and filters start afresh (never scored).
-LEAD_IN = 500
+LEAD_IN = 1000
 #: Fit parts of at least this many samples are scored on windows: twice what the windows score, so that they
 #: never score more than half of it.
 LONG = 2 * COUNT * LENGTH
