@@ -8,7 +8,9 @@ then the median of ``--repeat`` runs. *First run*: a fresh interpreter with an e
 compilation and one diagnosis, timed from outside; then the same after ``valve-emulator compile`` (untimed).
 ``--before CHECKOUT``: on a shared machine, compare with another checkout of the project measured alternately,
 each run a fresh interpreter (its code on ``PYTHONPATH``) that warms up and times one diagnosis, wall and CPU
-seconds (CPU: every thread's, the less sensitive to the machine's load); medians and the ratio after/before.
+seconds (CPU: every thread's, the less sensitive to the machine's load); medians and the ratio after/before, the
+machine's load average before and after each size, and each checkout's first finding with its parameters and
+95 % intervals (a speed-up must not change them).
 Run::
 
     python bench/bench_diagnose.py [--samples 1000 10000] [--repeat 3] [--no-model] [--no-first-run]
@@ -77,13 +79,17 @@ def one_run(samples: int, model: bool) -> dict:
     rec, nominal, _ = generate(case, duration=samples - 1 + case.cut)
     wall, cpu = time.perf_counter(), time.process_time()
     d = explain(rec, nominal if model else None)
-    return {"wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu, "verdict": d.verdict}
+    out = {"wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu, "verdict": d.verdict}
+    first = d.to_json()["findings"][:1]
+    out["finding"] = [[f["physics"], f["parameters"], f.get("intervals")] for f in first]
+    return out
 
 
 def alternate(before: Path, samples: list[int], repeat: int, model: bool) -> None:
     """Each size ``repeat`` times, this checkout and ``before`` one after the other (see the module docstring)."""
     roots = {"before": before.resolve(), "after": ROOT}
     for n in samples:
+        load_before = os.getloadavg()
         runs: dict[str, list[dict]] = {k: [] for k in roots}
         for _ in range(repeat):
             for label, root in roots.items():
@@ -98,7 +104,11 @@ def alternate(before: Path, samples: list[int], repeat: int, model: bool) -> Non
             print(f"{n:6d} samples {label:6s}: wall median {med[label]['wall']:5.2f} s ({walls}), "
                   f"CPU median {med[label]['cpu']:5.2f} s | {v[-1]['verdict']}")
         print(f"{n:6d} samples after/before: wall {med['after']['wall'] / med['before']['wall']:.2f}, "
-              f"CPU {med['after']['cpu'] / med['before']['cpu']:.2f}")
+              f"CPU {med['after']['cpu'] / med['before']['cpu']:.2f}; load average (1, 5, 15 min) "
+              f"{', '.join(f'{x:.1f}' for x in load_before)} before, "
+              f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} after")
+        for label, v in runs.items():
+            print(f"{n:6d} samples {label:6s} first finding: {v[-1]['finding']}")
 
 
 def main(argv=None) -> int:

@@ -39,7 +39,7 @@ def test_the_stiction_picture_is_the_delta_bic_over_s_and_j_of_the_best_start():
     sse[0 + 6] = 2.0        # S = 1, J = 0, start 1: better than start 0's 4.0
     option = _stiction_option(sse)
     rounds = [Round(baseline=_model(), options=(option,), chosen=option)]
-    (S, J, grid), best, load_model = stiction_surface(rounds, 100)
+    (S, J, grid), best, load_model = stiction_surface(rounds)
     assert not load_model
     assert S.tolist() == [1.0, 2.0, 3.0] and J.tolist() == [0.0, 1.0] and best == (2.0, 1.0)
     assert grid[1, 1] == 0.0
@@ -54,16 +54,16 @@ def test_the_stiction_picture_comes_from_the_round_that_accepted_stiction():
     accepted = _stiction_option(np.linspace(1.0, 2.0, 12), best=(3.0, 1.0))
     rounds = [Round(baseline=_model(), options=(first, other), chosen=other),
               Round(baseline=_model(), options=(accepted,), chosen=accepted)]
-    assert stiction_surface(rounds, 100)[1] == (3.0, 1.0)
-    assert stiction_surface(rounds[:1] + [Round(baseline=_model(), options=(), chosen=None)], 100)[1] == (1.0, 0.0)
-    assert stiction_surface([Round(baseline=_model(), options=(other,), chosen=None)], 100) == (None, None, False)
+    assert stiction_surface(rounds)[1] == (3.0, 1.0)
+    assert stiction_surface(rounds[:1] + [Round(baseline=_model(), options=(), chosen=None)])[1] == (1.0, 0.0)
+    assert stiction_surface([Round(baseline=_model(), options=(other,), chosen=None)]) == (None, None, False)
 
 
 def test_the_stiction_picture_says_when_its_scan_was_scored_through_the_drifting_load_noise_model():
     """A late valve's second fit scores its scan through the noise model's prefilter: the figure must say so,
     since its ΔBIC are not the free run's."""
     late = _stiction_option(np.linspace(1.0, 2.0, 12), load_model=True)
-    assert stiction_surface([Round(baseline=_model(), options=(late,), chosen=late)], 100)[2] is True
+    assert stiction_surface([Round(baseline=_model(), options=(late,), chosen=late)])[2] is True
 
 
 def test_an_autocorrelated_residual_counts_fewer_effective_samples_with_and_without_a_model():

@@ -67,9 +67,10 @@ def param_text(model: Model, added: tuple[str, ...], frame: Frame | None = None)
     return "; ".join(parts)
 
 
-def stiction_surface(rounds: list[Round], n: int):
-    """ΔBIC over (S, J) from the stiction scan of the round that accepted stiction (else round 1), the best
-    (S, J) of that option, and whether the scan was scored through the drifting-load noise model
+def stiction_surface(rounds: list[Round]):
+    """ΔBIC over (S, J) from the stiction scan of the round that accepted stiction (else round 1), on the
+    samples the scan scored (the fit part, or a long record's windows: :mod:`~valve_emulator.diagnosis.fit.windows`),
+    the best (S, J) of that option, and whether the scan was scored through the drifting-load noise model
     (:attr:`Surface.load_model <valve_emulator.diagnosis.fit.records.Surface>`); ``None, None, False`` when no
     stiction option was scanned."""
     pick = None
@@ -82,7 +83,7 @@ def stiction_surface(rounds: list[Round], n: int):
         return None, None, False
     P, sse = pick.scan.params, pick.scan.sse
     S, J = np.unique(P[:, 0]), np.unique(P[:, 1])
-    cost = relative_cost(sse, n)
+    cost = relative_cost(sse, pick.scan.n)
     grid = np.full((J.size, S.size), np.nan)
     iS, iJ = np.searchsorted(S, P[:, 0]), np.searchsorted(J, P[:, 1])
     for a, b, c in zip(iJ, iS, cost):

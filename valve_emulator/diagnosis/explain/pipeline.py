@@ -165,7 +165,11 @@ def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, p
                              declared=declared, reach=reach)
     suspected = suspect_onset(problem.pv, recording.sp)
     problem = post_onset_split(problem, suspected)
-    fitter = Fitter(Scorer(problem, nom, lib))
+    # Windows for a long record's coarse stages (fit/windows.py) only with a nominal model and where the loop's
+    # behaviour is not located to change part-way: without a model the coarse stage also chooses the poles,
+    # up to a tenth of the record, longer than a window; after a change windows would weigh the part after it
+    # by how many of them fall there.
+    fitter = Fitter(Scorer(problem, nom, lib), windowed=suspected is None and nom.given)
     search = Search(fitter, progress=say, suspected=suspected)
     model, rounds = search.run()
     if nom.given:
@@ -299,7 +303,7 @@ def _traces(s: Searched, base: Model, pv_before: np.ndarray, test_start: int, fr
     valve_only = {k: v for k, v in model.by_slot().items() if k in ("actuator", "valve")}
     mv = run_chain(problem.op, valve_only, replace(ctx, characteristic=("linear", DEFAULT_RANGEABILITY)),
                    nominal_valve=(nom.S, nom.J))[:, 0]
-    surface, surface_best, surface_load_model = stiction_surface(s.rounds, problem.n_fit)
+    surface, surface_best, surface_load_model = stiction_surface(s.rounds)
     if surface is not None and not frame.identity:
         surface = (surface[0] / frame.gain, surface[1] / frame.gain, surface[2])
         surface_best = (surface_best[0] / frame.gain, surface_best[1] / frame.gain)

@@ -8,6 +8,9 @@ Stages, for every candidate and every dead-time variant (θ held at its current 
    ranked by ``N ln SSE`` plus the prior on the poles;
 2. **scan** (candidates that define one, e.g. stiction): a global grid fine along the rough directions,
    scored at the top :data:`_STARTS` starts' poles and nearby dead times;
+
+   on a long record these two stages score windows spread over the fit part instead of all of it
+   (:mod:`~valve_emulator.diagnosis.fit.windows`: they only choose the starts);
 3. **refine**, twice: the candidate's fine local grid (dead time ±2 samples when free), then a Nelder–Mead
    polish of the poles (and of a free dead time, to a fraction of a sample);
 4. **centre** threshold parameters in their flat cost bottom (:meth:`Fitter.centre`).
@@ -24,6 +27,7 @@ then the best is polished. ``loop`` candidates are not searched.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -35,6 +39,7 @@ from valve_emulator.diagnosis.fit.linear import LinearFit, LinearStructure, spli
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
 from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
 from valve_emulator.diagnosis.fit.simplex import nelder_mead
+from valve_emulator.diagnosis.fit.windows import Part, Window, coarse_parts, coarse_windows, window_scorer
 
 __all__ = ["Fitter", "Refined", "Result", "Start", "Variant"]
 
@@ -101,12 +106,30 @@ class Fitter:
     (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.aim`), never from state set beforehand.
     """
 
-    def __init__(self, scorer: Scorer) -> None:
+    def __init__(self, scorer: Scorer, *, windowed: bool = True) -> None:
+        #: Whether a long record's coarse stages may score windows (:mod:`.windows`); False for a record whose
+        #: physics changes part-way (a located onset), which windows would weigh by how many fall after it, and
+        #: without a nominal model (the poles the coarse stage chooses from are longer than a window).
+        self.windowed = windowed
         self.scorer = scorer
 
-    def surface(self, name: str, params: np.ndarray, sse: np.ndarray) -> Surface:
-        """A cost surface of candidate ``name`` on the problem's fit part."""
-        return Surface(candidate=name, params=params, sse=sse, n=self.p.n_fit)
+    def surface(self, name: str, params: np.ndarray, sse: np.ndarray, n: int | None = None) -> Surface:
+        """A cost surface of candidate ``name`` on the problem's fit part (or on ``n`` samples of it)."""
+        return Surface(candidate=name, params=params, sse=sse, n=self.p.n_fit if n is None else n)
+
+    @property
+    def windows(self) -> tuple[Window, ...]:
+        """The windows the coarse stages score (none: the whole fit part; :mod:`.windows`)."""
+        return coarse_windows(self.p.train) if self.windowed else ()
+
+    @cached_property
+    def _window_scorers(self) -> tuple[Scorer, ...]:
+        return tuple(window_scorer(self.scorer, w) for w in self.windows)
+
+    def coarse_parts(self, model: Model, cand: Candidate) -> tuple[Part, ...]:
+        """What the coarse stages of ``cand`` added to ``model`` score: the windows, or the whole record."""
+        windows = self.windows
+        return coarse_parts(self.scorer, windows, self._window_scorers if windows else (), model, cand)
 
     @property
     def p(self):
@@ -391,16 +414,17 @@ class Fitter:
             return self.output_options(model, cand)
         if cand.slot == "delay":
             return [self.delay_option(model, cand)]
-        ctx, aim = self.scorer.ctx(model), self.scorer.aim(model)
+        aim = self.scorer.aim(model)
         variants = self.variants(model, cand)
-        starts = self.coarse_starts(model, cand, variants, aim)
+        parts = self.coarse_parts(model, cand)
+        starts = self.coarse_starts(model, cand, variants, parts)
         # The coarse winner can be an artefact of grid placement — a continuous parameter trades off
         # against the poles (an actuator lag against the plant's time constant), and stiction's coarse
         # cost is rough — so the best start of each of the top pole hypotheses is scanned and refined, and
         # the choice is made afterwards.
         ranked = {v.free: self._ranked(starts[v.free], cand) for v in variants}
-        scan = cand.scan(ctx)
-        scanned = self.scan_surfaces(model.by_slot(), ctx, cand, scan, ranked, aim) if scan is not None else {}
+        scan = cand.scan(self.scorer.ctx(model))
+        scanned = self.scan_surfaces(model.by_slot(), cand, scan, ranked, parts) if scan is not None else {}
         todo = [(v.free, i, start) for v in variants for i, start in enumerate(ranked[v.free])]
         p0s = [start.params if scanned.get((free, i)) is None else scan[int(np.argmin(scanned[(free, i)].sse))]
                for free, i, start in todo]
@@ -427,32 +451,38 @@ class Fitter:
             out.append(Variant(True, (cand.name, dead_time.name)))
         return out
 
-    def coarse_starts(self, model: Model, cand: Candidate, variants: list[Variant], aim: Aim
+    def coarse_starts(self, model: Model, cand: Candidate, variants: list[Variant], parts: tuple[Part, ...]
                       ) -> dict[bool, list[Start]]:
-        """Stage 1: the candidate's coarse grid through the chain once, scored for every pole hypothesis and
-        every variant; the best row of each is a :class:`Start`, by variant (θ free or held)."""
-        ctx = self.scorer.ctx(model)
-        grid = cand.grid(ctx)
-        flows = self.scorer.chain(model.by_slot(), ctx, cand, grid)
-        starts: dict[bool, list[Start]] = {v.free: [] for v in variants}
+        """Stage 1: the candidate's coarse grid through the chain once per part of the record scored
+        (:meth:`coarse_parts`), scored for every pole hypothesis and every variant, the SSEs summed over the
+        parts; the best row of each is a :class:`Start`, by variant (θ free or held)."""
+        grid = cand.grid(self.scorer.ctx(model))
         poles = self.pole_set(model)
-        # θ free: every pole hypothesis over the dead-time grid, in one pass over the flows.
         free = any(v.free for v in variants)
-        on_grid = (self.scorer.sse_flows_all(flows, [(st, self.p.delays) for st in poles], aim) if free else
-                   [None] * len(poles))
-        for st, grid_delays in zip(poles, on_grid):
+        held = not all(v.free for v in variants)
+        on_grid: list = [None] * len(poles)
+        at_own: list = [None] * len(poles)
+        for part in parts:
+            flows = part.scorer.chain(model.by_slot(), part.ctx, cand, grid)
+            # θ free: every pole hypothesis over the dead-time grid, in one pass over the flows.
+            g = (part.scorer.sse_flows_all(flows, [(st, self.p.delays) for st in poles], part.aim) if free else
+                 [None] * len(poles))
+            # θ held: its column of the θ-free result when it has one.
+            h = ([_held_delay(part.scorer, flows, st, part.aim, gd) for st, gd in zip(poles, g)] if held else
+                 [None] * len(poles))
+            on_grid, at_own = _summed(on_grid, g), _summed(at_own, h)
+        n = sum(part.n_fit for part in parts)
+        starts: dict[bool, list[Start]] = {v.free: [] for v in variants}
+        for st, grid_delays, own_delay in zip(poles, on_grid, at_own):
             penalty = self.scorer.prior_penalty(st)
-            for v in sorted(variants, key=lambda v: not v.free):   # θ free first: its columns may serve θ held
-                if v.free:
-                    sse, delays = grid_delays
-                else:
-                    sse, delays = self._held_delay(flows, st, aim, grid_delays)
+            for v in sorted(variants, key=lambda v: not v.free):
+                sse, delays = grid_delays if v.free else own_delay
                 flat = sse.min(axis=1)
                 i = int(np.argmin(flat))
-                score = log_sse(flat[i], self.p.n_fit) + penalty
+                score = log_sse(flat[i], n) + penalty
                 st_b = replace(st, delay=float(delays[int(np.argmin(sse[i]))]) * self.p.dt) if v.free else st
                 starts[v.free].append(Start(score=score, params=grid[i], structure=st_b,
-                                            coarse=self.surface(cand.name, grid, flat)))
+                                            coarse=self.surface(cand.name, grid, flat, n)))
         return starts
 
     def _result(self, model: Model, r: Refined, free: bool, aim: Aim, scan: Surface | None) -> Result:
@@ -463,19 +493,6 @@ class Fitter:
             active["delay"] = Active(self.library["dead_time"], np.array([r.fit.structure.delay]))
         m = self.scorer.model(active, r.fit, free, r.flow, target=aim.y)
         return Result(score=m.bic + self.scorer.prior_penalty(m.fit.structure), model=m, scan=scan, fine=r.fine)
-
-    def _held_delay(self, flows: np.ndarray, st: LinearStructure, aim: Aim, grid: tuple | None) -> tuple:
-        """SSE (n, 1) of ``flows`` at the structure's own dead time: the column of the dead-time grid's result
-        ``grid`` when that dead time is a whole number of samples on the grid (the one-pass fit computes every
-        dead time's normal equations from the same running sums, so the column is the same numbers), else a
-        pass of its own."""
-        if grid is not None:
-            m, frac = split_delay(st.delay / self.p.dt)
-            sse, delays = grid
-            hit = np.flatnonzero(delays == m)
-            if frac == 0.0 and hit.size:
-                return sse[:, hit[:1]], delays[hit[:1]]
-        return self.scorer.sse_flows(flows, st, None, aim)
 
     def _ranked(self, starts: list[Start], cand: Candidate) -> list[Start]:
         """The :data:`_STARTS` best starts, and for a candidate that trades off against the poles the best one at
@@ -525,10 +542,10 @@ class Fitter:
                               fine=r.fine))
         return out
 
-    def scan_surfaces(self, active, ctx, cand, scan, ranked: dict[bool, list[Start]], aim: Aim
+    def scan_surfaces(self, active, cand, scan, ranked: dict[bool, list[Start]], parts: tuple[Part, ...]
                       ) -> dict[tuple[bool, int], Surface]:
-        """Stage 2: the scan's surface for every (θ free, start index), merging starts that share their poles
-        into one job.
+        """Stage 2: the scan's surface for every (θ free, start index) on the parts of the record the coarse
+        stage scored (their SSEs summed), merging starts that share their poles into one job.
 
         A θ-free start needs the integer delays near its coarse best; a θ-fixed start its own delay (its
         column, when that delay is a whole number of samples; a separate job otherwise).
@@ -555,12 +572,16 @@ class Fitter:
         for key in keys:
             st = next(v[2] for v in need.values() if v[0] == key)
             job_list.append((st, None if jobs[key] is None else np.array(sorted(jobs[key]))))
-        results = dict(zip(keys, self.scorer.sse_jobs(active, ctx, cand, scan, job_list, aim)))
+        scored: list = [None] * len(job_list)
+        for part in parts:
+            scored = _summed(scored, part.scorer.sse_jobs(active, part.ctx, cand, scan, job_list, part.aim))
+        results = dict(zip(keys, scored))
+        n = sum(part.n_fit for part in parts)
         out = {}
         for vi, (key, want, _) in need.items():
             sse, delays = results[key]
             cols = slice(None) if want is None else np.isin(delays, sorted(want))
-            out[vi] = self.surface(cand.name, scan, sse[:, cols].min(axis=1))
+            out[vi] = self.surface(cand.name, scan, sse[:, cols].min(axis=1), n)
         return out
 
     def profile(self, model: Model, name: str) -> Surface:
@@ -586,3 +607,23 @@ class Fitter:
         delays = self.scorer.near(st.delay, 3) if model.delay_free else None
         sse, _ = self.scorer.sse_grid(rest, ctx, a.candidate, g, st, delays, aim)
         return self.surface(name, g, sse.min(axis=1))
+
+
+def _held_delay(scorer: Scorer, flows: np.ndarray, st: LinearStructure, aim: Aim, grid: tuple | None) -> tuple:
+    """SSE (n, 1) of ``flows`` at the structure's own dead time on ``scorer``'s record: the column of the
+    dead-time grid's result ``grid`` when that dead time is a whole number of samples on the grid (the one-pass
+    fit computes every dead time's normal equations from the same running sums, so the column is the same
+    numbers), else a pass of its own."""
+    if grid is not None:
+        m, frac = split_delay(st.delay / scorer.p.dt)
+        sse, delays = grid
+        hit = np.flatnonzero(delays == m)
+        if frac == 0.0 and hit.size:
+            return sse[:, hit[:1]], delays[hit[:1]]
+    return scorer.sse_flows(flows, st, None, aim)
+
+
+def _summed(total: list, part: list) -> list:
+    """Per job the ``(sse, delays)`` of ``total`` plus those of ``part`` (None in ``total``: not yet scored, or
+    not asked for when ``part``'s is None too): the SSE of a job summed over the parts of the record scored."""
+    return [p if t is None else (t[0] + p[0], t[1]) for t, p in zip(total, part)]
