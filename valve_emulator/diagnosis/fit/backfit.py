@@ -115,13 +115,8 @@ def backfit(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], structure:
         return _joint(flow, y, window, structure, dt, cand, params, ctx, extra, prefilter, polish_kw, delays)
     if delays is not None:
         structure = _best_delay(flow, y, window, structure, dt, delays, prefilter)
-    level = fit_one(flow, y, window, structure, dt)
-    target = y
-    for _ in range(iterations):
-        target, params = cand.adjust(y, level.predict(flow, dt), params, ctx)
-        if delays is not None:
-            structure = _best_delay(flow, target, window, structure, dt, delays, prefilter)
-        level = fit_one(flow, target, window, structure, dt)
+    level, target, params, structure = _rounds(flow, y, window, structure, dt, cand, params, ctx, iterations,
+                                               delays, prefilter)
     if polish_kw is not None:
         structure = polish(flow, target, window, structure, dt, **{"prefilter": prefilter, **polish_kw}).structure
         level = fit_one(flow, target, window, structure, dt)
@@ -145,6 +140,15 @@ def backfit_sse(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], struct
         structure = _best_delay(flow, y, window, structure, dt, delays, prefilter, extra)
     if extra is not None:
         return fit_one(flow, y, window, structure, dt, prefilter=prefilter, extra=extra).sse
+    level, target, params, structure = _rounds(flow, y, window, structure, dt, cand, params, ctx, iterations,
+                                               delays, prefilter)
+    return fit_one(flow, target, window, structure, dt, prefilter=prefilter).sse
+
+
+def _rounds(flow, y, window, structure, dt, cand, params, ctx, iterations, delays, prefilter):
+    """The backfit's alternation for a candidate without regressors of its own: the linear part fitted to the
+    target, the candidate adjusted to the linear part's prediction, ``iterations`` times (the dead time re-chosen
+    each round when ``delays`` is given). Returns ``(level, target, params, structure)``."""
     level = fit_one(flow, y, window, structure, dt)
     target = y
     for _ in range(iterations):
@@ -152,7 +156,7 @@ def backfit_sse(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], struct
         if delays is not None:
             structure = _best_delay(flow, target, window, structure, dt, delays, prefilter)
         level = fit_one(flow, target, window, structure, dt)
-    return fit_one(flow, target, window, structure, dt, prefilter=prefilter).sse
+    return level, target, params, structure
 
 
 def _joint(flow, y, window, structure, dt, cand, params, ctx, extra, prefilter, polish_kw, delays) -> Backfit:
