@@ -28,8 +28,7 @@ from valve_emulator.diagnosis.explain.onset import (
     Onset,
     Suspected,
     bic_after,
-    load_onset_option,
-    onset_option,
+    late_options,
     post_onset_split,
     suspect_onset,
 )
@@ -232,8 +231,8 @@ def test_under_a_wandering_load_a_late_valve_counts_by_the_drifting_load_noise_m
     search = Search(fitter, suspected=suspected)
     healthy = search.validated(fitter.base())
     whole = next(o for o in fitter.evaluate(healthy, STICTION) if o.added == ("stiction",))
-    assert onset_option(fitter, healthy, STICTION, whole, suspected) is None
-    late = load_onset_option(fitter, healthy, STICTION, whole, suspected)
+    free_run, late = late_options(fitter, healthy, STICTION, whole, suspected)
+    assert free_run is None
     S, onset = late.model.by_slot()["valve"].params[[0, -1]]
     assert abs(S - truth["S"]) <= 0.25 * truth["S"]
     assert abs(onset - truth["onset"]) <= 0.1 * (rec.t[-1] - rec.t[0])

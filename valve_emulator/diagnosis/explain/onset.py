@@ -45,7 +45,7 @@ record, and a band acting late at any of the coarse onsets trades off against it
 it named a healthy level valve sticky, where the whole-record search did not).
 
 Where an onset was suspected the fit is also made under the drifting-load noise model
-(:func:`load_onset_option`): the grids scored through that model's prefilter, the linear part fitted again in
+(:func:`late_options`): the grids scored through that model's prefilter, the linear part fitted again in
 the search's domain afterwards.
 
 The search (:mod:`~valve_emulator.diagnosis.explain.search`) offers the late options beside the whole-record
@@ -86,7 +86,7 @@ from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
 
 __all__ = ["ONSETS", "EARLY_SHARE", "MIN_BAND", "BLOCKS", "MIN_RISE", "MIN_SHARE", "MIN_ACTING", "NEAR", "LateOnset",
            "Onset", "Suspected", "suspect_onset", "post_onset_split", "onset_option", "acting_part", "onset_of",
-           "late_start", "bic_after", "load_onset_option", "late_options"]
+           "late_start", "bic_after", "late_options"]
 
 #: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
 #: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
@@ -384,42 +384,35 @@ def _lateable(cand: Candidate, plain: Option) -> bool:
     return getattr(cand, "may_start_late", False) and plain.added == (cand.name,)
 
 
-def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
-                 suspected: Suspected | None = None) -> Option | None:
-    """``cand`` added to ``model`` acting from a fitted onset on (see the module docstring); None for a
-    candidate that cannot start late or an option that frees the dead time with it, and, where no onset was
-    ``suspected`` (:func:`suspect_onset`), without a nominal model or when the whole-record option's gain is
-    not mostly late."""
+def onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option) -> Option | None:
+    """``cand`` added to ``model`` acting from an onset fitted over the record, where none was located before
+    the search (see the module docstring; at a located onset: :func:`late_options`); None for a candidate that
+    cannot start late or an option that frees the dead time with it, without a nominal model, or when the
+    whole-record option's gain is not mostly late."""
     if not _lateable(cand, plain):
         return None
-    if suspected is None and (not fitter.nominal.given or _early_share(fitter.p, model, plain.model) >= EARLY_SHARE):
+    if not fitter.nominal.given or _early_share(fitter.p, model, plain.model) >= EARLY_SHARE:
         return None
-    return _late_fits([fitter], fitter, model, cand, plain, suspected)[0]
-
-
-def load_onset_option(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
-                      suspected: Suspected) -> Option | None:
-    """:func:`onset_option` at a located onset, with the late valve's parameters fitted under the
-    drifting-load noise model (:mod:`~valve_emulator.diagnosis.fit.load_check`): the grids are scored on PV
-    and the chain's output through the prefilter of that model at the λ that suits ``model`` best, then the
-    linear part is fitted again in the search's own domain. None as :func:`onset_option`.
-
-    Why: before the onset the controller cancels a wandering load with OP while PV holds its set point, and
-    the free run replays those moves into PV swings that never happened. Around the linear part it fits, the
-    free run's best late valve is then a band too small to count (it stays close to the healthy valve that
-    replays least): on the independent ``late_onset`` loops with their model, a valve of S = 3.4 % from t =
-    634 s was fitted with a band below a twentieth of OP's span. Through the noise model's prefilter the
-    load is forgotten within its time scale, and the band is fitted to the cycles the valve makes."""
-    if not _lateable(cand, plain):
-        return None
-    return _late_fits([_through_load(fitter, model)], fitter, model, cand, plain, suspected)[0]
+    return _late_fits([fitter], fitter, model, cand, plain, None)[0]
 
 
 def late_options(fitter: Fitter, model: Model, cand: Candidate, plain: Option,
                  suspected: Suspected) -> tuple[Option | None, Option | None]:
-    """``(onset_option(...), load_onset_option(...))`` at a located onset, searched side by side: the two differ
-    only in the cost domain of their grids, so the coarse rows go through the chain once for both, and the scan
-    too where both coarse stages chose the same onset. The same options as the two calls."""
+    """The late option of ``cand`` at a located onset (``suspected``), fitted twice: in the search's own domain,
+    and with the late valve's parameters fitted under the drifting-load noise model
+    (:mod:`~valve_emulator.diagnosis.fit.load_check`) — the grids scored on PV and the chain's output through
+    the prefilter of that model at the λ that suits ``model`` best, then the linear part fitted again in the
+    search's own domain. ``(late, through the noise model)``; each None where :func:`onset_option` gives None.
+
+    Why the second fit: before the onset the controller cancels a wandering load with OP while PV holds its set
+    point, and the free run replays those moves into PV swings that never happened. Around the linear part it
+    fits, the free run's best late valve is then a band too small to count (it stays close to the healthy valve
+    that replays least): on the independent ``late_onset`` loops with their model, a valve of S = 3.4 % from
+    t = 634 s was fitted with a band below a twentieth of OP's span. Through the noise model's prefilter the
+    load is forgotten within its time scale, and the band is fitted to the cycles the valve makes.
+
+    The two fits differ only in the cost domain of their grids, so they are searched side by side: the coarse
+    rows go through the chain once for both, and the scan too where both coarse stages chose the same onset."""
     if not _lateable(cand, plain):
         return None, None
     late, through = _late_fits([fitter, _through_load(fitter, model)], fitter, model, cand, plain, suspected)

@@ -112,7 +112,7 @@ class Search:
         and the best of many positions gains likelihood from noise alone more than one parameter does. Where
         one was (``suspected``), the onset is searched only near it and the late option joins the options,
         fitted twice: in the free run and through the drifting-load noise model's prefilter
-        (:func:`~valve_emulator.diagnosis.explain.onset.load_onset_option`); which one stands for the physics,
+        (:func:`~valve_emulator.diagnosis.explain.onset.late_options`); which one stands for the physics,
         and which other options stay beside it, the round decides (:meth:`late_first`)."""
         single = next((o for o in options if o.added == (cand.name,)), None)
         if single is None:
@@ -144,7 +144,7 @@ class Search:
         valve cannot. So every other option must beat the late one the way a whole-record valve must. Of the
         late options that count, each physics (a sticky valve, a deadband) is fitted twice, in the search's domain
         and under the drifting-load noise model (:func:`~valve_emulator.diagnosis.explain.onset.
-        load_onset_option`, the nominal linear part among its starts); of the two, the one with the better
+        late_options`, the nominal linear part among its starts); of the two, the one with the better
         held-out fit stands for the physics (the held-out part lies after the onset,
         :func:`~valve_emulator.diagnosis.explain.onset.post_onset_split`), and of the physics the one with the
         lowest BIC leads; the other late options are dropped. Why held-out fit between the two fits of one

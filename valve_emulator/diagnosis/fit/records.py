@@ -43,7 +43,7 @@ class Surface:
     """Fit-part SSE over a candidate's parameter rows (minimised over the delays the option allowed).
 
     ``load_model``: the SSE was scored through the drifting-load noise model's prefilter (a late valve's second
-    fit, :func:`~valve_emulator.diagnosis.explain.onset.load_onset_option`), not in the search's own domain; its
+    fit, :func:`~valve_emulator.diagnosis.explain.onset.late_options`), not in the search's own domain; its
     shape over the rows is comparable, its numbers are not the search's."""
 
     candidate: str
