@@ -27,7 +27,9 @@ from valve_emulator.diagnosis.explain.onset import (
     LateOnset,
     Onset,
     Suspected,
+    before_part,
     bic_after,
+    bic_on,
     late_options,
     post_onset_split,
     suspect_onset,
@@ -210,6 +212,57 @@ def test_an_addition_is_judged_on_the_part_after_an_onset_not_credited_with_the_
     gain_before = bic_after(problem, old, onset) - bic_after(problem, _predicting(before, k=4), onset)
     gain_after = bic_after(problem, old, onset) - bic_after(problem, _predicting(after, k=4), onset)
     assert gain_before < 0.0 < DELTA_BIC < gain_after
+
+
+def _late_model(pred: np.ndarray, k: int, onset_s: float | None, *, taus: tuple = (), delay: float = 0.0):
+    """A stand-in for a search model predicting ``pred``, with a valve that starts at ``onset_s`` (s; None: no
+    late finding) and a linear part of time constants ``taus`` and dead time ``delay``."""
+    model = _predicting(pred, k)
+    model.fit.structure = SimpleNamespace(taus=taus, fixed_poles=(), delay=delay)
+    model.active = () if onset_s is None else (
+        SimpleNamespace(name="stiction", candidate=LateOnset(STICTION), params=np.array([3.0, 1.0, 2.0, onset_s])),)
+    return model
+
+
+def test_an_addition_beside_a_late_valve_must_also_fit_the_healthy_part_before_its_onset():
+    """``Search.holds_before_onset``: an addition that mends the cycles after the onset but spoils the healthy
+    part before it, or does not pay for its parameter there, does not hold; one no worse there does; a part
+    before the onset shorter than a tenth of the record, or a model in which nothing starts late, is not
+    judged."""
+    T, onset = 2000, 1000
+    t = np.arange(T)
+    swing = 2.0 * np.sin(2 * np.pi * t / 200.0)
+    after = np.where(t >= onset, swing, 0.0)
+    noise = np.random.default_rng(4).normal(0.0, 0.5, T)
+    problem = SimpleNamespace(y=after + noise, train=(0, T), T=T, dt=1.0, prefilter=None)
+    search = Search.__new__(Search)
+    search.scorer = SimpleNamespace(p=problem)
+    old = _late_model(np.zeros(T), k=3, onset_s=onset)
+    after_only = _late_model(after, k=4, onset_s=onset)   # mends after, leaves before: a parameter for nothing
+    spoiling = _late_model(swing, k=4, onset_s=onset)     # mends after, spoils before
+    window = before_part(problem, onset, old, spoiling)
+    assert window == (0, onset)
+    assert bic_on(problem, old, window) - bic_on(problem, spoiling, window) < -DELTA_BIC
+    assert search.holds_before_onset(_late_model(after, k=3, onset_s=onset), old)
+    assert not search.holds_before_onset(spoiling, old)
+    assert not search.holds_before_onset(after_only, old)
+    assert before_part(problem, 150, old) is None
+    assert search.holds_before_onset(_late_model(swing, k=4, onset_s=150.0), _late_model(np.zeros(T), 3, 150.0))
+    assert search.holds_before_onset(spoiling, _late_model(swing, k=4, onset_s=None))
+
+
+def test_the_part_before_an_onset_starts_where_the_linear_part_has_settled_not_after_the_valves_burn_in():
+    """A valve that starts late is healthy before its onset, so the part before it is judged from where the
+    linear part has forgotten its initial state (its dead time and five time constants), even where the fit
+    part starts later (after the valve candidates' burn-in)."""
+    T = 3000
+    problem = SimpleNamespace(train=(1050, T), T=T, dt=1.0)
+    slow = _late_model(np.zeros(T), 3, 1100.0, taus=(30.0,), delay=5.0)
+    fast = _late_model(np.zeros(T), 3, 1100.0, taus=(2.0,))
+    assert before_part(problem, 1100, fast, slow) == (159, 1100)
+    assert before_part(problem, 1100, fast) == (14, 1100)
+    assert before_part(problem, 3500, fast) == (14, T)
+    assert before_part(SimpleNamespace(train=(10, T), T=T, dt=1.0), 1100, slow) == (10, 1100)
 
 
 @pytest.mark.slow

@@ -10,20 +10,20 @@ The property asked for: the onset within 10 % of the record, S and J within 25 %
 valve's own (its friction, and an actuator lag where the loop has one) in at least 9 draws of 10. J is judged
 against the Js the drawn valve may be said to have (:func:`j_error`): its drawn J, and the J of every 2005 valve
 that reproduces its own stem travel about as well as the best one (:func:`j_2005_range`) — on Karnopp stems the
-stem's travel leaves J undetermined (J = 0 does about as well in 5 draws of 20). It is not met: measured 9/20
-both ways (strict xfails below; 5/20 and 7/20 against the single best 2005 J). What holds is checked at the
-rates measured (seed 32), one draw of slack each: the change point locates the onset before any fit in 17 draws
-of 20; the answer is stiction in 19/20 both ways; an onset it reports is within a tenth of the record in 16 of
-18 both ways; stiction from an onset within a tenth, with S within 25 %, in 15/20 with a model and 12/20
-without; the whole property in 9/20 both ways. What stands in the way, measured (a draw may miss for several
-reasons; with a model / without): extra findings (5 / 4; on the draws that miss for them alone, 3 / 4, each
-holds after the onset under both noise models and raises the held-out fit after it by 1.2 to 21 points: a dead
-time standing in for the valve's own actuator lag, a saturation and a dead time beside a Karnopp stem, a slow
-disturbance for the wandering load, the plant's second lag as an actuator lag, an equal-percentage
-characteristic); S off by more than 25 % (3 / 5; without a model two of them level loops identified as
-self-regulating with a dead time over 30 s); J off the range (5 / 4; alone 3 / 0); the onset a fifth of the
-record early (2 / 2) or none reported (2 / 2); a ``no_stiction`` answer (1 / 1: with a model a level loop whose
-late fits settle on a band below a twentieth of OP's span, without one a loop where no change point is located).
+stem's travel leaves J undetermined (J = 0 does about as well in 5 draws of 20). It is not met: measured 11/20
+with a model and 12/20 as plant data (strict xfails below; 9/20 both ways before physics beside a late valve had
+to fit the healthy part before its onset no worse). What holds is checked at the rates measured (seed 32), one
+draw of slack each: the change point locates the onset before any fit in 17 draws of 20; the answer is stiction
+in 19/20 with a model and 18/20 without; an onset it reports is within a tenth of the record in 16 of 18 both
+ways; stiction from an onset within a tenth, with S within 25 %, in 15/20 with a model and 12/20 without; the
+whole property in 11/20 and 12/20. What stands in the way, measured (a draw may miss for several reasons; with a
+model / without): extra findings (3 / 1: a dead time standing in for the valve's own actuator lag and the
+plant's second lag as an actuator lag, both of which also fit the part before the onset; an actuator lag and a
+dead time accepted before a late valve where no onset is located); S off by more than 25 % (3 / 5; without a
+model four of them loops identified with a dead time of 16 to 35 s for 0.3 to 7 s behind a lag); J off the range
+(5 / 3); the onset a fifth of the record early (2 / 2) or none reported (2 / 2); not ``stiction`` (1 / 2: with a
+model a level loop whose late fits settle on a band below a twentieth of OP's span, without one two loops where
+no change point is located).
 
 Time: about 4 minutes for the 20 draws, both ways (about 3 s a diagnosis on an idle core; 15–30 s on a machine
 shared by six processes).
@@ -226,10 +226,11 @@ def test_an_onset_the_answer_reports_is_within_a_tenth_of_the_record(mode, least
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 18), ("plant", 18)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 18), ("plant", 17)])
 def test_a_valve_that_starts_to_stick_part_way_is_answered_stiction(mode, least):
-    """Measured 19/20 both ways: a valve that starts late counts where the free run alone would not let it
-    (under the drifting-load noise model, :meth:`~valve_emulator.diagnosis.explain.search.Search.late_counts`)."""
+    """Measured 19/20 with a model, 18/20 without: a valve that starts late counts where the free run alone would
+    not let it (under the drifting-load noise model,
+    :meth:`~valve_emulator.diagnosis.explain.search.Search.late_counts`)."""
     assert _count(mode, lambda o: o.answer == "stiction") >= least
 
 
@@ -245,15 +246,15 @@ def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 8), ("plant", 8)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 10), ("plant", 11)])
 def test_onset_size_and_nothing_else_at_the_rate_reached(mode, least):
-    """The whole property, at the rate the search reaches: measured 9/20 both ways (J judged against the drawn
-    J and the 2005 range, :func:`j_error`; 5/20 and 7/20 against the single best 2005 J)."""
+    """The whole property, at the rate the search reaches: measured 11/20 with a model and 12/20 without (J
+    judged against the drawn J and the 2005 range, :func:`j_error`)."""
     assert _count(mode, lambda o: o.holds) >= least
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured 9/20 both ways (see the module docstring)")
+@pytest.mark.xfail(strict=True, reason="measured 11/20 with a model, 12/20 without (see the module docstring)")
 @pytest.mark.parametrize("mode", ["model", "plant"])
 def test_onset_and_size_within_tolerance_and_nothing_else_in_nine_draws_of_ten(mode):
     assert _count(mode, lambda o: o.holds) >= 0.9 * DRAWS

@@ -60,7 +60,9 @@ healthy one, and the free run alone cannot ask for the onset. Where none was, th
 whole-record one when it lowers BIC by twice the search's own threshold (the onset is then a change point, the
 best of many positions; preferring it whenever the whole-record one was not better by the threshold located
 wrong onsets as often as right ones). Once a finding starts late, later additions must also lower the BIC of
-the part after the onset (:func:`bic_after`) and the BIC under the drifting-load noise model.
+the part after the onset (:func:`bic_after`) and the BIC under the drifting-load noise model, and fit the
+healthy part before it no worse (:func:`before_part`): only the valve starts late, what is added beside it
+belongs to the loop throughout.
 
 What the answer says (:func:`acting_part`): the onset, and the fits (%) of the model without the finding and of
 the final model on the samples from the onset on, so that the finding is judged where it acts and is not
@@ -86,7 +88,7 @@ from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
 
 __all__ = ["ONSETS", "EARLY_SHARE", "MIN_BAND", "BLOCKS", "MIN_RISE", "MIN_SHARE", "MIN_ACTING", "NEAR", "LateOnset",
            "Onset", "Suspected", "suspect_onset", "post_onset_split", "onset_option", "acting_part", "onset_of",
-           "late_start", "bic_after", "late_options"]
+           "late_start", "bic_after", "before_part", "bic_on", "late_options", "MIN_BEFORE"]
 
 #: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
 #: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
@@ -106,6 +108,9 @@ MIN_SHARE = 0.15
 #: Least part of the record (fraction) after a suspected onset that the usual split must leave in the fit part;
 #: with less, the held-out part moves after the onset (:func:`post_onset_split`).
 MIN_ACTING = 0.1
+#: Least part of the record (fraction) in the fit part before a late finding's onset on which an addition beside
+#: it is also judged (:func:`before_part`).
+MIN_BEFORE = 0.1
 #: Onsets a located change point lets the fit try, as fractions of the record around it.
 NEAR = tuple(np.round(np.linspace(-0.06, 0.06, 7), 3))
 
@@ -532,12 +537,42 @@ def bic_after(problem: Problem, model: Model, start: int) -> float:
     acts: a dead time, a load or a characteristic that only mends the part before the onset (where a
     wandering load the model leaves out dominates the free-run residual) is not a finding of the loop the
     valve now runs in."""
+    w0, w1 = problem.train
+    return bic_on(problem, model, (max(w0, start), w1))
+
+
+def before_part(problem: Problem, start: int, *models: Model) -> tuple[int, int] | None:
+    """The samples before onset sample ``start`` on which ``models`` are judged (:func:`bic_on`): from where the
+    linear part of each has settled from its unknown initial state — its dead time and five of its longest time
+    constants, or the fit part's start where that is earlier — up to the onset (at most the fit part's end).
+    None when that part is shorter than :data:`MIN_BEFORE` of the record.
+
+    Why from where the linear part has settled and not from the fit part's start: the fit part starts after
+    the valve candidates' burn-in, which on a loop whose OP moves little at first (a healthy valve under a
+    wandering load) takes up to a third of the record, so a valve that starts to stick at a fifth to two
+    fifths of the record would leave nothing before its onset to judge by; a valve that starts late is
+    healthy there and has no state to forget."""
+    w0, w1 = problem.train
+    settle = max(_settle_samples(problem.dt, m.fit.structure) for m in models)
+    window = (min(w0, settle), min(start, w1))
+    return window if window[1] - window[0] >= MIN_BEFORE * problem.T else None
+
+
+def _settle_samples(dt: float, structure) -> int:
+    """Samples a linear part takes to forget its initial state: its dead time and five of its longest time
+    constant (real poles and the nominal model's fixed ones), as the data's own burn-in counts it."""
+    taus = [*structure.taus, *(1.0 / abs(p.real) for p in structure.fixed_poles if p.real != 0.0)]
+    return int(np.ceil((structure.delay + 5.0 * max(taus, default=0.0)) / dt)) + 4
+
+
+def bic_on(problem: Problem, model: Model, window: tuple[int, int]) -> float:
+    """BIC of ``model``'s residual (against what its linear part was fitted to, in the search's domain) on the
+    samples of ``window`` under an AR(1) error."""
     target = problem.y if model.target is None else model.target
     r = target - model.fit.predict(model.flow, problem.dt)
     if problem.prefilter is not None:
         r = highpass(r, problem.prefilter)
-    w0, w1 = problem.train
-    return ar1_bic(r[max(w0, start):w1], model.k)
+    return ar1_bic(r[window[0]:window[1]], model.k)
 
 
 def acting_part(problem: Problem, model: Model, pv_before: np.ndarray, findings: tuple) -> tuple:
