@@ -40,15 +40,18 @@ run on each loop:
      band found swallowed nearly every swing. Alone it qualifies the call and does not change it: as a rule
      (``cannot tell``) it took 31 of 32 healthy level loops off stiction, and 19 of the 35 labelled stiction
      windows of the shared plant data too, whose bands OP's swings also never crossed (``docs/diagnosis.md``).
-     With a second, independent sign it is a rule: when, besides, the moves of OP inside the band reach PV
-     (:func:`band_leaks`: under the drifting-load noise model, what the band swallows, let through the identified
-     plant too, explains PV better by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`, or, a
-     self-regulating plant identified, the valve with it through an integrator explains PV at least as well),
+     With a second, independent sign it is a rule: when, besides, the record does not show the band
+     (:func:`band_unshown`) — the moves of OP inside the band reach PV (:func:`band_leaks`: under the
+     drifting-load noise model, what the band swallows, let through the identified plant too, explains PV better
+     by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`, or, a self-regulating plant
+     identified, the valve with it through an integrator explains PV at least as well), or the friction acts on
+     too short a stretch to ask that, or the band's 95 % interval reaches inside :data:`NOISE_BANDS` OP noise σ —
      the call is ``cannot tell``, naming the sticky valve and the healthy one (:func:`_healthy_alike`). A stuck
      valve leaves PV alone while OP moves inside its band; a band that stands in for the controller's answers to
-     a wandering load does not. Measured (2026-11-26, plant data): 15 of the 21 healthy level loops called
-     stiction taken back, none of the 27 sticky level calls, and 2 of the 80 shared plant windows, one of them
-     the one labelled healthy window called stiction.
+     a wandering load does not, or is not told from no band. Measured (plant data): 15 of the 21 healthy level
+     loops called stiction taken back by the leak (2026-11-26), 3 of the 6 left by the other two signs
+     (2026-11-27); none of the 29 sticky level calls, and 2 of the 80 shared plant windows, one of them the one
+     labelled healthy window called stiction.
    * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
      its cross-validated free-run fit is below :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their
      mean) *and*, under the drifting-load noise model, it does not explain PV better than that noise model
