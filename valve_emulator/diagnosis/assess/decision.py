@@ -507,10 +507,10 @@ def band_unshown(d: Explanation, valve: Finding, noise: float, frame: Frame) -> 
        that small is no band (the rule a stiction call's S itself must pass), so the record does not tell the
        band from none.
 
-    Measured (2026-11-27, plant data; the decision re-run on the stored explanations): of the healthy level loops
-    called stiction without a regular cycle and with a band OP hardly crosses, the second and third signs took
-    back the three the first had left (one each and two); no sticky level loop and none of the 80 shared plant
-    windows (whose bands all lie clear of their noise, 7–90 σ) changed."""
+    Measured (2026-11-27, plant data): of the 5 healthy level loops the first sign had left called stiction without
+    a regular cycle and with a band OP hardly crosses, the second took back one and the third two; no sticky level
+    loop, no other shared draw and none of the 80 shared plant windows changed (the 16 labelled sticky windows
+    with such a call have intervals starting 7.6–205 OP noise σ above zero)."""
     leak = band_leaks(d, valve)
     if leak is not None:
         return f"OP's moves inside it reach PV {leak.words}, where a stuck valve would leave PV alone"
