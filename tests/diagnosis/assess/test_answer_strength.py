@@ -72,38 +72,32 @@ def test_a_level_loop_with_a_healthy_valve_gets_no_strong_stiction_call():
     assert not strong, f"strong stiction calls on healthy level loops: {strong}"
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-26: 6 of 32 answered stiction (21 before a call whose band OP "
-                                       "hardly crosses and whose swallowed moves reach PV became 'cannot tell', "
-                                       "decision.band_leaks): on 4 of the 6 the swallowed moves explain PV by less "
-                                       "than ΔBIC 10 through the identified plant and not as well through an "
-                                       "integrator, one's friction starts too late to test, one (7.7.16) oscillates "
-                                       "regularly")
 def test_a_level_loop_with_a_healthy_valve_is_not_answered_stiction_as_plant_data_in_nine_of_ten():
-    """32 healthy level loops as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed). About 5 s a
-    diagnosis (the 24 are read by this test only)."""
+    """32 healthy level loops as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed). Measured
+    2026-11-27: 3 of 32 answered stiction (6 before a call whose band the record does not show became 'cannot
+    tell' on the interval and too-short signs too, ``decision.band_unshown``; 21 before the leak): two whose
+    swallowed moves explain PV neither way through the identified plant, and 7.7.16, which oscillates regularly.
+    About 5 s a diagnosis (the 24 are read by this test only)."""
     keys = HEALTHY_LEVEL_AS_PLANT_DATA
     called = [d.draw.name for d in diagnosed_all(keys) if d.doc["answer"] == "stiction"]
     assert len(called) <= 0.1 * len(keys), f"{len(called)} of {len(keys)} answered stiction: {called}"
 
 
-def test_most_level_loops_with_a_healthy_valve_are_not_answered_stiction_as_plant_data():
-    """A floor under the rate measured (26 of 32 not answered stiction), so that a change that calls healthy level
-    loops stiction again is seen."""
-    keys = HEALTHY_LEVEL_AS_PLANT_DATA
-    called = [d.draw.name for d in diagnosed_all(keys) if d.doc["answer"] == "stiction"]
-    assert len(called) <= 8, f"{len(called)} of {len(keys)} answered stiction: {called}"
-
-
-def test_a_band_op_hardly_crosses_whose_swallowed_moves_reach_pv_is_cannot_tell_naming_both():
+def test_a_band_op_hardly_crosses_that_the_record_does_not_show_is_cannot_tell_naming_both():
     """Where a healthy level loop's call was taken back, the answer names the sticky valve and the healthy one, and
-    says why: OP hardly crosses the band and its moves inside the band still move PV."""
+    says why: OP hardly crosses the band, and the record does not show the band (OP's moves inside it reach PV,
+    the friction acts on too short a stretch to ask, or the band's interval reaches into OP's noise)."""
     keys = HEALTHY_LEVEL_AS_PLANT_DATA
     taken = [d for d in diagnosed_all(keys) if d.doc["answer"] == "cannot_tell"
-             and any("reach PV" in r["sentence"] for r in d.doc["reasons"])]
-    assert len(taken) >= 13, f"{len(taken)} calls taken back"
+             and any("cross the band" in r["sentence"] for r in d.doc["reasons"])]
+    assert len(taken) >= 18, f"{len(taken)} calls taken back"
     for d in taken:
         codes = [r["code"] for r in d.doc["reasons"]]
         assert codes[0] in VALVE_FRICTION and "weak_evidence" in codes, (d.draw.name, d.doc["reasons"])
+    signs = ("reach PV", "too short a stretch", "no band at all")
+    unsigned = [d.draw.name for d in taken
+                if not any(sign in r["sentence"] for r in d.doc["reasons"] for sign in signs)]
+    assert not unsigned, f"taken back without saying why: {unsigned}"
 
 
 def test_a_stiction_call_on_a_healthy_level_loop_says_that_op_hardly_crosses_its_band():

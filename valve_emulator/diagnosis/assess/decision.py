@@ -40,15 +40,18 @@ run on each loop:
      band found swallowed nearly every swing. Alone it qualifies the call and does not change it: as a rule
      (``cannot tell``) it took 31 of 32 healthy level loops off stiction, and 19 of the 35 labelled stiction
      windows of the shared plant data too, whose bands OP's swings also never crossed (``docs/diagnosis.md``).
-     With a second, independent sign it is a rule: when, besides, the moves of OP inside the band reach PV
-     (:func:`band_leaks`: under the drifting-load noise model, what the band swallows, let through the identified
-     plant too, explains PV better by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`, or, a
-     self-regulating plant identified, the valve with it through an integrator explains PV at least as well),
+     With a second, independent sign it is a rule: when, besides, the record does not show the band
+     (:func:`band_unshown`) — the moves of OP inside the band reach PV (:func:`band_leaks`: under the
+     drifting-load noise model, what the band swallows, let through the identified plant too, explains PV better
+     by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`, or, a self-regulating plant
+     identified, the valve with it through an integrator explains PV at least as well), or the friction acts on
+     too short a stretch to ask that, or the band's 95 % interval reaches inside :data:`NOISE_BANDS` OP noise σ —
      the call is ``cannot tell``, naming the sticky valve and the healthy one (:func:`_healthy_alike`). A stuck
      valve leaves PV alone while OP moves inside its band; a band that stands in for the controller's answers to
-     a wandering load does not. Measured (2026-11-26, plant data): 15 of the 21 healthy level loops called
-     stiction taken back, none of the 27 sticky level calls, and 2 of the 80 shared plant windows, one of them
-     the one labelled healthy window called stiction.
+     a wandering load does not, or is not told from no band. Measured (plant data): 15 of the 21 healthy level
+     loops called stiction taken back by the leak (2026-11-26), 3 of the 6 left by the other two signs
+     (2026-11-27); none of the 29 sticky level calls, and 2 of the 80 shared plant windows, one of them the one
+     labelled healthy window called stiction.
    * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
      its cross-validated free-run fit is below :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their
      mean) *and*, under the drifting-load noise model, it does not explain PV better than that noise model
@@ -122,6 +125,7 @@ from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
            "COARSE_SHARE", "CROSSING_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "band_crossings", "band_leaks",
+           "band_unshown",
            "coarse_pv", "Leak", "cycling", "strength_with_model"]
 
 #: A valve band S must reach this many OP noise σ to be called stiction.
@@ -253,7 +257,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
     if valve is not None:
         S = float(valve.parameters["S"])
         if NOISE_BANDS * noise <= S:
-            contested = _contested(valve, S, fits, frame) or _healthy_alike(rec, d, valve, S, fits, frame, ad)
+            contested = _contested(valve, S, fits, frame) or _healthy_alike(rec, d, valve, S, fits, frame, ad, noise)
             if contested is None:
                 return _stiction(valve, S, fits, frame, ad, _acting(rec, valve))
             if tune is None or not tune.aggressive:
@@ -465,29 +469,59 @@ def _contested(valve: Finding, S: float, fits: str, frame: Frame) -> Decision | 
 
 
 def _healthy_alike(rec: Recording, d: Explanation, valve: Finding, S: float, fits: str, frame: Frame,
-                   ad: Adequacy) -> Decision | None:
+                   ad: Adequacy, noise: float) -> Decision | None:
     """``cannot tell``, naming both, when two independent signs say a healthy valve fits the record too (None
-    otherwise: the call stands): the loop does not oscillate regularly (:func:`cycling`), fewer than
-    :data:`CROSSING_SHARE` of OP's swings cross the band (:func:`band_crossings`), *and* the moves of OP inside
-    the band reach PV (:func:`band_leaks`). Under integral action a stuck valve is wound across its band, and
-    while it holds, OP's moves leave PV alone; a band that OP hardly crosses and whose swallowed moves still
-    move PV is the controller's small answers to a wandering load read as a valve that does not move."""
+    otherwise: the call stands): the loop does not oscillate regularly (:func:`cycling`) and fewer than
+    :data:`CROSSING_SHARE` of OP's swings cross the band (:func:`band_crossings`), *and* the record does not
+    show that the band holds (:func:`band_unshown`: OP's moves inside it reach PV, the friction acts on too short
+    a stretch to ask, or the band's 95 % interval reaches into OP's noise). Under integral action a stuck valve is
+    wound across its band, and while it holds, OP's moves leave PV alone; a band that OP hardly crosses is what
+    the controller's small answers to a wandering load look like through a valve that does not move, so such a
+    call stands only where the record shows the band itself."""
     op = _acting(rec, valve)
     share = band_crossings(op, S)
     if cycling(ad.facts) or not share < CROSSING_SHARE:
         return None
-    leak = band_leaks(d, valve)
-    if leak is None:
+    unshown = band_unshown(d, valve, noise, frame)
+    if unshown is None:
         return None
     J = float(valve.parameters.get("J", 0.0))
     sticky = f"a sticky valve (S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}; {fits})"
-    healthy = (f"only {100 * share:.0f} % of OP's swings cross the band, and OP's moves inside it reach PV "
-               f"{leak.words}, where a stuck valve would leave PV alone")
+    healthy = f"only {100 * share:.0f} % of OP's swings cross the band, and {unshown}"
     return Decision(Answer.CANNOT_TELL, "", f"either {sticky} or a healthy valve answering a wandering load: "
                     f"{healthy}, so the record cannot tell which",
                     ((Reason(valve.physics), f"a sticky valve fits: S ≈ {_amount(S, frame)}, J ≈ "
                                              f"{_amount(J, frame)}"),
                      (Reason.WEAK_EVIDENCE, f"a healthy valve fits too: {healthy}")))
+
+
+def band_unshown(d: Explanation, valve: Finding, noise: float, frame: Frame) -> str | None:
+    """Why the record does not show that ``valve``'s band holds, in words (None when it does). A band S claims
+    that the valve holds while OP moves inside it; the record shows that claim when OP's moves inside the band
+    leave PV alone and the band's size stands clear of OP's noise. It does not when
+
+    1. OP's moves inside the band reach PV (:func:`band_leaks`);
+    2. the friction acts on too short a stretch of the record (after the plant settles) to ask that
+       (:func:`_settled_start`), as where a band is fitted to the last tenth of a record;
+    3. the band's 95 % interval reaches down inside :data:`NOISE_BANDS` OP noise σ (``noise``, OP's units): a band
+       that small is no band (the rule a stiction call's S itself must pass), so the record does not tell the
+       band from none.
+
+    Measured (2026-11-27, plant data): of the 5 healthy level loops the first sign had left called stiction without
+    a regular cycle and with a band OP hardly crosses, the second took back one and the third two; no sticky level
+    loop, no other shared draw and none of the 80 shared plant windows changed (the 16 labelled sticky windows
+    with such a call have intervals starting 7.6–205 OP noise σ above zero)."""
+    leak = band_leaks(d, valve)
+    if leak is not None:
+        return f"OP's moves inside it reach PV {leak.words}, where a stuck valve would leave PV alone"
+    if d.plant and d.traces.t.size >= 3 and _settled_start(d, valve) is None:
+        return ("the friction acts on too short a stretch of the record to show that OP's moves inside the band "
+                "leave PV alone")
+    low = valve.intervals.get("S", (np.nan, np.nan))[0]
+    if low < NOISE_BANDS * noise:
+        return (f"the band's 95 % interval reaches down to {_amount(low, frame)}, inside {NOISE_BANDS:g} OP noise σ "
+                f"({_amount(NOISE_BANDS * noise, frame)}): the record does not tell the band from no band at all")
+    return None
 
 
 @dataclass(frozen=True)
@@ -526,12 +560,11 @@ def band_leaks(d: Explanation, valve: Finding) -> Leak | None:
     tr, p = d.traces, d.plant
     if not p or tr.t.size < 3:
         return None
-    dt = float(tr.t[1] - tr.t[0])
-    plant = LinearStructure(taus=tuple(p["taus"]), integrating=bool(p["integrating"]), delay=float(p["delay"]))
-    onset = 0 if valve.onset is None else int(np.searchsorted(tr.t - tr.t[0], valve.onset.onset_s))
-    start = onset + int(np.ceil((plant.delay + 3.0 * sum(plant.taus)) / dt)) + 1
-    if tr.t.size - start < MIN_SAMPLES // 2:
+    start = _settled_start(d, valve)
+    if start is None:
         return None
+    dt = float(tr.t[1] - tr.t[0])
+    plant = _identified(p)
     pv, op, mv = (np.asarray(x, dtype=float) for x in (tr.pv, tr.op, tr.mv_after))
     own = swallowed(pv, op, mv, plant, dt, start)
     if own.delta_bic >= DELTA_BIC and own.share > 0.0:
@@ -542,6 +575,22 @@ def band_leaks(d: Explanation, valve: Finding) -> Leak | None:
     if own.bic_valve - held.bic_leaking >= 0.0 and held.share > 0.0:
         return Leak(own.bic_valve - held.bic_leaking, held.share, held=True)
     return None
+
+
+def _identified(p: dict) -> LinearStructure:
+    """The identified plant (``Explanation.plant``) as a linear structure."""
+    return LinearStructure(taus=tuple(p["taus"]), integrating=bool(p["integrating"]), delay=float(p["delay"]))
+
+
+def _settled_start(d: Explanation, valve: Finding) -> int | None:
+    """The first sample of the band tests (:func:`band_leaks`): the friction's onset (when it starts part-way) plus
+    the identified plant's settling time (its dead time and three time constants); None when fewer than half of
+    :data:`~valve_emulator.diagnosis.fit.data.MIN_SAMPLES` samples follow it."""
+    t = d.traces.t
+    plant = _identified(d.plant)
+    onset = 0 if valve.onset is None else int(np.searchsorted(t - t[0], valve.onset.onset_s))
+    start = onset + int(np.ceil((plant.delay + 3.0 * sum(plant.taus)) / float(t[1] - t[0]))) + 1
+    return None if t.size - start < MIN_SAMPLES // 2 else start
 
 
 def assess(recording: Recording, *, progress: Callable[[str], None] | None = None) -> Assessment:
