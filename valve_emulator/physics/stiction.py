@@ -52,7 +52,9 @@ selects keep exactly the floating-point expressions of the branches, in the same
 state bit for bit; ``tests/physics/test_stiction_bank_kernel.py`` holds them to it. A few valves, and one
 valve over a long array (:func:`simulate`), keep the branches: they do not fill a vector, and on a smooth OP
 the branches are well predicted. The diagnosis steps its grids of candidate valves (hundreds of one model on
-one OP) with the same :func:`step_same_model` on column-major state; :func:`stiction_step_kernel` keeps the
+one OP) with the same selects on column-major state, :func:`kano_update` and its siblings written out in its own
+compiled time loop (a call per sample to :func:`step_same_model` costs more than a few dozen valves' work there:
+numba updates the reference counts of a call's array arguments); :func:`stiction_step_kernel` keeps the
 branches for the loop kernel, whose state is row-major, where the loop does not vectorise and the selects
 alone are slower than the branches.
 """

@@ -3,8 +3,9 @@ r"""Scoring parameter grids: the chain, the batched linear fit and the bookkeepi
 :class:`Scorer` holds one problem (data, nominal model, candidate library) and answers "what is the fit-part
 SSE of every row of this parameter grid, for these linear structures and dead times?" — pushing the grid
 through the chain in chunks of :data:`_CHUNK` rows (the valve simulation is the costly part, so each chunk is
-scored for every requested structure before the next is simulated), filtering each chunk once per structure
-and solving the least-squares problems of all rows and all dead times in one compiled call.
+scored for every requested structure before the next is simulated; the chunks are shared out over the kernels'
+threads), filtering each chunk once per structure and solving the least-squares problems of all rows and all
+dead times in one compiled call.
 
 It also owns the choices that must be the same for every model of a problem:
 
