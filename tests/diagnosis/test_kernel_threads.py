@@ -2,6 +2,7 @@
 
 import threading
 
+import numba
 import pytest
 
 from valve_emulator.diagnosis._threads import MIN_PER_WORKER, run_split, workers_for
@@ -51,3 +52,24 @@ def test_callers_in_several_threads_each_get_all_their_ranges():
 def test_small_jobs_stay_in_one_thread():
     assert workers_for(MIN_PER_WORKER - 1) == 1
     assert workers_for(0) == 1
+
+
+def test_a_split_inside_a_split_runs_its_ranges_in_the_thread_of_the_outer_range():
+    """Work that a split runs may split again (a chunk of grid rows, then its valves): the inner ranges all run,
+    each in the thread of the outer range that asked, and none waits on a pool busy with the outer split."""
+    seen, lock = [], threading.Lock()
+
+    def inner(outer_thread):
+        def work(a, b):
+            with lock:
+                seen.append((a, b, threading.current_thread() is outer_thread))
+        return work
+
+    def outer(a, b):
+        assert workers_for(10 * MIN_PER_WORKER) == 1
+        run_split(inner(threading.current_thread()), [a, (a + b) // 2, b])
+
+    run_split(outer, [0, 40, 80])
+    assert sorted(r[:2] for r in seen) == [(0, 20), (20, 40), (40, 60), (60, 80)]
+    assert all(r[2] for r in seen)
+    assert workers_for(10 * MIN_PER_WORKER) == min(numba.get_num_threads(), 10)   # outside a split again

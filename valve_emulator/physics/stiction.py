@@ -52,7 +52,9 @@ selects keep exactly the floating-point expressions of the branches, in the same
 state bit for bit; ``tests/physics/test_stiction_bank_kernel.py`` holds them to it. A few valves, and one
 valve over a long array (:func:`simulate`), keep the branches: they do not fill a vector, and on a smooth OP
 the branches are well predicted. The diagnosis steps its grids of candidate valves (hundreds of one model on
-one OP) with the same :func:`step_same_model` on column-major state; :func:`stiction_step_kernel` keeps the
+one OP) with the same selects on column-major state, :func:`kano_update` and its siblings written out in its own
+compiled time loop (a call per sample to :func:`step_same_model` costs more than a few dozen valves' work there:
+numba updates the reference counts of a call's array arguments); :func:`stiction_step_kernel` keeps the
 branches for the loop kernel, whose state is row-major, where the loop does not vectorise and the selects
 alone are slower than the branches.
 """
@@ -82,6 +84,12 @@ __all__ = [
     "VECTOR_MIN",
     "initial_state",
     "NSTATE",
+    "KANO",
+    "CHOUDHURY",
+    "HE",
+    "kano_update",
+    "choudhury_update",
+    "he_update",
 ]
 
 MODELS: Final = ("choudhury", "kano", "he")
@@ -205,7 +213,7 @@ def stiction_step_kernel(u, S, J, R, codes, st):  # pragma: no cover - compiled
 
 
 # --- One model for every valve: the same state machines as selects (see the module docstring) -------------
-# Each ``_*_update`` takes and returns the state as scalars: an array handed to an inlined function inside the
+# Each ``*_update`` takes and returns the state as scalars: an array handed to an inlined function inside the
 # loop leaves reference-counting calls in the loop, and LLVM does not vectorise a loop that calls. Every
 # ``a if c else b`` below has two operands without side effects, both computed, so that LLVM can make it a
 # select (a blend in the vector loop) rather than a branch; conditions combine with ``&`` and ``|``, which do
@@ -216,11 +224,11 @@ def stiction_step_kernel(u, S, J, R, codes, st):  # pragma: no cover - compiled
 #: AVX-512); below it the selects run one valve at a time, slower than branches, which on a smooth OP are
 #: well predicted. At 64 valves the selects beat the branches on smooth and on random OP for every model.
 VECTOR_MIN: Final = 64
-_CHOUDHURY, _KANO, _HE = (MODELS.index(m) for m in ("choudhury", "kano", "he"))
+CHOUDHURY, KANO, HE = (MODELS.index(m) for m in ("choudhury", "kano", "he"))
 
 
 @numba.njit(cache=True, inline="always")
-def _kano_update(u_raw, S, J, R, mv, u_prev, ref, d, flag, still):  # pragma: no cover - compiled
+def kano_update(u_raw, S, J, R, mv, u_prev, ref, d, flag, still):  # pragma: no cover - compiled
     """:func:`_kano_valve` as selects; returns the new ``(MV, U_PREV, REF, DIR, FLAG, STILL, STUCK)``."""
     u = _clip(u_raw)
     du = u - u_prev
@@ -239,7 +247,7 @@ def _kano_update(u_raw, S, J, R, mv, u_prev, ref, d, flag, still):  # pragma: no
 
 
 @numba.njit(cache=True, inline="always")
-def _choudhury_update(x, S, J, mv, u_prev, ref, slope, flag):  # pragma: no cover - compiled
+def choudhury_update(x, S, J, mv, u_prev, ref, slope, flag):  # pragma: no cover - compiled
     """:func:`_choudhury_valve` as selects; returns the new ``(MV, U_PREV, REF, DIR, FLAG, STUCK)``."""
     sat = (x < 0.0) | (x > 100.0)                               # saturated: the valve sits on its stop
     x = _clip(x) if sat else x
@@ -255,7 +263,7 @@ def _choudhury_update(x, S, J, mv, u_prev, ref, slope, flag):  # pragma: no cove
 
 
 @numba.njit(cache=True, inline="always")
-def _he_update(u_raw, S, J, mv, u_prev, ref):  # pragma: no cover - compiled
+def he_update(u_raw, S, J, mv, u_prev, ref):  # pragma: no cover - compiled
     """:func:`_he_valve` as selects; returns the new ``(MV, U_PREV, REF, STUCK)``."""
     u = _clip(u_raw)
     fs = 0.5 * (S + J)
@@ -271,30 +279,30 @@ def _he_update(u_raw, S, J, mv, u_prev, ref):  # pragma: no cover - compiled
 def _kano_columns(u, S, J, R, st):  # pragma: no cover - compiled
     for i in range(u.shape[0]):
         st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG], st[i, STILL], st[i, STUCK] = \
-            _kano_update(u[i], S[i], J[i], R[i], st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG],
-                         st[i, STILL])
+            kano_update(u[i], S[i], J[i], R[i], st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG],
+                        st[i, STILL])
 
 
 @numba.njit(cache=True)
 def _choudhury_columns(u, S, J, st):  # pragma: no cover - compiled
     for i in range(u.shape[0]):
         st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG], st[i, STUCK] = \
-            _choudhury_update(u[i], S[i], J[i], st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG])
+            choudhury_update(u[i], S[i], J[i], st[i, MV], st[i, U_PREV], st[i, REF], st[i, DIR], st[i, FLAG])
 
 
 @numba.njit(cache=True)
 def _he_columns(u, S, J, st):  # pragma: no cover - compiled
     for i in range(u.shape[0]):
         st[i, MV], st[i, U_PREV], st[i, REF], st[i, STUCK] = \
-            _he_update(u[i], S[i], J[i], st[i, MV], st[i, U_PREV], st[i, REF])
+            he_update(u[i], S[i], J[i], st[i, MV], st[i, U_PREV], st[i, REF])
 
 
 @numba.njit(cache=True)
 def step_same_model(u, S, J, R, code, st):  # pragma: no cover - compiled
     """Advance valves that all use model ``code`` one sample: the same state as :func:`stiction_step_kernel`."""
-    if code == _KANO:
+    if code == KANO:
         _kano_columns(u, S, J, R, st)
-    elif code == _CHOUDHURY:
+    elif code == CHOUDHURY:
         _choudhury_columns(u, S, J, st)
     else:
         _he_columns(u, S, J, st)

@@ -186,11 +186,12 @@ def test_chain_applies_slots_in_signal_order_with_the_grid_in_between():
 
 
 @pytest.mark.parametrize("model", ["kano", "choudhury", "he"])
-@pytest.mark.parametrize("n", [5, 200])
+@pytest.mark.parametrize("n", [5, 48, 200])
 @pytest.mark.parametrize("shared_op", [True, False])
 def test_a_grid_of_valves_replays_each_valve_as_it_would_alone(model, n, shared_op):
-    # A grid is replayed together (vector code from VECTOR_MIN valves on, the pre-roll valves first, then all
-    # in column order); each column must be bit for bit the valve replayed on its own.
+    # A grid is replayed together (branch-free vector code from 24 valves of a thread's share on: 48 valves are
+    # two shares of 24 or one of 48, the pre-roll valves first, then all in column order); each column must be bit
+    # for bit the valve replayed on its own, which takes the branches.
     rng = np.random.default_rng(5)
     ctx = ChainContext(dt=1.0, op=OP, op_span=16.0, valve_model=model, rest_samples=2)
     S, J = rng.uniform(0.5, 8.0, n), rng.uniform(0.0, 6.0, n)

@@ -3,8 +3,9 @@ r"""Scoring parameter grids: the chain, the batched linear fit and the bookkeepi
 :class:`Scorer` holds one problem (data, nominal model, candidate library) and answers "what is the fit-part
 SSE of every row of this parameter grid, for these linear structures and dead times?" — pushing the grid
 through the chain in chunks of :data:`_CHUNK` rows (the valve simulation is the costly part, so each chunk is
-scored for every requested structure before the next is simulated), filtering each chunk once per structure
-and solving the least-squares problems of all rows and all dead times in one compiled call.
+scored for every requested structure before the next is simulated; the chunks are shared out over the kernels'
+threads), filtering each chunk once per structure and solving the least-squares problems of all rows and all
+dead times in one compiled call.
 
 It also owns the choices that must be the same for every model of a problem:
 
@@ -32,10 +33,12 @@ It also owns the choices that must be the same for every model of a problem:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from valve_emulator.diagnosis._threads import run_split, workers_for
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
 from valve_emulator.diagnosis.fit.chain import Active, run_chain
 from valve_emulator.diagnosis.fit.cost import ar1_bic, bic
@@ -201,31 +204,29 @@ class Scorer:
     def sse_jobs(self, active, ctx, cand, grid, jobs, aim: Aim) -> list[tuple]:
         """Several ``(structure, delays)`` evaluations of one grid in one pass: each chunk of rows is pushed
         through the chain once (the valve simulation is the costly part) and scored for every job."""
-        chunks = (self.chain(active, ctx, cand, grid[a:a + _CHUNK]) for a in range(0, grid.shape[0], _CHUNK))
-        return self._score_chunks(chunks, jobs, aim)
+        return self._score_chunks(lambda a: self.chain(active, ctx, cand, grid[a:a + _CHUNK]), grid.shape[0], jobs,
+                                  aim)
 
     def sse_flows_all(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
         """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, :data:`_CHUNK`
         columns at a time (copied contiguous, then scored for every job while they are in cache): the same numbers
         as job by job over the whole array."""
-        chunks = (np.ascontiguousarray(flows[:, a:a + _CHUNK]) for a in range(0, flows.shape[1], _CHUNK))
-        return self._score_chunks(chunks, jobs, aim)
+        return self._score_chunks(lambda a: np.ascontiguousarray(flows[:, a:a + _CHUNK]), flows.shape[1], jobs, aim)
 
-    def _score_chunks(self, chunks, jobs: list[tuple], aim: Aim) -> list[tuple]:
-        """Each chunk of flows (T, ≤ :data:`_CHUNK`) scored for every job, as it comes; per job the SSE rows of
-        all chunks stacked, and the delays it searched. Jobs the linear kernel cannot tell apart
-        (:func:`_kernel_job`, e.g. an integrator that is both an identified alternate and a pole hypothesis of
-        its own) are scored once and share the numbers."""
+    def _score_chunks(self, chunk: Callable[[int], np.ndarray], n: int, jobs: list[tuple], aim: Aim) -> list[tuple]:
+        """The flows of ``n`` grid rows, made :data:`_CHUNK` at a time by ``chunk(first row)``, each chunk scored
+        for every job as it is made (:func:`_chunks_scored`, :meth:`_score_block`); per job the SSE rows of all
+        chunks stacked, and the delays it searched."""
+        return _stacked(_chunks_scored(chunk, n, lambda flows: self._score_block(flows, jobs, aim)))
+
+    def _score_block(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
+        """:meth:`sse_flows` of one block of flows for every job. Jobs the linear kernel cannot tell apart
+        (:func:`_kernel_job`, e.g. an integrator that is both an identified alternate and a pole hypothesis of its
+        own) are scored once and share the numbers."""
         first: dict[tuple, int] = {}
         same = [first.setdefault(_kernel_job(st, delays), i) for i, (st, delays) in enumerate(jobs)]
-        parts: list[list] = [[] for _ in jobs]
-        used: list = [None] * len(jobs)
-        for flows in chunks:
-            for i, (st, delays) in enumerate(jobs):
-                if same[i] == i:
-                    sse, used[i] = self.sse_flows(flows, st, delays, aim)
-                    parts[i].append(sse)
-        return [(np.vstack(parts[k]), used[k]) for k in same]
+        done = {i: self.sse_flows(flows, *jobs[i], aim) for i in first.values()}
+        return [done[i] for i in same]
 
     def near(self, d: float, r: int) -> np.ndarray:
         """Whole-sample dead times of the problem's grid within ``r`` samples of ``d`` (s)."""
@@ -241,10 +242,32 @@ def sse_jobs_shared(active, ctx, cand, grid: np.ndarray, tasks: list[tuple[Score
     ``tasks`` holds ``(scorer, jobs, aim)``. Each chunk of rows goes through the chain once (the first scorer's;
     the chain does not depend on the cost domain) and is scored for every task: per task, the numbers of its own
     ``sse_jobs``."""
-    parts: list[list[list]] = [[] for _ in tasks]
-    for a in range(0, grid.shape[0], _CHUNK):
-        flows = tasks[0][0].chain(active, ctx, cand, grid[a:a + _CHUNK])
-        for part, (scorer, jobs, aim) in zip(parts, tasks):
-            part.append(scorer._score_chunks([flows], jobs, aim))
-    return [[(np.vstack([chunk[j][0] for chunk in part]), part[0][j][1]) for j in range(len(jobs))]
-            for part, (_, jobs, _) in zip(parts, tasks)]
+    first = tasks[0][0]
+    blocks = _chunks_scored(lambda a: first.chain(active, ctx, cand, grid[a:a + _CHUNK]), grid.shape[0],
+                            lambda flows: [scorer._score_block(flows, jobs, aim) for scorer, jobs, aim in tasks])
+    return [_stacked([block[t] for block in blocks]) for t in range(len(tasks))]
+
+
+def _chunks_scored(chunk: Callable[[int], np.ndarray], n: int, score: Callable[[np.ndarray], list]) -> list[list]:
+    """``score(chunk(a))`` for the chunks of ``n`` grid rows that start at ``a = 0, _CHUNK, 2 _CHUNK, …``, in order.
+
+    The chunks are independent, so consecutive runs of them go to the kernels' threads
+    (:func:`~valve_emulator.diagnosis._threads.run_split`), each thread making and scoring its own chunks: one
+    thread hand-off per run instead of one per kernel call, and both cores busy with the chain and the linear
+    kernel alike (a chunk's linear fit had run in one thread). The splits inside a chunk (its valves, its
+    columns) then run in the thread that makes it. The numbers are those of one chunk after another."""
+    starts = range(0, n, _CHUNK)
+    out: list = [None] * len(starts)
+
+    def run(c0: int, c1: int) -> None:
+        for c in range(c0, c1):
+            out[c] = score(chunk(starts[c]))
+
+    workers = workers_for(len(starts), per_worker=1)
+    run_split(run, [len(starts) * w // workers for w in range(workers + 1)])
+    return out
+
+
+def _stacked(blocks: list[list[tuple]]) -> list[tuple]:
+    """Per job, its ``(sse, delays)`` of every block with the SSE rows stacked in block order."""
+    return [(np.vstack([block[j][0] for block in blocks]), blocks[0][j][1]) for j in range(len(blocks[0]))]
