@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from band_valve import held
 
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.linear import LinearStructure
@@ -19,23 +20,13 @@ DT = 1.0
 PLANT = LinearStructure(integrating=True, delay=2.0)
 
 
-def _band(op: np.ndarray, S: float) -> np.ndarray:
-    """A valve that holds until OP has moved S beyond it (a play operator: a dead band of width S)."""
-    out = np.empty_like(op)
-    x = op[0]
-    for k, u in enumerate(op):
-        x = min(max(x, u - S / 2), u + S / 2)
-        out[k] = x
-    return out
-
-
 def _level(seed: int, healthy: bool, S: float = 3.0, n: int = 2000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """OP wandering over about ten times the band with small fast moves on top, the claimed band's output, and
     the level PV: the integral of the valve's flow (healthy: OP itself), delayed 2 s, plus a random-walk load
     and measurement noise."""
     rng = np.random.default_rng(seed)
     op = 50 + np.cumsum(rng.normal(0, 0.4, n)) + rng.normal(0, 0.5, n)
-    claimed = _band(op, S)
+    claimed = held(op, S)
     flow = op if healthy else claimed
     load = np.cumsum(rng.normal(0, 0.01, n))
     pv = np.cumsum(0.03 * DT * np.concatenate([np.full(3, flow[0]), flow[:-3]])) + np.cumsum(load) * 0.01

@@ -11,6 +11,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+from band_valve import held
 
 from valve_emulator.diagnosis.assess.decision import NOISE_BANDS, band_unshown
 from valve_emulator.diagnosis.explain.result import Finding
@@ -20,22 +21,12 @@ DT = 1.0
 S = 3.0
 
 
-def _band(op: np.ndarray, width: float) -> np.ndarray:
-    """A valve that holds until OP has moved ``width`` beyond it (a play operator: a dead band)."""
-    out = np.empty_like(op)
-    x = op[0]
-    for k, u in enumerate(op):
-        x = min(max(x, u - width / 2), u + width / 2)
-        out[k] = x
-    return out
-
-
 def _sticky_level(seed: int, n: int = 2000) -> SimpleNamespace:
     """An explained loop (traces and identified plant, as ``Explanation`` carries them) whose valve really holds
     OP's moves inside a band S: PV integrates the band's output, delayed 2 s, plus a random-walk load and noise."""
     rng = np.random.default_rng(seed)
     op = 50 + np.cumsum(rng.normal(0, 0.4, n)) + rng.normal(0, 0.5, n)
-    valve = _band(op, S)
+    valve = held(op, S)
     load = np.cumsum(rng.normal(0, 0.01, n))
     pv = np.cumsum(0.03 * DT * np.concatenate([np.full(3, valve[0]), valve[:-3]])) + np.cumsum(load) * 0.01
     traces = SimpleNamespace(t=np.arange(n) * DT, pv=pv + rng.normal(0, 0.05, n), op=op, mv_after=valve)
