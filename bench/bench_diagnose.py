@@ -101,7 +101,9 @@ def alternate_first_runs(before: Path, samples: int, repeat: int, model: bool) -
 
     Each checkout gets a kernel cache of its own, filled once by ``valve-emulator compile`` (untimed); each child
     then imports, reads the CSV and diagnoses once (:data:`_FIRST_RUN_TIMED`), timed from outside (wall, and
-    the child's CPU seconds) and from inside (the imports). Medians with their range, and the load average."""
+    the child's CPU seconds) and from inside (the imports). Medians with their range, and the load average.
+    The children run in a scratch folder: ``-c`` and ``-m`` put the working directory first on ``sys.path``,
+    ahead of ``PYTHONPATH``, and a checkout's root would shadow the other."""
     roots = {"before": before.resolve(), "after": ROOT}
     runs: dict[str, list[dict]] = {k: [] for k in roots}
     with tempfile.TemporaryDirectory() as tmp:
@@ -110,14 +112,14 @@ def alternate_first_runs(before: Path, samples: int, repeat: int, model: bool) -
                 for label, root in roots.items()}
         for env in envs.values():
             subprocess.run([sys.executable, "-m", "valve_emulator", "compile", "--only", "diagnose"], env=env,
-                           check=True, capture_output=True)
+                           check=True, capture_output=True, cwd=tmp)
         load_before = os.getloadavg()
         for _ in range(repeat):
             for label, env in envs.items():
                 cpu0, wall0 = _children_cpu(), time.perf_counter()
                 out = subprocess.run([sys.executable, "-c", _FIRST_RUN_TIMED, csv_path,
                                       model_path if model else "none"], env=env, check=True, capture_output=True,
-                                     text=True).stdout
+                                     text=True, cwd=tmp).stdout
                 run = {"wall": time.perf_counter() - wall0, "cpu": _children_cpu() - cpu0}
                 runs[label].append({**run, **json.loads(out.splitlines()[-1])})
     for label, v in runs.items():
