@@ -10,11 +10,13 @@ compilation and one diagnosis, timed from outside; then the same after ``valve-e
 each run a fresh interpreter (its code on ``PYTHONPATH``) that warms up and times one diagnosis, wall and CPU
 seconds (CPU: every thread's, the less sensitive to the machine's load); medians and the ratio after/before, the
 machine's load average before and after each size, and each checkout's first finding with its parameters and
-95 % intervals (a speed-up must not change them).
+95 % intervals (a speed-up must not change them). ``--first-runs`` with ``--before``: first runs after
+``compile`` instead (:func:`alternate_first_runs`), with the seconds spent importing.
 Run::
 
     python bench/bench_diagnose.py [--samples 1000 10000] [--repeat 3] [--no-model] [--no-first-run]
     python bench/bench_diagnose.py --before /path/to/other/checkout [--samples 10000] [--repeat 3] [--no-model]
+    python bench/bench_diagnose.py --before /path/to/other/checkout --first-runs [--samples 10000] [--repeat 5]
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -41,6 +44,23 @@ model = None if sys.argv[2] == "none" else loop_from_mapping(json.load(open(sys.
 print(ve.diagnose(sys.argv[1], model).answer)
 """
 
+# The same first run, saying where its time went: importing (the package and what the diagnosis imports), and
+# how many kernels were compiled rather than loaded from the cache (none, after `compile`).
+_FIRST_RUN_TIMED = """
+import time
+t0 = time.perf_counter()
+import json, sys
+import valve_emulator as ve
+import valve_emulator.diagnosis.api
+from valve_emulator.config import loop_from_mapping
+from valve_emulator.commands.compile import kernel_cache_stats
+t1 = time.perf_counter()
+model = None if sys.argv[2] == "none" else loop_from_mapping(json.load(open(sys.argv[2])))
+answer = ve.diagnose(sys.argv[1], model).answer
+print(json.dumps({"import": t1 - t0, "total": time.perf_counter() - t0, "answer": answer,
+                  "compiled": sum(m for _, m in kernel_cache_stats().values())}))
+"""
+
 
 def first_run(samples: int, model: bool, ahead: bool = False) -> float:
     """Seconds for a fresh interpreter with an empty kernel cache to import, compile and diagnose once.
@@ -50,14 +70,8 @@ def first_run(samples: int, model: bool, ahead: bool = False) -> float:
     diagnose — and not the simulation that made the recording. ``ahead``: ``valve-emulator compile`` runs
     first (not timed), as after an install that follows the README.
     """
-    case = CASES[0]
-    rec, _, _ = generate(case, duration=samples - 1 + case.cut)
-    nominal = nominal_mapping(case)
     with tempfile.TemporaryDirectory() as tmp:
-        csv_path, model_path = os.path.join(tmp, "loop.csv"), os.path.join(tmp, "model.json")
-        write_csv(rec, csv_path)
-        with open(model_path, "w") as f:
-            json.dump(nominal, f)
+        csv_path, model_path = _write_inputs(tmp, samples)
         env = {**os.environ, "NUMBA_CACHE_DIR": os.path.join(tmp, "numba")}
         if ahead:
             subprocess.run([sys.executable, "-m", "valve_emulator", "compile"], env=env, check=True,
@@ -68,7 +82,59 @@ def first_run(samples: int, model: bool, ahead: bool = False) -> float:
         return time.perf_counter() - t
 
 
+def _write_inputs(folder: str, samples: int) -> tuple[str, str]:
+    """The recording (standard CSV) and the nominal model (JSON of the configuration mapping) in ``folder``."""
+    case = CASES[0]
+    rec, _, _ = generate(case, duration=samples - 1 + case.cut)
+    csv_path, model_path = os.path.join(folder, "loop.csv"), os.path.join(folder, "model.json")
+    write_csv(rec, csv_path)
+    with open(model_path, "w") as f:
+        json.dump(nominal_mapping(case), f)
+    return csv_path, model_path
+
+
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def alternate_first_runs(before: Path, samples: int, repeat: int, model: bool) -> None:
+    """First runs after ``compile`` of this checkout and ``before``, ``repeat`` fresh interpreters each, in turn.
+
+    Each checkout gets a kernel cache of its own, filled once by ``valve-emulator compile`` (untimed); each child
+    then imports, reads the CSV and diagnoses once (:data:`_FIRST_RUN_TIMED`), timed from outside (wall, and
+    the child's CPU seconds) and from inside (the imports). Medians with their range, and the load average.
+    The children run in a scratch folder: ``-c`` and ``-m`` put the working directory first on ``sys.path``,
+    ahead of ``PYTHONPATH``, and a checkout's root would shadow the other."""
+    roots = {"before": before.resolve(), "after": ROOT}
+    runs: dict[str, list[dict]] = {k: [] for k in roots}
+    with tempfile.TemporaryDirectory() as tmp:
+        csv_path, model_path = _write_inputs(tmp, samples)
+        envs = {label: {**os.environ, "PYTHONPATH": str(root), "NUMBA_CACHE_DIR": os.path.join(tmp, label)}
+                for label, root in roots.items()}
+        for env in envs.values():
+            subprocess.run([sys.executable, "-m", "valve_emulator", "compile", "--only", "diagnose"], env=env,
+                           check=True, capture_output=True, cwd=tmp)
+        load_before = os.getloadavg()
+        for _ in range(repeat):
+            for label, env in envs.items():
+                cpu0, wall0 = _children_cpu(), time.perf_counter()
+                out = subprocess.run([sys.executable, "-c", _FIRST_RUN_TIMED, csv_path,
+                                      model_path if model else "none"], env=env, check=True, capture_output=True,
+                                     text=True, cwd=tmp).stdout
+                run = {"wall": time.perf_counter() - wall0, "cpu": _children_cpu() - cpu0}
+                runs[label].append({**run, **json.loads(out.splitlines()[-1])})
+    for label, v in runs.items():
+        parts = [f"{m} median {statistics.median(r[m] for r in v):5.2f} s "
+                 f"({min(r[m] for r in v):.2f}–{max(r[m] for r in v):.2f})" for m in ("wall", "cpu", "import")]
+        print(f"{samples:6d} samples, first run after `compile`, {label:6s}: {'; '.join(parts)}; "
+              f"kernels compiled {max(r['compiled'] for r in v)}; answer {v[-1]['answer']}")
+    print(f"load average (1, 5, 15 min) {', '.join(f'{x:.1f}' for x in load_before)} before the timed runs, "
+          f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} after")
+
+
+def _children_cpu() -> float:
+    """User + system CPU seconds of the finished children of this process."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
 
 
 def one_run(samples: int, model: bool) -> dict:
@@ -118,6 +184,8 @@ def main(argv=None) -> int:
     p.add_argument("--no-model", action="store_true", help="identify the linear part from the data instead")
     p.add_argument("--no-first-run", action="store_true", help="skip the first-run (empty cache) timings")
     p.add_argument("--before", type=Path, help="another checkout, measured alternately with this one")
+    p.add_argument("--first-runs", action="store_true",
+                   help="with --before: time first runs after `compile` (fresh interpreters) instead of warm runs")
     p.add_argument("--one", type=int, help=argparse.SUPPRESS)   # a child of --before: one timed run, JSON
     args = p.parse_args(argv)
     if args.one is not None:
@@ -126,7 +194,10 @@ def main(argv=None) -> int:
     if args.before is not None:
         print(f"{os.cpu_count()} CPU(s); load {os.getloadavg()[0]:.1f}; "
               f"{'no model' if args.no_model else 'nominal model given'}")
-        alternate(args.before, args.samples, args.repeat, not args.no_model)
+        for n in args.samples if args.first_runs else []:
+            alternate_first_runs(args.before, n, args.repeat, not args.no_model)
+        if not args.first_runs:
+            alternate(args.before, args.samples, args.repeat, not args.no_model)
         return 0
     case = CASES[0]  # stiction, undershoot, concentration loop, dt = 1 s
     print(f"{os.cpu_count()} CPU(s); case: {case.name}; {'no model' if args.no_model else 'nominal model given'}")

@@ -11,6 +11,10 @@ numpy arrays (no model of the plant, no I/O), with the decision thresholds fixed
 Each first checks that the loop oscillates regularly (:func:`~.base.oscillation`) and otherwise answers
 "undetermined", since all three were published for oscillating loops.
 
+The three detectors (and :mod:`scipy.signal` and :mod:`scipy.stats`, which they need: ~0.6 s to import) are
+loaded on first use of :data:`DETECTORS`, :func:`run_detectors` or a detector's name here: the diagnosis imports
+only the oscillation test of :mod:`.base`, and a first ``diagnose`` should not wait for the rest.
+
 >>> from valve_emulator.detectors import run_detectors                           # doctest: +SKIP
 >>> for res in run_detectors(rec.op, rec.pv, dt=rec.dt, sp=rec.sp).values():
 ...     print(res.report())
@@ -18,6 +22,7 @@ Each first checks that the loop oscillates regularly (:func:`~.base.oscillation`
 
 from __future__ import annotations
 
+import functools
 import types
 from collections.abc import Callable, Iterable, Mapping
 
@@ -34,9 +39,6 @@ from valve_emulator.detectors.base import (
     Oscillation,
     oscillation,
 )
-from valve_emulator.detectors.bicoherence import bicoherence
-from valve_emulator.detectors.he_curve_fit import he_curve_fit
-from valve_emulator.detectors.horch import horch
 
 __all__ = [
     "DETECTORS",
@@ -58,19 +60,37 @@ __all__ = [
 
 Detector = Callable[..., DetectorResult]
 
-#: Every detector by name, in report order.
-DETECTORS: Mapping[str, Detector] = types.MappingProxyType({
-    "horch": horch,
-    "he": he_curve_fit,
-    "bicoherence": bicoherence,
-})
+
+@functools.cache
+def _detectors() -> Mapping[str, Detector]:
+    """Every detector by name, in report order (:data:`DETECTORS`), imported on the first call.
+
+    Importing a detector's module binds the package's attribute of that name to the module; the functions are
+    bound again here, so that ``valve_emulator.detectors.horch`` stays the function, as the eager import had it."""
+    from valve_emulator.detectors.bicoherence import bicoherence
+    from valve_emulator.detectors.he_curve_fit import he_curve_fit
+    from valve_emulator.detectors.horch import horch
+
+    globals().update(horch=horch, he_curve_fit=he_curve_fit, bicoherence=bicoherence)
+    return types.MappingProxyType({"horch": horch, "he": he_curve_fit, "bicoherence": bicoherence})
+
+
+def __getattr__(name: str):
+    """``DETECTORS`` (every detector by name, in report order) and the detector functions, on first use."""
+    if name == "DETECTORS":
+        return _detectors()
+    if name in ("horch", "he_curve_fit", "bicoherence"):
+        _detectors()
+        return globals()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def run_detectors(op: ArrayLike, pv: ArrayLike, *, dt: float, sp: ArrayLike | None = None,
                   integrating: bool = False, names: Iterable[str] | None = None) -> dict[str, DetectorResult]:
     """Run the named detectors (default: all of :data:`DETECTORS`) on one loop; results by name, in order."""
-    chosen = list(DETECTORS) if names is None else list(names)
-    unknown = [n for n in chosen if n not in DETECTORS]
+    detectors = _detectors()
+    chosen = list(detectors) if names is None else list(names)
+    unknown = [n for n in chosen if n not in detectors]
     if unknown:
-        raise ValueError(f"unknown detector(s) {', '.join(map(repr, unknown))}; known: {', '.join(DETECTORS)}")
-    return {n: DETECTORS[n](op, pv, dt=dt, sp=sp, integrating=integrating) for n in chosen}
+        raise ValueError(f"unknown detector(s) {', '.join(map(repr, unknown))}; known: {', '.join(detectors)}")
+    return {n: detectors[n](op, pv, dt=dt, sp=sp, integrating=integrating) for n in chosen}

@@ -19,11 +19,8 @@ simulator exactly, where the fit interpolated linearly between samples: the two 
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 from scipy.linalg import logm
-from scipy.signal import BadCoefficients, ss2tf, tf2ss
 
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 
@@ -56,15 +53,36 @@ def continuous_transfer_function(structure: LinearStructure, taps: np.ndarray, d
     if n == 0:   # a static gain: y_k = b u_{k-1}, which is what the simulator makes of num = [b], den = [1]
         return (float(num_d[1]),), (1.0,)
     num_d = np.concatenate([num_d, np.zeros(n + 1 - num_d.size)])
-    with warnings.catch_warnings():   # the numerator's leading zeros are expected: a strictly proper plant
-        warnings.simplefilter("ignore", BadCoefficients)
-        A, B, C, _ = tf2ss(num_d, den_d)
-        M = np.zeros((n + 1, n + 1))
-        M[:n, :n], M[:n, n:], M[n, n] = A, B, 1.0
-        L = np.real(logm(M)) / dt
-        num, _ = ss2tf(L[:n, :n], L[:n, n:], C, np.zeros((1, 1)))
-    num = _trim(np.real(num[0]), float(np.max(np.abs(num))))
+    A, B, C = _controllable_form(num_d, den_d)
+    M = np.zeros((n + 1, n + 1))
+    M[:n, :n], M[:n, n:], M[n, n] = A, B, 1.0
+    L = np.real(logm(M)) / dt
+    num = _numerator(L[:n, :n], L[:n, n:], C)
+    num = _trim(np.real(num), float(np.max(np.abs(num))))
     return tuple(float(x) for x in num), tuple(float(x) for x in _denominator(structure))
+
+
+def _controllable_form(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(A, B, C)`` of the controller canonical realisation of a strictly proper ``num/den`` (same lengths,
+    ``num[0]`` zero but for rounding): ``scipy.signal.tf2ss``'s own arithmetic (leading numerator coefficients
+    of magnitude ≤ 1e-14 after normalising count as zeros), the same bits, without importing
+    :mod:`scipy.signal` (with the :mod:`scipy.stats` it pulls in, ~0.6 s of a first diagnosis)."""
+    den = np.trim_zeros(den, "f")
+    num, den = num / den[0], den / den[0]
+    significant = np.flatnonzero(~(np.abs(num) <= 1e-14))
+    zeros = significant[0] if significant.size else num.size - 1   # at least one coefficient stays
+    num = np.concatenate([np.zeros(zeros), num[zeros:]])
+    k = den.size
+    A = np.r_[-np.array([den[1:]]), np.eye(k - 2, k - 1)]
+    B = np.eye(k - 1, 1)
+    C = num[None, 1:] - np.outer(num[:1], den[1:])
+    return A, B, C
+
+
+def _numerator(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
+    r"""Numerator of :math:`C (sI - A)^{-1} B`, highest power first: :math:`\det(sI - A + BC) - \det(sI - A)`,
+    as ``scipy.signal.ss2tf(A, B, C, 0)`` computes it (the same bits)."""
+    return np.poly(A - B @ C) - np.poly(A)
 
 
 def _denominator(structure: LinearStructure) -> np.ndarray:

@@ -25,8 +25,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.signal import lfilter
 
+from valve_emulator.diagnosis.fit.linear import highpass
 from valve_emulator.recordings.recording import Recording, RecordingError
 
 __all__ = ["Problem", "prepare", "prefilter_for", "folds", "fold_windows", "held_out_start", "HELD_OUT", "MIN_SAMPLES",
@@ -158,9 +158,7 @@ class Problem:
         stay on PV itself (:meth:`pv_heldout_fit`)."""
         if self.prefilter is None:
             return y_scaled
-        lam = float(self.prefilter)
-        x = np.asarray(y_scaled, dtype=float)
-        return lfilter([1.0, -1.0], [1.0, -lam], x - x[0])
+        return highpass(y_scaled, float(self.prefilter))
 
 
 def prefilter_for(response_time: float, dt: float) -> float:

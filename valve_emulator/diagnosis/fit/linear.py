@@ -41,8 +41,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+import numba
 import numpy as np
-from scipy.signal import lfilter
 
 from valve_emulator.diagnosis.fit.cost import log_sse
 from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_sse, grid_sse, normal_equations
@@ -55,6 +55,7 @@ __all__ = [
     "LinearStructure",
     "LinearFit",
     "highpass",
+    "iir_filter",
     "filter_inputs",
     "input_grid_sse",
     "delay_grid_sse",
@@ -171,6 +172,43 @@ class LinearFit:
         return x @ self.taps + self.offset + self.trend * (np.arange(T) / (record_length or T))
 
 
+@numba.njit(cache=True, nogil=True)
+def _transposed_direct_form(b, a, x, z):  # pragma: no cover - compiled
+    """``b/a`` (same lengths, ``a[0]`` = 1) along axis 0 of ``x`` (T, n), state ``z`` (len - 1, n) updated in
+    place: the loop of scipy's ``lfilter`` (``lfilter.c.src``), operation for operation."""
+    y = np.empty_like(x)
+    m = b.size
+    for k in range(x.shape[0]):
+        for j in range(x.shape[1]):
+            xn = x[k, j]
+            if m == 1:
+                y[k, j] = xn * b[0]
+                continue
+            yn = z[0, j] + b[0] * xn
+            for i in range(m - 2):
+                z[i, j] = z[i + 1, j] + xn * b[i + 1] - yn * a[i + 1]
+            z[m - 2, j] = xn * b[m - 1] - yn * a[m - 1]
+            y[k, j] = yn
+    return y
+
+
+def iir_filter(b, a, x: np.ndarray, zi: np.ndarray | None = None) -> np.ndarray:
+    """``scipy.signal.lfilter(b, a, x, axis=0, zi=zi)``'s output (its first element when ``zi`` is given), the
+    same bits, for float ``x`` (T,) or (T, n) and ``zi`` (max(len(a), len(b)) - 1, n).
+
+    The same arithmetic as scipy's (coefficients padded to one length and divided by ``a[0]``, the transposed
+    direct form II loop), compiled here so that the diagnosis does not import :mod:`scipy.signal` (with the
+    :mod:`scipy.stats` it pulls in, ~0.6 s of a first run) for this one filter."""
+    b, a = np.atleast_1d(np.asarray(b, dtype=float)), np.atleast_1d(np.asarray(a, dtype=float))
+    m = max(b.size, a.size)
+    b = np.concatenate([b, np.zeros(m - b.size)]) / a[0]
+    a = np.concatenate([a, np.zeros(m - a.size)]) / a[0]
+    x = np.asarray(x, dtype=float)
+    x2 = kernel_array(x[:, None] if x.ndim == 1 else x)
+    z = np.zeros((m - 1, x2.shape[1])) if zi is None else kernel_array(np.array(zi, dtype=float)).reshape(m - 1, -1)
+    return _transposed_direct_form(b, a, x2, z).reshape(x.shape)
+
+
 def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float, *, mean: float | None = None
                   ) -> np.ndarray:
     """The regressor source :math:`z` (see the module docstring), time along axis 0: (T,) or (T, n).
@@ -195,7 +233,7 @@ def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float, *, mean:
         zi = -np.cumsum(alpha[:0:-1])[::-1][:, None] * x[0] if p else None
         b = [float(np.sum(alpha))]
         seg = x[start - 1:T - 1]
-        out[start:] = lfilter(b, alpha, seg, axis=0) if zi is None else lfilter(b, alpha, seg, axis=0, zi=zi)[0]
+        out[start:] = iir_filter(b, alpha, seg, zi)
     if structure.integrating:
         out = np.cumsum(dt * out, axis=0)
     return out[:, 0] if u.ndim == 1 else out
@@ -300,7 +338,7 @@ def highpass(x: np.ndarray, lam: float) -> np.ndarray:
     constant a decaying transient, so a prefiltered fit uses taps plus one constant (no trend).
     """
     x = np.asarray(x, dtype=float)
-    return lfilter([1.0, -1.0], [1.0, -float(lam)], x - x[0], axis=0)  # at rest at the first sample
+    return iir_filter([1.0, -1.0], [1.0, -float(lam)], x - x[0])  # at rest at the first sample
 
 
 def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
