@@ -235,6 +235,7 @@ class Diagnosis:
         :meth:`~valve_emulator.diagnosis.explain.result.Finding.to_json`) and ``verdict``."""
         base = self.assessment.to_json() if self.assessment is not None else self.explanation.to_json()
         base["findings"] = [f.to_json() for f in self.findings]
+        base["verdict"] = self.verdict
         strength = self.strength
         head = {"answer": str(self.answer), "strength": None if strength is None else str(strength),
                 "reasons": [{"code": str(c), "sentence": s} for c, s in self.reasons],
