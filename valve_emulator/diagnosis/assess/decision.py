@@ -51,7 +51,9 @@ run on each loop:
      a wandering load does not, or is not told from no band. Measured (plant data): 15 of the 21 healthy level
      loops called stiction taken back by the leak (2026-11-26), 3 of the 6 left by the other two signs
      (2026-11-27); none of the 29 sticky level calls, and 2 of the 80 shared plant windows, one of them the one
-     labelled healthy window called stiction.
+     labelled healthy window called stiction. The same rule decides a stiction answer against a nominal model
+     (:func:`answer_with_model`): with their exact nominal models, 7 of the 14 healthy loops called stiction among
+     the independent simulator's shared draws were taken back, and 3 of the 70 sticky ones (weak late-onset calls).
    * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
      its cross-validated free-run fit is below :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their
      mean) *and*, under the drifting-load noise model, it does not explain PV better than that noise model
