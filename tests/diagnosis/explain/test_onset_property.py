@@ -14,9 +14,10 @@ stem's travel leaves J undetermined (J = 0 does about as well in 5 draws of 20).
 with a model and 12/20 as plant data (strict xfails below; 9/20 both ways before physics beside a late valve had
 to fit the healthy part before its onset no worse). What holds is checked at the rates measured (seed 32), one
 draw of slack each: the change point locates the onset before any fit in 17 draws of 20; the answer is stiction
-in 19/20 with a model and 18/20 without; an onset it reports is within a tenth of the record in 16 of 18 both
-ways; stiction from an onset within a tenth, with S within 25 %, in 15/20 with a model and 12/20 without; the
-whole property in 11/20 and 12/20. What stands in the way, measured (a draw may miss for several reasons; with a
+in 16/20 with a model (19/20 before three weak calls became ``cannot_tell``, see below) and 18/20 without; an
+onset it reports is within a tenth of the record in 16 of 18 both ways; stiction from an onset within a tenth,
+with S within 25 %, in 14/20 with a model (15/20 before) and 12/20 without; the whole property
+in 11/20 and 12/20. What stands in the way, measured (a draw may miss for several reasons; with a
 model / without): extra findings (3 / 1: a dead time standing in for the valve's own actuator lag and the
 plant's second lag as an actuator lag, both of which also fit the part before the onset; an actuator lag and a
 dead time accepted before a late valve where no onset is located); S off by more than 25 % (3 / 5; without a
@@ -226,20 +227,22 @@ def test_an_onset_the_answer_reports_is_within_a_tenth_of_the_record(mode, least
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 18), ("plant", 17)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 15), ("plant", 17)])
 def test_a_valve_that_starts_to_stick_part_way_is_answered_stiction(mode, least):
-    """Measured 19/20 with a model, 18/20 without: a valve that starts late counts where the free run alone would
+    """Measured 16/20 with a model, 18/20 without: a valve that starts late counts where the free run alone would
     not let it (under the drifting-load noise model,
-    :meth:`~valve_emulator.diagnosis.explain.search.Search.late_counts`)."""
+    :meth:`~valve_emulator.diagnosis.explain.search.Search.late_counts`). With a model 19/20 before the answer
+    with a model went through plant data's rule for a band the record does not show: three weak calls on loops
+    that do not cycle, whose band OP's swings hardly cross, are ``cannot_tell`` (``docs/diagnosis.md``)."""
     assert _count(mode, lambda o: o.answer == "stiction") >= least
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 14), ("plant", 11)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 13), ("plant", 11)])
 def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode, least):
     """The part of the property the search reaches: the answer is stiction, from an onset within a tenth of the
-    record, with S within 25 % (J and the other findings are left to the strict xfail below). Measured 15/20 with
-    a model, 12/20 without."""
+    record, with S within 25 % (J and the other findings are left to the strict xfail below). Measured 14/20 with
+    a model (15/20 before 32.3's weak call became ``cannot_tell``), 12/20 without."""
     reached = _count(mode, lambda o: o.answer == "stiction" and o.onset_err is not None and o.onset_err <= ONSET_TOL
                      and o.S_err is not None and o.S_err <= SIZE_TOL)
     assert reached >= least

@@ -51,7 +51,9 @@ run on each loop:
      a wandering load does not, or is not told from no band. Measured (plant data): 15 of the 21 healthy level
      loops called stiction taken back by the leak (2026-11-26), 3 of the 6 left by the other two signs
      (2026-11-27); none of the 29 sticky level calls, and 2 of the 80 shared plant windows, one of them the one
-     labelled healthy window called stiction.
+     labelled healthy window called stiction. The same rule decides a stiction answer against a nominal model
+     (:func:`answer_with_model`): with their exact nominal models, 7 of the 14 healthy loops called stiction among
+     the independent simulator's shared draws were taken back, and 3 of the 70 sticky ones (weak late-onset calls).
    * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
      its cross-validated free-run fit is below :data:`MIN_FIT` (0 %: it predicts held-out PV worse than their
      mean) *and*, under the drifting-load noise model, it does not explain PV better than that noise model
@@ -126,7 +128,7 @@ from valve_emulator.recordings.resample import regularize
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
            "COARSE_SHARE", "CROSSING_SHARE", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN", "band_crossings", "band_leaks",
            "band_unshown",
-           "coarse_pv", "Leak", "cycling", "strength_with_model"]
+           "coarse_pv", "Leak", "cycling", "strength_with_model", "answer_with_model"]
 
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
@@ -451,6 +453,29 @@ def strength_with_model(friction: Finding, facts: dict, fit_before: float, fit_a
     strong = (gain >= MODEL_STRONG_GAIN and fit_after > fit_before and not coarse_pv(facts) and cycling(facts)
               and (load is None or load >= DELTA_BIC))
     return Strength.STRONG if strong else Strength.WEAK
+
+
+def answer_with_model(rec: Recording, d: Explanation, frame: Frame) -> Decision:
+    """The answer against a nominal model (``d``: the explain step's record with it): ``stiction`` when valve
+    friction was accepted, unless a healthy valve fits the record too — the rule of plant data
+    (:func:`_healthy_alike`: no regular cycle, OP's swings hardly cross the band, and the record does not show the
+    band, :func:`band_unshown`), then ``cannot tell``, naming the sticky valve and the healthy one; ``no
+    stiction`` when no friction was accepted (the findings say what the model leaves out).
+
+    A nominal model does not make a band the record does not show any more shown: the friction still buys fit
+    where a stuck valve holds while the controller answers a wandering load, and on healthy level loops with their
+    exact nominal model it did (measured, ``docs/diagnosis.md``)."""
+    valve = _valve(d.findings)
+    if valve is None:
+        return Decision(Answer.NO_STICTION, "", "", ())
+    S = float(valve.parameters["S"])
+    fits = f"held-out fit {d.fit_before:.0f} % → {d.fit_after:.0f} %"
+    contested = _healthy_alike(rec, d, valve, S, fits, frame, adequacy(rec), noise_sigma(rec.op))
+    if contested is not None:
+        return contested
+    return Decision(Answer.STICTION, valve.physics, valve.description, ((Reason(valve.physics), valve.description),),
+                    S=S, J=float(valve.parameters.get("J", 0.0)),
+                    intervals={k: v for k, v in valve.intervals.items() if k in ("S", "J")})
 
 
 def _contested(valve: Finding, S: float, fits: str, frame: Frame) -> Decision | None:

@@ -20,7 +20,7 @@ from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.action import Action, recommend
 from valve_emulator.diagnosis.assess.adequacy import Cycle, adequacy, cycle
-from valve_emulator.diagnosis.assess.decision import strength_with_model
+from valve_emulator.diagnosis.assess.decision import Decision, answer_with_model, strength_with_model
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, robust_range
@@ -90,11 +90,18 @@ class Diagnosis:
 
     @property
     def answer(self) -> Answer:
-        """Stiction, no stiction or cannot tell. Without a model: the plant-data rule's answer. With one: stiction
-        when a valve-friction finding (:data:`VALVE_FRICTION`) was accepted, else no stiction."""
+        """Stiction, no stiction or cannot tell. Without a model: the plant-data rule's answer. With one:
+        :func:`~valve_emulator.diagnosis.assess.decision.answer_with_model` (stiction when a valve-friction finding,
+        :data:`VALVE_FRICTION`, was accepted, unless a healthy valve fits the record too, by plant data's rule:
+        then cannot tell; else no stiction)."""
         if self.assessment is not None:
             return self.assessment.decision
-        return Answer.STICTION if any(f.physics in VALVE_FRICTION for f in self.findings) else Answer.NO_STICTION
+        return self._with_model.answer
+
+    @cached_property
+    def _with_model(self) -> Decision:
+        """The answer's decision against the nominal model (only with one)."""
+        return answer_with_model(self.recording, self.explanation, self.frame)
 
     @cached_property
     def strength(self) -> Strength | None:
@@ -112,7 +119,7 @@ class Diagnosis:
         """What the model leaves out, in agreement with the answer: a valve-friction finding only under a
         stiction answer (a band inside OP noise, or a call the record cannot tell, is said in the reasons)."""
         found = () if self.explanation is None else self.explanation.findings
-        if self.assessment is None or self.assessment.decision is Answer.STICTION:
+        if self.answer is Answer.STICTION:
             return found
         return tuple(f for f in found if f.physics not in VALVE_FRICTION)
 
@@ -122,6 +129,8 @@ class Diagnosis:
         the first finding, else ``linear``."""
         if self.assessment is not None:
             return self.assessment.cause
+        if self.answer is Answer.CANNOT_TELL:
+            return self._with_model.cause
         first = self.friction or next(iter(self.findings), None)
         return "linear" if first is None else first.physics
 
@@ -159,15 +168,24 @@ class Diagnosis:
 
     @property
     def verdict(self) -> str:
-        """The sentence the command line prints."""
-        return self.assessment.verdict if self.assessment is not None else self.explanation.verdict
+        """The sentence the command line prints (with a model and a call the record cannot tell, the answer after
+        the explain step's verdict, as on plant data)."""
+        if self.assessment is not None:
+            return self.assessment.verdict
+        if self.answer is Answer.CANNOT_TELL:
+            return f"{self.explanation.verdict} — answer: {self.answer.words}: {self._with_model.reason}"
+        return self.explanation.verdict
 
     @property
     def reasons(self) -> tuple[tuple[Reason, str], ...]:
         """``(code, sentence)`` pairs saying why: on plant data the assessment's; with a model, one per finding
-        (``linear`` when there is none); then the :attr:`caveats`."""
+        (``linear`` when there is none), after the sticky and the healthy valve a call the record cannot tell
+        names; then the :attr:`caveats`."""
         if self.assessment is not None:
             return self.assessment.reasons + self.caveats
+        if self.answer is Answer.CANNOT_TELL:
+            return (self._with_model.reasons + tuple((Reason(f.physics), f.description) for f in self.findings)
+                    + self.caveats)
         if not self.findings:
             return ((Reason.LINEAR, "no candidate physics improves the model significantly"),) + self.caveats
         return tuple((Reason(f.physics), f.description) for f in self.findings) + self.caveats
@@ -217,6 +235,7 @@ class Diagnosis:
         :meth:`~valve_emulator.diagnosis.explain.result.Finding.to_json`) and ``verdict``."""
         base = self.assessment.to_json() if self.assessment is not None else self.explanation.to_json()
         base["findings"] = [f.to_json() for f in self.findings]
+        base["verdict"] = self.verdict
         strength = self.strength
         head = {"answer": str(self.answer), "strength": None if strength is None else str(strength),
                 "reasons": [{"code": str(c), "sentence": s} for c, s in self.reasons],
