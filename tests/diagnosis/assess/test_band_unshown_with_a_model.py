@@ -40,6 +40,8 @@ def test_a_healthy_valve_whose_band_the_record_does_not_show_is_cannot_tell_nami
     assert _taken_back(doc), doc["verdict"]
     codes = [r["code"] for r in doc["reasons"]]
     assert codes[0] in VALVE_FRICTION and "weak_evidence" in codes, doc["reasons"]
+    claimed = "a valve with a deadband (" if codes[0] == "deadband" else "a sticky valve ("
+    assert doc["reasons"][0]["sentence"].startswith(claimed) and claimed in doc["verdict"], doc["reasons"]
     assert not any(f["physics"] in VALVE_FRICTION for f in doc["findings"])
     assert doc["friction"] is None and doc["strength"] is None
     assert "cannot tell" in doc["verdict"]

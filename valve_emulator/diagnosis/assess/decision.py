@@ -484,13 +484,22 @@ def _contested(valve: Finding, S: float, fits: str, frame: Frame) -> Decision | 
     load = valve.load_delta_bic
     if load is None or load > -CONTEST_BIC:
         return None
-    J = float(valve.parameters.get("J", 0.0))
-    either = (f"either a sticky valve (S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}; {fits}) or a linear "
-              "valve with a slowly drifting load that the controller compensates")
+    either = (f"either {_claimed_valve(valve, S, frame, fits)} or a linear valve with a slowly drifting load that "
+              "the controller compensates")
     better = f"the drifting load explains the record better (ΔBIC {load:.1f} for the valve under that noise model)"
     return Decision(Answer.CANNOT_TELL, "", f"{either}: {better}, so the record cannot tell which",
-                    ((Reason(valve.physics), f"a sticky valve fits: S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}"),
+                    ((Reason(valve.physics), f"{_claimed_valve(valve, S, frame)} fits"),
                      (Reason.WEAK_EVIDENCE, f"a linear valve with a drifting load: {better}")))
+
+
+def _claimed_valve(valve: Finding, S: float, frame: Frame, fits: str = "") -> str:
+    """The valve a friction finding claims, in words: a valve with a deadband (S) or a sticky valve (S and J),
+    with ``fits`` inside the brackets when given."""
+    size = f"S ≈ {_amount(S, frame)}"
+    if valve.physics != "deadband":
+        size += f", J ≈ {_amount(float(valve.parameters.get('J', 0.0)), frame)}"
+    inside = f"{size}; {fits}" if fits else size
+    return f"a valve with a deadband ({inside})" if valve.physics == "deadband" else f"a sticky valve ({inside})"
 
 
 def _healthy_alike(rec: Recording, d: Explanation, valve: Finding, S: float, fits: str, frame: Frame,
@@ -510,13 +519,10 @@ def _healthy_alike(rec: Recording, d: Explanation, valve: Finding, S: float, fit
     unshown = band_unshown(d, valve, noise, frame)
     if unshown is None:
         return None
-    J = float(valve.parameters.get("J", 0.0))
-    sticky = f"a sticky valve (S ≈ {_amount(S, frame)}, J ≈ {_amount(J, frame)}; {fits})"
     healthy = f"only {100 * share:.0f} % of OP's swings cross the band, and {unshown}"
-    return Decision(Answer.CANNOT_TELL, "", f"either {sticky} or a healthy valve answering a wandering load: "
-                    f"{healthy}, so the record cannot tell which",
-                    ((Reason(valve.physics), f"a sticky valve fits: S ≈ {_amount(S, frame)}, J ≈ "
-                                             f"{_amount(J, frame)}"),
+    return Decision(Answer.CANNOT_TELL, "", f"either {_claimed_valve(valve, S, frame, fits)} or a healthy valve "
+                    f"answering a wandering load: {healthy}, so the record cannot tell which",
+                    ((Reason(valve.physics), f"{_claimed_valve(valve, S, frame)} fits"),
                      (Reason.WEAK_EVIDENCE, f"a healthy valve fits too: {healthy}")))
 
 
