@@ -101,7 +101,8 @@ def _replay_nominal(problem: Problem, nominal: Nominal, scorer: Scorer) -> np.nd
     return y0 + X @ coef
 
 
-def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame) -> dict:
+def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame, delay_is_bound: bool) -> dict:
+    """The linear part, nominal against identified (``delay_is_bound``: the dead time is written "≥")."""
     st, fit = model.fit.structure, model.fit
     k = fit.gain * problem.y_scale * frame.gain
     # Per % of flow in % travel; per unit of OP otherwise (the frame's gain carries the map).
@@ -112,8 +113,7 @@ def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame
     return {f"gain, PV per {per}" + (" per s" if st.integrating else ""): (nom_k, f"{k:.4g}"),
             "time constants (s)": (taus(nominal.structure) if nominal.given else "—", taus(st)),
             "dead time (s)": (f"{nominal.delay:.4g}" if nominal.given else "—",
-                              f"≥ {st.delay:.4g}" if not nominal.given and delay_at_end(problem, st.delay)
-                              else f"{st.delay:.4g}"),
+                              f"≥ {st.delay:.4g}" if delay_is_bound else f"{st.delay:.4g}"),
             "integrating": (yes_no(nominal.structure.integrating) if nominal.given else "—", yes_no(st.integrating))}
 
 
@@ -387,12 +387,13 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     found = findings(s.fitter, problem, model, rounds, masks, horizon, nom, frame)
     found = acting_part(problem, model, pv_before, found)
     st = model.fit.structure
+    delay_is_bound = not nom.given and delay_at_end(problem, st.delay)
     plant = {"gain": model.fit.gain * problem.y_scale * frame.gain, "taus": tuple(st.taus), "delay": st.delay,
-             "integrating": st.integrating, "validation": problem.validation,
-             "delay_is_bound": not nom.given and delay_at_end(problem, st.delay)}
+             "integrating": st.integrating, "validation": problem.validation, "delay_is_bound": delay_is_bound}
     return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=_reported_fit(s, base),
                        fit_after=_reported_fit(s, model), findings=found, located=located,
-                       linear=_linear_table(nom, model, problem, frame), ranking=_ranking(rounds, frame),
+                       linear=_linear_table(nom, model, problem, frame, delay_is_bound),
+                       ranking=_ranking(rounds, frame),
                        traces=_traces(s, base, pv_before, test_start, frame),
                        rule=RULE if validation == "split" else RULE_TWOFOLD, seconds=time.perf_counter() - start,
                        plant=plant, fitted=_fitted(s, frame),
@@ -400,6 +401,6 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
                        linear_tests=s.tests + dead_time_move(found, nom.delay, st.delay),
                        identification=None if nom.identification is None else {
                            **nom.identification.as_dict(), "delay_searched": float(problem.delays.max()) * problem.dt,
-                           "delay_is_bound": plant["delay_is_bound"]},
+                           "delay_is_bound": delay_is_bound},
                        valve_alternative=(_valve_alternative(s, frame, least_band)
                                           if least_band is not None and validation == "twofold" else None))
