@@ -7,29 +7,17 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from scipy.signal import lfilter
+from first_order_staircase import NOMINAL, staircase_problem
 
 from valve_emulator.diagnosis.candidates.base import Kind
 from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.cost import bic
-from valve_emulator.diagnosis.fit.data import BURN_CAP, fit_percent, held_out_start, prepare, with_burn_in
+from valve_emulator.diagnosis.fit.data import BURN_CAP, fit_percent, held_out_start, with_burn_in
 from valve_emulator.diagnosis.fit.linear import PRIOR_WIDTH, LinearStructure, fit_one
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.scorer import Scorer, library_burn_in
-from valve_emulator.recordings.recording import Recording
 
 T = 1000
-NOMINAL = Nominal(structure=LinearStructure(taus=(10.0,), delay=2.0), given=True, num=(2.0,), den=(10.0, 1.0))
-
-
-def _problem():
-    """A first-order plant (10 s, gain 2, dead time 2 s) driven by a random staircase, a little noise."""
-    rng = np.random.default_rng(3)
-    op = np.repeat(rng.uniform(30.0, 70.0, T // 25), 25)
-    a = np.exp(-0.1)
-    pv = lfilter([0.0, 0.0, 0.0, 2.0 * (1.0 - a)], [1.0, -a], op - 50.0) + rng.normal(0.0, 0.05, T)
-    rec = Recording(np.arange(T, dtype=float), None, op, None, pv, source="mem.csv")
-    return prepare(rec, nominal_delay=2.0, settle_time=40.0)
 
 
 def _claims(n: int):
@@ -39,7 +27,7 @@ def _claims(n: int):
 
 
 def test_the_fit_part_starts_after_the_longest_burn_in_a_candidate_claims():
-    problem = _problem()
+    problem = staircase_problem(T)
     w0, w1 = problem.train
     assert w1 == held_out_start(T)
     short, long_ = _claims(w0 - 10), _claims(w0 + 100)
@@ -51,12 +39,12 @@ def test_the_fit_part_starts_after_the_longest_burn_in_a_candidate_claims():
 
 
 def test_a_burn_in_claim_is_capped_at_a_fixed_share_of_the_record():
-    problem = _problem()
+    problem = staircase_problem(T)
     assert with_burn_in(problem, T).train == (int(BURN_CAP * T), problem.train[1])
 
 
 def test_bic_counts_the_linear_part_a_free_dead_time_and_each_candidates_parameters_once():
-    problem = _problem()
+    problem = staircase_problem(T)
     scorer = Scorer(problem, NOMINAL, {})
     flow = problem.op.copy()
     fit = fit_one(flow, problem.y, problem.train, NOMINAL.structure, problem.dt)
@@ -72,16 +60,16 @@ def test_bic_counts_the_linear_part_a_free_dead_time_and_each_candidates_paramet
 
 
 def test_the_prior_between_pole_sets_is_the_squared_log_distance_to_the_nominal_poles_in_widths():
-    scorer = Scorer(_problem(), NOMINAL, {})
+    scorer = Scorer(staircase_problem(T), NOMINAL, {})
     assert scorer.prior_penalty(LinearStructure(taus=(10.0 * np.exp(2 * PRIOR_WIDTH),))) == pytest.approx(4.0)
     assert scorer.prior_penalty(LinearStructure(taus=(10.0,))) == 0.0
     assert scorer.prior_penalty(LinearStructure(taus=(5.0, 10.0))) == 0.0   # another order: not comparable
     identified = Nominal(structure=NOMINAL.structure, given=False)
-    assert Scorer(_problem(), identified, {}).prior_penalty(LinearStructure(taus=(40.0,))) == 0.0
+    assert Scorer(staircase_problem(T), identified, {}).prior_penalty(LinearStructure(taus=(40.0,))) == 0.0
 
 
 def test_dead_times_near_a_value_stay_on_the_problems_grid():
-    problem = _problem()
+    problem = staircase_problem(T)
     scorer = Scorer(problem, NOMINAL, {})
     lo, hi = int(problem.delays.min()), int(problem.delays.max())
     assert scorer.near(3.0, 2).tolist() == [max(lo, 1), 2, 3, 4, 5]
@@ -89,7 +77,7 @@ def test_dead_times_near_a_value_stay_on_the_problems_grid():
 
 
 def test_jobs_the_linear_fit_cannot_tell_apart_are_scored_once_with_the_numbers_of_each_alone(monkeypatch):
-    problem = _problem()
+    problem = staircase_problem(T)
     scorer = Scorer(problem, NOMINAL, {})
     aim = scorer.aim(None)
     rng = np.random.default_rng(5)

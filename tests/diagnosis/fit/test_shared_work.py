@@ -7,32 +7,17 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scipy.signal import lfilter
+from first_order_staircase import NOMINAL, staircase_problem
 
 from valve_emulator.diagnosis.candidates import get
 from valve_emulator.diagnosis.candidates.base import ChainContext
 from valve_emulator.diagnosis.candidates.valve_start import valve_output
 from valve_emulator.diagnosis.fit.backfit import backfit, backfit_sse
 from valve_emulator.diagnosis.fit.chain import run_chain
-from valve_emulator.diagnosis.fit.data import prepare
 from valve_emulator.diagnosis.fit.linear import LinearStructure
-from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
-from valve_emulator.recordings.recording import Recording
 
 T = 1200
-NOMINAL = Nominal(structure=LinearStructure(taus=(10.0,), delay=2.0), given=True, num=(2.0,), den=(10.0, 1.0))
-
-
-def _problem():
-    """A first-order plant (10 s, gain 2, dead time 2 s) driven by a random staircase, a sinusoidal load."""
-    rng = np.random.default_rng(3)
-    op = np.repeat(rng.uniform(30.0, 70.0, T // 25), 25)
-    a = np.exp(-0.1)
-    load = 0.8 * np.sin(2.0 * np.pi * np.arange(T) / 90.0)
-    pv = lfilter([0.0, 0.0, 0.0, 2.0 * (1.0 - a)], [1.0, -a], op - 50.0) + load + rng.normal(0.0, 0.05, T)
-    rec = Recording(np.arange(T, dtype=float), None, op, None, pv, source="mem.csv")
-    return prepare(rec, nominal_delay=2.0, settle_time=40.0)
 
 
 @pytest.mark.parametrize("name, prefilter, delays", [
@@ -42,7 +27,7 @@ def _problem():
     ("quantization", 0.97, None),
 ])
 def test_the_quick_backfits_score_is_the_backfits_sse(name, prefilter, delays):
-    problem = _problem()
+    problem = staircase_problem(T, load=0.8)
     cand = get(name)
     scorer = Scorer(problem, NOMINAL, {})
     flow = scorer.chain({}, scorer.ctx(None))[:, 0]
@@ -75,7 +60,7 @@ def test_the_chains_tail_on_a_travel_scale_is_travel_clip_and_back_bit_for_bit()
 
 
 def test_one_grid_scored_for_two_cost_domains_has_the_numbers_of_each_alone():
-    problem = _problem()
+    problem = staircase_problem(T, load=0.8)
     own = Scorer(problem, NOMINAL, {})
     through = Scorer(replace(problem, prefilter=0.97), NOMINAL, {})
     stiction = get("stiction")
