@@ -559,8 +559,9 @@ def before_part(problem: Problem, start: int, *models: Model) -> tuple[int, int]
 
 
 def _settle_samples(dt: float, structure) -> int:
-    """Samples a linear part takes to forget its initial state: its dead time and five of its longest time
-    constant (real poles and the nominal model's fixed ones), as the data's own burn-in counts it."""
+    """Samples a linear part takes to forget its initial state: its dead time and five times its slowest time
+    constant (real poles and the nominal model's fixed ones), plus the four samples the data's burn-in adds to a
+    dead time (:func:`~valve_emulator.diagnosis.fit.data.prepare`; its settling time is four time constants)."""
     taus = [*structure.taus, *(1.0 / abs(p.real) for p in structure.fixed_poles if p.real != 0.0)]
     return int(np.ceil((structure.delay + 5.0 * max(taus, default=0.0)) / dt)) + 4
 
