@@ -34,6 +34,19 @@ _REALTIME = {
 }
 
 
+def pytest_configure(config):
+    """One numba thread per pytest-xdist worker when the workers already fill the cores (``.ci/run``'s two on
+    two), as a plant-wide sweep's worker processes have (:mod:`valve_emulator.batch.pool`): two threads per
+    worker would only queue behind the other worker (measured 2026-11-27: the first phase 477 s against 499-521 s
+    with two). The diagnosis' documents are the same with one thread or two, and the threaded path keeps its own
+    test (tests/diagnosis/test_kernel_threads.py sets two threads and compares a diagnosis bit for bit)."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1 and workers >= len(os.sched_getaffinity(0)):
+        import numba
+
+        numba.set_num_threads(1)
+
+
 def pytest_collection_modifyitems(items):
     for item in items:
         where = os.path.relpath(str(item.path), _HERE)

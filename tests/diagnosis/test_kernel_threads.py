@@ -73,3 +73,44 @@ def test_a_split_inside_a_split_runs_its_ranges_in_the_thread_of_the_outer_range
     assert sorted(r[:2] for r in seen) == [(0, 20), (20, 40), (40, 60), (60, 80)]
     assert all(r[2] for r in seen)
     assert workers_for(10 * MIN_PER_WORKER) == min(numba.get_num_threads(), 10)   # outside a split again
+
+
+def _diagnose_counting_pool_ranges(monkeypatch, threads: int):
+    """A proof case's diagnosis with its model under ``threads`` numba threads, and how many ranges of a split ran
+    outside the calling thread."""
+    import valve_emulator as ve
+    from valve_emulator.benchmark.cases import CASES, generate
+    from valve_emulator.diagnosis import _threads
+
+    pooled = []
+    inner = _threads._in_split
+
+    def counting(work, a, b):
+        if threading.current_thread() is not threading.main_thread():
+            pooled.append((a, b))
+        inner(work, a, b)
+
+    monkeypatch.setattr(_threads, "_in_split", counting)
+    rec, nominal, _ = generate(CASES[0])
+    before = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        d = ve.diagnose(rec, nominal)
+    finally:
+        numba.set_num_threads(before)
+    e = d.explanation
+    exact = ([repr(f.parameters) + repr(f.intervals) for f in e.findings],
+             [repr(r.delta_bic) + repr(r.heldout) for r in e.ranking], repr(e.plant))
+    return d.to_json(), exact, len(pooled)
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="numba launched one thread on this machine")
+def test_a_diagnosis_split_over_two_threads_is_the_one_thread_diagnosis_bit_for_bit(monkeypatch):
+    """The grid's chunks and the valves' replays split over the cores sum in a fixed order: the document and the
+    full-precision numbers behind it do not depend on how many threads ran them (CI's test workers run one each)."""
+    one, one_exact, one_pooled = _diagnose_counting_pool_ranges(monkeypatch, 1)
+    two, two_exact, two_pooled = _diagnose_counting_pool_ranges(monkeypatch, 2)
+    assert one_pooled == 0
+    assert two_pooled > 0, "with two threads the diagnosis hands ranges to the pool"
+    assert two_exact == one_exact
+    assert two == one
