@@ -117,10 +117,13 @@ class Diagnosis:
     @property
     def findings(self) -> tuple[Finding, ...]:
         """What the model leaves out, in agreement with the answer: a valve-friction finding only under a
-        stiction answer (a band inside OP noise, or a call the record cannot tell, is said in the reasons)."""
+        stiction answer (a band inside OP noise, or a call the record cannot tell, is said in the reasons), first
+        the one the answer rests on when the final model does not hold it (the search's valve alternative on a
+        regularly cycling loop, :attr:`Assessment.friction <valve_emulator.diagnosis.assess.result.Assessment>`)."""
         found = () if self.explanation is None else self.explanation.findings
         if self.answer is Answer.STICTION:
-            return found
+            alternative = None if self.assessment is None else self.assessment.friction
+            return found if alternative is None else (alternative,) + found
         return tuple(f for f in found if f.physics not in VALVE_FRICTION)
 
     @property
