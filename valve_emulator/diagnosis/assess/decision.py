@@ -95,6 +95,12 @@ run on each loop:
      answer does not rest on that noise model and stands: asking the valve there too would have contested
      13 right answers on the independent simulator's healthy loops (aggressive PI, slow noisy valves, coarse
      A/D) for 3 wrong ones (``docs/diagnosis.md``).
+     When, besides, the loop oscillates regularly (:func:`cycling`) and the valve explains PV *better* by ΔBIC ≥
+     :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`, the answer is a weak ``stiction`` call resting on
+     that valve, with its S, J and 95 % intervals (:func:`_cycling_valve`): a limit cycle and a valve that explains
+     it is what a sticky valve makes, and of the independent simulator's 32 healthy level loops (plant data) only
+     one cycles regularly; 3 of the 40 sticky level loops of the property test were such loops answered ``cannot
+     tell``, and no other of its 174 plant-data draws changed (2026-11-27).
 
    The decision names no candidate: the causes come from the registry (their ``cause_rank``, a ``period``
    parameter), the tuning test is the registered candidate judged on the loop (``Kind.LOOP``).
