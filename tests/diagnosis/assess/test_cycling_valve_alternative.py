@@ -81,3 +81,4 @@ def test_a_cycling_sticky_level_loop_the_search_left_without_a_valve_is_called_s
     assert abs(S["value"] / truth["S"] - 1.0) < 0.25, (S, truth["S"])
     assert S["interval"][0] <= truth["S"] <= S["interval"][1], (S, truth["S"])
     assert [f["physics"] for f in doc["findings"] if f["physics"] in VALVE_FRICTION] == [doc["friction"]["physics"]]
+    assert "the search tried and did not keep" in d.report()   # the model below it is the search's, without it
