@@ -382,10 +382,10 @@ def _cycling_valve(named: Decision, valve: ValveAlternative, frame: Frame, ad: A
         weak += f" (without it the answer would have been: {named.reasons[0][1]})"
     reason = (f"{kind}, S ≈ {_amount(valve.S, frame)}, J ≈ {_amount(valve.J, frame)} ({iv}): {why}; weak evidence: "
               f"{weak}")
-    return Decision(Answer.STICTION, valve.physics, reason,
-                    ((Reason(valve.physics), reason), (Reason.WEAK_EVIDENCE, weak)),
-                    S=valve.S, J=valve.J, intervals=ivs, tuning=named.tuning, friction=_alternative_finding(valve,
-                                                                                                           frame, why))
+    return Decision(Answer.STICTION, valve.physics, reason, ((Reason(valve.physics), reason),
+                                                             (Reason.WEAK_EVIDENCE, weak)),
+                    S=valve.S, J=valve.J, intervals=ivs, tuning=named.tuning,
+                    friction=_alternative_finding(valve, frame, why))
 
 
 def _alternative_finding(valve: ValveAlternative, frame: Frame, why: str) -> Finding:
@@ -393,7 +393,7 @@ def _alternative_finding(valve: ValveAlternative, frame: Frame, why: str) -> Fin
     ``friction`` and ``findings``): its S and J, their intervals and why it is named."""
     units = " %" if frame.units == TRAVEL else f" {frame.units}"
     params = {"S": valve.S} if valve.physics == "deadband" else {"S": valve.S, "J": valve.J}
-    p = np.array([valve.S, valve.J, 0.0]) if valve.physics != "deadband" else np.array([valve.S, 0.0])
+    p = np.array([params.get(name, 0.0) for name in get(valve.physics).param_names])
     return Finding(physics=valve.physics, parameters=params, windows=(), evidence=why,
                    description=f"{get(valve.physics).describe(p, None, units=units)}, the valve the search tried and "
                                "did not keep", intervals=dict(valve.intervals), load_delta_bic=valve.load_delta_bic)
