@@ -36,18 +36,22 @@ def _found() -> int:
     return sum(d.doc["answer"] == "stiction" for d in diagnosed_all(LEVEL))
 
 
-@pytest.mark.xfail(strict=True, reason="measured 29 of 40 (27 before a dead time on the grid's end widened the grid; "
-                   "22 while the search holding an integrator also had to predict held-out PV itself no worse; 19 "
-                   "before that search existed): on the rest no search finds the valve (a disturbance, a flow limit or "
-                   "a characteristic instead, or nothing), or a valve alternative explains PV better under the "
-                   "drifting-load model and the answer is cannot tell; three of the 11 misses have a plant lag of "
-                   "7-10 s, which a first-order plant with a dead time of half the cycle stands in for)")
+_MISSES = ("measured 32 of 40 (29 before a loop that cycles regularly, whose valve alternative explains PV better "
+           "under the drifting-load model, was called on that valve; 27 before a dead time on the grid's end widened "
+           "the grid; 19 before the search holding an integrator): of the 8 misses, 3 do not cycle regularly (cannot "
+           "tell, or a characteristic), 3 are answered tuning through a first-order plant whose dead time stands in "
+           "for half the limit cycle, 1 has a valve alternative only about as good (ΔBIC 8) and 1 a band the "
+           "drifting load explains better")
+
+
+@pytest.mark.xfail(strict=True, reason=_MISSES)
 def test_stiction_is_found_in_nine_loops_of_ten():
     found = _found()
     assert found >= 0.9 * len(LEVEL), f"stiction found in {found} of {len(LEVEL)}"
 
 
 def test_stiction_is_found_in_most_loops():
-    """A floor under the rate measured (29 of 40), so that a change that loses level loops again is seen."""
+    """A floor one draw under the rate measured (32 of 40), so that a change that loses level loops again is
+    seen."""
     found = _found()
-    assert found >= 27, f"stiction found in {found} of {len(LEVEL)}"
+    assert found >= 31, f"stiction found in {found} of {len(LEVEL)}"

@@ -95,6 +95,12 @@ run on each loop:
      answer does not rest on that noise model and stands: asking the valve there too would have contested
      13 right answers on the independent simulator's healthy loops (aggressive PI, slow noisy valves, coarse
      A/D) for 3 wrong ones (``docs/diagnosis.md``).
+     When, besides, the loop oscillates regularly (:func:`cycling`) and the valve explains PV *better* by ΔBIC ≥
+     :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`, the answer is a weak ``stiction`` call resting on
+     that valve, with its S, J and 95 % intervals (:func:`_cycling_valve`): a limit cycle and a valve that explains
+     it is what a sticky valve makes, and of the independent simulator's 32 healthy level loops (plant data) only
+     one cycles regularly; 3 of the 40 sticky level loops of the property test were such loops answered ``cannot
+     tell``, and no other of its 174 plant-data draws changed (2026-11-27).
 
    The decision names no candidate: the causes come from the registry (their ``cause_rank``, a ``period``
    parameter), the tuning test is the registered candidate judged on the loop (``Kind.LOOP``).
@@ -170,6 +176,8 @@ class Decision:
         band inside OP noise).
     S, J, intervals : the valve band and jump, and their 95 % intervals, for a stiction answer.
     tuning : the loop's tuning judgement, when it was made.
+    friction : the valve-friction finding a stiction answer rests on when the final model does not hold it (the
+        search's valve alternative, :func:`_cycling_valve`); None otherwise.
     """
 
     answer: Answer
@@ -180,6 +188,7 @@ class Decision:
     J: float | None = None
     intervals: dict = field(default_factory=dict)
     tuning: TuningAssessment | None = None
+    friction: Finding | None = None
 
 
 def _searched(op: np.ndarray, frame: Frame) -> list[str]:
@@ -284,7 +293,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
                            "stiction shown")
         fits += (f"; a free run misses a drifting load, but under a drifting-load noise model the model explains "
                  f"PV (ΔBIC {load:.1f} against the load alone)")
-        return _valve_contest(_cause(d, ad, tune, fits, small), d.valve_alternative, frame)
+        return _valve_contest(_cause(d, ad, tune, fits, small), d.valve_alternative, frame, ad)
     return _cause(d, ad, tune, fits, small)
 
 
@@ -323,12 +332,17 @@ def _cause(d: Explanation, ad: Adequacy, tune: TuningAssessment | None, fits: st
                     ((Reason.LINEAR, "a linear valve and plant explain the loop"),), tuning=tune)
 
 
-def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame) -> Decision:
+def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame, ad: Adequacy) -> Decision:
     """``cannot tell``, naming both, when the best valve the search tried (with a band beyond OP noise) explains
     PV at least as well as the final model under the drifting-load noise model (its BIC not
-    :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` worse); else the ``named`` cause stands."""
+    :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` worse); a weak ``stiction`` call resting on that
+    valve when, besides, the loop oscillates regularly and the valve explains PV better by at least
+    :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (:func:`_cycling_valve`); else the ``named`` cause
+    stands."""
     if valve is None or valve.load_delta_bic <= -DELTA_BIC:
         return named
+    if cycling(ad.facts) and valve.load_delta_bic >= DELTA_BIC and valve.intervals:
+        return _cycling_valve(named, valve, frame, ad)
     sticky = f"a sticky valve (S ≈ {_amount(valve.S, frame)}, J ≈ {_amount(valve.J, frame)})"
     own = next(((code, text) for code, text in named.reasons if code is not Reason.SMALL_BAND),
                (Reason.LINEAR, "a linear valve and plant explain the loop"))
@@ -339,6 +353,50 @@ def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame
                     f"worse than their mean, and {why}, so the record cannot tell which",
                     (own, (Reason(valve.physics), f"{sticky} fits too: {why}")),
                     tuning=named.tuning)
+
+
+def _cycling_valve(named: Decision, valve: ValveAlternative, frame: Frame, ad: Adequacy) -> Decision:
+    """A weak ``stiction`` call resting on the valve the search tried and did not keep (``valve``), on a loop that
+    oscillates regularly and whose final model, with no valve friction, predicts held-out PV worse than their mean
+    while the valve explains PV better under the drifting-load noise model by ΔBIC ≥
+    :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (the findings' own threshold).
+
+    Why a call and not ``cannot tell``: a sticky valve under a PI makes a limit cycle (:func:`cycling`), and on a
+    level loop a search on held-out free-run fit need not keep the valve, since no integrator's free run follows
+    a wandering load, valve or not; the one view that treats both alike is the drifting-load one, and there the
+    valve explains PV clearly better than the model that has none. A healthy valve's record does not make both
+    signs at once: measured on the independent simulator (2026-11-27, plant data), of the 32 healthy level loops
+    one oscillates regularly (and is called stiction by the search itself), while 3 of the 11 sticky level loops
+    the answer missed are such loops. Weak, because the valve did not buy held-out fit; its S and J are the
+    option's, with 95 % intervals made as an accepted finding's (the profile of the option's cost, jackknifed
+    over blocks of the record; :attr:`~valve_emulator.diagnosis.explain.result.ValveAlternative.intervals`)."""
+    ivs = {k: v for k, v in valve.intervals.items() if k in ("S", "J")}
+    iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
+    r = ad.facts.get("regularity", float("nan"))
+    kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
+    why = (f"the loop oscillates regularly (regularity r = {r:.2f} > 1), as a sticky valve's limit cycle does, and "
+           f"under a drifting-load noise model the valve explains PV better than the model found without it (ΔBIC "
+           f"{valve.load_delta_bic:.1f} ≥ {DELTA_BIC:g})")
+    weak = "the search did not keep the valve: it buys no held-out fit"
+    if named.reasons:
+        weak += f" (without it the answer would have been: {named.reasons[0][1]})"
+    reason = (f"{kind}, S ≈ {_amount(valve.S, frame)}, J ≈ {_amount(valve.J, frame)} ({iv}): {why}; weak evidence: "
+              f"{weak}")
+    return Decision(Answer.STICTION, valve.physics, reason, ((Reason(valve.physics), reason),
+                                                             (Reason.WEAK_EVIDENCE, weak)),
+                    S=valve.S, J=valve.J, intervals=ivs, tuning=named.tuning,
+                    friction=_alternative_finding(valve, frame, why))
+
+
+def _alternative_finding(valve: ValveAlternative, frame: Frame, why: str) -> Finding:
+    """The valve friction a call on the search's valve alternative rests on, as a finding (for the answer's
+    ``friction`` and ``findings``): its S and J, their intervals and why it is named."""
+    units = " %" if frame.units == TRAVEL else f" {frame.units}"
+    params = {"S": valve.S} if valve.physics == "deadband" else {"S": valve.S, "J": valve.J}
+    p = np.array([params.get(name, 0.0) for name in get(valve.physics).param_names])
+    return Finding(physics=valve.physics, parameters=params, windows=(), evidence=why,
+                   description=f"{get(valve.physics).describe(p, None, units=units)}, the valve the search tried and "
+                               "did not keep", intervals=dict(valve.intervals), load_delta_bic=valve.load_delta_bic)
 
 
 def _tuning_decision(tune: TuningAssessment, also: str, fits: str,
@@ -718,10 +776,10 @@ def _assess_once(rec: Recording, notes: tuple[str, ...], progress: Callable[[str
     # contradicts the answer.
     others = tuple((Reason(f.physics), f.description) for f in d.findings if f.physics not in named
                    and (decided.answer is Answer.STICTION or f.physics not in VALVE_FRICTION))
-    valve = _valve(d.findings)
+    valve = decided.friction or _valve(d.findings)
     return Assessment(source=src, decision=decided.answer, cause=decided.cause, reason=decided.reason,
                       reasons=decided.reasons + others, S=decided.S, J=decided.J, intervals=decided.intervals,
                       tuning=decided.tuning, explanation=d, adequacy=ad, notes=notes, op_noise=noise,
                       band=None if valve is None else float(valve.parameters["S"]),
                       load_delta_bic=None if valve is None else valve.load_delta_bic, frame=frame,
-                      seconds=time.perf_counter() - start)
+                      friction=decided.friction, seconds=time.perf_counter() - start)

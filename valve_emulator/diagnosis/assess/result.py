@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from valve_emulator.diagnosis.answers import Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.adequacy import Adequacy
 from valve_emulator.diagnosis.candidates.tuning import TuningAssessment
-from valve_emulator.diagnosis.explain.result import Explanation
+from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.diagnosis.fit.frame import Frame
 
@@ -45,6 +45,8 @@ class Assessment:
     load_delta_bic : that valve friction's ΔBIC under a drifting-load noise model (None: none accepted).
     frame : how OP was mapped into the search's frame, and OP's units and travel span (None when the data
         could not support a model).
+    friction : the valve-friction finding a stiction answer rests on when the explanation's final model does not
+        hold it (the search's valve alternative on a regularly cycling loop); None otherwise.
     seconds : wall time.
     """
 
@@ -64,6 +66,7 @@ class Assessment:
     band: float | None = None
     load_delta_bic: float | None = None
     frame: Frame | None = None
+    friction: Finding | None = None
     seconds: float = 0.0
 
     @property

@@ -183,12 +183,17 @@ class ValveAlternative:
     physics : ``stiction`` or ``deadband``.
     S, J : the band and jump in OP's units (J = 0 for a deadband).
     load_delta_bic : BIC of the final model minus BIC of the option, under the drifting-load noise model.
+    intervals : 95 % intervals of ``S`` and ``J`` (OP's units), made as an accepted finding's are (the profile of
+        the option's cost over its band and jump, jackknifed over blocks of the record), when the option explains
+        PV better than the final model (``load_delta_bic`` ≥ the findings' ΔBIC) and the final model has no valve
+        friction: the only case in which the answer can rest on it; empty otherwise.
     """
 
     physics: str
     S: float
     J: float
     load_delta_bic: float
+    intervals: dict = field(default_factory=dict)
 
 
 def verdict(findings: tuple[Finding, ...], fit_before: float, fit_after: float, *, given: bool) -> str:

@@ -117,10 +117,13 @@ class Diagnosis:
     @property
     def findings(self) -> tuple[Finding, ...]:
         """What the model leaves out, in agreement with the answer: a valve-friction finding only under a
-        stiction answer (a band inside OP noise, or a call the record cannot tell, is said in the reasons)."""
+        stiction answer (a band inside OP noise, or a call the record cannot tell, is said in the reasons), first
+        the one the answer rests on when the final model does not hold it (the search's valve alternative on a
+        regularly cycling loop, :attr:`Assessment.friction <valve_emulator.diagnosis.assess.result.Assessment>`)."""
         found = () if self.explanation is None else self.explanation.findings
         if self.answer is Answer.STICTION:
-            return found
+            alternative = None if self.assessment is None else self.assessment.friction
+            return found if alternative is None else (alternative,) + found
         return tuple(f for f in found if f.physics not in VALVE_FRICTION)
 
     @property
@@ -248,10 +251,20 @@ class Diagnosis:
         text = (self.assessment or self.explanation).report(figure=figure)
         strength = "" if self.strength is None else f" ({self.strength} evidence)"
         lines = [f"**Action:** {self.action.words}.", "", f"- answer: {self.answer.words}{strength}",
-                 f"- {self.oscillation.words}", *(f"- note: {n}" for n in self.notes)]
+                 f"- {self.oscillation.words}", *self._left_valve(), *(f"- note: {n}" for n in self.notes)]
         head, sep, rest = text.partition("\n\n")         # the title, then the answer's (or verdict's) paragraph
         answer, sep2, rest = rest.partition("\n\n")
         return head + sep + answer + sep2 + "\n".join(lines) + "\n\n" + rest
+
+    def _left_valve(self) -> tuple[str, ...]:
+        """The report's line for a friction finding the answer rests on that the search's final model does not
+        hold (the model, fits and findings below are the search's, without it)."""
+        f = None if self.assessment is None else self.assessment.friction
+        if f is None or self.answer is not Answer.STICTION:
+            return ()
+        ivs = "; ".join(f"{k} 95 % {a:.3g}–{b:.3g}" for k, (a, b) in f.intervals.items())
+        return (f"- friction: {f.description} ({ivs}); the model, fits and findings below are the search's, "
+                "without it",)
 
     def plot(self, path: str | os.PathLike, *, title: str | None = None) -> None:
         """Write the figure (PNG): the raw OP/PV trend, the phase plot, the answer with its oscillation summary
