@@ -82,3 +82,24 @@ def test_a_cycling_sticky_level_loop_the_search_left_without_a_valve_is_called_s
     assert S["interval"][0] <= truth["S"] <= S["interval"][1], (S, truth["S"])
     assert [f["physics"] for f in doc["findings"] if f["physics"] in VALVE_FRICTION] == [doc["friction"]["physics"]]
     assert "the search tried and did not keep" in d.report()   # the model below it is the search's, without it
+
+
+@pytest.mark.slow
+def test_the_twin_of_a_call_on_the_valve_the_search_left_sticks_and_replays_as_that_valve_fits(
+        sticky_cycling_level_loop):
+    """The answer rests on the valve the search tried and did not keep, so the twin is written from that option's
+    model: its valve has the answer's band and jump, and its open-loop replay of the recorded OP is that model's
+    free run (within 2 points of fit over the whole record), not the frictionless final model's."""
+    from valve_emulator.diagnosis.fit.data import fit_percent
+    from valve_emulator.simulation.replay import replay_op
+
+    d, _ = sticky_cycling_level_loop
+    twin = d.twin()
+    friction = d.to_json()["friction"]
+    assert twin.config.valve.S == pytest.approx(friction["S"]["value"], rel=1e-4)
+    assert twin.config.valve.J == pytest.approx(friction["J"]["value"], rel=1e-4)
+    pv = np.asarray(d.recording.pv, dtype=float)
+    fitted = d.explanation.valve_alternative.fitted
+    replayed = replay_op(twin.config, d.recording).pv
+    assert abs(fit_percent(pv, replayed) - fit_percent(pv, fitted.predict(d.recording.op))) < 2.0
+    assert "stiction found by the diagnosis" in "\n".join(twin.provenance)

@@ -315,9 +315,10 @@ def _traces(s: Searched, base: Model, pv_before: np.ndarray, test_start: int, fr
                   surface_load_model=surface_load_model)
 
 
-def _fitted(s: Searched, frame: Frame) -> FittedLoop:
-    """The final model as a loop that replays any OP."""
-    problem, model, nom = s.problem, s.model, s.nominal
+def _fitted(s: Searched, frame: Frame, model: Model | None = None) -> FittedLoop:
+    """The final model (or another ``model`` of the search) as a loop that replays any OP."""
+    problem, nom = s.problem, s.nominal
+    model = s.model if model is None else model
     return FittedLoop(active=model.by_slot(), nominal_valve=(nom.S, nom.J), ctx=s.fitter.scorer.ctx(None),
                       linear=model.fit, level=float(np.mean(model.flow)), record_length=problem.T, op=problem.op,
                       frame=None if frame.identity else frame)
@@ -336,12 +337,14 @@ def _valve_alternative(s: Searched, frame: Frame, least_band: float) -> ValveAlt
     model, act, params = min(sized, key=lambda x: x[0].bic)
     load = load_delta_bic(s.fitter.scorer, s.model, model)
     frictionless = not any(a.candidate.slot == "valve" and "S" in a.candidate.param_names for a in s.model.active)
-    ivs = {}
-    if load >= DELTA_BIC and frictionless:   # the answer may rest on it: its intervals as a finding's
-        own, _ = _intervals(s.fitter, s.problem, model, act, act.candidate.parameters(act.params))
-        ivs = {k: v for k, v in frame.convert(act.candidate.dims, own).items() if k in ("S", "J")}
+    if not (load >= DELTA_BIC and frictionless):
+        return ValveAlternative(physics=act.name, S=float(params["S"]), J=float(params.get("J", 0.0)),
+                                load_delta_bic=load)
+    # the answer may rest on it: its intervals as a finding's, and its model for the twin
+    own, _ = _intervals(s.fitter, s.problem, model, act, act.candidate.parameters(act.params))
+    ivs = {k: v for k, v in frame.convert(act.candidate.dims, own).items() if k in ("S", "J")}
     return ValveAlternative(physics=act.name, S=float(params["S"]), J=float(params.get("J", 0.0)),
-                            load_delta_bic=load, intervals=ivs)
+                            load_delta_bic=load, intervals=ivs, fitted=_fitted(s, frame, model))
 
 
 def explain(recording: Recording, nominal: LoopConfig | None = None, *,

@@ -187,6 +187,8 @@ class ValveAlternative:
         the option's cost over its band and jump, jackknifed over blocks of the record), when the option explains
         PV better than the final model (``load_delta_bic`` ≥ the findings' ΔBIC) and the final model has no valve
         friction: the only case in which the answer can rest on it; empty otherwise.
+    fitted : the option's model as a loop that replays any OP, in that same case (the twin of an answer resting
+        on it is written from it); None otherwise.
     """
 
     physics: str
@@ -194,6 +196,7 @@ class ValveAlternative:
     J: float
     load_delta_bic: float
     intervals: dict = field(default_factory=dict)
+    fitted: FittedLoop | None = None
 
 
 def verdict(findings: tuple[Finding, ...], fit_before: float, fit_after: float, *, given: bool) -> str:

@@ -24,6 +24,7 @@ from valve_emulator.diagnosis.assess.decision import Decision, answer_with_model
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.explain.result import Explanation, Finding
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, robust_range
+from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.diagnosis.report.twin import Twin, twin
 from valve_emulator.recordings.recording import Recording
 
@@ -207,16 +208,34 @@ class Diagnosis:
         return next((f for f in self.findings if f.physics in VALVE_FRICTION), None)
 
     # -- the fitted model -----------------------------------------------------------------------------------
+    @property
+    def fitted(self) -> FittedLoop | None:
+        """The model the answer rests on, as a loop that replays any OP: the search's final model, or, where a
+        stiction answer rests on the valve the search tried and did not keep (a regularly cycling loop whose
+        final model has no friction: :attr:`Assessment.friction <valve_emulator.diagnosis.assess.result.
+        Assessment>`), that option's model, so that :meth:`predict` and the :meth:`twin` stick as the answer
+        says. None when no model was fitted."""
+        e = self.explanation
+        if e is None:
+            return None
+        alternative = e.valve_alternative
+        if self.answer is Answer.STICTION and self.assessment is not None and self.assessment.friction is not None \
+                and alternative is not None and alternative.fitted is not None:
+            return alternative.fitted
+        return e.fitted
+
     def predict(self, op) -> np.ndarray:
-        """Free-run PV (engineering units) of the fitted loop — linear part plus the found physics — for the
+        """Free-run PV (engineering units) of :attr:`fitted` — linear part plus the found physics — for the
         controller output ``op`` (% travel, sampled at the recording's step).
 
-        On the recorded OP it is the prediction whose held-out fit is :attr:`fit_after`.
+        On the recorded OP it is the prediction whose held-out fit is :attr:`fit_after`, unless the answer rests
+        on a valve the search did not keep (:attr:`fitted`; the report says so).
         """
-        if self.explanation is None:
+        fitted = self.fitted
+        if fitted is None:
             reason = "" if self.assessment is None else f" ({self.assessment.reason})"
             raise ValueError(f"{self.source}: no model was fitted: the data could not support one{reason}")
-        return self.explanation.predict(op)
+        return fitted.predict(op)
 
     def twin(self, *, name: str | None = None) -> Twin:
         """The loop this diagnosis found as a loop config, with a header saying where each number came from

@@ -272,10 +272,10 @@ def _finding_text(diagnosis, physics: str) -> str:
     return f" (95 % intervals in OP's units: {ivs})" if ivs else ""
 
 
-def _valve(diagnosis, model: LoopConfig | None, op: np.ndarray, travel: TwinTravel
+def _valve(diagnosis, fitted: FittedLoop, model: LoopConfig | None, op: np.ndarray, travel: TwinTravel
            ) -> tuple[ValveConfig, list[str]]:
-    """The valve section (``op``: the recorded OP in the twin's travel) and its provenance."""
-    fitted, rec, frame = diagnosis.explanation.fitted, diagnosis.recording, diagnosis.frame
+    """The valve section of ``fitted`` (``op``: the recorded OP in the twin's travel) and its provenance."""
+    rec, frame = diagnosis.recording, diagnosis.frame
     ctx = fitted.ctx
     if frame.known:
         lines = [f"valve.op_range: the recording's OP at 0 and 100 % travel ({frame.span_source}); OP, S, J, "
@@ -336,24 +336,27 @@ def _flow_limits(fitted: FittedLoop) -> tuple[float, float]:
     return max(0.0, flow["lo"]), min(100.0, flow["hi"])
 
 
-def _plant_section(diagnosis, model: LoopConfig | None, pv_units: str, travel: TwinTravel
-                   ) -> tuple[PlantConfig, list[str]]:
-    """The plant section (before the replay's operating-point shift) and its provenance."""
+def _plant_section(diagnosis, fitted: FittedLoop, pv_fitted: np.ndarray, model: LoopConfig | None, pv_units: str,
+                   travel: TwinTravel) -> tuple[PlantConfig, list[str]]:
+    """The plant section of ``fitted`` (``pv_fitted``: its free run on the recording; before the replay's
+    operating-point shift) and its provenance."""
     explanation, rec = diagnosis.explanation, diagnosis.recording
-    fitted = explanation.fitted
+    which = ("the final model" if fitted is explanation.fitted else
+             "the model the answer rests on (the search's option with the valve, not kept)")
     ctx, st = fitted.ctx, fitted.linear.structure
     num, den = _plant(fitted, travel)
     pv0, u0 = _operating_point(fitted, travel)
     w0 = ctx.window[0]
-    noise = float(np.sqrt(np.mean((explanation.traces.pv[w0:] - explanation.traces.pv_after[w0:]) ** 2)))
+    noise = float(np.sqrt(np.mean((explanation.traces.pv[w0:] - pv_fitted[w0:]) ** 2)))
     lo, hi = float(np.min(rec.pv)), float(np.max(rec.pv))
     span = hi - lo if hi > lo else max(abs(hi), 1.0)
     units = pv_units or (model.plant.units if model is not None else "")
     plant = PlantConfig(num, den, delay=st.delay, pv0=pv0, u0=u0, units=units, noise=noise,
                         pv_range=(lo - PV_MARGIN * span, hi + PV_MARGIN * span))
-    lines = [f"plant.num, den, delay: the final model's linear part, {_plant_origin(explanation, model)} "
+    lines = [f"plant.num, den, delay: the linear part of {which}, {_plant_origin(explanation, model)} "
              f"({st.describe()}), as a continuous transfer function in PV units per % flow.",
-             f"plant.pv0, u0: the fit's operating point; plant.noise: RMS residual of the final model ({_g(noise)}); "
+             f"plant.pv0, u0: the fit's operating point; plant.noise: RMS residual of {which} "
+             f"({_g(noise)}); "
              f"pv_range: the recorded PV range widened by {PV_MARGIN:g} of it each side"
              + (f"; units: {units}." if units else ".")]
     sine = _in_role(fitted, TwinRole.DISTURBANCE)
@@ -379,10 +382,10 @@ def _plant_origin(explanation, model: LoopConfig | None) -> str:
     return f"the nominal model's with what the data demanded: {changes}"
 
 
-def _controller(diagnosis, model: LoopConfig | None, op: np.ndarray, plant: PlantConfig
+def _controller(diagnosis, fitted: FittedLoop, model: LoopConfig | None, op: np.ndarray, plant: PlantConfig
                 ) -> tuple[ControllerConfig, list[str]]:
     """The controller section (``op``: the recorded OP in the twin's travel) and its provenance."""
-    rec, fitted = diagnosis.recording, diagnosis.explanation.fitted
+    rec = diagnosis.recording
     st, lines = fitted.linear.structure, []
     limits = (0.0, 100.0)
     has_sp = rec.sp is not None and bool(np.all(np.isfinite(rec.sp)))
@@ -425,24 +428,35 @@ def twin(diagnosis, *, model: LoopConfig | None = None, pv_units: str = "", name
     if explanation is None or explanation.fitted is None:
         reason = "" if diagnosis.assessment is None else f" ({diagnosis.assessment.reason})"
         raise UserError(f"{diagnosis.source}: no model was fitted, so there is no twin to write{reason}")
-    rec, dt = diagnosis.recording, explanation.fitted.ctx.dt
+    fitted, pv_fitted = _answered(diagnosis)
+    rec, dt = diagnosis.recording, fitted.ctx.dt
     travel = TwinTravel(diagnosis.frame.stops)
     op = travel.level(diagnosis.frame.to_internal(rec.op))
-    valve, valve_lines = _valve(diagnosis, model, op, travel)
-    plant, plant_lines = _plant_section(diagnosis, model, pv_units, travel)
-    controller, controller_lines = _controller(diagnosis, model, op, plant)
+    valve, valve_lines = _valve(diagnosis, fitted, model, op, travel)
+    plant, plant_lines = _plant_section(diagnosis, fitted, pv_fitted, model, pv_units, travel)
+    controller, controller_lines = _controller(diagnosis, fitted, model, op, plant)
     cfg = LoopConfig(name or _slug(diagnosis.source), description=f"twin of {diagnosis.source}", valve=valve,
                      plant=plant, controller=controller,
                      simulation=SimulationConfig(dt=dt, duration=max(float(rec.t[-1] - rec.t[0]), dt)),
                      device=DeviceConfig(tick=dt))
-    cfg, start_lines = _with_start(cfg, explanation.fitted, rec, travel)
+    cfg, start_lines = _with_start(cfg, fitted, rec, travel)
     head = [f"Twin of {diagnosis.source}, written by valve-emulator diagnose --twin: the loop the diagnosis found, "
             "as a loop config.",
             f"Answer: {diagnosis.answer}; held-out fit {_g(explanation.fit_before)} % -> "
             f"{_g(explanation.fit_after)} % ({diagnosis.verdict}).",
             *valve_lines, *plant_lines, *controller_lines, *start_lines,
             f"simulation.dt, device.tick: the recording's sample time ({_g(dt)} s); duration: its length."]
-    return Twin(_replay_operating_point(cfg, explanation, rec), tuple(head))
+    return Twin(_replay_operating_point(cfg, fitted, pv_fitted, rec), tuple(head))
+
+
+def _answered(diagnosis) -> tuple[FittedLoop, np.ndarray]:
+    """The model the twin is written from (:attr:`Diagnosis.fitted <valve_emulator.diagnosis.report.diagnosis.
+    Diagnosis>`: the final model, or the valve option a stiction answer rests on), and its free-run PV on the
+    recording."""
+    fitted, explanation = diagnosis.fitted, diagnosis.explanation
+    if fitted is explanation.fitted:
+        return fitted, explanation.traces.pv_after
+    return fitted, fitted.predict(diagnosis.recording.op)
 
 
 @dataclass(frozen=True)
@@ -529,16 +543,17 @@ def _rest_flow(cfg: LoopConfig, rec, guess: float, fit_start: int) -> float | No
     return float(guess + np.dot(sens[:n], err) / np.dot(sens[:n], sens[:n]))
 
 
-def _replay_operating_point(cfg: LoopConfig, explanation, rec) -> LoopConfig:
-    """``cfg`` with ``pv0`` moved so that its open-loop replay has the fit's mean PV on the fit part.
+def _replay_operating_point(cfg: LoopConfig, fitted: FittedLoop, pv_fitted: np.ndarray, rec) -> LoopConfig:
+    """``cfg`` with ``pv0`` moved so that its open-loop replay has the fit's mean PV (``pv_fitted``, the free run
+    of ``fitted``) on the fit part.
 
     The fit's valve may start differently from the replay's (a start moving up or down at the first sample
     instead of the mirrored pre-roll), and an integrating plant keeps any early difference of flow as a
     permanent offset; a self-regulating one forgets it, and the shift is then only the fit's rounding.
     """
-    w0, w1 = explanation.fitted.ctx.window
+    w0, w1 = fitted.ctx.window
     sim = replay_op(cfg, rec)
-    shift = float(np.mean(explanation.traces.pv_after[w0:w1] - sim.pv[w0:w1]))
+    shift = float(np.mean(pv_fitted[w0:w1] - sim.pv[w0:w1]))
     return replace(cfg, plant=replace(cfg.plant, pv0=cfg.plant.pv0 + shift))
 
 
