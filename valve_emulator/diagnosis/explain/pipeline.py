@@ -183,7 +183,9 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
             stops: tuple[float, float], declared: Declared | None = None) -> Searched:
     """The search in the right cost domain (see the module docstring): a nominal integrating plant's on
     prefiltered PV; without a model on PV, once more prefiltered when the result integrates, and once more
-    prefiltered with the plant held integrating when it does not and the controller's law was read."""
+    prefiltered with the plant held integrating when it does not and the controller's law was read. Where the
+    first pass's dead time is far beyond that of the healthy part before a located change point, every pass
+    searches it below that one (:func:`~valve_emulator.diagnosis.explain.onset.delay_cap`)."""
     dt = recording.dt if len(recording) >= 2 else 1.0
     if nom is not None:
         st = nom.structure
