@@ -190,7 +190,7 @@ def identify_before(problem: Problem, sp: np.ndarray | None, end: int, *,
     of the load, and so is OP's part that it drives."""
     w0 = problem.train[0]
     driven = setpoint_part(problem.op, sp, end, start=w0)
-    if driven is None or end - w0 < 2 * problem.delays.max():
+    if driven is None:
         return None
     healthy = replace(problem, op=driven, train=(w0, min(end, problem.train[1])))
     return identify(healthy, constraints=constraints)
