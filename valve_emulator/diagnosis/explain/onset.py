@@ -78,6 +78,7 @@ import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainCandidate, ChainContext
 from valve_emulator.diagnosis.explain.locate import turning_points
+from valve_emulator.diagnosis.fit.closed_loop import Identification
 from valve_emulator.diagnosis.fit.cost import ar1_bic
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent
 from valve_emulator.diagnosis.fit.fitter import Fitter
@@ -337,7 +338,8 @@ def suspect_onset(pv: np.ndarray, sp: np.ndarray | None = None, *, start: int = 
     return Suspected(sample=k * w, rise=rise, share=share, signal=signal)
 
 
-def delay_cap(problem: Problem, sp: np.ndarray | None, delay: float, constraints) -> float | None:
+def delay_cap(problem: Problem, sp: np.ndarray | None, delay: float,
+              constraints: Identification | None) -> float | None:
     """Without a model: the longest dead time (s) the search may give the plant where a change point is
     located and the dead time it found (``delay``) is more than :data:`FAR_DELAY` times the healthy part's
     plus as many samples — the healthy part's dead time and a sample; None otherwise.
@@ -347,12 +349,13 @@ def delay_cap(problem: Problem, sp: np.ndarray | None, delay: float, constraints
     (:func:`~valve_emulator.diagnosis.fit.nominal.identify_before`: the two-stage method; None where the set
     point moves fewer than twice there). Why: a linear OP → PV relation fitted over a sticky limit cycle takes
     up the shift between OP's triangle and PV's cycle in its dead time, and a wandering load biases the fit
-    from OP itself. On the independent ``late_onset`` loops as plant data, the search's dead time was 27–35 s
-    for 1–7 s behind a lag (draws 0, 3, 5, 10 of the onset property) and the band fitted around it 46–91 %
-    off; before the change point the two-stage dead time is within a few samples of the loop's dead time and
-    lag on most draws. Capping every search there (at 1–1.5 times the healthy dead time) traded J on the
-    draws whose dead time was already near (J traded against the dead time: two draws that held lost J), so
-    the cap acts only where the dead time is far from the healthy part's."""
+    from OP itself. On the independent ``late_onset`` loops as plant data, the search's dead time was 17–35 s
+    for 0.3–7 s behind a lag (draws 0, 3, 5, 10 of the onset property) and the band fitted around it 46–91 %
+    off; before the change point the two-stage dead time lies within the loop's dead time and lag (and 5 s) in
+    10 of the 13 draws where it speaks. Capping every search there (at 1–1.5 times the healthy dead time, plus
+    1–3 samples) traded J against the dead time on draws whose dead time was already near (one or two draws
+    that held lost J), so the cap acts only where the dead time is far from the healthy part's: on draws 0 and
+    3, of which draw 0 now holds (``docs/diagnosis.md``, *Physics that starts part-way*)."""
     suspected = suspect_onset(problem.pv, sp)
     if suspected is None:
         return None
