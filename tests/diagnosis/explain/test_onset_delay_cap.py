@@ -7,6 +7,7 @@ self-regulating with a dead time of 30 s, the sticky cycle's shift, and S 2.5 fo
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from unseen_loops import loop
 
@@ -41,3 +42,13 @@ def test_a_dead_time_near_the_healthy_parts_is_left_to_the_search(level_loop):
 def test_without_a_set_point_nothing_is_capped(level_loop):
     rec, problem, constraints, _ = level_loop
     assert delay_cap(problem, None, 30.0, constraints) is None
+
+
+def test_a_change_point_at_a_set_point_move_caps_nothing(level_loop):
+    """The step in the control error's energy may be the move's answer, and the part before it no healthy loop:
+    the same loop with a small set-point move added at its change point is left to the search."""
+    rec, problem, constraints, _ = level_loop
+    k = suspect_onset(problem.pv, rec.sp).sample
+    sp = np.asarray(rec.sp, dtype=float) + 0.01 * (np.arange(problem.T) >= k)
+    assert suspect_onset(problem.pv, sp).sample == k
+    assert delay_cap(problem, sp, 30.0, constraints) is None

@@ -347,7 +347,11 @@ def delay_cap(problem: Problem, sp: np.ndarray | None, delay: float,
     The healthy part's dead time: the plant identified before the change point, where the valve is still
     healthy and the loop linear, from OP's part that the set point drives
     (:func:`~valve_emulator.diagnosis.fit.nominal.identify_before`: the two-stage method; None where the set
-    point moves fewer than twice there). Why: a linear OP → PV relation fitted over a sticky limit cycle takes
+    point moves fewer than twice there). Not where the set point moves within a block of the change point
+    (:data:`BLOCKS`): the step in the control error's energy may then be that move's answer, and the part
+    before it not a healthy loop (a plant window labelled sticky throughout, 751 samples, its change point 3
+    samples before a set-point move near its end, was capped at one sample of dead time and answered
+    ``no_stiction``). Why: a linear OP → PV relation fitted over a sticky limit cycle takes
     up the shift between OP's triangle and PV's cycle in its dead time, and a wandering load biases the fit
     from OP itself. On the independent ``late_onset`` loops as plant data, the search's dead time was 17–35 s
     for 0.3–7 s behind a lag (draws 0, 3, 5, 10 of the onset property) and the band fitted around it 46–91 %
@@ -357,12 +361,20 @@ def delay_cap(problem: Problem, sp: np.ndarray | None, delay: float,
     that held lost J), so the cap acts only where the dead time is far from the healthy part's: on draws 0 and
     3, of which draw 0 now holds (``docs/diagnosis.md``, *Physics that starts part-way*)."""
     suspected = suspect_onset(problem.pv, sp)
-    if suspected is None:
+    if suspected is None or _at_setpoint_move(sp, suspected.sample, problem.T // BLOCKS):
         return None
     healthy = identify_before(problem, sp, suspected.sample, constraints=constraints)
     if healthy is None or delay <= FAR_DELAY * healthy.delay + FAR_DELAY * problem.dt:
         return None
     return healthy.delay + problem.dt
+
+
+def _at_setpoint_move(sp: np.ndarray | None, sample: int, width: int) -> bool:
+    """Whether the set point moves within ``width`` samples of ``sample`` (False without a set point)."""
+    if sp is None:
+        return False
+    moves = np.flatnonzero(np.diff(np.asarray(sp, dtype=float)) != 0.0) + 1
+    return bool(np.any(np.abs(moves - sample) <= width))
 
 
 def post_onset_split(problem: Problem, suspected: Suspected | None) -> Problem:
