@@ -78,17 +78,20 @@ import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainCandidate, ChainContext
 from valve_emulator.diagnosis.explain.locate import turning_points
+from valve_emulator.diagnosis.fit.closed_loop import Identification
 from valve_emulator.diagnosis.fit.cost import ar1_bic
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.linear import highpass
 from valve_emulator.diagnosis.fit.load_check import load_bic
+from valve_emulator.diagnosis.fit.nominal import identify_before
 from valve_emulator.diagnosis.fit.records import Model, Option
 from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
 
 __all__ = ["ONSETS", "EARLY_SHARE", "MIN_BAND", "BLOCKS", "MIN_RISE", "MIN_SHARE", "MIN_ACTING", "NEAR", "LateOnset",
            "Onset", "Suspected", "suspect_onset", "post_onset_split", "onset_option", "acting_part", "onset_of",
-           "late_start", "bic_after", "before_part", "bic_on", "late_options", "MIN_BEFORE"]
+           "late_start", "bic_after", "before_part", "bic_on", "late_options", "MIN_BEFORE", "FAR_DELAY",
+           "delay_cap"]
 
 #: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
 #: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
@@ -111,6 +114,9 @@ MIN_ACTING = 0.1
 #: Least part of the record (fraction) in the fit part before a late finding's onset on which an addition beside
 #: it is also judged (:func:`before_part`).
 MIN_BEFORE = 0.1
+#: Without a model, a dead time longer than this times the healthy part's (plus as many samples) is the sticky
+#: cycle's shift, not the plant's (:func:`delay_cap`).
+FAR_DELAY = 2.0
 #: Onsets a located change point lets the fit try, as fractions of the record around it.
 NEAR = tuple(np.round(np.linspace(-0.06, 0.06, 7), 3))
 
@@ -330,6 +336,45 @@ def suspect_onset(pv: np.ndarray, sp: np.ndarray | None = None, *, start: int = 
     if k <= lo + 1 or k >= hi - 2 or rise < MIN_RISE or share < MIN_SHARE:
         return None
     return Suspected(sample=k * w, rise=rise, share=share, signal=signal)
+
+
+def delay_cap(problem: Problem, sp: np.ndarray | None, delay: float,
+              constraints: Identification | None) -> float | None:
+    """Without a model: the longest dead time (s) the search may give the plant where a change point is
+    located and the dead time it found (``delay``) is more than :data:`FAR_DELAY` times the healthy part's
+    plus as many samples — the healthy part's dead time and a sample; None otherwise.
+
+    The healthy part's dead time: the plant identified before the change point, where the valve is still
+    healthy and the loop linear, from OP's part that the set point drives
+    (:func:`~valve_emulator.diagnosis.fit.nominal.identify_before`: the two-stage method; None where the set
+    point moves fewer than twice there). Not where the set point moves within a block of the change point
+    (:data:`BLOCKS`): the step in the control error's energy may then be that move's answer, and the part
+    before it not a healthy loop (a plant window labelled sticky throughout, 751 samples, its change point 3
+    samples before a set-point move near its end, was capped at one sample of dead time and answered
+    ``no_stiction``). Why: a linear OP → PV relation fitted over a sticky limit cycle takes
+    up the shift between OP's triangle and PV's cycle in its dead time, and a wandering load biases the fit
+    from OP itself. On the independent ``late_onset`` loops as plant data, the search's dead time was 17–35 s
+    for 0.3–7 s behind a lag (draws 0, 3, 5, 10 of the onset property) and the band fitted around it 46–91 %
+    off; before the change point the two-stage dead time lies within the loop's dead time and lag (and 5 s) in
+    10 of the 13 draws where it speaks. Capping every search there (at 1–1.5 times the healthy dead time, plus
+    1–3 samples) traded J against the dead time on draws whose dead time was already near (one or two draws
+    that held lost J), so the cap acts only where the dead time is far from the healthy part's: on draws 0 and
+    3, of which draw 0 now holds (``docs/diagnosis.md``, *Physics that starts part-way*)."""
+    suspected = suspect_onset(problem.pv, sp)
+    if suspected is None or _at_setpoint_move(sp, suspected.sample, problem.T // BLOCKS):
+        return None
+    healthy = identify_before(problem, sp, suspected.sample, constraints=constraints)
+    if healthy is None or delay <= FAR_DELAY * healthy.delay + FAR_DELAY * problem.dt:
+        return None
+    return healthy.delay + problem.dt
+
+
+def _at_setpoint_move(sp: np.ndarray | None, sample: int, width: int) -> bool:
+    """Whether the set point moves within ``width`` samples of ``sample`` (False without a set point)."""
+    if sp is None:
+        return False
+    moves = np.flatnonzero(np.diff(np.asarray(sp, dtype=float)) != 0.0) + 1
+    return bool(np.any(np.abs(moves - sample) <= width))
 
 
 def post_onset_split(problem: Problem, suspected: Suspected | None) -> Problem:

@@ -42,7 +42,7 @@ from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.explain.findings import _intervals, findings, param_text, stiction_surface
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
-from valve_emulator.diagnosis.explain.onset import acting_part, post_onset_split, suspect_onset
+from valve_emulator.diagnosis.explain.onset import acting_part, delay_cap, post_onset_split, suspect_onset
 from valve_emulator.diagnosis.explain.prior import dead_time_move, nominal_gain, settle
 from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, RankRow, Traces, ValveAlternative
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
@@ -132,14 +132,15 @@ class Searched:
 
 
 def _prepared(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
-              validation: str, stops: tuple[float, float], declared: Declared | None = None, reach: int = 1
-              ) -> tuple[Problem, Nominal]:
+              validation: str, stops: tuple[float, float], declared: Declared | None = None, reach: int = 1,
+              cap: float | None = None) -> tuple[Problem, Nominal]:
     """The recording checked and split, the nominal model (identified from the data without one, under the
-    closed loop's constraints and what ``declared`` says of the loop) and the fit part started after every
-    candidate's burn-in."""
+    closed loop's constraints and what ``declared`` says of the loop, its dead time below ``cap`` s when given)
+    and the fit part started after every candidate's burn-in."""
     problem = prepare(recording, nominal_delay=nom.delay if nom else None,
                       settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter, validation=validation,
                       stops=stops, reach=reach)
+    problem = _bounded_delays(problem, cap)
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
         constraints = identification(problem.op, problem.pv, recording.sp, declared, dt=problem.dt)
@@ -158,11 +159,11 @@ def _bounded_delays(problem: Problem, bound: float | None) -> Problem:
 
 def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
                  validation: str, stops: tuple[float, float], declared: Declared | None = None,
-                 reach: int = 1) -> Searched:
+                 reach: int = 1, cap: float | None = None) -> Searched:
     """Prepare, (identify,) search, settle the nominal linear part: one pass in one cost domain (``reach``: see
-    :func:`~valve_emulator.diagnosis.fit.data.prepare`)."""
+    :func:`~valve_emulator.diagnosis.fit.data.prepare`; ``cap``: the longest dead time, s, or None)."""
     problem, nom = _prepared(recording, nom, lib, say, prefilter=prefilter, validation=validation, stops=stops,
-                             declared=declared, reach=reach)
+                             declared=declared, reach=reach, cap=cap)
     suspected = suspect_onset(problem.pv, recording.sp)
     problem = post_onset_split(problem, suspected)
     # Windows for a long record's coarse stages (fit/windows.py) only with a nominal model and where the loop's
@@ -182,7 +183,9 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
             stops: tuple[float, float], declared: Declared | None = None) -> Searched:
     """The search in the right cost domain (see the module docstring): a nominal integrating plant's on
     prefiltered PV; without a model on PV, once more prefiltered when the result integrates, and once more
-    prefiltered with the plant held integrating when it does not and the controller's law was read."""
+    prefiltered with the plant held integrating when it does not and the controller's law was read. Where the
+    first pass's dead time is far beyond that of the healthy part before a located change point, every pass
+    searches it below that one (:func:`~valve_emulator.diagnosis.explain.onset.delay_cap`)."""
     dt = recording.dt if len(recording) >= 2 else 1.0
     if nom is not None:
         st = nom.structure
@@ -191,17 +194,23 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
     lib = {k: v for k, v in lib.items() if k != "dead_time"}  # without a nominal model the dead time is identified
     out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
                        declared=declared)
+    cap = delay_cap(prepare(recording, validation=validation, stops=stops), recording.sp,
+                    out.model.fit.structure.delay, out.nominal.identification)
+    if cap is not None:
+        say(f"the dead time is far beyond the healthy part's (before the change point): searching below {cap:.3g} s")
+        out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
+                           declared=declared, cap=cap)
     reach = 1
     if delay_at_end(out.problem, out.model.fit.structure.delay) and widens(out.problem):
         say("the dead time sits on the end of the grid searched: searching again with the grid widened")
         reach = WIDEN
         out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
-                           declared=declared, reach=reach)
+                           declared=declared, reach=reach, cap=cap)
     st = out.model.fit.structure
     if st.integrating:
         say("the plant integrates: searching again on prefiltered PV")
         out = _search_once(recording, None, lib, say, prefilter=prefilter_for(st.delay + sum(st.taus), dt),
-                           validation=validation, stops=stops, declared=declared, reach=reach)
+                           validation=validation, stops=stops, declared=declared, reach=reach, cap=cap)
     ident = replace(out.nominal.identification, integrating=True)
     if (out.model.fit.structure.integrating or (declared is not None and declared.plant_integrates is not None)
             or ident.max_delay is None):
@@ -210,7 +219,7 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
     ipdt = identify(_bounded_delays(out.problem, ident.delay_bound(True)), constraints=ident).structure
     held = _search_once(recording, None, lib, say, prefilter=prefilter_for(ipdt.delay, dt),
                         validation=validation, stops=stops,
-                        declared=replace(declared or Declared(), integrating=True), reach=reach)
+                        declared=replace(declared or Declared(), integrating=True), reach=reach, cap=cap)
     return _integrating_or_not(out, held)
 
 

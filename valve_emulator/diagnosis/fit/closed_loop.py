@@ -37,8 +37,8 @@ import numpy as np
 
 from valve_emulator.errors import UserError
 
-__all__ = ["ACTIONS", "LOOP_TYPES", "MIN_R2", "MIN_T", "Declared", "Identification", "controller_action",
-           "identification"]
+__all__ = ["ACTIONS", "LOOP_TYPES", "MIN_R2", "MIN_T", "MIN_MOVES", "MAX_TAPS", "Declared", "Identification",
+           "controller_action", "identification", "setpoint_part"]
 
 #: Controller actions: reverse (OP rises as PV falls; the process gain is positive) or direct.
 ACTIONS = ("reverse", "direct")
@@ -51,6 +51,11 @@ LOOP_TYPES = {"level": True, "flow": False, "pressure": False, "temperature": Fa
 MIN_R2 = 0.98
 #: ... and its proportional gain must be this many standard errors from zero.
 MIN_T = 10.0
+#: Least number of set-point moves, each followed by a tenth of the record, for OP's part driven by the set point
+#: to be estimated (:func:`setpoint_part`).
+MIN_MOVES = 2
+#: Longest FIR (samples) of OP on the set point (:func:`setpoint_part`).
+MAX_TAPS = 1000
 
 
 @dataclass(frozen=True)
@@ -188,3 +193,46 @@ def identification(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, declar
     else:
         said.append("integrating or self-regulating plant chosen from the data (BIC)")
     return Identification(sign=sign, integrating=integrating, constraints=tuple(said), max_delay=max_delay)
+
+
+def setpoint_part(op: np.ndarray, sp: np.ndarray | None, end: int, start: int = 0) -> np.ndarray | None:
+    """OP's part that the set point explains, estimated on samples ``[0, end)``: the first stage of the
+    two-stage method of closed-loop identification (Van den Hof & Schrama 1993; Ljung, *System Identification*,
+    2nd ed., §13.5). None without a recorded set point, or when it moves fewer than :data:`MIN_MOVES` times in
+    ``[start, end)`` a tenth of the record or more before ``end``.
+
+    OP is regressed by least squares on the set point's values over the last tenth of the record (at most
+    :data:`MAX_TAPS` samples; a FIR, the closed loop's answer to a set-point move, and a constant), and that
+    FIR is run over the whole record. A wandering load moves OP too, through the controller, but it is
+    independent of the set point, so this part of OP carries none of it, and PV fitted from it (the second
+    stage) is free of the bias the load gives PV fitted from OP itself, where OP is correlated with the load."""
+    if sp is None or not np.all(np.isfinite(sp)):
+        return None
+    op, sp = np.asarray(op, dtype=float), np.asarray(sp, dtype=float)
+    taps = min(op.size // 10, MAX_TAPS)
+    moves = np.flatnonzero(np.diff(sp) != 0.0) + 1
+    if taps < 2 or np.count_nonzero((moves >= start) & (moves <= end - op.size // 10)) < MIN_MOVES:
+        return None
+    z = sp - sp[0]
+    h = np.linalg.lstsq(*_fir_normal_equations(z[:end], op[:end], taps), rcond=None)[0]
+    return h[-1] + np.convolve(z, h[:-1])[:op.size]
+
+
+def _fir_normal_equations(z: np.ndarray, y: np.ndarray, taps: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(XᵀX, Xᵀy)`` of the least-squares FIR of ``y`` on ``z`` (columns: ``z`` delayed by 0 … ``taps`` − 1
+    samples, zeros before the record, then a constant), computed lag by lag from running sums instead of
+    forming ``X`` (a record of ``n`` samples needs ``n`` × ``taps`` numbers as ``X``, ``taps``² as ``XᵀX``)."""
+    n = z.size
+    A = np.empty((taps + 1, taps + 1))
+    for lag in range(taps):
+        # Σ_{k=j}^{n−1} z_{k−i} z_{k−j} for j = i + lag: the running sum of z_m z_{m−lag} up to m = n − 1 − i.
+        run = np.cumsum(z[lag:] * z[:n - lag])
+        i = np.arange(taps - lag)
+        A[i, i + lag] = A[i + lag, i] = run[n - 1 - i - lag]
+    zsum = np.cumsum(z)
+    A[:taps, taps] = A[taps, :taps] = zsum[n - 1 - np.arange(taps)]
+    A[taps, taps] = n
+    b = np.empty(taps + 1)
+    b[:taps] = np.correlate(y, z, mode="full")[n - 1:n - 1 + taps]
+    b[taps] = y.sum()
+    return A, b

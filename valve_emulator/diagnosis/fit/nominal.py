@@ -21,13 +21,13 @@ square-wave flow).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numba
 import numpy as np
 
 from valve_emulator.config import LoopConfig
-from valve_emulator.diagnosis.fit.closed_loop import Identification
+from valve_emulator.diagnosis.fit.closed_loop import Identification, setpoint_part
 from valve_emulator.diagnosis.fit.cost import bic
 from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.linear import (
@@ -42,7 +42,7 @@ from valve_emulator.physics.plant import PlantBank, plant_step_kernel, transfer_
 from valve_emulator.physics.signal_chain import DEFAULT_RANGEABILITY
 from valve_emulator.physics.stiction import rest_samples_for
 
-__all__ = ["Nominal", "nominal_from_config", "identify", "replay_plant"]
+__all__ = ["Nominal", "nominal_from_config", "identify", "identify_before", "replay_plant"]
 
 
 @dataclass(frozen=True)
@@ -175,3 +175,22 @@ def identify(problem: Problem, *, valve_model: str = "kano", rest_samples: int =
     alternates = tuple(fits[i].structure for i in order[1:])
     return Nominal(best.structure, False, valve_model=valve_model, rest_samples=rest_samples,
                    alternates=alternates, identification=constraints)
+
+
+def identify_before(problem: Problem, sp: np.ndarray | None, end: int, *,
+                    constraints: Identification | None = None) -> Nominal | None:
+    """The linear model of :func:`identify` fitted on the fit part before sample ``end`` (where the loop is
+    still linear: a valve that starts to stick there is healthy before it), from OP's part that the set point
+    explains (:func:`~valve_emulator.diagnosis.fit.closed_loop.setpoint_part`, the two-stage method); None where
+    the set point does not move enough before ``end`` to tell.
+
+    Why not from OP itself: under a wandering load the controller moves OP to cancel the load while PV holds
+    its set point, so PV fitted from OP by output error is biased (on the independent ``late_onset`` loops
+    the dead time of the healthy part came out 10–44 s for 1–7 s behind a lag); the set point is independent
+    of the load, and so is OP's part that it drives."""
+    w0 = problem.train[0]
+    driven = setpoint_part(problem.op, sp, end, start=w0)
+    if driven is None:
+        return None
+    healthy = replace(problem, op=driven, train=(w0, min(end, problem.train[1])))
+    return identify(healthy, constraints=constraints)
