@@ -96,8 +96,8 @@ def test_the_twin_of_a_call_on_the_valve_the_search_left_sticks_and_replays_as_t
     d, _ = sticky_cycling_level_loop
     twin = d.twin()
     friction = d.to_json()["friction"]
-    assert twin.config.valve.S == pytest.approx(friction["S"]["value"], rel=1e-4)
-    assert twin.config.valve.J == pytest.approx(friction["J"]["value"], rel=1e-4)
+    for key in ("S", "J"):   # the JSON rounds to five significant figures
+        assert abs(getattr(twin.config.valve, key) / friction[key]["value"] - 1.0) < 1e-4, (key, friction)
     pv = np.asarray(d.recording.pv, dtype=float)
     fitted = d.explanation.valve_alternative.fitted
     replayed = replay_op(twin.config, d.recording).pv

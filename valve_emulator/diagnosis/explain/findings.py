@@ -43,7 +43,7 @@ from valve_emulator.diagnosis.fit.uncertainty import (
     touches_edge,
 )
 
-__all__ = ["findings", "param_text", "stiction_surface"]
+__all__ = ["findings", "param_text", "parameter_intervals", "stiction_surface"]
 
 #: Factor by which a profile grid is stretched about the estimate when the 95 % region reaches its edge, and
 #: how many times at most (±40 % becomes ±80 %, then ±160 %).
@@ -289,9 +289,10 @@ def _edge_text(edges: dict[str, tuple[str, float]]) -> str:
     return f" (at the edge of the range searched: {said}, a bound, not a value)"
 
 
-def _intervals(fitter: Fitter, problem: Problem, model: Model, act, params: dict) -> tuple[dict, dict]:
-    """The 95 % intervals of an accepted candidate's parameters (``act`` in the final ``model``, ``params`` its
-    JSON parameters) and the parameters on a search edge (:func:`_on_edges`), in the search's frame."""
+def parameter_intervals(fitter: Fitter, problem: Problem, model: Model, act, params: dict) -> tuple[dict, dict]:
+    """The 95 % intervals of a candidate's parameters (``act`` in ``model``: the final one, or an option an
+    answer rests on; ``params`` its JSON parameters) and the parameters on a search edge (:func:`_on_edges`), in
+    the search's frame."""
     cand = act.candidate
     names = tuple(k for k, v in params.items() if isinstance(v, (int, float)) and k in cand.param_names)
     axes = tuple(cand.param_names.index(k) for k in names)
@@ -366,7 +367,7 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
             act = final[name]
             cand = act.candidate
             params = cand.parameters(act.params)
-            ivs, edges = _intervals(fitter, problem, model, act, params)
+            ivs, edges = parameter_intervals(fitter, problem, model, act, params)
             dbic = without.bic - chosen.model.bic
             load = None
             if cand.slot == "valve":   # with or without a nominal model: the strength of either reads it

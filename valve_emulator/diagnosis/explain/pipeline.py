@@ -40,7 +40,7 @@ import numpy as np
 
 from valve_emulator.config import LoopConfig
 from valve_emulator.diagnosis.candidates import get, registry
-from valve_emulator.diagnosis.explain.findings import _intervals, findings, param_text, stiction_surface
+from valve_emulator.diagnosis.explain.findings import findings, param_text, parameter_intervals, stiction_surface
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
 from valve_emulator.diagnosis.explain.onset import acting_part, delay_cap, post_onset_split, suspect_onset
 from valve_emulator.diagnosis.explain.prior import dead_time_move, nominal_gain, settle
@@ -350,7 +350,7 @@ def _valve_alternative(s: Searched, frame: Frame, least_band: float) -> ValveAlt
         return ValveAlternative(physics=act.name, S=float(params["S"]), J=float(params.get("J", 0.0)),
                                 load_delta_bic=load)
     # the answer may rest on it: its intervals as a finding's, and its model for the twin
-    own, _ = _intervals(s.fitter, s.problem, model, act, act.candidate.parameters(act.params))
+    own, _ = parameter_intervals(s.fitter, s.problem, model, act, act.candidate.parameters(act.params))
     ivs = {k: v for k, v in frame.convert(act.candidate.dims, own).items() if k in ("S", "J")}
     return ValveAlternative(physics=act.name, S=float(params["S"]), J=float(params.get("J", 0.0)),
                             load_delta_bic=load, intervals=ivs, fitted=_fitted(s, frame, model))
