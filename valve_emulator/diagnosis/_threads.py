@@ -27,7 +27,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numba
 import numpy as np
 
-__all__ = ["MIN_PER_WORKER", "one_blas_thread", "run_split", "workers_for"]
+__all__ = ["MIN_PER_WORKER", "one_blas_thread", "run_each", "run_split", "workers_for"]
 
 #: Fewer items than this per worker run in the calling thread: handing work to a thread costs more than it saves.
 MIN_PER_WORKER = 16
@@ -79,6 +79,32 @@ def run_split(work: Callable[[int, int], object], cuts: list[int]) -> None:
     finally:
         for f in futures:
             f.result()
+
+
+def run_each(tasks: list[Callable[[], object]]) -> list:
+    """``[task() for task in tasks]``, the tasks shared out over the pool's workers and the calling thread, each
+    taking the next task when it is done with one (tasks of unequal length: a polish that converges early).
+
+    For tasks that spend most of their time in kernels that release the GIL. Inside a range of a split, or with
+    one thread, they run in the calling thread, in order. Exceptions propagate after every task has finished.
+    """
+    workers = workers_for(len(tasks), 1)
+    if workers <= 1:
+        return [task() for task in tasks]
+    out: list = [None] * len(tasks)
+    taken = iter(range(len(tasks)))
+    lock = threading.Lock()
+
+    def take(_a: int, _b: int) -> None:
+        while True:
+            with lock:
+                i = next(taken, None)
+            if i is None:
+                return
+            out[i] = tasks[i]()
+
+    run_split(take, list(range(workers + 1)))
+    return out
 
 
 #: The thread-count functions OpenBLAS exports, (set, get), as its builds name them (numpy's and scipy's wheels

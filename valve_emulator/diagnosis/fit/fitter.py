@@ -26,11 +26,13 @@ then the best is polished. ``loop`` candidates are not searched.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
 
+from valve_emulator.diagnosis._threads import run_each
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.fit.backfit import backfit, backfit_sse
 from valve_emulator.diagnosis.fit.chain import Active
@@ -238,28 +240,36 @@ class Fitter:
             for k, (g, (sse, delays)) in enumerate(zip(grids, scored)):
                 i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
                 bests[k] = g[i]
-                st0 = replace(sts[k], delay=float(delays[j]) * self.p.dt) if frees[k] else sts[k]
+                sts[k] = replace(sts[k], delay=float(delays[j]) * self.p.dt) if frees[k] else sts[k]
                 flows[k] = self._row_flow(rows, active, ctx, cand, g[i])
-                fits[k] = self.scorer.polish(flows[k], st0, frees[k], aim)
-                sts[k] = fits[k].structure
+            fits = self._polish_all(flows, sts, frees, aim)
+            sts = [fit.structure for fit in fits]
         fines = [self.surface(cand.name, g, sse.min(axis=1)) for g, (sse, _) in zip(grids, scored)]
         if joint and self.trades_with_prior(cand):
             for k in range(len(starts)):
                 bests[k], sts[k] = self.joint_polish(active, ctx, cand, bests[k], sts[k], frees[k], aim)
                 flows[k] = self.scorer.chain(active, ctx, cand, bests[k][None, :])[:, 0]
-                fits[k] = self.scorer.polish(flows[k], sts[k], frees[k], aim)
+            fits = self._polish_all(flows, sts, frees, aim)
         if cand.threshold_axes:
             bests = self.centre_all(active, ctx, cand, bests, sts, aim)
             rows = {}
             for k in range(len(starts)):
                 flows[k] = self._row_flow(rows, active, ctx, cand, bests[k])
-                fits[k] = self.scorer.polish(flows[k], sts[k], frees[k], aim)
+            fits = self._polish_all(flows, sts, frees, aim)
         out = []
         for best, fit, flow, fine in zip(bests, fits, flows, fines):
             new_active = dict(active)
             new_active[cand.slot] = Active(cand, best)
             out.append(Refined(active=new_active, fit=fit, flow=flow, fine=fine))
         return out
+
+    def _polish_all(self, flows: list[np.ndarray], sts: list[LinearStructure], frees: list[bool], aim: Aim
+                    ) -> list[LinearFit]:
+        """:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.polish` of each start (its flow, structure and
+        variant): independent polishes, shared out over the kernels' threads (:func:`~valve_emulator.diagnosis.
+        _threads.run_each`); on a long record a polish is mostly its compiled column fit, which releases the GIL."""
+        return run_each([functools.partial(self.scorer.polish, flow, st, free, aim)
+                         for flow, st, free in zip(flows, sts, frees)])
 
     def _score_grids(self, active, ctx, cand, grids: list[np.ndarray], jobs: list[tuple], aim: Aim) -> list[tuple]:
         """``sse_grid`` of ``grids[k]`` for ``jobs[k]`` (structure, delays), every distinct grid through the chain

@@ -33,12 +33,13 @@ It also owns the choices that must be the same for every model of a problem:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from valve_emulator.diagnosis._threads import run_split, workers_for
+from valve_emulator.diagnosis._threads import run_each, workers_for
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
 from valve_emulator.diagnosis.fit.chain import Active, run_chain
 from valve_emulator.diagnosis.fit.cost import ar1_bic, bic
@@ -58,10 +59,13 @@ from valve_emulator.diagnosis.fit.records import Model
 
 __all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "sse_jobs_shared"]
 
-#: Grid rows pushed through the chain at once. Bounds memory (5 MB per array at 10^4 samples), and the chain's
-#: output is then a contiguous block that the linear kernel reads from cache for every job (structure) scored on
-#: it: with 256 rows the kernel's strided reads of the wider array took twice the time.
+#: Most grid rows pushed through the chain at once. Bounds memory (5 MB per array at 10^4 samples), and the
+#: chain's output is then a contiguous block that the linear kernel reads from cache for every job (structure)
+#: scored on it: with 256 rows the kernel's strided reads of the wider array took twice the time.
 _CHUNK = 64
+#: Fewest rows in a chunk of a grid cut for the threads: a valve grid's chunk of fewer valves steps the valves'
+#: branches, two to three times slower per valve (``valve_start._VECTOR_FROM``).
+_CHUNK_MIN = 24
 
 
 @dataclass(frozen=True, eq=False)
@@ -204,17 +208,17 @@ class Scorer:
     def sse_jobs(self, active, ctx, cand, grid, jobs, aim: Aim) -> list[tuple]:
         """Several ``(structure, delays)`` evaluations of one grid in one pass: each chunk of rows is pushed
         through the chain once (the valve simulation is the costly part) and scored for every job."""
-        return self._score_chunks(lambda a: self.chain(active, ctx, cand, grid[a:a + _CHUNK]), grid.shape[0], jobs,
-                                  aim)
+        return self._score_chunks(lambda a, b: self.chain(active, ctx, cand, grid[a:b]), grid.shape[0], jobs, aim)
 
     def sse_flows_all(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
-        """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, :data:`_CHUNK`
-        columns at a time (copied contiguous, then scored for every job while they are in cache): the same numbers
-        as job by job over the whole array."""
-        return self._score_chunks(lambda a: np.ascontiguousarray(flows[:, a:a + _CHUNK]), flows.shape[1], jobs, aim)
+        """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, at most
+        :data:`_CHUNK` columns at a time (copied contiguous, then scored for every job while they are in cache): the
+        same numbers as job by job over the whole array."""
+        return self._score_chunks(lambda a, b: np.ascontiguousarray(flows[:, a:b]), flows.shape[1], jobs, aim)
 
-    def _score_chunks(self, chunk: Callable[[int], np.ndarray], n: int, jobs: list[tuple], aim: Aim) -> list[tuple]:
-        """The flows of ``n`` grid rows, made :data:`_CHUNK` at a time by ``chunk(first row)``, each chunk scored
+    def _score_chunks(self, chunk: Callable[[int, int], np.ndarray], n: int, jobs: list[tuple], aim: Aim
+                      ) -> list[tuple]:
+        """The flows of ``n`` grid rows, made a chunk at a time by ``chunk(first row, end row)``, each chunk scored
         for every job as it is made (:func:`_chunks_scored`, :meth:`_score_block`); per job the SSE rows of all
         chunks stacked, and the delays it searched."""
         return _stacked(_chunks_scored(chunk, n, lambda flows: self._score_block(flows, jobs, aim)))
@@ -243,29 +247,34 @@ def sse_jobs_shared(active, ctx, cand, grid: np.ndarray, tasks: list[tuple[Score
     the chain does not depend on the cost domain) and is scored for every task: per task, the numbers of its own
     ``sse_jobs``."""
     first = tasks[0][0]
-    blocks = _chunks_scored(lambda a: first.chain(active, ctx, cand, grid[a:a + _CHUNK]), grid.shape[0],
+    blocks = _chunks_scored(lambda a, b: first.chain(active, ctx, cand, grid[a:b]), grid.shape[0],
                             lambda flows: [scorer._score_block(flows, jobs, aim) for scorer, jobs, aim in tasks])
     return [_stacked([block[t] for block in blocks]) for t in range(len(tasks))]
 
 
-def _chunks_scored(chunk: Callable[[int], np.ndarray], n: int, score: Callable[[np.ndarray], list]) -> list[list]:
-    """``score(chunk(a))`` for the chunks of ``n`` grid rows that start at ``a = 0, _CHUNK, 2 _CHUNK, …``, in order.
+def _chunks_scored(chunk: Callable[[int, int], np.ndarray], n: int, score: Callable[[np.ndarray], list]
+                   ) -> list[list]:
+    """``score(chunk(a, b))`` for the chunks ``a:b`` of ``n`` grid rows (:func:`_chunk_bounds`), in order.
 
-    The chunks are independent, so consecutive runs of them go to the kernels' threads
-    (:func:`~valve_emulator.diagnosis._threads.run_split`), each thread making and scoring its own chunks: one
-    thread hand-off per run instead of one per kernel call, and both cores busy with the chain and the linear
-    kernel alike (a chunk's linear fit had run in one thread). The splits inside a chunk (its valves, its
-    columns) then run in the thread that makes it. The numbers are those of one chunk after another."""
-    starts = range(0, n, _CHUNK)
-    out: list = [None] * len(starts)
+    The chunks are independent, so the kernels' threads take them one after another as each finishes one
+    (:func:`~valve_emulator.diagnosis._threads.run_each`), each thread making and scoring its chunk: both cores
+    busy with the chain and the linear kernel alike. The splits inside a chunk (its valves, its columns) then run
+    in the thread that makes it. Every row's numbers are those of its chunk alone: the valves, the filters and the
+    fits of a grid's rows are column by column the same whatever rows share a chunk."""
+    bounds = _chunk_bounds(n)
+    return run_each([functools.partial(_scored, chunk, score, a, b) for a, b in zip(bounds[:-1], bounds[1:])])
 
-    def run(c0: int, c1: int) -> None:
-        for c in range(c0, c1):
-            out[c] = score(chunk(starts[c]))
 
-    workers = workers_for(len(starts), per_worker=1)
-    run_split(run, [len(starts) * w // workers for w in range(workers + 1)])
-    return out
+def _scored(chunk: Callable[[int, int], np.ndarray], score: Callable[[np.ndarray], list], a: int, b: int) -> list:
+    return score(chunk(a, b))
+
+
+def _chunk_bounds(n: int) -> list[int]:
+    """Where the chunks of ``n`` grid rows start and end: as few as :data:`_CHUNK` rows allow, at least one per
+    thread of :data:`_CHUNK_MIN` rows or more, of even sizes (the threads take them in turn, so an odd short
+    chunk would leave a core idle while the others finish)."""
+    count = max(-(-n // _CHUNK), workers_for(n, _CHUNK_MIN))
+    return [n * i // count for i in range(count + 1)]
 
 
 def _stacked(blocks: list[list[tuple]]) -> list[tuple]:
