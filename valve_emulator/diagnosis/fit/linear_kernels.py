@@ -492,7 +492,7 @@ def _score_columns(u: np.ndarray, filtered: bool, stages: tuple, fit: tuple, sse
     run_split(lambda a, b: _grid_columns(u, a, b, filtered, stages, fit, sse), cuts)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def normal_equations(X, y):  # pragma: no cover - compiled
     """``(XᵀX, Xᵀy)`` of a tall, skinny least-squares problem, single-threaded.
 

@@ -57,7 +57,7 @@ from valve_emulator.diagnosis.fit.linear import (
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Model
 
-__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "sse_jobs_shared"]
+__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "sse_jobs_many", "sse_jobs_shared"]
 
 #: Most grid rows pushed through the chain at once. Bounds memory (5 MB per array at 10^4 samples), and the
 #: chain's output is then a contiguous block that the linear kernel reads from cache for every job (structure)
@@ -210,6 +210,11 @@ class Scorer:
         through the chain once (the valve simulation is the costly part) and scored for every job."""
         return self._score_chunks(lambda a, b: self.chain(active, ctx, cand, grid[a:b]), grid.shape[0], jobs, aim)
 
+    def sse_jobs_many(self, requests: list[tuple]) -> list[list[tuple]]:
+        """:meth:`sse_jobs` of several grids, each request ``(active, ctx, cand, grid, jobs, aim)``, their chunks
+        shared out over the threads together (:func:`sse_jobs_many`)."""
+        return sse_jobs_many([(self, *request) for request in requests])
+
     def sse_flows_all(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
         """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, at most
         :data:`_CHUNK` columns at a time (copied contiguous, then scored for every job while they are in cache): the
@@ -239,6 +244,21 @@ class Scorer:
         return np.arange(max(lo, d0 - r), min(hi, d0 + r) + 1)
 
 
+def sse_jobs_many(requests: list[tuple]) -> list[list[tuple]]:
+    """:meth:`Scorer.sse_jobs` of several grids, each request ``(scorer, active, ctx, cand, grid, jobs, aim)``:
+    the chunks of all of them shared out over the threads together. Per request, the numbers of its own
+    ``sse_jobs``."""
+    grids = [(functools.partial(_grid_chunk, scorer, active, ctx, cand, grid), grid.shape[0],
+              functools.partial(scorer._score_block, jobs=jobs, aim=aim))
+             for scorer, active, ctx, cand, grid, jobs, aim in requests]
+    return [_stacked(blocks) for blocks in _grids_chunks_scored(grids)]
+
+
+def _grid_chunk(scorer: Scorer, active, ctx, cand, grid: np.ndarray, a: int, b: int) -> np.ndarray:
+    """The chain's flows of rows ``a:b`` of ``grid``."""
+    return scorer.chain(active, ctx, cand, grid[a:b])
+
+
 def sse_jobs_shared(active, ctx, cand, grid: np.ndarray, tasks: list[tuple[Scorer, list[tuple], Aim]]
                     ) -> list[list[tuple]]:
     """:meth:`Scorer.sse_jobs` of one grid for several scorers of one problem that differ only in the cost domain
@@ -261,8 +281,22 @@ def _chunks_scored(chunk: Callable[[int, int], np.ndarray], n: int, score: Calla
     busy with the chain and the linear kernel alike. The splits inside a chunk (its valves, its columns) then run
     in the thread that makes it. Every row's numbers are those of its chunk alone: the valves, the filters and the
     fits of a grid's rows are column by column the same whatever rows share a chunk."""
-    bounds = _chunk_bounds(n)
-    return run_each([functools.partial(_scored, chunk, score, a, b) for a, b in zip(bounds[:-1], bounds[1:])])
+    return _grids_chunks_scored([(chunk, n, score)])[0]
+
+
+def _grids_chunks_scored(grids: list[tuple[Callable[[int, int], np.ndarray], int, Callable[[np.ndarray], list]]]
+                         ) -> list[list[list]]:
+    """:func:`_chunks_scored` of several grids, ``(chunk, n, score)`` each, their chunks taken by the threads
+    from one list: a grid of one chunk no longer leaves the other cores idle while it is scored."""
+    tasks, owner = [], []
+    for g, (chunk, n, score) in enumerate(grids):
+        bounds = _chunk_bounds(n)
+        tasks += [functools.partial(_scored, chunk, score, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+        owner += [g] * (len(bounds) - 1)
+    out: list[list[list]] = [[] for _ in grids]
+    for g, result in zip(owner, run_each(tasks)):
+        out[g].append(result)
+    return out
 
 
 def _scored(chunk: Callable[[int, int], np.ndarray], score: Callable[[np.ndarray], list], a: int, b: int) -> list:
