@@ -56,6 +56,7 @@ from valve_emulator.diagnosis.fit.linear import (
 )
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Model
+from valve_emulator.physics._arrays import kernel_array
 
 __all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "sse_jobs_many", "sse_jobs_shared"]
 
@@ -74,7 +75,8 @@ class Aim:
 
     ``y`` is in scaled PV units: the scaled PV, or the target an ``output`` candidate of the model made of it
     (:mod:`~valve_emulator.diagnosis.fit.backfit`); ``cost`` is the same in the search's cost domain (``y``
-    itself, or high-pass prefiltered for an integrating plant).
+    itself, or high-pass prefiltered for an integrating plant), contiguous and writable as the compiled kernels
+    take it (the record's arrays are read-only, and the kernels' callers copied them at every call).
     """
 
     y: np.ndarray
@@ -129,7 +131,7 @@ class Scorer:
         """What the linear part is fitted to while ``model`` is extended or profiled (the scaled PV unless the
         model holds an output candidate, see :mod:`~valve_emulator.diagnosis.fit.backfit`)."""
         y = self.p.y if model is None or model.target is None else model.target
-        return Aim(y, y if self.lam is None else highpass(y, self.lam))
+        return Aim(y, kernel_array(y if self.lam is None else highpass(y, self.lam)))
 
     def ctx(self, model: Model | None) -> ChainContext:
         """The chain context of ``model`` (its linear part; the nominal one for None)."""
