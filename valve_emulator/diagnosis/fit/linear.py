@@ -241,12 +241,14 @@ def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float, *, mean:
 
 def input_grid_sse(u: np.ndarray, y: np.ndarray, window: tuple[int, int], delays: np.ndarray,
                    structure: LinearStructure, dt: float, *, prefilter: float | None = None,
-                   frac: float = 0.0) -> np.ndarray:
+                   frac: float = 0.0, means: np.ndarray | None = None) -> np.ndarray:
     """Residual sum of squares for every column of the plant input ``u`` (T, n) and every dead time.
 
     The same numbers as :func:`delay_grid_sse` of :func:`filter_inputs` (then :func:`highpass` with
     ``prefilter``, then a delay by the fraction ``frac`` of a sample), in one compiled pass per column that
-    never stores the filtered inputs. ``y`` is in the cost domain (prefiltered with ``prefilter``).
+    never stores the filtered inputs. ``y`` is in the cost domain (prefiltered with ``prefilter``). ``means``:
+    ``u``'s column means (:func:`~valve_emulator.diagnosis.fit.linear_kernels.column_means`), when ``u`` is
+    scored for several structures.
     """
     u = u[:, None] if u.ndim == 1 else u
     delays = np.asarray(delays, dtype=np.int64)
@@ -254,7 +256,7 @@ def input_grid_sse(u: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     trend = int(structure.integrating and prefilter is None)
     sse = np.empty((u.shape[1], delays.size))
     grid_sse(u, y, w0, w1, delays, structure.ntaps, trend, sse, alpha=structure.denominator(dt),
-             integ=structure.integrating, dt=dt, lam=prefilter, frac=frac, sign=structure.sign)
+             integ=structure.integrating, dt=dt, lam=prefilter, frac=frac, sign=structure.sign, means=means)
     return sse
 
 

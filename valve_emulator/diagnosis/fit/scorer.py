@@ -54,6 +54,7 @@ from valve_emulator.diagnosis.fit.linear import (
     prior_term,
     split_delay,
 )
+from valve_emulator.diagnosis.fit.linear_kernels import column_means
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.physics._arrays import kernel_array
@@ -191,17 +192,19 @@ class Scorer:
         """The keyword arguments of every polish of this problem (dead-time bounds, prefilter, prior)."""
         return dict(free_delay=free, delay_bounds=(0.0, self.dmax), prefilter=self.lam, prior=self.prior)
 
-    def sse_flows(self, flows: np.ndarray, st: LinearStructure, delays: np.ndarray | None, aim: Aim) -> tuple:
+    def sse_flows(self, flows: np.ndarray, st: LinearStructure, delays: np.ndarray | None, aim: Aim, *,
+                  means: np.ndarray | None = None) -> tuple:
         """SSE (n, nd) for chain outputs ``flows`` (T, n) and the delays searched (samples).
 
-        ``delays=None`` holds the structure's own (possibly fractional) dead time.
+        ``delays=None`` holds the structure's own (possibly fractional) dead time. ``means``: the flows' column
+        means (:func:`~valve_emulator.diagnosis.fit.linear_kernels.column_means`) when known.
         """
         frac = 0.0
         if delays is None:
             m, frac = split_delay(st.delay / self.p.dt)
             delays = np.array([m])
         return input_grid_sse(flows, aim.cost, self.p.train, delays, st, self.p.dt, prefilter=self.lam,
-                              frac=frac), delays
+                              frac=frac, means=means), delays
 
     def sse_grid(self, active, ctx, cand, grid, st, delays, aim: Aim) -> tuple:
         """:meth:`sse_flows` for a parameter grid, in chunks of :data:`_CHUNK` rows (bounded memory)."""
@@ -236,7 +239,9 @@ class Scorer:
         own) are scored once and share the numbers."""
         first: dict[tuple, int] = {}
         same = [first.setdefault(_kernel_job(st, delays), i) for i, (st, delays) in enumerate(jobs)]
-        done = {i: self.sse_flows(flows, *jobs[i], aim) for i in first.values()}
+        # The flows' means once for every job (reading a long record's block for them costs a pass of the fit).
+        means = column_means(flows) if len(first) > 1 else None
+        done = {i: self.sse_flows(flows, *jobs[i], aim, means=means) for i in first.values()}
         return [done[i] for i in same]
 
     def near(self, d: float, r: int) -> np.ndarray:
