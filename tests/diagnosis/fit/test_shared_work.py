@@ -13,7 +13,7 @@ from valve_emulator.diagnosis.candidates import get
 from valve_emulator.diagnosis.candidates.base import ChainContext
 from valve_emulator.diagnosis.candidates.valve_start import valve_output
 from valve_emulator.diagnosis.fit.backfit import backfit, backfit_sse
-from valve_emulator.diagnosis.fit.chain import _nominal, run_chain
+from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
 
@@ -57,24 +57,6 @@ def test_the_chains_tail_on_a_travel_scale_is_travel_clip_and_back_bit_for_bit()
     assert run_chain(op, {}, ctx, grid_candidate=get("stiction"), grid=grid).tobytes() == tail(mv).tobytes()
     assert run_chain(op, {}, ctx)[:, 0].tobytes() == tail(op).tobytes()
     assert tail(op).min() == lo and tail(op).max() == hi
-
-
-def test_the_linear_characteristic_clips_at_the_travel_stops_exactly_when_numpys_min_and_max_say_so():
-    # The chain asks whether a signal leaves 0-100 % in one compiled pass; numpy's min and max decide the same,
-    # a NaN included (it makes both NaN, and neither comparison true).
-    rng = np.random.default_rng(1)
-    ctx = ChainContext(dt=1.0, op=np.zeros(8), op_span=10.0)
-    for _ in range(500):
-        x = rng.uniform(-1.0, 101.0, size=(int(rng.integers(1, 12)), 2))
-        if rng.random() < 0.5:
-            x = np.clip(x, 0.0, 100.0)
-        if rng.random() < 0.2:
-            x[int(rng.integers(x.shape[0])), 1] = np.nan
-        leaves = bool(x.min() < 0.0 or x.max() > 100.0)
-        flow = _nominal("characteristic", x, ctx, 0.0, 0.0)
-        assert (flow is not x) == leaves
-        if leaves:
-            np.testing.assert_array_equal(flow, np.clip(x, 0.0, 100.0))
 
 
 def test_one_grid_scored_for_two_cost_domains_has_the_numbers_of_each_alone():

@@ -54,21 +54,9 @@ def _nominal(slot: str, x: np.ndarray, ctx: ChainContext, S: float, J: float) ->
         return mv[:, 0] if x.ndim == 1 else mv
     if slot == "characteristic" and ctx.characteristic[0] != "linear":
         return Characteristic(*ctx.characteristic).flow(x)
-    if slot == "characteristic" and _leaves_travel(kernel_array(x).reshape(-1)):
+    if slot == "characteristic" and (x.min() < 0.0 or x.max() > 100.0):
         return np.clip(x, 0.0, 100.0)  # the linear curve: travel stops at 0/100 (valve outputs never
     return x                           # leave them, so most calls skip the copy)
-
-
-@numba.njit(cache=True, nogil=True)
-def _leaves_travel(x):  # pragma: no cover - compiled
-    # Whether x.min() < 0 or x.max() > 100, as numpy decides it (a NaN makes both NaN, and neither true), in one
-    # pass instead of two: at 10^5 samples a grid chunk's flows are 51 MB, read from memory for each.
-    out = False
-    for v in x:
-        if v != v:
-            return False
-        out = out or v < 0.0 or v > 100.0
-    return out
 
 
 @numba.njit(cache=True, nogil=True)
