@@ -32,7 +32,7 @@ import numpy as np
 from valve_emulator.diagnosis._threads import run_split, workers_for
 from valve_emulator.physics._arrays import kernel_array
 
-__all__ = ["RIDGE", "column_means", "column_sse", "grid_sse", "normal_equations"]
+__all__ = ["RIDGE", "column_mean", "column_means", "column_sse", "grid_sse", "normal_equations"]
 
 # Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
 # without changing any well-posed fit beyond rounding.
@@ -384,15 +384,11 @@ def _grid_columns(u, c_lo, c_hi, filtered, stages, fit, sse, mean):  # pragma: n
 
 
 @numba.njit(cache=True, nogil=True)
-def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, trend, sign):  # pragma: no cover
-    """Compiled body of :func:`column_sse`."""
+def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, trend, sign):  # pragma: no cover
+    """Compiled body of :func:`column_sse` (``mean``: ``u``'s, :func:`column_mean`)."""
     T = u.shape[0]
     q = ntaps + 1 + trend
     p, gain, start, rring, rmask = _filter_setup(alpha, T)
-    mean = 0.0
-    for k in range(T):
-        mean += u[k]
-    mean /= T
     ring, mask = _ring(m + ntaps + 1)
     Z = np.zeros(ring)
     R = np.zeros(rring)
@@ -454,17 +450,33 @@ def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, t
     return _solve_sse(G, r, yy, q, beta, ntaps, sign)
 
 
-def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend, sign=0) -> float:
+def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend, sign=0, mean=None) -> float:
     """SSE of the fit for one input column ``u`` (T,) and one dead time of ``m`` whole samples plus ``frac``.
 
     The arguments are :func:`grid_sse`'s for a single column and a single delay; this scalar version of the same
     pass is what a polish evaluates thousands of times (the block kernel's per-sample loop set-up, amortised
     over a block of columns, would dominate for one). The Gram entries are summed directly over the window.
-    ``sign``: the gain's required sign (see :func:`grid_sse`).
+    ``sign``: the gain's required sign (see :func:`grid_sse`). ``mean``: ``u``'s mean (:func:`column_mean`),
+    which a polish computes once for all its evaluations of one column.
     """
-    return float(_column_sse(kernel_array(u).reshape(-1), kernel_array(alpha), bool(integ), float(dt),
-                             lam is not None, float(lam or 0.0), float(frac), kernel_array(y), int(w0), int(w1),
-                             int(m), int(ntaps), int(trend), float(sign)))
+    u = kernel_array(u).reshape(-1)
+    return float(_column_sse(u, _column_mean(u) if mean is None else float(mean), kernel_array(alpha), bool(integ),
+                             float(dt), lam is not None, float(lam or 0.0), float(frac), kernel_array(y), int(w0),
+                             int(w1), int(m), int(ntaps), int(trend), float(sign)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _column_mean(u):  # pragma: no cover - compiled
+    """Mean of ``u`` (T,), summed in time order."""
+    mean = 0.0
+    for k in range(u.shape[0]):
+        mean += u[k]
+    return mean / u.shape[0]
+
+
+def column_mean(u: np.ndarray) -> float:
+    """The mean :func:`column_sse` subtracts from its input column ``u`` (T,) before filtering."""
+    return float(_column_mean(kernel_array(u).reshape(-1)))
 
 
 def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=None, integ=False, dt=1.0,
