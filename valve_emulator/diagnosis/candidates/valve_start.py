@@ -227,13 +227,14 @@ def valve_burn_in(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray
         cols = np.arange(valves.size)
         _run_valves(bank.x, K, K + k0, K + k1, cols, bank.S[valves], bank.J[valves], bank.R[valves],
                     bank.codes[valves], st, buf, K + k0)
-        seen = _last_differing(buf[:k1 - k0, :valves.size], n_starts)
+        seen = _last_differing(buf[:k1 - k0], n_starts)
         last[groups[seen >= 0]] = k0 + seen[seen >= 0]
         going = ~(same_params[groups] & _merged(st, n_starts))
         if not going.all():
             groups = groups[going]
             keep = np.repeat(going, n_starts)
             valves, st = valves[keep], np.asfortranarray(st[keep])
+            buf = np.empty((_SEGMENT, valves.size))   # contiguous, as the kernels were compiled for
         if groups.size == 0:
             break
     merged = last < T - 1 - T // 10
