@@ -15,6 +15,7 @@ Wall times are not compared (``seconds`` is not in either part). Run::
     python bench/diagnosis_identity.py --write /tmp/before.json          # on the reference checkout
     python bench/diagnosis_identity.py --compare /tmp/before.json        # on the changed one
     python bench/diagnosis_identity.py --before /path/to/reference/checkout   # both, the reference in a child
+    python bench/diagnosis_identity.py --before CHECKOUT --draws 1 --long 10000 100000   # and the benchmark's sizes
 
 Exit status 0 when every ``json`` document is identical (``exact`` differences are listed, not fatal unless
 ``--strict``), 1 otherwise.
@@ -61,8 +62,10 @@ def _exact(diagnosis) -> dict:
     }
 
 
-def recordings(draws: int):
-    """(name, recording, nominal model or None, diagnose options): the fixed set, in a fixed order."""
+def recordings(draws: int, long: tuple[int, ...] = ()):
+    """(name, recording, nominal model or None, diagnose options): the fixed set, in a fixed order, then the
+    benchmark's recording (``bench_diagnose.py``: the first proof case lengthened) at each size of ``long``
+    with its model — the sizes where the kernels' threads and the windowed coarse stages come into play."""
     from valve_emulator.benchmark import independent
     from valve_emulator.benchmark.cases import CASES, generate
     from valve_emulator.config import loop_from_mapping
@@ -76,14 +79,17 @@ def recordings(draws: int):
             rec, _, nominal = independent.draw(family, np.random.default_rng([1, i]))
             yield f"{family} {i} | model", rec, loop_from_mapping(nominal), {}
             yield f"{family} {i} | plant data", rec, None, {"op_range": (0, 100)}
+    for n in long:
+        rec, nominal, _ = generate(CASES[0], duration=n - 1 + CASES[0].cut)
+        yield f"case {CASES[0].name} {n} samples | model", rec, nominal, {}
 
 
-def documents(draws: int, only: str | None = None) -> dict:
+def documents(draws: int, only: str | None = None, long: tuple[int, ...] = ()) -> dict:
     """name → {"json", "exact", "seconds"} for every recording of :func:`recordings`."""
     import valve_emulator as ve
 
     out = {}
-    for name, rec, model, options in recordings(draws):
+    for name, rec, model, options in recordings(draws, long):
         if only and only not in name:
             continue
         t = time.perf_counter()
@@ -132,6 +138,8 @@ def main(argv=None) -> int:
     g.add_argument("--before", type=Path, help="another checkout: write its documents in a child, then compare")
     p.add_argument("--draws", type=int, default=3, help="draws per independent family")
     p.add_argument("--only", help="only the recordings whose name contains this text")
+    p.add_argument("--long", type=int, nargs="*", default=[],
+                   help="also the benchmark's recording at these sizes (samples), with its model")
     p.add_argument("--strict", action="store_true", help="fail on full-precision differences too")
     args = p.parse_args(argv)
     if args.before is not None:
@@ -139,13 +147,14 @@ def main(argv=None) -> int:
             ref = Path(tmp) / "before.json"
             cmd = [sys.executable, __file__, "--write", str(ref), "--draws", str(args.draws)]
             cmd += ["--only", args.only] if args.only else []
+            cmd += ["--long", *map(str, args.long)] if args.long else []
             subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(args.before.resolve())}, check=True)
             before = json.loads(ref.read_text())
     elif args.compare is not None:
         before = json.loads(args.compare.read_text())
     else:
         before = None
-    after = documents(args.draws, args.only)
+    after = documents(args.draws, args.only, tuple(args.long))
     if before is None:
         args.write.write_text(json.dumps(after, indent=1))
         print(f"{len(after)} documents written to {args.write} ({_times(after):.1f} s of diagnosis)")

@@ -1,11 +1,20 @@
-"""The thread pool of the compiled kernels: every range runs once, errors reach the caller, callers may overlap."""
+"""The thread pool of the compiled kernels: every range and task runs once, errors reach the caller, callers may
+overlap; OpenBLAS keeps to one thread while a diagnosis runs."""
 
+import functools
 import threading
 
 import numba
 import pytest
 
-from valve_emulator.diagnosis._threads import MIN_PER_WORKER, run_split, workers_for
+from valve_emulator.diagnosis._threads import (
+    MIN_PER_WORKER,
+    _openblas_controls,
+    one_blas_thread,
+    run_each,
+    run_split,
+    workers_for,
+)
 
 
 def test_every_non_empty_range_runs_once_and_the_last_in_the_calling_thread():
@@ -114,3 +123,44 @@ def test_a_diagnosis_split_over_two_threads_is_the_one_thread_diagnosis_bit_for_
     assert two_pooled > 0, "with two threads the diagnosis hands ranges to the pool"
     assert two_exact == one_exact
     assert two == one
+
+
+def test_each_task_runs_once_and_the_results_come_back_in_order():
+    seen, lock = [], threading.Lock()
+
+    def task(i):
+        with lock:
+            seen.append(i)
+        return i * i
+
+    assert run_each([functools.partial(task, i) for i in range(7)]) == [i * i for i in range(7)]
+    assert sorted(seen) == list(range(7))
+    assert run_each([]) == []
+
+
+def test_an_error_in_a_task_reaches_the_caller():
+    def task(i):
+        if i == 2:
+            raise ValueError("task 2")
+        return i
+
+    with pytest.raises(ValueError, match="task 2"):
+        run_each([functools.partial(task, i) for i in range(5)])
+
+
+@pytest.mark.skipif(not _openblas_controls(), reason="numpy's BLAS is not OpenBLAS here")
+def test_openblas_keeps_to_one_thread_while_a_diagnosis_runs_and_gets_its_count_back_after():
+    counts = lambda: [get() for _, get in _openblas_controls()]   # noqa: E731
+    before = counts()
+    inside = []
+
+    @one_blas_thread
+    def diagnosis(depth):
+        inside.append(counts())
+        if depth:
+            diagnosis(depth - 1)   # one running inside another (or beside it) does not restore the count early
+            inside.append(counts())
+
+    diagnosis(1)
+    assert all(c == [1] * len(before) for c in inside)
+    assert counts() == before

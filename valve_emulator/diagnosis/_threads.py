@@ -4,6 +4,10 @@ A kernel compiled with ``nogil=True`` runs in parallel in plain threads; a ``par
 compile several times slower, and it is the kernels that a fresh install compiles first. The pool has
 ``numba.get_num_threads()`` workers (1 in the workers of a plant-wide sweep, which are processes already).
 
+While a diagnosis runs, numpy's BLAS (OpenBLAS) keeps to one thread (:func:`one_blas_thread`): its calls on
+the record (a residual, a norm, a least-squares fit) are a few milliseconds each, and after each one
+OpenBLAS's threads spin on the other cores waiting for more, where they take the time of the kernels' threads.
+
 Splits nest: work that a split already runs in parallel (a chunk of grid rows, :mod:`~valve_emulator.diagnosis.
 fit.scorer`) may call code that splits again (its valves, its columns); such an inner split runs its ranges in
 the calling thread, one after the other. The cores are busy with the outer split, and a pool worker that waited
@@ -12,13 +16,18 @@ for a range queued behind itself would wait for ever.
 
 from __future__ import annotations
 
+import ctypes
+import functools
+import glob
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
+import numpy as np
 
-__all__ = ["MIN_PER_WORKER", "run_split", "workers_for"]
+__all__ = ["MIN_PER_WORKER", "one_blas_thread", "run_each", "run_split", "workers_for"]
 
 #: Fewer items than this per worker run in the calling thread: handing work to a thread costs more than it saves.
 MIN_PER_WORKER = 16
@@ -70,3 +79,99 @@ def run_split(work: Callable[[int, int], object], cuts: list[int]) -> None:
     finally:
         for f in futures:
             f.result()
+
+
+def run_each(tasks: list[Callable[[], object]]) -> list:
+    """``[task() for task in tasks]``, the tasks shared out over the pool's workers and the calling thread, each
+    taking the next task when it is done with one (tasks of unequal length: a polish that converges early).
+
+    For tasks that spend most of their time in kernels that release the GIL. Inside a range of a split, or with
+    one thread, they run in the calling thread, in order. Exceptions propagate after every task has finished.
+    """
+    workers = workers_for(len(tasks), 1)
+    if workers <= 1:
+        return [task() for task in tasks]
+    out: list = [None] * len(tasks)
+    taken = iter(range(len(tasks)))
+    lock = threading.Lock()
+
+    def take(_a: int, _b: int) -> None:
+        while True:
+            with lock:
+                i = next(taken, None)
+            if i is None:
+                return
+            out[i] = tasks[i]()
+
+    run_split(take, list(range(workers + 1)))
+    return out
+
+
+#: The thread-count functions OpenBLAS exports, (set, get), as its builds name them (numpy's and scipy's wheels
+#: prefix theirs, the 64-bit-integer build with a suffix too).
+_OPENBLAS_NAMES = (("openblas_set_num_threads", "openblas_get_num_threads"),
+                   ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
+                   ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"),
+                   ("openblas_set_num_threads64_", "openblas_get_num_threads64_"))
+
+_blas_lock = threading.Lock()
+_blas_users = 0                       # diagnoses running inside :func:`one_blas_thread`
+_blas_saved: list[tuple[Callable, int]] = []   # (set, the count before) of each OpenBLAS, while any runs
+
+
+def _loaded_openblas() -> list[str]:
+    """Paths of the OpenBLAS libraries loaded in this process (numpy's first): Linux lists them in
+    ``/proc/self/maps``; elsewhere numpy's wheel folder is searched."""
+    try:
+        with open("/proc/self/maps") as f:
+            paths = {line.split()[-1] for line in f if "openblas" in line.rsplit("/", 1)[-1].lower()}
+    except OSError:
+        root = os.path.dirname(np.__file__)
+        paths = {p for d in (os.path.join(root, os.pardir, "numpy.libs"), os.path.join(root, ".dylibs"))
+                 for p in glob.glob(os.path.join(d, "*openblas*"))}
+    return sorted(paths, key=lambda p: "numpy" not in p)
+
+
+def _openblas_controls() -> list[tuple[Callable, Callable]]:
+    """(set, get) of the thread count of every OpenBLAS loaded (none: another BLAS, or none found)."""
+    return [c for c in map(_controls_of, _loaded_openblas()) if c is not None]
+
+
+@functools.cache
+def _controls_of(path: str) -> tuple[Callable, Callable] | None:
+    """(set, get) of the thread count of the OpenBLAS at ``path`` (None: not one, or not loadable)."""
+    try:
+        lib = ctypes.CDLL(path)
+    except OSError:
+        return None
+    for set_name, get_name in _OPENBLAS_NAMES:
+        if hasattr(lib, set_name) and hasattr(lib, get_name):
+            setter, getter = getattr(lib, set_name), getattr(lib, get_name)
+            setter.argtypes, setter.restype, getter.restype = [ctypes.c_int], None, ctypes.c_int
+            return setter, getter
+    return None
+
+
+def one_blas_thread(f: Callable) -> Callable:
+    """``f`` run with OpenBLAS in one thread (see the module docstring), its thread count restored when the
+    last of the calls running at once returns (diagnoses may run in several threads). The numbers are those of
+    the same BLAS kernels in one thread. Without OpenBLAS (another BLAS, not found) ``f`` runs as it is."""
+
+    @functools.wraps(f)
+    def single(*args, **kwargs):
+        global _blas_users
+        with _blas_lock:
+            if _blas_users == 0:
+                _blas_saved[:] = [(setter, getter()) for setter, getter in _openblas_controls()]
+                for setter, _ in _blas_saved:
+                    setter(1)
+            _blas_users += 1
+        try:
+            return f(*args, **kwargs)
+        finally:
+            with _blas_lock:
+                _blas_users -= 1
+                if _blas_users == 0:
+                    for setter, count in _blas_saved:
+                        setter(count)
+    return single

@@ -19,7 +19,8 @@ def _fitter(*, given: bool = True, library: dict | None = None, sse_of=None) -> 
     scorer = SimpleNamespace(
         nominal=SimpleNamespace(given=given, structure=LinearStructure(taus=NOMINAL_POLES, delay=2.0)),
         library=library or {}, p=SimpleNamespace(n_fit=1000, dt=1.0),
-        sse_grid=lambda active, ctx, cand, rows, st, delays, aim: (sse_of(rows)[:, None], np.array([2])))
+        sse_jobs_many=lambda requests: [[(sse_of(rows)[:, None], np.array([2]))] * len(jobs)
+                                        for active, ctx, cand, rows, jobs, aim in requests])
     return Fitter(scorer)
 
 

@@ -91,7 +91,7 @@ def test_jobs_the_linear_fit_cannot_tell_apart_are_scored_once_with_the_numbers_
     alone = [scorer.sse_flows_all(flows, [job], aim)[0] for job in jobs]
     calls = []
     sse_flows = scorer.sse_flows
-    monkeypatch.setattr(scorer, "sse_flows", lambda *a: calls.append(a[1]) or sse_flows(*a))
+    monkeypatch.setattr(scorer, "sse_flows", lambda *a, **kw: calls.append(a[1]) or sse_flows(*a, **kw))
     together = scorer.sse_flows_all(flows, jobs, aim)
     assert len(calls) == 4 * 2   # four distinct jobs (the dead time held is the structure's own), two chunks
     for (sse, used), (sse_alone, used_alone) in zip(together, alone):

@@ -13,7 +13,7 @@ from typing import ClassVar
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
-from valve_emulator.diagnosis.candidates.valve_start import STARTS, sync_burn_in, valve_output
+from valve_emulator.diagnosis.candidates.valve_start import STARTS, valve_burn_in, valve_output
 
 __all__ = ["Deadband"]
 
@@ -51,7 +51,8 @@ class Deadband(ChainCandidate):
         return np.vstack(rows)  # a regular grid: the interval is widened by half its step
 
     def burn_in(self, ctx: ChainContext) -> int:
-        return sync_burn_in(self.apply(ctx.op, self.grid(ctx), ctx))
+        g = self.grid(ctx)
+        return valve_burn_in(ctx.op, g[:, 0], np.zeros(g.shape[0]), g[:, 1], ctx)
 
     def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
         h = _step(ctx.op_span) / 200.0

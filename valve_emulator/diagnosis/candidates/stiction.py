@@ -22,7 +22,7 @@ from typing import ClassVar
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
-from valve_emulator.diagnosis.candidates.valve_start import STARTS, sync_burn_in, valve_output
+from valve_emulator.diagnosis.candidates.valve_start import STARTS, valve_burn_in, valve_output
 
 __all__ = ["Stiction", "stiction_kind"]
 
@@ -89,7 +89,8 @@ class Stiction(ChainCandidate):
         return np.vstack(rows)  # a regular grid: the interval is widened by half its step
 
     def burn_in(self, ctx: ChainContext) -> int:
-        return sync_burn_in(self.apply(ctx.op, self.grid(ctx), ctx))
+        g = self.grid(ctx)
+        return valve_burn_in(ctx.op, g[:, 0], g[:, 1], g[:, 2], ctx)
 
     def line(self, ctx: ChainContext, best: np.ndarray, axis: int) -> np.ndarray:
         h = scan_steps(ctx.op_span)[axis] / (80.0 if axis == 0 else 60.0)

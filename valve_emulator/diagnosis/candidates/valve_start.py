@@ -23,6 +23,7 @@ model only after the largest such burn-in (capped), so that no candidate is rewa
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Final
 
 import numba
@@ -50,7 +51,7 @@ from valve_emulator.physics.stiction import (
     stiction_step_kernel,
 )
 
-__all__ = ["PRE_ROLL", "STARTS", "valve_output", "sync_burn_in"]
+__all__ = ["PRE_ROLL", "STARTS", "valve_burn_in", "valve_output", "sync_burn_in"]
 
 PRE_ROLL: Final = 2.0
 #: The start values, in the order grids use them.
@@ -71,14 +72,15 @@ _VECTOR_FROM = 24
 
 
 @numba.njit(cache=True, nogil=True)
-def _run_valves(op, K, first, last, cols, S, J, R, codes, st, out):  # pragma: no cover - compiled
+def _run_valves(op, K, first, last, cols, S, J, R, codes, st, out, out_first):  # pragma: no cover - compiled
     # The physics layer's state machines in a compiled time loop over samples first..last-1 of the record preceded
     # by its mirrored pre-roll: sample kk < K is op[K - kk] (op[K], ..., op[1]), sample kk >= K is op[kk - K].
-    # Valve i reads OP column cols[i] and, from kk = K on, writes MV column cols[i] of out (T, n). The state is
-    # column-major. At least _VECTOR_FROM valves of one model step the selects inline, one loop over the valves
-    # per sample: a call per sample to the physics layer's step_same_model (arrays as arguments, reference counts
-    # updated at every call) cost more than the valves' own work at these sizes (64 valves: 3 ns per valve-sample
-    # against 1.0 inline). Fewer keep the branches of stiction_step_kernel.
+    # Valve i reads OP column cols[i] and, from kk = K on, writes MV into row kk - out_first, column cols[i] of out
+    # (out_first = K: out is the record's MV, (T, n)). The state is column-major. At least _VECTOR_FROM valves of
+    # one model step the selects inline, one loop over the valves per sample: a call per sample to the physics
+    # layer's step_same_model (arrays as arguments, reference counts updated at every call) cost more than the
+    # valves' own work at these sizes (64 valves: 3 ns per valve-sample against 1.0 inline). Fewer keep the
+    # branches of stiction_step_kernel.
     m = cols.shape[0]
     u = np.empty(m)
     same = m >= _VECTOR_FROM
@@ -112,21 +114,32 @@ def _run_valves(op, K, first, last, cols, S, J, R, codes, st, out):  # pragma: n
                     he_update(u[i], S[i], J[i], st[i, MV], st[i, U_PREV], st[i, REF])
         if kk >= K:
             for i in range(m):
-                out[kk - K, cols[i]] = st[i, MV]
+                out[kk - out_first, cols[i]] = st[i, MV]
 
 
-def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray, ctx: ChainContext) -> np.ndarray:
-    """MV (T, n) of valves with parameters ``S, J`` and initial state ``start`` (see the module docstring).
+@dataclass(frozen=True, eq=False)
+class _Bank:
+    """Valves ready to run (:func:`_bank`): OP (T, 1 or n) as the kernel reads it, the pre-roll's length ``K``,
+    which valves start with the pre-roll, their parameters, model codes and initial state (n, NSTATE)."""
 
-    ``x`` is OP (T,) shared by all, or (T, n) one column per valve.
-    """
+    x: np.ndarray
+    K: int
+    pre: np.ndarray
+    S: np.ndarray
+    J: np.ndarray
+    R: np.ndarray
+    codes: np.ndarray
+    state: np.ndarray
+
+
+def _bank(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray, ctx: ChainContext) -> _Bank:
+    """The valves of :func:`valve_output` in their initial states."""
     x = np.asarray(x, dtype=float)
     x2 = np.ascontiguousarray(x[:, None] if x.ndim == 1 else x)
     S, J, start = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (S, J, start))
     n = max(S.size, J.size, start.size, x2.shape[1])
     S, J, start = (np.ascontiguousarray(np.broadcast_to(a, (n,))) for a in (S, J, start))
-    T = x2.shape[0]
-    K = _pre_roll(T)
+    K = _pre_roll(x2.shape[0])
     pre = start == PRE_ROLL
     d = np.where(pre, 1.0, start)
     cols = np.zeros(n, dtype=np.int64) if x2.shape[1] == 1 else np.arange(n)
@@ -134,23 +147,41 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
     codes = np.full(n, MODELS.index(ctx.valve_model), dtype=np.int64)
     state = np.zeros((n, NSTATE))
     initial_state(state, np.clip(first - d * (J + _EPS), 0.0, 100.0), d, S, J, codes)
+    return _Bank(x=kernel_array(x2), K=K, pre=pre, S=S, J=J, R=np.full(n, float(ctx.rest_samples)), codes=codes,
+                 state=state)
+
+
+def _pre_rolled(bank: _Bank, valves: np.ndarray) -> np.ndarray:
+    """The state (column-major) of ``valves`` at the record's first sample: those that start with the pre-roll
+    run through the mirrored pre-roll first."""
+    st = np.asfortranarray(bank.state[valves])
+    rolled = np.flatnonzero(bank.pre[valves])
+    if rolled.size:
+        i = valves[rolled]
+        st_pre = np.asfortranarray(st[rolled])
+        _run_valves(bank.x, bank.K, 0, bank.K, i, bank.S[i], bank.J[i], bank.R[i], bank.codes[i], st_pre,
+                    np.empty((0, 0)), bank.K)
+        st[rolled] = st_pre
+    return st
+
+
+def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray, ctx: ChainContext) -> np.ndarray:
+    """MV (T, n) of valves with parameters ``S, J`` and initial state ``start`` (see the module docstring).
+
+    ``x`` is OP (T,) shared by all, or (T, n) one column per valve.
+    """
+    bank = _bank(x, S, J, start, ctx)
+    n, T, K = bank.S.size, bank.x.shape[0], bank.K
     out = np.empty((T, n))
-    R = np.full(n, float(ctx.rest_samples))
-    x2 = kernel_array(x2)
 
     def part(a: int, b: int) -> None:
         # Valves a..b-1 (a thread's share; the valves are independent and the kernel releases the GIL): those that
         # start with the pre-roll first run through the mirrored pre-roll, then all of them through the record
         # together, in column order (whole vectors, and each sample's MV written as one contiguous row).
         valves = np.arange(a, b)
-        st = np.asfortranarray(state[a:b])
-        rolled = np.flatnonzero(pre[a:b])
-        if rolled.size:
-            i = valves[rolled]
-            st_pre = np.asfortranarray(st[rolled])
-            _run_valves(x2, K, 0, K, i, S[i], J[i], R[i], codes[i], st_pre, out)
-            st[rolled] = st_pre
-        _run_valves(x2, K, K, K + T, valves, S[a:b], J[a:b], R[a:b], codes[a:b], st, out)
+        st = _pre_rolled(bank, valves)
+        _run_valves(bank.x, K, K, K + T, valves, bank.S[a:b], bank.J[a:b], bank.R[a:b], bank.codes[a:b], st, out,
+                    K)
 
     workers = workers_for(n)
     run_split(part, [n * w // workers for w in range(workers + 1)])
@@ -164,14 +195,90 @@ def sync_burn_in(mv: np.ndarray, n_starts: int = len(STARTS)) -> int:
     90th percentile over the groups that do agree over at least the last tenth of the record.
     """
     T = mv.shape[0]
-    groups = mv.reshape(T, -1, n_starts)
-    # The spread of each group (np.ptp over its few columns, taken column by column: numpy's reduction over
-    # an axis of length 3 took 29 ms at 10^4 samples × 40 groups, this 2 ms; the same maximum, minimum, difference).
-    top, bottom = groups[:, :, 0].copy(), groups[:, :, 0].copy()
-    for j in range(1, n_starts):
-        np.maximum(top, groups[:, :, j], out=top)
-        np.minimum(bottom, groups[:, :, j], out=bottom)
-    differ = top - bottom > 1e-9
-    last = np.where(differ.any(axis=0), T - 1 - np.argmax(differ[::-1], axis=0), -1)
+    last = _last_differing(kernel_array(mv), n_starts)
     merged = last < T - 1 - T // 10
     return int(np.percentile(last[merged] + 1, 90)) if merged.any() else 0
+
+
+#: Samples a bank of valves runs between the burn-in's checks of which groups have merged (:func:`valve_burn_in`).
+_SEGMENT = 1024
+
+
+def valve_burn_in(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray, ctx: ChainContext,
+                  n_starts: int = len(STARTS)) -> int:
+    """``sync_burn_in(valve_output(x, S, J, start, ctx), n_starts)``, without the record's MV.
+
+    The valves run through the record :data:`_SEGMENT` samples at a time; after each segment a group whose
+    valves have the same parameters and, to the bit, the same state is dropped: from there its valves step alike
+    for good, so its columns never differ again and the sample at which they last differed is already known. On
+    a long record most groups merge early and the rest of the record is replayed for the few that have not
+    (stiction's coarse grid at 10^5 samples: (T, 396) MV, 317 MB, no longer written and read back).
+    """
+    bank = _bank(x, S, J, start, ctx)
+    n, T, K = bank.S.size, bank.x.shape[0], bank.K
+    groups = np.arange(n // n_starts)
+    last = np.full(groups.size, -1, dtype=np.int64)
+    valves = np.arange(groups.size * n_starts)
+    st = _pre_rolled(bank, valves)
+    same_params = _same_within_groups(bank.S, n_starts) & _same_within_groups(bank.J, n_starts)
+    buf = np.empty((_SEGMENT, valves.size))
+    for k0 in range(0, T, _SEGMENT):
+        k1 = min(T, k0 + _SEGMENT)
+        cols = np.arange(valves.size)
+        _run_valves(bank.x, K, K + k0, K + k1, cols, bank.S[valves], bank.J[valves], bank.R[valves],
+                    bank.codes[valves], st, buf, K + k0)
+        seen = _last_differing(buf[:k1 - k0], n_starts)
+        last[groups[seen >= 0]] = k0 + seen[seen >= 0]
+        going = ~(same_params[groups] & _merged(st, n_starts))
+        if not going.all():
+            groups = groups[going]
+            keep = np.repeat(going, n_starts)
+            valves, st = valves[keep], np.asfortranarray(st[keep])
+            buf = np.empty((_SEGMENT, valves.size))   # contiguous, as the kernels were compiled for
+        if groups.size == 0:
+            break
+    merged = last < T - 1 - T // 10
+    return int(np.percentile(last[merged] + 1, 90)) if merged.any() else 0
+
+
+def _same_within_groups(a: np.ndarray, n_starts: int) -> np.ndarray:
+    """Per group of ``n_starts`` consecutive entries of ``a``, whether they are equal to the bit."""
+    bits = np.ascontiguousarray(a[:a.size // n_starts * n_starts]).view(np.int64).reshape(-1, n_starts)
+    return (bits == bits[:, :1]).all(axis=1)
+
+
+def _merged(st: np.ndarray, n_starts: int) -> np.ndarray:
+    """Per group of ``n_starts`` consecutive rows of the state ``st`` (n, NSTATE), whether they are equal to the
+    bit."""
+    bits = np.ascontiguousarray(st).view(np.int64).reshape(-1, n_starts, st.shape[1])
+    return (bits == bits[:, :1]).all(axis=(1, 2))
+
+
+@numba.njit(cache=True, nogil=True)
+def _last_differing(mv, n_starts):  # pragma: no cover - compiled
+    # Per group of n_starts columns of mv (T, n), the last sample at which its columns differ by more than 1e-9
+    # (-1: never), read from the end of the record back to it: a group that agrees over most of the record is
+    # read over the part where it agrees only, and none is copied out. Its spread at a sample is numpy's
+    # np.maximum / np.minimum over the columns in order (a NaN propagates, and a NaN spread does not differ),
+    # then the difference: the numbers the whole-array reduction compared.
+    T = mv.shape[0]
+    n_groups = mv.shape[1] // n_starts
+    last = np.full(n_groups, -1, dtype=np.int64)
+    for g in range(n_groups):
+        c = g * n_starts
+        for k in range(T - 1, -1, -1):
+            top = bottom = mv[k, c]
+            for j in range(1, n_starts):
+                x = mv[k, c + j]
+                if x != x or top != top:
+                    top = np.nan
+                elif x > top:
+                    top = x
+                if x != x or bottom != bottom:
+                    bottom = np.nan
+                elif x < bottom:
+                    bottom = x
+            if top - bottom > 1e-9:
+                last[g] = k
+                break
+    return last

@@ -39,6 +39,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from valve_emulator.config import LoopConfig
+from valve_emulator.diagnosis._threads import one_blas_thread
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.explain.findings import findings, param_text, parameter_intervals, stiction_surface
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
@@ -356,6 +357,7 @@ def _valve_alternative(s: Searched, frame: Frame, least_band: float) -> ValveAlt
                             load_delta_bic=load, intervals=ivs, fitted=_fitted(s, frame, model))
 
 
+@one_blas_thread
 def explain(recording: Recording, nominal: LoopConfig | None = None, *,
             candidates: Sequence[str] | None = None,
             progress: Callable[[str], None] | None = None, validation: str | None = None,

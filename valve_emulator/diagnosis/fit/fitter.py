@@ -26,18 +26,20 @@ then the best is polished. ``loop`` candidates are not searched.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
 
+from valve_emulator.diagnosis._threads import run_each
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
 from valve_emulator.diagnosis.fit.backfit import backfit, backfit_sse
 from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.cost import log_sse, relative_cost
 from valve_emulator.diagnosis.fit.linear import LinearFit, LinearStructure, split_delay, sse_one
 from valve_emulator.diagnosis.fit.records import Model, Option, Surface
-from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
+from valve_emulator.diagnosis.fit.scorer import Aim, Scorer, sse_jobs_many
 from valve_emulator.diagnosis.fit.simplex import nelder_mead
 from valve_emulator.diagnosis.fit.windows import Part, Window, coarse_parts, coarse_windows, window_scorer
 
@@ -238,22 +240,22 @@ class Fitter:
             for k, (g, (sse, delays)) in enumerate(zip(grids, scored)):
                 i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
                 bests[k] = g[i]
-                st0 = replace(sts[k], delay=float(delays[j]) * self.p.dt) if frees[k] else sts[k]
+                sts[k] = replace(sts[k], delay=float(delays[j]) * self.p.dt) if frees[k] else sts[k]
                 flows[k] = self._row_flow(rows, active, ctx, cand, g[i])
-                fits[k] = self.scorer.polish(flows[k], st0, frees[k], aim)
-                sts[k] = fits[k].structure
+            fits = self._polish_all(flows, sts, frees, aim)
+            sts = [fit.structure for fit in fits]
         fines = [self.surface(cand.name, g, sse.min(axis=1)) for g, (sse, _) in zip(grids, scored)]
         if joint and self.trades_with_prior(cand):
             for k in range(len(starts)):
                 bests[k], sts[k] = self.joint_polish(active, ctx, cand, bests[k], sts[k], frees[k], aim)
                 flows[k] = self.scorer.chain(active, ctx, cand, bests[k][None, :])[:, 0]
-                fits[k] = self.scorer.polish(flows[k], sts[k], frees[k], aim)
+            fits = self._polish_all(flows, sts, frees, aim)
         if cand.threshold_axes:
             bests = self.centre_all(active, ctx, cand, bests, sts, aim)
             rows = {}
             for k in range(len(starts)):
                 flows[k] = self._row_flow(rows, active, ctx, cand, bests[k])
-                fits[k] = self.scorer.polish(flows[k], sts[k], frees[k], aim)
+            fits = self._polish_all(flows, sts, frees, aim)
         out = []
         for best, fit, flow, fine in zip(bests, fits, flows, fines):
             new_active = dict(active)
@@ -261,19 +263,28 @@ class Fitter:
             out.append(Refined(active=new_active, fit=fit, flow=flow, fine=fine))
         return out
 
+    def _polish_all(self, flows: list[np.ndarray], sts: list[LinearStructure], frees: list[bool], aim: Aim
+                    ) -> list[LinearFit]:
+        """:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.polish` of each start (its flow, structure and
+        variant): independent polishes, shared out over the kernels' threads (:func:`~valve_emulator.diagnosis.
+        _threads.run_each`); on a long record a polish is mostly its compiled column fit, which releases the GIL."""
+        return run_each([functools.partial(self.scorer.polish, flow, st, free, aim)
+                         for flow, st, free in zip(flows, sts, frees)])
+
     def _score_grids(self, active, ctx, cand, grids: list[np.ndarray], jobs: list[tuple], aim: Aim) -> list[tuple]:
         """``sse_grid`` of ``grids[k]`` for ``jobs[k]`` (structure, delays), every distinct grid through the chain
-        once (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.sse_jobs`, all its jobs at once)."""
+        once with all its jobs, the grids' chunks shared out over the threads together
+        (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.sse_jobs_many`)."""
         groups: dict[tuple, dict[tuple, list[int]]] = {}
         for k, (g, (st, delays)) in enumerate(zip(grids, jobs)):
             job = (repr(st), None if delays is None else delays.tobytes())
             groups.setdefault((g.shape, g.tobytes()), {}).setdefault(job, []).append(k)
         out: list[tuple] = [None] * len(grids)   # type: ignore[list-item]
+        requests = []
         for same_grid in groups.values():
             ks = [k[0] for k in same_grid.values()]
-            grid = grids[ks[0]]
-            scored = ([self.scorer.sse_grid(active, ctx, cand, grid, *jobs[ks[0]], aim)] if len(ks) == 1 else
-                      self.scorer.sse_jobs(active, ctx, cand, grid, [jobs[k] for k in ks], aim))
+            requests.append((active, ctx, cand, grids[ks[0]], [jobs[k] for k in ks], aim))
+        for same_grid, scored in zip(groups.values(), self.scorer.sse_jobs_many(requests)):
             for r, same_job in zip(scored, same_grid.values()):
                 for k in same_job:
                     out[k] = r
@@ -371,8 +382,11 @@ class Fitter:
         the dead time re-chosen from ``delays`` when given)."""
         ctx = replace(self.scorer.ctx(model), residual=self.p.y - model.y_hat)
         st = model.fit.structure if st is None else st
-        return np.array([backfit_sse(model.flow, self.p.y, self.p.train, st, self.p.dt, cand, r, ctx,
-                                     prefilter=self.scorer.lam, iterations=2, delays=delays) for r in rows])
+        # The rows' backfits are independent, and on a long record mostly numpy's and the kernels' work on whole
+        # columns (which release the GIL): they share the kernels' threads.
+        return np.array(run_each([functools.partial(backfit_sse, model.flow, self.p.y, self.p.train, st, self.p.dt,
+                                                    cand, r, ctx, prefilter=self.scorer.lam, iterations=2,
+                                                    delays=delays) for r in rows]))
 
     def output_options(self, model: Model, cand: Candidate) -> list[Option]:
         """The option that adds an ``output`` candidate: its grid by quick backfits with the model's linear
@@ -462,14 +476,10 @@ class Fitter:
         held = not all(v.free for v in variants)
         on_grid: list = [None] * len(poles)
         at_own: list = [None] * len(poles)
-        for part in parts:
-            flows = part.scorer.chain(model.by_slot(), part.ctx, cand, grid)
-            # θ free: every pole hypothesis over the dead-time grid, in one pass over the flows.
-            g = (part.scorer.sse_flows_all(flows, [(st, self.p.delays) for st in poles], part.aim) if free else
-                 [None] * len(poles))
-            # θ held: its column of the θ-free result when it has one.
-            h = ([_held_delay(part.scorer, flows, st, part.aim, gd) for st, gd in zip(poles, g)] if held else
-                 [None] * len(poles))
+        # The parts (windows) are independent: they share the kernels' threads; their SSEs are summed in order.
+        scored = run_each([functools.partial(self._coarse_part, part, model.by_slot(), cand, grid, poles, free, held)
+                           for part in parts])
+        for g, h in scored:
             on_grid, at_own = _summed(on_grid, g), _summed(at_own, h)
         n = sum(part.n_fit for part in parts)
         starts: dict[bool, list[Start]] = {v.free: [] for v in variants}
@@ -484,6 +494,19 @@ class Fitter:
                 starts[v.free].append(Start(score=score, params=grid[i], structure=st_b,
                                             coarse=self.surface(cand.name, grid, flat, n)))
         return starts
+
+    def _coarse_part(self, part: Part, active, cand: Candidate, grid: np.ndarray, poles: list[LinearStructure],
+                     free: bool, held: bool) -> tuple[list, list]:
+        """Stage 1 on one part of the record: per pole hypothesis, ``(sse, delays)`` over the dead-time grid (θ
+        free) and at its own dead time (θ held), or None where that variant is not asked for."""
+        flows = part.scorer.chain(active, part.ctx, cand, grid)
+        # θ free: every pole hypothesis over the dead-time grid, in one pass over the flows.
+        g = (part.scorer.sse_flows_all(flows, [(st, self.p.delays) for st in poles], part.aim) if free else
+             [None] * len(poles))
+        # θ held: its column of the θ-free result when it has one.
+        h = ([_held_delay(part.scorer, flows, st, part.aim, gd) for st, gd in zip(poles, g)] if held else
+             [None] * len(poles))
+        return g, h
 
     def _result(self, model: Model, r: Refined, free: bool, aim: Aim, scan: Surface | None) -> Result:
         """Stage 3 from one start: ``r``, the candidate refined into ``model`` from it, scored (a dead time freed
@@ -573,8 +596,9 @@ class Fitter:
             st = next(v[2] for v in need.values() if v[0] == key)
             job_list.append((st, None if jobs[key] is None else np.array(sorted(jobs[key]))))
         scored: list = [None] * len(job_list)
-        for part in parts:
-            scored = _summed(scored, part.scorer.sse_jobs(active, part.ctx, cand, scan, job_list, part.aim))
+        for part_scored in sse_jobs_many([(part.scorer, active, part.ctx, cand, scan, job_list, part.aim)
+                                          for part in parts]):
+            scored = _summed(scored, part_scored)
         results = dict(zip(keys, scored))
         n = sum(part.n_fit for part in parts)
         out = {}

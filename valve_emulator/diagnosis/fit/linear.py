@@ -45,7 +45,7 @@ import numba
 import numpy as np
 
 from valve_emulator.diagnosis.fit.cost import log_sse
-from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_sse, grid_sse, normal_equations
+from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_mean, column_sse, grid_sse, normal_equations
 from valve_emulator.diagnosis.fit.simplex import nelder_mead
 from valve_emulator.physics._arrays import kernel_array
 
@@ -241,12 +241,14 @@ def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float, *, mean:
 
 def input_grid_sse(u: np.ndarray, y: np.ndarray, window: tuple[int, int], delays: np.ndarray,
                    structure: LinearStructure, dt: float, *, prefilter: float | None = None,
-                   frac: float = 0.0) -> np.ndarray:
+                   frac: float = 0.0, means: np.ndarray | None = None) -> np.ndarray:
     """Residual sum of squares for every column of the plant input ``u`` (T, n) and every dead time.
 
     The same numbers as :func:`delay_grid_sse` of :func:`filter_inputs` (then :func:`highpass` with
     ``prefilter``, then a delay by the fraction ``frac`` of a sample), in one compiled pass per column that
-    never stores the filtered inputs. ``y`` is in the cost domain (prefiltered with ``prefilter``).
+    never stores the filtered inputs. ``y`` is in the cost domain (prefiltered with ``prefilter``). ``means``:
+    ``u``'s column means (:func:`~valve_emulator.diagnosis.fit.linear_kernels.column_means`), when ``u`` is
+    scored for several structures.
     """
     u = u[:, None] if u.ndim == 1 else u
     delays = np.asarray(delays, dtype=np.int64)
@@ -254,7 +256,7 @@ def input_grid_sse(u: np.ndarray, y: np.ndarray, window: tuple[int, int], delays
     trend = int(structure.integrating and prefilter is None)
     sse = np.empty((u.shape[1], delays.size))
     grid_sse(u, y, w0, w1, delays, structure.ntaps, trend, sse, alpha=structure.denominator(dt),
-             integ=structure.integrating, dt=dt, lam=prefilter, frac=frac, sign=structure.sign)
+             integ=structure.integrating, dt=dt, lam=prefilter, frac=frac, sign=structure.sign, means=means)
     return sse
 
 
@@ -426,8 +428,9 @@ def _fit_held_gain(x: np.ndarray, y: np.ndarray, window: tuple[int, int], struct
 
 def sse_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], st: LinearStructure, dt: float, *,
             prefilter: float | None = None, y_cost: np.ndarray | None = None,
-            extra: np.ndarray | None = None) -> float:
-    """The fit-part SSE of :func:`fit_one` (``y_cost``: ``y`` already in the cost domain, to save the prefilter).
+            extra: np.ndarray | None = None, mean: float | None = None) -> float:
+    """The fit-part SSE of :func:`fit_one` (``y_cost``: ``y`` already in the cost domain, to save the prefilter;
+    ``mean``: ``u``'s, :func:`~valve_emulator.diagnosis.fit.linear_kernels.column_mean`, to save its pass).
 
     Without extra regressors a compiled pass gives the same SSE as fit_one (from the normal equations instead
     of the residual: equal to rounding) at a fraction of the cost of building the regressors. Not for an
@@ -440,7 +443,7 @@ def sse_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], st: LinearStr
     if y_cost is None:
         y_cost = kernel_array(y if prefilter is None else highpass(y, prefilter))
     return column_sse(kernel_array(u), st.denominator(dt), st.integrating, dt, prefilter, frac, y_cost,
-                      window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None), st.sign)
+                      window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None), st.sign, mean)
 
 
 def prior_term(log_taus: np.ndarray, prior_sorted: list[float]) -> float:
@@ -490,9 +493,10 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
         return fit(structure)
     y_cost = kernel_array(y if prefilter is None else highpass(y, prefilter))
     u1 = kernel_array(u)
+    u_mean = column_mean(u1) if u1.ndim == 1 else None   # the same for every evaluation
 
     def sse(st: LinearStructure) -> float:
-        return sse_one(u1, y, window, st, dt, prefilter=prefilter, y_cost=y_cost, extra=extra)
+        return sse_one(u1, y, window, st, dt, prefilter=prefilter, y_cost=y_cost, extra=extra, mean=u_mean)
 
     # The cost is evaluated a few hundred times per polish, so its arithmetic is spelled out in scalars
     # (min/max for np.clip, the constructor for dataclasses.replace, a sorted pair for np.sort): the same

@@ -32,7 +32,7 @@ import numpy as np
 from valve_emulator.diagnosis._threads import run_split, workers_for
 from valve_emulator.physics._arrays import kernel_array
 
-__all__ = ["RIDGE", "column_sse", "grid_sse", "normal_equations"]
+__all__ = ["RIDGE", "column_mean", "column_means", "column_sse", "grid_sse", "normal_equations"]
 
 # Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
 # without changing any well-posed fit beyond rounding.
@@ -147,16 +147,23 @@ def _window_sums(y, w0, w1, T):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _column_means(u, b0, nb):  # pragma: no cover - compiled
-    """Mean over all T samples of columns b0..b0+nb-1 of ``u``."""
-    T = u.shape[0]
-    mean = np.zeros(nb)
+def _column_means(u):  # pragma: no cover - compiled
+    """Mean over all T samples of each column of ``u`` (T, n), summed in time order."""
+    T, n = u.shape
+    mean = np.zeros(n)
     for k in range(T):
-        for j in range(nb):
-            mean[j] += u[k, b0 + j]
-    for j in range(nb):
+        for j in range(n):
+            mean[j] += u[k, j]
+    for j in range(n):
         mean[j] /= T
     return mean
+
+
+def column_means(u: np.ndarray) -> np.ndarray:
+    """The column means :func:`grid_sse` subtracts from its input ``u`` (T, n) before filtering: computed once,
+    they serve every structure a block of inputs is scored for. On a long record reading the block for its means
+    costs as much as the pass that fits it (at 10^5 samples 64 columns are 51 MB, more than the cache holds)."""
+    return _column_means(kernel_array(u))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -196,7 +203,7 @@ def _kept_run(ntaps, nlag, nb):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse):  # pragma: no cover - compiled
+def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse, means):  # pragma: no cover - compiled
     """Score columns b0..b0+nb-1 of ``u`` into rows of ``sse``: one pass over time, then one solve per column
     and dead time (``rring``: rows of the all-pole part's ring).
 
@@ -213,7 +220,7 @@ def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse):  # pragma: no
     ring, mask = _ring(dmax + ntaps + _TILE)   # the tile of samples whose cross terms are pending, and its lags
     lo0 = w0 - dmax - (ntaps - 1)   # first index of the run of running sums kept near w0
     hi0 = w1 - dmax - (ntaps - 1)   # ... and near w1
-    mean = np.zeros(nb) if filtered else _column_means(u, b0, nb)
+    mean = np.zeros(nb) if filtered else means[b0:b0 + nb]
     Z = np.zeros((ring, nb))              # the last `ring` values of z
     R = np.zeros((rring, nb))             # the last values of the all-pole filter's output
     acc = np.zeros(nb)                    # integrator
@@ -362,30 +369,26 @@ def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse):  # pragma: no
 
 
 @numba.njit(cache=True, nogil=True)
-def _grid_columns(u, c_lo, c_hi, filtered, stages, fit, sse):  # pragma: no cover - compiled
+def _grid_columns(u, c_lo, c_hi, filtered, stages, fit, sse, mean):  # pragma: no cover - compiled
     """Fill rows c_lo..c_hi-1 of ``sse`` (n, nd), :data:`_BLOCK` columns of ``u`` (T, n; time-major, columns
     innermost) at a time. ``filtered``: ``u`` already holds the regressor source z; otherwise the filter
-    ``stages`` ``(alpha, integ, dt, highpass, lam, frac)`` make it (see :func:`grid_sse`). ``fit`` is
-    ``(y, w0, w1, delays, ntaps, trend, sign)``."""
+    ``stages`` ``(alpha, integ, dt, highpass, lam, frac)`` make it from ``u`` less its column means ``mean`` (n,)
+    (see :func:`grid_sse`). ``fit`` is ``(y, w0, w1, delays, ntaps, trend, sign)``."""
     T = u.shape[0]
     alpha, integ, dt, highpass, lam, frac = stages
     p, gain, start, rring, rmask = _filter_setup(alpha, T)
     filt = (alpha, p, gain, start, rmask, integ, dt, highpass, lam, frac)
     sums = _window_sums(fit[0], fit[1], fit[2], T)
     for b0 in range(c_lo, c_hi, _BLOCK):
-        _grid_block(u, b0, min(_BLOCK, c_hi - b0), filtered, filt, rring, fit, sums, sse)
+        _grid_block(u, b0, min(_BLOCK, c_hi - b0), filtered, filt, rring, fit, sums, sse, mean)
 
 
 @numba.njit(cache=True, nogil=True)
-def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, trend, sign):  # pragma: no cover
-    """Compiled body of :func:`column_sse`."""
+def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, trend, sign):  # pragma: no cover
+    """Compiled body of :func:`column_sse` (``mean``: ``u``'s, :func:`column_mean`)."""
     T = u.shape[0]
     q = ntaps + 1 + trend
     p, gain, start, rring, rmask = _filter_setup(alpha, T)
-    mean = 0.0
-    for k in range(T):
-        mean += u[k]
-    mean /= T
     ring, mask = _ring(m + ntaps + 1)
     Z = np.zeros(ring)
     R = np.zeros(rring)
@@ -447,52 +450,72 @@ def _column_sse(u, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, ntaps, t
     return _solve_sse(G, r, yy, q, beta, ntaps, sign)
 
 
-def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend, sign=0) -> float:
+def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend, sign=0, mean=None) -> float:
     """SSE of the fit for one input column ``u`` (T,) and one dead time of ``m`` whole samples plus ``frac``.
 
     The arguments are :func:`grid_sse`'s for a single column and a single delay; this scalar version of the same
     pass is what a polish evaluates thousands of times (the block kernel's per-sample loop set-up, amortised
     over a block of columns, would dominate for one). The Gram entries are summed directly over the window.
-    ``sign``: the gain's required sign (see :func:`grid_sse`).
+    ``sign``: the gain's required sign (see :func:`grid_sse`). ``mean``: ``u``'s mean (:func:`column_mean`),
+    which a polish computes once for all its evaluations of one column.
     """
-    return float(_column_sse(kernel_array(u).reshape(-1), kernel_array(alpha), bool(integ), float(dt),
-                             lam is not None, float(lam or 0.0), float(frac), kernel_array(y), int(w0), int(w1),
-                             int(m), int(ntaps), int(trend), float(sign)))
+    u = kernel_array(u).reshape(-1)
+    return float(_column_sse(u, _column_mean(u) if mean is None else float(mean), kernel_array(alpha), bool(integ),
+                             float(dt), lam is not None, float(lam or 0.0), float(frac), kernel_array(y), int(w0),
+                             int(w1), int(m), int(ntaps), int(trend), float(sign)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _column_mean(u):  # pragma: no cover - compiled
+    """Mean of ``u`` (T,), summed in time order."""
+    mean = 0.0
+    for k in range(u.shape[0]):
+        mean += u[k]
+    return mean / u.shape[0]
+
+
+def column_mean(u: np.ndarray) -> float:
+    """The mean :func:`column_sse` subtracts from its input column ``u`` (T,) before filtering."""
+    return float(_column_mean(kernel_array(u).reshape(-1)))
 
 
 def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=None, integ=False, dt=1.0,
-             lam=None, frac=0.0, sign=0) -> None:
+             lam=None, frac=0.0, sign=0, means=None) -> None:
     """Fill ``sse`` (n, nd) for every column of ``u`` (T, n) and every dead time of ``delays``, in place.
 
     ``filtered``: ``u`` is already the regressor source z. Otherwise z is made from each column minus its mean
     by the all-pole filter ``alpha`` (unit DC gain, one sample of delay), an integrator (``integ``, scaled by
     ``dt``), the high-pass prefilter of pole ``lam`` (None: none) and a fractional delay ``frac`` (0 ≤ f < 1).
     ``sign`` (+1, −1; 0: free): the sign the gain (sum of the taps) must have; a column whose free fit has the
-    other sign scores the SSE of the best fit with gain 0.
+    other sign scores the SSE of the best fit with gain 0. ``means``: the column means of ``u``
+    (:func:`column_means`) when known.
     """
     u = kernel_array(u)
+    means = (np.zeros(u.shape[1]) if filtered else column_means(u)) if means is None else kernel_array(means)
     alpha = np.ones(1) if alpha is None else kernel_array(alpha)
     stages = (alpha, bool(integ), float(dt), lam is not None, float(lam or 0.0), float(frac))
     fit = (kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend), float(sign))
     n = u.shape[1]
     if n <= _GROUP:
-        _score_columns(u, bool(filtered), stages, fit, sse)
+        _score_columns(u, bool(filtered), stages, fit, sse, means)
         return
     for a in range(0, n, _GROUP):
-        _score_columns(np.ascontiguousarray(u[:, a:a + _GROUP]), bool(filtered), stages, fit, sse[a:a + _GROUP])
+        _score_columns(np.ascontiguousarray(u[:, a:a + _GROUP]), bool(filtered), stages, fit, sse[a:a + _GROUP],
+                       np.ascontiguousarray(means[a:a + _GROUP]))
 
 
-def _score_columns(u: np.ndarray, filtered: bool, stages: tuple, fit: tuple, sse: np.ndarray) -> None:
+def _score_columns(u: np.ndarray, filtered: bool, stages: tuple, fit: tuple, sse: np.ndarray, means: np.ndarray
+                   ) -> None:
     """:func:`grid_sse` of the columns of ``u`` (C-contiguous), split over the worker threads."""
     n = u.shape[1]
     workers = workers_for(n)
     # Whole blocks per worker, as even as the block size allows.
     cuts = [min(n, _BLOCK * round(n * w / workers / _BLOCK)) for w in range(workers + 1)]
     cuts[-1] = n
-    run_split(lambda a, b: _grid_columns(u, a, b, filtered, stages, fit, sse), cuts)
+    run_split(lambda a, b: _grid_columns(u, a, b, filtered, stages, fit, sse, means), cuts)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def normal_equations(X, y):  # pragma: no cover - compiled
     """``(XᵀX, Xᵀy)`` of a tall, skinny least-squares problem, single-threaded.
 

@@ -33,12 +33,13 @@ It also owns the choices that must be the same for every model of a problem:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from valve_emulator.diagnosis._threads import run_split, workers_for
+from valve_emulator.diagnosis._threads import run_each, workers_for
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainContext
 from valve_emulator.diagnosis.fit.chain import Active, run_chain
 from valve_emulator.diagnosis.fit.cost import ar1_bic, bic
@@ -53,15 +54,20 @@ from valve_emulator.diagnosis.fit.linear import (
     prior_term,
     split_delay,
 )
+from valve_emulator.diagnosis.fit.linear_kernels import column_means
 from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Model
+from valve_emulator.physics._arrays import kernel_array
 
-__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "sse_jobs_shared"]
+__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "sse_jobs_many", "sse_jobs_shared"]
 
-#: Grid rows pushed through the chain at once. Bounds memory (5 MB per array at 10^4 samples), and the chain's
-#: output is then a contiguous block that the linear kernel reads from cache for every job (structure) scored on
-#: it: with 256 rows the kernel's strided reads of the wider array took twice the time.
+#: Most grid rows pushed through the chain at once. Bounds memory (5 MB per array at 10^4 samples), and the
+#: chain's output is then a contiguous block that the linear kernel reads from cache for every job (structure)
+#: scored on it: with 256 rows the kernel's strided reads of the wider array took twice the time.
 _CHUNK = 64
+#: Fewest rows in a chunk of a grid cut for the threads: a valve grid's chunk of fewer valves steps the valves'
+#: branches, two to three times slower per valve (``valve_start._VECTOR_FROM``).
+_CHUNK_MIN = 24
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +76,8 @@ class Aim:
 
     ``y`` is in scaled PV units: the scaled PV, or the target an ``output`` candidate of the model made of it
     (:mod:`~valve_emulator.diagnosis.fit.backfit`); ``cost`` is the same in the search's cost domain (``y``
-    itself, or high-pass prefiltered for an integrating plant).
+    itself, or high-pass prefiltered for an integrating plant), contiguous and writable as the compiled kernels
+    take it (the record's arrays are read-only, and the kernels' callers copied them at every call).
     """
 
     y: np.ndarray
@@ -125,7 +132,7 @@ class Scorer:
         """What the linear part is fitted to while ``model`` is extended or profiled (the scaled PV unless the
         model holds an output candidate, see :mod:`~valve_emulator.diagnosis.fit.backfit`)."""
         y = self.p.y if model is None or model.target is None else model.target
-        return Aim(y, y if self.lam is None else highpass(y, self.lam))
+        return Aim(y, kernel_array(y if self.lam is None else highpass(y, self.lam)))
 
     def ctx(self, model: Model | None) -> ChainContext:
         """The chain context of ``model`` (its linear part; the nominal one for None)."""
@@ -185,17 +192,19 @@ class Scorer:
         """The keyword arguments of every polish of this problem (dead-time bounds, prefilter, prior)."""
         return dict(free_delay=free, delay_bounds=(0.0, self.dmax), prefilter=self.lam, prior=self.prior)
 
-    def sse_flows(self, flows: np.ndarray, st: LinearStructure, delays: np.ndarray | None, aim: Aim) -> tuple:
+    def sse_flows(self, flows: np.ndarray, st: LinearStructure, delays: np.ndarray | None, aim: Aim, *,
+                  means: np.ndarray | None = None) -> tuple:
         """SSE (n, nd) for chain outputs ``flows`` (T, n) and the delays searched (samples).
 
-        ``delays=None`` holds the structure's own (possibly fractional) dead time.
+        ``delays=None`` holds the structure's own (possibly fractional) dead time. ``means``: the flows' column
+        means (:func:`~valve_emulator.diagnosis.fit.linear_kernels.column_means`) when known.
         """
         frac = 0.0
         if delays is None:
             m, frac = split_delay(st.delay / self.p.dt)
             delays = np.array([m])
         return input_grid_sse(flows, aim.cost, self.p.train, delays, st, self.p.dt, prefilter=self.lam,
-                              frac=frac), delays
+                              frac=frac, means=means), delays
 
     def sse_grid(self, active, ctx, cand, grid, st, delays, aim: Aim) -> tuple:
         """:meth:`sse_flows` for a parameter grid, in chunks of :data:`_CHUNK` rows (bounded memory)."""
@@ -204,17 +213,22 @@ class Scorer:
     def sse_jobs(self, active, ctx, cand, grid, jobs, aim: Aim) -> list[tuple]:
         """Several ``(structure, delays)`` evaluations of one grid in one pass: each chunk of rows is pushed
         through the chain once (the valve simulation is the costly part) and scored for every job."""
-        return self._score_chunks(lambda a: self.chain(active, ctx, cand, grid[a:a + _CHUNK]), grid.shape[0], jobs,
-                                  aim)
+        return self._score_chunks(lambda a, b: self.chain(active, ctx, cand, grid[a:b]), grid.shape[0], jobs, aim)
+
+    def sse_jobs_many(self, requests: list[tuple]) -> list[list[tuple]]:
+        """:meth:`sse_jobs` of several grids, each request ``(active, ctx, cand, grid, jobs, aim)``, their chunks
+        shared out over the threads together (:func:`sse_jobs_many`)."""
+        return sse_jobs_many([(self, *request) for request in requests])
 
     def sse_flows_all(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
-        """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, :data:`_CHUNK`
-        columns at a time (copied contiguous, then scored for every job while they are in cache): the same numbers
-        as job by job over the whole array."""
-        return self._score_chunks(lambda a: np.ascontiguousarray(flows[:, a:a + _CHUNK]), flows.shape[1], jobs, aim)
+        """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, at most
+        :data:`_CHUNK` columns at a time (copied contiguous, then scored for every job while they are in cache): the
+        same numbers as job by job over the whole array."""
+        return self._score_chunks(lambda a, b: np.ascontiguousarray(flows[:, a:b]), flows.shape[1], jobs, aim)
 
-    def _score_chunks(self, chunk: Callable[[int], np.ndarray], n: int, jobs: list[tuple], aim: Aim) -> list[tuple]:
-        """The flows of ``n`` grid rows, made :data:`_CHUNK` at a time by ``chunk(first row)``, each chunk scored
+    def _score_chunks(self, chunk: Callable[[int, int], np.ndarray], n: int, jobs: list[tuple], aim: Aim
+                      ) -> list[tuple]:
+        """The flows of ``n`` grid rows, made a chunk at a time by ``chunk(first row, end row)``, each chunk scored
         for every job as it is made (:func:`_chunks_scored`, :meth:`_score_block`); per job the SSE rows of all
         chunks stacked, and the delays it searched."""
         return _stacked(_chunks_scored(chunk, n, lambda flows: self._score_block(flows, jobs, aim)))
@@ -225,7 +239,9 @@ class Scorer:
         own) are scored once and share the numbers."""
         first: dict[tuple, int] = {}
         same = [first.setdefault(_kernel_job(st, delays), i) for i, (st, delays) in enumerate(jobs)]
-        done = {i: self.sse_flows(flows, *jobs[i], aim) for i in first.values()}
+        # The flows' means once for every job (reading a long record's block for them costs a pass of the fit).
+        means = column_means(flows) if len(first) > 1 else None
+        done = {i: self.sse_flows(flows, *jobs[i], aim, means=means) for i in first.values()}
         return [done[i] for i in same]
 
     def near(self, d: float, r: int) -> np.ndarray:
@@ -233,6 +249,21 @@ class Scorer:
         d0 = int(round(d / self.p.dt))
         lo, hi = int(self.p.delays.min()), int(self.p.delays.max())
         return np.arange(max(lo, d0 - r), min(hi, d0 + r) + 1)
+
+
+def sse_jobs_many(requests: list[tuple]) -> list[list[tuple]]:
+    """:meth:`Scorer.sse_jobs` of several grids, each request ``(scorer, active, ctx, cand, grid, jobs, aim)``:
+    the chunks of all of them shared out over the threads together. Per request, the numbers of its own
+    ``sse_jobs``."""
+    grids = [(functools.partial(_grid_chunk, scorer, active, ctx, cand, grid), grid.shape[0],
+              functools.partial(scorer._score_block, jobs=jobs, aim=aim))
+             for scorer, active, ctx, cand, grid, jobs, aim in requests]
+    return [_stacked(blocks) for blocks in _grids_chunks_scored(grids)]
+
+
+def _grid_chunk(scorer: Scorer, active, ctx, cand, grid: np.ndarray, a: int, b: int) -> np.ndarray:
+    """The chain's flows of rows ``a:b`` of ``grid``."""
+    return scorer.chain(active, ctx, cand, grid[a:b])
 
 
 def sse_jobs_shared(active, ctx, cand, grid: np.ndarray, tasks: list[tuple[Scorer, list[tuple], Aim]]
@@ -243,29 +274,48 @@ def sse_jobs_shared(active, ctx, cand, grid: np.ndarray, tasks: list[tuple[Score
     the chain does not depend on the cost domain) and is scored for every task: per task, the numbers of its own
     ``sse_jobs``."""
     first = tasks[0][0]
-    blocks = _chunks_scored(lambda a: first.chain(active, ctx, cand, grid[a:a + _CHUNK]), grid.shape[0],
+    blocks = _chunks_scored(lambda a, b: first.chain(active, ctx, cand, grid[a:b]), grid.shape[0],
                             lambda flows: [scorer._score_block(flows, jobs, aim) for scorer, jobs, aim in tasks])
     return [_stacked([block[t] for block in blocks]) for t in range(len(tasks))]
 
 
-def _chunks_scored(chunk: Callable[[int], np.ndarray], n: int, score: Callable[[np.ndarray], list]) -> list[list]:
-    """``score(chunk(a))`` for the chunks of ``n`` grid rows that start at ``a = 0, _CHUNK, 2 _CHUNK, …``, in order.
+def _chunks_scored(chunk: Callable[[int, int], np.ndarray], n: int, score: Callable[[np.ndarray], list]
+                   ) -> list[list]:
+    """``score(chunk(a, b))`` for the chunks ``a:b`` of ``n`` grid rows (:func:`_chunk_bounds`), in order.
 
-    The chunks are independent, so consecutive runs of them go to the kernels' threads
-    (:func:`~valve_emulator.diagnosis._threads.run_split`), each thread making and scoring its own chunks: one
-    thread hand-off per run instead of one per kernel call, and both cores busy with the chain and the linear
-    kernel alike (a chunk's linear fit had run in one thread). The splits inside a chunk (its valves, its
-    columns) then run in the thread that makes it. The numbers are those of one chunk after another."""
-    starts = range(0, n, _CHUNK)
-    out: list = [None] * len(starts)
+    The chunks are independent, so the kernels' threads take them one after another as each finishes one
+    (:func:`~valve_emulator.diagnosis._threads.run_each`), each thread making and scoring its chunk: both cores
+    busy with the chain and the linear kernel alike. The splits inside a chunk (its valves, its columns) then run
+    in the thread that makes it. Every row's numbers are those of its chunk alone: the valves, the filters and the
+    fits of a grid's rows are column by column the same whatever rows share a chunk."""
+    return _grids_chunks_scored([(chunk, n, score)])[0]
 
-    def run(c0: int, c1: int) -> None:
-        for c in range(c0, c1):
-            out[c] = score(chunk(starts[c]))
 
-    workers = workers_for(len(starts), per_worker=1)
-    run_split(run, [len(starts) * w // workers for w in range(workers + 1)])
+def _grids_chunks_scored(grids: list[tuple[Callable[[int, int], np.ndarray], int, Callable[[np.ndarray], list]]]
+                         ) -> list[list[list]]:
+    """:func:`_chunks_scored` of several grids, ``(chunk, n, score)`` each, their chunks taken by the threads
+    from one list: a grid of one chunk no longer leaves the other cores idle while it is scored."""
+    tasks, owner = [], []
+    for g, (chunk, n, score) in enumerate(grids):
+        bounds = _chunk_bounds(n)
+        tasks += [functools.partial(_scored, chunk, score, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+        owner += [g] * (len(bounds) - 1)
+    out: list[list[list]] = [[] for _ in grids]
+    for g, result in zip(owner, run_each(tasks)):
+        out[g].append(result)
     return out
+
+
+def _scored(chunk: Callable[[int, int], np.ndarray], score: Callable[[np.ndarray], list], a: int, b: int) -> list:
+    return score(chunk(a, b))
+
+
+def _chunk_bounds(n: int) -> list[int]:
+    """Where the chunks of ``n`` grid rows start and end: as few as :data:`_CHUNK` rows allow, at least one per
+    thread of :data:`_CHUNK_MIN` rows or more, of even sizes (the threads take them in turn, so an odd short
+    chunk would leave a core idle while the others finish)."""
+    count = max(-(-n // _CHUNK), workers_for(n, _CHUNK_MIN))
+    return [n * i // count for i in range(count + 1)]
 
 
 def _stacked(blocks: list[list[tuple]]) -> list[tuple]:

@@ -52,6 +52,7 @@ from valve_emulator.diagnosis.fit.data import Problem
 from valve_emulator.diagnosis.fit.linear import highpass
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.scorer import Aim, Scorer
+from valve_emulator.physics._arrays import kernel_array
 
 __all__ = ["COUNT", "LEAD_IN", "LENGTH", "LONG", "Part", "Window", "coarse_parts", "coarse_windows",
            "window_scorer"]
@@ -127,7 +128,7 @@ def _window_aim(scorer: Scorer, w: Window, model: Model) -> Aim:
     if model.target is None:
         return scorer.aim(None)
     y = model.target[w.lead:w.stop]
-    return Aim(y, y if scorer.lam is None else highpass(y, scorer.lam))
+    return Aim(y, kernel_array(y if scorer.lam is None else highpass(y, scorer.lam)))
 
 
 def coarse_parts(full: Scorer, windows: tuple[Window, ...], scorers: tuple[Scorer, ...], model: Model,
