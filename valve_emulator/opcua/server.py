@@ -56,7 +56,6 @@ import contextlib
 import json
 import logging
 import math
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -87,6 +86,7 @@ from valve_emulator.device.roles import OPERATOR, Role
 from valve_emulator.device.tick import Device
 from valve_emulator.errors import UserError
 from valve_emulator.opcua.alarms import AlarmConditions
+from valve_emulator.opcua.handoff import HandOffGrid, until
 from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
 from valve_emulator.opcua.source import DeviceSource, LocalSource, StationRefusal, finite_period
 from valve_emulator.opcua.trust import TrustList
@@ -439,9 +439,12 @@ class OpcUaServer:
         self.node_ids: set[ua.NodeId] = set()
         self._monitored: list[tuple[Any, int, Sampler]] = []
         #: per group of monitored items (:class:`_Group`): the value last handed to it and when its next sample
-        #: is due (perf_counter seconds)
+        #: is due (the event loop's clock)
         self._sent: dict[tuple[int, float], Any] = {}
         self._due: dict[tuple[int, float], float] = {}
+        #: the seconds sampling one monitored variable and handing its value to its monitored items take
+        #: (running means)
+        self._sample_cost = self._hand_cost = 20e-6
         #: data-change callback handle -> the sampling interval (s) its monitored item is honoured at
         self._intervals: dict[int, float] = {}
         #: when the tick that made the served values ran (their SourceTimestamp)
@@ -769,34 +772,71 @@ class OpcUaServer:
         Only variables with a monitored item are read (the list is rebuilt when a client adds or deletes
         one), and only when one of their groups is due: an item sampled at 1 s is handed one value a second, the
         tick's latest, however fast the tick (a due time counts from half a tick early, so tick jitter does not
-        skip a sample; the variables' phases are spread over the interval, :func:`first_due`). The tick comes
-        first: the loop yields to the event loop every :data:`YIELD_EVERY` variables, and when a tick's share of
-        work (:data:`PUBLISH_BUDGET` of the tick period) is spent it stops and goes on after the next tick where
-        it stopped, so a subscription larger than the machine can feed gets every variable's latest value less
-        often instead of delaying the tick (or, in a process of its own, the
+        skip a sample; the variables' phases are spread over the interval, :func:`first_due`).
+
+        The values are sampled when the tick arrives and handed at once when the hand-off is due, on a grid of the
+        tick period (:mod:`~valve_emulator.opcua.handoff`): so each publishing interval of a subscription holds
+        exactly one tick's values, whatever the tick's jitter and the subscription's phase. The tick comes first:
+        sampling yields to the event loop every :data:`YIELD_EVERY` variables, and once sampling and the
+        hand-off would take more than the publisher's share of the tick period (:data:`PUBLISH_BUDGET`) it stops
+        and goes on after the next tick where it stopped, so a subscription larger than the machine can feed gets
+        every variable's latest value less often instead of delaying the tick (or, in a process of its own, the
         clients' requests)."""
         source, seen, at = self.source, self.source.ticks, 0
-        clock = time.perf_counter
+        loop = asyncio.get_running_loop()
+        grid = HandOffGrid()
         while True:
             seen = await source.wait_for_tick(seen + 1)
+            arrived = loop.time()
             self.tick_clock.stamp()   # the tick just ran: its time is now
             if self._dirty:
                 self._dirty, at = False, 0
                 self._active = self._watches()
             period = finite_period(source)
-            now = clock()
-            deadline, active, done = now + self.publish_budget * period, self._active, 0
-            while done < len(active):
-                watch = active[at % len(active)]
-                at, done = (at + 1) % len(active), done + 1
-                if done % YIELD_EVERY == 0:
-                    await asyncio.sleep(0)
-                    if clock() > deadline:
-                        self.deferred += 1
-                        break
-                changed = self._changed(watch, now, period / 2)
-                if changed:
-                    await self._hand(watch, *changed)
+            due = grid.due(seen, arrived, source.period)
+            handing, at = await self._sample(at, due, period, arrived + self.publish_budget * period)
+            await until(due)
+            await self._hand_all(handing)
+
+    async def _sample(self, at: int, due: float, period: float,
+                      deadline: float) -> tuple[list[tuple[_Watch, ua.DataValue, list[_Group]]], int]:
+        """The values to hand at ``due``: of each monitored variable from the ``at``-th on whose groups are due
+        then and changed (:meth:`_changed`), and where the next tick goes on. Sampling stops early (past the last
+        variable sampled; counted in :attr:`deferred`) when it would not be done by ``due`` -- a hand-off later
+        than due could come after a publish due after it -- or when sampling and the hand-off would end after
+        ``deadline`` (the budget)."""
+        active, handing, done = self._active, [], 0
+        clock = asyncio.get_running_loop().time
+        start = clock()
+        sample_by = due if due > start else math.inf   # a hand-off due at once: no publish to stay ahead of
+        while done < len(active):
+            if done and done % YIELD_EVERY == 0:
+                await asyncio.sleep(0)
+                now = clock()
+                if (now + YIELD_EVERY * self._sample_cost > sample_by
+                        or now + len(handing) * self._hand_cost > deadline):
+                    self.deferred += 1
+                    break
+            watch = active[at]
+            at, done = (at + 1) % len(active), done + 1
+            changed = self._changed(watch, due, period / 2)
+            if changed:
+                handing.append((watch, *changed))
+        if done:
+            self._sample_cost += 0.2 * ((clock() - start) / done - self._sample_cost)
+        return handing, at
+
+    async def _hand_all(self, handing: list[tuple[_Watch, ua.DataValue, list[_Group]]]) -> None:
+        """Hand every sampled value without yielding to the event loop (a publish woken meanwhile would come
+        between two items), and keep the cost per variable for the budget."""
+        if not handing:
+            return
+        clock = asyncio.get_running_loop().time
+        start = clock()
+        for watch, dv, groups in handing:
+            await self._hand(watch, dv, groups)
+        cost = (clock() - start) / len(handing)
+        self._hand_cost += 0.2 * (cost - self._hand_cost)
 
     def _changed(self, watch: _Watch, now: float, slack: float) -> tuple[ua.DataValue, list[_Group]] | None:
         """The value of ``watch`` and its groups due at ``now`` (``slack`` seconds early counts) that have not had
