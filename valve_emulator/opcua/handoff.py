@@ -10,13 +10,15 @@ none -- and with a queue of one, what a SCADA client asks for (the latest value)
 discarded.
 
 So a tick's values are handed at a time *due on a grid*: :data:`HAND_OFF_DELAY` of a period after the tick's
-expected arrival, which is the earliest arrival on the device's grid seen so far (a tick is never early, only
-late). The publisher samples the values when the tick arrives and waits for the due time on the event loop's
-timer (:func:`until`, ``loop.call_at``), the way asyncua waits for a publish (``asyncio.sleep`` to its due
-time). The event loop runs timers in the order of their due times, however late it runs them; so a hand-off
-and a publish due on grids of the same period come in the same order at every tick, and each publishing
-interval holds exactly one hand-off, whatever the tick's jitter and the subscription's phase, provided the
-hand-off itself does not yield to the event loop mid-way (a publish already woken would then run in between).
+expected arrival on a grid of the tick period, anchored at a tick's arrival. The grid stays put while the ticks come
+near it (a grid that followed every earlier arrival would move by a little now and then, and a publish due within
+that little of the hand-off would see two ticks, or none, in one interval). The publisher samples the values when
+the tick arrives and waits for the due time on the event loop's timer (:func:`until`, ``loop.call_at``), the way
+asyncua waits for a publish (``asyncio.sleep`` to its due time). The event loop runs timers in the order of their
+due times, however late it runs them; so a hand-off and a publish due on grids of the same period come in the same
+order at every tick, and each publishing interval holds exactly one hand-off, whatever the tick's jitter and the
+subscription's phase, provided the hand-off itself does not yield to the event loop mid-way (a publish already woken
+would then run in between).
 
 What is left to chance: a publish that does not wait for its timer. asyncua publishes a subscription whose
 client had no Publish request queued (a client busy with the last publish) when the next request arrives, at
@@ -29,12 +31,14 @@ from __future__ import annotations
 import asyncio
 import math
 
-__all__ = ["HAND_OFF_DELAY", "HandOffGrid", "until"]
+__all__ = ["EARLY", "HAND_OFF_DELAY", "PATIENCE", "HandOffGrid", "until"]
 
 #: A tick's values are handed this share of the tick period after the tick's expected arrival: half way to the
 #: next tick, so that ticks up to half a period later than the earliest are still handed on the grid, sampling
 #: has half a period to be done by then, and the hand-off half a period before the next tick.
 HAND_OFF_DELAY = 0.5
+#: A tick this share of the period earlier than the grid expects moves the grid to it.
+EARLY = 0.25
 #: After this many ticks in a row later than their hand-off was due, the grid moves to them (the device's
 #: schedule moved: a resume, a restored snapshot).
 PATIENCE = 3
@@ -43,10 +47,11 @@ PATIENCE = 3
 class HandOffGrid:
     """The due time of each tick's hand-off (see the module docstring): :meth:`due`.
 
-    The grid is anchored at a tick's arrival; an earlier arrival than the grid expects moves it there (the
-    earliest arrival is the closest to the device's own schedule), a tick later than its hand-off is handed at
-    once, and :data:`PATIENCE` late ticks in a row, a new period or a tick count that went back re-anchor it.
-    Without a real-time period (lockstep, as fast as possible) every hand-off is due at once."""
+    The grid is anchored at a tick's arrival. A tick later than its hand-off is handed at once; the grid moves
+    to a tick that comes more than :data:`EARLY` of a period before it expects, after :data:`PATIENCE` late ticks
+    in a row (the device's schedule moved: a resume, a restored snapshot, a first tick that came late), and with
+    a new period or a tick count that went back. Without a real-time period (lockstep, as fast as possible)
+    every hand-off is due at once."""
 
     def __init__(self, delay: float = HAND_OFF_DELAY, patience: int = PATIENCE) -> None:
         self.delay, self.patience = delay, patience
@@ -66,7 +71,7 @@ class HandOffGrid:
         if period != self._period or tick < self._tick:
             return self._anchor(tick, arrived, period)
         expected = self._arrival + (tick - self._tick) * period
-        if arrived < expected:
+        if arrived < expected - EARLY * period:
             return self._anchor(tick, arrived, period)
         due = expected + self.delay * period
         if arrived <= due:
