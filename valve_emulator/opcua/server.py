@@ -442,9 +442,8 @@ class OpcUaServer:
         #: is due (the event loop's clock)
         self._sent: dict[tuple[int, float], Any] = {}
         self._due: dict[tuple[int, float], float] = {}
-        #: the seconds sampling one monitored variable and handing its value to its monitored items take
-        #: (running means)
-        self._sample_cost = self._hand_cost = 20e-6
+        #: the seconds handing one variable's value to its monitored items takes (a running mean)
+        self._hand_cost = 20e-6
         #: data-change callback handle -> the sampling interval (s) its monitored item is honoured at
         self._intervals: dict[int, float] = {}
         #: when the tick that made the served values ran (their SourceTimestamp)
@@ -801,20 +800,18 @@ class OpcUaServer:
     async def _sample(self, at: int, due: float, period: float,
                       deadline: float) -> tuple[list[tuple[_Watch, ua.DataValue, list[_Group]]], int]:
         """The values to hand at ``due``: of each monitored variable from the ``at``-th on whose groups are due
-        then and changed (:meth:`_changed`), and where the next tick goes on. Sampling stops early (past the last
-        variable sampled; counted in :attr:`deferred`) when it would not be done by ``due`` -- a hand-off later
-        than due could come after a publish due after it -- or when sampling and the hand-off would end after
-        ``deadline`` (the budget)."""
+        then and changed (:meth:`_changed`), and where the next tick goes on: past the last variable sampled when
+        sampling and the hand-off would end after ``deadline`` (the budget; counted in :attr:`deferred`).
+
+        Sampling that is not done by ``due`` (half a tick after the tick: a machine too busy for the subscriptions)
+        makes the hand-off late, and a publish due between the two sees this tick's values of its items one
+        interval early; the values stay this tick's, and the next hand-off is on the grid again."""
         active, handing, done = self._active, [], 0
         clock = asyncio.get_running_loop().time
-        start = clock()
-        sample_by = due if due > start else math.inf   # a hand-off due at once: no publish to stay ahead of
         while done < len(active):
             if done and done % YIELD_EVERY == 0:
                 await asyncio.sleep(0)
-                now = clock()
-                if (now + YIELD_EVERY * self._sample_cost > sample_by
-                        or now + len(handing) * self._hand_cost > deadline):
+                if clock() + len(handing) * self._hand_cost > deadline:
                     self.deferred += 1
                     break
             watch = active[at]
@@ -822,8 +819,6 @@ class OpcUaServer:
             changed = self._changed(watch, due, period / 2)
             if changed:
                 handing.append((watch, *changed))
-        if done:
-            self._sample_cost += 0.2 * ((clock() - start) / done - self._sample_cost)
         return handing, at
 
     async def _hand_all(self, handing: list[tuple[_Watch, ua.DataValue, list[_Group]]]) -> None:
