@@ -36,14 +36,16 @@ Writes answer:
   user and variable per interval;
 - ``BadOutOfRange``: a value the register refuses (the Modbus ``0x03``); ``BadTypeMismatch``: not a number.
 
-Values are read at request time from the register image (so a read sees a write at once, as over Modbus),
-float32 registers as the double the tick computed (:meth:`OpcUaServer.value`); subscriptions are fed after
-every tick with the values that changed, each monitored item at its sampling interval (:func:`revised_sampling`:
-0 is every tick, -1 the subscription's publishing interval), so a client sampling at 1 s costs one notification
-per item per second whatever the tick. Each analog item has EngineeringUnits with its UNECE code
-(:mod:`~valve_emulator.opcua.units`) and, where it has one, an EURange; a value outside it is
-``UncertainEngineeringUnitsExceeded``. ``SourceTimestamp`` is the wall-clock time of the tick that made the
-value (:class:`TickClock`), ``ServerTimestamp`` the time it was read or sent.
+Values are read at request time from the register image (so a read sees a write at once, as over Modbus), float32
+registers as the double the tick computed (:meth:`OpcUaServer.value`); subscriptions are fed after every tick with
+the values that changed, each monitored item at its sampling interval (:func:`revised_sampling`: 0 is every tick, -1
+the subscription's publishing interval), so a client sampling at 1 s costs one notification per item per second
+whatever the tick. The values are handed half a tick after the tick, on a grid of the tick period
+(:mod:`~valve_emulator.opcua.handoff`), so that each publishing interval of a subscription holds one sample of each
+item whatever the tick's jitter: a queue of one loses none. Each analog item has EngineeringUnits with its UNECE
+code (:mod:`~valve_emulator.opcua.units`) and, where it has one, an EURange; a value outside it is
+``UncertainEngineeringUnitsExceeded``. ``SourceTimestamp`` is the wall-clock time of the tick that made the value
+(:class:`TickClock`), ``ServerTimestamp`` the time it was read or sent.
 
 Each loop's PV alarm is an ``AlarmConditionType`` condition (``Unit1.FIC101.PvAlarm``) whose events come from
 the ``Server`` object and which a client acknowledges (:mod:`~valve_emulator.opcua.alarms`).
@@ -793,25 +795,26 @@ class OpcUaServer:
                 self._active = self._watches()
             period = finite_period(source)
             due = grid.due(seen, arrived, source.period)
-            handing, at = await self._sample(at, due, period, arrived + self.publish_budget * period)
+            handing, at = await self._sample(at, due, period, self.publish_budget * period)
             await until(due)
             await self._hand_all(handing)
 
     async def _sample(self, at: int, due: float, period: float,
-                      deadline: float) -> tuple[list[tuple[_Watch, ua.DataValue, list[_Group]]], int]:
+                      budget: float) -> tuple[list[tuple[_Watch, ua.DataValue, list[_Group]]], int]:
         """The values to hand at ``due``: of each monitored variable from the ``at``-th on whose groups are due
         then and changed (:meth:`_changed`), and where the next tick goes on: past the last variable sampled when
-        sampling and the hand-off would end after ``deadline`` (the budget; counted in :attr:`deferred`).
+        sampling and the hand-off would take more than ``budget`` seconds (counted in :attr:`deferred`).
 
         Sampling that is not done by ``due`` (half a tick after the tick: a machine too busy for the subscriptions)
         makes the hand-off late, and a publish due between the two sees this tick's values of its items one
         interval early; the values stay this tick's, and the next hand-off is on the grid again."""
         active, handing, done = self._active, [], 0
         clock = asyncio.get_running_loop().time
+        start = clock()
         while done < len(active):
             if done and done % YIELD_EVERY == 0:
                 await asyncio.sleep(0)
-                if clock() + len(handing) * self._hand_cost > deadline:
+                if clock() - start + len(handing) * self._hand_cost > budget:
                     self.deferred += 1
                     break
             watch = active[at]
