@@ -133,3 +133,33 @@ async def test_queue_of_one_at_the_tick_gets_every_ticks_value_once_at_every_pha
             window = [v for v in values if first + 2 <= v <= last - 2]   # the ends may be in flight
             missing = set(range(first + 2, last - 1)) - set(window)
             assert window == sorted(set(window)) and len(missing) <= 1, (phase, item, values)
+
+
+async def test_a_large_hand_off_goes_in_chunks_by_place_each_at_its_own_time_so_a_publish_waits_for_one_chunk():
+    """Variables at places 0-199 are handed at the due time, 200-399 a HAND_SPACING of the period later, and so
+    on; a publish due between two chunks' times comes between them, whichever variables changed this tick."""
+    from valve_emulator.opcua.server import HAND_CHUNK, HAND_SPACING, OpcUaServer
+
+    loop, order = asyncio.get_running_loop(), []
+    publisher = OpcUaServer.__new__(OpcUaServer)   # only the hand-off: no address space, no asyncua
+    publisher._hand_cost = 20e-6
+
+    async def hand(watch, dv, groups):
+        order.append(watch)
+
+    publisher._hand = hand
+    period = 1.0
+    due = loop.time() + 0.05
+    places = [p for p in range(3 * HAND_CHUNK) if p % 7]   # some did not change
+    handing = [(place, place // HAND_CHUNK, None, []) for place in places]
+
+    async def publish():
+        await asyncio.sleep(due + 1.5 * HAND_SPACING * period - loop.time())
+        order.append("publish")
+
+    publishing = asyncio.create_task(publish())
+    await publisher._hand_all(handing, due, period)
+    await publishing
+    assert order == [0] * len([p for p in places if p < HAND_CHUNK]) \
+        + [1] * len([p for p in places if HAND_CHUNK <= p < 2 * HAND_CHUNK]) + ["publish"] \
+        + [2] * len([p for p in places if p >= 2 * HAND_CHUNK])

@@ -17,8 +17,9 @@ the tick arrives and waits for the due time on the event loop's timer (:func:`un
 asyncua waits for a publish (``asyncio.sleep`` to its due time). The event loop runs timers in the order of their
 due times, however late it runs them; so a hand-off and a publish due on grids of the same period come in the same
 order at every tick, and each publishing interval holds exactly one hand-off, whatever the tick's jitter and the
-subscription's phase, provided the hand-off itself does not yield to the event loop mid-way (a publish already woken
-would then run in between).
+subscription's phase, provided a hand-off does not yield to the event loop mid-way (a publish already woken would
+then run in between). The publisher hands a large tick in chunks, each due on a grid time of its own
+(``OpcUaServer._hand_all``), so that a publish due meanwhile waits for one chunk, not for all of them.
 
 What is left to chance: a publish that does not wait for its timer. asyncua publishes a subscription whose
 client had no Publish request queued (a client busy with the last publish) when the next request arrives, at
