@@ -3,24 +3,28 @@
     python bench/bench_opcua.py [--mode process|in-process] [--loops 1000] [--clients 5] [--publish 1000]
         [--sampling MS] [--queue 1] [--vars pv,op,sp,mv] [--seconds 10] [--rounds 3] [--hostile 25000] [--profile]
 
-**Load.** The device (``--loops`` loops of a fleet, tick 0.1 s, real time, PV measurement noise on every loop
-so that PV and OP change at every tick) runs in this process; its OPC UA server runs in a process of its own
-(``--mode process``, what ``valve-emulator serve --opcua`` runs) or in this process's event loop
-(``--mode in-process``). Other processes open ``--clients`` OPC UA sessions (asyncua), each with one
-subscription (publishing interval ``--publish`` ms) monitoring ``--vars`` of every loop as a SCADA client does
-(sampling interval ``--sampling`` ms, by default the publishing interval, and queue size ``--queue``, by default
-1: the latest value), and one Modbus client polling 125 holding registers at 10 Hz. Over a ``--seconds``
-window: the tick's lateness against its absolute deadline (p50, p99) beside the same fleet and poller without
-OPC UA measured in the same run (target: within 1 ms of it, 10 ticks/s, no overrun), and the share of the
-pv/op values each client received: every pv/op item should bring one new value per publishing interval (both
-change every tick), ``seconds / publishing interval`` per item in the window; an item's count is capped at
-that, so that a client handed several values of one item per interval (sampling 0, a longer queue) cannot make
-up for items it missed and "received" cannot exceed 100 % (target >= 99 %). Beside it, uncapped, the pv/op
-notifications per item and publishing interval the median client got (1 when sampling honours the publishing
-interval; about publishing interval / tick with ``--sampling 0 --queue 0``). Also the CPU time of
-the device process and of the OPC UA process per second, and the OPC UA process's CPU per notification
-handed to a subscription (the cost of a notification, and so the cores a load needs). Medians over
-``--rounds``. ``--profile`` profiles the OPC UA server in process (cProfile) and prints where its time goes.
+**Load.** The device (``--loops`` loops of a fleet, tick 0.1 s, real time, PV measurement noise on every loop so
+that PV and OP change at every tick) runs in this process; its OPC UA server runs in a process of its own (``--mode
+process``, what ``valve-emulator serve --opcua`` runs) or in this process's event loop (``--mode in-process``).
+Other processes open ``--clients`` OPC UA sessions (asyncua), each with one subscription (publishing interval
+``--publish`` ms) monitoring ``--vars`` of every loop as a SCADA client does (sampling interval ``--sampling`` ms,
+by default the publishing interval, and queue size ``--queue``, by default 1: the latest value), and one Modbus
+client (a process of its own) polls 125 holding registers at 10 Hz, beside an OPC UA session that reads one value
+every 0.1 s (the latency another session sees). Over a ``--seconds`` window: the tick's lateness against its
+absolute deadline (p50, p99) beside the same fleet and poller without OPC UA measured in the same run (target:
+within 1 ms of it, 10 ticks/s, no overrun), and the share of the pv/op values each client received: every pv/op item
+should bring one new value per publishing interval (both change every tick), ``seconds / publishing interval`` per
+item in the window; an item's count is capped at that, so that a client handed several values of one item per
+interval (sampling 0, a longer queue) cannot make up for items it missed and "received" cannot exceed 100 % (target
+>= 99 %). Beside it, uncapped, the pv/op notifications per item and publishing interval the median client got (1
+when sampling honours the publishing interval; about publishing interval / tick with ``--sampling 0 --queue 0``),
+and the share of publish responses that came more than 1.5 intervals after the one before: the client had no Publish
+request at the server when the publish was due (asyncua's client keeps one at a time and sends the next once it has
+taken in the last response), so the server publishes when the request comes, and with a queue of one the values
+handed meanwhile replace the ones waiting. Also the CPU time of the device process, of the OPC UA process and of the
+median client process per second, and the OPC UA process's CPU per notification handed to a subscription (the cost
+of a notification, and so the cores a load needs). Medians over ``--rounds``. ``--profile`` profiles the OPC UA
+server in process (cProfile) and prints where its time goes.
 
 **Hostile.** ``--hostile N`` malformed OPC UA messages (``tests/opcua/hostile.py``: random bytes, absurd
 and tiny sizes, garbage after Hello, truncated chunks, bad sequence numbers, junk OpenSecureChannel, TLS
@@ -67,13 +71,18 @@ class Subscribing:
 
 def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seconds: float, poll: bool, go,
             out_q) -> None:
-    """One OPC UA session (none without ``url``) subscribed to ``sub.variables`` of every loop, and with ``poll``
-    a Modbus poller, in a process of its own (asyncua's client costs about as much per notification as its
-    server: clients sharing a process would be what limits the count). Puts ``ready`` once subscribed, waits
-    for ``go``, then counts the notifications of each pv and op item for ``seconds`` after 3 s of settling and
-    puts (counts capped at one per publishing interval, counts, Modbus polls)."""
+    """One OPC UA session subscribed to ``sub.variables`` of every loop, or with ``poll`` the Modbus poller and (with
+    ``url``) a probe of another session's reads (one pv read every 0.1 s, timed), in a process of its own (asyncua's
+    client costs about as much per notification as its server: clients sharing a process would be what limits the
+    count, and a poller beside a session would count the session's event loop, not the device's answers). Puts
+    ``ready`` once subscribed, waits for ``go``, then counts for ``seconds`` after 3 s of settling the notifications
+    of each pv and op item, the publish responses and those that came more than 1.5 publishing intervals after the
+    one before (the client had no Publish request at the server when the publish was due: asyncua's client keeps
+    one), and puts (counts capped at one per publishing interval, counts, Modbus polls, subscriptions ended,
+    responses, late responses, this process's CPU seconds per second, the probe's read times, ``poll``)."""
     import logging
 
+    import psutil
     from asyncua import Client
     from pymodbus.client import AsyncModbusTcpClient
 
@@ -81,7 +90,7 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
     for name in ("pymodbus", "asyncua"):
         logging.getLogger(name).setLevel(logging.ERROR)
 
-    async def session(count, lost, ready):
+    async def session(count, lost, ready, responses):
         # asyncua's client probes the server every watchdog interval and, by default, drops its session when a
         # probe takes over 1 s -- which the client's own event loop, decoding a publish of thousands of values
         # on a loaded 2-core machine, causes itself: 5 s, as a SCADA client's keep-alive would be
@@ -92,6 +101,11 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
                 def datachange_notification(self, node, val, data):
                     if node.nodeid in count:
                         count[node.nodeid] += 1
+                    at = subscription.last_publish_at   # the response this notification came in
+                    if at != responses["last"]:
+                        late = responses["last"] is not None and at - responses["last"] > 1.5e-3 * sub.publish_ms
+                        responses["last"], responses["n"], responses["late"] = \
+                            at, responses["n"] + 1, responses["late"] + late
 
                 def status_change_notification(self, status):   # ended: BadShutdown from the watchdog
                     lost.append(str(status.Status))
@@ -116,10 +130,21 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
         finally:
             client.close()
 
+    async def probe(reads):
+        async with Client(url, timeout=30) as client:
+            ns = await client.get_namespace_index("urn:valve-emulator")
+            node = client.get_node(f"ns={ns};s={loops[0]}.pv")
+            while True:
+                started = time.perf_counter()
+                await node.read_data_value(raise_on_bad_status=False)
+                reads.append(time.perf_counter() - started)
+                await asyncio.sleep(0.1)
+
     async def main():
-        count, polled, ready, tasks, lost = {}, [0], asyncio.Event(), [], []
-        if url:
-            task = asyncio.create_task(session(count, lost, ready))
+        count, polled, ready, tasks, lost, reads = {}, [0], asyncio.Event(), [], [], []
+        responses = {"last": None, "n": 0, "late": 0}
+        if url and not poll:
+            task = asyncio.create_task(session(count, lost, ready, responses))
             tasks.append(task)
             waiting = asyncio.create_task(ready.wait())
             await asyncio.wait({task, waiting}, timeout=600, return_when=asyncio.FIRST_COMPLETED)
@@ -131,14 +156,19 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
         await asyncio.get_running_loop().run_in_executor(None, go.wait)
         if poll:
             tasks.append(asyncio.create_task(modbus(polled)))
+            if url:
+                tasks.append(asyncio.create_task(probe(reads)))
         await asyncio.sleep(3.0)                       # initial values and the first publishes settle
-        start, polled_before, lost_before = dict(count), polled[0], len(lost)
+        start, polled_before, lost_before, reads_before = dict(count), polled[0], len(lost), len(reads)
+        before, cpu_before = dict(responses), psutil.Process().cpu_times()
         out_q.put(("start",))
         await asyncio.sleep(seconds)
         got = [count[item] - start[item] for item in start]
         per_item = seconds * 1000 / sub.publish_ms
+        cpu = psutil.Process().cpu_times()
         out_q.put(("counts", sum(min(n, per_item) for n in got), sum(got), polled[0] - polled_before,
-                   lost[lost_before:]))
+                   lost[lost_before:], responses["n"] - before["n"], responses["late"] - before["late"],
+                   (cpu.user + cpu.system - cpu_before.user - cpu_before.system) / seconds, reads[reads_before:], poll))
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -196,9 +226,10 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             build = time.monotonic() - t0
             paths = [f"Unit{srv.device.units[i]}.{lp.name}" for i, lp in enumerate(cfg.loops)]
             q, go, procs = mp.Queue(), mp.Event(), []
-            for i in range(max(clients, 1)):   # one at a time: a session and its subscription, then the next
-                procs.append(mp.Process(target=_client, args=(opc.url if opc and clients else "", srv.port, paths,
-                                                              sub, seconds, i == 0, go, q), daemon=True))
+            url = opc.url if opc else ""
+            for poll in [True] + [False] * (clients if opc else 0):   # the poller, then one at a time: a session
+                procs.append(mp.Process(target=_client, args=(url, srv.port, paths, sub, seconds, poll, go, q),
+                                        daemon=True))
                 procs[-1].start()
                 await _each(q, 1, "ready", 1800)
             go.set()
@@ -221,7 +252,10 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
                 proc.join(30)
                 if proc.is_alive():
                     proc.kill()
-            counts, raw, polled = [r[1] for r in results], [r[2] for r in results], sum(r[3] for r in results)
+            poller = next(r for r in results if r[9])
+            polled, reads = poller[3], poller[8]
+            results = [r for r in results if not r[9]]   # the sessions
+            counts, raw = [r[1] for r in results], [r[2] for r in results]
     expected = len(COUNTED) * n * seconds * 1000 / sub.publish_ms
     served = clients and opc is not None
     return {"build": build, "p50": float(np.percentile(lateness, 50)) * 1e3,
@@ -232,7 +266,11 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             "device_cpu": cpu / elapsed, "opcua_cpu": opc_cpu / elapsed if mode == "process" else float("nan"),
             "per_notification": 1e6 * opc_cpu / sent if sent and mode == "process" else float("nan"),
             "sent": sent / elapsed, "polled": polled / seconds,
-            "lost": sum(len(r[4]) for r in results), "statuses": sorted({x for r in results for x in r[4]})}
+            "lost": sum(len(r[4]) for r in results), "statuses": sorted({x for r in results for x in r[4]}),
+            "late": sum(r[6] for r in results) / max(sum(r[5] for r in results), 1) if served else float("nan"),
+            "client_cpu": statistics.median(r[7] for r in results) if served else float("nan"),
+            "read_p50": 1e3 * float(np.percentile(reads, 50)) if reads else float("nan"),
+            "read_p99": 1e3 * float(np.percentile(reads, 99)) if reads else float("nan")}
 
 
 def _profile(n: int, clients: int, sub: Subscribing, seconds: float) -> None:
@@ -353,7 +391,12 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
                  ("device process CPU (s per s)", f"{base['device_cpu']:.2f}", f"{m['device_cpu']:.2f}"),
                  ("OPC UA process CPU (s per s)", "", f"{m['opcua_cpu']:.2f}"),
                  ("OPC UA CPU per notification", "", f"{m['per_notification']:.0f} µs"),
-                 ("Modbus polls answered per second", f"{base['polled']:.1f}", f"{m['polled']:.1f}")],
+                 ("publish responses more than 1.5 intervals after the one before (the client's Publish request "
+                  "came late)", "", f"{100 * m['late']:.1f} %"),
+                 ("OPC UA client process CPU (s per s), median client", "", f"{m['client_cpu']:.2f}"),
+                 ("Modbus polls answered per second", f"{base['polled']:.1f}", f"{m['polled']:.1f}"),
+                 ("another session's read of one value, p50 / p99 (one a 0.1 s)", "",
+                  f"{m['read_p50']:.1f} / {m['read_p99']:.1f} ms")],
                 ("figure", "without OPC UA", "with OPC UA")))
     for mode, rs in runs.items():
         print(f"rounds ({mode}): p99 " + ", ".join(f"{r['p99']:.1f}" for r in rs) + " ms; received "

@@ -36,14 +36,16 @@ Writes answer:
   user and variable per interval;
 - ``BadOutOfRange``: a value the register refuses (the Modbus ``0x03``); ``BadTypeMismatch``: not a number.
 
-Values are read at request time from the register image (so a read sees a write at once, as over Modbus),
-float32 registers as the double the tick computed (:meth:`OpcUaServer.value`); subscriptions are fed after
-every tick with the values that changed, each monitored item at its sampling interval (:func:`revised_sampling`:
-0 is every tick, -1 the subscription's publishing interval), so a client sampling at 1 s costs one notification
-per item per second whatever the tick. Each analog item has EngineeringUnits with its UNECE code
-(:mod:`~valve_emulator.opcua.units`) and, where it has one, an EURange; a value outside it is
-``UncertainEngineeringUnitsExceeded``. ``SourceTimestamp`` is the wall-clock time of the tick that made the
-value (:class:`TickClock`), ``ServerTimestamp`` the time it was read or sent.
+Values are read at request time from the register image (so a read sees a write at once, as over Modbus), float32
+registers as the double the tick computed (:meth:`OpcUaServer.value`); subscriptions are fed after every tick with
+the values that changed, each monitored item at its sampling interval (:func:`revised_sampling`: 0 is every tick, -1
+the subscription's publishing interval), so a client sampling at 1 s costs one notification per item per second
+whatever the tick. The values are handed half a tick after the tick, on a grid of the tick period
+(:mod:`~valve_emulator.opcua.handoff`), so that each publishing interval of a subscription holds one sample of each
+item whatever the tick's jitter: a queue of one loses none. Each analog item has EngineeringUnits with its UNECE
+code (:mod:`~valve_emulator.opcua.units`) and, where it has one, an EURange; a value outside it is
+``UncertainEngineeringUnitsExceeded``. ``SourceTimestamp`` is the wall-clock time of the tick that made the value
+(:class:`TickClock`), ``ServerTimestamp`` the time it was read or sent.
 
 Each loop's PV alarm is an ``AlarmConditionType`` condition (``Unit1.FIC101.PvAlarm``) whose events come from
 the ``Server`` object and which a client acknowledges (:mod:`~valve_emulator.opcua.alarms`).
@@ -53,10 +55,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import logging
 import math
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -87,6 +89,7 @@ from valve_emulator.device.roles import OPERATOR, Role
 from valve_emulator.device.tick import Device
 from valve_emulator.errors import UserError
 from valve_emulator.opcua.alarms import AlarmConditions
+from valve_emulator.opcua.handoff import HandOffGrid, until
 from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
 from valve_emulator.opcua.source import DeviceSource, LocalSource, StationRefusal, finite_period
 from valve_emulator.opcua.trust import TrustList
@@ -107,6 +110,11 @@ YIELD_EVERY = 200
 PUBLISH_BUDGET = 0.3
 #: ... or this share in a process of its own, where only asyncua's publishing and the clients' requests share it.
 PROCESS_PUBLISH_BUDGET = 0.7
+#: The publisher hands a tick's values in chunks of this many monitored variables ...
+HAND_CHUNK = 200
+#: ... each due this share of the tick period after the one before (more than a chunk's work: 200 variables take
+#: 2-5 ms, a share of 0.05 is 5 ms at a 0.1 s tick).
+HAND_SPACING = 0.05
 SECURE_POLICIES = ("Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
 
 
@@ -439,9 +447,11 @@ class OpcUaServer:
         self.node_ids: set[ua.NodeId] = set()
         self._monitored: list[tuple[Any, int, Sampler]] = []
         #: per group of monitored items (:class:`_Group`): the value last handed to it and when its next sample
-        #: is due (perf_counter seconds)
+        #: is due (the event loop's clock)
         self._sent: dict[tuple[int, float], Any] = {}
         self._due: dict[tuple[int, float], float] = {}
+        #: the seconds handing one variable's value to its monitored items takes (a running mean)
+        self._hand_cost = 20e-6
         #: data-change callback handle -> the sampling interval (s) its monitored item is honoured at
         self._intervals: dict[int, float] = {}
         #: when the tick that made the served values ran (their SourceTimestamp)
@@ -769,34 +779,77 @@ class OpcUaServer:
         Only variables with a monitored item are read (the list is rebuilt when a client adds or deletes
         one), and only when one of their groups is due: an item sampled at 1 s is handed one value a second, the
         tick's latest, however fast the tick (a due time counts from half a tick early, so tick jitter does not
-        skip a sample; the variables' phases are spread over the interval, :func:`first_due`). The tick comes
-        first: the loop yields to the event loop every :data:`YIELD_EVERY` variables, and when a tick's share of
-        work (:data:`PUBLISH_BUDGET` of the tick period) is spent it stops and goes on after the next tick where
-        it stopped, so a subscription larger than the machine can feed gets every variable's latest value less
-        often instead of delaying the tick (or, in a process of its own, the
+        skip a sample; the variables' phases are spread over the interval, :func:`first_due`).
+
+        The values are sampled when the tick arrives and handed at once when the hand-off is due, on a grid of the
+        tick period (:mod:`~valve_emulator.opcua.handoff`): so each publishing interval of a subscription holds
+        exactly one tick's values, whatever the tick's jitter and the subscription's phase. The tick comes first:
+        sampling yields to the event loop every :data:`YIELD_EVERY` variables, and once sampling and the
+        hand-off would take more than the publisher's share of the tick period (:data:`PUBLISH_BUDGET`) it stops
+        and goes on after the next tick where it stopped, so a subscription larger than the machine can feed gets
+        every variable's latest value less often instead of delaying the tick (or, in a process of its own, the
         clients' requests)."""
         source, seen, at = self.source, self.source.ticks, 0
-        clock = time.perf_counter
+        loop = asyncio.get_running_loop()
+        grid = HandOffGrid()
         while True:
             seen = await source.wait_for_tick(seen + 1)
+            arrived = loop.time()
             self.tick_clock.stamp()   # the tick just ran: its time is now
             if self._dirty:
                 self._dirty, at = False, 0
                 self._active = self._watches()
             period = finite_period(source)
-            now = clock()
-            deadline, active, done = now + self.publish_budget * period, self._active, 0
-            while done < len(active):
-                watch = active[at % len(active)]
-                at, done = (at + 1) % len(active), done + 1
-                if done % YIELD_EVERY == 0:
-                    await asyncio.sleep(0)
-                    if clock() > deadline:
-                        self.deferred += 1
-                        break
-                changed = self._changed(watch, now, period / 2)
-                if changed:
-                    await self._hand(watch, *changed)
+            due = grid.due(seen, arrived, source.period)
+            handing, at = await self._sample(at, due, period, self.publish_budget * period)
+            await self._hand_all(handing, due, period)
+
+    async def _sample(self, at: int, due: float, period: float,
+                      budget: float) -> tuple[list[tuple[int, _Watch, ua.DataValue, list[_Group]]], int]:
+        """The values to hand at ``due``: of each monitored variable from the ``at``-th on whose groups are due
+        then and changed (:meth:`_changed`), each with its place in the list of monitored variables, and where the
+        next tick goes on: past the last variable sampled when
+        sampling and the hand-off would take more than ``budget`` seconds (counted in :attr:`deferred`).
+
+        Sampling that is not done by ``due`` (half a tick after the tick: a machine too busy for the subscriptions)
+        makes the hand-off late, and a publish due between the two sees this tick's values of its items one
+        interval early; the values stay this tick's, and the next hand-off is on the grid again."""
+        active, handing, done = self._active, [], 0
+        clock = asyncio.get_running_loop().time
+        start = clock()
+        while done < len(active):
+            if done and done % YIELD_EVERY == 0:
+                await asyncio.sleep(0)
+                if clock() - start + len(handing) * self._hand_cost > budget:
+                    self.deferred += 1
+                    break
+            place, watch = at, active[at]
+            at, done = (at + 1) % len(active), done + 1
+            changed = self._changed(watch, due, period / 2)
+            if changed:
+                handing.append((place, watch, *changed))
+        return handing, at
+
+    async def _hand_all(self, handing: list[tuple[int, _Watch, ua.DataValue, list[_Group]]], due: float,
+                        period: float) -> None:
+        """Hand the sampled values in chunks: the variables at places ``k·HAND_CHUNK`` to ``(k+1)·HAND_CHUNK``
+        in the list of monitored variables at ``due + k·HAND_SPACING`` of a period, each chunk waited for on the
+        event loop's timer and handed without yielding (a publish woken meanwhile would come between two of its
+        items). A variable keeps its chunk's time from tick to tick, so a publish comes before or after it the
+        same way at every tick while the chunks keep up with their times, and waits for one chunk at most, not
+        for the whole hand-off (its client's next Publish request has that much less time to come). Keeps the
+        cost per variable for the budget."""
+        if not handing:
+            return
+        clock = asyncio.get_running_loop().time
+        spent = 0.0
+        for chunk, items in itertools.groupby(handing, key=lambda item: item[0] // HAND_CHUNK):
+            await until(due + chunk * HAND_SPACING * period)
+            start = clock()
+            for _, watch, dv, groups in items:
+                await self._hand(watch, dv, groups)
+            spent += clock() - start
+        self._hand_cost += 0.2 * (spent / len(handing) - self._hand_cost)
 
     def _changed(self, watch: _Watch, now: float, slack: float) -> tuple[ua.DataValue, list[_Group]] | None:
         """The value of ``watch`` and its groups due at ``now`` (``slack`` seconds early counts) that have not had
