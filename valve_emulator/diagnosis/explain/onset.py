@@ -78,7 +78,7 @@ import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainCandidate, ChainContext
 from valve_emulator.diagnosis.explain.locate import turning_points
-from valve_emulator.diagnosis.fit.closed_loop import Identification
+from valve_emulator.diagnosis.fit.closed_loop import Identification, setpoint_moves
 from valve_emulator.diagnosis.fit.cost import ar1_bic
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent
 from valve_emulator.diagnosis.fit.fitter import Fitter
@@ -327,8 +327,8 @@ def suspect_onset(pv: np.ndarray, sp: np.ndarray | None = None, *, start: int = 
     b, w = _log_blocks(e, BLOCKS)
     first = start
     if has_sp:
-        moves = np.flatnonzero(np.diff(sp) != 0.0)
-        first = max(first, int(moves[0]) + 1 if moves.size else 0)
+        moves = setpoint_moves(sp)
+        first = max(first, int(moves[0]) if moves.size else 0)
     lo, hi = max(int(np.ceil(first / w)) + 2, b.size // 20, 2), b.size - b.size // 20
     if hi - lo < 6:
         return None
@@ -373,8 +373,7 @@ def _at_setpoint_move(sp: np.ndarray | None, sample: int, width: int) -> bool:
     """Whether the set point moves within ``width`` samples of ``sample`` (False without a set point)."""
     if sp is None:
         return False
-    moves = np.flatnonzero(np.diff(np.asarray(sp, dtype=float)) != 0.0) + 1
-    return bool(np.any(np.abs(moves - sample) <= width))
+    return bool(np.any(np.abs(setpoint_moves(sp) - sample) <= width))
 
 
 def post_onset_split(problem: Problem, suspected: Suspected | None) -> Problem:

@@ -38,7 +38,7 @@ import numpy as np
 from valve_emulator.errors import UserError
 
 __all__ = ["ACTIONS", "LOOP_TYPES", "MIN_R2", "MIN_T", "MIN_MOVES", "MAX_TAPS", "Declared", "Identification",
-           "controller_action", "identification", "setpoint_part"]
+           "controller_action", "identification", "setpoint_moves", "setpoint_part"]
 
 #: Controller actions: reverse (OP rises as PV falls; the process gain is positive) or direct.
 ACTIONS = ("reverse", "direct")
@@ -195,6 +195,11 @@ def identification(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, declar
     return Identification(sign=sign, integrating=integrating, constraints=tuple(said), max_delay=max_delay)
 
 
+def setpoint_moves(sp: np.ndarray) -> np.ndarray:
+    """The samples at which the set point has just moved (the first sample at each new value)."""
+    return np.flatnonzero(np.diff(np.asarray(sp, dtype=float)) != 0.0) + 1
+
+
 def setpoint_part(op: np.ndarray, sp: np.ndarray | None, end: int, start: int = 0) -> np.ndarray | None:
     """OP's part that the set point explains, estimated on samples ``[0, end)``: the first stage of the
     two-stage method of closed-loop identification (Van den Hof & Schrama 1993; Ljung, *System Identification*,
@@ -210,7 +215,7 @@ def setpoint_part(op: np.ndarray, sp: np.ndarray | None, end: int, start: int = 
         return None
     op, sp = np.asarray(op, dtype=float), np.asarray(sp, dtype=float)
     taps = min(op.size // 10, MAX_TAPS)
-    moves = np.flatnonzero(np.diff(sp) != 0.0) + 1
+    moves = setpoint_moves(sp)
     if taps < 2 or np.count_nonzero((moves >= start) & (moves <= end - op.size // 10)) < MIN_MOVES:
         return None
     z = sp - sp[0]
