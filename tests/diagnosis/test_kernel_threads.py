@@ -1,15 +1,16 @@
 """The thread pool of the compiled kernels: every range and task runs once, errors reach the caller, callers may
-overlap; OpenBLAS keeps to one thread while a diagnosis runs."""
+overlap; every BLAS keeps to one thread while a diagnosis runs."""
 
 import functools
 import threading
 
 import numba
 import pytest
+from threadpoolctl import threadpool_limits
 
 from valve_emulator.diagnosis._threads import (
     MIN_PER_WORKER,
-    _openblas_controls,
+    blas_libraries,
     one_blas_thread,
     run_each,
     run_split,
@@ -148,10 +149,11 @@ def test_an_error_in_a_task_reaches_the_caller():
         run_each([functools.partial(task, i) for i in range(5)])
 
 
-@pytest.mark.skipif(not _openblas_controls(), reason="numpy's BLAS is not OpenBLAS here")
-def test_openblas_keeps_to_one_thread_while_a_diagnosis_runs_and_gets_its_count_back_after():
-    counts = lambda: [get() for _, get in _openblas_controls()]   # noqa: E731
-    before = counts()
+def test_every_blas_keeps_to_one_thread_while_a_diagnosis_runs_and_gets_its_count_back_after():
+    # numpy's and scipy's wheels each bring an OpenBLAS; whatever the environment set (CI sets one thread),
+    # the test starts them at two so that "one inside" and "back after" are both seen.
+    assert blas_libraries(), "numpy and scipy bring a BLAS that threadpoolctl controls"
+    counts = lambda: [lib.num_threads for lib in blas_libraries()]   # noqa: E731
     inside = []
 
     @one_blas_thread
@@ -161,6 +163,9 @@ def test_openblas_keeps_to_one_thread_while_a_diagnosis_runs_and_gets_its_count_
             diagnosis(depth - 1)   # one running inside another (or beside it) does not restore the count early
             inside.append(counts())
 
-    diagnosis(1)
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = counts()
+        assert before == [2] * len(before)
+        diagnosis(1)
+        assert counts() == before
     assert all(c == [1] * len(before) for c in inside)
-    assert counts() == before

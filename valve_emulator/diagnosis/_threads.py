@@ -4,9 +4,10 @@ A kernel compiled with ``nogil=True`` runs in parallel in plain threads; a ``par
 compile several times slower, and it is the kernels that a fresh install compiles first. The pool has
 ``numba.get_num_threads()`` workers (1 in the workers of a plant-wide sweep, which are processes already).
 
-While a diagnosis runs, numpy's BLAS (OpenBLAS) keeps to one thread (:func:`one_blas_thread`): its calls on
-the record (a residual, a norm, a least-squares fit) are a few milliseconds each, and after each one
-OpenBLAS's threads spin on the other cores waiting for more, where they take the time of the kernels' threads.
+While a diagnosis runs, numpy's and scipy's BLAS (OpenBLAS in their wheels) keep to one thread
+(:func:`one_blas_thread`, through threadpoolctl): its calls on the record (a residual, a norm, a least-squares
+fit) are a few milliseconds each, and after each one OpenBLAS's threads spin on the other cores waiting for
+more, where they take the time of the kernels' threads.
 
 Splits nest: work that a split already runs in parallel (a chunk of grid rows, :mod:`~valve_emulator.diagnosis.
 fit.scorer`) may call code that splits again (its valves, its columns); such an inner split runs its ranges in
@@ -16,18 +17,15 @@ for a range queued behind itself would wait for ever.
 
 from __future__ import annotations
 
-import ctypes
 import functools
-import glob
-import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
-import numpy as np
+from threadpoolctl import ThreadpoolController
 
-__all__ = ["MIN_PER_WORKER", "one_blas_thread", "run_each", "run_split", "workers_for"]
+__all__ = ["MIN_PER_WORKER", "blas_libraries", "one_blas_thread", "run_each", "run_split", "workers_for"]
 
 #: Fewer items than this per worker run in the calling thread: handing work to a thread costs more than it saves.
 MIN_PER_WORKER = 16
@@ -107,64 +105,30 @@ def run_each(tasks: list[Callable[[], object]]) -> list:
     return out
 
 
-#: The thread-count functions OpenBLAS exports, (set, get), as its builds name them (numpy's and scipy's wheels
-#: prefix theirs, the 64-bit-integer build with a suffix too).
-_OPENBLAS_NAMES = (("openblas_set_num_threads", "openblas_get_num_threads"),
-                   ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
-                   ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"),
-                   ("openblas_set_num_threads64_", "openblas_get_num_threads64_"))
-
 _blas_lock = threading.Lock()
-_blas_users = 0                       # diagnoses running inside :func:`one_blas_thread`
-_blas_saved: list[tuple[Callable, int]] = []   # (set, the count before) of each OpenBLAS, while any runs
+_blas_users = 0                              # diagnoses running inside :func:`one_blas_thread`
+_blas_saved: list[tuple[object, int]] = []   # (controller, the count before) of each BLAS, while any runs
 
 
-def _loaded_openblas() -> list[str]:
-    """Paths of the OpenBLAS libraries loaded in this process (numpy's first): Linux lists them in
-    ``/proc/self/maps``; elsewhere numpy's wheel folder is searched."""
-    try:
-        with open("/proc/self/maps") as f:
-            paths = {line.split()[-1] for line in f if "openblas" in line.rsplit("/", 1)[-1].lower()}
-    except OSError:
-        root = os.path.dirname(np.__file__)
-        paths = {p for d in (os.path.join(root, os.pardir, "numpy.libs"), os.path.join(root, ".dylibs"))
-                 for p in glob.glob(os.path.join(d, "*openblas*"))}
-    return sorted(paths, key=lambda p: "numpy" not in p)
-
-
-def _openblas_controls() -> list[tuple[Callable, Callable]]:
-    """(set, get) of the thread count of every OpenBLAS loaded (none: another BLAS, or none found)."""
-    return [c for c in map(_controls_of, _loaded_openblas()) if c is not None]
-
-
-@functools.cache
-def _controls_of(path: str) -> tuple[Callable, Callable] | None:
-    """(set, get) of the thread count of the OpenBLAS at ``path`` (None: not one, or not loadable)."""
-    try:
-        lib = ctypes.CDLL(path)
-    except OSError:
-        return None
-    for set_name, get_name in _OPENBLAS_NAMES:
-        if hasattr(lib, set_name) and hasattr(lib, get_name):
-            setter, getter = getattr(lib, set_name), getattr(lib, get_name)
-            setter.argtypes, setter.restype, getter.restype = [ctypes.c_int], None, ctypes.c_int
-            return setter, getter
-    return None
+def blas_libraries() -> list:
+    """threadpoolctl's controllers of the BLAS libraries loaded in this process now (numpy's and scipy's
+    OpenBLAS as their wheels ship them, or MKL, BLIS, ...): each has ``num_threads`` and ``set_num_threads``."""
+    return ThreadpoolController().select(user_api="blas").lib_controllers
 
 
 def one_blas_thread(f: Callable) -> Callable:
-    """``f`` run with OpenBLAS in one thread (see the module docstring), its thread count restored when the
+    """``f`` run with every BLAS in one thread (see the module docstring), their thread counts restored when the
     last of the calls running at once returns (diagnoses may run in several threads). The numbers are those of
-    the same BLAS kernels in one thread. Without OpenBLAS (another BLAS, not found) ``f`` runs as it is."""
+    the same BLAS kernels in one thread. Without a BLAS threadpoolctl knows, ``f`` runs as it is."""
 
     @functools.wraps(f)
     def single(*args, **kwargs):
         global _blas_users
         with _blas_lock:
             if _blas_users == 0:
-                _blas_saved[:] = [(setter, getter()) for setter, getter in _openblas_controls()]
-                for setter, _ in _blas_saved:
-                    setter(1)
+                _blas_saved[:] = [(lib, lib.num_threads) for lib in blas_libraries()]
+                for lib, _ in _blas_saved:
+                    lib.set_num_threads(1)
             _blas_users += 1
         try:
             return f(*args, **kwargs)
@@ -172,6 +136,6 @@ def one_blas_thread(f: Callable) -> Callable:
             with _blas_lock:
                 _blas_users -= 1
                 if _blas_users == 0:
-                    for setter, count in _blas_saved:
-                        setter(count)
+                    for lib, count in _blas_saved:
+                        lib.set_num_threads(count)
     return single
