@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from valve_emulator.diagnosis.fit import fitter as fitter_module
 from valve_emulator.diagnosis.fit.fitter import _FLAT, _STARTS, Fitter, Start
 from valve_emulator.diagnosis.fit.linear import LinearStructure
 from valve_emulator.diagnosis.fit.records import Model
@@ -13,14 +14,11 @@ from valve_emulator.diagnosis.fit.records import Model
 NOMINAL_POLES = (10.0,)
 
 
-def _fitter(*, given: bool = True, library: dict | None = None, sse_of=None) -> Fitter:
-    """A fitter whose scorer is a stub: a nominal model with one 10 s pole, ``library``, and grid SSEs
-    computed by ``sse_of(rows)``."""
+def _fitter(*, given: bool = True, library: dict | None = None) -> Fitter:
+    """A fitter whose scorer is a stub: a nominal model with one 10 s pole and ``library``."""
     scorer = SimpleNamespace(
         nominal=SimpleNamespace(given=given, structure=LinearStructure(taus=NOMINAL_POLES, delay=2.0)),
-        library=library or {}, p=SimpleNamespace(n_fit=1000, dt=1.0),
-        sse_jobs_many=lambda requests: [[(sse_of(rows)[:, None], np.array([2]))] * len(jobs)
-                                        for active, ctx, cand, rows, jobs, aim in requests])
+        library=library or {}, p=SimpleNamespace(n_fit=1000, dt=1.0))
     return Fitter(scorer)
 
 
@@ -60,7 +58,7 @@ def test_the_dead_time_is_freed_with_a_candidate_only_while_it_is_held_and_the_l
     assert [v.free for v in _fitter().variants(_model(delay_free=False), STICTION)] == [False]
 
 
-def test_a_threshold_moves_to_the_middle_of_the_flat_bottom_of_its_cost():
+def test_a_threshold_moves_to_the_middle_of_the_flat_bottom_of_its_cost(monkeypatch):
     # The SSE is lowest at S = 2 (the bottom's edge), within the flat tolerance up to S = 5, and high beyond.
     n = 1000
     within = float(np.exp(0.9 * _FLAT / n))      # a cost N ln(SSE/SSE_min) just inside the flat bottom
@@ -72,5 +70,8 @@ def test_a_threshold_moves_to_the_middle_of_the_flat_bottom_of_its_cost():
     cand = SimpleNamespace(threshold_axes=(0,),
                            line=lambda ctx, best, axis: np.column_stack([np.arange(0.0, 8.01, 0.5),
                                                                           np.full(17, best[1])]))
-    best = _fitter(sse_of=sse_of).centre({}, None, cand, np.array([6.0, 1.5]), None, None)
+    # Grid SSEs computed by ``sse_of(rows)`` in place of the chain and the linear kernel.
+    monkeypatch.setattr(fitter_module, "sse_jobs_many", lambda requests: [
+        [(sse_of(rows)[:, None], np.array([2]))] * len(jobs) for _scorer, _a, _c, _cand, rows, jobs, _aim in requests])
+    best = _fitter().centre({}, None, cand, np.array([6.0, 1.5]), None, None)
     assert best.tolist() == [3.5, 1.5]

@@ -274,7 +274,7 @@ class Fitter:
     def _score_grids(self, active, ctx, cand, grids: list[np.ndarray], jobs: list[tuple], aim: Aim) -> list[tuple]:
         """``sse_grid`` of ``grids[k]`` for ``jobs[k]`` (structure, delays), every distinct grid through the chain
         once with all its jobs, the grids' chunks shared out over the threads together
-        (:meth:`~valve_emulator.diagnosis.fit.scorer.Scorer.sse_jobs_many`)."""
+        (:func:`~valve_emulator.diagnosis.fit.scorer.sse_jobs_many`)."""
         groups: dict[tuple, dict[tuple, list[int]]] = {}
         for k, (g, (st, delays)) in enumerate(zip(grids, jobs)):
             job = (repr(st), None if delays is None else delays.tobytes())
@@ -283,8 +283,8 @@ class Fitter:
         requests = []
         for same_grid in groups.values():
             ks = [k[0] for k in same_grid.values()]
-            requests.append((active, ctx, cand, grids[ks[0]], [jobs[k] for k in ks], aim))
-        for same_grid, scored in zip(groups.values(), self.scorer.sse_jobs_many(requests)):
+            requests.append((self.scorer, active, ctx, cand, grids[ks[0]], [jobs[k] for k in ks], aim))
+        for same_grid, scored in zip(groups.values(), sse_jobs_many(requests)):
             for r, same_job in zip(scored, same_grid.values()):
                 for k in same_job:
                     out[k] = r

@@ -215,11 +215,6 @@ class Scorer:
         through the chain once (the valve simulation is the costly part) and scored for every job."""
         return self._score_chunks(lambda a, b: self.chain(active, ctx, cand, grid[a:b]), grid.shape[0], jobs, aim)
 
-    def sse_jobs_many(self, requests: list[tuple]) -> list[list[tuple]]:
-        """:meth:`sse_jobs` of several grids, each request ``(active, ctx, cand, grid, jobs, aim)``, their chunks
-        shared out over the threads together (:func:`sse_jobs_many`)."""
-        return sse_jobs_many([(self, *request) for request in requests])
-
     def sse_flows_all(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
         """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, at most
         :data:`_CHUNK` columns at a time (copied contiguous, then scored for every job while they are in cache): the
