@@ -82,6 +82,12 @@ run on each loop:
      non-valve candidate in the order of their :attr:`~valve_emulator.diagnosis.candidates.base.Candidate.
      cause_rank` (an external disturbance at another period than the cycle's, a quantised PV, saturation, a
      flow characteristic, an actuator lag, a dead time); or "the linear model explains the loop".
+     A tuning answer whose ring is the record's regular cycle is ``cannot tell`` instead, naming the tuning and
+     a limit cycle, when the cycle is more regular than the identified loop rings under its own prediction errors
+     (:func:`~valve_emulator.diagnosis.candidates.tuning.ring_check`, a Monte Carlo test at 1 %;
+     :func:`_beyond_ring`): a sticky valve's limit cycle repeats itself, an aggressive loop's ring wanders with
+     its load. Measured (2026-11-27, plant data): one of the 40 sticky level loops (answered tuning before), none
+     of the 40 aggressive loops.
 
    * a ``no stiction`` answer that rests on the drifting-load noise model (the final model's free-run fit below
      :data:`MIN_FIT`) is no call when the valve explains the record as well: the best valve option the search
@@ -119,7 +125,7 @@ from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_swin
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.candidates.base import Kind
-from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
+from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, RING_ALPHA, TuningAssessment
 from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.explain.result import Explanation, Finding, ValveAlternative
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
@@ -276,7 +282,8 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
             unsure = (f"a valve band S ≈ {_amount(S, frame)} fits too, but a linear valve with a slowly drifting load "
                       f"explains the record better (ΔBIC {valve.load_delta_bic:.1f} for the valve under that noise "
                       "model)")
-            return _tuning_decision(tune, f"; {unsure}", fits, ((Reason.WEAK_EVIDENCE, unsure),))
+            named = _tuning_decision(tune, f"; {unsure}", fits, ((Reason.WEAK_EVIDENCE, unsure),))
+            return _beyond_ring(tune, named, fits) if tune.ring is not None and tune.ring.beyond else named
         small = (f"a valve band S ≈ {_amount(S, frame)} fits, but it is below {NOISE_BANDS:g} OP noise σ "
                  f"({_amount(NOISE_BANDS * noise, frame)}), where the noise moves such a valve either way")
 
@@ -316,6 +323,7 @@ def _cause(d: Explanation, ad: Adequacy, tune: TuningAssessment | None, fits: st
     if tune is not None and tune.aggressive and not (load_cycle and tune.load_alike):
         also = f"; also {ranked[0].description}" if ranked else ""
         named = _tuning_decision(tune, also, fits)
+        named = _beyond_ring(tune, named, fits) if tune.ring is not None and tune.ring.beyond else named
         return _because(small, named.answer, named.cause, named.reasons, named.reason, tune)
     if load_cycle:
         own = ((Reason(periodic.physics), periodic.description),)
@@ -330,6 +338,22 @@ def _cause(d: Explanation, ad: Adequacy, tune: TuningAssessment | None, fits: st
     return Decision(Answer.NO_STICTION, "linear", "a linear valve and plant explain the loop: no candidate physics "
                     f"improves the model significantly; {fits}",
                     ((Reason.LINEAR, "a linear valve and plant explain the loop"),), tuning=tune)
+
+
+def _beyond_ring(tune: TuningAssessment, named: Decision, fits: str) -> Decision:
+    """``cannot tell`` instead of the ``tuning`` answer ``named`` when the record's regular cycle, the one the
+    tuning test matched, is more regular than the identified loop rings
+    (:func:`~valve_emulator.diagnosis.candidates.tuning.ring_check`): an aggressive loop rings, its period
+    wandering with the load that drives it, while a limit cycle repeats itself. A cycle beyond the loop's ring is
+    one the linear loop does not make: a nonlinearity inside it (a sticky valve) or an oscillation from outside
+    at that period, so the record cannot tell the tuning from them; both are named."""
+    ring = tune.ring.text()
+    cycle = (f"{ring} (a share {tune.ring.p:.2g} of them, the record counted, cycle as regularly; at most "
+             f"{RING_ALPHA:g} for a limit cycle), so the cycle of {tune.observed:.3g} s is one the linear loop does "
+             "not make: a sticky valve's limit cycle, or an oscillation from outside at that period")
+    return Decision(Answer.CANNOT_TELL, "", f"either the loop cycles through its own controller (aggressive "
+                    f"tuning: {tune.reason}) or {cycle}; {fits}",
+                    named.reasons[:1] + ((Reason.LIMIT_CYCLE, cycle),) + named.reasons[1:], tuning=tune)
 
 
 def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame, ad: Adequacy) -> Decision:
