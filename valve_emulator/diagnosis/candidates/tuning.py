@@ -261,14 +261,11 @@ def ring_check(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, kc: float,
     oscillation summary, so the test has no threshold of its own but its level)."""
     op, pv = np.asarray(op, dtype=float), np.asarray(pv, dtype=float)
     a, b = arx_plant(op, pv, orders)
-    na, nb = orders
-    y, u = pv - pv.mean(), op - op.mean()
-    s = max(na, nb)
-    X = np.column_stack([y[s - i:y.size - i] for i in range(1, na + 1)] + [u[s - j:u.size - j]
-                                                                          for j in range(1, nb + 1)])
-    sigma = float(np.std(y[s:] - X @ np.r_[-a[1:], b]))
-    ki = kc * dt / ti if np.isfinite(ti) else 0.0
+    s = max(orders)
     bq = np.r_[0.0, b]                                     # OP_{k-1} ... OP_{k-nb}
+    y, u = pv - pv.mean(), op - op.mean()
+    sigma = float(np.std((lfilter(a, [1.0], y) - lfilter(bq, [1.0], u))[s:]))   # the ARX's prediction errors
+    ki = kc * dt / ti if np.isfinite(ti) else 0.0
     cn = np.array([kc + ki, -kc])                          # (1 - q⁻¹) OP = (kc (1 - q⁻¹) + ki) e
     feed = np.convolve(bq, cn)
     den = np.zeros(max(a.size + 1, feed.size + lag))
