@@ -89,9 +89,9 @@ run on each loop:
      decision then goes on as if the loop were not aggressive — an accepted periodic load at the cycle's period
      is the cause (the reason ``limit_cycle`` says why tuning is not), a contested valve band is ``cannot tell``
      — and where nothing else names the cycle, the answer is ``cannot tell``, naming the tuning and a limit cycle
-     (:func:`_beyond_ring`). Measured (2026-11-27, plant data): a sticky level loop (32.19) and a healthy flow
-     loop under a sine load (bench draw 0.6.1) answered tuning before, each now named by the periodic load the
-     search had accepted at the cycle's period; none of the 48 aggressive loops.
+     (:func:`_beyond_ring`). Measured (2026-11-27, plant data): a sticky level loop (32.19) and four healthy flow
+     loops under a sine load answered tuning before, each now named by the periodic load the search had
+     accepted at the cycle's period; none of the 48 aggressive loops.
 
    * a ``no stiction`` answer that rests on the drifting-load noise model (the final model's free-run fit below
      :data:`MIN_FIT`) is no call when the valve explains the record as well: the best valve option the search
