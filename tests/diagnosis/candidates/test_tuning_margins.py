@@ -14,7 +14,8 @@ from valve_emulator.benchmark.independent import (
     draw,
     loop_margins,
 )
-from valve_emulator.diagnosis.candidates.tuning import identify_pi, nominal_margins, ring_check
+from valve_emulator.diagnosis.assess.ring import ring_check
+from valve_emulator.diagnosis.candidates.tuning import identify_pi, nominal_margins
 
 RNG = np.random.default_rng(7)
 

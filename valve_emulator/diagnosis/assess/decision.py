@@ -84,7 +84,7 @@ run on each loop:
      flow characteristic, an actuator lag, a dead time); or "the linear model explains the loop".
      Tuning is not the answer when the record's regular cycle, the ring it matched, is more regular than the
      identified loop rings under its own prediction errors
-     (:func:`~valve_emulator.diagnosis.candidates.tuning.ring_check`, a Monte Carlo test at 1 %; :func:`_beyond`):
+     (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`, a Monte Carlo test at 1 %; :func:`_beyond`):
      a limit cycle or an outside oscillation repeats itself, an aggressive loop's ring wanders with its load. The
      decision then goes on as if the loop were not aggressive — an accepted periodic load at the cycle's period
      is the cause (the reason ``limit_cycle`` says why tuning is not), a contested valve band is ``cannot tell``
@@ -127,9 +127,15 @@ import numpy as np
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_swings
 from valve_emulator.diagnosis.assess.result import Assessment
+from valve_emulator.diagnosis.assess.ring import ring_check
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.candidates.base import Kind
-from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, RING_ALPHA, TuningAssessment
+from valve_emulator.diagnosis.candidates.tuning import (
+    PERIOD_TOLERANCE,
+    RING_ALPHA,
+    TuningAssessment,
+    rings_at_the_cycle,
+)
 from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.explain.result import Explanation, Finding, ValveAlternative
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
@@ -247,8 +253,11 @@ def _tuning(rec: Recording, d: Explanation, facts: dict) -> TuningAssessment | N
         return None
     p = d.plant
     cycle = facts.get("period", float("nan")) if facts.get("oscillating") else float("nan")
-    return _loop_judge().assess(op=rec.op, pv=rec.pv, sp=rec.sp if rec.has_sp else None, dt=rec.dt, gain=p["gain"],
-                                taus=p["taus"], delay=p["delay"], integrating=p["integrating"], observed_period=cycle)
+    t = _loop_judge().assess(op=rec.op, pv=rec.pv, sp=rec.sp if rec.has_sp else None, dt=rec.dt, gain=p["gain"],
+                             taus=p["taus"], delay=p["delay"], integrating=p["integrating"], observed_period=cycle)
+    if not (t.judged and rings_at_the_cycle(t)):
+        return t
+    return replace(t, ring=ring_check(rec.op, rec.pv, rec.sp if rec.has_sp else None, t.kc, t.ti, rec.dt, t.lag))
 
 
 def _load_text(valve: Finding) -> str:
@@ -349,14 +358,14 @@ def _cause(d: Explanation, ad: Adequacy, tune: TuningAssessment | None, fits: st
 
 def _beyond(tune: TuningAssessment | None) -> bool:
     """Whether the tuning test found the loop aggressive but the record's cycle more regular than that loop rings
-    (:func:`~valve_emulator.diagnosis.candidates.tuning.ring_check`): then tuning is not the answer on its own."""
+    (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`): then tuning is not the answer on its own."""
     return tune is not None and tune.aggressive and tune.ring is not None and tune.ring.beyond
 
 
 def _beyond_ring(tune: TuningAssessment, named: Decision, fits: str) -> Decision:
     """``cannot tell`` instead of the ``tuning`` answer ``named`` when the record's regular cycle, the one the
     tuning test matched, is more regular than the identified loop rings
-    (:func:`~valve_emulator.diagnosis.candidates.tuning.ring_check`) and no periodic load the search accepted has
+    (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`) and no periodic load the search accepted has
     its period: an aggressive loop rings, its period wandering with the load that drives it, while a limit cycle
     repeats itself. A cycle beyond the loop's ring is one the linear loop does not make: a nonlinearity inside it
     (a sticky valve) or an oscillation from outside at that period, so the record cannot tell the tuning from

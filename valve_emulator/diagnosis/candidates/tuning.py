@@ -40,13 +40,15 @@ judged afterwards on the fitted plant by :meth:`Tuning.assess`:
    oscillation of several by filtering, as Thornhill, Huang & Zhang, *J. Process Control* 13 (2003) 91–100,
    do). An aggressive loop under a random load rings at its own period without ringing regularly, and a slow
    periodic load can be the record's most regular cycle while the loop rings underneath.
-4. **The ring is as irregular as a ring is** (:func:`ring_check`, for an aggressive loop whose ring is the
+4. **The ring is as irregular as a ring is** (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`, asked
+   by the plant-data decision for an aggressive loop whose ring is the
    record's own regular cycle, judged with the ARX loop): the identified loop is run as a closed loop on its
    own terms (the ARX plant, its prediction errors as the load, the PI on the recorded set point) over
    :data:`RING_SIMULATIONS` records, and when the data's control error cycles more regularly (Thornhill et
    al.'s index) than all but :data:`RING_ALPHA` of them, the cycle is one the linear loop does not make — a
    limit cycle (a sticky valve's) or an oscillation from outside — and the plant-data decision does not name
-   tuning alone (``cannot tell``, naming both; :mod:`~valve_emulator.diagnosis.assess.decision`). The fitted
+   tuning (an accepted periodic load at that period, else ``cannot tell`` naming both;
+   :mod:`~valve_emulator.diagnosis.assess.decision`). The fitted
    plant cannot tell: the search places its dead time where the loop's phase crossover matches the cycle,
    so period and gain at the cycle are consistent by construction; how regularly the cycle repeats is not.
 
@@ -67,14 +69,13 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy.signal import lfilter
 
 from valve_emulator.detectors.base import oscillation
 from valve_emulator.diagnosis.candidates.base import ChainContext, LoopCandidate, register
 
 __all__ = ["Tuning", "TuningAssessment", "Margins", "MS_AGGRESSIVE", "GM_AGGRESSIVE", "PERIOD_TOLERANCE",
            "MIN_R2", "MS_EDGE", "ARX_ORDERS", "SLOWER", "arx_plant", "identify_pi", "loop_response", "margins",
-           "nominal_margins", "own_cycle", "RING_SIMULATIONS", "RING_ALPHA", "RingCheck", "ring_check"]
+           "nominal_margins", "own_cycle", "RING_SIMULATIONS", "RING_ALPHA", "RingCheck", "rings_at_the_cycle"]
 
 #: Maximum sensitivity at and above which a loop is aggressively tuned (Åström & Hägglund 2006).
 MS_AGGRESSIVE = 2.0
@@ -89,7 +90,7 @@ PERIOD_TOLERANCE = 0.3
 #: Least R² of the PI fit for the controller to count as identified.
 MIN_R2 = 0.5
 #: Records simulated through the identified linear loop to ask whether it rings as regularly as the data cycle
-#: (:func:`ring_check`) ...
+#: (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`) ...
 RING_SIMULATIONS = 99
 #: ... and the test's level: the data's cycle is beyond the ring when at most this share of the simulated
 #: records (the data counted as one of them) cycles as regularly (1 %: none of the 99).
@@ -139,7 +140,9 @@ class TuningAssessment:
     load_alike : the ARX loop sat at the edge of instability (Ms > :data:`MS_EDGE`), so a periodic load explains
         the cycle as well and the loop was judged with the fitted plant instead.
     ring : for an aggressive loop whose ring is the record's own regular cycle (judged with the ARX loop), whether
-        that loop rings as regularly as the data cycle (:func:`ring_check`); None otherwise.
+        that loop rings as regularly as the data cycle
+        (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`, filled in by the plant-data decision); None
+        otherwise.
     """
 
     judged: bool
@@ -220,7 +223,8 @@ def arx_plant(op: np.ndarray, pv: np.ndarray, orders: tuple[int, int] = ARX_ORDE
 
 @dataclass(frozen=True)
 class RingCheck:
-    """Whether the identified linear loop rings as regularly as the data cycle (:func:`ring_check`).
+    """Whether the identified linear loop rings as regularly as the data cycle
+    (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`).
 
     Attributes
     ----------
@@ -244,49 +248,10 @@ class RingCheck:
                 f"{RING_SIMULATIONS} simulated records of the same length")
 
 
-def ring_check(op: np.ndarray, pv: np.ndarray, sp: np.ndarray | None, kc: float, ti: float, dt: float,
-               lag: int, orders: tuple[int, int] = ARX_ORDERS) -> RingCheck | None:
-    """Does the linear loop the tuning test judged (the ARX plant of :func:`arx_plant` under the identified PI)
-    ring as regularly as the data cycle? None when that loop is unstable (it does not ring, it grows).
-
-    A linear loop under a random load rings: the load's power near the loop's resonance is amplified, and the
-    ring's period wanders as the load's phase does, the more the wider the resonance. A limit cycle (a sticky
-    valve's: stick, wind up, slip) repeats itself, however noisy its timing. So the loop is run as a closed loop
-    on its own terms: the ARX plant, its prediction errors (white, with the variance of its residuals on the
-    data) as the load, the identified PI (velocity form, its lag) on the recorded set point. Thornhill et al.'s
-    regularity index of the simulated control error is compared with the data's over
-    :data:`RING_SIMULATIONS` records of the data's length (a fixed random sequence, so the answer is repeatable);
-    the data's cycle is beyond what the loop makes when it is at least as regular as all but a share
-    :data:`RING_ALPHA` of them (a Monte Carlo test; the index and the simulated records are those of the
-    oscillation summary, so the test has no threshold of its own but its level)."""
-    op, pv = np.asarray(op, dtype=float), np.asarray(pv, dtype=float)
-    a, b = arx_plant(op, pv, orders)
-    s = max(orders)
-    bq = np.r_[0.0, b]                                     # OP_{k-1} ... OP_{k-nb}
-    y, u = pv - pv.mean(), op - op.mean()
-    sigma = float(np.std((lfilter(a, [1.0], y) - lfilter(bq, [1.0], u))[s:]))   # the ARX's prediction errors
-    ki = kc * dt / ti if np.isfinite(ti) else 0.0
-    cn = np.array([kc + ki, -kc])                          # (1 - q⁻¹) OP = (kc (1 - q⁻¹) + ki) e
-    feed = np.convolve(bq, cn)
-    den = np.zeros(max(a.size + 1, feed.size + lag))
-    den[:a.size + 1] += np.convolve([1.0, -1.0], a)
-    den[lag:lag + feed.size] += feed
-    if not np.all(np.abs(np.roots(den)) < 1.0):
-        return None
-    setpoint = np.zeros(y.size) if sp is None else np.asarray(sp, dtype=float) - float(sp[0])
-    e_data = (np.zeros(y.size) if sp is None else np.asarray(sp, dtype=float)) - pv
-    observed = oscillation(e_data).regularity
-    burn = 10 * s
-    drive = np.r_[np.zeros(burn), setpoint]
-    forced = lfilter(feed, den, drive)
-    rng = np.random.default_rng(0)
-    sims = np.empty(RING_SIMULATIONS)
-    for i in range(RING_SIMULATIONS):
-        ring = lfilter([1.0, -1.0], den, rng.normal(0.0, sigma, drive.size))
-        sims[i] = oscillation(setpoint - (forced + ring)[burn:]).regularity
-    sims = np.nan_to_num(sims, nan=0.0)
-    p = (1.0 + np.count_nonzero(sims >= observed)) / (RING_SIMULATIONS + 1.0)
-    return RingCheck(float(observed), float(sims.max()), float(p))
+def rings_at_the_cycle(t: TuningAssessment) -> bool:
+    """Whether the ring check applies: the loop judged aggressive with the ARX loop (not at its edge), its ring
+    the record's own regular cycle (not one found under a slower cycle)."""
+    return t.aggressive and not t.load_alike and _same(t.observed, t.period)
 
 
 def _arx_loop(kc: float, ti: float, dt: float, lag: int, a: np.ndarray, b: np.ndarray,
@@ -420,10 +385,8 @@ class Tuning(LoopCandidate):
                 tail += (f"; once what is slower than {SLOWER:g} times that period is removed, the control error "
                          f"cycles at {own:.3g} s")
         aggressive = m.aggressive and matches
-        ring = (ring_check(op, pv, sp, kc, ti, dt, lag) if aggressive and not load_alike
-                and _same(observed_period, m.period) else None)
         return TuningAssessment(True, bool(aggressive), kc, ti, r2, m.ms, m.gain_margin, m.period,
-                                observed_period, what + tail, lag, m.phase_margin, fitted.ms, load_alike, ring)
+                                observed_period, what + tail, lag, m.phase_margin, fitted.ms, load_alike)
 
     def parameters(self, p: np.ndarray) -> dict:
         return {"kc": float(p[0]), "ti": float(p[1])}
