@@ -86,6 +86,7 @@ _OTHER_CODES = {
     "uninformative": "the fit part carries no information",
     "part_of_record": "answered on one half: one linear model explains neither whole",
     "op_units_refuted": "OP's declared travel span does not fit OP: it was dropped",
+    "limit_cycle": "the record cycles more regularly than the identified loop rings: a limit cycle it does not make",
 }
 
 Reason = _ReasonCode("Reason", [(code.upper(), code) for code in (*registry(), *_OTHER_CODES)], module=__name__)

@@ -63,6 +63,7 @@ def test_a_cycle_the_loop_does_not_make_is_looked_for_upstream_at_its_period():
     (Answer.CANNOT_TELL, "", (Reason.FLAT_PV,), "check_transmitter"),
     (Answer.CANNOT_TELL, "", (Reason.STICTION, Reason.WEAK_EVIDENCE), "stroke_test_valve"),
     (Answer.CANNOT_TELL, "", (Reason.NO_EXCITATION,), "collect_data"),
+    (Answer.CANNOT_TELL, "", (Reason.TUNING, Reason.LIMIT_CYCLE), "stroke_test_valve"),
     (Answer.NO_STICTION, "quantization", (Reason.QUANTIZATION,), "check_transmitter"),
     (Answer.NO_STICTION, "linear", (Reason.LINEAR,), "none"),
 ])

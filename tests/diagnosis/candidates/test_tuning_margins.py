@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq, minimize_scalar
 
-from valve_emulator.benchmark.independent import FAMILIES, Plant, draw, loop_margins
+from valve_emulator.benchmark.independent import (
+    FAMILIES,
+    Plant,
+    draw,
+    loop_margins,
+)
+from valve_emulator.diagnosis.assess.ring import ring_check
 from valve_emulator.diagnosis.candidates.tuning import identify_pi, nominal_margins
 
 RNG = np.random.default_rng(7)
@@ -86,3 +92,29 @@ def test_a_simc_tuned_loop_is_not_aggressive():
     kc, ti = 20.0 / (1.5 * 2 * 5.5), 20.0                        # SIMC with τc = θ_eff = 5.5 s
     m = nominal_margins([1.5], [20.0, 1.0], 4.0, kc, ti, 0.0, action="reverse", extra_delay=1.5)
     assert not m.aggressive and m.ms == pytest.approx(loop_margins(plant, kc, ti, 1.5)["Ms"], rel=0.01)
+
+
+def _judged(rec):
+    kc, ti, _, lag = identify_pi(rec.op, rec.pv, rec.sp, rec.dt)
+    return ring_check(rec.op, rec.pv, rec.sp, kc, ti, rec.dt, lag)
+
+
+def test_an_aggressive_linear_loop_rings_no_more_regularly_than_its_identified_loop():
+    """Known truth: a healthy valve under a PI tuned to a gain margin of 1.2–1.6 (the independent simulator's
+    ``aggressive_pi``, a filtered random load) rings, and its record is never beyond what the ARX loop makes."""
+    for i in range(6):
+        rec, _, _ = draw("aggressive_pi", np.random.default_rng([5, list(FAMILIES).index("aggressive_pi"), i]))
+        check = _judged(rec)
+        assert check is not None and not check.beyond, (i, check)
+
+
+def test_a_sticky_valves_limit_cycle_is_beyond_the_ring_of_the_loop_identified_on_it():
+    """A sticky level loop of the independent simulator (an integrator with a 2.5 s lag and a 3.4 s dead time, a
+    PI acting one sample late, S 3.98 %, J 4.07 %: draw 32.19 of the level property test, the record the test
+    was written for) cycles with r ≈ 81; the ARX loop identified on it, under its own PI, rings at most at
+    r ≈ 22 in the 99 records simulated."""
+    rec, truth, _ = draw("level_sticky", np.random.default_rng([32, 19]))
+    assert truth["sticky"] and truth["plant"]["kind"] == "integrating_lag"
+    check = _judged(rec)
+    assert check is not None and check.beyond, check
+    assert check.regularity > 3.0 * check.simulated

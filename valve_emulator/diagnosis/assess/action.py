@@ -65,6 +65,11 @@ def recommend(answer: Answer, cause: str, codes: tuple[Reason, ...], cycle: Cycl
     if answer is Answer.CANNOT_TELL:
         if Reason.FLAT_PV in codes:
             return Action("check_transmitter", "check the transmitter and the archive: PV is flat")
+        if Reason.LIMIT_CYCLE in codes:
+            return Action("stroke_test_valve", "stroke-test the valve in small steps, or lower the controller's gain "
+                                               "for a few periods: a ring of aggressive tuning dies out, a sticky "
+                                               "valve's limit cycle goes on (slower), and a cycle from outside the "
+                                               "loop goes on unchanged")
         if Reason.WEAK_EVIDENCE in codes and (Reason.STICTION in codes or Reason.DEADBAND in codes):
             return Action("stroke_test_valve", "stroke-test the valve in small steps: only that tells a sticky "
                                                "valve from a slowly drifting load on this record")

@@ -82,6 +82,16 @@ run on each loop:
      non-valve candidate in the order of their :attr:`~valve_emulator.diagnosis.candidates.base.Candidate.
      cause_rank` (an external disturbance at another period than the cycle's, a quantised PV, saturation, a
      flow characteristic, an actuator lag, a dead time); or "the linear model explains the loop".
+     Tuning is not the answer when the record's regular cycle, the ring it matched, is more regular than the
+     identified loop rings under its own prediction errors
+     (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`, a Monte Carlo test at 1 %; :func:`_beyond`):
+     a limit cycle or an outside oscillation repeats itself, an aggressive loop's ring wanders with its load. The
+     decision then goes on as if the loop were not aggressive — an accepted periodic load at the cycle's period
+     is the cause (the reason ``limit_cycle`` says why tuning is not), a contested valve band is ``cannot tell``
+     — and where nothing else names the cycle, the answer is ``cannot tell``, naming the tuning and a limit cycle
+     (:func:`_beyond_ring`). Measured (2026-11-27, plant data): a sticky level loop (32.19) and four healthy flow
+     loops under a sine load answered tuning before, each now named by the periodic load the search had
+     accepted at the cycle's period; none of the 48 aggressive loops.
 
    * a ``no stiction`` answer that rests on the drifting-load noise model (the final model's free-run fit below
      :data:`MIN_FIT`) is no call when the valve explains the record as well: the best valve option the search
@@ -117,9 +127,15 @@ import numpy as np
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
 from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_swings
 from valve_emulator.diagnosis.assess.result import Assessment
+from valve_emulator.diagnosis.assess.ring import ring_check
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.candidates.base import Kind
-from valve_emulator.diagnosis.candidates.tuning import PERIOD_TOLERANCE, TuningAssessment
+from valve_emulator.diagnosis.candidates.tuning import (
+    PERIOD_TOLERANCE,
+    RING_ALPHA,
+    TuningAssessment,
+    rings_at_the_cycle,
+)
 from valve_emulator.diagnosis.explain.pipeline import explain
 from valve_emulator.diagnosis.explain.result import Explanation, Finding, ValveAlternative
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
@@ -237,8 +253,11 @@ def _tuning(rec: Recording, d: Explanation, facts: dict) -> TuningAssessment | N
         return None
     p = d.plant
     cycle = facts.get("period", float("nan")) if facts.get("oscillating") else float("nan")
-    return _loop_judge().assess(op=rec.op, pv=rec.pv, sp=rec.sp if rec.has_sp else None, dt=rec.dt, gain=p["gain"],
-                                taus=p["taus"], delay=p["delay"], integrating=p["integrating"], observed_period=cycle)
+    t = _loop_judge().assess(op=rec.op, pv=rec.pv, sp=rec.sp if rec.has_sp else None, dt=rec.dt, gain=p["gain"],
+                             taus=p["taus"], delay=p["delay"], integrating=p["integrating"], observed_period=cycle)
+    if not (t.judged and rings_at_the_cycle(t)):
+        return t
+    return replace(t, ring=ring_check(rec.op, rec.pv, rec.sp if rec.has_sp else None, t.kc, t.ti, rec.dt, t.lag))
 
 
 def _load_text(valve: Finding) -> str:
@@ -271,7 +290,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
             contested = _contested(valve, S, fits, frame) or _healthy_alike(rec, d, valve, S, fits, frame, ad, noise)
             if contested is None:
                 return _stiction(valve, S, fits, frame, ad, _acting(rec, valve))
-            if tune is None or not tune.aggressive:
+            if tune is None or not tune.aggressive or _beyond(tune):
                 return contested
             unsure = (f"a valve band S ≈ {_amount(S, frame)} fits too, but a linear valve with a slowly drifting load "
                       f"explains the record better (ΔBIC {valve.load_delta_bic:.1f} for the valve under that noise "
@@ -316,9 +335,14 @@ def _cause(d: Explanation, ad: Adequacy, tune: TuningAssessment | None, fits: st
     if tune is not None and tune.aggressive and not (load_cycle and tune.load_alike):
         also = f"; also {ranked[0].description}" if ranked else ""
         named = _tuning_decision(tune, also, fits)
-        return _because(small, named.answer, named.cause, named.reasons, named.reason, tune)
+        if _beyond(tune) and not load_cycle:
+            named = _beyond_ring(tune, named, fits)
+        if not _beyond(tune) or not load_cycle:
+            return _because(small, named.answer, named.cause, named.reasons, named.reason, tune)
     if load_cycle:
         own = ((Reason(periodic.physics), periodic.description),)
+        if _beyond(tune):
+            own += ((Reason.LIMIT_CYCLE, f"not the loop's own ring: {tune.ring.text()}"),)
         return _because(small, Answer.NO_STICTION, periodic.physics, own, f"{periodic.description}, not the valve; "
                         f"{fits}", tune)
     if ranked:
@@ -330,6 +354,30 @@ def _cause(d: Explanation, ad: Adequacy, tune: TuningAssessment | None, fits: st
     return Decision(Answer.NO_STICTION, "linear", "a linear valve and plant explain the loop: no candidate physics "
                     f"improves the model significantly; {fits}",
                     ((Reason.LINEAR, "a linear valve and plant explain the loop"),), tuning=tune)
+
+
+def _beyond(tune: TuningAssessment | None) -> bool:
+    """Whether the tuning test found the loop aggressive but the record's cycle more regular than that loop rings
+    (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`): then tuning is not the answer on its own."""
+    return tune is not None and tune.aggressive and tune.ring is not None and tune.ring.beyond
+
+
+def _beyond_ring(tune: TuningAssessment, named: Decision, fits: str) -> Decision:
+    """``cannot tell`` instead of the ``tuning`` answer ``named`` when the record's regular cycle, the one the
+    tuning test matched, is more regular than the identified loop rings
+    (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`) and no periodic load the search accepted has
+    its period: an aggressive loop rings, its period wandering with the load that drives it, while a limit cycle
+    repeats itself. A cycle beyond the loop's ring is one the linear loop does not make: a nonlinearity inside it
+    (a sticky valve) or an oscillation from outside at that period, so the record cannot tell the tuning from
+    them; both are named. (With such a periodic load accepted, that load is the answer's cause, as it is where
+    the loop is not aggressive; with a valve band a drifting load explains better, the answer is the contest's.)"""
+    ring = tune.ring.text()
+    cycle = (f"{ring} (a share {tune.ring.p:.2g} of them, the record counted, cycle as regularly; at most "
+             f"{RING_ALPHA:g} for a limit cycle), so the cycle of {tune.observed:.3g} s is one the linear loop does "
+             "not make: a sticky valve's limit cycle, or an oscillation from outside at that period")
+    return Decision(Answer.CANNOT_TELL, "", f"either the loop cycles through its own controller (aggressive "
+                    f"tuning: {tune.reason}) or {cycle}; {fits}",
+                    named.reasons[:1] + ((Reason.LIMIT_CYCLE, cycle),) + named.reasons[1:], tuning=tune)
 
 
 def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame, ad: Adequacy) -> Decision:

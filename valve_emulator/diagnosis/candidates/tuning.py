@@ -40,6 +40,17 @@ judged afterwards on the fitted plant by :meth:`Tuning.assess`:
    oscillation of several by filtering, as Thornhill, Huang & Zhang, *J. Process Control* 13 (2003) 91–100,
    do). An aggressive loop under a random load rings at its own period without ringing regularly, and a slow
    periodic load can be the record's most regular cycle while the loop rings underneath.
+4. **The ring is as irregular as a ring is** (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`, asked
+   by the plant-data decision for an aggressive loop whose ring is the
+   record's own regular cycle, judged with the ARX loop): the identified loop is run as a closed loop on its
+   own terms (the ARX plant, its prediction errors as the load, the PI on the recorded set point) over
+   :data:`RING_SIMULATIONS` records, and when the data's control error cycles more regularly (Thornhill et
+   al.'s index) than all but :data:`RING_ALPHA` of them, the cycle is one the linear loop does not make — a
+   limit cycle (a sticky valve's) or an oscillation from outside — and the plant-data decision does not name
+   tuning (an accepted periodic load at that period, else ``cannot tell`` naming both;
+   :mod:`~valve_emulator.diagnosis.assess.decision`). The fitted
+   plant cannot tell: the search places its dead time where the loop's phase crossover matches the cycle,
+   so period and gain at the cycle are consistent by construction; how regularly the cycle repeats is not.
 
 Parameters reported: ``kc``, ``ti``, ``ms`` and the predicted ``period``.
 
@@ -64,7 +75,7 @@ from valve_emulator.diagnosis.candidates.base import ChainContext, LoopCandidate
 
 __all__ = ["Tuning", "TuningAssessment", "Margins", "MS_AGGRESSIVE", "GM_AGGRESSIVE", "PERIOD_TOLERANCE",
            "MIN_R2", "MS_EDGE", "ARX_ORDERS", "SLOWER", "arx_plant", "identify_pi", "loop_response", "margins",
-           "nominal_margins", "own_cycle"]
+           "nominal_margins", "own_cycle", "RING_SIMULATIONS", "RING_ALPHA", "RingCheck", "rings_at_the_cycle"]
 
 #: Maximum sensitivity at and above which a loop is aggressively tuned (Åström & Hägglund 2006).
 MS_AGGRESSIVE = 2.0
@@ -78,6 +89,12 @@ ARX_ORDERS = (10, 20)
 PERIOD_TOLERANCE = 0.3
 #: Least R² of the PI fit for the controller to count as identified.
 MIN_R2 = 0.5
+#: Records simulated through the identified linear loop to ask whether it rings as regularly as the data cycle
+#: (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`) ...
+RING_SIMULATIONS = 99
+#: ... and the test's level: the data's cycle is beyond the ring when at most this share of the simulated
+#: records (the data counted as one of them) cycles as regularly (1 %: none of the 99).
+RING_ALPHA = 0.01
 #: :func:`own_cycle` removes what is slower than this many times the loop's own period (a moving mean that long
 #: passes the loop's period whole: its first zero is at that period's double).
 SLOWER = 2.0
@@ -122,6 +139,10 @@ class TuningAssessment:
     reason : one sentence.
     load_alike : the ARX loop sat at the edge of instability (Ms > :data:`MS_EDGE`), so a periodic load explains
         the cycle as well and the loop was judged with the fitted plant instead.
+    ring : for an aggressive loop whose ring is the record's own regular cycle (judged with the ARX loop), whether
+        that loop rings as regularly as the data cycle
+        (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`, filled in by the plant-data decision); None
+        otherwise.
     """
 
     judged: bool
@@ -138,6 +159,7 @@ class TuningAssessment:
     phase_margin: float = float("nan")
     plant_ms: float = float("nan")
     load_alike: bool = False
+    ring: RingCheck | None = None
 
     def parameters(self) -> dict:
         return {"kc": float(f"{self.kc:.4g}"), "ti": float(f"{self.ti:.4g}"), "ms": round(self.ms, 2),
@@ -197,6 +219,39 @@ def arx_plant(op: np.ndarray, pv: np.ndarray, orders: tuple[int, int] = ARX_ORDE
                                                                           for j in range(1, nb + 1)])
     coef, *_ = np.linalg.lstsq(X, y[s:], rcond=None)
     return np.r_[1.0, -coef[:na]], coef[na:]
+
+
+@dataclass(frozen=True)
+class RingCheck:
+    """Whether the identified linear loop rings as regularly as the data cycle
+    (:func:`~valve_emulator.diagnosis.assess.ring.ring_check`).
+
+    Attributes
+    ----------
+    regularity : the control error's regularity index r in the data (Thornhill et al. 2003).
+    simulated : the largest r among the records simulated through the loop.
+    p : the share of the simulated records, the data counted as one of them, that cycle at least as regularly.
+    beyond : ``p`` ≤ :data:`RING_ALPHA`: the data cycle more regularly than the loop rings.
+    """
+
+    regularity: float
+    simulated: float
+    p: float
+
+    @property
+    def beyond(self) -> bool:
+        return self.p <= RING_ALPHA
+
+    def text(self) -> str:
+        return (f"the control error cycles with a regularity r = {self.regularity:.3g}, while the identified loop, "
+                f"driven by its own prediction errors, rings at most at r = {self.simulated:.3g} in "
+                f"{RING_SIMULATIONS} simulated records of the same length")
+
+
+def rings_at_the_cycle(t: TuningAssessment) -> bool:
+    """Whether the ring check applies: the loop judged aggressive with the ARX loop (not at its edge), its ring
+    the record's own regular cycle (not one found under a slower cycle)."""
+    return t.aggressive and not t.load_alike and _same(t.observed, t.period)
 
 
 def _arx_loop(kc: float, ti: float, dt: float, lag: int, a: np.ndarray, b: np.ndarray,
