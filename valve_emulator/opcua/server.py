@@ -59,6 +59,7 @@ import itertools
 import json
 import logging
 import math
+import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -72,6 +73,7 @@ from asyncua.server.address_space import AttributeService
 
 from valve_emulator.device.guard import RefusalLog, is_loopback
 from valve_emulator.device.registers import (
+    CDAB,
     REGISTERS,
     Conversion,
     DataType,
@@ -116,6 +118,9 @@ HAND_CHUNK = 200
 #: ... each due this share of the tick period after the one before (more than a chunk's work: 200 variables take
 #: 2-5 ms, a share of 0.05 is 5 ms at a 0.1 s tick).
 HAND_SPACING = 0.05
+#: A float32 register's two words (big-endian, as in the register image) and the float32 they make, high word first.
+_WORDS = struct.Struct(">HH")
+_FLOAT32 = struct.Struct(">f")
 SECURE_POLICIES = ("Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
 
 
@@ -499,8 +504,15 @@ class OpcUaServer:
     def value(self, index: int, var: Variable) -> float | int:
         """The variable's value now, in engineering units: the register image's (so a write shows at once), as
         the double the tick computed where the image holds it as float32 (see :meth:`_double`)."""
+        if var.read.type is DataType.FLOAT32:   # what a subscription samples most: straight from the image's bytes
+            source = self.source
+            start = int(source.offsets[index]) + 2 * var.read.address
+            high, low = _WORDS.unpack_from(source.image, start)
+            if source.scaling.word_order is CDAB:
+                high, low = low, high
+            return self._double(index, var, _FLOAT32.unpack(_WORDS.pack(high, low))[0])
         words = self._words(index, var.read)
-        if var.read.width == 2:   # float32, or a counter, in the device's word order
+        if var.read.width == 2:   # a counter, in the device's word order
             value = from_words(words, var.read.type, self.source.scaling.word_order)
             return self._double(index, var, value) if var.read.type is DataType.FLOAT32 else int(value)
         raw = words[0] - 65536 if var.read.type is DataType.INT16 and words[0] >= 32768 else words[0]
@@ -515,11 +527,15 @@ class OpcUaServer:
         The tick encodes the bank's doubles as float32; where the bank's double still encodes to the image's
         float32 it is the value, at full precision. Where they differ a write has changed the image since the
         tick: then the shortest decimal that reads back as that float32 (the written 61.3, not 61.29999924)."""
-        single = np.float32(image)
         computed = self.source.computed(index, var.first.quantity)
-        if computed is not None and np.float32(computed) == single:
-            return computed
-        return float(str(single))
+        if computed is not None:
+            try:
+                if _FLOAT32.unpack(_FLOAT32.pack(computed))[0] == image:   # (a float32 read back is exact)
+                    return computed
+            except OverflowError:   # beyond the largest float32: numpy rounds it to infinity
+                if np.float32(computed) == np.float32(image):
+                    return computed
+        return float(str(np.float32(image)))
 
     def _data_value(self, value: Any, variant: ua.VariantType, status: ua.StatusCode | None = None) -> ua.DataValue:
         """The DataValue of a read or a notification: SourceTimestamp the tick that made the value, ServerTimestamp
