@@ -13,7 +13,7 @@ from asyncua import Client
 
 from valve_emulator.device.tick import Device
 from valve_emulator.opcua import NAMESPACE
-from valve_emulator.opcua.handoff import EARLY, HAND_OFF_DELAY, PATIENCE, HandOffGrid, until
+from valve_emulator.opcua.handoff import EARLY, HAND_OFF_DELAY, PATIENCE, HandOffGrid, Wakeups, until
 
 from .modes import serve_opcua
 
@@ -135,21 +135,35 @@ async def test_queue_of_one_at_the_tick_gets_every_ticks_value_once_at_every_pha
             assert window == sorted(set(window)) and len(missing) <= 1, (phase, item, values)
 
 
-async def test_a_large_hand_off_goes_in_chunks_by_place_each_at_its_own_time_so_a_publish_waits_for_one_chunk():
-    """Variables at places 0-199 are handed at the due time, 200-399 a HAND_SPACING of the period later, and so
-    on; a publish due between two chunks' times comes between them, whichever variables changed this tick."""
-    from valve_emulator.opcua.server import HAND_CHUNK, HAND_SPACING, OpcUaServer
+def _chunked_publisher(order):
+    """An OpcUaServer reduced to its hand-off (no address space, no asyncua): handing a variable appends it to
+    ``order``."""
+    from valve_emulator.opcua.server import OpcUaServer
 
-    loop, order = asyncio.get_running_loop(), []
-    publisher = OpcUaServer.__new__(OpcUaServer)   # only the hand-off: no address space, no asyncua
+    publisher = OpcUaServer.__new__(OpcUaServer)
     publisher._hand_cost = 20e-6
 
     async def hand(watch, dv, groups):
         order.append(watch)
 
     publisher._hand = hand
-    period = 1.0
-    due = loop.time() + 0.05
+    return publisher
+
+
+@pytest.mark.parametrize("loop_late", [False, True])
+async def test_a_large_hand_off_goes_in_chunks_by_place_each_at_its_own_time_so_a_publish_waits_for_one_chunk(
+        loop_late):
+    """Variables at places 0-199 are handed at the due time, 200-399 a HAND_SPACING of the period later, and so
+    on; a publish due between two chunks' times comes between them, whichever variables changed this tick -- also
+    when the event loop wakes up late for all of them (a publish of thousands of values holding it): with each
+    chunk's time put on the timer heap only once the chunk before it was handed, the publish, already on the ready
+    queue beside the first chunk, came before the second."""
+    from valve_emulator.opcua.server import HAND_CHUNK, HAND_SPACING
+
+    loop, order = asyncio.get_running_loop(), []
+    publisher = _chunked_publisher(order)
+    period = 0.1
+    due = loop.time() + 0.01
     places = [p for p in range(3 * HAND_CHUNK) if p % 7]   # some did not change
     handing = [(place, place // HAND_CHUNK, None, []) for place in places]
 
@@ -158,8 +172,64 @@ async def test_a_large_hand_off_goes_in_chunks_by_place_each_at_its_own_time_so_
         order.append("publish")
 
     publishing = asyncio.create_task(publish())
-    await publisher._hand_all(handing, due, period)
+    with Wakeups([due + k * HAND_SPACING * period for k in range(3)]) as wakeups:
+        await asyncio.sleep(0)
+        if loop_late:
+            time.sleep(due + 3 * HAND_SPACING * period - loop.time())   # past every chunk's time and the publish's
+        await publisher._hand_all(handing, wakeups)
     await publishing
     assert order == [0] * len([p for p in places if p < HAND_CHUNK]) \
         + [1] * len([p for p in places if HAND_CHUNK <= p < 2 * HAND_CHUNK]) + ["publish"] \
         + [2] * len([p for p in places if p >= 2 * HAND_CHUNK])
+
+
+@pytest.mark.parametrize("how, expected", [
+    ("a task per due time", [0, 1, "publish", 2]),
+    ("until, one after the other", [0, "publish", 1, 2]),   # before Wakeups: the second chunk after the publish
+    ("one task waiting for each in turn", [0, 1, 2, "publish"]),   # the third before the publish
+])
+async def test_wakeups_each_waited_for_in_a_task_keep_their_order_with_asyncio_sleep_when_the_loop_is_late(
+        how, expected):
+    """What :class:`Wakeups` is for: a publish (asyncio.sleep) due between the second and third due time comes
+    between the second and third piece of work, however late the loop wakes -- when each waits in a task of its
+    own; the other two ways lose that order."""
+    loop, order = asyncio.get_running_loop(), []
+    start = loop.time()
+    whens = [start + 0.001, start + 0.003, start + 0.005]
+
+    async def publish():
+        await asyncio.sleep(0.004)
+        order.append("publish")
+
+    async def one(wakeups, k):
+        await wakeups.wait(k)
+        order.append(k)
+
+    async def work():
+        if how == "until, one after the other":
+            for k, when in enumerate(whens):
+                if k == 0:
+                    await asyncio.sleep(0)
+                    time.sleep(0.01)   # the loop wakes up late for all of them
+                await until(when)
+                order.append(k)
+            return
+        with Wakeups(whens) as wakeups:
+            await asyncio.sleep(0)
+            time.sleep(0.01)
+            if how == "a task per due time":
+                await asyncio.gather(*(one(wakeups, k) for k in range(len(whens))))
+            else:
+                for k in range(len(whens)):
+                    await one(wakeups, k)
+
+    await asyncio.gather(publish(), work())
+    assert order == expected
+
+
+async def test_wakeups_not_waited_for_are_cancelled_on_leaving():
+    loop = asyncio.get_running_loop()
+    with Wakeups([loop.time() + 0.001, loop.time() + 3600]) as wakeups:
+        await wakeups.wait(0)
+        assert len(wakeups) == 2
+    assert all(handle.cancelled() for handle in wakeups._handles)

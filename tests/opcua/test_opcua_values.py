@@ -161,3 +161,50 @@ async def test_a_value_outside_its_engineering_range_is_uncertain(shared):
             await asyncio.sleep(0.05)
         await sub.delete()
     assert got[-1][0] > 10 and got[-1][1].value == ua.StatusCodes.UncertainEngineeringUnitsExceeded
+
+
+def _float32_served(order: str, written_op: float) -> tuple[dict, dict]:
+    """A device in word order ``order`` after 5 ticks with PV noise and ``written_op`` written to XV2's OP since:
+    (what the server serves, what the image and the bank give by the rule) for every float32 variable and loop."""
+    from valve_emulator.config import server_from_mapping
+    from valve_emulator.device.registers import DataType, encode_write, from_words
+    from valve_emulator.device.tick import Device
+    from valve_emulator.opcua import LocalSource, OpcUaServer
+    from valve_emulator.opcua.server import VARIABLES
+
+    from .conftest import DEVICE
+
+    config = server_from_mapping({**DEVICE, "device": {"tick": 0.1, "word_order": order}})
+    device = Device.from_config(config, time_scale=0)
+    device.bank.set_noise(0, 0.3)
+    device.advance(5)
+    source = LocalSource(device)
+    server = OpcUaServer(source, loops=config.loops)
+    op = next(v for v in VARIABLES if v.name == "op")
+    device.write(1, op.write.address, encode_write(op.write, written_op, device.scaling, 1))
+    served, rule = {}, {}
+    for index in range(2):
+        for var in (v for v in VARIABLES if v.read.type is DataType.FLOAT32):
+            start = int(device.offsets[index]) + 2 * var.read.address
+            words = [int.from_bytes(device.image[k:k + 2], "big") for k in (start, start + 2)]
+            single = np.float32(from_words(words, DataType.FLOAT32, order))   # the register map's own decoder
+            computed = source.computed(index, var.first.quantity)
+            served[index, var.name] = server.value(index, var)
+            rule[index, var.name] = computed if computed is not None and np.float32(computed) == single \
+                else float(str(single))
+    return served, rule
+
+
+def test_a_float32_variable_is_the_ticks_double_or_the_written_number_in_either_word_order():
+    """The float32 registers (pv, op, sp, mv, time) are read straight from the image's bytes: the same values in
+    both word orders, the tick's double where the image still holds it, the number written where a write changed
+    the image since the tick."""
+    served_abcd, rule_abcd = _float32_served("ABCD", 61.3)
+    served_cdab, rule_cdab = _float32_served("CDAB", 61.3)
+    assert served_abcd == rule_abcd and served_cdab == rule_cdab
+    assert served_abcd == served_cdab
+    assert served_abcd[1, "op"] == 61.3                                  # written: not 61.29999923706055
+    pv = served_abcd[0, "pv"]
+    assert pv != float(np.float32(pv))                                   # the tick's double, not the float32's
+    time = served_abcd[0, "time"]                                        # 5 ticks of 0.1 s: no float32 artefact
+    assert 0.3 < time < 0.6 and time == round(time, 9) and time != float(np.float32(time))

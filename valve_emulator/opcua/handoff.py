@@ -31,8 +31,9 @@ from __future__ import annotations
 
 import asyncio
 import math
+from collections.abc import Sequence
 
-__all__ = ["EARLY", "HAND_OFF_DELAY", "PATIENCE", "HandOffGrid", "until"]
+__all__ = ["EARLY", "HAND_OFF_DELAY", "PATIENCE", "HandOffGrid", "Wakeups", "until"]
 
 #: A tick's values are handed this share of the tick period after the tick's expected arrival: half way to the
 #: next tick, so that ticks up to half a period later than the earliest are still handed on the grid, sampling
@@ -104,3 +105,40 @@ async def until(when: float) -> None:
         await fut
     finally:
         handle.cancel()
+
+
+class Wakeups:
+    """Several due times put on the event loop's timer heap at once: :meth:`wait` for the ``k``-th, each in a task
+    of its own.
+
+    The event loop runs due timers in the order of their due times, however late; a timer here sets a future and
+    the task waiting for it runs at the loop's next pass -- as a task that waits with ``asyncio.sleep`` (asyncua's
+    publish) is woken. So tasks waiting for these due times and tasks asyncua wakes run in the order of their due
+    times whatever the loop's lateness, provided each waits in a task of its own. Two ways lose that order when the
+    loop runs late (a publish of thousands of values holding it): waiting for the due times one after the other
+    with :func:`until` (the ``k``-th goes on the heap only once the ``(k-1)``-th's work is done; a publish due
+    between the two was by then on the ready queue and runs first), and waiting for all of them in one task (the
+    ``k``-th is already done when the ``(k-1)``-th's work ends, so the work due after a publish runs before it).
+    Use as a context manager: the wake-ups not waited for are cancelled on leaving."""
+
+    def __init__(self, whens: Sequence[float]) -> None:
+        loop = asyncio.get_running_loop()
+        self._futures = [loop.create_future() for _ in whens]
+        self._handles = [loop.call_at(when, _wake, fut) for when, fut in zip(whens, self._futures, strict=True)]
+
+    def __len__(self) -> int:
+        return len(self._futures)
+
+    async def wait(self, k: int) -> None:
+        """Until the ``k``-th due time."""
+        await self._futures[k]
+
+    def cancel(self) -> None:
+        for handle in self._handles:
+            handle.cancel()
+
+    def __enter__(self) -> Wakeups:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.cancel()

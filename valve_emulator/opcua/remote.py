@@ -225,7 +225,7 @@ async def _serve_on(channel: Channel, source: RemoteSource, spec: ChildSpec) -> 
 
     server = OpcUaServer(source, loops=spec.loops, host=spec.host, port=spec.port, security=spec.security,
                          history=spec.history, history_path=spec.history_path,
-                         publish_budget=PROCESS_PUBLISH_BUDGET)
+                         publish_budget=PROCESS_PUBLISH_BUDGET, yield_while_sampling=False)
     try:
         try:
             with _without_errors("asyncua.server.server"), _built_out_of_the_collectors_sight():

@@ -59,6 +59,7 @@ import itertools
 import json
 import logging
 import math
+import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -72,6 +73,7 @@ from asyncua.server.address_space import AttributeService
 
 from valve_emulator.device.guard import RefusalLog, is_loopback
 from valve_emulator.device.registers import (
+    CDAB,
     REGISTERS,
     Conversion,
     DataType,
@@ -89,7 +91,7 @@ from valve_emulator.device.roles import OPERATOR, Role
 from valve_emulator.device.tick import Device
 from valve_emulator.errors import UserError
 from valve_emulator.opcua.alarms import AlarmConditions
-from valve_emulator.opcua.handoff import HandOffGrid, until
+from valve_emulator.opcua.handoff import HandOffGrid, Wakeups
 from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
 from valve_emulator.opcua.source import DeviceSource, LocalSource, StationRefusal, finite_period
 from valve_emulator.opcua.trust import TrustList
@@ -103,7 +105,8 @@ _log = logging.getLogger(__name__)
 
 NAMESPACE = "urn:valve-emulator"
 APPLICATION_URI = "urn:valve-emulator:server"
-#: The publisher yields to the event loop after this many monitored variables ...
+#: The publisher yields to the event loop after this many monitored variables (in the device's process: the tick
+#: comes first; in a process of its own it samples a tick without yielding, see ``OpcUaServer``) ...
 YIELD_EVERY = 200
 #: ... and stops for this tick once it has used this share of the tick period (in the device's process: the
 #: tick comes first) ...
@@ -115,6 +118,9 @@ HAND_CHUNK = 200
 #: ... each due this share of the tick period after the one before (more than a chunk's work: 200 variables take
 #: 2-5 ms, a share of 0.05 is 5 ms at a 0.1 s tick).
 HAND_SPACING = 0.05
+#: A float32 register's two words (big-endian, as in the register image) and the float32 they make, high word first.
+_WORDS = struct.Struct(">HH")
+_FLOAT32 = struct.Struct(">f")
 SECURE_POLICIES = ("Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss")
 
 
@@ -425,17 +431,22 @@ class OpcUaServer:
         (:mod:`~valve_emulator.opcua.history`), in SQLite at ``history_path`` (default in memory); None: none.
     publish_budget : the share of each tick period the publisher may spend feeding subscriptions
         (:data:`PUBLISH_BUDGET`; :data:`PROCESS_PUBLISH_BUDGET` in a process of its own).
+    yield_while_sampling : whether the publisher yields to the event loop every :data:`YIELD_EVERY` variables
+        while it samples a tick (True, in the device's process: the tick and Modbus come first). False in a
+        process of its own: a publish that ran in such a yield after the tick's hand-off was due would come before
+        it (docs/benchmarks.md §9.6); sampling a tick there takes a few ms (2,000 variables: about 10 ms).
     """
 
     def __init__(self, source: DeviceSource, *, loops: Sequence[Any], host: str = "127.0.0.1", port: int = 0,
                  security: OpcUaSecurity | None = None, history: float | None = None,
-                 history_path: str = ":memory:", publish_budget: float = PUBLISH_BUDGET) -> None:
+                 history_path: str = ":memory:", publish_budget: float = PUBLISH_BUDGET,
+                 yield_while_sampling: bool = True) -> None:
         if isinstance(source, Device):
             source = LocalSource(source)
         self.source, self.loops, self.host, self.port = source, list(loops), host, int(port)
         #: seconds of PV, OP, SP and MV kept for HistoryRead (None: no history), in SQLite at history_path
         self.history, self.history_path = history, history_path
-        self.publish_budget = publish_budget
+        self.publish_budget, self.yield_while_sampling = publish_budget, yield_while_sampling
         self._historized: list[ua.NodeId] = []
         self.security = security or OpcUaSecurity()
         self.security.check(host)
@@ -493,8 +504,15 @@ class OpcUaServer:
     def value(self, index: int, var: Variable) -> float | int:
         """The variable's value now, in engineering units: the register image's (so a write shows at once), as
         the double the tick computed where the image holds it as float32 (see :meth:`_double`)."""
+        if var.read.type is DataType.FLOAT32:   # what a subscription samples most: straight from the image's bytes
+            source = self.source
+            start = int(source.offsets[index]) + 2 * var.read.address
+            high, low = _WORDS.unpack_from(source.image, start)
+            if source.scaling.word_order is CDAB:
+                high, low = low, high
+            return self._double(index, var, _FLOAT32.unpack(_WORDS.pack(high, low))[0])
         words = self._words(index, var.read)
-        if var.read.width == 2:   # float32, or a counter, in the device's word order
+        if var.read.width == 2:   # a counter, in the device's word order
             value = from_words(words, var.read.type, self.source.scaling.word_order)
             return self._double(index, var, value) if var.read.type is DataType.FLOAT32 else int(value)
         raw = words[0] - 65536 if var.read.type is DataType.INT16 and words[0] >= 32768 else words[0]
@@ -509,11 +527,15 @@ class OpcUaServer:
         The tick encodes the bank's doubles as float32; where the bank's double still encodes to the image's
         float32 it is the value, at full precision. Where they differ a write has changed the image since the
         tick: then the shortest decimal that reads back as that float32 (the written 61.3, not 61.29999924)."""
-        single = np.float32(image)
         computed = self.source.computed(index, var.first.quantity)
-        if computed is not None and np.float32(computed) == single:
-            return computed
-        return float(str(single))
+        if computed is not None:
+            try:
+                if _FLOAT32.unpack(_FLOAT32.pack(computed))[0] == image:   # (a float32 read back is exact)
+                    return computed
+            except OverflowError:   # beyond the largest float32: numpy rounds it to infinity
+                if np.float32(computed) == np.float32(image):
+                    return computed
+        return float(str(np.float32(image)))
 
     def _data_value(self, value: Any, variant: ua.VariantType, status: ua.StatusCode | None = None) -> ua.DataValue:
         """The DataValue of a read or a notification: SourceTimestamp the tick that made the value, ServerTimestamp
@@ -784,7 +806,8 @@ class OpcUaServer:
         The values are sampled when the tick arrives and handed at once when the hand-off is due, on a grid of the
         tick period (:mod:`~valve_emulator.opcua.handoff`): so each publishing interval of a subscription holds
         exactly one tick's values, whatever the tick's jitter and the subscription's phase. The tick comes first:
-        sampling yields to the event loop every :data:`YIELD_EVERY` variables, and once sampling and the
+        sampling yields to the event loop every :data:`YIELD_EVERY` variables (in the device's process:
+        ``yield_while_sampling``), and once sampling and the
         hand-off would take more than the publisher's share of the tick period (:data:`PUBLISH_BUDGET`) it stops
         and goes on after the next tick where it stopped, so a subscription larger than the machine can feed gets
         every variable's latest value less often instead of delaying the tick (or, in a process of its own, the
@@ -801,8 +824,10 @@ class OpcUaServer:
                 self._active = self._watches()
             period = finite_period(source)
             due = grid.due(seen, arrived, source.period)
-            handing, at = await self._sample(at, due, period, self.publish_budget * period)
-            await self._hand_all(handing, due, period)
+            chunks = -(-len(self._active) // HAND_CHUNK)
+            with Wakeups([due + k * HAND_SPACING * period for k in range(chunks)]) as wakeups:
+                handing, at = await self._sample(at, due, period, self.publish_budget * period)
+                await self._hand_all(handing, wakeups)
 
     async def _sample(self, at: int, due: float, period: float,
                       budget: float) -> tuple[list[tuple[int, _Watch, ua.DataValue, list[_Group]]], int]:
@@ -819,7 +844,8 @@ class OpcUaServer:
         start = clock()
         while done < len(active):
             if done and done % YIELD_EVERY == 0:
-                await asyncio.sleep(0)
+                if self.yield_while_sampling:
+                    await asyncio.sleep(0)
                 if clock() - start + len(handing) * self._hand_cost > budget:
                     self.deferred += 1
                     break
@@ -830,26 +856,32 @@ class OpcUaServer:
                 handing.append((place, watch, *changed))
         return handing, at
 
-    async def _hand_all(self, handing: list[tuple[int, _Watch, ua.DataValue, list[_Group]]], due: float,
-                        period: float) -> None:
+    async def _hand_all(self, handing: list[tuple[int, _Watch, ua.DataValue, list[_Group]]],
+                        wakeups: Wakeups) -> None:
         """Hand the sampled values in chunks: the variables at places ``k·HAND_CHUNK`` to ``(k+1)·HAND_CHUNK``
-        in the list of monitored variables at ``due + k·HAND_SPACING`` of a period, each chunk waited for on the
-        event loop's timer and handed without yielding (a publish woken meanwhile would come between two of its
-        items). A variable keeps its chunk's time from tick to tick, so a publish comes before or after it the
-        same way at every tick while the chunks keep up with their times, and waits for one chunk at most, not
-        for the whole hand-off (its client's next Publish request has that much less time to come). Keeps the
-        cost per variable for the budget."""
+        in the list of monitored variables at the ``k``-th of ``wakeups`` (``due + k·HAND_SPACING`` of a period),
+        each chunk in a task of its own and without yielding (a publish woken meanwhile would come between two of
+        its items). The chunks' times were all put on the event loop's timer heap when the tick arrived, so a
+        publish due before a chunk's time comes before it and one due after it after, however late the loop runs
+        (:class:`~valve_emulator.opcua.handoff.Wakeups`). A variable keeps its chunk's time from tick to tick, so a
+        publish comes before or after it the same way at every tick, and waits for one chunk at most, not for the
+        whole hand-off (its client's next Publish request has that much less time to come). Keeps the cost per
+        variable for the budget."""
         if not handing:
             return
         clock = asyncio.get_running_loop().time
-        spent = 0.0
-        for chunk, items in itertools.groupby(handing, key=lambda item: item[0] // HAND_CHUNK):
-            await until(due + chunk * HAND_SPACING * period)
+        spent = [0.0]
+
+        async def hand_chunk(chunk: int, items: list[tuple[int, _Watch, ua.DataValue, list[_Group]]]) -> None:
+            await wakeups.wait(chunk)
             start = clock()
             for _, watch, dv, groups in items:
                 await self._hand(watch, dv, groups)
-            spent += clock() - start
-        self._hand_cost += 0.2 * (spent / len(handing) - self._hand_cost)
+            spent[0] += clock() - start
+
+        await asyncio.gather(*(hand_chunk(chunk, list(items)) for chunk, items
+                               in itertools.groupby(handing, key=lambda item: item[0] // HAND_CHUNK)))
+        self._hand_cost += 0.2 * (spent[0] / len(handing) - self._hand_cost)
 
     def _changed(self, watch: _Watch, now: float, slack: float) -> tuple[ua.DataValue, list[_Group]] | None:
         """The value of ``watch`` and its groups due at ``now`` (``slack`` seconds early counts) that have not had
