@@ -684,7 +684,9 @@ class LoopBank:
             self._dist.step_many(times)).reshape(steps, self.n)
         dist += self.load
         noise = np.ascontiguousarray(self._unit_noise(steps) * self.noise_std + self.pv_bias)
-        op_ext = np.ascontiguousarray(np.broadcast_to(self.op_external, (steps, self.n)) if op is None else op)
+        # a copy, not np.ascontiguousarray: at one step the broadcast view counts as contiguous and would reach the
+        # kernel read-only (another argument type, see _replayed)
+        op_ext = np.array(np.broadcast_to(self.op_external, (steps, self.n)), order="C") if op is None else op
         out = {name: np.empty((steps, self.n)) for name in ("pv", "op", "mv", "flow")}
         stuck = np.empty((steps, self.n), dtype=np.bool_)
         pv_meas = np.empty(self.n)
@@ -699,14 +701,18 @@ class LoopBank:
         return {"t": times, "sp": sp, **out, "stuck": stuck}
 
     def _replayed(self, name: str, values: np.ndarray, steps: int) -> np.ndarray:
-        """A replayed input of :meth:`run` as a contiguous (steps, n) float array of finite values."""
+        """A replayed input of :meth:`run` as a contiguous, writable (steps, n) float array of finite values.
+
+        Writable: a read-only array (a recording's) is another argument type to numba, which compiled the
+        whole time loop (:func:`_run_kernel`, the loop's step and the controller's within it) a second time
+        for it, about 15 s, for the same numbers."""
         a = np.asarray(values, dtype=float)
         a = a.reshape(-1, 1) if a.ndim == 1 and self.n == 1 else a
         if a.shape != (steps, self.n):
             raise ValueError(f"{name} must have shape ({steps}, {self.n}), got {np.shape(values)}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"{name} must be finite")
-        return np.ascontiguousarray(a)
+        return np.ascontiguousarray(a) if a.flags.writeable else np.array(a, order="C")
 
     def _run_stepwise(self, steps: int) -> dict[str, np.ndarray]:
         """:meth:`run` by calls of :meth:`step` (same keys and shapes)."""
