@@ -75,7 +75,7 @@ def test_bad_replays_are_refused_naming_the_recording(run):
 def test_a_read_only_replayed_input_reaches_the_time_loop_as_the_same_argument_types():
     """numba compiles a kernel once per argument type and a read-only array is a type of its own: a recording's
     read-only SP or OP (or a one-step run's held OP) must reach the compiled time loop as a writable array, the
-    same numbers, or the loop is compiled a second time (about 15 s on a fresh cache)."""
+    same numbers, or the loop is compiled a second time (seconds on a fresh cache)."""
     import numba
 
     bank = LoopBank([loop_from_mapping(LOOP)])

@@ -705,7 +705,7 @@ class LoopBank:
 
         Writable: a read-only array (a recording's) is another argument type to numba, which compiled the
         whole time loop (:func:`_run_kernel`, the loop's step and the controller's within it) a second time
-        for it, about 15 s, for the same numbers."""
+        for it (seconds of compiling), for the same numbers."""
         a = np.asarray(values, dtype=float)
         a = a.reshape(-1, 1) if a.ndim == 1 and self.n == 1 else a
         if a.shape != (steps, self.n):
