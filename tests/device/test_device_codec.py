@@ -167,6 +167,29 @@ def test_compiled_encoder_equals_the_plain_python_codec(case):
         assert list(words[i]) == list(encode_loop(state, sc, i, **counters)), i
 
 
+def test_a_state_of_lists_or_read_only_arrays_reaches_the_encoder_as_the_same_argument_types():
+    """numba compiles a kernel once per argument type and a read-only array is a type of its own: whatever form
+    the state's values take (arrays, read-only arrays, lists, scalars), the plain encoder gets writable contiguous
+    arrays of the same numbers, so it is compiled once (a second encoder took about 10 s on a fresh cache)."""
+    import numba
+
+    from valve_emulator.device.registers.kernel import _INPUTS, _inputs
+
+    arrays = {name: (np.arange(3) % 2).astype(dtype) for name, dtype, _ in _INPUTS}
+    frozen = {name: a.copy() for name, a in arrays.items()}
+    for a in frozen.values():
+        a.flags.writeable = False
+    lists = {name: a.tolist() for name, a in arrays.items()}
+    want = _inputs(SimpleNamespace(**arrays), 3)
+    for form in (frozen, lists):
+        got = _inputs(SimpleNamespace(**form), 3)
+        assert [numba.typeof(a) for a in got] == [numba.typeof(a) for a in want]
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+    scalars = _inputs(SimpleNamespace(**{name: a[1] for name, a in arrays.items()}), 3)
+    assert [numba.typeof(a) for a in scalars] == [numba.typeof(a) for a in want]
+
+
 def test_optional_fault_arrays_read_zero_in_both_encoders():
     state = SimpleNamespace(op=[10.0], mv=[9.0], flow=[9.0], pv=[1.0], sp=[2.0], kc=[1.0], ti=[5.0], td=[0.0],
                             S=[1.0], J=[0.5], stuck=[False], sat_low=[False], sat_high=[False],

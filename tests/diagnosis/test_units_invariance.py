@@ -14,7 +14,7 @@ from functools import cache
 import numpy as np
 import pytest
 from historian import STEPS_300, flow_limited_loop, simulate
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 import valve_emulator as ve
@@ -74,11 +74,19 @@ slow = pytest.mark.slow
 scales = st.floats(min_value=-3.0, max_value=3.0).map(lambda e: 10.0 ** e)
 
 
+#: The identity map, hypothesis' simplest example (every strategy at its simplest value), which was the first of
+#: the two examples per case: it maps the record onto itself, so its diagnosis was ``_base``'s computed again and
+#: compared nothing about units. The test rejects it (:func:`~hypothesis.assume`) and asks for one example: one
+#: map other than the identity per case, as before, without the redundant diagnosis.
+IDENTITY = (1.0, 0.0, 1.0, 0.0)
+
+
 @slow
 @pytest.mark.parametrize("name", list(CASES))
-@settings(max_examples=2, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=1, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(a=scales, b=st.floats(min_value=-1e3, max_value=1e3), c=scales, d=st.floats(min_value=-1e3, max_value=1e3))
 def test_random_positive_affine_maps_of_op_and_pv_change_nothing(name, a, b, c, d):
+    assume((a, b, c, d) != IDENTITY)
     _assert_same(name, a, b * a, c, d * c)
 
 

@@ -70,3 +70,20 @@ def test_bad_replays_are_refused_naming_the_recording(run):
         replay_op(cfg, Recording(2.0 * rec.t, rec.sp, rec.op, None, rec.pv, source="slow.csv"))
     with pytest.raises(ValueError, match="no controller"):
         replay_sp(dataclasses.replace(cfg, controller=None), rec)
+
+
+def test_a_read_only_replayed_input_reaches_the_time_loop_as_the_same_argument_types():
+    """numba compiles a kernel once per argument type and a read-only array is a type of its own: a recording's
+    read-only SP or OP (or a one-step run's held OP) must reach the compiled time loop as a writable array, the
+    same numbers, or the loop is compiled a second time (seconds on a fresh cache)."""
+    import numba
+
+    bank = LoopBank([loop_from_mapping(LOOP)])
+    sp = np.full((40, 1), 4.0)
+    frozen = sp.copy()
+    frozen.flags.writeable = False
+    got = bank._replayed("sp", frozen, 40)
+    assert numba.typeof(got) == numba.typeof(sp) and got.flags.writeable
+    np.testing.assert_array_equal(got, sp)
+    a, b = LoopBank([loop_from_mapping(LOOP)]), LoopBank([loop_from_mapping(LOOP)])
+    np.testing.assert_array_equal(a.run(40, sp=frozen)["pv"], b.run(40, sp=sp)["pv"])

@@ -58,13 +58,23 @@ def _simulate() -> None:
 
 def _serve() -> None:
     """The default device (its loop bank and register image), advanced a few ticks without a network: some in
-    one compiled run, as a quiet ``advance`` runs them, and one on its own, as a tick or a lockstep ``step`` = 1."""
+    one compiled run, as a quiet ``advance`` runs them, and one on its own, as a tick or a lockstep ``step`` = 1;
+    then the register codec's plain pass (:func:`~valve_emulator.device.registers.encode`), which encodes any
+    state that is not a loop bank (the testing kit's doubles, a caller's own arrays) from the same values."""
+    from types import SimpleNamespace
+
+    from valve_emulator.device.registers import encode
     from valve_emulator.device.runtime import load_server_or_default
     from valve_emulator.device.tick import QUIET_MIN, Device
 
     device = Device.from_config(load_server_or_default(None), time_scale=0.0)
     device.advance(QUIET_MIN)
     device.advance(1)
+    bank = device.bank
+    names = ("op", "mv", "flow", "pv", "sp", "kc", "ti", "td", "S", "J", "load", "noise_std", "stuck", "sat_low",
+             "sat_high", "has_controller", "auto", "frozen")
+    encode(SimpleNamespace(**{name: getattr(bank, name) for name in names}), device.scaling, tick=1, overruns=0,
+           time=0.1)
 
 
 _WORK = {"diagnose": _diagnose, "simulate": _simulate, "serve": _serve}

@@ -36,6 +36,7 @@ import numba
 import numpy as np
 
 from valve_emulator.config import LoopConfig, ValveConfig
+from valve_emulator.physics._arrays import kernel_array
 from valve_emulator.physics.actuator import actuator_output, lag_coefficients
 from valve_emulator.physics.controller import DERIVATIVE_FILTER, PIDBank, pid_step_kernel
 from valve_emulator.physics.disturbance import BLOCK as NORMALS_BLOCK
@@ -684,7 +685,9 @@ class LoopBank:
             self._dist.step_many(times)).reshape(steps, self.n)
         dist += self.load
         noise = np.ascontiguousarray(self._unit_noise(steps) * self.noise_std + self.pv_bias)
-        op_ext = np.ascontiguousarray(np.broadcast_to(self.op_external, (steps, self.n)) if op is None else op)
+        # kernel_array, not np.ascontiguousarray: at one step the broadcast view counts as contiguous and would
+        # reach the kernel read-only (another argument type, see _replayed)
+        op_ext = kernel_array(np.broadcast_to(self.op_external, (steps, self.n))) if op is None else op
         out = {name: np.empty((steps, self.n)) for name in ("pv", "op", "mv", "flow")}
         stuck = np.empty((steps, self.n), dtype=np.bool_)
         pv_meas = np.empty(self.n)
@@ -699,14 +702,18 @@ class LoopBank:
         return {"t": times, "sp": sp, **out, "stuck": stuck}
 
     def _replayed(self, name: str, values: np.ndarray, steps: int) -> np.ndarray:
-        """A replayed input of :meth:`run` as a contiguous (steps, n) float array of finite values."""
+        """A replayed input of :meth:`run` as a contiguous, writable (steps, n) float array of finite values.
+
+        Writable: a read-only array (a recording's) is another argument type to numba, which compiled the
+        whole time loop (:func:`_run_kernel`, the loop's step and the controller's within it) a second time
+        for it (seconds of compiling), for the same numbers."""
         a = np.asarray(values, dtype=float)
         a = a.reshape(-1, 1) if a.ndim == 1 and self.n == 1 else a
         if a.shape != (steps, self.n):
             raise ValueError(f"{name} must have shape ({steps}, {self.n}), got {np.shape(values)}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"{name} must be finite")
-        return np.ascontiguousarray(a)
+        return kernel_array(a)
 
     def _run_stepwise(self, steps: int) -> dict[str, np.ndarray]:
         """:meth:`run` by calls of :meth:`step` (same keys and shapes)."""

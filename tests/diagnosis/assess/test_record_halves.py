@@ -13,7 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from valve_emulator.benchmark.cases import CASES, generate
@@ -71,10 +71,14 @@ def test_halves_that_disagree_leave_the_record_cannot_tell():
     assert _codes(a)[0] is Reason.NOT_EXPLAINED and "halves disagree" in a.reason, a.reason
 
 
-@settings(max_examples=3, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+# Hypothesis' simplest example, the first of three, is the identity map (a, b, c, d) = (1, 0, 1, 0): the record
+# itself, whose assessment ``_sticky_assessed`` already holds, so it judged nothing about units. It is rejected and
+# one example fewer asked for: two maps other than the identity, as before.
+@settings(max_examples=2, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(a=st.floats(-3.0, 3.0).map(lambda e: 10.0 ** e), b=st.floats(-1e3, 1e3),
        c=st.floats(-3.0, 3.0).map(lambda e: 10.0 ** e), d=st.floats(-1e3, 1e3))
 def test_answering_by_halves_does_not_depend_on_op_or_pv_units(a, b, c, d):
+    assume((a, b, c, d) != (1.0, 0.0, 1.0, 0.0))
     rec, _ = _with_a_bad_second_half(0, seed=3)
     base = _sticky_assessed()
     got = assess(replace(rec, op=a * rec.op + b, pv=c * rec.pv + d))

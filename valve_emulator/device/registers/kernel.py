@@ -24,6 +24,7 @@ import numpy as np
 from valve_emulator.device.registers.scaling import Scaling
 from valve_emulator.device.registers.table import MAP_VERSION, N_REGISTERS, Conversion, Fault, Status, register
 from valve_emulator.device.registers.words import CDAB, DataType, float32_bits, split32
+from valve_emulator.physics._arrays import kernel_array
 from valve_emulator.physics.stiction import MV, STUCK
 
 __all__ = ["ImageEncoder", "encode", "encode_image", "encode_words"]
@@ -112,13 +113,18 @@ def _array(state: Any, name: str, n: int, dtype: np.dtype, optional: bool) -> np
 
     A bank's arrays already have that form and are passed through untouched: at one loop the conversions
     would cost more than the compiled pass itself (the manual clock of the testing kit runs ticks back to back).
+    A converted value is writable (:func:`~valve_emulator.physics._arrays.kernel_array`): numba compiles a
+    kernel once per argument type, and a read-only array (what ``np.broadcast_to`` returns, and
+    ``np.ascontiguousarray`` passes through) is a type of its own, so a state of lists or scalars compiled a
+    second encoder (about 11 CPU s) beside the one for arrays.
     """
     value = getattr(state, name, None) if optional else getattr(state, name)
     if value is None:
         return np.zeros(n, dtype=dtype)
-    if type(value) is np.ndarray and value.dtype is dtype and value.shape == (n,) and value.flags.c_contiguous:
+    if (type(value) is np.ndarray and value.dtype is dtype and value.shape == (n,) and value.flags.c_contiguous
+            and value.flags.writeable):
         return value
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=dtype), (n,)))
+    return kernel_array(np.broadcast_to(np.asarray(value, dtype=dtype), (n,)), dtype=dtype)
 
 
 _F64: Final = np.dtype(np.float64)
@@ -140,7 +146,7 @@ def _inputs(state: Any, n: int) -> list[np.ndarray]:
     for name, dtype, optional in _INPUTS:
         value = getattr(state, name, None)
         if not (type(value) is np.ndarray and value.dtype is dtype and value.shape == shape
-                and value.flags.c_contiguous):
+                and value.flags.c_contiguous and value.flags.writeable):
             value = _array(state, name, n, dtype, optional)
         out.append(value)
     return out

@@ -138,7 +138,9 @@ def _bank(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray, ctx: C
     x2 = np.ascontiguousarray(x[:, None] if x.ndim == 1 else x)
     S, J, start = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (S, J, start))
     n = max(S.size, J.size, start.size, x2.shape[1])
-    S, J, start = (np.ascontiguousarray(np.broadcast_to(a, (n,))) for a in (S, J, start))
+    # kernel_array: np.ascontiguousarray passes a broadcast view of n values through read-only, and numba compiled
+    # the valves' kernel (and the physics' step within it) once more for every read-only mix of S and J
+    S, J, start = (kernel_array(np.broadcast_to(a, (n,))) for a in (S, J, start))
     K = _pre_roll(x2.shape[0])
     pre = start == PRE_ROLL
     d = np.where(pre, 1.0, start)
