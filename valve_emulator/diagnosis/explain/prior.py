@@ -42,8 +42,8 @@ cycles through the gain (on the independent ``late_onset`` loops with their nomi
 property: the gain moved ×1.16 for exactly the 0.5 points, and J was 1.12 % for 1.89–1.97; refined around the
 nominal gain, the move no longer lowers BIC by 10, and J is 1.69 %). Where holding it costs less, the move cannot
 count whatever the refinement gives (it only lowers the held model's BIC), and the findings already fit the
-nominal gain to within the threshold: they are not refined (a refinement costs about 0.4 s of CPU at 10,000
-samples, `bench/bench_diagnose.py`). Each test becomes a
+nominal gain to within the threshold: they are not refined (refined everywhere, the proof cases' loop at 10,000
+samples of ``bench/bench_diagnose.py``, whose gain holds at −8.7, took 1.13 times the CPU). Each test becomes a
 :class:`~valve_emulator.diagnosis.explain.result.LinearMove`: from what, to what, the penalised ΔBIC and the
 held-out fit each way. A dead time the search freed (the ``dead_time`` finding) is reported the same way from
 its finding.
