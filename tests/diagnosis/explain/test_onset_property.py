@@ -10,15 +10,16 @@ The property asked for: the onset within 10 % of the record, S and J within 25 %
 valve's own (its friction, and an actuator lag where the loop has one) in at least 9 draws of 10. J is judged
 against the Js the drawn valve may be said to have (:func:`j_error`): its drawn J, and the J of every 2005 valve
 that reproduces its own stem travel about as well as the best one (:func:`j_2005_range`) — on Karnopp stems the
-stem's travel leaves J undetermined (J = 0 does about as well in 5 draws of 20). It is not met: measured 11/20
-with a model and 13/20 as plant data (strict xfails below; 12/20 as plant data before a dead time far beyond the
+stem's travel leaves J undetermined (J = 0 does about as well in 5 draws of 20). It is not met: measured 12/20
+with a model and 13/20 as plant data (strict xfails below; 11/20 with a model before the findings were refined
+again around the nominal gain before its test, 12/20 as plant data before a dead time far beyond the
 healthy part's was searched again below it, 9/20 both ways before physics beside a late valve had to fit the
 healthy part before its onset no worse). What holds is checked at the rates measured (seed 32), one
 draw of slack each: the change point locates the onset before any fit in 17 draws of 20; the answer is stiction
 in 16/20 with a model (19/20 before three weak calls became ``cannot_tell``, see below) and 18/20 without; an
 onset it reports is within a tenth of the record in 15 of 16 with a model and 17 of 18 without; stiction from an
 onset within a tenth, with S within 25 %, in 14/20 with a model (15/20 before) and 14/20 without (12/20 before
-the dead-time cap); the whole property in 11/20 and 13/20. What stands in the way, measured (a draw may miss
+the dead-time cap); the whole property in 12/20 and 13/20. What stands in the way, measured (a draw may miss
 for several reasons; with a model / without): not ``stiction`` (4 / 2: with a model three ``cannot_tell`` calls
 on loops whose band OP's swings hardly cross and a level loop whose late fits settle on a band below a
 twentieth of OP's span; without one two loops where no change point is located), hence no onset (4 / 2);
@@ -26,8 +27,8 @@ extra findings (3 / 1: with a model a dead time standing in for the valve's own 
 beside a ``no_stiction`` and beside a ``cannot_tell`` answer; without one the plant's second lag as an actuator
 lag); S off by more than 25 % (1 / 3; without a model two of them level loops identified with a dead time of 17
 and 35 s for 0.3 and 1.1 s behind a lag, where the set point moves too seldom before the change point to
-identify the healthy part); J off the range (3 / 2); the onset a fifth of
-the record early (1 / 1).
+identify the healthy part); J off the range (2 / 2; 3 with a model before the findings were refined around the
+nominal gain, draw 6); the onset a fifth of the record early (1 / 1).
 
 Time: about 4 minutes for the 20 draws, both ways (about 3 s a diagnosis on an idle core; 15–30 s on a machine
 shared by six processes).
@@ -254,15 +255,17 @@ def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 10), ("plant", 12)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 11), ("plant", 12)])
 def test_onset_size_and_nothing_else_at_the_rate_reached(mode, least):
-    """The whole property, at the rate the search reaches: measured 11/20 with a model and 13/20 without (J
-    judged against the drawn J and the 2005 range, :func:`j_error`; 12/20 without before the dead-time cap)."""
+    """The whole property, at the rate the search reaches: measured 12/20 with a model and 13/20 without (J
+    judged against the drawn J and the 2005 range, :func:`j_error`; 11/20 with a model before the findings were
+    refined again around the nominal gain before its test, :mod:`~valve_emulator.diagnosis.explain.prior`;
+    12/20 without before the dead-time cap)."""
     assert _count(mode, lambda o: o.holds) >= least
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured 11/20 with a model, 13/20 without (see the module docstring)")
+@pytest.mark.xfail(strict=True, reason="measured 12/20 with a model, 13/20 without (see the module docstring)")
 @pytest.mark.parametrize("mode", ["model", "plant"])
 def test_onset_and_size_within_tolerance_and_nothing_else_in_nine_draws_of_ten(mode):
     assert _count(mode, lambda o: o.holds) >= 0.9 * DRAWS
