@@ -512,9 +512,8 @@ class OpcUaServer:
                 high, low = low, high
             return self._double(index, var, _FLOAT32.unpack(_WORDS.pack(high, low))[0])
         words = self._words(index, var.read)
-        if var.read.width == 2:   # a counter, in the device's word order
-            value = from_words(words, var.read.type, self.source.scaling.word_order)
-            return self._double(index, var, value) if var.read.type is DataType.FLOAT32 else int(value)
+        if var.read.width == 2:   # a counter, in the device's word order (float32 was read above)
+            return int(from_words(words, var.read.type, self.source.scaling.word_order))
         raw = words[0] - 65536 if var.read.type is DataType.INT16 and words[0] >= 32768 else words[0]
         value = decode_value(var.read, raw, self.source.scaling, index)
         if var.analog:
