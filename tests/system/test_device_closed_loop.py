@@ -214,14 +214,22 @@ async def test_tick_keeps_time_at_time_scale_10_with_10_clients_polling():
             for c in clients:
                 c.close()
         overruns, ticks, p99 = srv.device.overruns, srv.device.ticks, srv.device.jitter.p99
+        lateness = srv.device.jitter.values()                   # one per tick, from the first
+    assert lateness.size == len(stamps)
     times = np.array(stamps[k0 - 1:k0 + 600])
     nominal = 0.1 / 10.0
     assert times.size == 601
-    # mean period = slope of tick time against tick number (a first-minus-last difference would be
+    # each tick's place on the deadline grid: an overrun (lateness over a period, allowed below) skips
+    # floor(lateness / P) deadlines after its tick (device/tick.py), which the tick count does not show; one
+    # skipped deadline mid-way tilts a slope against the tick count by 0.25 % (10.031 ms seen on a loaded machine)
+    late = lateness[k0 - 1:k0 + 600]
+    skipped = np.where(late > nominal, np.floor(late / nominal), 0.0)
+    grid = np.arange(times.size) + np.concatenate([[0.0], np.cumsum(skipped[:-1])])
+    # mean period = slope of tick time against its deadline (a first-minus-last difference would be
     # dominated by the lateness of the two end ticks: 6 ms at either end is already 0.1 % of 6 s)
-    period = np.polyfit(np.arange(times.size), times, 1)[0]
+    period = np.polyfit(grid, times, 1)[0]
     assert abs(period - nominal) / nominal < 1e-3               # mean period within 0.1 %
-    assert abs(600 - wall / nominal) <= 2                       # no drift against the wall clock
+    assert abs(grid[-1] - wall / nominal) <= 2                  # no drift against the wall clock
     # overruns are counted, not absorbed (the flood test holds the p95 lateness to 5 ms; here, at 10 ms wall
     # ticks, a loaded machine may make one or two ticks late)
     assert overruns <= 0.01 * ticks and p99 < 0.01
