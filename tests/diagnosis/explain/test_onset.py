@@ -290,3 +290,23 @@ def test_under_a_wandering_load_a_late_valve_counts_by_the_drifting_load_noise_m
     assert abs(S - truth["S"]) <= 0.25 * truth["S"]
     assert abs(onset - truth["onset"]) <= 0.1 * (rec.t[-1] - rec.t[0])
     assert not significant(late.model, healthy) and search.late_counts(late.model, healthy)
+
+
+def test_a_valve_that_sticks_from_the_start_of_a_loop_at_rest_is_reported_without_an_onset():
+    """Known truth, from the independent simulator: the README's concentration loop (3 e^(-10 s)/(10 s + 1), PI
+    kc 0.2, Ti 10 s, Choudhury, Thornhill & Shah 2003 Table 1) with a valve that sticks from the first sample
+    (S = 5 %, J = 2 %), at rest until its set point steps at t = 10 s. The loop starts to cycle only at the first
+    slip, once the integral has moved OP through the band; the part before it is shorter than the linear part
+    takes to settle plus a tenth of the record, so it cannot show a healthy valve: stiction, with no onset."""
+    loop = Loop(plant=Plant(kind="fopdt", gain=3.0, tau=10.0, delay=10.0, pv0=0.0),
+                valve=Valve(friction="data_driven", S=5.0, J=2.0),
+                controller=Controller(kc=0.2, ti=10.0, action="reverse", sp_steps=((10.0, 1.0),)),
+                measurement=Measurement(noise=0.01), dt=0.5, duration=1500.0, seed=5)
+    rec, _ = simulate(loop)
+    doc = diagnose(rec, loop_from_mapping(nominal_mapping(loop, "from_the_start"))).to_json()
+    assert doc["answer"] == "stiction" and doc["findings"][0]["physics"] == "stiction"
+    finding = doc["findings"][0]
+    assert finding["parameters"]["S"] == pytest.approx(5.0, rel=0.25)
+    assert finding["parameters"]["J"] == pytest.approx(2.0, rel=0.25)
+    assert "onset_s" not in finding["parameters"] and finding.get("onset") is None
+    assert "from t ≈" not in doc["verdict"]

@@ -38,7 +38,10 @@ the second half of the fit part (:data:`EARLY_SHARE`). Then:
 
 An onset before the fit part (which starts after every candidate's burn-in, up to a third of the record)
 cannot be told by the fit from one a little earlier: there the located one stands, give or take the
-refinement's steps, and the band is fitted on the part where it acts.
+refinement's steps, and the band is fitted on the part where it acts. An onset that leaves less than
+:data:`MIN_BEFORE` of the record between where the linear part has settled and itself cannot be told from
+one at the start at all: the search withdraws it (:meth:`~valve_emulator.diagnosis.explain.search.Search.
+shows_onset`).
 
 Why only with a model where no onset is suspected: without one the linear part is identified from the same
 record, and a band acting late at any of the coarse onsets trades off against it (on the shared plant windows

@@ -166,6 +166,8 @@ class Search:
             if kept is None or (c[1].model.heldout, -c[1].model.bic) > (kept[1].model.heldout, -kept[1].model.bic):
                 stands[c[1].added] = c
         first, best = min(stands.values(), key=lambda c: c[1].model.bic)
+        if not self.shows_onset(best.model, model):
+            return [o for o in options if o not in lates], None
         out = []
         for o in options:
             if o is first:
@@ -178,6 +180,24 @@ class Search:
                     out.append(other)
         dropped = {frozenset(o.added) for o in options} - {frozenset(o.added) for o in out}
         return [o for o in out if not any(d < frozenset(o.added) for d in dropped)], best  # its parts too
+
+    def shows_onset(self, late: Model, model: Model) -> bool:
+        """Whether the record shows a healthy part before ``late``'s onset: at least :data:`~valve_emulator.
+        diagnosis.explain.onset.MIN_BEFORE` of the record between where the linear part has settled from its
+        unknown initial state (its dead time and five of its longest time constants, as
+        :func:`~valve_emulator.diagnosis.explain.onset.before_part`) and the onset.
+
+        Why: before that the fit cannot tell a valve that starts to stick there from one that sticks from the
+        start, and the change point that located the onset is then where the loop starts to cycle, not where
+        the valve starts to stick. A valve that sticks from the first sample, in a loop at rest until its set
+        point moves, does not slip before the controller's integral has moved OP through the band: the loop's
+        control error steps up at the first slip. The README's concentration loop (S = 5 %, J = 2 % throughout,
+        1,500 s, a set-point step at 10 s) was answered as sticking "from t ≈ 67.5 s on", 7 s after its linear
+        part had settled (10 s dead time, 10 s lag). Where the record does not show the onset, the late options
+        are withdrawn and the whole-record ones compete by the search's usual rule."""
+        t0 = late_start(late)
+        p = self.scorer.p
+        return t0 is None or before_part(p, int(round(t0 / p.dt)), late, model) is not None
 
     def lower_under_load(self, new: Model, old: Model) -> bool:
         """Whether ``new``'s BIC under the drifting-load noise model (:func:`~valve_emulator.diagnosis.fit.
