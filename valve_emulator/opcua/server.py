@@ -118,7 +118,7 @@ PROCESS_PUBLISH_BUDGET = 0.7
 HAND_CHUNK = 200
 #: ... each due this share of the tick period after the one before (more than a chunk's work: 200 variables take
 #: 2-5 ms, a share of 0.05 is 5 ms at a 0.1 s tick), or closer where the chunks would spread over more than
-#: :data:`~valve_emulator.opcua.handoff.HAND_SPREAD` of the period (more than 6 chunks: 1,200 monitored variables).
+#: :data:`~valve_emulator.opcua.handoff.HAND_SPREAD` of the period (more than 6 chunks: over 1,200 variables).
 HAND_SPACING = 0.05
 #: A float32 register's two words (big-endian, as in the register image) and the float32 they make, high word first.
 _WORDS = struct.Struct(">HH")
