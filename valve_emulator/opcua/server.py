@@ -346,8 +346,9 @@ async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue) ->
     asyncua 2.1.0's ``MonitoredItemService.datachange_callback`` does for an item without a filter, less one object.
 
     That callback builds ``ua.MonitoredItemNotification()`` with its default DataValue -- which builds a Variant
-    whose type it guesses, and a StatusCode -- and then replaces that DataValue with the one it was handed: about
-    13 µs of the 50 µs a notification costs the OPC UA process on the 2-core machine (docs/benchmarks.md §9.8).
+    whose type it guesses, and a StatusCode -- and then replaces that DataValue with the one it was handed: 13 µs
+    in timeit on the 2-core machine at load 7, where a whole notification costs the OPC UA process about 50 µs idle
+    (docs/benchmarks.md §9.8: 52-60 -> 32-45 µs per notification in the bench rows).
     Here the notification is built with the value (under 1 µs), through the same steps, the service's own:
     the item's mode, its current and old value (``set_current_datavalue``'s, without its deep copy of a value
     this server never changes, :class:`_SharedDataValue`: 2 µs more), its change test (``_is_data_changed``,
