@@ -4,6 +4,7 @@ same queue of one, the same change test; an item with a deadband goes through as
 
 import pytest
 from asyncua import Server, ua
+from asyncua.server.monitored_item_service import MonitoredItemService
 
 from valve_emulator.opcua.server import _GOOD, _SharedDataValue, notify
 
@@ -105,3 +106,19 @@ async def test_a_callback_not_asyncuas_is_called_as_it_is():
     dv = _value(1.0)
     await notify(callback, 7, dv)
     assert got == [(7, dv)]
+
+
+
+async def test_a_service_without_the_tables_notify_reads_gets_the_value_through_its_own_callback(monkeypatch):
+    """Another asyncua whose service keeps its items elsewhere: ``notify`` hands the value to the service's own
+    callback rather than failing on a table it cannot find."""
+    handed = []
+
+    async def callback(self, handle, dv):
+        handed.append((handle, dv))
+
+    monkeypatch.setattr(MonitoredItemService, "datachange_callback", callback)
+    service = MonitoredItemService.__new__(MonitoredItemService)   # none of 2.1.0's tables
+    value = _value(7.0)
+    await notify(service.datachange_callback, 5, value)
+    assert handed == [(5, value)]

@@ -338,6 +338,8 @@ class _Watch:
 
 
 _STATUS_VALUE = ua.DataChangeTrigger.StatusValue
+#: the tables of asyncua 2.1.0's MonitoredItemService that :func:`notify` reads
+_SERVICE_TABLES = frozenset({"_monitored_datachange", "_monitored_items", "isub"})
 _DISABLED = ua.MonitoringMode.Disabled
 
 
@@ -356,8 +358,9 @@ async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue) ->
     (``enqueue_datachange_event``, with the item's queue size). An item with a filter (a deadband), or a callback
     that is not that service's, goes through the callback itself; asyncua is not patched."""
     service = getattr(callback, "__self__", None)
-    if getattr(callback, "__func__", None) is not MonitoredItemService.datachange_callback:
-        await callback(handle, dv)
+    if (getattr(callback, "__func__", None) is not MonitoredItemService.datachange_callback
+            or not vars(service).keys() >= _SERVICE_TABLES or not hasattr(service, "_is_data_changed")):
+        await callback(handle, dv)   # not the service this was written against (another asyncua): its own way
         return
     mid = service._monitored_datachange[handle]
     mdata = service._monitored_items[mid]
