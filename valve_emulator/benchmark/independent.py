@@ -42,7 +42,7 @@ from scipy.signal import lfilter
 
 from valve_emulator.recordings import Recording
 
-__all__ = ["FAMILIES", "MATERIAL_S", "Controller", "Load", "Loop", "Measurement", "Plant", "Valve", "draw",
+__all__ = ["FAMILIES", "MATERIAL_S", "Controller", "Load", "Loop", "Measurement", "Plant", "Valve", "draw", "draw_loop",
            "loop_margins", "nominal_mapping", "simulate"]
 
 #: Friction below this S (% travel) is not what a loop's owner calls a sticky valve: a family whose valve has
@@ -695,6 +695,16 @@ def nominal_mapping(loop: Loop, name: str) -> dict:
     }
 
 
+def draw_loop(family: str, rng: np.random.Generator) -> tuple[Loop, dict]:
+    """The loop :func:`draw` simulates, with its seed, and the family's extra truth (``expected``, ``onset``, ...):
+    the same loop can be run again changed in one part (a valve healthy throughout, to see what its friction
+    changes in the recording)."""
+    if family not in FAMILIES:
+        raise ValueError(f"unknown family {family!r}; known: {', '.join(FAMILIES)}")
+    loop, extra = FAMILIES[family](rng)
+    return replace(loop, seed=int(rng.integers(2**31))), extra
+
+
 def draw(family: str, rng: np.random.Generator) -> tuple[Recording, dict, dict]:
     """One loop of ``family``: (recording, truth, nominal model mapping).
 
@@ -710,10 +720,7 @@ def draw(family: str, rng: np.random.Generator) -> tuple[Recording, dict, dict]:
     Karnopp, with or without an actuator lag, in either order, drawn. The truth has ``expected`` (``stiction`` or
     ``no_stiction``), ``tuning`` (True where aggressive tuning is the cause), S, J and every parameter.
     """
-    if family not in FAMILIES:
-        raise ValueError(f"unknown family {family!r}; known: {', '.join(FAMILIES)}")
-    loop, extra = FAMILIES[family](rng)
-    loop = replace(loop, seed=int(rng.integers(2**31)))
+    loop, extra = draw_loop(family, rng)
     recording, truth = simulate(loop)
     truth = {**truth, "family": family, "tuning": False, **extra}
     return replace(recording, source=f"independent:{family}"), truth, nominal_mapping(loop, family)

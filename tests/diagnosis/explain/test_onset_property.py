@@ -30,6 +30,13 @@ and 35 s for 0.3 and 1.1 s behind a lag, where the set point moves too seldom be
 identify the healthy part); J off the range (2 / 2; 3 with a model before the findings were refined around the
 nominal gain, draw 6); the onset a fifth of the record early (1 / 1).
 
+What the recordings can show (:func:`shows`: each draw run again with its valve healthy throughout): the friction
+shows within 0.005–0.059 of the record after the drawn onset in every draw, so the onset clause excludes none;
+the drawn stem reverses after the onset at least three times in 18 draws, once in draw 1 and never in draw 2,
+where S is not in the record — 18/20, the target itself, is the property's ceiling. Draw 14's extra dead time
+is the valve's own one-sample lag, which the record does not tell from a dead time
+(:func:`test_an_actuator_lag_of_one_sample_on_an_integrator_is_not_told_from_a_dead_time`).
+
 Time: about 4 minutes for the 20 draws, both ways (about 3 s a diagnosis on an idle core; 15–30 s on a machine
 shared by six processes).
 """
@@ -37,13 +44,18 @@ shared by six processes).
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
 from unseen_loops import LATE_ONSET, Draw, diagnosed, diagnosed_all, loop
 
+import valve_emulator as ve
+from valve_emulator.benchmark.independent import draw_loop, nominal_mapping, simulate
+from valve_emulator.config import loop_from_mapping
+from valve_emulator.diagnosis.explain.locate import turning_points
 from valve_emulator.diagnosis.explain.onset import suspect_onset
+from valve_emulator.diagnosis.explain.search import DELTA_BIC
 from valve_emulator.physics.actuator import actuator_response
 from valve_emulator.physics.stiction import simulate_many
 
@@ -59,6 +71,43 @@ AS_WELL = 0.10
 
 def _loop(i: int) -> tuple:
     return loop("late_onset", (SEED, i))
+
+
+#: A departure shows in the recording when it exceeds this many σ of the measurement's noise for :data:`SHOWS_FOR`
+#: samples running (:func:`shows`).
+SHOWS_SIGMA, SHOWS_FOR = 3.0, 5
+
+
+def _first_run(mask: np.ndarray, run: int) -> int | None:
+    """The first index of ``run`` True values in a row in ``mask``, or None."""
+    count = 0
+    for k, m in enumerate(mask):
+        count = count + 1 if m else 0
+        if count >= run:
+            return k - run + 1
+    return None
+
+
+@functools.cache
+def shows(i: int) -> tuple[float, int]:
+    """When draw ``i``'s friction first shows in its recording, and how often its stem reverses after the onset.
+
+    The same loop (its load and noise draws) run again with the valve healthy throughout
+    (:func:`~valve_emulator.benchmark.independent.draw_loop`): the friction shows from the first sample where
+    the sticky record's PV departs from the healthy one's by more than :data:`SHOWS_SIGMA` σ of PV's noise, or its
+    OP from the healthy OP by as many σ of OP's sample-to-sample noise (measured on the healthy record), for
+    :data:`SHOWS_FOR` samples running. Before that no method can tell the record from a healthy loop's.
+    The reversals: turning points of the drawn stem's travel after the onset with a hysteresis of S/10 — S, the
+    band a reversing OP must cross before the stem moves back, is in the data only where the stem reverses."""
+    loop_, extra = draw_loop("late_onset", np.random.default_rng([SEED, i]))
+    sticky, truth = simulate(loop_, record_mv=True)
+    healthy, _ = simulate(replace(loop_, valve=replace(loop_.valve, onset=np.inf)))
+    sigma_op = float(np.std(np.diff(healthy.op))) / np.sqrt(2.0)
+    runs = [_first_run(np.abs(sticky.pv - healthy.pv) > SHOWS_SIGMA * loop_.measurement.noise, SHOWS_FOR),
+            _first_run(np.abs(sticky.op - healthy.op) > SHOWS_SIGMA * sigma_op, SHOWS_FOR)]
+    first = min(k for k in runs if k is not None)
+    k0 = int(np.ceil(extra["onset"] / sticky.dt))
+    return float(sticky.t[first]), int(turning_points(truth["mv"][k0:], 0.1 * truth["S"]).size)
 
 
 def _stem_rms(op: np.ndarray, mv: np.ndarray, S: np.ndarray, J: np.ndarray) -> np.ndarray:
@@ -207,6 +256,48 @@ def test_the_stem_travel_leaves_the_2005_J_undetermined_in_a_quarter_of_the_draw
     assert 4 <= wide <= 6
     assert zero >= 4
     assert tight >= 12
+
+
+@pytest.mark.slow
+def test_the_drawn_onset_shows_in_the_recording_within_a_tenth_of_the_record():
+    """The property's onset clause asks of every draw what the recording can show (:func:`shows`): the friction
+    never shows before its drawn onset, and shows within a tenth of the record after it in all 20 draws —
+    measured 0.005–0.059 of the record after (20–177 s of 3000; the latest, draw 18, an actuator lag before a
+    valve of S 2.1 %). So the onset's tolerance excludes no draw."""
+    late = []
+    for i in range(DRAWS):
+        rec, truth, _ = _loop(i)
+        first, _ = shows(i)
+        assert first >= truth["onset"]
+        late.append((first - truth["onset"]) / (rec.t[-1] - rec.t[0]))
+    assert max(late) <= ONSET_TOL
+
+
+@pytest.mark.slow
+def test_the_stem_reverses_after_the_onset_at_least_twice_in_all_but_two_draws():
+    """What the part after the onset holds to size S by (:func:`shows`): the drawn stem reverses after the onset
+    3–67 times in 18 draws of 20, once in draw 1 and never in draw 2 (a data-driven valve sticking from 71 % and
+    80 % of the record, its stem moving one way only): there S is shown once or not at all, and a diagnosis that
+    meets the property's S clause there meets it by luck. 18/20 is the property's ceiling for the size."""
+    few = [i for i in range(DRAWS) if shows(i)[1] < 2]
+    assert len(few) <= 2
+
+
+@pytest.mark.slow
+def test_an_actuator_lag_of_one_sample_on_an_integrator_is_not_told_from_a_dead_time():
+    """Why draw 14 misses with its model (an extra dead time of 1.2 s for 0.32 s, beside the valve's own 0.97 s
+    actuator lag, dt = 1 s, a pure integrator): on the draw's own loop run open-loop on its recorded OP, with
+    neither load nor friction, both the actuator lag (τ 0.90 s) and a dead time (1.23 s) explain PV by a ΔBIC of
+    about 480, less than a finding's threshold apart (measured 3). The record cannot say which of the two the
+    valve's lag is; the property counts the dead time as an extra finding."""
+    loop_, _ = draw_loop("late_onset", np.random.default_rng([SEED, 14]))
+    healthy = replace(loop_, valve=replace(loop_.valve, onset=np.inf))
+    closed, _ = simulate(healthy)
+    rec, _ = simulate(replace(healthy, manual_op=tuple(closed.op), load=()))
+    d = ve.diagnose(rec, loop_from_mapping(nominal_mapping(loop_, "late_onset")))
+    first = {r.option: r.delta_bic for r in d.explanation.ranking if r.round == 1}
+    assert first["actuator_lag"] >= DELTA_BIC and first["dead_time"] >= DELTA_BIC
+    assert abs(first["actuator_lag"] - first["dead_time"]) < DELTA_BIC
 
 
 @pytest.mark.slow
