@@ -415,6 +415,8 @@ class FixedColumns:
         self.Xw[:, ntaps:] = fixed[w0:w1]
         self.yw = kernel_array(y[w0:w1])
         self.G, self.b = normal_equations(self.Xw, self.yw)   # the fixed columns' entries; the taps' are redone
+        q = self.Xw.shape[1]
+        self._tiny = 1e-300 * np.eye(q)   # fit_filtered's guard against an exactly singular G
 
     def sse(self, z: np.ndarray, structure: LinearStructure, dt: float) -> float:
         """``fit_filtered(z, y, window, structure, dt, ...).sse`` (``structure``: this number of taps and trend)."""
@@ -427,8 +429,9 @@ class FixedColumns:
         Xw[:, :nt] = x[w0:w1]
         G, b = self.G.copy(), self.b.copy()
         normal_equations_rows(Xw, yw, nt, G, b)
-        G[np.diag_indices_from(G)] *= 1.0 + RIDGE
-        beta = np.linalg.solve(G + 1e-300 * np.eye(G.shape[0]), b)
+        for i in range(G.shape[0]):
+            G[i, i] *= 1.0 + RIDGE
+        beta = np.linalg.solve(G + self._tiny, b)
         if structure.sign * float(np.sum(beta[:nt])) < 0.0:
             return _fit_held_gain(x, self.y, self.window, replace(structure, gain=0.0), self.trend, self.extra).sse
         res = yw - Xw @ beta
@@ -561,10 +564,13 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
         y_cost, window, structure.ntaps, structure.integrating and prefilter is None,
         extra if prefilter is None else highpass(extra, prefilter))
 
+    # filter_inputs' own mean of the input (numpy's, as it computes it), once.
+    level = None if fixed is None else float(np.asarray(u1, dtype=np.float64)[:, None].mean(axis=0)[0])
+
     def sse(st: LinearStructure) -> float:
         if fixed is None:
             return sse_one(u1, y, window, st, dt, prefilter=prefilter, y_cost=y_cost, mean=u_mean)
-        z = filter_inputs(u1, st, dt)
+        z = filter_inputs(u1, st, dt, mean=level)
         return fixed.sse(z if prefilter is None else highpass(z, prefilter), st, dt)
 
     # The cost is evaluated a few hundred times per polish, so its arithmetic is spelled out in scalars
