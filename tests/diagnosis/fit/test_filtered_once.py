@@ -87,14 +87,24 @@ def test_fixed_columns_give_fit_one_sse(st, prefilter):
         assert fit_filtered(z, y_cost, window, s, DT, prefiltered=prefilter is not None, extra=extra_cost).sse == want
 
 
+POLISHED = [  # (structure, with the extra regressors): the polishes that fit_one serves
+    (LinearStructure(taus=(5.0,), delay=2.0), True),
+    (LinearStructure(taus=(5.0, 1.5), delay=2.0), True),
+    (LinearStructure(taus=(5.0,), integrating=True, delay=2.0), False),   # the ramp without a prefilter
+    (LinearStructure(taus=(5.0,), delay=2.0, gain=0.5), False),
+]
+
+
 @pytest.mark.parametrize("prefilter", [None, 0.8])
-def test_polish_with_extra_visits_what_fit_one_from_scratch_visits(prefilter, monkeypatch):
-    """A polish with extra regressors ends where one whose every evaluation fits from scratch ends: the same
-    structure and SSE, to the bit (the same costs, so the same simplex steps)."""
+@pytest.mark.parametrize("st, with_extra", POLISHED, ids=["extra", "extra-2taps", "integrating", "held-gain"])
+def test_polish_visits_what_fit_one_from_scratch_visits(st, with_extra, prefilter, monkeypatch):
+    """A polish that fit_one serves (extra regressors, an integrator's ramp, a held gain) ends where one whose
+    every evaluation fits from scratch ends: the same structure and SSE, to the bit (the same costs, so the same
+    simplex steps)."""
     flow, y, extra = _loop(2)
     window = (40, 900)
-    st = LinearStructure(taus=(5.0,), delay=2.0)
-    kw = dict(free_delay=True, delay_bounds=(0.0, 10.0), prefilter=prefilter, extra=extra, max_evals=60)
+    kw = dict(free_delay=True, delay_bounds=(0.0, 10.0), prefilter=prefilter, extra=extra if with_extra else None,
+              max_evals=60)
     got = polish(flow, y, window, st, DT, **kw)
 
     class FromScratch:
@@ -143,3 +153,12 @@ def test_output_rows_sharing_their_filtering_score_as_alone(prefilter):
         for filtered in (None, shared, stale):
             assert backfit_sse(flow, y, window, st, DT, cand, row, ctx, prefilter=prefilter, delays=delays,
                                filtered=filtered) == want
+
+
+@pytest.mark.parametrize("st", STRUCTURES[:4], ids=["lag", "fractional", "two-lags", "integrating"])
+def test_filter_inputs_given_its_own_mean(st):
+    """The input's mean computed once (as filter_inputs computes it) filters to the same bits as leaving it
+    to filter_inputs at every call."""
+    flow, _, _ = _loop(5)
+    level = float(np.asarray(flow, dtype=np.float64)[:, None].mean(axis=0)[0])
+    assert np.array_equal(filter_inputs(flow, st, DT, mean=level), filter_inputs(flow, st, DT))

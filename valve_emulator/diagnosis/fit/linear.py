@@ -557,11 +557,13 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     u1 = kernel_array(u)
     u_mean = column_mean(u1) if u1.ndim == 1 else None   # the same for every evaluation
 
-    # With extra regressors every evaluation is fit_one's: y and the regressors prefiltered once here, and the
-    # normal equations of the columns that do not depend on the poles searched made once (FixedColumns); only
-    # the input's filter and its taps' rows are redone. The same numbers.
-    fixed = None if extra is None else FixedColumns(
-        y_cost, window, structure.ntaps, structure.integrating and prefilter is None,
+    # Where sse_one's compiled pass does not apply (extra regressors, an integrator's unfiltered ramps, a held
+    # gain) every evaluation is fit_one's: y and the regressors prefiltered once here, and the normal equations
+    # of the columns that do not depend on the poles searched made once (FixedColumns); only the input's filter
+    # and its taps' rows are redone. The same numbers.
+    trend = structure.integrating and prefilter is None
+    fixed = None if extra is None and not trend and structure.gain is None else FixedColumns(
+        y_cost, window, structure.ntaps, trend, None if extra is None else
         extra if prefilter is None else highpass(extra, prefilter))
 
     # filter_inputs' own mean of the input (numpy's, as it computes it), once.
