@@ -18,16 +18,7 @@ from valve_emulator.diagnosis.candidates.base import ChainContext
 from valve_emulator.diagnosis.candidates.disturbance import Disturbance
 from valve_emulator.diagnosis.fit import linear
 from valve_emulator.diagnosis.fit.backfit import Filtered, backfit_sse
-from valve_emulator.diagnosis.fit.linear import (
-    FixedColumns,
-    LinearStructure,
-    delay_grid_sse,
-    filter_inputs,
-    fit_filtered,
-    fit_one,
-    highpass,
-    polish,
-)
+from valve_emulator.diagnosis.fit.linear import FixedColumns, LinearStructure, fit_filtered, fit_one, polish
 from valve_emulator.diagnosis.fit.linear_kernels import normal_equations, normal_equations_rows
 
 DT = 1.0
@@ -75,13 +66,13 @@ def test_normal_equations_rows_completes_the_same_bits():
 def test_fixed_columns_give_fit_one_sse(st, prefilter):
     flow, y, extra = _loop(1)
     window = (40, 900)
-    y_cost = y if prefilter is None else highpass(y, prefilter)
-    extra_cost = extra if prefilter is None else highpass(extra, prefilter)
+    y_cost = y if prefilter is None else linear.highpass(y, prefilter)
+    extra_cost = extra if prefilter is None else linear.highpass(extra, prefilter)
     fixed = FixedColumns(y_cost, window, st.ntaps, st.integrating and prefilter is None, extra_cost)
     for delay in (st.delay, st.delay + 1.7, 0.0):        # one instance, many evaluations
         s = replace(st, delay=delay)
-        z = filter_inputs(flow, s, DT)
-        z = z if prefilter is None else highpass(z, prefilter)
+        z = linear.filter_inputs(flow, s, DT)
+        z = z if prefilter is None else linear.highpass(z, prefilter)
         want = fit_one(flow, y, window, s, DT, prefilter=prefilter, extra=extra).sse
         assert fixed.sse(z, s, DT) == want
         assert fit_filtered(z, y_cost, window, s, DT, prefiltered=prefilter is not None, extra=extra_cost).sse == want
@@ -124,12 +115,12 @@ def test_polish_visits_what_fit_one_from_scratch_visits(st, with_extra, prefilte
 def _reference_backfit_sse(flow, y, window, st, dt, extra, prefilter, delays) -> float:
     """The quick backfit's SSE with extra regressors as written before the rows shared their filtering: the
     dead time chosen on the filtered flow and target cleared of the regressors, then fit_one from scratch."""
-    z = filter_inputs(flow[:, None], st, dt)
+    z = linear.filter_inputs(flow[:, None], st, dt)
     target, ex = y, extra
     if prefilter is not None:
-        z, target, ex = highpass(z, prefilter), highpass(y, prefilter), highpass(extra, prefilter)
+        z, target, ex = linear.highpass(z, prefilter), linear.highpass(y, prefilter), linear.highpass(extra, prefilter)
     clear = lambda x: x - ex @ np.linalg.lstsq(ex, x, rcond=None)[0]  # noqa: E731
-    sse = delay_grid_sse(clear(z), clear(target), window, delays, st, prefiltered=prefilter is not None)[0]
+    sse = linear.delay_grid_sse(clear(z), clear(target), window, delays, st, prefiltered=prefilter is not None)[0]
     best = replace(st, delay=float(delays[int(np.argmin(sse))]) * dt)
     return fit_one(flow, y, window, best, dt, prefilter=prefilter, extra=extra).sse
 
@@ -161,4 +152,4 @@ def test_filter_inputs_given_its_own_mean(st):
     to filter_inputs at every call."""
     flow, _, _ = _loop(5)
     level = float(np.asarray(flow, dtype=np.float64)[:, None].mean(axis=0)[0])
-    assert np.array_equal(filter_inputs(flow, st, DT, mean=level), filter_inputs(flow, st, DT))
+    assert np.array_equal(linear.filter_inputs(flow, st, DT, mean=level), linear.filter_inputs(flow, st, DT))
