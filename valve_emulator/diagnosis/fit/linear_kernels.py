@@ -548,17 +548,16 @@ def normal_equations_rows(X, y, rows, G, b):  # pragma: no cover - compiled
     :func:`normal_equations`, so the result is the same to the bit; a least-squares fit whose other columns (an
     offset, a ramp, extra regressors) stay the same over many fits (a polish) recomputes only its taps' rows."""
     T, q = X.shape
-    for i in range(rows):
-        b[i] = 0.0
+    for i in range(rows):   # row by row: each entry still sums its products over the samples in time order
         for j in range(i, q):
             G[i, j] = 0.0
-    for k in range(T):
-        yk = y[k]
-        for i in range(rows):
+        bi = 0.0
+        for k in range(T):
             xi = X[k, i]
-            b[i] += xi * yk
+            bi += xi * y[k]
             for j in range(i, q):
                 G[i, j] += xi * X[k, j]
-    for i in range(q):
+        b[i] = bi
+    for i in range(1, q):
         for j in range(i):
             G[i, j] = G[j, i]
