@@ -29,6 +29,7 @@ follows each acceptance re-fits the earlier pieces with the new one in place.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -38,13 +39,14 @@ from valve_emulator.diagnosis.fit.linear import (
     LinearStructure,
     delay_grid_sse,
     filter_inputs,
+    fit_filtered,
     fit_one,
     highpass,
     input_grid_sse,
     polish,
 )
 
-__all__ = ["ITERATIONS", "Backfit", "backfit", "backfit_sse"]
+__all__ = ["ITERATIONS", "Backfit", "Filtered", "backfit", "backfit_sse"]
 
 #: Backfitting rounds with the linear structure held (then one polish and a final round).
 ITERATIONS = 4
@@ -72,6 +74,36 @@ class Backfit:
     y_hat: np.ndarray
 
 
+class Filtered:
+    """The flow a backfit drives the linear part with, filtered by the structure's poles (:func:`~valve_emulator.
+    diagnosis.fit.linear.filter_inputs`), and its target, both in the cost domain (``prefilter``): what
+    :func:`~valve_emulator.diagnosis.fit.linear.fit_one` makes of them at every call. Neither depends on the dead
+    time nor on an output candidate's row, so the rows of one grid (:meth:`~valve_emulator.diagnosis.fit.fitter.
+    Fitter.output_sse`) share one, each made once, when first asked for."""
+
+    def __init__(self, flow: np.ndarray, y: np.ndarray, structure: LinearStructure, dt: float,
+                 prefilter: float | None) -> None:
+        self.flow, self.y, self.structure, self.dt, self.prefilter = flow, y, structure, dt, prefilter
+
+    @cached_property
+    def z(self) -> np.ndarray:
+        """(T,) the filtered flow."""
+        z = filter_inputs(self.flow, self.structure, self.dt)
+        return z if self.prefilter is None else highpass(z, self.prefilter)
+
+    @cached_property
+    def target(self) -> np.ndarray:
+        """(T,) the target."""
+        return self.y if self.prefilter is None else highpass(self.y, self.prefilter)
+
+    def matches(self, flow: np.ndarray, y: np.ndarray, structure: LinearStructure, dt: float,
+                prefilter: float | None) -> bool:
+        """Whether these are the arrays and the poles it was made for."""
+        st, mine = structure, self.structure
+        return (flow is self.flow and y is self.y and dt == self.dt and prefilter == self.prefilter
+                and (st.taus, st.integrating, st.fixed_poles) == (mine.taus, mine.integrating, mine.fixed_poles))
+
+
 def _project_out(x: np.ndarray, basis: np.ndarray) -> np.ndarray:
     """``x`` (T,) or (T, n) minus its least-squares projection on the columns of ``basis`` (T, m)."""
     coef, *_ = np.linalg.lstsq(basis, x, rcond=None)
@@ -89,13 +121,17 @@ def _best_delay(flow: np.ndarray, target: np.ndarray, window: tuple[int, int], s
         y = target if prefilter is None else highpass(target, prefilter)
         sse = input_grid_sse(flow, y, window, delays, st, dt, prefilter=prefilter)[0]
         return replace(st, delay=float(delays[int(np.argmin(sse))]) * dt)
-    z = filter_inputs(flow[:, None], st, dt)
-    y = target
-    if prefilter is not None:
-        z, y, extra = highpass(z, prefilter), highpass(target, prefilter), highpass(extra, prefilter)
-    z, y = _project_out(z, extra), _project_out(y, extra)
-    sse = delay_grid_sse(z, y, window, delays, st, prefiltered=prefilter is not None)[0]
-    return replace(st, delay=float(delays[int(np.argmin(sse))]) * dt)
+    filtered = Filtered(flow, target, st, dt, prefilter)
+    return _best_delay_joint(filtered, window, st, delays,
+                             extra if prefilter is None else highpass(extra, prefilter))
+
+
+def _best_delay_joint(filtered: Filtered, window: tuple[int, int], st: LinearStructure, delays: np.ndarray,
+                      extra: np.ndarray) -> LinearStructure:
+    """:func:`_best_delay` with ``extra`` regressors (in the cost domain), from the filtered flow and target."""
+    z, y = _project_out(filtered.z[:, None], extra), _project_out(filtered.target, extra)
+    sse = delay_grid_sse(z, y, window, delays, st, prefiltered=filtered.prefilter is not None)[0]
+    return replace(st, delay=float(delays[int(np.argmin(sse))]) * filtered.dt)
 
 
 def backfit(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float,
@@ -128,18 +164,27 @@ def backfit(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], structure:
 
 def backfit_sse(flow: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float,
                 cand: Candidate, params: np.ndarray, ctx: ChainContext, *, prefilter: float | None = None,
-                iterations: int = ITERATIONS, delays: np.ndarray | None = None) -> float:
+                iterations: int = ITERATIONS, delays: np.ndarray | None = None,
+                filtered: Filtered | None = None) -> float:
     """``backfit(...).fit.sse`` of the quick form (no polish): what a grid row of an output candidate scores.
 
     The same steps up to that fit, without those only a model needs (the fit in the PV domain, the predictions,
-    the candidate's final adjustment): a search scores dozens of rows and keeps one.
+    the candidate's final adjustment): a search scores dozens of rows and keeps one. ``filtered``: the flow and
+    ``y`` filtered for ``structure`` (:class:`Filtered`), shared by the rows of a grid.
     """
     ctx = replace(ctx, window=tuple(window))
     extra = cand.regressors(params, ctx)
-    if delays is not None:
-        structure = _best_delay(flow, y, window, structure, dt, delays, prefilter, extra)
     if extra is not None:
-        return fit_one(flow, y, window, structure, dt, prefilter=prefilter, extra=extra).sse
+        # Additive regressors: one least-squares problem, the flow and y filtered once for both fits.
+        if filtered is None or not filtered.matches(flow, y, structure, dt, prefilter):
+            filtered = Filtered(flow, y, structure, dt, prefilter)
+        extra = extra if prefilter is None else highpass(extra, prefilter)
+        if delays is not None:
+            structure = _best_delay_joint(filtered, window, structure, delays, extra)
+        return fit_filtered(filtered.z, filtered.target, window, structure, dt, prefiltered=prefilter is not None,
+                            extra=extra).sse
+    if delays is not None:
+        structure = _best_delay(flow, y, window, structure, dt, delays, prefilter)
     level, target, params, structure = _rounds(flow, y, window, structure, dt, cand, params, ctx, iterations,
                                                delays, prefilter)
     return fit_one(flow, target, window, structure, dt, prefilter=prefilter).sse

@@ -34,7 +34,7 @@ import numpy as np
 
 from valve_emulator.diagnosis._threads import run_each
 from valve_emulator.diagnosis.candidates.base import Candidate, Kind
-from valve_emulator.diagnosis.fit.backfit import backfit, backfit_sse
+from valve_emulator.diagnosis.fit.backfit import Filtered, backfit, backfit_sse
 from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.cost import log_sse, relative_cost
 from valve_emulator.diagnosis.fit.linear import LinearFit, LinearStructure, split_delay, sse_one
@@ -384,9 +384,11 @@ class Fitter:
         st = model.fit.structure if st is None else st
         # The rows' backfits are independent, and on a long record mostly numpy's and the kernels' work on whole
         # columns (which release the GIL): they share the kernels' threads.
+        # The flow and PV filtered for ``st`` once for every row (a row with regressors of its own asks for them).
+        shared = Filtered(model.flow, self.p.y, st, self.p.dt, self.scorer.lam)
         return np.array(run_each([functools.partial(backfit_sse, model.flow, self.p.y, self.p.train, st, self.p.dt,
                                                     cand, r, ctx, prefilter=self.scorer.lam, iterations=2,
-                                                    delays=delays) for r in rows]))
+                                                    delays=delays, filtered=shared) for r in rows]))
 
     def output_options(self, model: Model, cand: Candidate) -> list[Option]:
         """The option that adds an ``output`` candidate: its grid by quick backfits with the model's linear

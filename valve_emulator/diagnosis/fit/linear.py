@@ -45,7 +45,14 @@ import numba
 import numpy as np
 
 from valve_emulator.diagnosis.fit.cost import log_sse
-from valve_emulator.diagnosis.fit.linear_kernels import RIDGE, column_mean, column_sse, grid_sse, normal_equations
+from valve_emulator.diagnosis.fit.linear_kernels import (
+    RIDGE,
+    column_mean,
+    column_sse,
+    grid_sse,
+    normal_equations,
+    normal_equations_rows,
+)
 from valve_emulator.diagnosis.fit.simplex import nelder_mead
 from valve_emulator.physics._arrays import kernel_array
 
@@ -62,6 +69,7 @@ __all__ = [
     "split_delay",
     "delayed_regressors",
     "fit_one",
+    "fit_filtered",
     "on_pv",
     "sse_one",
     "polish",
@@ -356,8 +364,19 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
     if prefilter is not None:
         z, y = highpass(z, prefilter), highpass(y, prefilter)
         extra = None if extra is None else highpass(extra, prefilter)
+    return fit_filtered(z, y, window, structure, dt, prefiltered=prefilter is not None, extra=extra)
+
+
+def fit_filtered(z: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure, dt: float, *,
+                 prefiltered: bool, extra: np.ndarray | None = None) -> LinearFit:
+    """:func:`fit_one` from its filtered input ``z`` (T,) — :func:`filter_inputs` of the input, then
+    :func:`highpass` when ``prefiltered`` — and ``y`` and ``extra`` in the same cost domain: the same numbers.
+
+    The filtered input depends on the structure's poles, not on its dead time, and the prefiltered ``y`` and
+    ``extra`` on neither, so callers that fit one input or one target many times (a polish with extra
+    regressors, an output candidate's grid rows) filter them once."""
     x = delayed_regressors(z, structure.delay / dt, structure.ntaps)
-    trend = structure.integrating and prefilter is None
+    trend = structure.integrating and not prefiltered
     if structure.gain is not None:
         return _fit_held_gain(x, y, window, structure, trend, extra)
     X = _regressors(x, trend, extra)
@@ -374,6 +393,49 @@ def fit_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Li
     res = yw - Xw @ beta
     return LinearFit(structure, beta[:nt].copy(), float(beta[nt]), float(beta[nt + 1]) if trend else 0.0,
                      float(res @ res), w1 - w0)
+
+
+class FixedColumns:
+    """:func:`fit_filtered`'s SSE for many filtered inputs against one target ``y`` on one window, with the same
+    number of taps, trend and ``extra`` regressors: a polish with extra regressors, where only the filtered input
+    changes from one evaluation to the next.
+
+    The columns that do not depend on it (the offset, the ramp, the extra regressors) are laid out once in the
+    window's regressor matrix, and their normal equations computed once; each evaluation writes its taps into
+    the matrix and computes their rows only (:func:`~valve_emulator.diagnosis.fit.linear_kernels.
+    normal_equations_rows`). Every number is :func:`fit_filtered`'s, to the bit. One instance serves one thread.
+    """
+
+    def __init__(self, y: np.ndarray, window: tuple[int, int], ntaps: int, trend: bool, extra: np.ndarray | None
+                 ) -> None:
+        w0, w1 = window
+        fixed = _regressors(np.zeros((y.shape[0], 0)), trend, extra)
+        self.y, self.window, self.ntaps, self.trend, self.extra = y, window, ntaps, trend, extra
+        self.Xw = np.zeros((w1 - w0, ntaps + fixed.shape[1]))
+        self.Xw[:, ntaps:] = fixed[w0:w1]
+        self.yw = kernel_array(y[w0:w1])
+        self.G, self.b = normal_equations(self.Xw, self.yw)   # the fixed columns' entries; the taps' are redone
+        q = self.Xw.shape[1]
+        self._tiny = 1e-300 * np.eye(q)   # fit_filtered's guard against an exactly singular G
+
+    def sse(self, z: np.ndarray, structure: LinearStructure, dt: float) -> float:
+        """``fit_filtered(z, y, window, structure, dt, ...).sse`` (``structure``: this number of taps and trend)."""
+        nt = self.ntaps
+        x = delayed_regressors(z, structure.delay / dt, nt)
+        if structure.gain is not None:
+            return _fit_held_gain(x, self.y, self.window, structure, self.trend, self.extra).sse
+        w0, w1 = self.window
+        Xw, yw = self.Xw, self.yw
+        Xw[:, :nt] = x[w0:w1]
+        G, b = self.G.copy(), self.b.copy()
+        normal_equations_rows(Xw, yw, nt, G, b)
+        for i in range(G.shape[0]):
+            G[i, i] *= 1.0 + RIDGE
+        beta = np.linalg.solve(G + self._tiny, b)
+        if structure.sign * float(np.sum(beta[:nt])) < 0.0:
+            return _fit_held_gain(x, self.y, self.window, replace(structure, gain=0.0), self.trend, self.extra).sse
+        res = yw - Xw @ beta
+        return float(res @ res)
 
 
 def on_pv(fit: LinearFit, u: np.ndarray, y: np.ndarray, window: tuple[int, int], dt: float) -> LinearFit:
@@ -495,8 +557,23 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     u1 = kernel_array(u)
     u_mean = column_mean(u1) if u1.ndim == 1 else None   # the same for every evaluation
 
+    # Where sse_one's compiled pass does not apply (extra regressors, an integrator's unfiltered ramps, a held
+    # gain) every evaluation is fit_one's: y and the regressors prefiltered once here, and the normal equations
+    # of the columns that do not depend on the poles searched made once (FixedColumns); only the input's filter
+    # and its taps' rows are redone. The same numbers.
+    trend = structure.integrating and prefilter is None
+    fixed = None if extra is None and not trend and structure.gain is None else FixedColumns(
+        y_cost, window, structure.ntaps, trend, None if extra is None else
+        extra if prefilter is None else highpass(extra, prefilter))
+
+    # filter_inputs' own mean of the input (numpy's, as it computes it), once.
+    level = None if fixed is None else float(np.asarray(u1, dtype=np.float64)[:, None].mean(axis=0)[0])
+
     def sse(st: LinearStructure) -> float:
-        return sse_one(u1, y, window, st, dt, prefilter=prefilter, y_cost=y_cost, extra=extra, mean=u_mean)
+        if fixed is None:
+            return sse_one(u1, y, window, st, dt, prefilter=prefilter, y_cost=y_cost, mean=u_mean)
+        z = filter_inputs(u1, st, dt, mean=level)
+        return fixed.sse(z if prefilter is None else highpass(z, prefilter), st, dt)
 
     # The cost is evaluated a few hundred times per polish, so its arithmetic is spelled out in scalars
     # (min/max for np.clip, the constructor for dataclasses.replace, a sorted pair for np.sort): the same

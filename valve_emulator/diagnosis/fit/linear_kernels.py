@@ -32,7 +32,8 @@ import numpy as np
 from valve_emulator.diagnosis._threads import run_split, workers_for
 from valve_emulator.physics._arrays import kernel_array
 
-__all__ = ["RIDGE", "column_mean", "column_means", "column_sse", "grid_sse", "normal_equations"]
+__all__ = ["RIDGE", "column_mean", "column_means", "column_sse", "grid_sse", "normal_equations",
+           "normal_equations_rows"]
 
 # Relative ridge on the normal equations: keeps a constant (uninformative) candidate column solvable
 # without changing any well-posed fit beyond rounding.
@@ -537,3 +538,26 @@ def normal_equations(X, y):  # pragma: no cover - compiled
         for j in range(i):
             G[i, j] = G[j, i]
     return G, b
+
+
+@numba.njit(cache=True, nogil=True)
+def normal_equations_rows(X, y, rows, G, b):  # pragma: no cover - compiled
+    """:func:`normal_equations` of ``X`` (T, q) and ``y`` where only the first ``rows`` columns of ``X`` are new:
+    ``G`` (q, q) and ``b`` (q,) hold the other columns' entries (from an earlier call on the same columns) and are
+    completed in place. Each entry is its own sum over the samples in time order, the same products as
+    :func:`normal_equations`, so the result is the same to the bit; a least-squares fit whose other columns (an
+    offset, a ramp, extra regressors) stay the same over many fits (a polish) recomputes only its taps' rows."""
+    T, q = X.shape
+    for i in range(rows):   # row by row: each entry still sums its products over the samples in time order
+        for j in range(i, q):
+            G[i, j] = 0.0
+        bi = 0.0
+        for k in range(T):
+            xi = X[k, i]
+            bi += xi * y[k]
+            for j in range(i, q):
+                G[i, j] += xi * X[k, j]
+        b[i] = bi
+    for i in range(1, q):
+        for j in range(i):
+            G[i, j] = G[j, i]
