@@ -383,8 +383,7 @@ def fit_filtered(z: np.ndarray, y: np.ndarray, window: tuple[int, int], structur
     w0, w1 = window
     Xw, yw = kernel_array(X[w0:w1]), kernel_array(y[w0:w1])
     G, b = normal_equations(Xw, yw)
-    G[np.diag_indices_from(G)] *= 1.0 + RIDGE
-    beta = np.linalg.solve(G + 1e-300 * np.eye(G.shape[0]), b)
+    beta = _ridge_solve(G, b, _singular_guard(G.shape[0]))
     nt = structure.ntaps
     if structure.sign * float(np.sum(beta[:nt])) < 0.0:
         # The gain has the sign the controller's action forbids: the constrained optimum has gain 0.
@@ -393,6 +392,19 @@ def fit_filtered(z: np.ndarray, y: np.ndarray, window: tuple[int, int], structur
     res = yw - Xw @ beta
     return LinearFit(structure, beta[:nt].copy(), float(beta[nt]), float(beta[nt + 1]) if trend else 0.0,
                      float(res @ res), w1 - w0)
+
+
+def _singular_guard(q: int) -> np.ndarray:
+    """What :func:`_ridge_solve` adds to a (q, q) G so that an exactly singular one still solves."""
+    return 1e-300 * np.eye(q)
+
+
+def _ridge_solve(G: np.ndarray, b: np.ndarray, guard: np.ndarray) -> np.ndarray:
+    """The normal equations ``G β = b`` solved with the relative :data:`RIDGE` on G's diagonal (in place) and
+    ``guard`` (:func:`_singular_guard`) added: every least-squares fit of the linear part solves this way."""
+    for i in range(G.shape[0]):
+        G[i, i] *= 1.0 + RIDGE
+    return np.linalg.solve(G + guard, b)
 
 
 class FixedColumns:
@@ -416,7 +428,7 @@ class FixedColumns:
         self.yw = kernel_array(y[w0:w1])
         self.G, self.b = normal_equations(self.Xw, self.yw)   # the fixed columns' entries; the taps' are redone
         q = self.Xw.shape[1]
-        self._tiny = 1e-300 * np.eye(q)   # fit_filtered's guard against an exactly singular G
+        self._guard = _singular_guard(q)
 
     def sse(self, z: np.ndarray, structure: LinearStructure, dt: float) -> float:
         """``fit_filtered(z, y, window, structure, dt, ...).sse`` (``structure``: this number of taps and trend)."""
@@ -429,9 +441,7 @@ class FixedColumns:
         Xw[:, :nt] = x[w0:w1]
         G, b = self.G.copy(), self.b.copy()
         normal_equations_rows(Xw, yw, nt, G, b)
-        for i in range(G.shape[0]):
-            G[i, i] *= 1.0 + RIDGE
-        beta = np.linalg.solve(G + self._tiny, b)
+        beta = _ridge_solve(G, b, self._guard)
         if structure.sign * float(np.sum(beta[:nt])) < 0.0:
             return _fit_held_gain(x, self.y, self.window, replace(structure, gain=0.0), self.trend, self.extra).sse
         res = yw - Xw @ beta
