@@ -61,7 +61,7 @@ import logging
 import math
 import struct
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -317,24 +317,39 @@ def first_due(now: float, interval: float, index: int) -> float:
     return now + interval * ((index * _GOLDEN) % 1.0)
 
 
+class _GroupState:
+    """What the publisher keeps of a group of monitored items from tick to tick: when its next sample is due (the
+    event loop's clock; None: not sampled yet) and the value last handed to it (None: none yet)."""
+
+    __slots__ = ("due", "sent")
+
+    def __init__(self) -> None:
+        self.due: float | None = None
+        self.sent: Any = None
+
+
 @dataclass(frozen=True)
 class _Group:
     """The monitored items of one variable that share a sampling interval (s; 0: every tick): their data-change
-    callbacks' handles, and ``key`` (variable, interval) under which the group's due time and last value are kept."""
+    callbacks' handles, ``key`` (variable, interval) under which the group's :class:`_GroupState` is kept when the
+    list of monitored variables is rebuilt, and that state."""
 
     key: tuple[int, float]
     interval: float
     handles: tuple[int, ...]
+    state: _GroupState = field(default_factory=_GroupState, compare=False)
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Watch:
     """A monitored variable: its value attribute (whose data-change callbacks are the monitored items), its
-    sampler and its monitored items grouped by sampling interval."""
+    sampler, its monitored items grouped by sampling interval, and the earliest due time of its groups (the
+    publisher's pass skips the variable until then: at 1 s sampling nine ticks in ten; -inf: look at it)."""
 
     attval: Any
     sample: Sampler
     groups: tuple[_Group, ...]
+    soonest: float = -math.inf
 
 
 _STATUS_VALUE = ua.DataChangeTrigger.StatusValue
@@ -488,6 +503,8 @@ class OpcUaServer:
         if isinstance(source, Device):
             source = LocalSource(source)
         self.source, self.loops, self.host, self.port = source, list(loops), host, int(port)
+        #: each loop's byte offset in the register image, as Python ints (a numpy scalar's int(): 1 µs a value)
+        self._starts = [int(offset) for offset in source.offsets]
         #: seconds of PV, OP, SP and MV kept for HistoryRead (None: no history), in SQLite at history_path
         self.history, self.history_path = history, history_path
         self.publish_budget, self.yield_while_sampling = publish_budget, yield_while_sampling
@@ -501,10 +518,9 @@ class OpcUaServer:
         #: every node id this adapter created (for BadNotWritable on the others)
         self.node_ids: set[ua.NodeId] = set()
         self._monitored: list[tuple[Any, int, Sampler]] = []
-        #: per group of monitored items (:class:`_Group`): the value last handed to it and when its next sample
-        #: is due (the event loop's clock)
-        self._sent: dict[tuple[int, float], Any] = {}
-        self._due: dict[tuple[int, float], float] = {}
+        #: per group of monitored items (:class:`_Group`), by its key: the value last handed to it and when its next
+        #: sample is due
+        self._states: dict[tuple[int, float], _GroupState] = {}
         #: the seconds handing one variable's value to its monitored items takes (a running mean)
         self._hand_cost = 20e-6
         #: data-change callback handle -> the sampling interval (s) its monitored item is honoured at
@@ -541,7 +557,7 @@ class OpcUaServer:
     # --- values -----------------------------------------------------------------------------------------
 
     def _words(self, index: int, reg: Register) -> Sequence[int]:
-        start = int(self.source.offsets[index]) + 2 * reg.address
+        start = self._starts[index] + 2 * reg.address
         raw = self.source.image[start:start + 2 * reg.width]
         return [int.from_bytes(raw[k:k + 2], "big") for k in range(0, len(raw), 2)]
 
@@ -550,7 +566,7 @@ class OpcUaServer:
         the double the tick computed where the image holds it as float32 (see :meth:`_double`)."""
         if var.read.type is DataType.FLOAT32:   # what a subscription samples most: straight from the image's bytes
             source = self.source
-            start = int(source.offsets[index]) + 2 * var.read.address
+            start = self._starts[index] + 2 * var.read.address
             high, low = _WORDS.unpack_from(source.image, start)
             if source.scaling.word_order is CDAB:
                 high, low = low, high
@@ -580,11 +596,13 @@ class OpcUaServer:
                     return computed
         return float(str(np.float32(image)))
 
-    def _data_value(self, value: Any, variant: ua.VariantType, status: ua.StatusCode | None = None) -> ua.DataValue:
+    def _data_value(self, value: Any, variant: ua.VariantType, status: ua.StatusCode | None = None,
+                    stamps: tuple[datetime, datetime] | None = None) -> ua.DataValue:
         """The DataValue of a read or a notification: SourceTimestamp the tick that made the value, ServerTimestamp
-        now."""
+        now; ``stamps``: the two, taken once for a publisher's pass over a tick's values (sampled together)."""
+        source_ts, server_ts = stamps or (self.tick_clock.stamp(), datetime.now(UTC))
         return _SharedDataValue(Value=ua.Variant(value, variant), StatusCode=status or _GOOD,
-                                SourceTimestamp=self.tick_clock.stamp(), ServerTimestamp=datetime.now(UTC))
+                                SourceTimestamp=source_ts, ServerTimestamp=server_ts)
 
     def _sampler(self, index: int, var: Variable, eu_range: tuple[float, float] | None) -> Sampler:
         """The sampler of an analog or integer variable; a value outside ``eu_range`` is Uncertain."""
@@ -888,6 +906,8 @@ class OpcUaServer:
         active, handing, done = self._active, [], 0
         clock = asyncio.get_running_loop().time
         start = clock()
+        slack = period / 2
+        stamps = (self.tick_clock.stamp(), datetime.now(UTC))   # one sample of the tick: one pair of timestamps
         while done < len(active):
             if done and done % YIELD_EVERY == 0:
                 if self.yield_while_sampling:
@@ -897,7 +917,9 @@ class OpcUaServer:
                     break
             place, watch = at, active[at]
             at, done = (at + 1) % len(active), done + 1
-            changed = self._changed(watch, due, period / 2)
+            if due < watch.soonest - slack:   # none of its groups due: not even a call
+                continue
+            changed = self._changed(watch, due, slack, stamps)
             if changed:
                 handing.append((place, watch, *changed))
         return handing, at
@@ -929,26 +951,34 @@ class OpcUaServer:
                                in itertools.groupby(handing, key=lambda item: item[0] // HAND_CHUNK)))
         self._hand_cost += 0.2 * (spent[0] / len(handing) - self._hand_cost)
 
-    def _changed(self, watch: _Watch, now: float, slack: float) -> tuple[ua.DataValue, list[_Group]] | None:
+    def _changed(self, watch: _Watch, now: float, slack: float,
+                 stamps: tuple[datetime, datetime]) -> tuple[ua.DataValue, list[_Group]] | None:
         """The value of ``watch`` and its groups due at ``now`` (``slack`` seconds early counts) that have not had
         it yet (their due times and last values moved on), or None: most variables on most ticks, which then cost
-        no coroutine."""
+        no coroutine. ``stamps``: the pass's SourceTimestamp and ServerTimestamp."""
         sampled = None
         groups = []
+        soonest = math.inf
         for group in watch.groups:
-            due = self._due.get(group.key)
+            state = group.state
+            due = state.due
             if due is None:
-                due = self._due[group.key] = first_due(now, group.interval, group.key[0])
+                due = state.due = first_due(now, group.interval, group.key[0])
             if now < due - slack:
+                if due < soonest:
+                    soonest = due
                 continue
-            self._due[group.key] = next_due(due, now, group.interval)
+            due = state.due = next_due(due, now, group.interval)
+            if due < soonest:
+                soonest = due
             if sampled is None:
                 sampled = watch.sample()
-            if self._sent.get(group.key) == sampled[0]:   # unchanged: no DataValue made
+            if state.sent == sampled[0]:   # unchanged: no DataValue made
                 continue
-            self._sent[group.key] = sampled[0]
+            state.sent = sampled[0]
             groups.append(group)
-        return (self._data_value(*sampled), groups) if groups else None
+        watch.soonest = soonest
+        return (self._data_value(*sampled, stamps), groups) if groups else None
 
     async def _hand(self, watch: _Watch, dv: ua.DataValue, groups: list[_Group]) -> None:
         """Hand ``dv`` to the monitored items of ``groups``."""
@@ -965,20 +995,22 @@ class OpcUaServer:
                     _log.exception("OPC UA: a data-change notification failed")
 
     def _watches(self) -> list[_Watch]:
-        """The monitored variables, their items grouped by sampling interval; the due times and last values of
-        groups that no longer exist are forgotten."""
+        """The monitored variables, their items grouped by sampling interval; each group keeps its state (due time,
+        last value) under its key, and the states of groups that no longer exist are forgotten."""
         watches = []
+        states = {}
         for attval, key, sample in self._monitored:
             by_interval: dict[float, list[int]] = {}
             for handle in attval.datachange_callbacks:
                 by_interval.setdefault(self._intervals.get(handle, 0.0), []).append(handle)
             if by_interval:
-                groups = tuple(_Group((key, interval), interval, tuple(handles))
-                               for interval, handles in sorted(by_interval.items()))
-                watches.append(_Watch(attval, sample, groups))
-        keys = {group.key for watch in watches for group in watch.groups}
-        self._due = {k: v for k, v in self._due.items() if k in keys}
-        self._sent = {k: v for k, v in self._sent.items() if k in keys}
+                groups = []
+                for interval, handles in sorted(by_interval.items()):
+                    group_key = (key, interval)
+                    state = states[group_key] = self._states.get(group_key) or _GroupState()
+                    groups.append(_Group(group_key, interval, tuple(handles), state))
+                watches.append(_Watch(attval, sample, tuple(groups)))
+        self._states = states
         return watches
 
     def _sampling_requested(self, event: Any, _dispatcher: Any) -> None:
