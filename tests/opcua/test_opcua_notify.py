@@ -122,3 +122,51 @@ async def test_a_service_without_the_tables_notify_reads_gets_the_value_through_
     value = _value(7.0)
     await notify(service.datachange_callback, 5, value)
     assert handed == [(5, value)]
+
+
+async def test_whether_a_service_has_the_tables_notify_reads_is_decided_once_per_service(items, monkeypatch):
+    """The guard looks at a service's tables at its first notification, not at every one: a server hands
+    thousands of values a second to the same few services."""
+    from valve_emulator.opcua import server
+
+    internal, callbacks = items
+    looked = []
+
+    def readable(service):
+        looked.append(service)
+        return True
+
+    monkeypatch.setattr(server, "_readable", readable)
+    monkeypatch.setattr(server, "_READABLE", type(server._READABLE)())
+    ours, handle = callbacks["ours"]
+    theirs, their_handle = callbacks["asyncuas"]   # the same subscription: the same service
+    for x in (1.0, 2.0, 3.0):
+        await notify(ours, handle, _value(x))
+        await notify(theirs, their_handle, _value(x))
+    assert looked == [ours.__self__]
+    assert [n.Value.Value.Value for n in _queued(internal, ours, handle)[1]] == [3.0]
+
+
+async def test_a_service_whose_tables_notify_cannot_read_is_remembered_as_such(items, monkeypatch):
+    """A service decided unreadable at its first notification keeps getting its values through its own callback."""
+    from valve_emulator.opcua import server
+
+    internal, callbacks = items
+    ours, handle = callbacks["ours"]
+    monkeypatch.setattr(server, "_READABLE", type(server._READABLE)())
+    looked = []
+    monkeypatch.setattr(server, "_readable", lambda service: looked.append(service) or False)
+    through = []
+    original = MonitoredItemService.datachange_callback
+
+    async def counted(self, handle, dv):
+        through.append(dv)
+        await original(self, handle, dv)
+
+    monkeypatch.setattr(MonitoredItemService, "datachange_callback", counted)
+    bound = counted.__get__(ours.__self__)
+    values = [_value(x) for x in (1.0, 2.0)]
+    for value in values:
+        await notify(bound, handle, value)
+    assert through == values and looked == [ours.__self__]
+    assert [n.Value.Value.Value for n in _queued(internal, ours, handle)[1]] == [2.0]

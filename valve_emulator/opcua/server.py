@@ -60,6 +60,7 @@ import json
 import logging
 import math
 import struct
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -358,6 +359,17 @@ _SERVICE_TABLES = frozenset({"_monitored_datachange", "_monitored_items", "isub"
 _DISABLED = ua.MonitoringMode.Disabled
 
 
+#: per monitored-item service: whether :func:`notify` may read its tables (decided at its first notification;
+#: forgotten with the service, when its subscription ends)
+_READABLE: weakref.WeakKeyDictionary[Any, bool] = weakref.WeakKeyDictionary()
+
+
+def _readable(service: Any) -> bool:
+    """Whether ``service`` (a ``MonitoredItemService``) has the tables of asyncua 2.1.0's that :func:`notify`
+    reads."""
+    return vars(service).keys() >= _SERVICE_TABLES and hasattr(service, "_is_data_changed")
+
+
 async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue) -> None:
     """Hand ``dv`` to the monitored item behind the data-change ``callback`` registered under ``handle``: what
     asyncua 2.1.0's ``MonitoredItemService.datachange_callback`` does for an item without a filter, less one object.
@@ -371,10 +383,16 @@ async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue) ->
     this server never changes, :class:`_SharedDataValue`: 2 µs more), its change test (``_is_data_changed``,
     status or value, as the callback's for an item without a filter) and its subscription's queue
     (``enqueue_datachange_event``, with the item's queue size). An item with a filter (a deadband), or a callback
-    that is not that service's, goes through the callback itself; asyncua is not patched."""
-    service = getattr(callback, "__self__", None)
-    if (getattr(callback, "__func__", None) is not MonitoredItemService.datachange_callback
-            or not vars(service).keys() >= _SERVICE_TABLES or not hasattr(service, "_is_data_changed")):
+    that is not that service's, goes through the callback itself; asyncua is not patched. Whether a service is
+    the one this was written against is decided at its first notification (:func:`_readable`), not at each."""
+    if getattr(callback, "__func__", None) is not MonitoredItemService.datachange_callback:
+        await callback(handle, dv)   # not the service's callback: its own way
+        return
+    service = callback.__self__
+    readable = _READABLE.get(service)
+    if readable is None:   # the service's first notification: decided once, not at each of its notifications
+        readable = _READABLE[service] = _readable(service)
+    if not readable:
         await callback(handle, dv)   # not the service this was written against (another asyncua): its own way
         return
     mid = service._monitored_datachange[handle]
