@@ -189,8 +189,8 @@ def _chunked_publisher(order):
     publisher = OpcUaServer.__new__(OpcUaServer)
     publisher._hand_cost = 20e-6
 
-    async def hand(watch, dv, groups):
-        order.append(watch)
+    async def hand(items):
+        order.extend(watch for _, watch, _, _ in items)
 
     publisher._hand = hand
     return publisher

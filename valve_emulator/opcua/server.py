@@ -961,8 +961,7 @@ class OpcUaServer:
         async def hand_chunk(chunk: int, items: list[tuple[int, _Watch, ua.DataValue, list[_Group]]]) -> None:
             await wakeups.wait(chunk)
             start = clock()
-            for _, watch, dv, groups in items:
-                await self._hand(watch, dv, groups)
+            await self._hand(items)
             spent[0] += clock() - start
 
         await asyncio.gather(*(hand_chunk(chunk, list(items)) for chunk, items
@@ -998,19 +997,25 @@ class OpcUaServer:
         watch.soonest = soonest
         return (self._data_value(*sampled, stamps), groups) if groups else None
 
-    async def _hand(self, watch: _Watch, dv: ua.DataValue, groups: list[_Group]) -> None:
-        """Hand ``dv`` to the monitored items of ``groups``."""
-        callbacks = watch.attval.datachange_callbacks
-        for group in groups:
-            for handle in group.handles:
-                callback = callbacks.get(handle)
-                if callback is None:   # deleted since the list was built
-                    continue
-                self.notifications += 1
-                try:
-                    await notify(callback, handle, dv)
-                except Exception:   # one broken subscription must not stop the others
-                    _log.exception("OPC UA: a data-change notification failed")
+    async def _hand(self, items: list[tuple[int, _Watch, ua.DataValue, list[_Group]]]) -> None:
+        """Hand each of ``items`` (place, variable, value, groups) to the monitored items of its groups, in order and
+        without yielding between them (one coroutine for them all, not one per variable)."""
+        handed = 0
+        try:
+            for _, watch, dv, groups in items:
+                callbacks = watch.attval.datachange_callbacks
+                for group in groups:
+                    for handle in group.handles:
+                        callback = callbacks.get(handle)
+                        if callback is None:   # deleted since the list was built
+                            continue
+                        handed += 1
+                        try:
+                            await notify(callback, handle, dv)
+                        except Exception:   # one broken subscription must not stop the others
+                            _log.exception("OPC UA: a data-change notification failed")
+        finally:
+            self.notifications += handed
 
     def _watches(self) -> list[_Watch]:
         """The monitored variables, their items grouped by sampling interval; each group keeps its state (due time,
