@@ -619,7 +619,8 @@ class OpcUaServer:
         """The DataValue of a read or a notification: SourceTimestamp the tick that made the value, ServerTimestamp
         now; ``stamps``: the two, taken once for a publisher's pass over a tick's values (sampled together)."""
         source_ts, server_ts = stamps or (self.tick_clock.stamp(), datetime.now(UTC))
-        return _SharedDataValue(Value=ua.Variant(value, variant), StatusCode=status or _GOOD,
+        # a scalar (is_array False, positionally): the Variant skips its guesses of a list's shape (2.3 -> 1.5 µs)
+        return _SharedDataValue(Value=ua.Variant(value, variant, None, False), StatusCode=status or _GOOD,
                                 SourceTimestamp=source_ts, ServerTimestamp=server_ts)
 
     def _sampler(self, index: int, var: Variable, eu_range: tuple[float, float] | None) -> Sampler:
