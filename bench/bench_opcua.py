@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import contextlib
 import multiprocessing as mp
 import os
@@ -62,13 +63,15 @@ WATCHDOG = 5.0
 class Subscribing:
     """What each OPC UA client subscribes to: ``variables`` of every loop, one subscription publishing every
     ``publish_ms``, each item sampled every ``sampling_ms`` with a queue of ``queue`` values; the client keeps
-    ``requests`` Publish requests at the server."""
+    ``requests`` Publish requests at the server; ``trace``: each client keeps every pv/op value's SourceTimestamp and
+    the publish it came in, and reports what it missed (:func:`missed`)."""
 
     variables: tuple[str, ...]
     publish_ms: float
     sampling_ms: float
     queue: int
     requests: int = 1
+    trace: bool = False
 
 
 async def keep_publish_requests(client, subscription, extra: int) -> None:
@@ -124,7 +127,7 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
     for name in ("pymodbus", "asyncua"):
         logging.getLogger(name).setLevel(logging.ERROR)
 
-    async def session(count, lost, ready, responses):
+    async def session(count, lost, ready, responses, trace):
         # asyncua's client probes the server every watchdog interval and, by default, drops its session when a
         # probe takes over 1 s -- which the client's own event loop, decoding a publish of thousands of values
         # on a loaded 2-core machine, causes itself: 5 s, as a SCADA client's keep-alive would be
@@ -133,9 +136,11 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
             ns = await client.get_namespace_index("urn:valve-emulator")
             class Handler:
                 def datachange_notification(self, node, val, data):
+                    at = subscription.last_publish_at   # the response this notification came in
                     if node.nodeid in count:
                         count[node.nodeid] += 1
-                    at = subscription.last_publish_at   # the response this notification came in
+                        if sub.trace:
+                            trace.setdefault(node.nodeid, []).append((at, data.monitored_item.Value.SourceTimestamp))
                     if at != responses["last"]:
                         late = responses["last"] is not None and at - responses["last"] > 1.5e-3 * sub.publish_ms
                         responses["last"], responses["n"], responses["late"] = \
@@ -179,10 +184,10 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
                 await asyncio.sleep(0.1)
 
     async def main():
-        count, polled, ready, tasks, lost, reads = {}, [0], asyncio.Event(), [], [], []
+        count, polled, ready, tasks, lost, reads, trace = {}, [0], asyncio.Event(), [], [], [], {}
         responses = {"last": None, "n": 0, "late": 0}
         if url and not poll:
-            task = asyncio.create_task(session(count, lost, ready, responses))
+            task = asyncio.create_task(session(count, lost, ready, responses, trace))
             tasks.append(task)
             waiting = asyncio.create_task(ready.wait())
             await asyncio.wait({task, waiting}, timeout=600, return_when=asyncio.FIRST_COMPLETED)
@@ -200,18 +205,58 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
         start, polled_before, lost_before, reads_before = dict(count), polled[0], len(lost), len(reads)
         before, cpu_before = dict(responses), psutil.Process().cpu_times()
         out_q.put(("start",))
+        window = time.monotonic()
         await asyncio.sleep(seconds)
+        window = (window, time.monotonic())
         got = [count[item] - start[item] for item in start]
         per_item = seconds * 1000 / sub.publish_ms
         cpu = psutil.Process().cpu_times()
         out_q.put(("counts", sum(min(n, per_item) for n in got), sum(got), polled[0] - polled_before,
                    lost[lost_before:], responses["n"] - before["n"], responses["late"] - before["late"],
-                   (cpu.user + cpu.system - cpu_before.user - cpu_before.system) / seconds, reads[reads_before:], poll))
+                   (cpu.user + cpu.system - cpu_before.user - cpu_before.system) / seconds, reads[reads_before:], poll,
+                   missed(trace, window, sub.publish_ms / 1000, loops) if sub.trace else None))
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
 
     asyncio.run(main())
+
+
+def missed(trace: dict, window: tuple[float, float], interval: float, loops: list[str]) -> dict:
+    """What one client missed in ``window`` (its clock), from every pv/op value's publish time and SourceTimestamp
+    (``--trace``): per publish, the counted items it did not carry; per item, those publishes; and for each miss the
+    SourceTimestamps around it: the value after the miss sampled two intervals after the one before it is a sample
+    lost at the server (two handed in one publishing interval, the older replaced by a queue of one); one interval
+    after it, none was lost but the item's samples moved a publish later. ``interval``: the publishing (= sampling)
+    interval, s. A publish that carried no counted item at all is not seen (the row's count shows it)."""
+    start, end = window
+    publishes = sorted({at for values in trace.values() for at, _ in values if start <= at <= end})
+    missing_by_publish = {at: 0 for at in publishes}
+    place = {path: k for k, path in enumerate(loops)}
+    by_loop = [0] * 10
+    gaps: dict[str, int] = {}
+    items_missing = 0
+    for node, values in trace.items():
+        times = [at for at, _ in values]
+        here = set(times)
+        lacking = [at for at in publishes if at not in here]
+        if not lacking:
+            continue
+        items_missing += 1
+        loop = place.get(node.Identifier.rsplit(".", 1)[0], 0)
+        by_loop[min(9, 10 * loop // max(len(loops), 1))] += len(lacking)
+        for at in lacking:
+            missing_by_publish[at] += 1
+            k = bisect.bisect_left(times, at)
+            if 0 < k < len(values):
+                key = f"{round((values[k][1] - values[k - 1][1]).total_seconds() / interval)} intervals"
+            else:
+                key = "at the window's edge"
+            gaps[key] = gaps.get(key, 0) + 1
+    counts = sorted(missing_by_publish.values(), reverse=True)
+    return {"publishes": len(publishes), "items": len(trace), "items_missing": items_missing,
+            "missed": sum(counts), "worst_publishes": counts[:5],
+            "publishes_missing_some": sum(1 for c in counts if c), "by_loop_decile": by_loop, "gaps": gaps}
 
 
 async def _each(q, k: int, what: str, timeout: float) -> list[tuple]:
@@ -273,7 +318,8 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             go.set()
             await _each(q, len(procs), "start", 600)
             srv.device.jitter = type(srv.device.jitter)(4096)
-            sent0 = (await opc.counters()).notifications if opc else 0
+            counters0 = await opc.counters() if opc else None
+            sent0, deferred0 = (counters0.notifications, counters0.deferred) if opc else (0, 0)
             ticks0, overruns0, t0 = srv.device.ticks, srv.device.overruns, time.monotonic()
             cpu0, opc_cpu0 = _cpu(os.getpid()), _cpu(pid)
             if profiler is not None:
@@ -283,7 +329,9 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             if profiler is not None:
                 profiler.disable()
             cpu, opc_cpu = _cpu(os.getpid()) - cpu0, _cpu(pid) - opc_cpu0
-            sent = (await opc.counters()).notifications - sent0 if opc else 0
+            counters = await opc.counters() if opc else None
+            sent = counters.notifications - sent0 if opc else 0
+            deferred = counters.deferred - deferred0 if opc else 0
             ticks, overruns = srv.device.ticks - ticks0, srv.device.overruns - overruns0
             lateness = srv.device.jitter.values()
             for proc in procs:
@@ -308,7 +356,8 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             "late": sum(r[6] for r in results) / max(sum(r[5] for r in results), 1) if served else float("nan"),
             "client_cpu": statistics.median(r[7] for r in results) if served else float("nan"),
             "read_p50": 1e3 * float(np.percentile(reads, 50)) if reads else float("nan"),
-            "read_p99": 1e3 * float(np.percentile(reads, 99)) if reads else float("nan")}
+            "read_p99": 1e3 * float(np.percentile(reads, 99)) if reads else float("nan"),
+            "deferred": deferred, "trace": [r[10] for r in sorted(results, key=lambda r: r[1])]}
 
 
 def _profile(n: int, clients: int, sub: Subscribing, seconds: float) -> None:
@@ -390,12 +439,15 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--hostile", type=int, default=25_000)
     p.add_argument("--profile", action="store_true")
+    p.add_argument("--trace", action="store_true",
+                   help="each client reports which publishes lacked which pv/op items, and the SourceTimestamps "
+                        "around each miss")
     args = p.parse_args(argv)
     if args.publish_requests < 1:
         p.error(f"--publish-requests must be at least 1, got {args.publish_requests}")
     sub = Subscribing(variables=tuple(args.vars.split(",")), publish_ms=args.publish,
                       sampling_ms=args.publish if args.sampling is None else args.sampling, queue=args.queue,
-                      requests=args.publish_requests)
+                      requests=args.publish_requests, trace=args.trace)
     print(machine(), f"load average {os.getloadavg()[0]:.1f}")
     if args.rounds:
         _load(args, sub)
@@ -413,7 +465,7 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
             runs[mode].append(asyncio.run(_load_round(mode, args.loops, args.clients if mode != "none" else 0,
                                                       sub, args.seconds)))
             print(f"load average {os.getloadavg()[0]:.1f} after a round ({mode})", flush=True)
-    med = {mode: {k: statistics.median(r[k] for r in rs) for k in rs[0] if k != "statuses"}
+    med = {mode: {k: statistics.median(r[k] for r in rs) for k in rs[0] if k not in ("statuses", "trace")}
            for mode, rs in runs.items()}
     base, m = med["none"], med[args.mode]
     print(f"\nLoad: {args.loops} loops at 10 Hz, {args.clients} OPC UA clients ({args.mode}) each monitoring "
@@ -445,7 +497,13 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
     for mode, rs in runs.items():
         print(f"rounds ({mode}): p99 " + ", ".join(f"{r['p99']:.1f}" for r in rs) + " ms; received "
               + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %; subscriptions ended (status change) "
-              + "during the window " + ", ".join(f"{r['lost']} {'/'.join(r['statuses'])}" for r in rs))
+              + "during the window " + ", ".join(f"{r['lost']} {'/'.join(r['statuses'])}" for r in rs)
+              + "; ticks the publisher deferred (out of its budget) " + ", ".join(f"{r['deferred']}" for r in rs))
+    if sub.trace:
+        for k, r in enumerate(runs[args.mode]):
+            for rank, t in enumerate(r["trace"]):
+                if t is not None:
+                    print(f"trace, round {k + 1}, client {rank + 1} of {len(r['trace'])} (worst first): {t}")
 
 
 def _print_hostile(h: dict) -> None:
