@@ -2,6 +2,7 @@
 
     python bench/bench_opcua.py [--mode process|in-process] [--loops 1000] [--clients 5] [--publish 1000]
         [--sampling MS] [--queue 1] [--vars pv,op,sp,mv] [--seconds 10] [--rounds 3] [--hostile 25000] [--profile]
+        [--trace]
 
 **Load.** The device (``--loops`` loops of a fleet, tick 0.1 s, real time, PV measurement noise on every loop so
 that PV and OP change at every tick) runs in this process; its OPC UA server runs in a process of its own (``--mode
@@ -23,8 +24,11 @@ request at the server when the publish was due (asyncua's client keeps one at a 
 taken in the last response), so the server publishes when the request comes, and with a queue of one the values
 handed meanwhile replace the ones waiting. Also the CPU time of the device process, of the OPC UA process and of the
 median client process per second, and the OPC UA process's CPU per notification handed to a subscription (the cost
-of a notification, and so the cores a load needs). Medians over ``--rounds``. ``--profile`` profiles the OPC UA
-server in process (cProfile) and prints where its time goes.
+of a notification, and so the cores a load needs), and the ticks the publisher deferred (out of its budget). Medians
+over ``--rounds``. ``--trace``: each client also reports what it missed -- which publishes lacked which pv/op items,
+by loop decile, and whether the value after each miss was sampled two intervals after the one before it (a sample
+lost at the server) or one (the item's samples moved a publish later) (:func:`missed`). ``--profile`` profiles the
+OPC UA server in process (cProfile) and prints where its time goes.
 
 **Hostile.** ``--hostile N`` malformed OPC UA messages (``tests/opcua/hostile.py``: random bytes, absurd
 and tiny sizes, garbage after Hello, truncated chunks, bad sequence numbers, junk OpenSecureChannel, TLS
