@@ -45,7 +45,7 @@ whatever the tick. The values are handed half a tick after the tick, on a grid o
 item whatever the tick's jitter: a queue of one loses none. Each analog item has EngineeringUnits with its UNECE
 code (:mod:`~valve_emulator.opcua.units`) and, where it has one, an EURange; a value outside it is
 ``UncertainEngineeringUnitsExceeded``. ``SourceTimestamp`` is the wall-clock time of the tick that made the value
-(:class:`TickClock`), ``ServerTimestamp`` the time it was read or sent.
+(:class:`TickClock`), ``ServerTimestamp`` the time it was read or, in a subscription, sampled.
 
 Each loop's PV alarm is an ``AlarmConditionType`` condition (``Unit1.FIC101.PvAlarm``) whose events come from
 the ``Server`` object and which a client acknowledges (:mod:`~valve_emulator.opcua.alarms`).
