@@ -170,9 +170,11 @@ class Search:
             if kept is None or (c[1].model.heldout, -c[1].model.bic) > (kept[1].model.heldout, -kept[1].model.bic):
                 stands[c[1].added] = c
         first, best = min(stands.values(), key=lambda c: c[1].model.bic)
+        if not self.shows_onset(best.model, model):
+            return [o for o in options if o not in lates], None
         whole = next((o for o in options if o.added == best.added and o not in lates), None)
         whole = None if whole is None else replace(whole, model=self.validated(whole.model))
-        if not self.shows_onset(best.model, model) or not self.onset_evidenced(best.model, whole, model):
+        if not self.onset_evidenced(best.model, whole, model):
             return [o for o in options if o not in lates], None
         out = []
         for o in options:
