@@ -81,6 +81,7 @@ import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import Candidate, ChainCandidate, ChainContext
 from valve_emulator.diagnosis.explain.locate import turning_points
+from valve_emulator.diagnosis.fit.chain import Active
 from valve_emulator.diagnosis.fit.closed_loop import Identification, setpoint_moves
 from valve_emulator.diagnosis.fit.cost import ar1_bic
 from valve_emulator.diagnosis.fit.data import HELD_OUT, Problem, fit_percent
@@ -94,7 +95,7 @@ from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
 __all__ = ["ONSETS", "EARLY_SHARE", "MIN_BAND", "BLOCKS", "MIN_RISE", "MIN_SHARE", "MIN_ACTING", "NEAR", "LateOnset",
            "Onset", "Suspected", "suspect_onset", "post_onset_split", "onset_option", "acting_part", "onset_of",
            "late_start", "bic_after", "before_part", "bic_on", "late_options", "MIN_BEFORE", "FAR_DELAY",
-           "delay_cap"]
+           "delay_cap", "throughout"]
 
 #: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
 #: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
@@ -574,6 +575,19 @@ def late_start(model: Model) -> float | None:
     """The onset (s) of the earliest finding of ``model`` that starts late, None when none does."""
     onsets = [float(a.params[-1]) for a in model.active if isinstance(a.candidate, LateOnset)]
     return min(onsets) if onsets else None
+
+
+def throughout(scorer: Scorer, model: Model) -> Model:
+    """``model`` with every finding that starts late acting from the record's first sample instead, its state
+    started there (the same parameters), and the linear part polished again from ``model``'s: the valve that
+    would stick throughout, against which the part before an onset must show a healthy valve
+    (:meth:`~valve_emulator.diagnosis.explain.search.Search.healthy_before`)."""
+    active = {a.slot: Active(a.candidate.inner, np.asarray(a.params[:-1])) if isinstance(a.candidate, LateOnset)
+              else a for a in model.active}
+    flow = scorer.chain(active, scorer.ctx(model))[:, 0]
+    aim = scorer.aim(model)
+    fit = scorer.polish(flow, model.fit.structure, model.delay_free, aim)
+    return scorer.model(active, fit, model.delay_free, flow, target=aim.y)
 
 
 def bic_after(problem: Problem, model: Model, start: int) -> float:

@@ -44,7 +44,7 @@ from valve_emulator.diagnosis.fit.linear import LinearStructure, delayed_regress
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.scorer import Scorer
 
-__all__ = ["LAMBDAS", "Swallowed", "family_delta_bic", "input_delta_bic", "load_bic", "load_bic_of",
+__all__ = ["LAMBDAS", "Swallowed", "family_delta_bic", "input_delta_bic", "load_bic", "load_bic_of", "load_bic_on",
            "load_delta_bic", "noise_only_bic", "swallowed"]
 
 #: The noise model's λ searched (0: a pure random-walk load; 0.98: a load that wanders over ~50 samples).
@@ -79,13 +79,14 @@ def load_bic(scorer: Scorer, model: Model) -> tuple[float, float]:
     hit = scorer.memo.get(id(model))
     if hit is not None and hit[0] is model:
         return hit[1]
-    result = _load_bic_on(scorer, model, scorer.p.train)
+    result = load_bic_on(scorer, model, scorer.p.train)
     scorer.memo[id(model)] = (model, result)
     return result
 
 
-def _load_bic_on(scorer: Scorer, model: Model, window: tuple[int, int]) -> tuple[float, float]:
-    """:func:`load_bic_of` for a model of the search on ``window``."""
+def load_bic_on(scorer: Scorer, model: Model, window: tuple[int, int]) -> tuple[float, float]:
+    """:func:`load_bic_of` for a model of the search on ``window`` (samples; its linear part re-fitted there at
+    every λ)."""
     p = scorer.p
     out = model.by_slot().get("output")
     extra = None if out is None else out.candidate.regressors(out.params, scorer.ctx(model))
@@ -106,7 +107,7 @@ def family_delta_bic(first: tuple[Scorer, Model], second: tuple[Scorer, Model]) 
     """
     (s1, m1), (s2, m2) = first, second
     window = (max(s1.p.train[0], s2.p.train[0]), min(s1.p.train[1], s2.p.train[1]))
-    return _load_bic_on(s1, m1, window)[0] - _load_bic_on(s2, m2, window)[0]
+    return load_bic_on(s1, m1, window)[0] - load_bic_on(s2, m2, window)[0]
 
 
 def load_delta_bic(scorer: Scorer, without: Model, with_: Model) -> float:
