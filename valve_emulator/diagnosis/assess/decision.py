@@ -111,6 +111,11 @@ run on each loop:
      it is what a sticky valve makes, and of the independent simulator's 32 healthy level loops (plant data) only
      one cycles regularly; 3 of the 40 sticky level loops of the property test were such loops answered ``cannot
      tell``, and no other of its 174 plant-data draws changed (2026-11-27).
+     A loop that does not cycle regularly gets the same weak call when the record shows two other signs of that
+     valve (:func:`_remembered_and_crossed`): PV shows its band's memory beyond any single-valued map of OP — what
+     no flow characteristic can make (:func:`remembers`) — and at least :data:`CROSSING_SHARE` of OP's swings cross
+     its band, as integral action winds a stuck valve's OP across it. 2 of the 40 sticky level loops (their
+     final models an equal-percentage characteristic, one at its range's edge) were such loops (2026-11-27).
 
    The decision names no candidate: the causes come from the registry (their ``cause_rank``, a ``period``
    parameter), the tuning test is the registered candidate judged on the loop (``Kind.LOOP``).
@@ -143,7 +148,7 @@ from valve_emulator.diagnosis.fit.closed_loop import Declared
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES, UninformativeData
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, noise_sigma
 from valve_emulator.diagnosis.fit.linear import LinearStructure
-from valve_emulator.diagnosis.fit.load_check import swallowed
+from valve_emulator.diagnosis.fit.load_check import Memory, swallowed
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
@@ -408,9 +413,10 @@ def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame
 def _cycling_valve(named: Decision, valve: ValveAlternative, frame: Frame, ad: Adequacy,
                    op: np.ndarray | None = None) -> Decision:
     """A weak ``stiction`` call resting on the valve the search tried and did not keep (``valve``), on a loop that
-    oscillates regularly and whose final model, with no valve friction, predicts held-out PV worse than their mean
-    while the valve explains PV better under the drifting-load noise model by ΔBIC ≥
-    :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (the findings' own threshold).
+    oscillates regularly — or that does not but shows that valve's band in its memory and OP's crossings
+    (:func:`_remembered_and_crossed`; ``op``, the recorded OP) — and whose final model, with no valve friction,
+    predicts held-out PV worse than their mean while the valve explains PV better under the drifting-load noise
+    model by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (the findings' own threshold).
 
     Why a call and not ``cannot tell``: a sticky valve under a PI makes a limit cycle (:func:`cycling`), and on a
     level loop a search on held-out free-run fit need not keep the valve, since no integrator's free run follows
@@ -464,13 +470,13 @@ def _remembered_and_crossed(valve: ValveAlternative, op: np.ndarray | None) -> b
     """On a loop that does not cycle regularly, the two signs that let the valve alternative stand: PV shows its
     band's memory beyond any single-valued map of OP (:func:`remembers`), and at least :data:`CROSSING_SHARE` of
     OP's swings cross the band (:func:`band_crossings`). The memory alone is not enough: on the independent
-    simulator's healthy level loops a band fitted to the controller's answers to a wandering load shows it too
-    (ΔBIC 12–980 through the identified plant, 2026-11-27), but those bands are ones OP hardly crosses (at most
-    3 % of its swings), while a stuck valve under integral action is wound across its band."""
+    simulator's healthy level loops a band fitted to the controller's answers to a wandering load shows it too (ΔBIC
+    13–1185 through the identified plant on 27 of the 28 bands asked, 2026-11-27), but those bands are ones OP
+    hardly crosses (at most 3 % of its swings), while a stuck valve under integral action is wound across its band."""
     return op is not None and remembers(valve) and band_crossings(op, valve.S) >= CROSSING_SHARE
 
 
-def _memory_text(m) -> str:
+def _memory_text(m: Memory) -> str:
     return (f"at one OP PV differs by the way OP came there: through the identified plant the band's memory "
             f"explains PV better than any single-valued map of OP by ΔBIC {m.delta_bic:.1f} ≥ {DELTA_BIC:g} under a "
             f"drifting-load noise model, {100 * m.share:.0f} % of the valve's own effect")

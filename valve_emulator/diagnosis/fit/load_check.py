@@ -50,9 +50,9 @@ __all__ = ["LAMBDAS", "STATIC_PIECES", "Memory", "Swallowed", "family_delta_bic"
 #: The noise model's λ searched (0: a pure random-walk load; 0.98: a load that wanders over ~50 samples).
 LAMBDAS = (0.0, 0.3, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98)
 #: Pieces of the single-valued map of OP that :func:`remembered` fits in place of any flow characteristic: straight
-#: between knots at OP's quantiles 1/6 … 5/6 (six pieces, seven coefficients with the level): enough to follow an
-#: equal-percentage curve up to the steepest one the search tries (R 400) or a quick-opening one over the span OP
-#: visits, each a smooth monotone curve.
+#: between knots at OP's quantiles 1/6 … 5/6 (six pieces, seven coefficients with the level): a smooth monotone
+#: curve over the span OP visits, as a valve's inherent characteristic is (equal percentage, quick opening), is
+#: followed piece by piece wherever OP spends its time.
 STATIC_PIECES = 6
 #: Nelder–Mead evaluations per re-fit of the linear part (it starts from the search's solution).
 _EVALS = 80
