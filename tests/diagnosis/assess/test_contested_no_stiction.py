@@ -37,9 +37,12 @@ def _no_valve_that_matters(d) -> bool:
 
 @pytest.fixture(scope="module")
 def sticky_level_loop():
-    """An integrating level loop with a sticky valve (S ≈ 2.9 %) and a wandering load: its free run cannot follow
-    the load, and without the valve the search names an equal-percentage characteristic."""
-    rec, truth, _ = draw("level_sticky", np.random.default_rng([32, 18]))
+    """An integrating level loop behind a 9 s lag with a sticky valve (S ≈ 2.6 %) and a wandering load: its free run
+    cannot follow the load, and without the valve the search names the tuning, while a deadband explains PV about
+    as well under the drifting-load noise model (ΔBIC 8, below the 10 a call on it needs). (Draw 32.18, the example
+    here before, is now called on its valve: PV shows the band's memory beyond any characteristic,
+    ``test_valve_memory.py``.)"""
+    rec, truth, _ = draw("level_sticky", np.random.default_rng([32, 9]))
     assert truth["sticky"]
     return _diagnosed(rec)
 

@@ -111,6 +111,11 @@ run on each loop:
      it is what a sticky valve makes, and of the independent simulator's 32 healthy level loops (plant data) only
      one cycles regularly; 3 of the 40 sticky level loops of the property test were such loops answered ``cannot
      tell``, and no other of its 174 plant-data draws changed (2026-11-27).
+     A loop that does not cycle regularly gets the same weak call when the record shows two other signs of that
+     valve (:func:`_remembered_and_crossed`): PV shows its band's memory beyond any single-valued map of OP — what
+     no flow characteristic can make (:func:`remembers`) — and at least :data:`CROSSING_SHARE` of OP's swings cross
+     its band, as integral action winds a stuck valve's OP across it. 2 of the 40 sticky level loops (their
+     final models an equal-percentage characteristic, one at its range's edge) were such loops (2026-11-27).
 
    The decision names no candidate: the causes come from the registry (their ``cause_rank``, a ``period``
    parameter), the tuning test is the registered candidate judged on the loop (``Kind.LOOP``).
@@ -143,7 +148,7 @@ from valve_emulator.diagnosis.fit.closed_loop import Declared
 from valve_emulator.diagnosis.fit.data import MIN_SAMPLES, UninformativeData
 from valve_emulator.diagnosis.fit.frame import TRAVEL, Frame, noise_sigma
 from valve_emulator.diagnosis.fit.linear import LinearStructure
-from valve_emulator.diagnosis.fit.load_check import swallowed
+from valve_emulator.diagnosis.fit.load_check import Memory, swallowed
 from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
@@ -312,7 +317,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
                            "stiction shown")
         fits += (f"; a free run misses a drifting load, but under a drifting-load noise model the model explains "
                  f"PV (ΔBIC {load:.1f} against the load alone)")
-        return _valve_contest(_cause(d, ad, tune, fits, small), d.valve_alternative, frame, ad)
+        return _valve_contest(_cause(d, ad, tune, fits, small), d.valve_alternative, frame, ad, rec.op)
     return _cause(d, ad, tune, fits, small)
 
 
@@ -380,7 +385,8 @@ def _beyond_ring(tune: TuningAssessment, named: Decision, fits: str) -> Decision
                     named.reasons[:1] + ((Reason.LIMIT_CYCLE, cycle),) + named.reasons[1:], tuning=tune)
 
 
-def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame, ad: Adequacy) -> Decision:
+def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame, ad: Adequacy,
+                   op: np.ndarray | None = None) -> Decision:
     """``cannot tell``, naming both, when the best valve the search tried (with a band beyond OP noise) explains
     PV at least as well as the final model under the drifting-load noise model (its BIC not
     :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` worse); a weak ``stiction`` call resting on that
@@ -389,8 +395,9 @@ def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame
     stands."""
     if valve is None or valve.load_delta_bic <= -DELTA_BIC:
         return named
-    if cycling(ad.facts) and valve.load_delta_bic >= DELTA_BIC and valve.intervals:
-        return _cycling_valve(named, valve, frame, ad)
+    if (cycling(ad.facts) or _remembered_and_crossed(valve, op)) and valve.load_delta_bic >= DELTA_BIC \
+            and valve.intervals:
+        return _cycling_valve(named, valve, frame, ad, op)
     sticky = f"a sticky valve (S ≈ {_amount(valve.S, frame)}, J ≈ {_amount(valve.J, frame)})"
     own = next(((code, text) for code, text in named.reasons if code is not Reason.SMALL_BAND),
                (Reason.LINEAR, "a linear valve and plant explain the loop"))
@@ -403,11 +410,13 @@ def _valve_contest(named: Decision, valve: ValveAlternative | None, frame: Frame
                     tuning=named.tuning)
 
 
-def _cycling_valve(named: Decision, valve: ValveAlternative, frame: Frame, ad: Adequacy) -> Decision:
+def _cycling_valve(named: Decision, valve: ValveAlternative, frame: Frame, ad: Adequacy,
+                   op: np.ndarray | None = None) -> Decision:
     """A weak ``stiction`` call resting on the valve the search tried and did not keep (``valve``), on a loop that
-    oscillates regularly and whose final model, with no valve friction, predicts held-out PV worse than their mean
-    while the valve explains PV better under the drifting-load noise model by ΔBIC ≥
-    :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (the findings' own threshold).
+    oscillates regularly — or that does not but shows that valve's band in its memory and OP's crossings
+    (:func:`_remembered_and_crossed`; ``op``, the recorded OP) — and whose final model, with no valve friction,
+    predicts held-out PV worse than their mean while the valve explains PV better under the drifting-load noise
+    model by ΔBIC ≥ :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (the findings' own threshold).
 
     Why a call and not ``cannot tell``: a sticky valve under a PI makes a limit cycle (:func:`cycling`), and on a
     level loop a search on held-out free-run fit need not keep the valve, since no integrator's free run follows
@@ -422,9 +431,14 @@ def _cycling_valve(named: Decision, valve: ValveAlternative, frame: Frame, ad: A
     iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
     r = ad.facts.get("regularity", float("nan"))
     kind = "stiction" if valve.physics == "stiction" else "stiction without slip jump (deadband)"
-    why = (f"the loop oscillates regularly (regularity r = {r:.2f} > 1), as a sticky valve's limit cycle does, and "
-           f"under a drifting-load noise model the valve explains PV better than the model found without it (ΔBIC "
-           f"{valve.load_delta_bic:.1f} ≥ {DELTA_BIC:g})")
+    if cycling(ad.facts):
+        shown = f"the loop oscillates regularly (regularity r = {r:.2f} > 1), as a sticky valve's limit cycle does"
+    else:
+        shown = (f"PV shows the band's memory, which no flow characteristic can make ({_memory_text(valve.memory)}), "
+                 f"and {100 * band_crossings(op, valve.S):.0f} % of OP's swings cross the band, as integral action "
+                 "winds a stuck valve's OP across it")
+    why = (f"{shown}, and under a drifting-load noise model the valve explains PV better than the model found "
+           f"without it (ΔBIC {valve.load_delta_bic:.1f} ≥ {DELTA_BIC:g})")
     weak = "the search did not keep the valve: it buys no held-out fit"
     if named.reasons:
         weak += f" (without it the answer would have been: {named.reasons[0][1]})"
@@ -434,6 +448,38 @@ def _cycling_valve(named: Decision, valve: ValveAlternative, frame: Frame, ad: A
                                                              (Reason.WEAK_EVIDENCE, weak)),
                     S=valve.S, J=valve.J, intervals=ivs, tuning=named.tuning,
                     friction=_alternative_finding(valve, frame, why))
+
+
+def remembers(valve: ValveAlternative) -> bool:
+    """Whether PV shows the memory of the valve alternative's band beyond any single-valued map of OP
+    (:attr:`~valve_emulator.diagnosis.explain.result.ValveAlternative.memory`, :func:`~valve_emulator.diagnosis.fit.
+    load_check.remembered`): the memory explains PV better by ΔBIC ≥
+    :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (the findings' own threshold) under the
+    drifting-load noise model, with the valve's own sign.
+
+    Why: a flow characteristic is a static map, one flow at each OP; friction is hysteresis, the valve sitting
+    where it last stuck. A final model that explains a loop by a characteristic and the valve the search tried
+    and did not keep can both fit a sticky loop's slow swings through their slopes; only the valve makes PV
+    differ at one OP by the way OP came there. Where PV shows that, the characteristic does not keep the valve
+    out, as a regular limit cycle does not let the tuning or a load keep it out (:func:`_cycling_valve`)."""
+    m = valve.memory
+    return m is not None and m.delta_bic >= DELTA_BIC and m.share > 0.0
+
+
+def _remembered_and_crossed(valve: ValveAlternative, op: np.ndarray | None) -> bool:
+    """On a loop that does not cycle regularly, the two signs that let the valve alternative stand: PV shows its
+    band's memory beyond any single-valued map of OP (:func:`remembers`), and at least :data:`CROSSING_SHARE` of
+    OP's swings cross the band (:func:`band_crossings`). The memory alone is not enough: on the independent
+    simulator's healthy level loops a band fitted to the controller's answers to a wandering load shows it too (ΔBIC
+    13–1185 through the identified plant on 27 of the 28 bands asked, 2026-11-27), but those bands are ones OP
+    hardly crosses (at most 3 % of its swings), while a stuck valve under integral action is wound across its band."""
+    return op is not None and remembers(valve) and band_crossings(op, valve.S) >= CROSSING_SHARE
+
+
+def _memory_text(m: Memory) -> str:
+    return (f"at one OP PV differs by the way OP came there: through the identified plant the band's memory "
+            f"explains PV better than any single-valued map of OP by ΔBIC {m.delta_bic:.1f} ≥ {DELTA_BIC:g} under a "
+            f"drifting-load noise model, {100 * m.share:.0f} % of the valve's own effect")
 
 
 def _alternative_finding(valve: ValveAlternative, frame: Frame, why: str) -> Finding:

@@ -64,7 +64,13 @@ from valve_emulator.diagnosis.fit.data import (
 )
 from valve_emulator.diagnosis.fit.fitter import Fitter
 from valve_emulator.diagnosis.fit.frame import TRAVEL, UNKNOWN_UNITS, Frame
-from valve_emulator.diagnosis.fit.load_check import family_delta_bic, input_delta_bic, load_delta_bic
+from valve_emulator.diagnosis.fit.load_check import (
+    Memory,
+    family_delta_bic,
+    input_delta_bic,
+    load_delta_bic,
+    remembered,
+)
 from valve_emulator.diagnosis.fit.nominal import Nominal, identify, nominal_from_config, replay_plant
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 from valve_emulator.diagnosis.fit.scorer import Scorer, library_burn_in
@@ -346,15 +352,36 @@ def _valve_alternative(s: Searched, frame: Frame, least_band: float) -> ValveAlt
         return None
     model, act, params = min(sized, key=lambda x: x[0].bic)
     load = load_delta_bic(s.fitter.scorer, s.model, model)
-    frictionless = not any(a.candidate.slot == "valve" and "S" in a.candidate.param_names for a in s.model.active)
-    if not (load >= DELTA_BIC and frictionless):
+    if not (load >= DELTA_BIC and not _friction_that_matters(s.model, frame, least_band)):
         return ValveAlternative(physics=act.name, S=float(params["S"]), J=float(params.get("J", 0.0)),
                                 load_delta_bic=load)
-    # the answer may rest on it: its intervals as a finding's, and its model for the twin
+    # the answer may rest on it: its intervals as a finding's, its model for the twin, and whether PV shows its
+    # band's memory beyond any characteristic
     own, _ = parameter_intervals(s.fitter, s.problem, model, act, act.candidate.parameters(act.params))
     ivs = {k: v for k, v in frame.convert(act.candidate.dims, own).items() if k in ("S", "J")}
     return ValveAlternative(physics=act.name, S=float(params["S"]), J=float(params.get("J", 0.0)),
-                            load_delta_bic=load, intervals=ivs, fitted=_fitted(s, frame, model))
+                            load_delta_bic=load, intervals=ivs, fitted=_fitted(s, frame, model),
+                            memory=_memory(s, model))
+
+
+def _friction_that_matters(model: Model, frame: Frame, least_band: float) -> bool:
+    """Whether ``model`` holds valve friction with a band of at least ``least_band`` (OP's units): the decision
+    reads a smaller band as no friction that could matter (a band inside OP's noise), so its valve alternative
+    is then asked as on a model without one."""
+    return any(a.candidate.slot == "valve" and "S" in a.candidate.param_names
+               and frame.convert(a.candidate.dims, a.candidate.parameters(a.params))["S"] >= least_band
+               for a in model.active)
+
+
+def _memory(s: Searched, model: Model) -> Memory:
+    """Whether PV shows the memory of ``model``'s valve band beyond any single-valued map of OP
+    (:func:`~valve_emulator.diagnosis.fit.load_check.remembered`): the valve's output alone (its actuator and
+    valve slots, a linear characteristic) through ``model``'s plant, on the fit part."""
+    problem = s.problem
+    valve_only = {k: v for k, v in model.by_slot().items() if k in ("actuator", "valve")}
+    ctx = replace(s.fitter.scorer.ctx(model), characteristic=("linear", DEFAULT_RANGEABILITY))
+    mv = run_chain(problem.op, valve_only, ctx, nominal_valve=(s.nominal.S, s.nominal.J))[:, 0]
+    return remembered(problem.pv, problem.op, mv, model.fit.structure, problem.dt, problem.train[0])
 
 
 @one_blas_thread

@@ -18,6 +18,7 @@ import numpy as np
 
 from valve_emulator.diagnosis.explain.locate import Located
 from valve_emulator.diagnosis.explain.onset import Onset
+from valve_emulator.diagnosis.fit.load_check import Memory
 from valve_emulator.diagnosis.fit.predict import FittedLoop
 
 __all__ = ["Finding", "LinearMove", "RankRow", "Traces", "ValveAlternative", "Explanation", "verdict"]
@@ -189,6 +190,9 @@ class ValveAlternative:
         friction: the only case in which the answer can rest on it; empty otherwise.
     fitted : the option's model as a loop that replays any OP, in that same case (the twin of an answer resting
         on it is written from it); None otherwise.
+    memory : in that same case, whether PV shows the band's memory beyond any single-valued map of OP (what no
+        flow characteristic can make: :func:`~valve_emulator.diagnosis.fit.load_check.remembered`); None
+        otherwise.
     """
 
     physics: str
@@ -197,6 +201,7 @@ class ValveAlternative:
     load_delta_bic: float
     intervals: dict = field(default_factory=dict)
     fitted: FittedLoop | None = None
+    memory: Memory | None = None
 
 
 def verdict(findings: tuple[Finding, ...], fit_before: float, fit_after: float, *, given: bool) -> str:

@@ -44,11 +44,16 @@ from valve_emulator.diagnosis.fit.linear import LinearStructure, delayed_regress
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.diagnosis.fit.scorer import Scorer
 
-__all__ = ["LAMBDAS", "Swallowed", "family_delta_bic", "input_delta_bic", "load_bic", "load_bic_of", "load_bic_on",
-           "load_delta_bic", "noise_only_bic", "swallowed"]
+__all__ = ["LAMBDAS", "STATIC_PIECES", "Memory", "Swallowed", "family_delta_bic", "input_delta_bic", "load_bic",
+           "load_bic_of", "load_bic_on", "load_delta_bic", "noise_only_bic", "remembered", "swallowed"]
 
 #: The noise model's λ searched (0: a pure random-walk load; 0.98: a load that wanders over ~50 samples).
 LAMBDAS = (0.0, 0.3, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98)
+#: Pieces of the single-valued map of OP that :func:`remembered` fits in place of any flow characteristic: straight
+#: between knots at OP's quantiles 1/6 … 5/6 (six pieces, seven coefficients with the level): a smooth monotone
+#: curve over the span OP visits, as a valve's inherent characteristic is (equal percentage, quick opening), is
+#: followed piece by piece wherever OP spends its time.
+STATIC_PIECES = 6
 #: Nelder–Mead evaluations per re-fit of the linear part (it starts from the search's solution).
 _EVALS = 80
 
@@ -202,3 +207,59 @@ def _least_squares(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
     beta, *_ = np.linalg.lstsq(x, y, rcond=None)
     r = y - x @ beta
     return beta, float(r @ r)
+
+
+@dataclass(frozen=True)
+class Memory:
+    """Whether PV shows the memory of a valve band beyond any single-valued map of OP (:func:`remembered`).
+
+    Attributes
+    ----------
+    delta_bic : BIC of PV from a single-valued map of OP through the plant minus BIC with the band's memory added
+        (the valve's output minus OP, through the same plant), under the drifting-load noise model: positive
+        when the memory explains PV better.
+    share : the memory's coefficient relative to the valve's own (1 for PV that follows a valve stuck in its band,
+        0 for PV that follows OP through a curve), with the valve's sign.
+    """
+
+    delta_bic: float
+    share: float
+
+
+def _static_columns(op: np.ndarray, start: int) -> np.ndarray:
+    """OP and its hinges at the knots of :data:`STATIC_PIECES` (OP's quantiles from ``start`` on): a continuous map
+    of OP, straight between the knots. Their span is the same for any affine map of OP, reversed or not."""
+    knots = np.quantile(op[start:], np.arange(1, STATIC_PIECES) / STATIC_PIECES)
+    return np.column_stack([op] + [np.maximum(op - k, 0.0) for k in knots])
+
+
+def remembered(pv: np.ndarray, op: np.ndarray, valve: np.ndarray, structure: LinearStructure, dt: float,
+               start: int) -> Memory:
+    """Does PV remember where a valve band left the valve, beyond what any flow characteristic could make of OP?
+    PV from ``start`` on, under the drifting-load noise model (λ of :data:`LAMBDAS` chosen by BIC for each),
+    regressed on a single-valued map of OP (:func:`_static_columns`) through the plant ``structure``, then on that
+    and on the band's memory, the valve's output ``valve`` minus OP, through the same plant.
+
+    Why: a flow characteristic, whatever its kind, is a static map: at one OP it gives one flow. Friction is
+    hysteresis: at one OP the valve sits where it last stuck, higher after a fall of OP than after a rise. A model
+    with a characteristic and none with friction explains a sticky loop through the map's slopes; whether the
+    record holds what no map can make is asked here, with the map made as free as a smooth curve over OP's span
+    needs (so a characteristic at the edge of the range searched, a bound, does not stand in for it)."""
+    static = [_through(c, structure, dt) for c in _static_columns(op, start).T]
+    memory, own = _through(valve - op, structure, dt), _through(valve, structure, dt)
+    best_map = best_with = float("inf")
+    share = float("nan")
+    for lam in LAMBDAS:
+        y = highpass(pv, lam)[start:]
+        one = np.ones_like(y)
+        cols = np.column_stack([highpass(c, lam)[start:] for c in static] + [one])
+        m = highpass(memory, lam)[start:]
+        _, sse0 = _least_squares(cols, y)
+        beta, sse1 = _least_squares(np.column_stack([cols, m]), y)
+        best_map = min(best_map, bic(sse0, y.size, cols.shape[1] + 1))
+        fit = bic(sse1, y.size, cols.shape[1] + 2)
+        if fit < best_with:
+            best_with = fit
+            gain, _ = _least_squares(np.column_stack([highpass(own, lam)[start:], one]), y)
+            share = float(beta[-1] / gain[0]) if gain[0] != 0.0 else float("nan")
+    return Memory(delta_bic=best_map - best_with, share=share)

@@ -118,14 +118,16 @@ class Diagnosis:
     @property
     def findings(self) -> tuple[Finding, ...]:
         """What the model leaves out, in agreement with the answer: a valve-friction finding only under a
-        stiction answer (a band inside OP noise, or a call the record cannot tell, is said in the reasons), first
-        the one the answer rests on when the final model does not hold it (the search's valve alternative on a
-        regularly cycling loop, :attr:`Assessment.friction <valve_emulator.diagnosis.assess.result.Assessment>`)."""
+        stiction answer (a band inside OP noise, or a call the record cannot tell, is said in the reasons); where
+        the answer rests on a valve the final model does not hold (the search's valve alternative,
+        :attr:`Assessment.friction <valve_emulator.diagnosis.assess.result.Assessment>`), that one first and the
+        only one (a band of the final model inside OP noise is said in the reasons)."""
         found = () if self.explanation is None else self.explanation.findings
-        if self.answer is Answer.STICTION:
-            alternative = None if self.assessment is None else self.assessment.friction
-            return found if alternative is None else (alternative,) + found
-        return tuple(f for f in found if f.physics not in VALVE_FRICTION)
+        alternative = None if self.assessment is None else self.assessment.friction
+        if self.answer is Answer.STICTION and alternative is None:
+            return found
+        others = tuple(f for f in found if f.physics not in VALVE_FRICTION)
+        return others if alternative is None or self.answer is not Answer.STICTION else (alternative,) + others
 
     @property
     def cause(self) -> str:
