@@ -59,7 +59,7 @@ from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.physics._arrays import kernel_array
 
-__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "sse_jobs_many", "sse_jobs_shared"]
+__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "replay_order", "sse_jobs_many", "sse_jobs_shared"]
 
 #: Most grid rows pushed through the chain at once. Bounds memory (5 MB per array at 10^4 samples), and the
 #: chain's output is then a contiguous block that the linear kernel reads from cache for every job (structure)
@@ -213,7 +213,10 @@ class Scorer:
     def sse_jobs(self, active, ctx, cand, grid, jobs, aim: Aim) -> list[tuple]:
         """Several ``(structure, delays)`` evaluations of one grid in one pass: each chunk of rows is pushed
         through the chain once (the valve simulation is the costly part) and scored for every job."""
-        return self._score_chunks(lambda a, b: self.chain(active, ctx, cand, grid[a:b]), grid.shape[0], jobs, aim)
+        order = replay_order(cand, grid)
+        rows = grid if order is None else grid[order]
+        return _unordered(self._score_chunks(lambda a, b: self.chain(active, ctx, cand, rows[a:b]), grid.shape[0],
+                                             jobs, aim), order)
 
     def sse_flows_all(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
         """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, at most
@@ -250,10 +253,36 @@ def sse_jobs_many(requests: list[tuple]) -> list[list[tuple]]:
     """:meth:`Scorer.sse_jobs` of several grids, each request ``(scorer, active, ctx, cand, grid, jobs, aim)``:
     the chunks of all of them shared out over the threads together. Per request, the numbers of its own
     ``sse_jobs``."""
-    grids = [(functools.partial(_grid_chunk, scorer, active, ctx, cand, grid), grid.shape[0],
-              functools.partial(scorer._score_block, jobs=jobs, aim=aim))
-             for scorer, active, ctx, cand, grid, jobs, aim in requests]
-    return [_stacked(blocks) for blocks in _grids_chunks_scored(grids)]
+    orders = [replay_order(cand, grid) for _, _, _, cand, grid, _, _ in requests]
+    grids = [(functools.partial(_grid_chunk, scorer, active, ctx, cand, grid if order is None else grid[order]),
+              grid.shape[0], functools.partial(scorer._score_block, jobs=jobs, aim=aim))
+             for (scorer, active, ctx, cand, grid, jobs, aim), order in zip(requests, orders)]
+    return [_unordered(_stacked(blocks), order) for blocks, order in zip(_grids_chunks_scored(grids), orders)]
+
+
+def replay_order(cand: Candidate | None, grid: np.ndarray) -> np.ndarray | None:
+    """The order in which a grid's rows go through the chain: rows that differ only in a valve's initial state
+    (the nuisance parameter ``start`` of :mod:`~valve_emulator.diagnosis.candidates.valve_start`) side by side, in
+    the order of each group's first row, so that they share a chunk and the valves of a group that catch up with
+    each other are stepped once (``valve_start._run_merging``). None: the grid's own order (no such parameter, or
+    the groups are side by side already, as in the scan's grids). A row's numbers do not depend on the rows that
+    share its chunk (:func:`_chunks_scored`), so the order changes no number."""
+    if cand is None or "start" not in cand.param_names or grid.shape[0] < 2:
+        return None
+    rest = np.delete(grid, cand.param_names.index("start"), axis=1)
+    _, first, group = np.unique(rest, axis=0, return_index=True, return_inverse=True)
+    order = np.lexsort((np.arange(grid.shape[0]), first[group.ravel()]))
+    return None if (order == np.arange(grid.shape[0])).all() else order
+
+
+def _unordered(scored: list[tuple], order: np.ndarray | None) -> list[tuple]:
+    """Per job ``(sse, delays)`` with the SSE rows of a grid scored in ``order`` (:func:`replay_order`) put back in
+    the grid's own order."""
+    if order is None:
+        return scored
+    back = np.empty_like(order)
+    back[order] = np.arange(order.size)
+    return [(sse[back], delays) for sse, delays in scored]
 
 
 def _grid_chunk(scorer: Scorer, active, ctx, cand, grid: np.ndarray, a: int, b: int) -> np.ndarray:
@@ -269,9 +298,11 @@ def sse_jobs_shared(active, ctx, cand, grid: np.ndarray, tasks: list[tuple[Score
     the chain does not depend on the cost domain) and is scored for every task: per task, the numbers of its own
     ``sse_jobs``."""
     first = tasks[0][0]
-    blocks = _chunks_scored(lambda a, b: first.chain(active, ctx, cand, grid[a:b]), grid.shape[0],
+    order = replay_order(cand, grid)
+    rows = grid if order is None else grid[order]
+    blocks = _chunks_scored(lambda a, b: first.chain(active, ctx, cand, rows[a:b]), grid.shape[0],
                             lambda flows: [scorer._score_block(flows, jobs, aim) for scorer, jobs, aim in tasks])
-    return [_stacked([block[t] for block in blocks]) for t in range(len(tasks))]
+    return [_unordered(_stacked([block[t] for block in blocks]), order) for t in range(len(tasks))]
 
 
 def _chunks_scored(chunk: Callable[[int, int], np.ndarray], n: int, score: Callable[[np.ndarray], list]
