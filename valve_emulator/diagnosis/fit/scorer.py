@@ -252,7 +252,110 @@ class Scorer:
 def sse_jobs_many(requests: list[tuple]) -> list[list[tuple]]:
     """:meth:`Scorer.sse_jobs` of several grids, each request ``(scorer, active, ctx, cand, grid, jobs, aim)``:
     the chunks of all of them shared out over the threads together. Per request, the numbers of its own
-    ``sse_jobs``."""
+    ``sse_jobs``.
+
+    Requests that differ only in their grid and jobs (the same scorer, model, context, candidate and aim: the
+    refinement's starts) often hold the same rows (neighbouring grids overlap; at 10^5 samples stiction's three
+    starts held 2,910 rows of which 1,479 distinct). Each distinct row goes through the chain once
+    (:func:`_shared_rows`) and is scored for the jobs of every request that holds it. A row's numbers depend on the
+    row and the job only (:func:`_chunks_scored`), so they are those of each request's own ``sse_jobs``."""
+    groups: dict[tuple, list[int]] = {}
+    for r, (scorer, active, ctx, cand, _, _, aim) in enumerate(requests):
+        groups.setdefault((id(scorer), id(active), id(ctx), id(cand), id(aim)), []).append(r)
+    parts, put_back = [], []
+    for rs in groups.values():
+        if len(rs) > 1 and all(requests[r][4].shape[0] for r in rs):
+            split = _shared_rows([requests[r] for r in rs])
+            put_back.append((rs, len(parts), split))
+            parts += split.requests
+        else:
+            put_back += [([r], len(parts) + i, None) for i, r in enumerate(rs)]
+            parts += [requests[r] for r in rs]
+    scored = _sse_jobs_each(parts)
+    out: list[list[tuple]] = [None] * len(requests)   # type: ignore[list-item]
+    for rs, first, split in put_back:
+        if split is None:
+            out[rs[0]] = scored[first]
+            continue
+        for r, result in zip(rs, split.results(scored[first:first + len(split.requests)])):
+            out[r] = result
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class _SharedRows:
+    """Requests of one model (:func:`sse_jobs_many`) recast as one request per set of requests that hold a row:
+    ``requests`` are the recast ones, each with the distinct rows held by exactly that set (``members``) and the
+    jobs of its members one after the other (``offsets``: where each member's start). ``unique`` (per original
+    request, for each of its rows) is the row's index among the distinct rows, ``part`` and ``at`` (per distinct
+    row) its recast request and its place there."""
+
+    requests: list[tuple]
+    members: list[tuple[int, ...]]
+    offsets: list[dict[int, int]]
+    unique: list[np.ndarray]
+    part: np.ndarray
+    at: np.ndarray
+    n_jobs: list[int]
+
+    def results(self, scored: list[list[tuple]]) -> list[list[tuple]]:
+        """Per original request, per job, ``(sse, delays)`` with the rows of its grid, from the recast requests'
+        results ``scored``."""
+        out = []
+        for k, rows in enumerate(self.unique):
+            parts = self.part[rows]
+            per_job = []
+            for j in range(self.n_jobs[k]):
+                first = next(p for p, m in enumerate(self.members) if k in m)
+                nd = scored[first][self.offsets[first][k] + j][0].shape[1]
+                sse = np.empty((rows.size, nd))
+                for p, m in enumerate(self.members):
+                    if k in m:
+                        mine = parts == p
+                        sse[mine] = scored[p][self.offsets[p][k] + j][0][self.at[rows[mine]]]
+                per_job.append((sse, scored[first][self.offsets[first][k] + j][1]))
+            out.append(per_job)
+        return out
+
+
+def _shared_rows(requests: list[tuple]) -> _SharedRows:
+    """:class:`_SharedRows` of ``requests`` (one model's; see :func:`sse_jobs_many`)."""
+    index: dict[bytes, int] = {}
+    holders: list[set[int]] = []
+    rows: list[np.ndarray] = []
+    unique = []
+    for k, req in enumerate(requests):
+        grid = req[4]
+        ids = np.empty(grid.shape[0], dtype=np.int64)
+        for i, row in enumerate(grid):
+            u = index.setdefault(row.tobytes(), len(rows))
+            if u == len(rows):
+                rows.append(row)
+                holders.append(set())
+            holders[u].add(k)
+            ids[i] = u
+        unique.append(ids)
+    sets: dict[tuple[int, ...], list[int]] = {}
+    for u, h in enumerate(holders):
+        sets.setdefault(tuple(sorted(h)), []).append(u)
+    part, at = np.empty(len(rows), dtype=np.int64), np.empty(len(rows), dtype=np.int64)
+    recast, members, offsets = [], [], []
+    for p, (m, us) in enumerate(sets.items()):
+        part[us], at[us] = p, np.arange(len(us))
+        scorer, active, ctx, cand, _, _, aim = requests[m[0]]
+        jobs, offset = [], {}
+        for k in m:
+            offset[k] = len(jobs)
+            jobs += list(requests[k][5])
+        recast.append((scorer, active, ctx, cand, np.array([rows[u] for u in us]), jobs, aim))
+        members.append(m)
+        offsets.append(offset)
+    return _SharedRows(requests=recast, members=members, offsets=offsets, unique=unique, part=part, at=at,
+                       n_jobs=[len(req[5]) for req in requests])
+
+
+def _sse_jobs_each(requests: list[tuple]) -> list[list[tuple]]:
+    """:func:`sse_jobs_many` without looking for rows the requests share: each grid's chunks as they are."""
     orders = [replay_order(cand, grid) for _, _, _, cand, grid, _, _ in requests]
     grids = [(functools.partial(_grid_chunk, scorer, active, ctx, cand, grid if order is None else grid[order]),
               grid.shape[0], functools.partial(scorer._score_block, jobs=jobs, aim=aim))
