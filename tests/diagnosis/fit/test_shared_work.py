@@ -104,3 +104,27 @@ def test_overlapping_grids_scored_together_have_each_rows_numbers_alone():
     order = replay_order(stiction, grids[0])   # the starts of each (S, J) side by side, in the grid's order
     assert order is not None and [tuple(r) for r in grids[0][order][:3, :2]] == [SJ[0]] * 3
     assert replay_order(stiction, stiction.scan(ctx)) is None   # the scan's grid has them side by side already
+
+
+@pytest.mark.parametrize("name", ["stiction", "deadband"])
+@pytest.mark.parametrize("model", ["kano", "choudhury", "he"])
+def test_a_valve_candidates_output_is_within_travel_so_the_chain_skips_the_stops_check(name, model, monkeypatch):
+    # output_in_range lets run_chain skip the nominal linear characteristic's check for values beyond 0–100 %: the
+    # valve's MV must lie within them (or be NaN) whatever OP does, and the chain's flows must be, to the bit, those
+    # of the chain that checks.
+    rng = np.random.default_rng(8)
+    op = 50.0 + np.cumsum(rng.normal(0.0, 6.0, 800))          # wanders far beyond both stops
+    op[[100, 400]] = np.nan
+    ctx = ChainContext(dt=1.0, op=op, op_span=40.0, valve_model=model)
+    cand = get(name)
+    assert cand.output_in_range
+    grid = cand.grid(ctx)[::5]
+    mv = cand.apply(op, grid, ctx)
+    assert np.all(np.isnan(mv) | ((mv >= 0.0) & (mv <= 100.0))) and np.ptp(mv[:90]) > 0.0
+    ok = np.clip(np.nan_to_num(op, nan=50.0), -5.0, 105.0)    # no NaN: the stops' check clips OP itself
+    skipped = run_chain(ok, {}, ctx, grid_candidate=cand, grid=grid)
+    nominal = run_chain(ok, {}, ctx, nominal_valve=(3.0, 1.0))
+    monkeypatch.setattr(type(cand), "output_in_range", False)
+    assert skipped.tobytes() == run_chain(ok, {}, ctx, grid_candidate=cand, grid=grid).tobytes()
+    assert run_chain(ok, {}, ctx, nominal_valve=(3.0, 1.0)).tobytes() == nominal.tobytes()
+    assert run_chain(ok, {}, ctx)[:, 0].tobytes() == np.clip(ok, 0.0, 100.0).tobytes()   # OP itself is clipped
