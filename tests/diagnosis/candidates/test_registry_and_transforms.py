@@ -7,7 +7,16 @@ from typing import ClassVar
 import numpy as np
 import pytest
 
-from valve_emulator.diagnosis.candidates import SLOTS, Candidate, ChainContext, TwinRole, get, register, registry
+from valve_emulator.diagnosis.candidates import (
+    SLOTS,
+    Candidate,
+    ChainContext,
+    TwinRole,
+    get,
+    register,
+    registry,
+    valve_start,
+)
 from valve_emulator.diagnosis.candidates.actuator_lag import first_order_lag
 from valve_emulator.diagnosis.candidates.stiction import stiction_kind
 from valve_emulator.diagnosis.candidates.valve_start import (
@@ -225,6 +234,37 @@ def test_a_grid_of_valves_replays_each_valve_as_it_would_alone(model, n, shared_
     for i in range(n):
         alone = valve_output(op if shared_op else op[:, i], S[i:i + 1], J[i:i + 1], start[i:i + 1], ctx)
         assert np.array_equal(together[:, i], alone[:, 0]), i
+
+
+@pytest.mark.parametrize("model", ["kano", "choudhury", "he"])
+@pytest.mark.parametrize("groups", [4, 40])
+def test_valves_of_equal_parameters_that_catch_up_replay_each_valve_as_it_would_alone(model, groups):
+    # A grid's rows that differ only in the start are replayed together and a valve whose state has caught up
+    # with its group's first stops stepping (its column copied from there on): every column must still be bit
+    # for bit the valve replayed on its own. Groups that merge at once (a start repeated), early, late and never,
+    # over several of the checks' segments; 4 groups (12 valves: the branches) and 40 (120: the vector loop,
+    # which keeps at least valve_start._KEEP_STEPPING valves going).
+    rng = np.random.default_rng(11)
+    n_op = 3000
+    op = 50.0 + 5.0 * np.sin(np.arange(n_op) / 37.0) + np.cumsum(rng.normal(size=n_op)) * 0.04
+    op[n_op // 2:] += 3.0 * np.sin(np.arange(n_op - n_op // 2) / 9.0)   # reversals late in the record as well
+    ctx = ChainContext(dt=1.0, op=op, op_span=float(np.ptp(op)), valve_model=model, rest_samples=2)
+    S, J = rng.uniform(0.3, 9.0, groups), rng.uniform(0.0, 6.0, groups)
+    rows = [(S[g], J[g], start) for g in range(groups) for start in (*STARTS, STARTS[g % 3])]
+    order = rng.permutation(len(rows))                     # the members of a group need not be side by side
+    S_rows, J_rows, start = (np.array([rows[i][c] for i in order]) for c in range(3))
+    together = valve_output(op, S_rows, J_rows, start, ctx)
+    for i in range(len(rows)):
+        alone = valve_output(op, S_rows[i:i + 1], J_rows[i:i + 1], start[i:i + 1], ctx)
+        assert np.array_equal(together[:, i], alone[:, 0]), i
+    # and the valves that caught up did stop stepping
+    bank = valve_start._bank(op, S_rows, J_rows, start, ctx)
+    m = S_rows.size
+    keep = 0 if m < 24 else valve_start._KEEP_STEPPING
+    stepped = valve_start._run_merging(bank.x, bank.K, n_op, np.arange(m), bank.S, bank.J, bank.R, bank.codes,
+                                       valve_start._pre_rolled(bank, np.arange(m)), np.empty((n_op, m)),
+                                       valve_start._leaders(bank.S, bank.J), keep)
+    assert stepped < m * n_op
 
 
 def test_importing_the_package_registers_every_candidate_its_modules_define():

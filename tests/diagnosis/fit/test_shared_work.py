@@ -1,5 +1,5 @@
 """Work the search shares between steps gives each step its own numbers: the quick backfit's score, the chain's tail
-on a travel scale, one grid scored for several cost domains."""
+on a travel scale, one grid scored for several cost domains, overlapping grids scored together."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from valve_emulator.diagnosis.candidates.valve_start import valve_output
 from valve_emulator.diagnosis.fit.backfit import backfit, backfit_sse
 from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.linear import LinearStructure
-from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
+from valve_emulator.diagnosis.fit.scorer import Scorer, replay_order, sse_jobs_many, sse_jobs_shared
 
 T = 1200
 
@@ -75,3 +75,56 @@ def test_one_grid_scored_for_two_cost_domains_has_the_numbers_of_each_alone():
         for (sse, used), (sse_alone, used_alone) in zip(results, alone):
             assert sse.tobytes() == sse_alone.tobytes() and np.array_equal(used, used_alone)
     assert shared[0][0][0].tobytes() != shared[1][0][0].tobytes()   # the two domains do differ
+
+
+def test_overlapping_grids_scored_together_have_each_rows_numbers_alone():
+    # sse_jobs_many: the rows that several requests of one model hold go through the chain once, the rows that differ
+    # only in the valve's start side by side (replay_order); each request's SSEs must be, row by row and to the bit,
+    # the straightforward computation: the row alone through the chain, its flow scored for the request's jobs.
+    problem = staircase_problem(T, load=0.8)
+    scorer = Scorer(problem, NOMINAL, {})
+    stiction = get("stiction")
+    ctx, aim = scorer.ctx(None), scorer.aim(None)
+    SJ = [(S, J) for S in (0.6, 1.0, 1.4, 1.8, 2.2) for J in (0.0, 0.4, 0.8)]
+
+    def grid(pairs):   # a refinement's layout: the starts in separate blocks
+        return np.array([(S, J, start) for start in (2.0, 1.0, -1.0) for S, J in pairs])
+
+    grids = [grid(SJ[:9]), grid(SJ[5:]), grid(SJ[:9]), grid(SJ[12:])[::-1]]
+    jobs = [[(NOMINAL.structure, None)], [(LinearStructure(taus=(20.0,), delay=2.0), np.arange(0, 5))],
+            [(NOMINAL.structure, np.arange(1, 4)), (LinearStructure(taus=(8.0,), delay=1.0), None)],
+            [(NOMINAL.structure, None)]]
+    together = sse_jobs_many([(scorer, {}, ctx, stiction, g, j, aim) for g, j in zip(grids, jobs)])
+    for g, request_jobs, results in zip(grids, jobs, together):
+        assert len(results) == len(request_jobs)
+        for (st, delays), (sse, used) in zip(request_jobs, results):
+            for i, row in enumerate(g):
+                alone, used_alone = scorer.sse_flows(scorer.chain({}, ctx, stiction, row[None, :]), st, delays, aim)
+                assert sse[i].tobytes() == alone[0].tobytes() and np.array_equal(used, used_alone)
+    order = replay_order(stiction, grids[0])   # the starts of each (S, J) side by side, in the grid's order
+    assert order is not None and [tuple(r) for r in grids[0][order][:3, :2]] == [SJ[0]] * 3
+    assert replay_order(stiction, stiction.scan(ctx)) is None   # the scan's grid has them side by side already
+
+
+@pytest.mark.parametrize("name", ["stiction", "deadband"])
+@pytest.mark.parametrize("model", ["kano", "choudhury", "he"])
+def test_a_valve_candidates_output_is_within_travel_so_the_chain_skips_the_stops_check(name, model, monkeypatch):
+    # output_in_range lets run_chain skip the nominal linear characteristic's check for values beyond 0–100 %: the
+    # valve's MV must lie within them (or be NaN) whatever OP does, and the chain's flows must be, to the bit, those
+    # of the chain that checks.
+    rng = np.random.default_rng(8)
+    op = 50.0 + np.cumsum(rng.normal(0.0, 6.0, 800))          # wanders far beyond both stops
+    op[[100, 400]] = np.nan
+    ctx = ChainContext(dt=1.0, op=op, op_span=40.0, valve_model=model)
+    cand = get(name)
+    assert cand.output_in_range
+    grid = cand.grid(ctx)[::5]
+    mv = cand.apply(op, grid, ctx)
+    assert np.all(np.isnan(mv) | ((mv >= 0.0) & (mv <= 100.0))) and np.ptp(mv[:90]) > 0.0
+    ok = np.clip(np.nan_to_num(op, nan=50.0), -5.0, 105.0)    # no NaN: the stops' check clips OP itself
+    skipped = run_chain(ok, {}, ctx, grid_candidate=cand, grid=grid)
+    nominal = run_chain(ok, {}, ctx, nominal_valve=(3.0, 1.0))
+    monkeypatch.setattr(type(cand), "output_in_range", False)
+    assert skipped.tobytes() == run_chain(ok, {}, ctx, grid_candidate=cand, grid=grid).tobytes()
+    assert run_chain(ok, {}, ctx, nominal_valve=(3.0, 1.0)).tobytes() == nominal.tobytes()
+    assert run_chain(ok, {}, ctx)[:, 0].tobytes() == np.clip(ok, 0.0, 100.0).tobytes()   # OP itself is clipped

@@ -271,6 +271,10 @@ class ChainCandidate(Candidate):
     #: fits it as acting only from an onset time on
     #: (:class:`~valve_emulator.diagnosis.explain.onset.LateOnset`).
     may_start_late: ClassVar[bool] = False
+    #: Every value :meth:`apply` returns lies within 0–100 % or is NaN, whatever its input (a valve's MV: the state
+    #: machines clip it): the chain then skips the travel stops' check of the nominal linear characteristic after
+    #: it (:func:`~valve_emulator.diagnosis.fit.chain.run_chain`), which would find nothing to clip.
+    output_in_range: ClassVar[bool] = False
 
     @abstractmethod
     def apply(self, x: np.ndarray, params: np.ndarray, ctx: ChainContext) -> np.ndarray:

@@ -29,6 +29,7 @@ class Deadband(ChainCandidate):
     n_params: ClassVar[int] = 1
     dims: ClassVar[dict[str, str]] = {"S": "op"}
     may_start_late: ClassVar[bool] = True
+    output_in_range: ClassVar[bool] = True   # valve_output's MV
     twin_role: ClassVar[TwinRole | None] = TwinRole.VALVE_BAND
     threshold_axes: ClassVar[tuple[int, ...]] = (0,)
 

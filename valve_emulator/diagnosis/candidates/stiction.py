@@ -60,6 +60,7 @@ class Stiction(ChainCandidate):
     twin_role: ClassVar[TwinRole | None] = TwinRole.VALVE_BAND
     threshold_axes: ClassVar[tuple[int, ...]] = (0, 1)
     may_start_late: ClassVar[bool] = True
+    output_in_range: ClassVar[bool] = True   # valve_output's MV
 
     def grid(self, ctx: ChainContext) -> np.ndarray:
         h = _coarse(ctx.op_span)

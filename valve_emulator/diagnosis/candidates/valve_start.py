@@ -117,6 +117,83 @@ def _run_valves(op, K, first, last, cols, S, J, R, codes, st, out, out_first):  
                 out[kk - out_first, cols[i]] = st[i, MV]
 
 
+#: Samples between the checks of :func:`_run_merging` for valves that have caught up with their group's first.
+_MERGE_EVERY = 256
+#: Fewest valves :func:`_run_merging` keeps stepping when it was given at least as many: on the 2-core machine of
+#: 2026-11-27 (AMD EPYC) the vector loop cost 3.6–4.0 ns per valve-sample from 28 valves on and 9.5 ns at 24 (the
+#: branches 8.5–8.8 ns at 16–20), so a bank that steps the vector loop keeps this many going (all of them below
+#: it); a smaller bank, which takes the branches at the same cost per valve however few, stops any that catch up.
+_KEEP_STEPPING = 32
+
+
+@numba.njit(cache=True, nogil=True)
+def _run_merging(op, K, T, cols, S, J, R, codes, st, out, leader, keep):  # pragma: no cover - compiled
+    # _run_valves over the record (samples K..K+T-1 of the pre-rolled time axis, all m valves from their states st at
+    # the record's first sample, column-major), OP shared by all (op (., 1)), for valves in groups of equal
+    # parameters: leader[i] is the first valve of i's group (the same S and J to the bit; R and the model are the
+    # bank's), i itself for the first. Every _MERGE_EVERY samples a valve whose state equals its leader's to the bit
+    # (NaN never equal, -0.0 not 0.0) stops stepping: from there it would step exactly as its leader (the same
+    # numbers through the same operations), so its column of out is its leader's from that sample on, copied segment
+    # by segment. Leaders never stop; at least ``keep`` valves keep stepping (_KEEP_STEPPING). Returns how many
+    # valve-samples were stepped.
+    m = cols.shape[0]
+    since = np.full(m, T, dtype=np.int64)
+    act = np.arange(m)
+    pos = np.arange(m)
+    a_cols, a_S, a_J, a_R, a_codes = cols.copy(), S.copy(), J.copy(), R.copy(), codes.copy()
+    a_st = np.empty((NSTATE, m)).T
+    for i in range(m):
+        for s in range(NSTATE):
+            a_st[i, s] = st[i, s]
+    stepped = 0
+    f_cols = l_cols = cols[:0].copy()   # the columns of the valves that stopped, and of their leaders
+    for k0 in range(0, T, _MERGE_EVERY):
+        n_act = act.shape[0]
+        going = np.ones(n_act, dtype=np.bool_)
+        n_going = n_act
+        for p in range(n_act):
+            i = act[p]
+            if leader[i] == i or n_going <= keep:
+                continue
+            q = pos[leader[i]]
+            same = True
+            for s in range(NSTATE):
+                a, b = a_st[p, s], a_st[q, s]
+                if not (a == b and (a != 0.0 or np.signbit(a) == np.signbit(b))):
+                    same = False
+                    break
+            if same:
+                going[p] = False
+                n_going -= 1
+                since[i] = k0
+        if n_going < n_act:
+            idx = np.flatnonzero(going)
+            act, a_cols, a_S, a_J, a_R, a_codes = act[idx], a_cols[idx], a_S[idx], a_J[idx], a_R[idx], a_codes[idx]
+            new_st = np.empty((NSTATE, n_going)).T
+            for p in range(n_going):
+                for s in range(NSTATE):
+                    new_st[p, s] = a_st[idx[p], s]
+            a_st = new_st
+            for p in range(n_going):
+                pos[act[p]] = p
+            stopped = np.flatnonzero(since < T)
+            f_cols, l_cols = cols[stopped], cols[leader[stopped]]
+        k1 = min(T, k0 + _MERGE_EVERY)
+        _run_valves(op, K, K + k0, K + k1, a_cols, a_S, a_J, a_R, a_codes, a_st, out, K)
+        stepped += n_going * (k1 - k0)
+        for k in range(k0, k1):   # the segment's rows, still in cache
+            for f in range(f_cols.shape[0]):
+                out[k, f_cols[f]] = out[k, l_cols[f]]
+    return stepped
+
+
+def _leaders(S: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """For each valve, the first valve with the same ``S`` and ``J`` to the bit (itself for the first of each)."""
+    first: dict[tuple[int, int], int] = {}
+    return np.array([first.setdefault(key, i) for i, key in
+                     enumerate(zip(S.view(np.int64).tolist(), J.view(np.int64).tolist()))], dtype=np.int64)
+
+
 @dataclass(frozen=True, eq=False)
 class _Bank:
     """Valves ready to run (:func:`_bank`): OP (T, 1 or n) as the kernel reads it, the pre-roll's length ``K``,
@@ -182,8 +259,13 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
         # together, in column order (whole vectors, and each sample's MV written as one contiguous row).
         valves = np.arange(a, b)
         st = _pre_rolled(bank, valves)
-        _run_valves(bank.x, K, K, K + T, valves, bank.S[a:b], bank.J[a:b], bank.R[a:b], bank.codes[a:b], st, out,
-                    K)
+        leader = _leaders(bank.S[a:b], bank.J[a:b]) if bank.x.shape[1] == 1 else None
+        if leader is None or (leader == np.arange(b - a)).all():
+            _run_valves(bank.x, K, K, K + T, valves, bank.S[a:b], bank.J[a:b], bank.R[a:b], bank.codes[a:b], st,
+                        out, K)
+        else:   # valves of equal parameters, different starts: those that catch up stop stepping (_run_merging)
+            _run_merging(bank.x, K, T, valves, bank.S[a:b], bank.J[a:b], bank.R[a:b], bank.codes[a:b], st, out,
+                         leader, min(b - a, _KEEP_STEPPING) if b - a >= _VECTOR_FROM else 0)
 
     workers = workers_for(n)
     run_split(part, [n * w // workers for w in range(workers + 1)])

@@ -59,7 +59,7 @@ from valve_emulator.diagnosis.fit.nominal import Nominal
 from valve_emulator.diagnosis.fit.records import Model
 from valve_emulator.physics._arrays import kernel_array
 
-__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "sse_jobs_many", "sse_jobs_shared"]
+__all__ = ["Aim", "Scorer", "chain_context", "library_burn_in", "replay_order", "sse_jobs_many", "sse_jobs_shared"]
 
 #: Most grid rows pushed through the chain at once. Bounds memory (5 MB per array at 10^4 samples), and the
 #: chain's output is then a contiguous block that the linear kernel reads from cache for every job (structure)
@@ -213,7 +213,10 @@ class Scorer:
     def sse_jobs(self, active, ctx, cand, grid, jobs, aim: Aim) -> list[tuple]:
         """Several ``(structure, delays)`` evaluations of one grid in one pass: each chunk of rows is pushed
         through the chain once (the valve simulation is the costly part) and scored for every job."""
-        return self._score_chunks(lambda a, b: self.chain(active, ctx, cand, grid[a:b]), grid.shape[0], jobs, aim)
+        order = replay_order(cand, grid)
+        rows = grid if order is None else grid[order]
+        return _unordered(self._score_chunks(lambda a, b: self.chain(active, ctx, cand, rows[a:b]), grid.shape[0],
+                                             jobs, aim), order)
 
     def sse_flows_all(self, flows: np.ndarray, jobs: list[tuple], aim: Aim) -> list[tuple]:
         """:meth:`sse_flows` of ``flows`` (T, n) for every ``(structure, delays)`` of ``jobs``, at most
@@ -249,11 +252,140 @@ class Scorer:
 def sse_jobs_many(requests: list[tuple]) -> list[list[tuple]]:
     """:meth:`Scorer.sse_jobs` of several grids, each request ``(scorer, active, ctx, cand, grid, jobs, aim)``:
     the chunks of all of them shared out over the threads together. Per request, the numbers of its own
-    ``sse_jobs``."""
-    grids = [(functools.partial(_grid_chunk, scorer, active, ctx, cand, grid), grid.shape[0],
-              functools.partial(scorer._score_block, jobs=jobs, aim=aim))
-             for scorer, active, ctx, cand, grid, jobs, aim in requests]
-    return [_stacked(blocks) for blocks in _grids_chunks_scored(grids)]
+    ``sse_jobs``.
+
+    Requests that differ only in their grid and jobs (the same scorer, model, context, candidate and aim: the
+    refinement's starts) often hold the same rows (neighbouring grids overlap; at 10^5 samples stiction's three
+    starts held 2,910 rows of which 1,479 distinct). Each distinct row goes through the chain once
+    (:func:`_shared_rows`) and is scored for the jobs of every request that holds it. A row's numbers depend on the
+    row and the job only (:func:`_chunks_scored`), so they are those of each request's own ``sse_jobs``."""
+    groups: dict[tuple, list[int]] = {}
+    for r, (scorer, active, ctx, cand, _, _, aim) in enumerate(requests):
+        groups.setdefault((id(scorer), id(active), id(ctx), id(cand), id(aim)), []).append(r)
+    parts, put_back = [], []
+    for rs in groups.values():
+        if len(rs) > 1 and all(requests[r][4].shape[0] for r in rs):
+            split = _shared_rows([requests[r] for r in rs])
+            put_back.append((rs, len(parts), split))
+            parts += split.requests
+        else:
+            put_back += [([r], len(parts) + i, None) for i, r in enumerate(rs)]
+            parts += [requests[r] for r in rs]
+    scored = _sse_jobs_each(parts)
+    out: list[list[tuple]] = [None] * len(requests)   # type: ignore[list-item]
+    for rs, first, split in put_back:
+        if split is None:
+            out[rs[0]] = scored[first]
+            continue
+        for r, result in zip(rs, split.results(scored[first:first + len(split.requests)])):
+            out[r] = result
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class _SharedRows:
+    """Requests of one model (:func:`sse_jobs_many`) recast as one request per set of requests that hold a row:
+    ``requests`` are the recast ones, each with the distinct rows held by exactly that set (``members``) and the
+    jobs of its members one after the other (``offsets``: where each member's start). ``unique`` (per original
+    request, for each of its rows) is the row's index among the distinct rows, ``part`` and ``at`` (per distinct
+    row) its recast request and its place there."""
+
+    requests: list[tuple]
+    members: list[tuple[int, ...]]
+    offsets: list[dict[int, int]]
+    unique: list[np.ndarray]
+    part: np.ndarray
+    at: np.ndarray
+    n_jobs: list[int]
+
+    def results(self, scored: list[list[tuple]]) -> list[list[tuple]]:
+        """Per original request, per job, ``(sse, delays)`` with the rows of its grid, from the recast requests'
+        results ``scored``."""
+        out = []
+        for k, rows in enumerate(self.unique):
+            parts = self.part[rows]
+            per_job = []
+            for j in range(self.n_jobs[k]):
+                first = next(p for p, m in enumerate(self.members) if k in m)
+                nd = scored[first][self.offsets[first][k] + j][0].shape[1]
+                sse = np.empty((rows.size, nd))
+                for p, m in enumerate(self.members):
+                    if k in m:
+                        mine = parts == p
+                        sse[mine] = scored[p][self.offsets[p][k] + j][0][self.at[rows[mine]]]
+                per_job.append((sse, scored[first][self.offsets[first][k] + j][1]))
+            out.append(per_job)
+        return out
+
+
+def _shared_rows(requests: list[tuple]) -> _SharedRows:
+    """:class:`_SharedRows` of ``requests`` (one model's; see :func:`sse_jobs_many`)."""
+    index: dict[bytes, int] = {}
+    holders: list[set[int]] = []
+    rows: list[np.ndarray] = []
+    unique = []
+    for k, req in enumerate(requests):
+        grid = req[4]
+        ids = np.empty(grid.shape[0], dtype=np.int64)
+        for i, row in enumerate(grid):
+            u = index.setdefault(row.tobytes(), len(rows))
+            if u == len(rows):
+                rows.append(row)
+                holders.append(set())
+            holders[u].add(k)
+            ids[i] = u
+        unique.append(ids)
+    sets: dict[tuple[int, ...], list[int]] = {}
+    for u, h in enumerate(holders):
+        sets.setdefault(tuple(sorted(h)), []).append(u)
+    part, at = np.empty(len(rows), dtype=np.int64), np.empty(len(rows), dtype=np.int64)
+    recast, members, offsets = [], [], []
+    for p, (m, us) in enumerate(sets.items()):
+        part[us], at[us] = p, np.arange(len(us))
+        scorer, active, ctx, cand, _, _, aim = requests[m[0]]
+        jobs, offset = [], {}
+        for k in m:
+            offset[k] = len(jobs)
+            jobs += list(requests[k][5])
+        recast.append((scorer, active, ctx, cand, np.array([rows[u] for u in us]), jobs, aim))
+        members.append(m)
+        offsets.append(offset)
+    return _SharedRows(requests=recast, members=members, offsets=offsets, unique=unique, part=part, at=at,
+                       n_jobs=[len(req[5]) for req in requests])
+
+
+def _sse_jobs_each(requests: list[tuple]) -> list[list[tuple]]:
+    """:func:`sse_jobs_many` without looking for rows the requests share: each grid's chunks as they are."""
+    orders = [replay_order(cand, grid) for _, _, _, cand, grid, _, _ in requests]
+    grids = [(functools.partial(_grid_chunk, scorer, active, ctx, cand, grid if order is None else grid[order]),
+              grid.shape[0], functools.partial(scorer._score_block, jobs=jobs, aim=aim))
+             for (scorer, active, ctx, cand, grid, jobs, aim), order in zip(requests, orders)]
+    return [_unordered(_stacked(blocks), order) for blocks, order in zip(_grids_chunks_scored(grids), orders)]
+
+
+def replay_order(cand: Candidate | None, grid: np.ndarray) -> np.ndarray | None:
+    """The order in which a grid's rows go through the chain: rows that differ only in a valve's initial state
+    (the nuisance parameter ``start`` of :mod:`~valve_emulator.diagnosis.candidates.valve_start`) side by side, in
+    the order of each group's first row, so that they share a chunk and the valves of a group that catch up with
+    each other are stepped once (``valve_start._run_merging``). None: the grid's own order (no such parameter, or
+    the groups are side by side already, as in the scan's grids). A row's numbers do not depend on the rows that
+    share its chunk (:func:`_chunks_scored`), so the order changes no number."""
+    if cand is None or "start" not in cand.param_names or grid.shape[0] < 2:
+        return None
+    rest = np.delete(grid, cand.param_names.index("start"), axis=1)
+    _, first, group = np.unique(rest, axis=0, return_index=True, return_inverse=True)
+    order = np.lexsort((np.arange(grid.shape[0]), first[group.ravel()]))
+    return None if (order == np.arange(grid.shape[0])).all() else order
+
+
+def _unordered(scored: list[tuple], order: np.ndarray | None) -> list[tuple]:
+    """Per job ``(sse, delays)`` with the SSE rows of a grid scored in ``order`` (:func:`replay_order`) put back in
+    the grid's own order."""
+    if order is None:
+        return scored
+    back = np.empty_like(order)
+    back[order] = np.arange(order.size)
+    return [(sse[back], delays) for sse, delays in scored]
 
 
 def _grid_chunk(scorer: Scorer, active, ctx, cand, grid: np.ndarray, a: int, b: int) -> np.ndarray:
@@ -269,9 +401,11 @@ def sse_jobs_shared(active, ctx, cand, grid: np.ndarray, tasks: list[tuple[Score
     the chain does not depend on the cost domain) and is scored for every task: per task, the numbers of its own
     ``sse_jobs``."""
     first = tasks[0][0]
-    blocks = _chunks_scored(lambda a, b: first.chain(active, ctx, cand, grid[a:b]), grid.shape[0],
+    order = replay_order(cand, grid)
+    rows = grid if order is None else grid[order]
+    blocks = _chunks_scored(lambda a, b: first.chain(active, ctx, cand, rows[a:b]), grid.shape[0],
                             lambda flows: [scorer._score_block(flows, jobs, aim) for scorer, jobs, aim in tasks])
-    return [_stacked([block[t] for block in blocks]) for t in range(len(tasks))]
+    return [_unordered(_stacked([block[t] for block in blocks]), order) for t in range(len(tasks))]
 
 
 def _chunks_scored(chunk: Callable[[int, int], np.ndarray], n: int, score: Callable[[np.ndarray], list]
