@@ -21,10 +21,14 @@ from valve_emulator.diagnosis.answers import VALVE_FRICTION
 pytestmark = pytest.mark.slow
 
 WITH_MODEL = [k for k in ALL if k.mode == "model"]
-#: Level loops with a healthy valve and their exact nominal model whose weak stiction call the rule takes back:
-#: neither cycles, OP's swings cross the band found in 2 % and 2.5 % of them, and the record does not show it
-#: (OP's moves inside it reach PV; its 95 % interval reaches 0).
-HEALTHY_UNSHOWN = [Draw("healthy_level", (2032, 7, 1), "model"), Draw("healthy_level", (2032, 7, 5), "model")]
+#: A level loop with a healthy valve and its exact nominal model whose weak stiction call the rule takes back: it
+#: does not cycle, OP's swings cross the band found in 2.5 % of them, and the record does not show it (OP's moves
+#: inside it reach PV; its 95 % interval reaches 0).
+HEALTHY_UNSHOWN = [Draw("healthy_level", (2032, 7, 5), "model")]
+#: The second such loop of the rule's measurement: its band was a deadband "from t ≈ 1387 s on", an onset that
+#: neither counted against the deadband acting throughout nor showed a healthy valve before it; since a located
+#: onset must be evidenced (``Search.onset_evidenced``, 2026-11-27) no valve is left to take back.
+HEALTHY_NO_ONSET = Draw("healthy_level", (2032, 7, 1), "model")
 #: A sticky level loop in a limit cycle (regularity above 1), with its nominal model.
 STICKY_CYCLING = Draw("level_sticky", (7, 0, 4), "model")
 HEALTHY_FAMILIES = ("healthy_level", "coarse_ad", "slow_noisy_valve", "healthy_flow", "aggressive_pi")
@@ -45,6 +49,12 @@ def test_a_healthy_valve_whose_band_the_record_does_not_show_is_cannot_tell_nami
     assert not any(f["physics"] in VALVE_FRICTION for f in doc["findings"])
     assert doc["friction"] is None and doc["strength"] is None
     assert "cannot tell" in doc["verdict"]
+
+
+def test_a_healthy_valve_whose_late_band_the_record_does_not_evidence_is_no_stiction_with_a_model():
+    doc = diagnosed(HEALTHY_NO_ONSET).doc
+    assert doc["answer"] == "no_stiction", doc["verdict"]
+    assert not any(f["physics"] in VALVE_FRICTION for f in doc["findings"]) and doc["friction"] is None
 
 
 def test_a_sticky_loop_that_cycles_keeps_its_stiction_call_with_a_model():
