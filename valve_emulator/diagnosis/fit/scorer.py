@@ -213,8 +213,7 @@ class Scorer:
     def sse_jobs(self, active, ctx, cand, grid, jobs, aim: Aim) -> list[tuple]:
         """Several ``(structure, delays)`` evaluations of one grid in one pass: each chunk of rows is pushed
         through the chain once (the valve simulation is the costly part) and scored for every job."""
-        order = replay_order(cand, grid)
-        rows = grid if order is None else grid[order]
+        rows, order = _in_replay_order(cand, grid)
         return _unordered(self._score_chunks(lambda a, b: self.chain(active, ctx, cand, rows[a:b]), grid.shape[0],
                                              jobs, aim), order)
 
@@ -305,8 +304,8 @@ class _SharedRows:
         for k, rows in enumerate(self.unique):
             parts = self.part[rows]
             per_job = []
+            first = next(p for p, m in enumerate(self.members) if k in m)
             for j in range(self.n_jobs[k]):
-                first = next(p for p, m in enumerate(self.members) if k in m)
                 nd = scored[first][self.offsets[first][k] + j][0].shape[1]
                 sse = np.empty((rows.size, nd))
                 for p, m in enumerate(self.members):
@@ -356,10 +355,11 @@ def _shared_rows(requests: list[tuple]) -> _SharedRows:
 
 def _sse_jobs_each(requests: list[tuple]) -> list[list[tuple]]:
     """:func:`sse_jobs_many` without looking for rows the requests share: each grid's chunks as they are."""
-    orders = [replay_order(cand, grid) for _, _, _, cand, grid, _, _ in requests]
-    grids = [(functools.partial(_grid_chunk, scorer, active, ctx, cand, grid if order is None else grid[order]),
-              grid.shape[0], functools.partial(scorer._score_block, jobs=jobs, aim=aim))
-             for (scorer, active, ctx, cand, grid, jobs, aim), order in zip(requests, orders)]
+    ordered = [_in_replay_order(cand, grid) for _, _, _, cand, grid, _, _ in requests]
+    orders = [order for _, order in ordered]
+    grids = [(functools.partial(_grid_chunk, scorer, active, ctx, cand, rows), grid.shape[0],
+              functools.partial(scorer._score_block, jobs=jobs, aim=aim))
+             for (scorer, active, ctx, cand, grid, jobs, aim), (rows, _) in zip(requests, ordered)]
     return [_unordered(_stacked(blocks), order) for blocks, order in zip(_grids_chunks_scored(grids), orders)]
 
 
@@ -376,6 +376,12 @@ def replay_order(cand: Candidate | None, grid: np.ndarray) -> np.ndarray | None:
     _, first, group = np.unique(rest, axis=0, return_index=True, return_inverse=True)
     order = np.lexsort((np.arange(grid.shape[0]), first[group.ravel()]))
     return None if (order == np.arange(grid.shape[0])).all() else order
+
+
+def _in_replay_order(cand: Candidate | None, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """``grid``'s rows in :func:`replay_order` and that order (None: the grid as it is), for :func:`_unordered`."""
+    order = replay_order(cand, grid)
+    return (grid if order is None else grid[order]), order
 
 
 def _unordered(scored: list[tuple], order: np.ndarray | None) -> list[tuple]:
@@ -401,8 +407,7 @@ def sse_jobs_shared(active, ctx, cand, grid: np.ndarray, tasks: list[tuple[Score
     the chain does not depend on the cost domain) and is scored for every task: per task, the numbers of its own
     ``sse_jobs``."""
     first = tasks[0][0]
-    order = replay_order(cand, grid)
-    rows = grid if order is None else grid[order]
+    rows, order = _in_replay_order(cand, grid)
     blocks = _chunks_scored(lambda a, b: first.chain(active, ctx, cand, rows[a:b]), grid.shape[0],
                             lambda flows: [scorer._score_block(flows, jobs, aim) for scorer, jobs, aim in tasks])
     return [_unordered(_stacked([block[t] for block in blocks]), order) for t in range(len(tasks))]
