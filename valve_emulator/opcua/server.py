@@ -117,8 +117,10 @@ PUBLISH_BUDGET = 0.3
 #: tick is moved across the publish of every item whose publish falls between the two ticks (at 1 s sampling on a
 #: 0.1 s tick one item in ten), which then goes out without it and with a queue of one never carries it
 #: (docs/benchmarks.md §9.12). A publisher behind the device (its pass longer than a tick) takes the newest tick
-#: when it is done (the ticks it skipped counted in ``skipped``), and a group due at a skipped tick is sampled
-#: at it on its own grid (:func:`next_due`).
+#: when it is done, unless that tick's hand-off is already past: then it waits for the next tick, so that a
+#: publisher the machine cannot keep up with leaves the event loop to asyncua's publishes and the clients'
+#: requests between ticks (the ticks it skipped counted in ``skipped``); a group due at a skipped tick is sampled at
+#: the next one on its own grid (:func:`next_due`).
 PROCESS_PUBLISH_BUDGET = math.inf
 #: The publisher hands a tick's values in chunks of this many monitored variables ...
 HAND_CHUNK = 200
@@ -903,13 +905,16 @@ class OpcUaServer:
         stopped, so a subscription larger than the machine can feed gets every variable's latest value less often
         instead of delaying the tick. In a process of its own nothing is deferred (:data:`PROCESS_PUBLISH_BUDGET`):
         a tick's due values are all handed at its hand-off, into the publishing interval they belong to; a
-        publisher behind the device takes the newest tick once it is done with the last (counted in
-        :attr:`skipped`)."""
+        publisher behind the device takes the newest tick once it is done with the last, or, if that tick's
+        hand-off is already past, the next one (the ticks it never sampled counted in :attr:`skipped`)."""
         source, seen, at = self.source, self.source.ticks, 0
         loop = asyncio.get_running_loop()
         grid = HandOffGrid()
         while True:
-            previous, seen = seen, await source.wait_for_tick(seen + 1)
+            previous, newest = seen, source.ticks
+            if newest > seen and grid.overdue(newest, loop.time(), source.period):
+                seen = newest   # came while the last pass ran, its hand-off already past: wait for a fresh one
+            seen = await source.wait_for_tick(seen + 1)
             if seen > previous + 1:
                 self.skipped += seen - previous - 1
             arrived = loop.time()
