@@ -54,7 +54,6 @@ the ``Server`` object and which a client acknowledges (:mod:`~valve_emulator.opc
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import itertools
 import json
@@ -123,14 +122,6 @@ PUBLISH_BUDGET = 0.3
 #: requests between ticks (the ticks it skipped counted in ``skipped``); a group due at a skipped tick is sampled at
 #: the next one on its own grid (:func:`next_due`).
 PROCESS_PUBLISH_BUDGET = math.inf
-#: ... except while it is behind the device, not once but again and again: once it has skipped ticks (:data:`BEHIND`
-#: times within the last :data:`BEHIND_TICKS` ticks), a machine that cannot feed it, it stops a tick's pass at this
-#: share of the tick as in the device's process, so that asyncua's publishes and the clients' requests still get
-#: the event loop between its passes (without it, starved at load 9-14, its publishes came late and another
-#: session's reads took 0.5-0.8 s: docs/benchmarks.md §9.12). A lone stall skips a tick once and defers nothing.
-BEHIND_BUDGET = 0.7
-BEHIND = 2
-BEHIND_TICKS = 10
 #: The publisher hands a tick's values in chunks of this many monitored variables ...
 HAND_CHUNK = 200
 #: ... each due this share of the tick period after the one before (more than a chunk's work: 200 variables take
@@ -919,7 +910,6 @@ class OpcUaServer:
         source, seen, at = self.source, self.source.ticks, 0
         loop = asyncio.get_running_loop()
         grid = HandOffGrid()
-        behind: collections.deque[int] = collections.deque(maxlen=BEHIND)   # the last ticks taken after a skip
         while True:
             previous, newest = seen, source.ticks
             if newest > seen and grid.overdue(newest, loop.time(), source.period):
@@ -927,7 +917,6 @@ class OpcUaServer:
             seen = await source.wait_for_tick(seen + 1)
             if seen > previous + 1:
                 self.skipped += seen - previous - 1
-                behind.append(seen)
             arrived = loop.time()
             self.tick_clock.stamp()   # the tick just ran: its time is now
             if self._dirty:
@@ -938,19 +927,8 @@ class OpcUaServer:
             chunks = -(-len(self._active) // HAND_CHUNK)
             sampled_at = grid.on_grid if math.isfinite(grid.on_grid) else due
             with Wakeups(chunk_times(due, period, chunks, HAND_SPACING)) as wakeups:
-                handing, at = await self._sample(at, sampled_at, period, self._budget(behind, seen) * period)
+                handing, at = await self._sample(at, sampled_at, period, self.publish_budget * period)
                 await self._hand_all(handing, wakeups)
-
-    def _budget(self, behind: Sequence[int], tick: int) -> float:
-        """The share of the tick period the pass over tick number ``tick`` may take: :attr:`publish_budget`, or,
-        where that has no limit, :data:`BEHIND_BUDGET` while the publisher is behind the device again and again
-        (``behind``: the last ticks it took after skipping some, :data:`BEHIND` of them within
-        :data:`BEHIND_TICKS`)."""
-        if math.isfinite(self.publish_budget):
-            return self.publish_budget
-        if len(behind) == BEHIND and tick - behind[0] < BEHIND_TICKS:
-            return BEHIND_BUDGET
-        return self.publish_budget
 
     async def _sample(self, at: int, due: float, period: float,
                       budget: float) -> tuple[list[tuple[int, _Watch, ua.DataValue, list[_Group]]], int]:
