@@ -24,11 +24,12 @@ request at the server when the publish was due (asyncua's client keeps one at a 
 taken in the last response), so the server publishes when the request comes, and with a queue of one the values
 handed meanwhile replace the ones waiting. Also the CPU time of the device process, of the OPC UA process and of the
 median client process per second, and the OPC UA process's CPU per notification handed to a subscription (the cost
-of a notification, and so the cores a load needs), and the ticks the publisher deferred (out of its budget). Medians
-over ``--rounds``. ``--trace``: each client also reports what it missed -- which publishes lacked which pv/op items,
-by loop decile, and whether the value after each miss was sampled two intervals after the one before it (a sample
-lost at the server) or one (the item's samples moved a publish later) (:func:`missed`). ``--profile`` profiles the
-OPC UA server in process (cProfile) and prints where its time goes.
+of a notification, and so the cores a load needs), the ticks the publisher deferred (out of its budget: in the
+device's process) and those it skipped (behind the device: a newer tick came before it was done with the last).
+Medians over ``--rounds``. ``--trace``: each client also reports what it missed -- which publishes lacked which
+pv/op items, by loop decile, and whether the value after each miss was sampled two intervals after the one before
+it (a sample lost at the server) or one (the item's samples moved a publish later) (:func:`missed`). ``--profile``
+profiles the OPC UA server in process (cProfile) and prints where its time goes.
 
 **Hostile.** ``--hostile N`` malformed OPC UA messages (``tests/opcua/hostile.py``: random bytes, absurd
 and tiny sizes, garbage after Hello, truncated chunks, bad sequence numbers, junk OpenSecureChannel, TLS
@@ -323,7 +324,8 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             await _each(q, len(procs), "start", 600)
             srv.device.jitter = type(srv.device.jitter)(4096)
             counters0 = await opc.counters() if opc else None
-            sent0, deferred0 = (counters0.notifications, counters0.deferred) if opc else (0, 0)
+            sent0, deferred0, skipped0 = (counters0.notifications, counters0.deferred, counters0.skipped) if opc \
+                else (0, 0, 0)
             ticks0, overruns0, t0 = srv.device.ticks, srv.device.overruns, time.monotonic()
             cpu0, opc_cpu0 = _cpu(os.getpid()), _cpu(pid)
             if profiler is not None:
@@ -336,6 +338,7 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             counters = await opc.counters() if opc else None
             sent = counters.notifications - sent0 if opc else 0
             deferred = counters.deferred - deferred0 if opc else 0
+            skipped = counters.skipped - skipped0 if opc else 0
             ticks, overruns = srv.device.ticks - ticks0, srv.device.overruns - overruns0
             lateness = srv.device.jitter.values()
             for proc in procs:
@@ -361,7 +364,7 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             "client_cpu": statistics.median(r[7] for r in results) if served else float("nan"),
             "read_p50": 1e3 * float(np.percentile(reads, 50)) if reads else float("nan"),
             "read_p99": 1e3 * float(np.percentile(reads, 99)) if reads else float("nan"),
-            "deferred": deferred, "trace": [r[10] for r in sorted(results, key=lambda r: r[1])]}
+            "deferred": deferred, "skipped": skipped, "trace": [r[10] for r in sorted(results, key=lambda r: r[1])]}
 
 
 def _profile(n: int, clients: int, sub: Subscribing, seconds: float) -> None:
@@ -502,7 +505,8 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
         print(f"rounds ({mode}): p99 " + ", ".join(f"{r['p99']:.1f}" for r in rs) + " ms; received "
               + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %; subscriptions ended (status change) "
               + "during the window " + ", ".join(f"{r['lost']} {'/'.join(r['statuses'])}" for r in rs)
-              + "; ticks the publisher deferred (out of its budget) " + ", ".join(f"{r['deferred']}" for r in rs))
+              + "; ticks the publisher deferred (out of its budget) " + ", ".join(f"{r['deferred']}" for r in rs)
+              + "; ticks it skipped (behind the device) " + ", ".join(f"{r['skipped']}" for r in rs))
     if sub.trace:
         for k, r in enumerate(runs[args.mode]):
             for rank, t in enumerate(r["trace"]):

@@ -59,6 +59,19 @@ def test_a_tick_later_than_its_hand_off_is_handed_at_once_and_a_schedule_that_mo
                                                  for k in range(PATIENCE - 1, PATIENCE + 1)])
 
 
+def test_a_tick_is_overdue_once_its_hand_off_on_the_grid_is_past_and_asking_does_not_move_the_grid():
+    """What the publisher asks of a tick that came while it was busy: skip it (its hand-off is past) or not."""
+    grid = HandOffGrid()
+    assert not grid.overdue(3, 99.0, TICK)   # no grid yet
+    grid.due(0, 20.0, TICK)
+    hand_off = 20.0 + (2 + HAND_OFF_DELAY) * TICK   # tick 2's
+    assert not grid.overdue(2, hand_off - 0.001, TICK)
+    assert grid.overdue(2, hand_off + 0.001, TICK)
+    assert not grid.overdue(2, hand_off + 0.001, 2 * TICK)   # another period: no grid for it
+    assert not grid.overdue(2, hand_off + 0.001, math.inf)   # no real-time period
+    assert grid.due(1, 20.0 + TICK, TICK) == pytest.approx(20.0 + (1 + HAND_OFF_DELAY) * TICK)   # unmoved
+
+
 def test_a_tick_handed_late_keeps_its_grid_time_for_sampling():
     """A tick later than its hand-off is handed at once, but the samples it takes are those due at its time on the
     grid: which tick samples an item sampled at 1 s does not depend on how late the ticks come (were it the

@@ -94,6 +94,14 @@ class HandOffGrid:
             return self._anchor(tick, arrived, period)
         return arrived
 
+    def overdue(self, tick: int, now: float, period: float) -> bool:
+        """Whether tick number ``tick``'s hand-off on the grid is already past at ``now`` (without moving the grid):
+        for a tick that came while the publisher was still busy with an earlier one. False without a grid (no
+        real-time period, a new period, a tick count that went back)."""
+        if not (math.isfinite(period) and period > 0) or period != self._period or tick < self._tick:
+            return False
+        return now > self._arrival + (tick - self._tick + self.delay) * period
+
     def _anchor(self, tick: int, arrived: float, period: float) -> float:
         self._period, self._tick, self._arrival, self._late = period, tick, arrived, 0
         self.anchors += 1

@@ -110,11 +110,18 @@ APPLICATION_URI = "urn:valve-emulator:server"
 #: The publisher yields to the event loop after this many monitored variables (in the device's process: the tick
 #: comes first; in a process of its own it samples a tick without yielding, see ``OpcUaServer``) ...
 YIELD_EVERY = 200
-#: ... and stops for this tick once it has used this share of the tick period (in the device's process: the
-#: tick comes first) ...
+#: ... and, in the device's process, stops for this tick once it has used this share of the tick period (the tick
+#: comes first; the variables not sampled go on at the next tick, counted in ``deferred``) ...
 PUBLISH_BUDGET = 0.3
-#: ... or this share in a process of its own, where only asyncua's publishing and the clients' requests share it.
-PROCESS_PUBLISH_BUDGET = 0.7
+#: ... but never in a process of its own: there the tick runs in another process, and a due sample moved to the next
+#: tick is moved across the publish of every item whose publish falls between the two ticks (at 1 s sampling on a
+#: 0.1 s tick one item in ten), which then goes out without it and with a queue of one never carries it
+#: (docs/benchmarks.md §9.12). A publisher behind the device (its pass longer than a tick) takes the newest tick
+#: when it is done, unless that tick's hand-off is already past: then it waits for the next tick, so that a
+#: publisher the machine cannot keep up with leaves the event loop to asyncua's publishes and the clients'
+#: requests between ticks (the ticks it skipped counted in ``skipped``); a group due at a skipped tick is sampled at
+#: the next one on its own grid (:func:`next_due`).
+PROCESS_PUBLISH_BUDGET = math.inf
 #: The publisher hands a tick's values in chunks of this many monitored variables ...
 HAND_CHUNK = 200
 #: ... each due this share of the tick period after the one before (more than a chunk's work: 200 variables take
@@ -244,11 +251,13 @@ class OpcUaSecurity:
 @dataclass(frozen=True)
 class OpcUaCounters:
     """What an OPC UA server has done so far: data-change notifications handed to subscriptions (one per
-    monitored item and change), ticks after which the publisher ran out of its budget, writes accepted and
-    refused, client certificates the trust list accepted and refused, alarm events sent."""
+    monitored item and change), ticks after which the publisher ran out of its budget (in the device's process),
+    ticks the publisher never sampled because it was still busy with an earlier one (behind the device), writes
+    accepted and refused, client certificates the trust list accepted and refused, alarm events sent."""
 
     notifications: int = 0
     deferred: int = 0
+    skipped: int = 0
     writes: int = 0
     refused: int = 0
     trust_accepted: int = 0
@@ -506,8 +515,9 @@ class OpcUaServer:
     security : :class:`OpcUaSecurity` (default: policy None, anonymous operators; loopback only).
     history : keep the last ``history`` seconds of every loop's PV, OP, SP and MV for HistoryRead
         (:mod:`~valve_emulator.opcua.history`), in SQLite at ``history_path`` (default in memory); None: none.
-    publish_budget : the share of each tick period the publisher may spend feeding subscriptions
-        (:data:`PUBLISH_BUDGET`; :data:`PROCESS_PUBLISH_BUDGET` in a process of its own).
+    publish_budget : the share of each tick period the publisher may spend feeding subscriptions before it
+        defers the rest of a tick to the next (:data:`PUBLISH_BUDGET`; in a process of its own
+        :data:`PROCESS_PUBLISH_BUDGET`, no limit: nothing deferred).
     yield_while_sampling : whether the publisher yields to the event loop every :data:`YIELD_EVERY` variables
         while it samples a tick (True, in the device's process: the tick and Modbus come first). False in a
         process of its own: a publish that ran in such a yield after the tick's hand-off was due would come before
@@ -554,6 +564,8 @@ class OpcUaServer:
         self.notifications = 0
         #: ticks after which the publisher ran out of its budget and went on at the next tick
         self.deferred = 0
+        #: ticks the publisher never sampled: a newer one had come by the time it was done with the one before
+        self.skipped = 0
         self.writes = 0
         self.refused = 0
         #: refused writes and sessions, logged once per user (or client) and cause per interval
@@ -567,7 +579,8 @@ class OpcUaServer:
         """What this server has done so far (async: the same call answers for a server in another process)."""
         trust = self.trust_list
         conditions = self.alarm_conditions
-        return OpcUaCounters(notifications=self.notifications, deferred=self.deferred, writes=self.writes,
+        return OpcUaCounters(notifications=self.notifications, deferred=self.deferred, skipped=self.skipped,
+                             writes=self.writes,
                              refused=self.refused, trust_accepted=trust.accepted if trust else 0,
                              trust_refused=trust.refused if trust else 0,
                              alarm_events=conditions.sent if conditions else 0)
@@ -887,16 +900,23 @@ class OpcUaServer:
         tick period (:mod:`~valve_emulator.opcua.handoff`): so each publishing interval of a subscription holds
         exactly one tick's values, whatever the tick's jitter and the subscription's phase. The tick comes first:
         sampling yields to the event loop every :data:`YIELD_EVERY` variables (in the device's process:
-        ``yield_while_sampling``), and once sampling and the
-        hand-off would take more than the publisher's share of the tick period (:data:`PUBLISH_BUDGET`) it stops
-        and goes on after the next tick where it stopped, so a subscription larger than the machine can feed gets
-        every variable's latest value less often instead of delaying the tick (or, in a process of its own, the
-        clients' requests)."""
+        ``yield_while_sampling``), and there, once sampling and the hand-off would take more than the publisher's
+        share of the tick period (:data:`PUBLISH_BUDGET`), it stops and goes on after the next tick where it
+        stopped, so a subscription larger than the machine can feed gets every variable's latest value less often
+        instead of delaying the tick. In a process of its own nothing is deferred (:data:`PROCESS_PUBLISH_BUDGET`):
+        a tick's due values are all handed at its hand-off, into the publishing interval they belong to; a
+        publisher behind the device takes the newest tick once it is done with the last, or, if that tick's
+        hand-off is already past, the next one (the ticks it never sampled counted in :attr:`skipped`)."""
         source, seen, at = self.source, self.source.ticks, 0
         loop = asyncio.get_running_loop()
         grid = HandOffGrid()
         while True:
+            previous, newest = seen, source.ticks
+            if newest > seen and grid.overdue(newest, loop.time(), source.period):
+                seen = newest   # came while the last pass ran, its hand-off already past: wait for a fresh one
             seen = await source.wait_for_tick(seen + 1)
+            if seen > previous + 1:
+                self.skipped += seen - previous - 1
             arrived = loop.time()
             self.tick_clock.stamp()   # the tick just ran: its time is now
             if self._dirty:
@@ -931,7 +951,7 @@ class OpcUaServer:
             if done and done % YIELD_EVERY == 0:
                 if self.yield_while_sampling:
                     await asyncio.sleep(0)
-                if clock() - start + len(handing) * self._hand_cost > budget:
+                if budget < math.inf and clock() - start + len(handing) * self._hand_cost > budget:
                     self.deferred += 1
                     break
             place, watch = at, active[at]
