@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import os
+import sys
 from collections.abc import Callable
 
 import numpy as np
@@ -54,6 +55,18 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.slow)
         if where.replace(os.sep, "/") in _REALTIME:
             item.add_marker(pytest.mark.realtime)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_finish(session):
+    """The shared draws the selected tests take as a parameter (tests/unseen_loops.py), in their order: a worker
+    that waits for a draw another worker is diagnosing diagnoses one of these meanwhile."""
+    unseen = sys.modules.get("unseen_loops")
+    if unseen is None:   # no collected module uses them
+        return
+    params = (value for item in session.items for value in getattr(getattr(item, "callspec", None), "params",
+                                                                   {}).values())
+    unseen.NEEDED[:] = dict.fromkeys(value for value in params if isinstance(value, unseen.Draw))
 
 
 @pytest.fixture(autouse=True)

@@ -13,6 +13,9 @@ diagnosed once:
   a draw another one has claimed waits for the document instead of diagnosing it again. A worker that needs many
   draws (:func:`diagnosed_all`) first diagnoses every one nobody has claimed, from the end of the list (the
   per-draw tests, collected in list order, meet it in the middle), then waits for the rest.
+- a worker that has to wait diagnoses, meanwhile, one draw nobody has claimed among those the run's tests name
+  (:data:`NEEDED`, the next after the awaited one), then looks again: two workers that walk the same list (the
+  per-draw tests of two modules) take turns instead of one diagnosing while the other sleeps.
 
 A claim whose diagnosis raised is released, so the waiting worker diagnoses the draw itself and meets the same
 error. What is shared is the public JSON document and the identified plant (not in the document), nothing else.
@@ -108,6 +111,12 @@ def _folder() -> Path | None:
 
 _memory: dict[Draw, dict] = {}
 
+#: The draws the collected tests take as a parameter, in collection order (filled by tests/conftest.py once the
+#: run's tests are collected): only these are diagnosed while waiting, so no diagnosis is made that no test reads.
+NEEDED: list[Draw] = []
+_none_left = False
+_failed: set[Draw] = set()
+
 
 def _read(path: Path) -> dict | None:
     try:
@@ -139,6 +148,28 @@ def _claim_and_diagnose(key: Draw, folder: Path) -> dict | None:
     return record
 
 
+def _diagnose_another(key: Draw, folder: Path) -> bool:
+    """Diagnose (and keep) the first draw of :data:`NEEDED` after ``key`` that nobody has claimed; False when none
+    is left (claims are never taken back but after an error, so the list is not searched again)."""
+    global _none_left
+    if _none_left:
+        return False
+    at = NEEDED.index(key) + 1 if key in NEEDED else 0
+    for other in NEEDED[at:] + NEEDED[:at]:
+        if other in _memory or other in _failed or any(path.exists() for path in _files(other, folder)):
+            continue
+        try:
+            record = _claim_and_diagnose(other, folder)
+        except Exception:   # not this test's draw: the test that reads it meets the error when it diagnoses it
+            _failed.add(other)
+            continue
+        if record is not None:
+            _memory[other] = record
+            return True
+    _none_left = True
+    return False
+
+
 def _record(key: Draw, *, wait: bool = True) -> dict | None:
     """The shared record of ``key``: from memory, the run's folder, diagnosed here, or (``wait``) waited for."""
     if key in _memory:
@@ -153,7 +184,8 @@ def _record(key: Draw, *, wait: bool = True) -> dict | None:
             return None
         deadline = time.monotonic() + PATIENCE
         while record is None:
-            time.sleep(0.1)
+            if not _diagnose_another(key, folder):
+                time.sleep(0.1)
             record = _read(done)
             if record is None and (not claim.exists() or time.monotonic() > deadline):
                 claim.unlink(missing_ok=True)   # released after an error, or its worker is gone

@@ -41,8 +41,9 @@ def _row(device, index):
 @pytest.mark.parametrize("index", [0, 1])
 def test_an_accepted_one_word_write_queues_and_shows_what_the_codec_decodes_and_patches(index):
     accepted = set()
+    config = _config()   # validated once (a frozen record): each case still gets a device of its own
     for address, word, role in itertools.product(range(N_REGISTERS), WORDS, ROLES):
-        device = Device.from_config(_config(), time_scale=0)
+        device = Device.from_config(config, time_scale=0)
         before = _row(device, index)
         if device.write_served_word(index, address, word, role=role):
             auto = bool(device.scaling.has_controller[index]) and device.effective_auto(index)

@@ -24,6 +24,7 @@ import numba
 import numpy as np
 
 from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
+from valve_emulator.physics._arrays import kernel_array
 from valve_emulator.physics.actuator import lag_coefficients
 
 __all__ = ["ActuatorLag", "first_order_lag"]
@@ -45,7 +46,8 @@ def _lag_kernel(x, a, w, out):  # pragma: no cover - compiled
 def first_order_lag(x: np.ndarray, tau: np.ndarray, dt: float) -> np.ndarray:
     """Sample-averaged output (T, n) of ``1/(τ s + 1)`` for each τ, started at rest at ``x[0]``."""
     x = np.asarray(x, dtype=float)
-    x2 = np.ascontiguousarray(x[:, None] if x.ndim == 1 else x)
+    # writable and C-contiguous whatever the caller holds (a frozen recording is read-only): one compiled variant
+    x2 = kernel_array(x[:, None] if x.ndim == 1 else x)
     a, w = lag_coefficients(tau, dt)
     out = np.empty((x2.shape[0], a.size))
     _lag_kernel(x2, a, w, out)
