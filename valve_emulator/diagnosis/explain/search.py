@@ -205,8 +205,14 @@ class Search:
         part had settled (10 s dead time, 10 s lag). Where the record does not show the onset, the late options
         are withdrawn and the whole-record ones compete by the search's usual rule."""
         t0 = late_start(late)
+        return t0 is None or self._before_onset(t0, late, model) is not None
+
+    def _before_onset(self, t0: float, late: Model, model: Model) -> tuple[int, int] | None:
+        """The part of the record before ``late``'s onset at ``t0`` s that :meth:`shows_onset` and
+        :meth:`healthy_before` judge (:func:`~valve_emulator.diagnosis.explain.onset.before_part`; None: shorter
+        than :data:`~valve_emulator.diagnosis.explain.onset.MIN_BEFORE` of the record)."""
         p = self.scorer.p
-        return t0 is None or before_part(p, int(round(t0 / p.dt)), late, model) is not None
+        return before_part(p, int(round(t0 / p.dt)), late, model)
 
     def onset_evidenced(self, late: Model, whole: Option | None, model: Model) -> bool:
         """Whether the record shows the located onset of ``late`` against the same physics acting throughout
@@ -245,10 +251,10 @@ class Search:
         ``late_onset`` property draws whose onset lies before the fit part the healthy valve is preferred under
         the drifting-load noise model alone (draw 6 as plant data: by 18)."""
         t0 = late_start(late)
-        p = self.scorer.p
-        window = None if t0 is None else before_part(p, int(round(t0 / p.dt)), late, model)
+        window = None if t0 is None else self._before_onset(t0, late, model)
         if window is None:
             return False
+        p = self.scorer.p
         rivals = (whole, throughout(self.scorer, late))
         own = bic_on(p, late, window)
         if all(bic_on(p, r, window) - own >= DELTA_BIC for r in rivals):

@@ -127,7 +127,7 @@ class Diagnosis:
         if self.answer is Answer.STICTION and alternative is None:
             return found
         others = tuple(f for f in found if f.physics not in VALVE_FRICTION)
-        return others if alternative is None or self.answer is not Answer.STICTION else (alternative,) + others
+        return (alternative,) + others if self.answer is Answer.STICTION else others
 
     @property
     def cause(self) -> str:
