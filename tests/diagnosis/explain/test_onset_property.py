@@ -304,9 +304,9 @@ def test_a_late_valve_is_sized_around_the_nominal_gain_when_the_gain_moves_only_
     """Draw 10 with its model (a Karnopp stem of S 4.33 % from 1187 s on a level loop, a 3.1 s lag): the
     search's gain was 0.43 of the nominal one, and around it the late valve's band S 2.39 %. The gain moved for
     a ΔBIC of 1,989 against the nominal gain with that same band (the grid of the refinement around the held
-    gain fitted the gain freely, :func:`~valve_emulator.diagnosis.fit.linear.held_gain_grid_sse`). Held, and
-    the late valve searched afresh there (:func:`~valve_emulator.diagnosis.explain.onset.late_afresh`), the band
-    is within a quarter of the drawn S, and under the drifting-load noise model the moved gain no longer counts
+    gain fitted the gain freely; now at that gain, :func:`~valve_emulator.diagnosis.fit.linear.input_grid_sse`).
+    Held, and the late valve searched afresh there (:func:`~valve_emulator.diagnosis.explain.onset.late_afresh`),
+    the band is within a quarter of the drawn S, and under the drifting-load noise model the moved gain no longer counts
     (it must beat the held one there too, where a finding starts late): measured S 4.03, J 0.50 (drawn 0.93, the stem's
     2005 Js reach 0), from 1016 s (+0.057 of the record), the gain held."""
     o = _outcome(10, "model")

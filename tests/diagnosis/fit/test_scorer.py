@@ -85,7 +85,7 @@ def test_jobs_the_linear_fit_cannot_tell_apart_are_scored_once_with_the_numbers_
     delays = np.arange(0, 5)
     first_order = LinearStructure(taus=(10.0,), delay=2.0)
     # The same poles with another bound and dead time: the same job on a grid of dead times. A held gain is
-    # a job of its own (a grid at a held gain is fitted at that gain, held_gain_grid_sse).
+    # a job of its own (a grid at a held gain is fitted at that gain, input_grid_sse).
     same = LinearStructure(taus=(10.0,), delay=4.0, min_tau=0.5)
     jobs = [(first_order, delays), (LinearStructure(integrating=True), delays), (same, delays.copy()),
             (first_order, None), (same, None), (LinearStructure(taus=(10.0,), delay=2.0, gain=1.5), None)]

@@ -44,7 +44,7 @@ nominal gain, the move no longer lowers BIC by 10, and J is 1.69 %). Where holdi
 count whatever the refinement gives (it only lowers the held model's BIC), and the findings already fit the
 nominal gain to within the threshold: they are not refined (refined everywhere, the proof cases' loop at 10,000
 samples of ``bench/bench_diagnose.py``, whose gain holds at −8.7, took 1.13 times the CPU). The refinement's grids are
-scored at the held gain (:func:`~valve_emulator.diagnosis.fit.linear.held_gain_grid_sse`; they had fitted it
+scored at the held gain (:func:`~valve_emulator.diagnosis.fit.linear.input_grid_sse`; they had fitted it
 freely and chosen the band that suits the moved gain), and a finding that starts late is also searched afresh
 there (:func:`~valve_emulator.diagnosis.explain.onset.late_afresh`). Where a finding starts late the gain moves
 only where it also lowers the BIC under the drifting-load noise model by :data:`DELTA_BIC` — the rule every
