@@ -76,7 +76,7 @@ class Subscribing:
     ``requests`` Publish requests at the server; ``trace``: each client keeps every pv/op value's SourceTimestamp and
     the publish it came in, and reports what it missed (:func:`missed`); ``client``: the subscribing client's stack,
     ``asyncua`` (Python, in the client's process) or ``node`` (node-opcua, ``tests/opcua/node/subscriber.mjs``, a
-    child of the client's process)."""
+    child of the client's process) run with ``node_args`` (V8's and Node's options: a profile, the heap)."""
 
     variables: tuple[str, ...]
     publish_ms: float
@@ -85,6 +85,7 @@ class Subscribing:
     requests: int = 1
     trace: bool = False
     client: str = "asyncua"
+    node_args: tuple[str, ...] = ()
 
 
 async def keep_publish_requests(client, subscription, extra: int) -> None:
@@ -138,8 +139,8 @@ def _node_client(url: str, loops: list[str], sub: Subscribing, seconds: float, g
     settings = {"url": url, "loops": loops, "variables": list(sub.variables), "counted": list(COUNTED),
                 "publish_ms": sub.publish_ms, "sampling_ms": sub.sampling_ms, "queue": sub.queue,
                 "requests": sub.requests, "settle": SETTLE, "seconds": seconds, "trace": sub.trace}
-    proc = subprocess.Popen([node, str(NODE_DIR / "subscriber.mjs")], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            text=True, cwd=NODE_DIR)
+    proc = subprocess.Popen([node, *sub.node_args, str(NODE_DIR / "subscriber.mjs")], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, cwd=NODE_DIR)
     proc.stdin.write(json.dumps(settings) + "\n")
     proc.stdin.flush()
 
@@ -171,7 +172,8 @@ def _node_client(url: str, loops: list[str], sub: Subscribing, seconds: float, g
     trace = {item: [(at, stamp) for at, stamp, _ in values] for item, values in r["trace"].items()} \
         if sub.trace else None
     out_q.put(("counts", r["capped"], r["raw"], 0, r["lost"], r["responses"], r["late"], r["cpu"], [], False,
-               missed(trace, tuple(r["window"]), sub.publish_ms / 1000, loops) if sub.trace else None))
+               missed(trace, tuple(r["window"]), sub.publish_ms / 1000, loops) if sub.trace else None,
+               r["cpu_main"]))
 
 
 def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seconds: float, poll: bool, go,
@@ -286,7 +288,7 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
         out_q.put(("counts", sum(min(n, per_item) for n in got), sum(got), polled[0] - polled_before,
                    lost[lost_before:], responses["n"] - before["n"], responses["late"] - before["late"],
                    (cpu.user + cpu.system - cpu_before.user - cpu_before.system) / seconds, reads[reads_before:], poll,
-                   missed(trace, window, sub.publish_ms / 1000, loops) if sub.trace else None))
+                   missed(trace, window, sub.publish_ms / 1000, loops) if sub.trace else None, float("nan")))
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -429,6 +431,7 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             "lost": sum(len(r[4]) for r in results), "statuses": sorted({x for r in results for x in r[4]}),
             "late": sum(r[6] for r in results) / max(sum(r[5] for r in results), 1) if served else float("nan"),
             "client_cpu": statistics.median(r[7] for r in results) if served else float("nan"),
+            "client_main_cpu": statistics.median(r[11] for r in results) if served else float("nan"),
             "read_p50": 1e3 * float(np.percentile(reads, 50)) if reads else float("nan"),
             "read_p99": 1e3 * float(np.percentile(reads, 99)) if reads else float("nan"),
             "deferred": deferred, "skipped": skipped, "trace": [r[10] for r in sorted(results, key=lambda r: r[1])]}
@@ -516,6 +519,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--client", default="asyncua",
                    help="the subscribing clients' stack: asyncua, node (node-opcua, tests/opcua/node/subscriber.mjs; "
                         "needs `npm ci` there), or both comma-separated (their rounds alternate in one run)")
+    p.add_argument("--node-args", default="", metavar="ARGS",
+                   help="options for node before the node client's script, space-separated, given as "
+                        "--node-args=ARGS (e.g. '--cpu-prof --cpu-prof-dir=DIR', '--single-threaded-gc')")
     p.add_argument("--trace", action="store_true",
                    help="each client reports which publishes lacked which pv/op items, and the SourceTimestamps "
                         "around each miss")
@@ -528,7 +534,8 @@ def main(argv: list[str] | None = None) -> None:
         p.error(f"--publish-requests must be at least 1, got {args.publish_requests}")
     sub = Subscribing(variables=tuple(args.vars.split(",")), publish_ms=args.publish,
                       sampling_ms=args.publish if args.sampling is None else args.sampling, queue=args.queue,
-                      requests=args.publish_requests, trace=args.trace, client=args.client[0])
+                      requests=args.publish_requests, trace=args.trace, client=args.client[0],
+                      node_args=tuple(args.node_args.split()))
     print(machine(), f"load average {os.getloadavg()[0]:.1f}")
     if args.rounds:
         _load(args, sub)
@@ -577,6 +584,7 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
                  row("publish responses more than 1.5 intervals after the one before (the client's Publish "
                      "request came late)", "", "{late:.1%}"),
                  row("OPC UA client process CPU (s per s), median client", "", "{client_cpu:.2f}"),
+                 row("the same, its event loop's thread (node client)", "", "{client_main_cpu:.3f}"),
                  row("Modbus polls answered per second", f"{base['polled']:.1f}", "{polled:.1f}"),
                  row("another session's read of one value, p50 / p99 (one a 0.1 s)", "",
                      "{read_p50:.1f} / {read_p99:.1f} ms")],
@@ -586,7 +594,10 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
               + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %; subscriptions ended (status change) "
               + "during the window " + ", ".join(f"{r['lost']} {'/'.join(r['statuses'])}" for r in rs)
               + "; ticks the publisher deferred (out of its budget) " + ", ".join(f"{r['deferred']}" for r in rs)
-              + "; ticks it skipped (behind the device) " + ", ".join(f"{r['skipped']}" for r in rs))
+              + "; ticks it skipped (behind the device) " + ", ".join(f"{r['skipped']}" for r in rs)
+              + ("" if label == "none" else "; client CPU s/s (median client) "
+                 + ", ".join(f"{r['client_cpu']:.2f}" for r in rs) + ", its event loop's thread "
+                 + ", ".join(f"{r['client_main_cpu']:.3f}" for r in rs)))
     if sub.trace:
         for client in args.client:
             for k, r in enumerate(runs[client]):

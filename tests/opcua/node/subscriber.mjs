@@ -8,13 +8,15 @@
 // item (a loop's variable in `counted`) the notifications received, the publish responses that carried data and
 // those that came more than 1.5 publishing intervals after the one before (no Publish request was waiting at the
 // server when the publish was due), the subscription's status changes, and this process's CPU seconds per second
-// (process.cpuUsage: every thread of the process); then prints {"counts": ...} and ends its session. With `trace`,
+// (process.cpuUsage: every thread of the process; and its main thread's, the event loop's); then prints
+// {"counts": ...} and ends its session. With `trace`,
 // each counted item's values as [publish time, SourceTimestamp, value], the times in seconds (the publish time on
 // this process's monotonic clock, the window's too), for the bench's account of what was missed.
 //
 // The lightest path node-opcua offers: the items are created in groups of 500 (one CreateMonitoredItems request
 // each, as the bench's asyncua client does), and every publish response is taken whole in the subscription's
 // "raw_notification" event (its DataChangeNotification's items by client handle), with no listener per item.
+import { readFileSync } from "node:fs";
 import { createInterface } from "node:readline";
 import { performance } from "node:perf_hooks";
 import {
@@ -31,6 +33,12 @@ const nextLine = async () => {
 const print = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
 const sleep = (s) => new Promise((resolve) => setTimeout(resolve, 1000 * s));
 const now = () => performance.now() / 1000;
+// CPU seconds of this process's main thread (the event loop's: decoding and our handler), from Linux's /proc;
+// process.cpuUsage counts every thread (V8's compiler and collector helpers, libuv's pool)
+const mainThreadCpu = () => {
+  const fields = readFileSync(`/proc/self/task/${process.pid}/stat`, "utf8").split(") ")[1].split(" ");
+  return (Number(fields[11]) + Number(fields[12])) / 100;   // utime + stime, clock ticks of 1/100 s
+};
 
 const cfg = JSON.parse(await nextLine());
 // Publish requests kept at the server (node-opcua keeps this many in its pipeline; the bench's --publish-requests)
@@ -118,11 +126,13 @@ try {
   const before = { ...responses };
   const lostBefore = lost.length;
   const cpu0 = process.cpuUsage();
+  const main0 = mainThreadCpu();
   const t0 = now();
   print({ start: true });
   await sleep(cfg.seconds);
   const t1 = now();
   const cpu = process.cpuUsage(cpu0);
+  const cpuMain = (mainThreadCpu() - main0) / cfg.seconds;
   const got = count.map((n, k) => n - start[k]);
   const perItem = (cfg.seconds * 1000) / cfg.publish_ms;
   const out = {
@@ -133,6 +143,7 @@ try {
     responses: responses.n - before.n,
     late: responses.late - before.late,
     cpu: (cpu.user + cpu.system) / 1e6 / cfg.seconds,
+    cpu_main: cpuMain,
     lost: lost.slice(lostBefore),
     window: [t0, t1],
   };
