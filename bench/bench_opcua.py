@@ -2,7 +2,7 @@
 
     python bench/bench_opcua.py [--mode process|in-process] [--loops 1000] [--clients 5] [--publish 1000]
         [--sampling MS] [--queue 1] [--vars pv,op,sp,mv] [--seconds 10] [--rounds 3] [--hostile 25000] [--profile]
-        [--trace]
+        [--trace] [--client asyncua|node|asyncua,node]
 
 **Load.** The device (``--loops`` loops of a fleet, tick 0.1 s, real time, PV measurement noise on every loop so
 that PV and OP change at every tick) runs in this process; its OPC UA server runs in a process of its own (``--mode
@@ -26,7 +26,12 @@ handed meanwhile replace the ones waiting. Also the CPU time of the device proce
 median client process per second, and the OPC UA process's CPU per notification handed to a subscription (the cost
 of a notification, and so the cores a load needs), the ticks the publisher deferred (out of its budget: in the
 device's process) and those it skipped (behind the device: a newer tick came before it was done with the last).
-Medians over ``--rounds``. ``--trace``: each client also reports what it missed -- which publishes lacked which
+Medians over ``--rounds``. ``--client``: the sessions' client stack, asyncua (Python, the default) or node
+(node-opcua, ``tests/opcua/node/subscriber.mjs``, started by each session's process; ``npm ci`` in
+``tests/opcua/node`` first): the same subscription, items and counts, reported over its stdout as JSON, its CPU per
+second measured by itself; a client that keeps up where asyncua's, decoding every notification in Python, needs a
+whole core at 20,000 notifications/s. Both, comma-separated, alternate their rounds in one run with the baseline's
+and print a column each. ``--trace``: each client also reports what it missed -- which publishes lacked which
 pv/op items, by loop decile, and whether the value after each miss was sampled two intervals after the one before
 it (a sample lost at the server) or one (the item's samples moved a publish later) (:func:`missed`). ``--profile``
 profiles the OPC UA server in process (cProfile) and prints where its time goes.
@@ -49,7 +54,7 @@ import os
 import statistics
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,7 +74,9 @@ class Subscribing:
     """What each OPC UA client subscribes to: ``variables`` of every loop, one subscription publishing every
     ``publish_ms``, each item sampled every ``sampling_ms`` with a queue of ``queue`` values; the client keeps
     ``requests`` Publish requests at the server; ``trace``: each client keeps every pv/op value's SourceTimestamp and
-    the publish it came in, and reports what it missed (:func:`missed`)."""
+    the publish it came in, and reports what it missed (:func:`missed`); ``client``: the subscribing client's stack,
+    ``asyncua`` (Python, in the client's process) or ``node`` (node-opcua, ``tests/opcua/node/subscriber.mjs``, a
+    child of the client's process) run with ``node_args`` (V8's and Node's options: a profile, the heap)."""
 
     variables: tuple[str, ...]
     publish_ms: float
@@ -77,6 +84,8 @@ class Subscribing:
     queue: int
     requests: int = 1
     trace: bool = False
+    client: str = "asyncua"
+    node_args: tuple[str, ...] = ()
 
 
 async def keep_publish_requests(client, subscription, extra: int) -> None:
@@ -111,6 +120,62 @@ async def keep_publish_requests(client, subscription, extra: int) -> None:
     await asyncio.gather(*(one() for _ in range(extra)))
 
 
+NODE_DIR = ROOT / "tests" / "opcua" / "node"
+#: Seconds each client lets the initial values and the first publishes settle before its window.
+SETTLE = 3.0
+
+
+def _node_client(url: str, loops: list[str], sub: Subscribing, seconds: float, go, out_q) -> None:
+    """:func:`_client`'s session in node-opcua (``tests/opcua/node/subscriber.mjs``, the same subscription and
+    counts; its own CPU from ``process.cpuUsage``), relayed to ``out_q`` in :func:`_client`'s messages."""
+    import json
+    import shutil
+    import subprocess
+
+    node = shutil.which("node")
+    if node is None or not (NODE_DIR / "node_modules" / "node-opcua-client").is_dir():
+        out_q.put(("failed", f"--client node needs node and `npm ci` in {NODE_DIR}"))
+        return
+    settings = {"url": url, "loops": loops, "variables": list(sub.variables), "counted": list(COUNTED),
+                "publish_ms": sub.publish_ms, "sampling_ms": sub.sampling_ms, "queue": sub.queue,
+                "requests": sub.requests, "settle": SETTLE, "seconds": seconds, "trace": sub.trace}
+    proc = subprocess.Popen([node, *sub.node_args, str(NODE_DIR / "subscriber.mjs")], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, cwd=NODE_DIR)
+    proc.stdin.write(json.dumps(settings) + "\n")
+    proc.stdin.flush()
+
+    def message() -> dict:
+        for line in proc.stdout:
+            if line.startswith("{"):
+                got = json.loads(line)
+                if "failed" in got:
+                    raise RuntimeError(got["failed"])
+                return got
+        raise RuntimeError(f"the node subscriber ended (exit code {proc.wait()})")
+
+    try:
+        message()   # ready
+        out_q.put(("ready",))
+        go.wait()
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+        message()   # start
+        out_q.put(("start",))
+        r = message()["counts"]
+    except RuntimeError as exc:
+        out_q.put(("failed", str(exc)))
+        proc.kill()
+        return
+    finally:
+        proc.stdin.close()
+    proc.wait(60)
+    trace = {item: [(at, stamp) for at, stamp, _ in values] for item, values in r["trace"].items()} \
+        if sub.trace else None
+    out_q.put(("counts", r["capped"], r["raw"], 0, r["lost"], r["responses"], r["late"], r["cpu"], [], False,
+               missed(trace, tuple(r["window"]), sub.publish_ms / 1000, loops) if sub.trace else None,
+               r["cpu_main"]))
+
+
 def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seconds: float, poll: bool, go,
             out_q) -> None:
     """One OPC UA session subscribed to ``sub.variables`` of every loop, or with ``poll`` the Modbus poller and (with
@@ -122,6 +187,9 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
     one before (the client had no Publish request at the server when the publish was due: asyncua's client keeps
     one), and puts (counts capped at one per publishing interval, counts, Modbus polls, subscriptions ended,
     responses, late responses, this process's CPU seconds per second, the probe's read times, ``poll``)."""
+    if sub.client == "node" and url and not poll:
+        _node_client(url, loops, sub, seconds, go, out_q)
+        return
     import logging
 
     import psutil
@@ -145,7 +213,8 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
                     if node.nodeid in count:
                         count[node.nodeid] += 1
                         if sub.trace:
-                            trace.setdefault(node.nodeid, []).append((at, data.monitored_item.Value.SourceTimestamp))
+                            trace.setdefault(node.nodeid.Identifier, []).append(
+                                (at, data.monitored_item.Value.SourceTimestamp.timestamp()))
                     if at != responses["last"]:
                         late = responses["last"] is not None and at - responses["last"] > 1.5e-3 * sub.publish_ms
                         responses["last"], responses["n"], responses["late"] = \
@@ -206,7 +275,7 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
             tasks.append(asyncio.create_task(modbus(polled)))
             if url:
                 tasks.append(asyncio.create_task(probe(reads)))
-        await asyncio.sleep(3.0)                       # initial values and the first publishes settle
+        await asyncio.sleep(SETTLE)                    # initial values and the first publishes settle
         start, polled_before, lost_before, reads_before = dict(count), polled[0], len(lost), len(reads)
         before, cpu_before = dict(responses), psutil.Process().cpu_times()
         out_q.put(("start",))
@@ -219,7 +288,7 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
         out_q.put(("counts", sum(min(n, per_item) for n in got), sum(got), polled[0] - polled_before,
                    lost[lost_before:], responses["n"] - before["n"], responses["late"] - before["late"],
                    (cpu.user + cpu.system - cpu_before.user - cpu_before.system) / seconds, reads[reads_before:], poll,
-                   missed(trace, window, sub.publish_ms / 1000, loops) if sub.trace else None))
+                   missed(trace, window, sub.publish_ms / 1000, loops) if sub.trace else None, float("nan")))
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -248,13 +317,13 @@ def missed(trace: dict, window: tuple[float, float], interval: float, loops: lis
         if not lacking:
             continue
         items_missing += 1
-        loop = place.get(node.Identifier.rsplit(".", 1)[0], 0)
+        loop = place.get(node.rsplit(".", 1)[0], 0)
         by_loop[min(9, 10 * loop // max(len(loops), 1))] += len(lacking)
         for at in lacking:
             missing_by_publish[at] += 1
             k = bisect.bisect_left(times, at)
             if 0 < k < len(values):
-                key = f"{round((values[k][1] - values[k - 1][1]).total_seconds() / interval)} intervals"
+                key = f"{round((values[k][1] - values[k - 1][1]) / interval)} intervals"
             else:
                 key = "at the window's edge"
             gaps[key] = gaps.get(key, 0) + 1
@@ -362,6 +431,7 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             "lost": sum(len(r[4]) for r in results), "statuses": sorted({x for r in results for x in r[4]}),
             "late": sum(r[6] for r in results) / max(sum(r[5] for r in results), 1) if served else float("nan"),
             "client_cpu": statistics.median(r[7] for r in results) if served else float("nan"),
+            "client_main_cpu": statistics.median(r[11] for r in results) if served else float("nan"),
             "read_p50": 1e3 * float(np.percentile(reads, 50)) if reads else float("nan"),
             "read_p99": 1e3 * float(np.percentile(reads, 99)) if reads else float("nan"),
             "deferred": deferred, "skipped": skipped, "trace": [r[10] for r in sorted(results, key=lambda r: r[1])]}
@@ -446,15 +516,26 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--hostile", type=int, default=25_000)
     p.add_argument("--profile", action="store_true")
+    p.add_argument("--client", default="asyncua",
+                   help="the subscribing clients' stack: asyncua, node (node-opcua, tests/opcua/node/subscriber.mjs; "
+                        "needs `npm ci` there), or both comma-separated (their rounds alternate in one run)")
+    p.add_argument("--node-args", default="", metavar="ARGS",
+                   help="options for node before the node client's script, space-separated, given as "
+                        "--node-args=ARGS (e.g. '--cpu-prof --cpu-prof-dir=DIR', '--single-threaded-gc')")
     p.add_argument("--trace", action="store_true",
                    help="each client reports which publishes lacked which pv/op items, and the SourceTimestamps "
                         "around each miss")
     args = p.parse_args(argv)
+    args.client = args.client.split(",")
+    if not args.client or any(c not in ("asyncua", "node") for c in args.client) \
+            or len(set(args.client)) < len(args.client):
+        p.error(f"--client must be asyncua, node or both comma-separated, got {','.join(args.client)}")
     if args.publish_requests < 1:
         p.error(f"--publish-requests must be at least 1, got {args.publish_requests}")
     sub = Subscribing(variables=tuple(args.vars.split(",")), publish_ms=args.publish,
                       sampling_ms=args.publish if args.sampling is None else args.sampling, queue=args.queue,
-                      requests=args.publish_requests, trace=args.trace)
+                      requests=args.publish_requests, trace=args.trace, client=args.client[0],
+                      node_args=tuple(args.node_args.split()))
     print(machine(), f"load average {os.getloadavg()[0]:.1f}")
     if args.rounds:
         _load(args, sub)
@@ -465,53 +546,65 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _load(args: argparse.Namespace, sub: Subscribing) -> None:
-    """Rounds of the fleet without OPC UA and with it, alternating; their medians side by side."""
-    runs: dict[str, list[dict]] = {"none": [], args.mode: []}
+    """Rounds of the fleet without OPC UA and with it (once per ``--client``), alternating; their medians side by
+    side."""
+    runs: dict[str, list[dict]] = {"none": [], **{client: [] for client in args.client}}
     for _ in range(args.rounds):
-        for mode in runs:
-            runs[mode].append(asyncio.run(_load_round(mode, args.loops, args.clients if mode != "none" else 0,
-                                                      sub, args.seconds)))
-            print(f"load average {os.getloadavg()[0]:.1f} after a round ({mode})", flush=True)
-    med = {mode: {k: statistics.median(r[k] for r in rs) for k in rs[0] if k not in ("statuses", "trace")}
-           for mode, rs in runs.items()}
-    base, m = med["none"], med[args.mode]
+        for label in runs:
+            mode = "none" if label == "none" else args.mode
+            runs[label].append(asyncio.run(_load_round(mode, args.loops, args.clients if mode != "none" else 0,
+                                                       replace(sub, client=label), args.seconds)))
+            print(f"load average {os.getloadavg()[0]:.1f} after a round ({mode}"
+                  f"{'' if mode == 'none' else ', ' + label + ' client'})", flush=True)
+    med = {label: {k: statistics.median(r[k] for r in rs) for k in rs[0] if k not in ("statuses", "trace")}
+           for label, rs in runs.items()}
+    base, served = med["none"], [med[client] for client in args.client]
+
+    def row(name: str, without: str, with_: str) -> tuple[str, ...]:
+        return (name, without, *(with_.format(**m) for m in served))
+
     print(f"\nLoad: {args.loops} loops at 10 Hz, {args.clients} OPC UA clients ({args.mode}) each monitoring "
           f"{','.join(sub.variables)} of every loop (publishing {sub.publish_ms:g} ms, sampling "
           f"{sub.sampling_ms:g} ms, queue {sub.queue}, {sub.requests} Publish requests kept at the server), "
           f"one Modbus poller at 10 Hz; "
           f"{args.seconds:g} s windows, median of {args.rounds} (baseline: the same without OPC UA, same run)")
-    print(table([("address space build", "", f"{m['build']:.1f} s"),
-                 ("tick lateness p50 / p99", f"{base['p50']:.1f} / {base['p99']:.1f} ms",
-                  f"{m['p50']:.1f} / {m['p99']:.1f} ms (target p99 within 1 ms of the baseline)"),
-                 ("ticks per second, overruns", f"{base['ticks']:.2f}, {base['overruns']:.0f}",
-                  f"{m['ticks']:.2f}, {m['overruns']:.0f}"),
-                 ("pv/op notifications received, worst client", "",
-                  f"{100 * m['received']:.1f} % of expected (target >= 99 %)"),
-                 ("pv/op notifications received, median client", "", f"{100 * m['received_median']:.1f} %"),
-                 ("pv/op notifications per item and publishing interval, median client (uncapped)", "",
-                  f"{m['per_interval']:.2f}"),
-                 ("notifications handed to subscriptions per second", "", f"{m['sent']:,.0f}"),
-                 ("device process CPU (s per s)", f"{base['device_cpu']:.2f}", f"{m['device_cpu']:.2f}"),
-                 ("OPC UA process CPU (s per s)", "", f"{m['opcua_cpu']:.2f}"),
-                 ("OPC UA CPU per notification", "", f"{m['per_notification']:.0f} µs"),
-                 ("publish responses more than 1.5 intervals after the one before (the client's Publish request "
-                  "came late)", "", f"{100 * m['late']:.1f} %"),
-                 ("OPC UA client process CPU (s per s), median client", "", f"{m['client_cpu']:.2f}"),
-                 ("Modbus polls answered per second", f"{base['polled']:.1f}", f"{m['polled']:.1f}"),
-                 ("another session's read of one value, p50 / p99 (one a 0.1 s)", "",
-                  f"{m['read_p50']:.1f} / {m['read_p99']:.1f} ms")],
-                ("figure", "without OPC UA", "with OPC UA")))
-    for mode, rs in runs.items():
-        print(f"rounds ({mode}): p99 " + ", ".join(f"{r['p99']:.1f}" for r in rs) + " ms; received "
+    print(table([row("address space build", "", "{build:.1f} s"),
+                 row("tick lateness p50 / p99 (target p99 within 1 ms of the baseline)",
+                     f"{base['p50']:.1f} / {base['p99']:.1f} ms", "{p50:.1f} / {p99:.1f} ms"),
+                 row("ticks per second, overruns", f"{base['ticks']:.2f}, {base['overruns']:.0f}",
+                     "{ticks:.2f}, {overruns:.0f}"),
+                 row("pv/op notifications received, worst client (target >= 99 %)", "", "{received:.1%}"),
+                 row("pv/op notifications received, median client", "", "{received_median:.1%}"),
+                 row("pv/op notifications per item and publishing interval, median client (uncapped)", "",
+                     "{per_interval:.2f}"),
+                 row("notifications handed to subscriptions per second", "", "{sent:,.0f}"),
+                 row("device process CPU (s per s)", f"{base['device_cpu']:.2f}", "{device_cpu:.2f}"),
+                 row("OPC UA process CPU (s per s)", "", "{opcua_cpu:.2f}"),
+                 row("OPC UA CPU per notification", "", "{per_notification:.0f} µs"),
+                 row("publish responses more than 1.5 intervals after the one before (the client's Publish "
+                     "request came late)", "", "{late:.1%}"),
+                 row("OPC UA client process CPU (s per s), median client", "", "{client_cpu:.2f}"),
+                 row("the same, its event loop's thread (node client)", "", "{client_main_cpu:.3f}"),
+                 row("Modbus polls answered per second", f"{base['polled']:.1f}", "{polled:.1f}"),
+                 row("another session's read of one value, p50 / p99 (one a 0.1 s)", "",
+                     "{read_p50:.1f} / {read_p99:.1f} ms")],
+                ("figure", "without OPC UA", *(f"with OPC UA, {client} client" for client in args.client))))
+    for label, rs in runs.items():
+        print(f"rounds ({label}): p99 " + ", ".join(f"{r['p99']:.1f}" for r in rs) + " ms; received "
               + ", ".join(f"{100 * r['received']:.1f}" for r in rs) + " %; subscriptions ended (status change) "
               + "during the window " + ", ".join(f"{r['lost']} {'/'.join(r['statuses'])}" for r in rs)
               + "; ticks the publisher deferred (out of its budget) " + ", ".join(f"{r['deferred']}" for r in rs)
-              + "; ticks it skipped (behind the device) " + ", ".join(f"{r['skipped']}" for r in rs))
+              + "; ticks it skipped (behind the device) " + ", ".join(f"{r['skipped']}" for r in rs)
+              + ("" if label == "none" else "; client CPU s/s (median client) "
+                 + ", ".join(f"{r['client_cpu']:.2f}" for r in rs) + ", its event loop's thread "
+                 + ", ".join(f"{r['client_main_cpu']:.3f}" for r in rs)))
     if sub.trace:
-        for k, r in enumerate(runs[args.mode]):
-            for rank, t in enumerate(r["trace"]):
-                if t is not None:
-                    print(f"trace, round {k + 1}, client {rank + 1} of {len(r['trace'])} (worst first): {t}")
+        for client in args.client:
+            for k, r in enumerate(runs[client]):
+                for rank, t in enumerate(r["trace"]):
+                    if t is not None:
+                        print(f"trace ({client}), round {k + 1}, client {rank + 1} of {len(r['trace'])} "
+                              f"(worst first): {t}")
 
 
 def _print_hostile(h: dict) -> None:

@@ -236,6 +236,52 @@ def test_a_grid_of_valves_replays_each_valve_as_it_would_alone(model, n, shared_
         assert np.array_equal(together[:, i], alone[:, 0]), i
 
 
+def _bank_by_broadcast(x, S, J, start, ctx):
+    """The valve bank as written before a grid's columns were copied as they are: every parameter broadcast to the
+    bank's size and made contiguous and writable, OP likewise (the straightforward set-up)."""
+    x2 = np.array(np.asarray(x, dtype=float)[:, None] if np.ndim(x) == 1 else x, dtype=float)
+    S, J, start = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (S, J, start))
+    n = max(S.size, J.size, start.size, x2.shape[1])
+    S, J, start = (np.array(np.broadcast_to(a, (n,))) for a in (S, J, start))
+    K = valve_start._pre_roll(x2.shape[0])
+    pre = start == PRE_ROLL
+    d = np.where(pre, 1.0, start)
+    cols = np.zeros(n, dtype=np.int64) if x2.shape[1] == 1 else np.arange(n)
+    first = np.where(pre, x2[K, cols], x2[0, cols])
+    codes = np.full(n, valve_start.MODELS.index(ctx.valve_model), dtype=np.int64)
+    state = np.zeros((n, valve_start.NSTATE))
+    valve_start.initial_state(state, np.clip(first - d * (J + valve_start._EPS), 0.0, 100.0), d, S, J, codes)
+    return x2, K, pre, S, J, np.full(n, float(ctx.rest_samples)), codes, state
+
+
+@pytest.mark.parametrize("form", ["grid-columns", "scalars", "one-of-each", "per-valve-op"])
+def test_a_valve_bank_is_the_one_every_parameter_broadcast_makes(form):
+    """valve_start._bank copies a grid's columns as they are: the same arrays, to the bit, as broadcasting every
+    parameter to the bank's size; each contiguous and writable (the kernels' one compiled signature)."""
+    rng = np.random.default_rng(8)
+    n = 30
+    grid = np.column_stack([rng.uniform(0.5, 8.0, n), rng.uniform(0.0, 6.0, n), rng.choice(np.array(STARTS), n)])
+    op = OP.copy()
+    op.flags.writeable = False                          # a recording's OP is read-only
+    S, J, start, x = grid[:, 0], grid[:, 1], grid[:, 2], op   # columns of a grid: strided views
+    if form == "scalars":
+        S, J, start = 4.0, 1.5, PRE_ROLL
+    elif form == "one-of-each":
+        S, J, start = np.array([4.0]), grid[:, 1], np.array(-1.0)
+    elif form == "per-valve-op":
+        x = op[:, None] + rng.normal(0.0, 0.5, (op.size, n))
+    ctx = ChainContext(dt=1.0, op=OP, op_span=16.0, valve_model="choudhury", rest_samples=3)
+    bank = valve_start._bank(x, S, J, start, ctx)
+    want = _bank_by_broadcast(x, S, J, start, ctx)
+    got = (bank.x, bank.K, bank.pre, bank.S, bank.J, bank.R, bank.codes, bank.state)
+    assert got[1] == want[1]
+    for a, b in zip(got[:1] + got[2:], want[:1] + want[2:]):
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a.view(np.uint8), b.view(np.uint8))
+    for a in (bank.x, bank.S, bank.J):
+        assert a.flags.c_contiguous and a.flags.writeable
+    assert not np.shares_memory(bank.S, grid) and not np.shares_memory(bank.x, op)
+
+
 @pytest.mark.parametrize("model", ["kano", "choudhury", "he"])
 @pytest.mark.parametrize("groups", [4, 40])
 def test_valves_of_equal_parameters_that_catch_up_replay_each_valve_as_it_would_alone(model, groups):

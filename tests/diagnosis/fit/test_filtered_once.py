@@ -153,3 +153,61 @@ def test_filter_inputs_given_its_own_mean(st):
     flow, _, _ = _loop(5)
     level = float(np.asarray(flow, dtype=np.float64)[:, None].mean(axis=0)[0])
     assert np.array_equal(linear.filter_inputs(flow, st, DT, mean=level), linear.filter_inputs(flow, st, DT))
+
+
+ONE_COLUMN = [  # structures whose polish takes sse_one's compiled pass at every evaluation (OneColumn.serves)
+    LinearStructure(taus=(5.0,), delay=2.0),
+    LinearStructure(taus=(5.0, 1.5), delay=2.0),
+    LinearStructure(taus=(5.0,), delay=2.0, sign=-1),              # the sign forbids the free gain
+    LinearStructure(taus=(5.0,), delay=2.0, taus_held=True),       # only the dead time searched
+]
+
+
+@pytest.mark.parametrize("prefilter", [None, 0.8])
+@pytest.mark.parametrize("st", ONE_COLUMN, ids=["lag", "two-lags", "sign", "taus-held"])
+def test_one_column_gives_sse_one(st, prefilter):
+    """:class:`~valve_emulator.diagnosis.fit.linear.OneColumn` prepared once gives sse_one's SSE to the bit for
+    other time constants and dead times (fractional ones too), and None exactly where sse_one fits from scratch
+    (a dead time that leaves the window's first samples without a regressor)."""
+    flow, y, _ = _loop(6)
+    window = (6, 900)
+    y_cost = y if prefilter is None else linear.highpass(y, prefilter)
+    assert linear.OneColumn.serves(st, prefilter)
+    one = linear.OneColumn(flow, y_cost, window, st, DT, prefilter)
+    scratch = 0
+    for factor in (1.0, 0.37, 2.9):
+        taus = tuple(t * factor for t in st.taus)
+        for delay in (0.0, 2.0, 3.45, 5.999, 7.2):
+            s = replace(st, taus=taus, delay=delay)
+            got = one.sse(taus, delay)
+            want = linear.sse_one(flow, y, window, s, DT, prefilter=prefilter)
+            m, _ = linear.split_delay(delay / DT)
+            if window[0] < m + s.ntaps:
+                assert got is None
+                scratch += 1
+            else:
+                assert got == want
+    assert scratch                                      # the fallback was met too
+
+
+@pytest.mark.parametrize("st", [LinearStructure(taus=(5.0,), delay=2.0, gain=0.5),
+                                LinearStructure(integrating=True, delay=2.0),
+                                LinearStructure(taus=(5.0,), fixed_poles=(-0.2 + 0.3j, -0.2 - 0.3j), delay=2.0)],
+                         ids=["held-gain", "integrating-ramp", "fixed-poles"])
+def test_one_column_serves_only_the_compiled_pass(st):
+    assert not linear.OneColumn.serves(st, None)
+
+
+@pytest.mark.parametrize("prefilter", [None, 0.8])
+@pytest.mark.parametrize("st", ONE_COLUMN[:2], ids=["lag", "two-lags"])
+def test_polish_through_one_column_visits_what_sse_one_visits(st, prefilter, monkeypatch):
+    """A polish whose evaluations go through OneColumn ends where one that builds each structure and calls
+    sse_one ends: the same structure and SSE, to the bit."""
+    flow, y, _ = _loop(7)
+    window = (40, 900)
+    kw = dict(free_delay=True, delay_bounds=(0.0, 10.0), prefilter=prefilter, max_evals=60)
+    got = polish(flow, y, window, st, DT, **kw)
+    monkeypatch.setattr(linear.OneColumn, "serves", staticmethod(lambda structure, prefilter: False))
+    want = polish(flow, y, window, st, DT, **kw)
+    assert got.structure == want.structure and got.sse == want.sse and np.array_equal(got.taps, want.taps)
+    assert got.structure != st

@@ -212,12 +212,10 @@ class _Bank:
 def _bank(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray, ctx: ChainContext) -> _Bank:
     """The valves of :func:`valve_output` in their initial states."""
     x = np.asarray(x, dtype=float)
-    x2 = np.ascontiguousarray(x[:, None] if x.ndim == 1 else x)
-    S, J, start = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (S, J, start))
+    x2 = kernel_array(x[:, None] if x.ndim == 1 else x)
+    S, J, start = (np.asarray(a, dtype=float) for a in (S, J, start))
     n = max(S.size, J.size, start.size, x2.shape[1])
-    # kernel_array: np.ascontiguousarray passes a broadcast view of n values through read-only, and numba compiled
-    # the valves' kernel (and the physics' step within it) once more for every read-only mix of S and J
-    S, J, start = (kernel_array(np.broadcast_to(a, (n,))) for a in (S, J, start))
+    S, J, start = (_per_valve(a, n) for a in (S, J, start))
     K = _pre_roll(x2.shape[0])
     pre = start == PRE_ROLL
     d = np.where(pre, 1.0, start)
@@ -226,8 +224,18 @@ def _bank(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray, ctx: C
     codes = np.full(n, MODELS.index(ctx.valve_model), dtype=np.int64)
     state = np.zeros((n, NSTATE))
     initial_state(state, np.clip(first - d * (J + _EPS), 0.0, 100.0), d, S, J, codes)
-    return _Bank(x=kernel_array(x2), K=K, pre=pre, S=S, J=J, R=np.full(n, float(ctx.rest_samples)), codes=codes,
+    return _Bank(x=x2, K=K, pre=pre, S=S, J=J, R=np.full(n, float(ctx.rest_samples)), codes=codes,
                  state=state)
+
+
+def _per_valve(a: np.ndarray, n: int) -> np.ndarray:
+    """``a`` (one value, or one per valve) as a new C-contiguous, writable array of ``n`` values. Writable:
+    ``np.ascontiguousarray`` passes a broadcast view through read-only, and numba compiled the valves' kernel (and
+    the physics' step within it) once more for every read-only mix of S and J (:func:`~valve_emulator.physics.
+    _arrays.kernel_array`). A grid's column, n values already, is copied without the broadcast's set-up."""
+    if a.shape == (n,):
+        return a.copy()
+    return kernel_array(np.broadcast_to(np.atleast_1d(a), (n,)))
 
 
 def _pre_rolled(bank: _Bank, valves: np.ndarray) -> np.ndarray:

@@ -47,6 +47,7 @@ import numpy as np
 from valve_emulator.diagnosis.fit.cost import log_sse
 from valve_emulator.diagnosis.fit.linear_kernels import (
     RIDGE,
+    _column_sse,
     column_mean,
     column_sse,
     grid_sse,
@@ -71,6 +72,7 @@ __all__ = [
     "fit_one",
     "fit_filtered",
     "on_pv",
+    "OneColumn",
     "sse_one",
     "polish",
 ]
@@ -126,9 +128,9 @@ class LinearStructure:
 
     def denominator(self, dt: float) -> np.ndarray:
         """Coefficients ``[1, α1, …]`` of the stable part :math:`A_s(q)` in powers of :math:`q^{-1}`."""
-        real = [np.exp(-dt / t) for t in self.taus]
         if not self.fixed_poles:
-            return _real_poly(real)
+            return _real_denominator(self.taus, dt)
+        real = [np.exp(-dt / t) for t in self.taus]
         return np.real(np.poly(real + [np.exp(p * dt) for p in self.fixed_poles]))
 
     def describe(self) -> str:
@@ -138,6 +140,11 @@ class LinearStructure:
         if self.integrating:
             parts.insert(0, "1/s")
         return ("·".join(parts) or "gain") + f"·e^(-{self.delay:.3g}s)"
+
+
+def _real_denominator(taus: tuple[float, ...], dt: float) -> np.ndarray:
+    """:meth:`LinearStructure.denominator` of real time constants ``taus`` only (no fixed poles)."""
+    return _real_poly([np.exp(-dt / t) for t in taus])
 
 
 def _real_poly(roots: list) -> np.ndarray:
@@ -527,6 +534,46 @@ def sse_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], st: LinearStr
                       window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None), st.sign, mean)
 
 
+class OneColumn:
+    """:func:`sse_one` of one input column against one target on one window, for many structures that differ from
+    ``structure`` only in their real time constants and dead time: a polish's evaluations, thousands per diagnosis.
+
+    What does not change from one evaluation to the next (the input as the compiled pass takes it and its mean,
+    the target in the cost domain ``y_cost``, the window, the number of taps, the prefilter, the gain's sign) is
+    prepared once, and each evaluation calls the pass directly with the denominator of its time constants and the
+    split of its dead time: the arguments :func:`sse_one` gives the same pass, so the same SSE to the bit, without
+    building a :class:`LinearStructure` and checking it at every evaluation. Only for the structures
+    :meth:`serves` names; :meth:`sse` is None where :func:`sse_one` would fit from scratch instead (a dead time
+    that leaves the window's first samples without a regressor)."""
+
+    def __init__(self, u: np.ndarray, y_cost: np.ndarray, window: tuple[int, int], structure: LinearStructure,
+                 dt: float, prefilter: float | None, mean: float | None = None) -> None:
+        self.u = kernel_array(u).reshape(-1)
+        self.mean = column_mean(self.u) if mean is None else float(mean)
+        self.y = kernel_array(y_cost)
+        self.w0, self.w1 = int(window[0]), int(window[1])
+        self.ntaps, self.integ, self.dt = structure.ntaps, structure.integrating, float(dt)
+        self.highpass, self.lam = prefilter is not None, float(prefilter or 0.0)
+        self.sign = float(structure.sign)
+
+    @staticmethod
+    def serves(structure: LinearStructure, prefilter: float | None) -> bool:
+        """Whether :func:`sse_one` takes the compiled pass for ``structure`` without extra regressors (whatever
+        the dead time allows): real poles only, no held gain, no integrator's unfiltered ramps."""
+        return (not structure.fixed_poles and structure.gain is None
+                and not (structure.integrating and prefilter is None))
+
+    def sse(self, taus: tuple[float, ...], delay: float) -> float | None:
+        """``sse_one`` of the structure with time constants ``taus`` and dead time ``delay`` (s); None where it
+        would not take the compiled pass."""
+        m, frac = split_delay(delay / self.dt)
+        if self.w0 < m + self.ntaps:
+            return None
+        return float(_column_sse(self.u, self.mean, _real_denominator(taus, self.dt), self.integ, self.dt,
+                                 self.highpass, self.lam, float(frac), self.y, self.w0, self.w1, int(m), self.ntaps,
+                                 0, self.sign))
+
+
 def prior_term(log_taus: np.ndarray, prior_sorted: list[float]) -> float:
     """The prior on the time constants, ``Σ ((sort(ln τ) − sort(ln τ_nom)) / σ)²`` with σ = :data:`PRIOR_WIDTH`,
     summed as numpy sums it (pairwise; one or two terms: in order), from ``ln τ`` and the sorted ``ln τ_nom``.
@@ -601,15 +648,23 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
     prior_sorted = sorted(log_prior.tolist()) if use_prior else None
     lo_t, hi_t, lo_d, hi_d = float(lo_tau), float(hi_tau), float(lo_d), float(hi_d)
 
-    def make(p: np.ndarray) -> LinearStructure:
+    def parts(p: np.ndarray) -> tuple[tuple[float, ...], float]:
         x = p.tolist()
         taus = tuple(float(np.exp(min(max(v, lo_t), hi_t))) for v in x[:nt]) or st0.taus
-        delay = min(max(x[-1], lo_d), hi_d) if free_delay else st0.delay
+        return taus, min(max(x[-1], lo_d), hi_d) if free_delay else st0.delay
+
+    def make(p: np.ndarray) -> LinearStructure:
+        taus, delay = parts(p)
         return LinearStructure(taus, st0.integrating, st0.fixed_poles, delay, st0.taus_held, st0.gain, st0.sign,
                                st0.min_tau)
 
+    # Most polishes take sse_one's compiled pass at every evaluation: its unchanging arguments prepared once.
+    one = OneColumn(u1, y_cost, window, st0, dt, prefilter, u_mean) if (
+        fixed is None and u1.ndim == 1 and OneColumn.serves(st0, prefilter)) else None
+
     def cost(p: np.ndarray) -> float:
-        c = log_sse(sse(make(p)), n)
+        s = None if one is None else one.sse(*parts(p))
+        c = log_sse(sse(make(p)) if s is None else s, n)
         if use_prior:
             c += prior_term(p[:nt], prior_sorted)
         return c
