@@ -300,6 +300,22 @@ def test_an_actuator_lag_of_one_sample_on_an_integrator_is_not_told_from_a_dead_
 
 
 @pytest.mark.slow
+def test_a_late_valve_is_sized_around_the_nominal_gain_when_the_gain_moves_only_for_the_free_run():
+    """Draw 10 with its model (a Karnopp stem of S 4.33 % from 1187 s on a level loop, a 3.1 s lag): the
+    search's gain was 0.43 of the nominal one, and around it the late valve's band S 2.39 %. The gain moved for
+    a ΔBIC of 1,989 against the nominal gain with that same band (the grid of the refinement around the held
+    gain fitted the gain freely; now at that gain, :func:`~valve_emulator.diagnosis.fit.linear.input_grid_sse`).
+    Held, and the late valve searched afresh there (:func:`~valve_emulator.diagnosis.explain.onset.late_afresh`),
+    the band is within a quarter of the drawn S, and under the drifting-load noise model the moved gain no longer counts
+    (it must beat the held one there too, where a finding starts late): measured S 4.03, J 0.50 (drawn 0.93, the stem's
+    2005 Js reach 0), from 1016 s (+0.057 of the record), the gain held."""
+    o = _outcome(10, "model")
+    assert o.holds, o
+    moved = {m["parameter"]: m["moved"] for m in diagnosed(Draw("late_onset", (SEED, 10), "model")).doc["linear_part"]}
+    assert moved["gain"] is False
+
+
+@pytest.mark.slow
 def test_the_onset_is_located_before_any_fit_within_a_tenth_of_the_record():
     """The change point in the control error's energy alone (no model, no search): measured 17/20."""
     hits = 0
@@ -332,11 +348,12 @@ def test_a_valve_that_starts_to_stick_part_way_is_answered_stiction(mode, least)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 13), ("plant", 13)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 14), ("plant", 13)])
 def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode, least):
     """The part of the property the search reaches: the answer is stiction, from an onset within a tenth of the
-    record, with S within 25 % (J and the other findings are left to the strict xfail below). Measured 14/20 with
-    a model (15/20 before 32.3's weak call became ``cannot_tell``), 14/20 without (12/20 before a dead time far
+    record, with S within 25 % (J and the other findings are left to the strict xfail below). Measured 15/20 with
+    a model (14/20 before a late valve was searched afresh around the nominal gain, draw 10, and 15/20 before
+    32.3's weak call became ``cannot_tell``), 14/20 without (12/20 before a dead time far
     beyond the healthy part's was searched again below it,
     :func:`~valve_emulator.diagnosis.explain.onset.delay_cap`)."""
     reached = _count(mode, lambda o: o.answer == "stiction" and o.onset_err is not None and o.onset_err <= ONSET_TOL
@@ -345,17 +362,19 @@ def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("mode", "least"), [("model", 11), ("plant", 12)])
+@pytest.mark.parametrize(("mode", "least"), [("model", 12), ("plant", 12)])
 def test_onset_size_and_nothing_else_at_the_rate_reached(mode, least):
-    """The whole property, at the rate the search reaches: measured 12/20 with a model and 13/20 without (J
-    judged against the drawn J and the 2005 range, :func:`j_error`; 11/20 with a model before the findings were
+    """The whole property, at the rate the search reaches: measured 13/20 with a model and 13/20 without (J
+    judged against the drawn J and the 2005 range, :func:`j_error`; 12/20 with a model before the grid of the
+    refinement around the nominal gain held that gain and a late valve was searched afresh there — draws 0 and
+    10 hold, draw 8 misses on J, 1.80 for 2.69–2.87 at the nominal gain; 11/20 with a model before the findings were
     refined again around the nominal gain before its test, :mod:`~valve_emulator.diagnosis.explain.prior`;
     12/20 without before the dead-time cap)."""
     assert _count(mode, lambda o: o.holds) >= least
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured 12/20 with a model, 13/20 without (see the module docstring)")
+@pytest.mark.xfail(strict=True, reason="measured 13/20 with a model, 13/20 without (see the module docstring)")
 @pytest.mark.parametrize("mode", ["model", "plant"])
 def test_onset_and_size_within_tolerance_and_nothing_else_in_nine_draws_of_ten(mode):
     assert _count(mode, lambda o: o.holds) >= 0.9 * DRAWS

@@ -84,16 +84,17 @@ def test_jobs_the_linear_fit_cannot_tell_apart_are_scored_once_with_the_numbers_
     flows = problem.op[:, None] + rng.normal(0.0, 2.0, (T, 70))
     delays = np.arange(0, 5)
     first_order = LinearStructure(taus=(10.0,), delay=2.0)
-    # The same poles with a held gain and another dead time: the same job on a grid of dead times.
-    same = LinearStructure(taus=(10.0,), delay=4.0, gain=1.5, min_tau=0.5)
+    # The same poles with another bound and dead time: the same job on a grid of dead times. A held gain is
+    # a job of its own (a grid at a held gain is fitted at that gain, input_grid_sse).
+    same = LinearStructure(taus=(10.0,), delay=4.0, min_tau=0.5)
     jobs = [(first_order, delays), (LinearStructure(integrating=True), delays), (same, delays.copy()),
-            (first_order, None), (same, None)]
+            (first_order, None), (same, None), (LinearStructure(taus=(10.0,), delay=2.0, gain=1.5), None)]
     alone = [scorer.sse_flows_all(flows, [job], aim)[0] for job in jobs]
     calls = []
     sse_flows = scorer.sse_flows
     monkeypatch.setattr(scorer, "sse_flows", lambda *a, **kw: calls.append(a[1]) or sse_flows(*a, **kw))
     together = scorer.sse_flows_all(flows, jobs, aim)
-    assert len(calls) == 4 * 2   # four distinct jobs (the dead time held is the structure's own), two chunks
+    assert len(calls) == 5 * 2   # five distinct jobs (the dead time held is the structure's own), two chunks
     for (sse, used), (sse_alone, used_alone) in zip(together, alone):
         assert sse.tobytes() == sse_alone.tobytes() and np.array_equal(used, used_alone)
     assert not np.array_equal(together[3][0], together[4][0])   # own dead times 2 s and 4 s differ

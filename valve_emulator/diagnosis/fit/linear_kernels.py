@@ -50,14 +50,19 @@ _TILE = 8
 _GROUP = 64
 
 @numba.njit(cache=True, nogil=True)
-def _solve_sse(G, r, yy, q, beta, ntaps, sign):  # pragma: no cover - compiled
+def _solve_sse(G, r, yy, q, beta, ntaps, sign, held):  # pragma: no cover - compiled
     """Cholesky solve of G beta = r (upper triangle of G filled); return yy - beta·r.
 
     With ``sign`` (+1 or −1; 0: free) the sum of the first ``ntaps`` coefficients (the gain) must have that
     sign: when the free solution's does not, the constrained least-squares optimum has gain 0 (a single
     linear inequality is active or not), whose SSE exceeds the free one by ``(cᵀβ)² / (cᵀG⁻¹c)``, c the
-    indicator of the taps (Lawson & Hanson, *Solving Least Squares Problems*, ch. 20)."""
+    indicator of the taps (Lawson & Hanson, *Solving Least Squares Problems*, ch. 20).
+
+    With ``held`` (not NaN) the gain is held there instead (``sign`` is then moot): the equality-constrained
+    optimum's SSE exceeds the free one by ``(cᵀβ − held)² / (cᵀG⁻¹c)`` (the same theorem). A column whose taps
+    all drop out (it never moves) is fitted by the offset alone whatever the gain, and scores the free SSE."""
     L = np.zeros((q, q))
+    moves = False
     for i in range(q):
         for j in range(i + 1):
             s = G[j, i] if j <= i else G[i, j]
@@ -69,6 +74,7 @@ def _solve_sse(G, r, yy, q, beta, ntaps, sign):  # pragma: no cover - compiled
                 # A regressor (numerically) in the span of the earlier ones, e.g. a valve that never
                 # moves: drop it (a huge pivot makes its coefficient zero) instead of dividing by ~0.
                 L[i, i] = np.sqrt(s) if s > 1e-9 * (G[i, i] + 1e-300) else 1e150
+                moves = moves or (i < ntaps and L[i, i] != 1e150)
             else:
                 L[i, j] = s / L[j, j]
     w = np.empty(q)
@@ -88,7 +94,11 @@ def _solve_sse(G, r, yy, q, beta, ntaps, sign):  # pragma: no cover - compiled
     g = 0.0
     for i in range(ntaps):
         g += beta[i]
-    if sign * g < 0.0:
+    if held == held:
+        gap = g - held if moves else 0.0
+    else:
+        gap = g if sign * g < 0.0 else 0.0
+    if gap != 0.0:
         # c^T G^-1 c = |L^-1 c|^2, c = (1, …, 1, 0, …) over the taps.
         cgc = 0.0
         for i in range(q):
@@ -98,7 +108,7 @@ def _solve_sse(G, r, yy, q, beta, ntaps, sign):  # pragma: no cover - compiled
             w[i] = s / L[i, i]
             cgc += w[i] * w[i]
         if cgc > 0.0:
-            sse += g * g / cgc
+            sse += gap * gap / cgc
     return max(sse, 0.0)
 
 
@@ -171,7 +181,7 @@ def column_means(u: np.ndarray) -> np.ndarray:
 def _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, beta, out):  # pragma: no cover - compiled
     """SSE of column ``j`` for every dead time into ``out``: its normal equations from the running sums kept
     near w0 (``lo``) and w1 (``hi``), the cross terms ``X`` and the window ``sums``, solved."""
-    _, w0, w1, delays, ntaps, trend, sign = fit
+    _, w0, w1, delays, ntaps, trend, sign, held = fit
     yy, sy, ty, tt, st = sums
     loP, loP1, loPK = lo
     hiP, hiP1, hiPK = hi
@@ -194,7 +204,7 @@ def _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, beta, out):  # p
             G[ntaps, ntaps + 1] = st
             G[ntaps + 1, ntaps + 1] = tt
             r[ntaps + 1] = ty
-        out[di] = _solve_sse(G, r, yy, q, beta, ntaps, sign)
+        out[di] = _solve_sse(G, r, yy, q, beta, ntaps, sign, held)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -213,7 +223,7 @@ def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse, means):  # pra
     for a single column. Each step works one stage at a time over the block's columns (branch-free inner
     loops) and indexes rows rather than taking row views (a view costs the same updates).
     """
-    y, w0, w1, delays, ntaps, trend, _ = fit
+    y, w0, w1, delays, ntaps, trend, _, _ = fit
     alpha, p, gain, start, rmask, integ, dt, highpass, lam, frac = filt
     T = u.shape[0]
     dmin, dmax = delays.min(), delays.max()
@@ -374,7 +384,7 @@ def _grid_columns(u, c_lo, c_hi, filtered, stages, fit, sse, mean):  # pragma: n
     """Fill rows c_lo..c_hi-1 of ``sse`` (n, nd), :data:`_BLOCK` columns of ``u`` (T, n; time-major, columns
     innermost) at a time. ``filtered``: ``u`` already holds the regressor source z; otherwise the filter
     ``stages`` ``(alpha, integ, dt, highpass, lam, frac)`` make it from ``u`` less its column means ``mean`` (n,)
-    (see :func:`grid_sse`). ``fit`` is ``(y, w0, w1, delays, ntaps, trend, sign)``."""
+    (see :func:`grid_sse`). ``fit`` is ``(y, w0, w1, delays, ntaps, trend, sign, held)``."""
     T = u.shape[0]
     alpha, integ, dt, highpass, lam, frac = stages
     p, gain, start, rring, rmask = _filter_setup(alpha, T)
@@ -448,7 +458,7 @@ def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, nt
                     G[i, jj] += x[i] * x[jj]
     if q == 2:
         G[0, 0], G[0, 1], G[1, 1], r[0], r[1] = g00, g01, g11, r0, r1
-    return _solve_sse(G, r, yy, q, beta, ntaps, sign)
+    return _solve_sse(G, r, yy, q, beta, ntaps, sign, np.nan)
 
 
 def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend, sign=0, mean=None) -> float:
@@ -481,21 +491,22 @@ def column_mean(u: np.ndarray) -> float:
 
 
 def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=None, integ=False, dt=1.0,
-             lam=None, frac=0.0, sign=0, means=None) -> None:
+             lam=None, frac=0.0, sign=0, gain=None, means=None) -> None:
     """Fill ``sse`` (n, nd) for every column of ``u`` (T, n) and every dead time of ``delays``, in place.
 
     ``filtered``: ``u`` is already the regressor source z. Otherwise z is made from each column minus its mean
     by the all-pole filter ``alpha`` (unit DC gain, one sample of delay), an integrator (``integ``, scaled by
     ``dt``), the high-pass prefilter of pole ``lam`` (None: none) and a fractional delay ``frac`` (0 ≤ f < 1).
     ``sign`` (+1, −1; 0: free): the sign the gain (sum of the taps) must have; a column whose free fit has the
-    other sign scores the SSE of the best fit with gain 0. ``means``: the column means of ``u``
-    (:func:`column_means`) when known.
+    other sign scores the SSE of the best fit with gain 0. ``gain`` (None: free): the gain held, every column
+    scored at it (see :func:`_solve_sse`). ``means``: the column means of ``u`` (:func:`column_means`) when known.
     """
     u = kernel_array(u)
     means = (np.zeros(u.shape[1]) if filtered else column_means(u)) if means is None else kernel_array(means)
     alpha = np.ones(1) if alpha is None else kernel_array(alpha)
     stages = (alpha, bool(integ), float(dt), lam is not None, float(lam or 0.0), float(frac))
-    fit = (kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend), float(sign))
+    fit = (kernel_array(y), int(w0), int(w1), kernel_array(delays, np.int64), int(ntaps), int(trend), float(sign),
+           np.nan if gain is None else float(gain))
     n = u.shape[1]
     if n <= _GROUP:
         _score_columns(u, bool(filtered), stages, fit, sse, means)

@@ -103,9 +103,11 @@ def library_burn_in(problem: Problem, nominal: Nominal, library: dict[str, Candi
 
 def _kernel_job(st: LinearStructure, delays: np.ndarray | None) -> tuple:
     """What the SSE of :meth:`Scorer.sse_flows` depends on besides the flows: the poles (the denominator and the
-    regressors' number follow from them), the gain's sign and the dead times searched (the structure's own when
-    ``delays`` is None). Its held gain, held time constants and bounds are for the polish, not this fit."""
-    return (st.taus, st.fixed_poles, st.integrating, st.sign,
+    regressors' number follow from them), the gain's sign, a held gain and the dead times searched (the
+    structure's own when ``delays`` is None; a held gain is scored at that gain,
+    :func:`~valve_emulator.diagnosis.fit.linear.input_grid_sse`). Its held time constants and bounds are for the
+    polish, not this fit."""
+    return (st.taus, st.fixed_poles, st.integrating, st.sign, st.gain,
             ("own", st.delay) if delays is None else ("grid", np.asarray(delays, dtype=np.int64).tobytes()))
 
 
