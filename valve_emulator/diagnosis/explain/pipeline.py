@@ -133,8 +133,8 @@ def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame
 @dataclass(frozen=True, eq=False)
 class Searched:
     """One search in one cost domain: the problem as scored (burn-in lengthened for the candidates), the
-    nominal model (identified when none was given), the fitter, the final model, the rounds and the tests of
-    the nominal linear part."""
+    nominal model (identified when none was given), the fitter, the final model, the rounds, the tests of
+    the nominal linear part and the dead-time cap its grid was cut at (None: not cut)."""
 
     problem: Problem
     nominal: Nominal
@@ -142,6 +142,7 @@ class Searched:
     model: Model
     rounds: list[Round]
     tests: tuple[LinearMove, ...]
+    cap: Cap | None = None
 
 
 @dataclass(frozen=True)
@@ -220,7 +221,7 @@ def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, p
     if nom.given:
         say("testing whether the nominal linear part moves")
     model, tests = settle(search, model)
-    return Searched(problem=problem, nominal=nom, fitter=fitter, model=model, rounds=rounds, tests=tests)
+    return Searched(problem=problem, nominal=nom, fitter=fitter, model=model, rounds=rounds, tests=tests, cap=cap)
 
 
 def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, validation: str,
@@ -504,7 +505,8 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     found = findings(s.fitter, problem, model, rounds, masks, horizon, nom, frame)
     found = acting_part(problem, model, pv_before, found)
     st = model.fit.structure
-    delay_is_bound = not nom.given and delay_at_end(problem, st.delay)
+    # A grid cut at a cap ends below the dead time the data allow, not at an open edge.
+    delay_is_bound = not nom.given and s.cap is None and delay_at_end(problem, st.delay)
     plant = {"gain": model.fit.gain * problem.y_scale * frame.gain, "taus": tuple(st.taus), "delay": st.delay,
              "integrating": st.integrating, "validation": problem.validation, "delay_is_bound": delay_is_bound}
     return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=_reported_fit(s, base),
