@@ -50,7 +50,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import solve_triangular
-from scipy.stats import t as t_dist
+from scipy.special import stdtr
 
 from valve_emulator.errors import UserError
 
@@ -310,7 +310,7 @@ def setpoint_delay(pv: np.ndarray, sp: np.ndarray | None, longest: int) -> int |
         grad[j, i] += step[j - i]
     z = solve_triangular(r.T, grad[1:].T, lower=True)
     t = step[1:] / np.sqrt(np.maximum(s2 * np.sum(z ** 2, axis=0), 1e-300))
-    refuted = 2.0 * t_dist.sf(np.abs(t), dof) < SETPOINT_LEVEL
+    refuted = 2.0 * stdtr(dof, -np.abs(t)) < SETPOINT_LEVEL
     bound = None
     for m in range(longest, 0, -1):
         if not refuted[m - 1]:
