@@ -36,29 +36,18 @@ def _found() -> int:
     return sum(d.doc["answer"] == "stiction" for d in diagnosed_all(LEVEL))
 
 
-_MISSES = ("measured 34 of 40 (32 before a loop that does not cycle regularly, whose valve alternative explains PV "
-           "better under the drifting-load model, shows its band's memory beyond any single-valued map of OP and has "
-           "OP's swings crossing it, was called on that valve; 29 before the same for a loop that cycles regularly; "
-           "27 before a dead time on the grid's end widened the grid; 19 before the search holding an integrator): "
-           "of the 6 misses, 1 (32.22) is a characteristic whose true band (1.63 %) lies inside 3 OP noise σ, 2 are "
-           "answered tuning through a first-order plant whose dead time stands in for a fraction of the limit cycle "
-           "(their cycles within the ring of the loop identified: ring check p 0.03, 0.94), 1 (32.19) names the "
-           "periodic load the search fitted to its limit cycle once the ring check took its tuning answer away, 1 "
-           "has a valve alternative only about as good (ΔBIC 8) and 1 a band the drifting load explains better "
-           "(2026-11-27)")
-
-
-@pytest.mark.xfail(strict=True, reason=_MISSES)
 def test_stiction_is_found_in_nine_loops_of_ten():
+    """Measured 36 of 40 (2026-11-27: 34 before the set point's path bounded the dead time, which reached 32.9 and
+    32.14, answered tuning through a first-order plant whose dead time, 99 s and 69 s, stood in for a fraction of
+    the limit cycle where the set point shows PV answering within 35 s and 11 s; 32 before a loop that does not
+    cycle regularly, whose valve alternative explains PV better under the drifting-load model, shows its band's
+    memory and has OP's swings crossing it, was called on that valve; 19 before the search holding an
+    integrator). Of the 4 misses, 1 (32.22) is a characteristic whose true band (1.63 %) lies inside 3 OP noise
+    σ; 32.32's 126 s dead time is not far beyond the set point's bound (81 s); 32.19 names the periodic load the
+    search fitted to its limit cycle (its 35 s dead time against a bound of 25 s); 32.25's band the drifting load
+    explains better."""
     found = _found()
     assert found >= 0.9 * len(LEVEL), f"stiction found in {found} of {len(LEVEL)}"
-
-
-def test_stiction_is_found_in_most_loops():
-    """A floor one draw under the rate measured (34 of 40, 2026-11-27), so that a change that loses level loops again
-    is seen."""
-    found = _found()
-    assert found >= 33, f"stiction found in {found} of {len(LEVEL)}"
 
 
 def test_a_cycle_beyond_the_identified_loops_ring_is_not_answered_tuning():

@@ -95,7 +95,7 @@ from valve_emulator.diagnosis.fit.scorer import Scorer, sse_jobs_shared
 __all__ = ["ONSETS", "EARLY_SHARE", "MIN_BAND", "BLOCKS", "MIN_RISE", "MIN_SHARE", "MIN_ACTING", "NEAR", "LateOnset",
            "Onset", "Suspected", "suspect_onset", "post_onset_split", "onset_option", "acting_part", "onset_of",
            "late_start", "bic_after", "before_part", "bic_on", "late_options", "MIN_BEFORE", "FAR_DELAY",
-           "delay_cap", "throughout"]
+           "delay_cap", "far_beyond", "throughout"]
 
 #: Onsets of the coarse stage, as fractions of the fit part: the physics acts on a quarter of it at least, so
 #: that a short stretch near the end (a few cycles of a load the linear part misses) is not fitted as a valve
@@ -368,9 +368,16 @@ def delay_cap(problem: Problem, sp: np.ndarray | None, delay: float,
     if suspected is None or _at_setpoint_move(sp, suspected.sample, problem.T // BLOCKS):
         return None
     healthy = identify_before(problem, sp, suspected.sample, constraints=constraints)
-    if healthy is None or delay <= FAR_DELAY * healthy.delay + FAR_DELAY * problem.dt:
+    if healthy is None or not far_beyond(delay, healthy.delay, problem.dt):
         return None
     return healthy.delay + problem.dt
+
+
+def far_beyond(delay: float, bound: float, dt: float) -> bool:
+    """Whether a dead time a search found (``delay``, s) is more than :data:`FAR_DELAY` times ``bound`` (s, a
+    dead time the loop is shown to have at most) plus as many samples of ``dt`` s: the sticky cycle's shift,
+    where a plant's lag taken up into its dead time stays nearer."""
+    return delay > FAR_DELAY * bound + FAR_DELAY * dt
 
 
 def _at_setpoint_move(sp: np.ndarray | None, sample: int, width: int) -> bool:

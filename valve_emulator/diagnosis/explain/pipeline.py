@@ -43,12 +43,18 @@ from valve_emulator.diagnosis._threads import one_blas_thread
 from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.explain.findings import findings, param_text, parameter_intervals, stiction_surface
 from valve_emulator.diagnosis.explain.locate import condition_masks, locate
-from valve_emulator.diagnosis.explain.onset import acting_part, delay_cap, post_onset_split, suspect_onset
+from valve_emulator.diagnosis.explain.onset import (
+    acting_part,
+    delay_cap,
+    far_beyond,
+    post_onset_split,
+    suspect_onset,
+)
 from valve_emulator.diagnosis.explain.prior import dead_time_move, nominal_gain, settle
 from valve_emulator.diagnosis.explain.result import Explanation, LinearMove, RankRow, Traces, ValveAlternative
 from valve_emulator.diagnosis.explain.search import DELTA_BIC, DELTA_FIT, Model, Round, Search
 from valve_emulator.diagnosis.fit.chain import run_chain
-from valve_emulator.diagnosis.fit.closed_loop import Declared, identification
+from valve_emulator.diagnosis.fit.closed_loop import SETPOINT_LEVEL, Declared, identification, setpoint_delay
 from valve_emulator.diagnosis.fit.crossval import cross_validated_fit, with_cv
 from valve_emulator.diagnosis.fit.data import (
     HELD_OUT,
@@ -127,8 +133,8 @@ def _linear_table(nominal: Nominal, model: Model, problem: Problem, frame: Frame
 @dataclass(frozen=True, eq=False)
 class Searched:
     """One search in one cost domain: the problem as scored (burn-in lengthened for the candidates), the
-    nominal model (identified when none was given), the fitter, the final model, the rounds and the tests of
-    the nominal linear part."""
+    nominal model (identified when none was given), the fitter, the final model, the rounds, the tests of
+    the nominal linear part and the dead-time cap its grid was cut at (None: not cut)."""
 
     problem: Problem
     nominal: Nominal
@@ -136,21 +142,53 @@ class Searched:
     model: Model
     rounds: list[Round]
     tests: tuple[LinearMove, ...]
+    cap: Cap | None = None
+
+
+@dataclass(frozen=True)
+class Cap:
+    """The longest dead time (s) a search without a model may give the plant, and the sentence that says why
+    among the identification's constraints (None: not said there)."""
+
+    seconds: float
+    said: str | None = None
+
+
+def _cap(recording: Recording, first: Searched, validation: str, stops: tuple[float, float]) -> Cap | None:
+    """The dead-time cap of every search after the first one without a model (None: no cap): the shorter of
+    the healthy part's before a located change point
+    (:func:`~valve_emulator.diagnosis.explain.onset.delay_cap`) and the set point's bound
+    (:func:`~valve_emulator.diagnosis.fit.closed_loop.setpoint_delay`: PV answers the set point's steps within
+    m samples, OP answering them at once, so the plant's dead time is shorter than m samples), each only where
+    the first search's dead time is far beyond it (:func:`~valve_emulator.diagnosis.explain.onset.far_beyond`),
+    and each a sample above it, as the grid's dead times are whole samples."""
+    delay = first.model.fit.structure.delay
+    caps = []
+    healthy = delay_cap(prepare(recording, validation=validation, stops=stops), recording.sp, delay,
+                        first.nominal.identification)
+    if healthy is not None:
+        caps.append(Cap(healthy))
+    bound = _setpoint_cap(recording, first)
+    if bound is not None:
+        caps.append(bound)
+    return min(caps, key=lambda c: c.seconds, default=None)
 
 
 def _prepared(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
               validation: str, stops: tuple[float, float], declared: Declared | None = None, reach: int = 1,
-              cap: float | None = None) -> tuple[Problem, Nominal]:
+              cap: Cap | None = None) -> tuple[Problem, Nominal]:
     """The recording checked and split, the nominal model (identified from the data without one, under the
-    closed loop's constraints and what ``declared`` says of the loop, its dead time below ``cap`` s when given)
+    closed loop's constraints and what ``declared`` says of the loop, its dead time below ``cap`` when given)
     and the fit part started after every candidate's burn-in."""
     problem = prepare(recording, nominal_delay=nom.delay if nom else None,
                       settle_time=nom.settle_time if nom else 0.0, prefilter=prefilter, validation=validation,
                       stops=stops, reach=reach)
-    problem = _bounded_delays(problem, cap)
+    problem = _bounded_delays(problem, cap.seconds if cap is not None else None)
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
         constraints = identification(problem.op, problem.pv, recording.sp, declared, dt=problem.dt)
+        if cap is not None and cap.said is not None:
+            constraints = replace(constraints, constraints=constraints.constraints + (cap.said,))
         problem = _bounded_delays(problem, constraints.delay_bound(True) if constraints.integrating else None)
         nom = identify(problem, constraints=constraints)
     return with_burn_in(problem, library_burn_in(problem, nom, lib)), nom
@@ -166,9 +204,9 @@ def _bounded_delays(problem: Problem, bound: float | None) -> Problem:
 
 def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, prefilter: float | None,
                  validation: str, stops: tuple[float, float], declared: Declared | None = None,
-                 reach: int = 1, cap: float | None = None) -> Searched:
+                 reach: int = 1, cap: Cap | None = None) -> Searched:
     """Prepare, (identify,) search, settle the nominal linear part: one pass in one cost domain (``reach``: see
-    :func:`~valve_emulator.diagnosis.fit.data.prepare`; ``cap``: the longest dead time, s, or None)."""
+    :func:`~valve_emulator.diagnosis.fit.data.prepare`; ``cap``: the longest dead time, or None)."""
     problem, nom = _prepared(recording, nom, lib, say, prefilter=prefilter, validation=validation, stops=stops,
                              declared=declared, reach=reach, cap=cap)
     suspected = suspect_onset(problem.pv, recording.sp)
@@ -183,7 +221,7 @@ def _search_once(recording: Recording, nom: Nominal | None, lib: dict, say, *, p
     if nom.given:
         say("testing whether the nominal linear part moves")
     model, tests = settle(search, model)
-    return Searched(problem=problem, nominal=nom, fitter=fitter, model=model, rounds=rounds, tests=tests)
+    return Searched(problem=problem, nominal=nom, fitter=fitter, model=model, rounds=rounds, tests=tests, cap=cap)
 
 
 def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, validation: str,
@@ -191,20 +229,41 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
     """The search in the right cost domain (see the module docstring): a nominal integrating plant's on
     prefiltered PV; without a model on PV, once more prefiltered when the result integrates, and once more
     prefiltered with the plant held integrating when it does not and the controller's law was read. Where the
-    first pass's dead time is far beyond that of the healthy part before a located change point, every pass
-    searches it below that one (:func:`~valve_emulator.diagnosis.explain.onset.delay_cap`)."""
+    first pass's dead time is far beyond that of the healthy part before a located change point, or beyond the
+    set point's bound, every pass searches it below that one (:func:`_cap`)."""
     dt = recording.dt if len(recording) >= 2 else 1.0
     if nom is not None:
         st = nom.structure
         lam = prefilter_for(st.delay + sum(st.taus), dt) if st.integrating else None
         return _search_once(recording, nom, lib, say, prefilter=lam, validation=validation, stops=stops)
     lib = {k: v for k, v in lib.items() if k != "dead_time"}  # without a nominal model the dead time is identified
-    out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
-                       declared=declared)
-    cap = delay_cap(prepare(recording, validation=validation, stops=stops), recording.sp,
-                    out.model.fit.structure.delay, out.nominal.identification)
+    first = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
+                         declared=declared)
+    cap = _cap(recording, first, validation, stops)
+    out = _passes(recording, first, lib, say, validation=validation, stops=stops, declared=declared, cap=cap)
+    if cap is None:
+        # The set point's bound holds for every pass: a dead time the later passes put far beyond it (the
+        # first's was within it) is searched below it from the first pass on.
+        cap = _setpoint_cap(recording, out)
+        if cap is not None:
+            out = _passes(recording, first, lib, say, validation=validation, stops=stops, declared=declared,
+                          cap=cap)
+    return out
+
+
+def _passes(recording: Recording, first: Searched, lib: dict, say, *, validation: str,
+            stops: tuple[float, float], declared: Declared | None, cap: Cap | None) -> Searched:
+    """The passes after the first one without a model (see :func:`_search`), each below ``cap`` when given.
+    Under the set point's cap the actuator-lag candidate is not searched: the first pass's dead time stood in
+    for a lag between OP and PV that its plant of one time constant could not hold, and a lag found once that
+    dead time is taken away is the plant's as well as the actuator's — OP and PV do not tell them apart."""
+    dt = first.problem.dt
+    out = first
     if cap is not None:
-        say(f"the dead time is far beyond the healthy part's (before the change point): searching below {cap:.3g} s")
+        why = "the set point's bound" if cap.said is not None else "the healthy part's (before the change point)"
+        say(f"the dead time is far beyond {why}: searching below {cap.seconds:.3g} s")
+        if cap.said is not None:
+            lib = {k: v for k, v in lib.items() if k != "actuator_lag"}
         out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
                            declared=declared, cap=cap)
     reach = 1
@@ -228,6 +287,18 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
                         validation=validation, stops=stops,
                         declared=replace(declared or Declared(), integrating=True), reach=reach, cap=cap)
     return _integrating_or_not(out, held)
+
+
+def _setpoint_cap(recording: Recording, searched: Searched) -> Cap | None:
+    """The set point's cap (:func:`_cap`) of a pass's dead time, alone: None where it is not far beyond."""
+    dt, delay = searched.problem.dt, searched.model.fit.structure.delay
+    m = setpoint_delay(recording.pv, recording.sp, int(delay / dt))
+    if m is None or not far_beyond(delay, m * dt, dt):
+        return None
+    return Cap((m + 1) * dt, f"dead time below {m * dt:.3g} s: PV answers the set point's steps within {m} "
+                             f"samples (its step response from the set point, refuted as none from the "
+                             f"{delay:.3g} s a search found down to {m} samples, a closed test at "
+                             f"{100 * SETPOINT_LEVEL:g} %), and OP answers them at once")
 
 
 def _integrating_or_not(free: Searched, held: Searched) -> Searched:
@@ -434,7 +505,8 @@ def explain(recording: Recording, nominal: LoopConfig | None = None, *,
     found = findings(s.fitter, problem, model, rounds, masks, horizon, nom, frame)
     found = acting_part(problem, model, pv_before, found)
     st = model.fit.structure
-    delay_is_bound = not nom.given and delay_at_end(problem, st.delay)
+    # A grid cut at a cap ends below the dead time the data allow, not at an open edge.
+    delay_is_bound = not nom.given and s.cap is None and delay_at_end(problem, st.delay)
     plant = {"gain": model.fit.gain * problem.y_scale * frame.gain, "taus": tuple(st.taus), "delay": st.delay,
              "integrating": st.integrating, "validation": problem.validation, "delay_is_bound": delay_is_bound}
     return Explanation(source=problem.source, given=nom.given, fit_before=fit_before, fit_base=_reported_fit(s, base),
