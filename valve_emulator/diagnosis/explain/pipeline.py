@@ -147,11 +147,14 @@ class Searched:
 
 @dataclass(frozen=True)
 class Cap:
-    """The longest dead time (s) a search without a model may give the plant, and the sentence that says why
-    among the identification's constraints (None: not said there)."""
+    """The longest dead time (s) a search without a model may give the plant, what the dead time found was far
+    beyond (``why``, for the progress), the sentence that says so among the identification's constraints (None:
+    not said there) and the candidates not searched below it."""
 
     seconds: float
+    why: str
     said: str | None = None
+    leaves_out: frozenset[str] = frozenset()
 
 
 def _cap(recording: Recording, first: Searched, validation: str, stops: tuple[float, float]) -> Cap | None:
@@ -167,7 +170,7 @@ def _cap(recording: Recording, first: Searched, validation: str, stops: tuple[fl
     healthy = delay_cap(prepare(recording, validation=validation, stops=stops), recording.sp, delay,
                         first.nominal.identification)
     if healthy is not None:
-        caps.append(Cap(healthy))
+        caps.append(Cap(healthy, "the healthy part's (before the change point)"))
     bound = _setpoint_cap(recording, first)
     if bound is not None:
         caps.append(bound)
@@ -241,9 +244,10 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
                          declared=declared)
     cap = _cap(recording, first, validation, stops)
     out = _passes(recording, first, lib, say, validation=validation, stops=stops, declared=declared, cap=cap)
-    if cap is None:
+    if cap is None and out.model.fit.structure.delay != first.model.fit.structure.delay:
         # The set point's bound holds for every pass: a dead time the later passes put far beyond it (the
-        # first's was within it) is searched below it from the first pass on.
+        # first's was within it) is searched below it from the first pass on. The first pass's own dead time
+        # was judged in _cap.
         cap = _setpoint_cap(recording, out)
         if cap is not None:
             out = _passes(recording, first, lib, say, validation=validation, stops=stops, declared=declared,
@@ -253,17 +257,13 @@ def _search(recording: Recording, nom: Nominal | None, lib: dict, say, *, valida
 
 def _passes(recording: Recording, first: Searched, lib: dict, say, *, validation: str,
             stops: tuple[float, float], declared: Declared | None, cap: Cap | None) -> Searched:
-    """The passes after the first one without a model (see :func:`_search`), each below ``cap`` when given.
-    Under the set point's cap the actuator-lag candidate is not searched: the first pass's dead time stood in
-    for a lag between OP and PV that its plant of one time constant could not hold, and a lag found once that
-    dead time is taken away is the plant's as well as the actuator's — OP and PV do not tell them apart."""
+    """The passes after the first one without a model (see :func:`_search`), each below ``cap`` when given,
+    without the candidates it leaves out."""
     dt = first.problem.dt
     out = first
     if cap is not None:
-        why = "the set point's bound" if cap.said is not None else "the healthy part's (before the change point)"
-        say(f"the dead time is far beyond {why}: searching below {cap.seconds:.3g} s")
-        if cap.said is not None:
-            lib = {k: v for k, v in lib.items() if k != "actuator_lag"}
+        say(f"the dead time is far beyond {cap.why}: searching below {cap.seconds:.3g} s")
+        lib = {k: v for k, v in lib.items() if k not in cap.leaves_out}
         out = _search_once(recording, None, lib, say, prefilter=None, validation=validation, stops=stops,
                            declared=declared, cap=cap)
     reach = 1
@@ -290,15 +290,19 @@ def _passes(recording: Recording, first: Searched, lib: dict, say, *, validation
 
 
 def _setpoint_cap(recording: Recording, searched: Searched) -> Cap | None:
-    """The set point's cap (:func:`_cap`) of a pass's dead time, alone: None where it is not far beyond."""
+    """The set point's cap (:func:`_cap`) of a pass's dead time, alone: None where it is not far beyond.
+
+    The actuator-lag candidate is not searched below it: the pass's dead time stood in for a lag between OP and
+    PV that its plant of one time constant could not hold, and a lag found once that dead time is taken away is
+    the plant's as well as the actuator's — OP and PV do not tell them apart."""
     dt, delay = searched.problem.dt, searched.model.fit.structure.delay
     m = setpoint_delay(recording.pv, recording.sp, int(delay / dt))
     if m is None or not far_beyond(delay, m * dt, dt):
         return None
-    return Cap((m + 1) * dt, f"dead time below {m * dt:.3g} s: PV answers the set point's steps within {m} "
-                             f"samples (its step response from the set point, refuted as none from the "
-                             f"{delay:.3g} s a search found down to {m} samples, a closed test at "
-                             f"{100 * SETPOINT_LEVEL:g} %), and OP answers them at once")
+    said = (f"dead time below {m * dt:.3g} s: PV answers the set point's steps within {m} samples (its step "
+            f"response from the set point, refuted as none from the {delay:.3g} s a search found down to {m} "
+            f"samples, a closed test at {100 * SETPOINT_LEVEL:g} %), and OP answers them at once")
+    return Cap((m + 1) * dt, "the set point's bound", said=said, leaves_out=frozenset({"actuator_lag"}))
 
 
 def _integrating_or_not(free: Searched, held: Searched) -> Searched:

@@ -525,13 +525,18 @@ def sse_one(u: np.ndarray, y: np.ndarray, window: tuple[int, int], st: LinearStr
     integrator's unfiltered ramps, whose normal equations lose digits to cancellation, nor a held gain.
     """
     m, frac = split_delay(st.delay / dt)
-    if (extra is not None or window[0] < m + st.ntaps or (st.integrating and prefilter is None)
-            or st.gain is not None):
+    if extra is not None or window[0] < m + st.ntaps or not _takes_pass(st, prefilter):
         return fit_one(u, y, window, st, dt, prefilter=prefilter, extra=extra).sse
     if y_cost is None:
         y_cost = kernel_array(y if prefilter is None else highpass(y, prefilter))
     return column_sse(kernel_array(u), st.denominator(dt), st.integrating, dt, prefilter, frac, y_cost,
                       window[0], window[1], m, st.ntaps, int(st.integrating and prefilter is None), st.sign, mean)
+
+
+def _takes_pass(st: LinearStructure, prefilter: float | None) -> bool:
+    """Whether :func:`sse_one` scores ``st`` in its compiled pass (where its dead time leaves the window room):
+    not an integrator's unfiltered ramps, whose normal equations lose digits to cancellation, nor a held gain."""
+    return st.gain is None and not (st.integrating and prefilter is None)
 
 
 class OneColumn:
@@ -560,8 +565,7 @@ class OneColumn:
     def serves(structure: LinearStructure, prefilter: float | None) -> bool:
         """Whether :func:`sse_one` takes the compiled pass for ``structure`` without extra regressors (whatever
         the dead time allows): real poles only, no held gain, no integrator's unfiltered ramps."""
-        return (not structure.fixed_poles and structure.gain is None
-                and not (structure.integrating and prefilter is None))
+        return not structure.fixed_poles and _takes_pass(structure, prefilter)
 
     def sse(self, taus: tuple[float, ...], delay: float) -> float | None:
         """``sse_one`` of the structure with time constants ``taus`` and dead time ``delay`` (s); None where it
