@@ -211,3 +211,22 @@ def test_polish_through_one_column_visits_what_sse_one_visits(st, prefilter, mon
     want = polish(flow, y, window, st, DT, **kw)
     assert got.structure == want.structure and got.sse == want.sse and np.array_equal(got.taps, want.taps)
     assert got.structure != st
+
+
+@pytest.mark.parametrize("trend", [False, True])
+@pytest.mark.parametrize("ntaps", [1, 2, 3])
+def test_window_design_is_the_whole_records_regressors_on_the_window(trend, ntaps):
+    # fit_filtered and FixedColumns lay out the window's rows only: every entry must be the one the whole record's
+    # regressors hold there, to the bit (-0.0 included), for whole, fractional, zero, negative and long dead times,
+    # windows that start before the dead time's first sample or at the record's start, with and without extra.
+    rng = np.random.default_rng(5)
+    for T in (7, 60, 400):
+        z = rng.normal(size=T)
+        z[T // 3] = -0.0
+        for delay in (0.0, 0.4, 1.0, 2.7, 9.0, 41.5, 500.0, -1.0):
+            for w0, w1 in ((0, T), (2, T), (T // 2, T - 1), (1, 2)):
+                for extra in (None, rng.normal(size=(T, 2)), rng.normal(size=T)):
+                    whole = linear._regressors(linear.delayed_regressors(z, delay, ntaps), trend, extra)[w0:w1]
+                    window = linear._window_design(z, delay, ntaps, (w0, w1), trend, extra)
+                    assert window.shape == whole.shape and window.flags.c_contiguous
+                    assert np.ascontiguousarray(whole).view(np.uint64).tolist() == window.view(np.uint64).tolist()

@@ -15,7 +15,7 @@ from valve_emulator.diagnosis.candidates.valve_start import valve_output
 from valve_emulator.diagnosis.fit.backfit import backfit, backfit_sse
 from valve_emulator.diagnosis.fit.chain import run_chain
 from valve_emulator.diagnosis.fit.linear import LinearStructure
-from valve_emulator.diagnosis.fit.scorer import Scorer, replay_order, sse_jobs_many, sse_jobs_shared
+from valve_emulator.diagnosis.fit.scorer import Scorer, _shared_rows, replay_order, sse_jobs_many, sse_jobs_shared
 
 T = 1200
 
@@ -128,3 +128,45 @@ def test_a_valve_candidates_output_is_within_travel_so_the_chain_skips_the_stops
     assert skipped.tobytes() == run_chain(ok, {}, ctx, grid_candidate=cand, grid=grid).tobytes()
     assert run_chain(ok, {}, ctx, nominal_valve=(3.0, 1.0)).tobytes() == nominal.tobytes()
     assert run_chain(ok, {}, ctx)[:, 0].tobytes() == np.clip(ok, 0.0, 100.0).tobytes()   # OP itself is clipped
+
+
+def _shared_rows_by_hand(grids: list[np.ndarray]) -> tuple:
+    """The straightforward form of _shared_rows: each row's bytes looked up in a dict in order of appearance, a set
+    of holders per distinct row, the sets in the order of their first row."""
+    index: dict[bytes, int] = {}
+    holders: list[set[int]] = []
+    rows: list[np.ndarray] = []
+    unique = []
+    for k, grid in enumerate(grids):
+        ids = []
+        for row in grid:
+            u = index.setdefault(row.tobytes(), len(rows))
+            if u == len(rows):
+                rows.append(row)
+                holders.append(set())
+            holders[u].add(k)
+            ids.append(u)
+        unique.append(ids)
+    sets: dict[tuple[int, ...], list[int]] = {}
+    for u, h in enumerate(holders):
+        sets.setdefault(tuple(sorted(h)), []).append(u)
+    return unique, [(m, np.array([rows[u] for u in us])) for m, us in sets.items()]
+
+
+def test_shared_rows_numbered_and_grouped_as_by_hand():
+    # Rows equal to the bit only (-0.0 is not 0.0, a NaN equals itself), numbered in order of first appearance,
+    # and each recast request holding the rows of one set of holders with its members' jobs in turn.
+    rng = np.random.default_rng(2)
+    values = np.array([0.0, -0.0, 1.0, 2.5, np.nan, 3.0])
+    for _ in range(100):
+        grids = [rng.choice(values, (int(rng.integers(1, 30)), 3)) for _ in range(int(rng.integers(2, 7)))]
+        requests = [(None, None, None, None, g, [("job", k, j) for j in range(k % 2 + 1)], None)
+                    for k, g in enumerate(grids)]
+        shared = _shared_rows(requests)
+        unique, sets = _shared_rows_by_hand(grids)
+        assert [ids.tolist() for ids in shared.unique] == unique
+        assert shared.members == [m for m, _ in sets]
+        for (m, rows), recast, offsets in zip(sets, shared.requests, shared.offsets):
+            assert recast[4].tobytes() == rows.tobytes() and recast[4].shape == rows.shape
+            assert recast[5] == [job for k in m for job in requests[k][5]]
+            assert offsets == {k: sum(len(requests[i][5]) for i in m[:m.index(k)]) for k in m}

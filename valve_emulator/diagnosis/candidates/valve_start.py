@@ -69,6 +69,12 @@ def _pre_roll(T: int) -> int:
 #: 1.0–1.2 ns per valve-sample from 24 valves on, against 2.3–3.4 for the branches; at 21 and fewer LLVM's
 #: vector loop is not entered and the selects take 7 ns.
 _VECTOR_FROM = 24
+#: Up to this many valves of one model step the same selects too, one valve at a time: the branches' kernel,
+#: called once per sample with the bank's arrays, costs more in that call than a few valves' updates (a joint
+#: polish replays one valve at a time). Measured on the 2-core machine of 2026-11-28 (2,400 samples, load 6):
+#: one Kano valve 23 → 9.6 ns per valve-sample, two 13 → 9.0, four 8.3 → 7.3 (He: 23 → 8.0, 8.2 → 4.9); from
+#: eight on the branches were as fast or faster (Kano 5.4 against 7.1).
+_SELECTS_UPTO = 4
 
 
 @numba.njit(cache=True, nogil=True)
@@ -79,11 +85,11 @@ def _run_valves(op, K, first, last, cols, S, J, R, codes, st, out, out_first):  
     # (out_first = K: out is the record's MV, (T, n)). The state is column-major. At least _VECTOR_FROM valves of
     # one model step the selects inline, one loop over the valves per sample: a call per sample to the physics
     # layer's step_same_model (arrays as arguments, reference counts updated at every call) cost more than the
-    # valves' own work at these sizes (64 valves: 3 ns per valve-sample against 1.0 inline). Fewer keep the
-    # branches of stiction_step_kernel.
+    # valves' own work at these sizes (64 valves: 3 ns per valve-sample against 1.0 inline), and than one valve's
+    # (_SELECTS_UPTO). Those in between keep the branches of stiction_step_kernel.
     m = cols.shape[0]
     u = np.empty(m)
-    same = m >= _VECTOR_FROM
+    same = m >= _VECTOR_FROM or m <= _SELECTS_UPTO
     for i in range(m):
         same = same and codes[i] == codes[0]
     code = codes[0] if m else KANO
@@ -189,9 +195,22 @@ def _run_merging(op, K, T, cols, S, J, R, codes, st, out, leader, keep):  # prag
 
 def _leaders(S: np.ndarray, J: np.ndarray) -> np.ndarray:
     """For each valve, the first valve with the same ``S`` and ``J`` to the bit (itself for the first of each)."""
-    first: dict[tuple[int, int], int] = {}
-    return np.array([first.setdefault(key, i) for i, key in
-                     enumerate(zip(S.view(np.int64).tolist(), J.view(np.int64).tolist()))], dtype=np.int64)
+    return _first_equal(np.ascontiguousarray(S).view(np.int64), np.ascontiguousarray(J).view(np.int64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_equal(s, j):  # pragma: no cover - compiled
+    # For each i, the first k <= i with s[k] == s[i] and j[k] == j[i] (the bits of S and J as integers): a bank holds
+    # a few dozen valves, so the pairs are compared directly rather than hashed.
+    n = s.shape[0]
+    out = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        out[i] = i
+        for k in range(i):
+            if s[k] == s[i] and j[k] == j[i]:
+                out[i] = k
+                break
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -267,7 +286,7 @@ def valve_output(x: np.ndarray, S: np.ndarray, J: np.ndarray, start: np.ndarray,
         # together, in column order (whole vectors, and each sample's MV written as one contiguous row).
         valves = np.arange(a, b)
         st = _pre_rolled(bank, valves)
-        leader = _leaders(bank.S[a:b], bank.J[a:b]) if bank.x.shape[1] == 1 else None
+        leader = _leaders(bank.S[a:b], bank.J[a:b]) if bank.x.shape[1] == 1 and b - a > 1 else None
         if leader is None or (leader == np.arange(b - a)).all():
             _run_valves(bank.x, K, K, K + T, valves, bank.S[a:b], bank.J[a:b], bank.R[a:b], bank.codes[a:b], st,
                         out, K)

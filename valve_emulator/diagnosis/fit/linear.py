@@ -216,8 +216,14 @@ def iir_filter(b, a, x: np.ndarray, zi: np.ndarray | None = None) -> np.ndarray:
     :mod:`scipy.stats` it pulls in, ~0.6 s of a first run) for this one filter."""
     b, a = np.atleast_1d(np.asarray(b, dtype=float)), np.atleast_1d(np.asarray(a, dtype=float))
     m = max(b.size, a.size)
-    b = np.concatenate([b, np.zeros(m - b.size)]) / a[0]
-    a = np.concatenate([a, np.zeros(m - a.size)]) / a[0]
+    # Padding to one length and dividing by a[0]; skipped where they change nothing (coefficients of one length
+    # already, a[0] = 1: x / 1.0 is x to the bit), as for every filter of the diagnosis' polishes.
+    if b.size < m:
+        b = np.concatenate([b, np.zeros(m - b.size)])
+    if a.size < m:
+        a = np.concatenate([a, np.zeros(m - a.size)])
+    if a[0] != 1.0:
+        b, a = b / a[0], a / a[0]
     x = np.asarray(x, dtype=float)
     x2 = kernel_array(x[:, None] if x.ndim == 1 else x)
     z = np.zeros((m - 1, x2.shape[1])) if zi is None else kernel_array(np.array(zi, dtype=float)).reshape(m - 1, -1)
@@ -235,7 +241,13 @@ def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float, *, mean:
     u2 = u[:, None] if u.ndim == 1 else u
     # A constant per column changes z by a constant (or, integrating, by a ramp) that the offset and
     # trend regressors absorb; removing the mean keeps the cumulative sums of an integrator small.
-    x = u2 - (u2.mean(axis=0) if mean is None else float(mean))
+    out = _filter_centred(u2 - (u2.mean(axis=0) if mean is None else float(mean)), structure, dt)
+    return out[:, 0] if u.ndim == 1 else out
+
+
+def _filter_centred(x: np.ndarray, structure: LinearStructure, dt: float) -> np.ndarray:
+    """:func:`filter_inputs` of the input less its level, ``x`` (T, n): a polish that filters one input for many
+    structures removes the level once."""
     alpha = structure.denominator(dt)
     p = alpha.size - 1
     T = x.shape[0]
@@ -251,7 +263,7 @@ def filter_inputs(u: np.ndarray, structure: LinearStructure, dt: float, *, mean:
         out[start:] = iir_filter(b, alpha, seg, zi)
     if structure.integrating:
         out = np.cumsum(dt * out, axis=0)
-    return out[:, 0] if u.ndim == 1 else out
+    return out
 
 
 def input_grid_sse(u: np.ndarray, y: np.ndarray, window: tuple[int, int], delays: np.ndarray,
@@ -350,6 +362,31 @@ def delayed_regressors(z: np.ndarray, delay_samples: float, ntaps: int) -> np.nd
     return np.stack(cols, axis=1)
 
 
+def _delayed_window(z: np.ndarray, delay_samples: float, out: np.ndarray, w0: int) -> None:
+    """``delayed_regressors(z, delay_samples, ntaps)[w0:w0 + len(out)]`` into ``out`` (rows, ntaps), ``z`` (T,):
+    the window's rows only, each the same numbers (the same shifts, the same interpolation of each sample)."""
+    m, f = split_delay(delay_samples)
+    w1 = w0 + out.shape[0]
+    for j in range(out.shape[1]):
+        col = _shifted_window(z, m + j, w0, w1)
+        if f > 0.0:
+            col = (1.0 - f) * col + f * _shifted_window(z, m + j + 1, w0, w1)
+        out[:, j] = col
+
+
+def _shifted_window(z: np.ndarray, s: int, w0: int, w1: int) -> np.ndarray:
+    """``_shift(z, s)[w0:w1]`` without shifting the whole record."""
+    if s <= 0:
+        return z[w0:w1]
+    if w0 >= s:
+        return z[w0 - s:w1 - s]
+    held = min(s - w0, w1 - w0)
+    out = np.empty(w1 - w0)
+    out[:held] = z[0]
+    out[held:] = z[w0 + held - s:w1 - s]
+    return out
+
+
 def highpass(x: np.ndarray, lam: float) -> np.ndarray:
     r"""Prefilter :math:`L(q) = (1 - q^{-1})/(1 - \lambda q^{-1})` along the time axis (0), at rest at x[0].
 
@@ -391,18 +428,18 @@ def fit_filtered(z: np.ndarray, y: np.ndarray, window: tuple[int, int], structur
     The filtered input depends on the structure's poles, not on its dead time, and the prefiltered ``y`` and
     ``extra`` on neither, so callers that fit one input or one target many times (a polish with extra
     regressors, an output candidate's grid rows) filter them once."""
-    x = delayed_regressors(z, structure.delay / dt, structure.ntaps)
     trend = structure.integrating and not prefiltered
     if structure.gain is not None:
-        return _fit_held_gain(x, y, window, structure, trend, extra)
-    X = _regressors(x, trend, extra)
+        return _fit_held_gain(delayed_regressors(z, structure.delay / dt, structure.ntaps), y, window, structure,
+                              trend, extra)
     w0, w1 = window
-    Xw, yw = kernel_array(X[w0:w1]), kernel_array(y[w0:w1])
+    Xw, yw = _window_design(z, structure.delay / dt, structure.ntaps, window, trend, extra), kernel_array(y[w0:w1])
     G, b = normal_equations(Xw, yw)
     beta = _ridge_solve(G, b, _singular_guard(G.shape[0]))
     nt = structure.ntaps
     if structure.sign * float(np.sum(beta[:nt])) < 0.0:
         # The gain has the sign the controller's action forbids: the constrained optimum has gain 0.
+        x = delayed_regressors(z, structure.delay / dt, structure.ntaps)
         held = _fit_held_gain(x, y, window, replace(structure, gain=0.0), trend, extra)
         return replace(held, structure=structure)
     res = yw - Xw @ beta
@@ -449,16 +486,21 @@ class FixedColumns:
     def sse(self, z: np.ndarray, structure: LinearStructure, dt: float) -> float:
         """``fit_filtered(z, y, window, structure, dt, ...).sse`` (``structure``: this number of taps and trend)."""
         nt = self.ntaps
-        x = delayed_regressors(z, structure.delay / dt, nt)
-        if structure.gain is not None:
-            return _fit_held_gain(x, self.y, self.window, structure, self.trend, self.extra).sse
+        if structure.gain is not None or z.ndim != 1:
+            x = delayed_regressors(z, structure.delay / dt, nt)
+            if structure.gain is not None:
+                return _fit_held_gain(x, self.y, self.window, structure, self.trend, self.extra).sse
         w0, w1 = self.window
         Xw, yw = self.Xw, self.yw
-        Xw[:, :nt] = x[w0:w1]
+        if z.ndim == 1:   # the window's taps only, not the whole record's
+            _delayed_window(z, structure.delay / dt, Xw[:, :nt], w0)
+        else:
+            Xw[:, :nt] = x[w0:w1]
         G, b = self.G.copy(), self.b.copy()
         normal_equations_rows(Xw, yw, nt, G, b)
         beta = _ridge_solve(G, b, self._guard)
         if structure.sign * float(np.sum(beta[:nt])) < 0.0:
+            x = delayed_regressors(z, structure.delay / dt, nt)
             return _fit_held_gain(x, self.y, self.window, replace(structure, gain=0.0), self.trend, self.extra).sse
         res = yw - Xw @ beta
         return float(res @ res)
@@ -484,6 +526,25 @@ def on_pv(fit: LinearFit, u: np.ndarray, y: np.ndarray, window: tuple[int, int],
     res = rest - X[w0:w1] @ beta
     return LinearFit(st, fit.taps.copy(), float(beta[0]), float(beta[1]) if st.integrating else 0.0,
                      float(res @ res), w1 - w0)
+
+
+def _window_design(z: np.ndarray, delay_samples: float, ntaps: int, window: tuple[int, int], trend: bool,
+                   extra: np.ndarray | None) -> np.ndarray:
+    """``_regressors(delayed_regressors(z, delay_samples, ntaps), trend, extra)[w0:w1]``, C-contiguous: the
+    window's rows only, each entry the same number (``z`` (T,))."""
+    w0, w1 = window
+    if z.ndim != 1:
+        return kernel_array(_regressors(delayed_regressors(z, delay_samples, ntaps), trend, extra)[w0:w1])
+    T = z.shape[0]
+    more = None if extra is None else np.asarray(extra, dtype=float).reshape(T, -1)
+    out = np.empty((w1 - w0, ntaps + 1 + int(trend) + (0 if more is None else more.shape[1])))
+    _delayed_window(z, delay_samples, out[:, :ntaps], w0)
+    out[:, ntaps] = 1.0
+    if trend:
+        out[:, ntaps + 1] = np.arange(w0, w1) / T
+    if more is not None:
+        out[:, ntaps + 1 + int(trend):] = more[w0:w1]
+    return out
 
 
 def _regressors(taps: np.ndarray, trend: bool, extra: np.ndarray | None) -> np.ndarray:
@@ -636,13 +697,14 @@ def polish(u: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: Lin
         y_cost, window, structure.ntaps, trend, None if extra is None else
         extra if prefilter is None else highpass(extra, prefilter))
 
-    # filter_inputs' own mean of the input (numpy's, as it computes it), once.
+    # filter_inputs' own mean of the input (numpy's, as it computes it), and the input less it, once.
     level = None if fixed is None else float(np.asarray(u1, dtype=np.float64)[:, None].mean(axis=0)[0])
+    centred = None if fixed is None else np.asarray(u1, dtype=np.float64)[:, None] - level
 
     def sse(st: LinearStructure) -> float:
         if fixed is None:
             return sse_one(u1, y, window, st, dt, prefilter=prefilter, y_cost=y_cost, mean=u_mean)
-        z = filter_inputs(u1, st, dt, mean=level)
+        z = _filter_centred(centred, st, dt)[:, 0]
         return fixed.sse(z if prefilter is None else highpass(z, prefilter), st, dt)
 
     # The cost is evaluated a few hundred times per polish, so its arithmetic is spelled out in scalars

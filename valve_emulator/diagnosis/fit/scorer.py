@@ -320,35 +320,43 @@ class _SharedRows:
 
 
 def _shared_rows(requests: list[tuple]) -> _SharedRows:
-    """:class:`_SharedRows` of ``requests`` (one model's; see :func:`sse_jobs_many`)."""
-    index: dict[bytes, int] = {}
-    holders: list[set[int]] = []
-    rows: list[np.ndarray] = []
-    unique = []
-    for k, req in enumerate(requests):
-        grid = req[4]
-        ids = np.empty(grid.shape[0], dtype=np.int64)
-        for i, row in enumerate(grid):
-            u = index.setdefault(row.tobytes(), len(rows))
-            if u == len(rows):
-                rows.append(row)
-                holders.append(set())
-            holders[u].add(k)
-            ids[i] = u
-        unique.append(ids)
-    sets: dict[tuple[int, ...], list[int]] = {}
-    for u, h in enumerate(holders):
-        sets.setdefault(tuple(sorted(h)), []).append(u)
+    """:class:`_SharedRows` of ``requests`` (one model's; see :func:`sse_jobs_many`).
+
+    The distinct rows are numbered in the order they first appear (request by request, row by row), rows equal
+    when their bytes are (a row's bits, as ``row.tobytes()`` compares them: -0.0 is not 0.0, a NaN equals the same
+    NaN); each one's holders are the requests that hold it, and the sets of holders are taken in the order of
+    their first row."""
+    grids = [np.ascontiguousarray(req[4], dtype=float) for req in requests]
+    whole = np.concatenate(grids)
+    as_bytes = whole.view(np.dtype((np.void, whole.dtype.itemsize * whole.shape[1]))).ravel()
+    _, first, inverse = np.unique(as_bytes, return_index=True, return_inverse=True)
+    by_first = np.argsort(first, kind="stable")             # distinct rows in the order they first appear
+    number = np.empty(by_first.size, dtype=np.int64)
+    number[by_first] = np.arange(by_first.size)
+    ids = number[inverse.ravel()]
+    sizes = [g.shape[0] for g in grids]
+    unique = np.split(ids, np.cumsum(sizes)[:-1])
+    rows = whole[first[by_first]]
+    # Each distinct row's holders, as the sorted tuple of the requests that hold it.
+    holder_of = np.repeat(np.arange(len(requests)), sizes)
+    held = np.zeros((rows.shape[0], len(requests)), dtype=bool)
+    held[ids, holder_of] = True
+    packed = np.packbits(held, axis=1)   # equal rows exactly when the holder sets are
+    _, set_first, set_of = np.unique(packed.view(np.dtype((np.void, packed.shape[1]))).ravel(), return_index=True,
+                                     return_inverse=True)
+    set_of = set_of.ravel()
     part, at = np.empty(len(rows), dtype=np.int64), np.empty(len(rows), dtype=np.int64)
     recast, members, offsets = [], [], []
-    for p, (m, us) in enumerate(sets.items()):
+    for p, s in enumerate(np.argsort(set_first, kind="stable")):   # the sets in the order of their first row
+        us = np.flatnonzero(set_of == s)
+        m = tuple(np.flatnonzero(held[us[0]]).tolist())
         part[us], at[us] = p, np.arange(len(us))
         scorer, active, ctx, cand, _, _, aim = requests[m[0]]
         jobs, offset = [], {}
         for k in m:
             offset[k] = len(jobs)
             jobs += list(requests[k][5])
-        recast.append((scorer, active, ctx, cand, np.array([rows[u] for u in us]), jobs, aim))
+        recast.append((scorer, active, ctx, cand, rows[us], jobs, aim))
         members.append(m)
         offsets.append(offset)
     return _SharedRows(requests=recast, members=members, offsets=offsets, unique=unique, part=part, at=at,

@@ -55,7 +55,12 @@ def nelder_mead(cost: Callable[[np.ndarray], float], simplex: np.ndarray, *, max
         return float(cost(np.array(x)))
 
     def ranked() -> None:
-        order = np.argsort(np.array(fsim)).tolist()
+        if len(set(fsim)) == len(fsim) and all(v == v for v in fsim):
+            # Distinct costs, none NaN: one order sorts them, numpy's argsort's too; Python's sort finds it without
+            # building an array per iteration. Ties (and NaNs) keep numpy's own order.
+            order = sorted(range(len(fsim)), key=fsim.__getitem__)
+        else:
+            order = np.argsort(np.array(fsim)).tolist()
         sim[:] = [sim[i] for i in order]
         fsim[:] = [fsim[i] for i in order]
 
