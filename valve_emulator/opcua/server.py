@@ -256,8 +256,9 @@ class OffGrid:
     (``skipped``: a newer tick had come by the time the publisher was done with the one before) or handed after its
     hand-off on the grid (the tick reached the publisher late). ``tick``: its number; ``stamp``: its time as a
     SourceTimestamp says it (POSIX seconds; a skipped tick's, the next sampled tick's less the periods between);
-    ``late``: seconds past its hand-off on the grid when the publisher came to it (a skipped tick: when it took the
-    next); ``busy``: the OPC UA process's CPU seconds per second of wall time since the tick before the publisher
+    ``late``: seconds past its hand-off on the grid when the publisher came to it (a skipped tick: when it was done
+    with the tick before; negative: it was done in time and waited, and the tick's note came when a newer tick had
+    run); ``busy``: the OPC UA process's CPU seconds per second of wall time since the tick before the publisher
     came to it arrived (near 1: the process was busy with its own work; well below 1 with the publisher behind: it
     waited for a core)."""
 
