@@ -120,6 +120,30 @@ async def keep_publish_requests(client, subscription, extra: int) -> None:
     await asyncio.gather(*(one() for _ in range(extra)))
 
 
+@dataclass(frozen=True)
+class ClientCounts:
+    """What one client process counted over its window (:func:`_client`), sent to the bench as ``("counts",
+    ClientCounts)``: ``capped``, the pv/op values received with each item's count capped at one per publishing
+    interval; ``raw``, the same uncapped; ``polled``, Modbus polls answered (the poller); ``lost``, the statuses of the
+    subscriptions that ended during the window; ``responses``, the publish responses with data, and ``late``, those
+    more than 1.5 intervals after the one before; ``cpu``, the process's CPU seconds per second (node: every thread
+    of the node process); ``reads``, the probe's read times, s (the poller); ``poll``, whether this is the poller
+    rather than a session; ``missed``, with ``--trace``, what the session missed (:func:`missed`); ``cpu_main``,
+    the node client's event-loop thread's CPU seconds per second (nan for asyncua)."""
+
+    capped: float
+    raw: int
+    polled: int = 0
+    lost: tuple[str, ...] = ()
+    responses: int = 0
+    late: int = 0
+    cpu: float = float("nan")
+    reads: tuple[float, ...] = ()
+    poll: bool = False
+    missed: dict | None = None
+    cpu_main: float = float("nan")
+
+
 NODE_DIR = ROOT / "tests" / "opcua" / "node"
 #: Seconds each client lets the initial values and the first publishes settle before its window.
 SETTLE = 3.0
@@ -171,9 +195,10 @@ def _node_client(url: str, loops: list[str], sub: Subscribing, seconds: float, g
     proc.wait(60)
     trace = {item: [(at, stamp) for at, stamp, _ in values] for item, values in r["trace"].items()} \
         if sub.trace else None
-    out_q.put(("counts", r["capped"], r["raw"], 0, r["lost"], r["responses"], r["late"], r["cpu"], [], False,
-               missed(trace, tuple(r["window"]), sub.publish_ms / 1000, loops) if sub.trace else None,
-               r["cpu_main"]))
+    out_q.put(("counts", ClientCounts(
+        capped=r["capped"], raw=r["raw"], lost=tuple(r["lost"]), responses=r["responses"], late=r["late"],
+        cpu=r["cpu"], missed=missed(trace, tuple(r["window"]), sub.publish_ms / 1000, loops) if sub.trace else None,
+        cpu_main=r["cpu_main"])))
 
 
 def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seconds: float, poll: bool, go,
@@ -185,8 +210,7 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
     ``ready`` once subscribed, waits for ``go``, then counts for ``seconds`` after 3 s of settling the notifications
     of each pv and op item, the publish responses and those that came more than 1.5 publishing intervals after the
     one before (the client had no Publish request at the server when the publish was due: asyncua's client keeps
-    one), and puts (counts capped at one per publishing interval, counts, Modbus polls, subscriptions ended,
-    responses, late responses, this process's CPU seconds per second, the probe's read times, ``poll``)."""
+    one), and puts its :class:`ClientCounts`."""
     if sub.client == "node" and url and not poll:
         _node_client(url, loops, sub, seconds, go, out_q)
         return
@@ -285,10 +309,13 @@ def _client(url: str, modbus_port: int, loops: list[str], sub: Subscribing, seco
         got = [count[item] - start[item] for item in start]
         per_item = seconds * 1000 / sub.publish_ms
         cpu = psutil.Process().cpu_times()
-        out_q.put(("counts", sum(min(n, per_item) for n in got), sum(got), polled[0] - polled_before,
-                   lost[lost_before:], responses["n"] - before["n"], responses["late"] - before["late"],
-                   (cpu.user + cpu.system - cpu_before.user - cpu_before.system) / seconds, reads[reads_before:], poll,
-                   missed(trace, window, sub.publish_ms / 1000, loops) if sub.trace else None, float("nan")))
+        out_q.put(("counts", ClientCounts(
+            capped=sum(min(n, per_item) for n in got), raw=sum(got), polled=polled[0] - polled_before,
+            lost=tuple(lost[lost_before:]), responses=responses["n"] - before["n"],
+            late=responses["late"] - before["late"],
+            cpu=(cpu.user + cpu.system - cpu_before.user - cpu_before.system) / seconds,
+            reads=tuple(reads[reads_before:]), poll=poll,
+            missed=missed(trace, window, sub.publish_ms / 1000, loops) if sub.trace else None)))
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -302,13 +329,18 @@ def missed(trace: dict, window: tuple[float, float], interval: float, loops: lis
     SourceTimestamps around it: the value after the miss sampled two intervals after the one before it is a sample
     lost at the server (two handed in one publishing interval, the older replaced by a queue of one); one interval
     after it, none was lost but the item's samples moved a publish later. ``interval``: the publishing (= sampling)
-    interval, s. A publish that carried no counted item at all is not seen (the row's count shows it)."""
+    interval, s. A publish that carried no counted item at all is not seen (the row's count shows it). ``misses``:
+    for each miss inside the window, (the SourceTimestamp before it, the one after it, whether the publish that
+    lacked the item or the next one came more than 1.5 intervals after the one before it), for :func:`classify`."""
     start, end = window
     publishes = sorted({at for values in trace.values() for at, _ in values if start <= at <= end})
     missing_by_publish = {at: 0 for at in publishes}
     place = {path: k for k, path in enumerate(loops)}
     by_loop = [0] * 10
     gaps: dict[str, int] = {}
+    misses: list[tuple[float, float, bool]] = []
+    late_publish = {at: k > 0 and at - publishes[k - 1] > 1.5 * interval for k, at in enumerate(publishes)}
+    following = dict(zip(publishes, publishes[1:], strict=False))
     items_missing = 0
     for node, values in trace.items():
         times = [at for at, _ in values]
@@ -324,13 +356,45 @@ def missed(trace: dict, window: tuple[float, float], interval: float, loops: lis
             k = bisect.bisect_left(times, at)
             if 0 < k < len(values):
                 key = f"{round((values[k][1] - values[k - 1][1]) / interval)} intervals"
+                misses.append((values[k - 1][1], values[k][1],
+                               late_publish[at] or late_publish.get(following.get(at, at), False)))
             else:
                 key = "at the window's edge"
             gaps[key] = gaps.get(key, 0) + 1
     counts = sorted(missing_by_publish.values(), reverse=True)
     return {"publishes": len(publishes), "items": len(trace), "items_missing": items_missing,
             "missed": sum(counts), "worst_publishes": counts[:5],
-            "publishes_missing_some": sum(1 for c in counts if c), "by_loop_decile": by_loop, "gaps": gaps}
+            "publishes_missing_some": sum(1 for c in counts if c), "by_loop_decile": by_loop, "gaps": gaps,
+            "misses": misses}
+
+
+#: What became of a missed pv/op value (:func:`classify`).
+CAUSES = ("its tick skipped by the publisher", "its tick handed late", "handed on time, its publish late",
+          "handed on time, replaced before its publish", "none lost: moved a publish later")
+
+
+def classify(misses: list[tuple[float, float, bool]], off_grid: list, interval: float, period: float) -> dict:
+    """What became of each missed value of one client (:func:`missed`'s ``misses``), from the OPC UA server's ticks
+    not handed on the grid (``OpcUaCounters.off_grid``): the value after a miss one interval after the one before
+    it: none was lost, the item's samples moved a publish later; two or more: the sample due one interval after the
+    one before was lost -- if a tick within half a tick ``period`` of that time was skipped by the publisher (the
+    sample taken at a later tick, handed into the interval of the next one) or handed after its hand-off on the
+    grid, that is the cause; else it was handed on time and replaced (queue of one) before a publish took it,
+    with the publish that lacked it, or the next one, late (the client's Publish request came late) or not."""
+    out = dict.fromkeys(CAUSES, 0)
+    for before, after, late_publish in misses:
+        if round((after - before) / interval) <= 1:
+            out[CAUSES[4]] += 1
+            continue
+        lost = before + interval
+        near = [t for t in off_grid if abs(t.stamp - lost) <= period / 2]
+        if any(t.skipped for t in near):
+            out[CAUSES[0]] += 1
+        elif near:
+            out[CAUSES[1]] += 1
+        else:
+            out[CAUSES[2 if late_publish else 3]] += 1
+    return out
 
 
 async def _each(q, k: int, what: str, timeout: float) -> list[tuple]:
@@ -395,12 +459,12 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             counters0 = await opc.counters() if opc else None
             sent0, deferred0, skipped0 = (counters0.notifications, counters0.deferred, counters0.skipped) if opc \
                 else (0, 0, 0)
-            ticks0, overruns0, t0 = srv.device.ticks, srv.device.overruns, time.monotonic()
+            ticks0, overruns0, t0, wall0 = srv.device.ticks, srv.device.overruns, time.monotonic(), time.time()
             cpu0, opc_cpu0 = _cpu(os.getpid()), _cpu(pid)
             if profiler is not None:
                 profiler.enable()
-            results = await _each(q, len(procs), "counts", seconds + 300)
-            elapsed = time.monotonic() - t0
+            results = [msg[1] for msg in await _each(q, len(procs), "counts", seconds + 300)]
+            elapsed, wall1 = time.monotonic() - t0, time.time()
             if profiler is not None:
                 profiler.disable()
             cpu, opc_cpu = _cpu(os.getpid()) - cpu0, _cpu(pid) - opc_cpu0
@@ -408,16 +472,17 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             sent = counters.notifications - sent0 if opc else 0
             deferred = counters.deferred - deferred0 if opc else 0
             skipped = counters.skipped - skipped0 if opc else 0
+            off_grid = [t for t in counters.off_grid if wall0 - 1 <= t.stamp <= wall1] if opc else []
             ticks, overruns = srv.device.ticks - ticks0, srv.device.overruns - overruns0
             lateness = srv.device.jitter.values()
             for proc in procs:
                 proc.join(30)
                 if proc.is_alive():
                     proc.kill()
-            poller = next(r for r in results if r[9])
-            polled, reads = poller[3], poller[8]
-            results = [r for r in results if not r[9]]   # the sessions
-            counts, raw = [r[1] for r in results], [r[2] for r in results]
+            poller = next(r for r in results if r.poll)
+            polled, reads = poller.polled, poller.reads
+            results = [r for r in results if not r.poll]   # the sessions
+            counts, raw = [r.capped for r in results], [r.raw for r in results]
     expected = len(COUNTED) * n * seconds * 1000 / sub.publish_ms
     served = clients and opc is not None
     return {"build": build, "p50": float(np.percentile(lateness, 50)) * 1e3,
@@ -428,13 +493,15 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             "device_cpu": cpu / elapsed, "opcua_cpu": opc_cpu / elapsed if mode == "process" else float("nan"),
             "per_notification": 1e6 * opc_cpu / sent if sent and mode == "process" else float("nan"),
             "sent": sent / elapsed, "polled": polled / seconds,
-            "lost": sum(len(r[4]) for r in results), "statuses": sorted({x for r in results for x in r[4]}),
-            "late": sum(r[6] for r in results) / max(sum(r[5] for r in results), 1) if served else float("nan"),
-            "client_cpu": statistics.median(r[7] for r in results) if served else float("nan"),
-            "client_main_cpu": statistics.median(r[11] for r in results) if served else float("nan"),
+            "lost": sum(len(r.lost) for r in results), "statuses": sorted({x for r in results for x in r.lost}),
+            "late": sum(r.late for r in results) / max(sum(r.responses for r in results), 1) if served
+            else float("nan"),
+            "client_cpu": statistics.median(r.cpu for r in results) if served else float("nan"),
+            "client_main_cpu": statistics.median(r.cpu_main for r in results) if served else float("nan"),
             "read_p50": 1e3 * float(np.percentile(reads, 50)) if reads else float("nan"),
             "read_p99": 1e3 * float(np.percentile(reads, 99)) if reads else float("nan"),
-            "deferred": deferred, "skipped": skipped, "trace": [r[10] for r in sorted(results, key=lambda r: r[1])]}
+            "deferred": deferred, "skipped": skipped, "off_grid": off_grid,
+            "trace": [r.missed for r in sorted(results, key=lambda r: r.capped)]}
 
 
 def _profile(n: int, clients: int, sub: Subscribing, seconds: float) -> None:
@@ -556,7 +623,8 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
                                                        replace(sub, client=label), args.seconds)))
             print(f"load average {os.getloadavg()[0]:.1f} after a round ({mode}"
                   f"{'' if mode == 'none' else ', ' + label + ' client'})", flush=True)
-    med = {label: {k: statistics.median(r[k] for r in rs) for k in rs[0] if k not in ("statuses", "trace")}
+    med = {label: {k: statistics.median(r[k] for r in rs) for k in rs[0]
+                   if k not in ("statuses", "trace", "off_grid")}
            for label, rs in runs.items()}
     base, served = med["none"], [med[client] for client in args.client]
 
@@ -601,10 +669,18 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
     if sub.trace:
         for client in args.client:
             for k, r in enumerate(runs[client]):
+                print(f"trace ({client}), round {k + 1}: ticks skipped "
+                      f"{sum(t.skipped for t in r['off_grid'])}, handed late "
+                      f"{sum(not t.skipped for t in r['off_grid'])}; each (tick, s past its hand-off on the grid, "
+                      "the OPC UA process's CPU share since the tick before): "
+                      + ", ".join(f"{'skipped' if t.skipped else 'late'} {t.tick} {t.late:+.3f} s {t.busy:.2f}"
+                                  for t in r["off_grid"]))
                 for rank, t in enumerate(r["trace"]):
                     if t is not None:
+                        causes = classify(t.pop("misses"), r["off_grid"], sub.publish_ms / 1000,
+                                          fleet_mapping(1)["device"]["tick"])
                         print(f"trace ({client}), round {k + 1}, client {rank + 1} of {len(r['trace'])} "
-                              f"(worst first): {t}")
+                              f"(worst first): {t}; each miss: {causes}")
 
 
 def _print_hostile(h: dict) -> None:

@@ -134,5 +134,9 @@ async def test_ticks_the_publisher_never_sampled_are_counted(config, step):
             device.advance(step)
             for _ in range(20):   # its pass over this tick
                 await asyncio.sleep(0)
-        skipped = (await opc.counters()).skipped
+        counters = await opc.counters()
+    skipped = counters.skipped
     assert skipped == 0 if step == 1 else 4 <= skipped <= 4 * (step - 1)
+    # each skipped tick is kept for --trace: one record each, none of them a tick the publisher took (every step-th)
+    kept = [t.tick for t in counters.off_grid if t.skipped]
+    assert len(kept) == len(set(kept)) == skipped and all(tick % step for tick in kept)

@@ -60,7 +60,9 @@ import json
 import logging
 import math
 import struct
+import time
 import weakref
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -249,11 +251,35 @@ class OpcUaSecurity:
 
 
 @dataclass(frozen=True)
+class OffGrid:
+    """A tick the publisher did not hand on its grid (:mod:`~valve_emulator.opcua.handoff`): never sampled
+    (``skipped``: a newer tick had come by the time the publisher was done with the one before) or handed after its
+    hand-off on the grid (the tick reached the publisher late). ``tick``: its number; ``stamp``: its time as a
+    SourceTimestamp says it (POSIX seconds; a skipped tick's, the next sampled tick's less the periods between);
+    ``late``: seconds past its hand-off on the grid when the publisher came to it (a skipped tick: when it was done
+    with the tick before; negative: it was done in time and waited, and the tick's note came when a newer tick had
+    run); ``busy``: the OPC UA process's CPU seconds per second of wall time since the tick before the publisher
+    came to it arrived (near 1: the process was busy with its own work; well below 1 with the publisher behind: it
+    waited for a core)."""
+
+    tick: int
+    stamp: float
+    skipped: bool
+    late: float
+    busy: float
+
+
+#: The publisher keeps the last this many :class:`OffGrid` ticks.
+OFF_GRID_KEPT = 512
+
+
+@dataclass(frozen=True)
 class OpcUaCounters:
     """What an OPC UA server has done so far: data-change notifications handed to subscriptions (one per
     monitored item and change), ticks after which the publisher ran out of its budget (in the device's process),
     ticks the publisher never sampled because it was still busy with an earlier one (behind the device), writes
-    accepted and refused, client certificates the trust list accepted and refused, alarm events sent."""
+    accepted and refused, client certificates the trust list accepted and refused, alarm events sent; the last
+    :data:`OFF_GRID_KEPT` ticks not handed on the grid (:class:`OffGrid`, oldest first)."""
 
     notifications: int = 0
     deferred: int = 0
@@ -263,6 +289,7 @@ class OpcUaCounters:
     trust_accepted: int = 0
     trust_refused: int = 0
     alarm_events: int = 0
+    off_grid: tuple[OffGrid, ...] = ()
 
 
 #: A variable's value now: (value, variant type, status: None for Good).
@@ -566,6 +593,8 @@ class OpcUaServer:
         self.deferred = 0
         #: ticks the publisher never sampled: a newer one had come by the time it was done with the one before
         self.skipped = 0
+        #: the last ticks not handed on the grid (:class:`OffGrid`)
+        self.off_grid: deque[OffGrid] = deque(maxlen=OFF_GRID_KEPT)
         self.writes = 0
         self.refused = 0
         #: refused writes and sessions, logged once per user (or client) and cause per interval
@@ -583,7 +612,7 @@ class OpcUaServer:
                              writes=self.writes,
                              refused=self.refused, trust_accepted=trust.accepted if trust else 0,
                              trust_refused=trust.refused if trust else 0,
-                             alarm_events=conditions.sent if conditions else 0)
+                             alarm_events=conditions.sent if conditions else 0, off_grid=tuple(self.off_grid))
 
     # --- values -----------------------------------------------------------------------------------------
 
@@ -910,25 +939,42 @@ class OpcUaServer:
         source, seen, at = self.source, self.source.ticks, 0
         loop = asyncio.get_running_loop()
         grid = HandOffGrid()
+        last = (loop.time(), time.process_time())   # the last tick's arrival: wall and process CPU time
         while True:
             previous, newest = seen, source.ticks
-            if newest > seen and grid.overdue(newest, loop.time(), source.period):
+            done = loop.time()
+            if newest > seen and grid.overdue(newest, done, source.period):
                 seen = newest   # came while the last pass ran, its hand-off already past: wait for a fresh one
             seen = await source.wait_for_tick(seen + 1)
-            if seen > previous + 1:
-                self.skipped += seen - previous - 1
-            arrived = loop.time()
-            self.tick_clock.stamp()   # the tick just ran: its time is now
+            arrived, cpu = loop.time(), time.process_time()
+            stamp = self.tick_clock.stamp().timestamp()   # the tick just ran: its time is now
             if self._dirty:
                 self._dirty, at = False, 0
                 self._active = self._watches()
             period = finite_period(source)
+            on_grid = grid.on_grid
             due = grid.due(seen, arrived, source.period)
+            self._note_off_grid(previous, seen, stamp, period, done - on_grid, arrived > grid.on_grid,
+                                arrived - grid.on_grid, (cpu - last[1]) / max(arrived - last[0], 1e-9))
+            last = (arrived, cpu)
             chunks = -(-len(self._active) // HAND_CHUNK)
             sampled_at = grid.on_grid if math.isfinite(grid.on_grid) else due
             with Wakeups(chunk_times(due, period, chunks, HAND_SPACING)) as wakeups:
                 handing, at = await self._sample(at, sampled_at, period, self.publish_budget * period)
                 await self._hand_all(handing, wakeups)
+
+    def _note_off_grid(self, previous: int, seen: int, stamp: float, period: float, done_late: float,
+                       handed_late: bool, late: float, busy: float) -> None:
+        """Count and keep (:attr:`off_grid`) the ticks between ``previous`` and ``seen`` the publisher skipped (it
+        was done with ``previous`` ``done_late`` seconds after that tick's hand-off on the grid) and tick ``seen``
+        when it is handed ``late`` seconds after its hand-off on the grid (``handed_late``); ``stamp``: ``seen``'s
+        time (POSIX seconds), ``busy``: the process's CPU share since the tick before (:class:`OffGrid`)."""
+        if seen > previous + 1:
+            self.skipped += seen - previous - 1
+            self.off_grid.extend(OffGrid(k, stamp - (seen - k) * period, True, done_late - (k - previous) * period,
+                                         busy) for k in range(previous + 1, seen))
+        if handed_late:
+            self.off_grid.append(OffGrid(seen, stamp, False, late, busy))
 
     async def _sample(self, at: int, due: float, period: float,
                       budget: float) -> tuple[list[tuple[int, _Watch, ua.DataValue, list[_Group]]], int]:
