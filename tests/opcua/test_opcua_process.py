@@ -155,12 +155,3 @@ def test_a_signal_to_the_whole_process_group_stops_serve_and_its_opcua_process_q
             proc.kill()
     assert proc.returncode == 0, err[-2000:]
     assert "stopped" in out + err and "Traceback" not in err and "KeyboardInterrupt" not in err, err[-2000:]
-
-
-async def test_the_opcua_process_runs_nicer_than_the_device_process(config):
-    """The tick is real time, delivery can wait: the OPC UA process yields a shared core to the device's tick."""
-    from valve_emulator.opcua.remote import NICENESS
-
-    async with EmulatorServer(config, port=0, time_scale=0) as srv, \
-            OpcUaProcess(srv.device, loops=config.loops, port=0) as opc:
-        assert psutil.Process(opc.process.pid).nice() == min(19, psutil.Process().nice() + NICENESS)

@@ -32,15 +32,9 @@ from valve_emulator.device.alarms import AlarmChange
 from valve_emulator.opcua.channel import Channel, read_first
 from valve_emulator.opcua.shared import COMPUTED, ImageReader, SharedLayout
 
-__all__ = ["NICENESS", "ChildSpec", "RemoteSource", "child_main"]
+__all__ = ["ChildSpec", "RemoteSource", "child_main"]
 
 _log = logging.getLogger(__name__)
-#: The OPC UA process runs this much nicer than the device process that starts it: the tick is real time, delivery
-#: can wait a few ms. Linux's scheduler weighs a task about 1.25x less per step of niceness (weight 1024 at 0, 335
-#: at 5): when the tick wakes at its deadline on a core the OPC UA process holds, it preempts it sooner, and where
-#: the two share a core the device gets three quarters of it; the OPC UA process keeps a quarter of a core that a
-#: process at the device's niceness keeps busy (docs/benchmarks.md §9.16).
-NICENESS = 5
 
 
 @dataclass(frozen=True)
@@ -160,16 +154,13 @@ class RemoteSource:
 def child_main(fd: int) -> None:
     """The OPC UA process's entry point (``python -m valve_emulator.opcua FD``, started by
     :class:`~valve_emulator.opcua.process.OpcUaProcess`): read the :class:`ChildSpec` from the socket ``fd``,
-    then serve until the device process closes it, and exit at once (nothing is left to tear down). Runs
-    :data:`NICENESS` nicer than the device process.
+    then serve until the device process closes it, and exit at once (nothing is left to tear down).
 
     Ctrl-C in a terminal and a service manager's SIGTERM reach the whole process group; this process leaves them
     to the device process, which stops it by closing the socket (a traceback here would only be noise, and an
     early exit would be reported as the OPC UA process failing)."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
-    with contextlib.suppress(AttributeError, OSError):   # os.nice: POSIX only
-        os.nice(NICENESS)
     sock = socket.socket(fileno=fd)
     spec = read_first(sock)
     logging.basicConfig(level=spec.log_level,
