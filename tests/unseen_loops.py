@@ -13,23 +13,27 @@ diagnosed once:
   a draw another one has claimed waits for the document instead of diagnosing it again. A worker that needs many
   draws (:func:`diagnosed_all`) first diagnoses every one nobody has claimed, from the end of the list (the
   per-draw tests, collected in list order, meet it in the middle), then waits for the rest.
+- the simulated loop (recording, truth, nominal mapping) is shared the same way: the worker that simulates a
+  draw first writes it to the folder and the others read it (:func:`loop`), instead of each simulating it again.
 - a worker that has to wait diagnoses, meanwhile, one draw nobody has claimed among those the run's tests name
   (:data:`NEEDED`, the next after the awaited one), then looks again: two workers that walk the same list (the
   per-draw tests of two modules) take turns instead of one diagnosing while the other sleeps.
 
 A claim whose diagnosis raised is released, so the waiting worker diagnoses the draw itself and meets the same
-error. What is shared is the public JSON document and the identified plant (not in the document), nothing else.
+error. What is shared is the simulated loop, the public JSON document and the identified plant (not in the document),
+nothing else.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import pickle
 import shutil
 import tempfile
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import cache
 from pathlib import Path
 
@@ -38,6 +42,7 @@ import numpy as np
 import valve_emulator as ve
 from valve_emulator.benchmark.independent import FAMILIES, draw
 from valve_emulator.config import loop_from_mapping
+from valve_emulator.recordings import Recording
 
 #: Modes of diagnosis: with the nominal model the family hands out, or as plant data (OP in % travel).
 MODES = ("model", "plant")
@@ -83,8 +88,25 @@ def drawn(family: str, seed: int, count: int, modes: Sequence[str] = MODES, *,
 
 @cache
 def loop(family: str, entropy: tuple[int, ...]) -> tuple:
-    """(recording, truth, nominal mapping) of one draw (cheap: a fraction of a second)."""
-    return draw(family, np.random.default_rng(list(entropy)))
+    """(recording, truth, nominal mapping) of one draw: simulated (about half a second of CPU), or under
+    pytest-xdist read from the run's folder where another worker simulated it already (the recording's columns,
+    the truth and the nominal mapping, pickled whole by the worker that simulated it; a few milliseconds)."""
+    folder = _folder()
+    if folder is None:
+        return draw(family, np.random.default_rng(list(entropy)))
+    path = folder / f"{family}-{'.'.join(map(str, entropy))}.loop.pickle"
+    try:
+        columns, truth, nominal = pickle.loads(path.read_bytes())
+    except FileNotFoundError:
+        pass
+    else:
+        return Recording(**columns), truth, nominal
+    rec, truth, nominal = out = draw(family, np.random.default_rng(list(entropy)))
+    columns = {f.name: getattr(rec, f.name) for f in fields(rec)} | {"extra": dict(rec.extra)}
+    part = path.with_suffix(f".{os.getpid()}.part")
+    part.write_bytes(pickle.dumps((columns, truth, nominal)))
+    os.replace(part, path)
+    return out
 
 
 def _diagnose(key: Draw) -> dict:

@@ -148,12 +148,12 @@ class Searched:
 @dataclass(frozen=True)
 class Cap:
     """The longest dead time (s) a search without a model may give the plant, what the dead time found was far
-    beyond (``why``, for the progress), the sentence that says so among the identification's constraints (None:
-    not said there) and the candidates not searched below it."""
+    beyond (``why``, for the progress), the sentence that says so among the identification's constraints and the
+    candidates not searched below it."""
 
     seconds: float
     why: str
-    said: str | None = None
+    said: str
     leaves_out: frozenset[str] = frozenset()
 
 
@@ -170,7 +170,11 @@ def _cap(recording: Recording, first: Searched, validation: str, stops: tuple[fl
     healthy = delay_cap(prepare(recording, validation=validation, stops=stops), recording.sp, delay,
                         first.nominal.identification)
     if healthy is not None:
-        caps.append(Cap(healthy, "the healthy part's (before the change point)"))
+        said = (f"dead time below {healthy:.3g} s: the plant identified on the part before the change point in "
+                f"PV's control error (the valve still healthy there, the loop linear) has "
+                f"{healthy - first.problem.dt:.3g} s, and the {delay:.3g} s a search found over the whole record "
+                f"is far beyond it")
+        caps.append(Cap(healthy, "the healthy part's (before the change point)", said=said))
     bound = _setpoint_cap(recording, first)
     if bound is not None:
         caps.append(bound)
@@ -190,7 +194,7 @@ def _prepared(recording: Recording, nom: Nominal | None, lib: dict, say, *, pref
     if nom is None:
         say("identifying the linear part from the data (FOPDT or IPDT)")
         constraints = identification(problem.op, problem.pv, recording.sp, declared, dt=problem.dt)
-        if cap is not None and cap.said is not None:
+        if cap is not None:
             constraints = replace(constraints, constraints=constraints.constraints + (cap.said,))
         problem = _bounded_delays(problem, constraints.delay_bound(True) if constraints.integrating else None)
         nom = identify(problem, constraints=constraints)
