@@ -379,14 +379,17 @@ class Search:
         was 22 %; an equal-percentage characteristic with no dead time, 106 and 82 %: the free-run rule took
         the characteristic. The one-step predictor with a random-walk load is the noise model of a level loop
         (as :func:`~valve_emulator.diagnosis.fit.load_check.family_delta_bic` uses it to choose the family)."""
-        if not options:
+        fall = [o for o in options if model.bic - o.model.bic >= DELTA_BIC]   # only these can count
+        if not fall:
             return None
-        loads = {id(o): load_bic(self.scorer, o.model)[0] for o in options}
-        before = load_bic(self.scorer, model)[0]
-        for o in sorted(options, key=lambda o: loads[id(o)]):
+
+        def load(m: Model) -> float:   # remembered per model on the scorer
+            return load_bic(self.scorer, m)[0]
+
+        before = load(model)
+        for o in sorted(fall, key=lambda o: load(o.model)):
             subs = [s for s in options if set(s.added) < set(o.added)]
-            if (model.bic - o.model.bic >= DELTA_BIC and before - loads[id(o)] >= DELTA_BIC
-                    and all(loads[id(s)] - loads[id(o)] >= DELTA_BIC for s in subs)):
+            if before - load(o.model) >= DELTA_BIC and all(load(s.model) - load(o.model) >= DELTA_BIC for s in subs):
                 return replace(o, model=self.validated(o.model))
         return None
 
