@@ -20,8 +20,10 @@ def _found() -> list:
 
 
 def test_stiction_is_found_in_nine_loops_of_ten():
-    """Measured 2026-11-28: FOUND of 20 (before the held integrator: BEFORE of 20). On the 42 level loops of the
-    coverage and calibration sets, where the rule was found, 41 of 42 against 29 before."""
+    """Measured 2026-11-28: 18 of 20 (misses 14.0.15, a saturation and a dead time; 14.0.19, cannot tell; the
+    set was not diagnosed with main's code). On the 42 level loops of the coverage and calibration sets, where the
+    rule was found, 40 of 42 against 29 before; held out (bench/bench_unseen_loops.py --seed 0), 8 of 8 against
+    3 of 8."""
     found = len(_found())
     assert found >= 0.9 * len(LEVEL_MODEL), f"stiction found in {found} of {len(LEVEL_MODEL)}"
 
@@ -39,7 +41,7 @@ def test_the_given_integrating_plant_is_not_moved_to_stand_in_for_the_valve(key)
 
 def test_the_band_found_is_near_the_truth():
     """S within 25 % of the truth in at least 80 % of the loops where the valve is found (measured 2026-11-28:
-    SIZE of FOUND)."""
+    16 of 18; 19 of 20 and 18 of 20 on the coverage and calibration sets' level loops)."""
     found = _found()
     near = [d for d in found if d.doc["friction"] is not None
             and abs(d.doc["friction"]["S"]["value"] - d.truth["S"]) <= 0.25 * d.truth["S"]]

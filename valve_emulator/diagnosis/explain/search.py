@@ -370,6 +370,8 @@ class Search:
         """The option a round accepts on a held integrating plant: of those that lower BIC by :data:`DELTA_BIC`
         (the search's domain) and BIC under the drifting-load noise model by as much, against ``model`` and
         against each of their own sub-options, the one lowest under that noise model (validated); None if none.
+        Beside a finding that starts late, an option must also hold after its onset and before it, as in every
+        round (:meth:`holds_after_onset`, :meth:`holds_before_onset`).
 
         Why the drifting-load noise model decides here, not the free run's held-out fit: the free run of an
         integrator replays every wandering load the record holds as a ramp, and through the prefilter it still
@@ -389,7 +391,8 @@ class Search:
         before = load(model)
         for o in sorted(fall, key=lambda o: load(o.model)):
             subs = [s for s in options if set(s.added) < set(o.added)]
-            if before - load(o.model) >= DELTA_BIC and all(load(s.model) - load(o.model) >= DELTA_BIC for s in subs):
+            if (before - load(o.model) >= DELTA_BIC and all(load(s.model) - load(o.model) >= DELTA_BIC for s in subs)
+                    and self.holds_after_onset(o.model, model) and self.holds_before_onset(o.model, model)):
                 return replace(o, model=self.validated(o.model))
         return None
 
