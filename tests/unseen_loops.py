@@ -257,6 +257,9 @@ HEALTHY_LEVEL = drawn("healthy_level", 2032, 8)
 #: 24 more level loops with a healthy valve, as plant data, drawn with another seed: with ``HEALTHY_LEVEL``, the
 #: set on which a healthy level loop must not be answered stiction, and part of the answer's calibration.
 HEALTHY_LEVEL_MORE = drawn("healthy_level", 7, 24, ("plant",))
+#: Sticky level loops with their exact nominal model, drawn with a seed no other set uses (the draws the rule was
+#: found on are COVERAGE's and STRENGTH's level loops): the held integrator's property test.
+LEVEL_MODEL = drawn("level_sticky", 14, 20, ("model",))
 #: Every draw of every set, once, in a stable order.
 ALL = list(dict.fromkeys(LEVEL + LATE_ONSET + AGGRESSIVE_MODEL + AGGRESSIVE_PLANT + COVERAGE + STRENGTH
-                         + HEALTHY_LEVEL + HEALTHY_LEVEL_MORE))
+                         + HEALTHY_LEVEL + HEALTHY_LEVEL_MORE + LEVEL_MODEL))

@@ -99,3 +99,33 @@ def test_a_model_with_a_free_dead_time_is_not_offered_the_dead_time_again():
     fitter = _CannedFitter(base, {})
     Search(fitter).round(base, 1)
     assert sorted(name for _, name in fitter.asked) == ["actuator_lag", "stiction"]
+
+
+def _held_integrator(fitter: _CannedFitter, monkeypatch, loads: dict[tuple[str, ...], float]) -> None:
+    """``fitter``'s nominal made a held integrating plant, and the drifting-load BIC of each model by its names."""
+    fitter.nominal = SimpleNamespace(given=True, structure=SimpleNamespace(integrating=True, gain=0.02))
+    monkeypatch.setattr("valve_emulator.diagnosis.explain.search.load_bic",
+                        lambda scorer, model: (loads[model.names], 0.9))
+
+
+def test_on_a_held_integrator_the_round_takes_the_option_lowest_under_the_drifting_load(monkeypatch):
+    # The characteristic is lower in BIC and better held out, the valve lower under the drifting-load noise model:
+    # on a held integrating plant the noise model decides (docs/diagnosis.md, *A level loop's model is held*).
+    base = _model(1000.0, 60.0)
+    characteristic = _option(800.0, 82.0, LAG)
+    stiction = _option(850.0, 22.0, STICTION)
+    fitter = _CannedFitter(base, {((), "actuator_lag"): [characteristic], ((), "stiction"): [stiction]})
+    _held_integrator(fitter, monkeypatch, {(): 500.0, ("actuator_lag",): 400.0, ("stiction",): 210.0})
+    assert Search(fitter).round(base, 1).chosen.label == "stiction"
+    fitter.nominal = SimpleNamespace(given=True, structure=SimpleNamespace(integrating=True, gain=None))
+    assert Search(fitter).round(base, 1).chosen.label == "actuator_lag"   # not held: the free run's rule
+
+
+def test_on_a_held_integrator_an_option_must_lower_both_bics_by_the_threshold(monkeypatch):
+    base = _model(1000.0, 60.0)
+    stiction = _option(1000.0 - DELTA_BIC + 0.01, 90.0, STICTION)   # the search's BIC falls too little
+    lag = _option(900.0, 90.0, LAG)                                  # the drifting-load BIC falls too little
+    fitter = _CannedFitter(base, {((), "actuator_lag"): [lag], ((), "stiction"): [stiction]})
+    _held_integrator(fitter, monkeypatch, {(): 500.0, ("actuator_lag",): 500.0 - DELTA_BIC + 0.01,
+                                           ("stiction",): 100.0})
+    assert Search(fitter).round(base, 1).chosen is None

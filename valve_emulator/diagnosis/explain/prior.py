@@ -130,12 +130,39 @@ def _settle_gain(search: Search, model: Model) -> tuple[Model, list[LinearMove]]
                              delta_bic=delta, fit_held=held.heldout, fit_moved=model.heldout)]
 
 
+def _settle_held_integrator(search: Search, model: Model) -> tuple[Model, list[LinearMove]]:
+    """A held integrating plant (:func:`~valve_emulator.diagnosis.explain.pipeline.held_integrator`): the final
+    chain with the time constants and the gain freed together, against ``model`` (held), by :func:`_decide`
+    with the drifting-load noise model's condition — the rule of a gain move beside a late finding, for the
+    same reason: a free-run fit around a wandering load shrinks the gain to replay less of it."""
+    scorer, p = search.scorer, search.scorer.p
+    st = model.fit.structure
+    k_nom = float(st.gain) * p.y_scale
+    aim = scorer.aim(model)
+    free = scorer.polish(model.flow, replace(st, taus_held=False, gain=None), model.delay_free, aim)
+    moved = search.validated(scorer.model(model.by_slot(), free, model.delay_free, model.flow, target=aim.y))
+    k_fit = moved.fit.gain * p.y_scale
+    penalty = scorer.prior_penalty(moved.fit.structure) + (
+        ((np.log(k_fit / k_nom) / PRIOR_WIDTH) ** 2) if k_fit * k_nom > 0 else np.inf)
+    kept, delta = _decide(search, moved, model, float(penalty), under_load=True)
+    fitted = moved.fit.structure.taus
+    out = [LinearMove(parameter="gain", index=None, nominal=k_nom, proposed=k_fit, moved=kept is moved,
+                      delta_bic=delta, fit_held=model.heldout, fit_moved=moved.heldout)]
+    out += [LinearMove(parameter="time_constant", index=i, nominal=float(t), proposed=float(f), moved=kept is moved,
+                       delta_bic=delta, fit_held=model.heldout, fit_moved=moved.heldout)
+            for i, (t, f) in enumerate(zip(sorted(st.taus), sorted(fitted)))]
+    return kept, out
+
+
 def settle(search: Search, model: Model) -> tuple[Model, tuple[LinearMove, ...]]:
     """The final model with the nominal linear part held where the data do not demand a move, and the tests
     (see the module docstring). Without a nominal model there is no prior: ``model`` and ``()``."""
     if not search.scorer.nominal.given:
         return model, ()
     model = search.validated(model)
+    if search.held_integrator:
+        model, moves = _settle_held_integrator(search, model)
+        return model, tuple(moves)
     model, poles = _settle_poles(search, model)
     model, gain = _settle_gain(search, model)
     return model, tuple(gain + poles)

@@ -162,7 +162,7 @@ class Fitter:
         if self.nominal.given:
             nom = replace(self.nominal.structure, delay=st.delay)
             for f in (1.0, 0.5, 2 ** -0.5, 2 ** 0.5, 2.0):
-                if nom.taus or f == 1.0:
+                if (nom.taus and not nom.taus_held) or f == 1.0:
                     out.append(replace(nom, taus=tuple(t * f for t in nom.taus)))
         else:
             dt = self.p.dt
