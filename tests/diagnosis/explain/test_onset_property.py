@@ -306,6 +306,10 @@ def test_an_actuator_lag_of_one_sample_on_an_integrator_is_not_told_from_a_dead_
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "since 2026-11-28 a level loop's integrating model is held and each round judged under the drifting-load "
+    "noise model (docs/diagnosis.md, *A level loop's model is held*): draw 10's late valve is sized right (S 3 % "
+    "off, J exact) and its gain held, but no onset is located, so the property does not hold there"))
 def test_a_late_valve_is_sized_around_the_nominal_gain_when_the_gain_moves_only_for_the_free_run():
     """Draw 10 with its model (a Karnopp stem of S 4.33 % from 1187 s on a level loop, a 3.1 s lag): the
     search's gain was 0.43 of the nominal one, and around it the late valve's band S 2.39 %. The gain moved for
