@@ -385,13 +385,9 @@ class Search:
         if not fall:
             return None
 
-        def load(m: Model) -> float:   # remembered per model on the scorer
-            return load_bic(self.scorer, m)[0]
-
-        before = load(model)
-        for o in sorted(fall, key=lambda o: load(o.model)):
+        for o in sorted(fall, key=lambda o: load_bic(self.scorer, o.model)[0]):   # remembered per model
             subs = [s for s in options if set(s.added) < set(o.added)]
-            if (before - load(o.model) >= DELTA_BIC and all(load(s.model) - load(o.model) >= DELTA_BIC for s in subs)
+            if (self.lower_under_load(o.model, model) and all(self.lower_under_load(o.model, s.model) for s in subs)
                     and self.holds_after_onset(o.model, model) and self.holds_before_onset(o.model, model)):
                 return replace(o, model=self.validated(o.model))
         return None

@@ -486,16 +486,15 @@ class FixedColumns:
     def sse(self, z: np.ndarray, structure: LinearStructure, dt: float) -> float:
         """``fit_filtered(z, y, window, structure, dt, ...).sse`` (``structure``: this number of taps and trend)."""
         nt = self.ntaps
-        if structure.gain is not None or z.ndim != 1:
+        if structure.gain is not None:
             x = delayed_regressors(z, structure.delay / dt, nt)
-            if structure.gain is not None:
-                return _fit_held_gain(x, self.y, self.window, structure, self.trend, self.extra).sse
+            return _fit_held_gain(x, self.y, self.window, structure, self.trend, self.extra).sse
         w0, w1 = self.window
         Xw, yw = self.Xw, self.yw
         if z.ndim == 1:   # the window's taps only, not the whole record's
             _delayed_window(z, structure.delay / dt, Xw[:, :nt], w0)
         else:
-            Xw[:, :nt] = x[w0:w1]
+            Xw[:, :nt] = delayed_regressors(z, structure.delay / dt, nt)[w0:w1]
         G, b = self.G.copy(), self.b.copy()
         normal_equations_rows(Xw, yw, nt, G, b)
         beta = _ridge_solve(G, b, self._guard)
