@@ -48,14 +48,13 @@ from valve_emulator.clients._channels import Channels, add_channel_arguments, ch
 from valve_emulator.clients._modbus import (
     ABCD,
     DEFAULT_PORT,
-    DeviceError,
     DeviceTimeError,
     Link,
     add_connection_arguments,
     check_connection_arguments,
 )
-from valve_emulator.clients._run import client_main, pause
-from valve_emulator.clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.clients._run import client_main
+from valve_emulator.clients._schedule import next_or_retry, schedule_for
 from valve_emulator.errors import UserError
 from valve_emulator.recordings.recording import CsvRecordingWriter
 
@@ -136,13 +135,17 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
     async def read() -> dict[str, float]:
         return await reader.read(link)
 
+    def failed(exc: Exception) -> None:   # counted; the first reported
+        summary.errors += 1
+        if progress is not None and summary.errors == 1:
+            print(("\n" if tty else "") + f"{prog}: {exc}; retrying", file=progress, flush=True)
+
     try:
         await link.connect()
         sample: dict[str, float] | None = await read()  # fail early: wrong port, unit or address
         writer.open()
         t0 = now = clock()
-        schedule = (GridSchedule(opts.step, clock=clock, hint=opts.period) if opts.step is not None
-                    else WallSchedule(opts.period, clock=clock))
+        schedule = schedule_for(opts.step, opts.period, clock)
         last_t, next_report = -math.inf, t0
         while True:
             if sample is not None:
@@ -170,14 +173,7 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
             if ((stop is not None and stop.is_set()) or (opts.until is not None and last_t >= opts.until)
                     or (opts.duration is not None and clock() - t0 >= opts.duration)):
                 break
-            try:
-                sample = await schedule.next(read, stop)
-            except (ConnectionError, DeviceError) as exc:
-                sample = None
-                summary.errors += 1
-                if progress is not None and summary.errors == 1:
-                    print(("\n" if tty else "") + f"{prog}: {exc}; retrying", file=progress, flush=True)
-                await pause(opts.period, stop)   # do not hammer a device that just failed
+            sample = await next_or_retry(schedule, read, stop, retry=opts.period, failed=failed)
             now = clock()
             if sample is None and stop is not None and stop.is_set():
                 break
