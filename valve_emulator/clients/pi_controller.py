@@ -45,9 +45,8 @@ import yaml
 from valve_emulator.clients._modbus import (
     ABCD,
     CDAB,
-    DEFAULT_PORT,
+    ConnectionSettings,
     DeviceError,
-    Link,
     Point,
     Reader,
     add_connection_arguments,
@@ -74,14 +73,9 @@ PROG = "python -m valve_emulator.clients.pi_controller"
 
 
 @dataclass(frozen=True)
-class ControllerSettings:
+class ControllerSettings(ConnectionSettings):
     """A soft PLC's settings (see the module docstring for their meaning and units)."""
 
-    host: str = "127.0.0.1"
-    port: int = DEFAULT_PORT
-    unit: int = 1
-    timeout: float = 1.0
-    word_order: str = ABCD
     scan: float = 0.1                 # s of wall time per scan
     time_scale: float = 1.0           # process seconds per wall second: dt = scan * time_scale
     kc: float = 0.2                   # % OP per PV unit, > 0
@@ -171,7 +165,7 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
     if s.device_time is not None:
         points["t"] = parse_point(s.device_time, what="device-time")
     reader = Reader(points, word_order=s.word_order)
-    link = Link(s.host, s.port, s.unit, timeout=s.timeout)
+    link = s.link()
     summary = ControllerSummary()
     lo, hi = s.op_limits
     try:

@@ -46,12 +46,11 @@ import numpy as np
 
 from valve_emulator.clients._channels import Channels, add_channel_arguments, channels_from_args
 from valve_emulator.clients._modbus import (
-    ABCD,
-    DEFAULT_PORT,
+    ConnectionSettings,
     DeviceTimeError,
-    Link,
     add_connection_arguments,
     check_connection_arguments,
+    connection_from_args,
 )
 from valve_emulator.clients._run import client_main
 from valve_emulator.clients._schedule import next_or_retry, schedule_for
@@ -73,16 +72,11 @@ PROG = "python -m valve_emulator.clients.recorder"
 
 
 @dataclass(frozen=True)
-class RecorderOptions:
+class RecorderOptions(ConnectionSettings):
     """Everything :func:`record` needs; :func:`options_from_args` builds it from the command line."""
 
     out: Path
     channels: Channels
-    host: str = "127.0.0.1"
-    port: int = DEFAULT_PORT
-    unit: int = 1
-    timeout: float = 1.0
-    word_order: str = ABCD
     period: float = 0.1             # s of wall time between polls
     step: float | None = None       # device s between rows, on the device's time grid (needs the t channel)
     duration: float | None = None   # s of wall time; None = until stopped
@@ -127,7 +121,7 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
     if opts.step is not None and ch.t is None:
         raise UserError("--step samples the device's time grid: it needs the --time channel")
     reader = ch.reader(word_order=opts.word_order, max_gap=opts.max_gap)
-    link = Link(opts.host, opts.port, opts.unit, timeout=opts.timeout)
+    link = opts.link()
     summary = RecordSummary(opts.out)
     tty = progress is not None and getattr(progress, "isatty", lambda: False)()
     writer = CsvRecordingWriter(opts.out, extra_columns=tuple(ch.extras), fsync=opts.fsync)
@@ -227,10 +221,9 @@ def options_from_args(args: argparse.Namespace) -> RecorderOptions:
         raise UserError(f"--step must be > 0 s, got {args.step}")
     if args.until is not None and not math.isfinite(args.until):
         raise UserError(f"--until must be a finite time, got {args.until}")
-    return RecorderOptions(out=args.out, channels=channels_from_args(args), host=args.host, port=args.port,
-                           unit=args.unit, timeout=args.timeout, word_order=args.word_order, period=args.period,
-                           step=args.step,
-                           duration=args.duration, until=args.until, max_gap=args.max_gap, fsync=args.fsync)
+    return RecorderOptions(out=args.out, channels=channels_from_args(args), **connection_from_args(args),
+                           period=args.period, step=args.step, duration=args.duration, until=args.until,
+                           max_gap=args.max_gap, fsync=args.fsync)
 
 
 def run(args: argparse.Namespace, *, prog: str = PROG) -> int:
