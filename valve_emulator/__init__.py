@@ -13,9 +13,7 @@ Every error about something the caller gave (a config, a recording, a flag) is a
 
 from __future__ import annotations
 
-import importlib
-
-from valve_emulator import _cache
+from valve_emulator import _cache, _lazy
 
 _cache.configure()  # before any compiled kernel is defined: the cache lives in a user folder, not the package
 
@@ -39,12 +37,7 @@ _EXPORTS = {
 __all__ = ["__version__", *sorted(_EXPORTS)]
 
 
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(_EXPORTS[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = _lazy.exports(__name__, _EXPORTS, globals())
 
 
 def __dir__() -> list[str]:

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
 import struct
+import time
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from valve_emulator.clients._channels import add_channel_arguments, channels_from_args, emulator_channels
-from valve_emulator.clients._modbus import Link, Point, Reader, parse_point
+from valve_emulator.clients._modbus import DeviceError, Link, Point, Reader, parse_point
+from valve_emulator.clients._schedule import next_or_retry
 from valve_emulator.config import server_from_mapping
 from valve_emulator.device.registers import address_of
 from valve_emulator.device.server import EmulatorServer
@@ -99,3 +102,34 @@ async def test_emulator_channels_are_one_request_and_a_gap_refusal_falls_back():
             assert mixed.max_gap == 0 and len(mixed.requests) == 2 and srv.requests - before == 3
         finally:
             link.close()
+
+
+async def test_a_failed_poll_is_told_waited_out_and_skipped_and_a_good_one_passes():
+    # clients._schedule.next_or_retry, the poll of the recorder and the PLC: a read that fails with a transport or
+    # Modbus error is given to `failed`, then `retry` wall seconds go by before the next poll; other errors are bugs.
+    class Once:
+        def __init__(self, outcome):
+            self.outcome = outcome
+
+        async def next(self, read, stop):
+            if isinstance(self.outcome, Exception):
+                raise self.outcome
+            return await read()
+
+    async def read():
+        return {"pv": 1.5}
+
+    told = []
+    assert await next_or_retry(Once(None), read, None, retry=5.0, failed=told.append) == {"pv": 1.5}
+    assert told == []
+    for exc in (ConnectionError("gone"), DeviceError("read pv", 2)):
+        t0 = time.monotonic()
+        assert await next_or_retry(Once(exc), read, None, retry=0.2, failed=told.append) is None
+        assert time.monotonic() - t0 >= 0.2 and told[-1] is exc
+    stop = asyncio.Event()
+    stop.set()   # a stop cuts the wait short
+    t0 = time.monotonic()
+    assert await next_or_retry(Once(ConnectionError("gone")), read, stop, retry=30.0, failed=told.append) is None
+    assert time.monotonic() - t0 < 10.0 and len(told) == 3
+    with pytest.raises(ValueError):
+        await next_or_retry(Once(ValueError("a bug")), read, None, retry=0.0, failed=told.append)

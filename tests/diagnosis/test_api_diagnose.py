@@ -153,3 +153,17 @@ def test_import_stays_light_and_exports_the_public_surface():
     subprocess.run([sys.executable, "-c", code], check=True)
     assert ve.Recording.__name__ == "Recording" and issubclass(ve.ConfigError, ve.UserError)
     assert not hasattr(ve, "load_config")
+
+
+def test_the_diagnosis_package_imports_its_names_on_first_use_and_keeps_them():
+    # valve_emulator._lazy: a name's module is imported only when the name is first asked for; the name is then
+    # the package's own attribute; an unknown name is an AttributeError naming the package.
+    code = ("import sys, valve_emulator.diagnosis as d\n"
+            "assert 'valve_emulator.diagnosis.api' not in sys.modules, 'imported early'\n"
+            "assert 'diagnose' not in vars(d)\n"
+            "from valve_emulator.diagnosis.api import diagnose\n"
+            "assert d.diagnose is diagnose and vars(d)['diagnose'] is diagnose\n"
+            "try:\n    d.nope\nexcept AttributeError as exc:\n"
+            "    assert str(exc) == \"module 'valve_emulator.diagnosis' has no attribute 'nope'\", exc\n"
+            "else:\n    raise AssertionError('no AttributeError')\n")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -30,8 +30,8 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from typing import Final
+from dataclasses import dataclass, fields
+from typing import Any, Final
 
 import numpy as np
 from pymodbus.client import AsyncModbusTcpClient
@@ -59,6 +59,8 @@ __all__ = [
     "Point",
     "Reader",
     "Link",
+    "ConnectionSettings",
+    "connection_from_args",
     "DeviceError", "DeviceTimeError",
     "parse_point",
     "add_connection_arguments",
@@ -294,12 +296,33 @@ class Reader:
         return out
 
 
+@dataclass(frozen=True, kw_only=True)
+class ConnectionSettings:
+    """Where a client's device is and how it orders 32-bit values, with the emulator's defaults: the settings of
+    :func:`add_connection_arguments`' flags, which every client's options record derives from."""
+
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_PORT
+    unit: int = 1
+    timeout: float = 1.0
+    word_order: str = ABCD
+
+    def link(self) -> Link:
+        """A :class:`Link` to the unit (connected on first use)."""
+        return Link(self.host, self.port, self.unit, timeout=self.timeout)
+
+
+def connection_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """The connection flags, as keywords of a :class:`ConnectionSettings` (or of a record derived from it)."""
+    return {f.name: getattr(args, f.name) for f in fields(ConnectionSettings)}
+
+
 def add_connection_arguments(p: argparse.ArgumentParser, *, defaults: bool = True) -> None:
     """``--host --port --unit --timeout --word-order`` with the emulator's defaults.
 
     ``defaults=False`` leaves unset flags ``None`` (for a client that merges a settings file under them).
     """
-    d = {"host": "127.0.0.1", "port": DEFAULT_PORT, "unit": 1, "timeout": 1.0, "word_order": ABCD}
+    d = {f.name: f.default for f in fields(ConnectionSettings)}
     if not defaults:
         d = dict.fromkeys(d)
     g = p.add_argument_group("connection")

@@ -21,9 +21,10 @@ import asyncio
 import math
 from collections.abc import Awaitable, Callable
 
+from valve_emulator.clients._modbus import DeviceError
 from valve_emulator.clients._run import pause
 
-__all__ = ["GridSchedule", "WallSchedule"]
+__all__ = ["GridSchedule", "WallSchedule", "schedule_for", "next_or_retry"]
 
 Read = Callable[[], Awaitable[dict[str, float]]]
 
@@ -120,3 +121,22 @@ class GridSchedule:
                     self.off_grid += 1
                     self.n = math.floor((t - self.t0) / self.step + 1e-9)
                 return sample
+
+
+def schedule_for(step: float | None, period: float, clock: Callable[[], float]) -> WallSchedule | GridSchedule:
+    """A client's schedule: every ``period`` wall seconds, or, given a ``step`` (device s; needs the ``t``
+    channel), on the device's time grid, paced by ``period`` until the rate of device time is known."""
+    return GridSchedule(step, clock=clock, hint=period) if step is not None else WallSchedule(period, clock=clock)
+
+
+async def next_or_retry(schedule: WallSchedule | GridSchedule, read: Read, stop: asyncio.Event | None, *,
+                        retry: float, failed: Callable[[Exception], None]) -> dict[str, float] | None:
+    """``schedule.next(read, stop)``; a read that fails (``ConnectionError``, :class:`DeviceError`) is passed to
+    ``failed``, then ``retry`` wall seconds go by (a device that just failed is not hammered) and None is
+    returned."""
+    try:
+        return await schedule.next(read, stop)
+    except (ConnectionError, DeviceError) as exc:
+        failed(exc)
+        await pause(retry, stop)
+        return None

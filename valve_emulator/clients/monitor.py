@@ -32,12 +32,11 @@ from typing import TextIO
 
 from valve_emulator.clients._channels import Channels, add_channel_arguments, channels_from_args
 from valve_emulator.clients._modbus import (
-    ABCD,
-    DEFAULT_PORT,
+    ConnectionSettings,
     DeviceError,
-    Link,
     add_connection_arguments,
     check_connection_arguments,
+    connection_from_args,
 )
 from valve_emulator.clients._run import client_main, pause
 from valve_emulator.device.registers import Status
@@ -61,13 +60,8 @@ _CLEAR = "\x1b[H\x1b[J"   # cursor home, clear to the end of the screen
 
 
 @dataclass(frozen=True)
-class MonitorOptions:
+class MonitorOptions(ConnectionSettings):
     channels: Channels
-    host: str = "127.0.0.1"
-    port: int = DEFAULT_PORT
-    unit: int = 1
-    timeout: float = 1.0
-    word_order: str = ABCD
     period: float = 0.5                          # wall s between samples
     duration: float | None = None                # wall s
     once: bool = False
@@ -171,7 +165,7 @@ async def monitor(opts: MonitorOptions, *, out: TextIO, stop: asyncio.Event | No
     """
     ch = opts.channels
     reader = ch.reader(word_order=opts.word_order, max_gap=opts.max_gap)
-    link = Link(opts.host, opts.port, opts.unit, timeout=opts.timeout)
+    link = opts.link()
     where = f"{opts.host}:{opts.port} unit {opts.unit}"
     history: deque[Sample] = deque(maxlen=max(opts.rows, 1))
     axis = _Range(opts.pv_range)
@@ -254,8 +248,7 @@ def options_from_args(args: argparse.Namespace, *, tty: bool) -> MonitorOptions:
         raise UserError(f"--width must be >= 10 and --rows >= 1, got {args.width} and {args.rows}")
     if args.pv_range is not None and not args.pv_range[0] < args.pv_range[1]:
         raise UserError(f"--pv-range must be LO HI with LO < HI, got {args.pv_range}")
-    return MonitorOptions(channels=channels_from_args(args), host=args.host, port=args.port, unit=args.unit,
-                          timeout=args.timeout, word_order=args.word_order, period=args.period,
+    return MonitorOptions(channels=channels_from_args(args), **connection_from_args(args), period=args.period,
                           duration=args.duration, once=args.once, plain=args.plain or not tty, width=args.width,
                           rows=args.rows, pv_range=tuple(args.pv_range) if args.pv_range else None,
                           max_gap=args.max_gap)

@@ -45,17 +45,16 @@ import yaml
 from valve_emulator.clients._modbus import (
     ABCD,
     CDAB,
-    DEFAULT_PORT,
+    ConnectionSettings,
     DeviceError,
-    Link,
     Point,
     Reader,
     add_connection_arguments,
     check_connection_arguments,
     parse_point,
 )
-from valve_emulator.clients._run import client_main, pause
-from valve_emulator.clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.clients._run import client_main
+from valve_emulator.clients._schedule import next_or_retry, schedule_for
 from valve_emulator.errors import UserError
 from valve_emulator.physics.controller import PID
 
@@ -74,14 +73,9 @@ PROG = "python -m valve_emulator.clients.pi_controller"
 
 
 @dataclass(frozen=True)
-class ControllerSettings:
+class ControllerSettings(ConnectionSettings):
     """A soft PLC's settings (see the module docstring for their meaning and units)."""
 
-    host: str = "127.0.0.1"
-    port: int = DEFAULT_PORT
-    unit: int = 1
-    timeout: float = 1.0
-    word_order: str = ABCD
     scan: float = 0.1                 # s of wall time per scan
     time_scale: float = 1.0           # process seconds per wall second: dt = scan * time_scale
     kc: float = 0.2                   # % OP per PV unit, > 0
@@ -171,7 +165,7 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
     if s.device_time is not None:
         points["t"] = parse_point(s.device_time, what="device-time")
     reader = Reader(points, word_order=s.word_order)
-    link = Link(s.host, s.port, s.unit, timeout=s.timeout)
+    link = s.link()
     summary = ControllerSummary()
     lo, hi = s.op_limits
     try:
@@ -191,13 +185,17 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
             print(f"{prog}: unit {s.unit} at {s.host}:{s.port}; PV {first['pv']:g}, SP {sp:g}, OP {op0:g} %; "
                   f"scan {s.scan:g} s, dt {s.dt:g} s", file=log, flush=True)
         t0 = clock()
-        schedule = (GridSchedule(s.dt, clock=clock, hint=s.scan) if s.device_time is not None
-                    else WallSchedule(s.scan, clock=clock))
+        schedule = schedule_for(s.dt if s.device_time is not None else None, s.scan, clock)
         if s.device_time is not None:
             schedule.seen(first["t"])
 
         async def read() -> dict[str, float]:
             return await reader.read(link)
+
+        def failed(exc: Exception) -> None:   # counted; the first reported
+            summary.errors += 1
+            if log is not None and summary.errors == 1:
+                print(f"{prog}: {exc}; holding OP and retrying", file=log, flush=True)
 
         sample: dict[str, float] | None = first
         while True:
@@ -211,20 +209,11 @@ async def run_controller(settings: ControllerSettings, *, stop: asyncio.Event | 
                 except (ConnectionError, DeviceError) as exc:
                     if summary.scans == 0:
                         raise
-                    summary.errors += 1
-                    if log is not None and summary.errors == 1:
-                        print(f"{prog}: {exc}; holding OP and retrying", file=log, flush=True)
+                    failed(exc)
                 summary.scans += 1
             if (stop is not None and stop.is_set()) or (s.duration is not None and clock() - t0 >= s.duration):
                 break
-            try:
-                sample = await schedule.next(read, stop)
-            except (ConnectionError, DeviceError) as exc:
-                sample = None
-                summary.errors += 1
-                if log is not None and summary.errors == 1:
-                    print(f"{prog}: {exc}; holding OP and retrying", file=log, flush=True)
-                await pause(s.scan, stop)
+            sample = await next_or_retry(schedule, read, stop, retry=s.scan, failed=failed)
             summary.overruns = schedule.late + schedule.off_grid
     finally:
         link.close()   # nothing is written on the way out: OP stays where it was

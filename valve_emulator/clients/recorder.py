@@ -46,16 +46,14 @@ import numpy as np
 
 from valve_emulator.clients._channels import Channels, add_channel_arguments, channels_from_args
 from valve_emulator.clients._modbus import (
-    ABCD,
-    DEFAULT_PORT,
-    DeviceError,
+    ConnectionSettings,
     DeviceTimeError,
-    Link,
     add_connection_arguments,
     check_connection_arguments,
+    connection_from_args,
 )
-from valve_emulator.clients._run import client_main, pause
-from valve_emulator.clients._schedule import GridSchedule, WallSchedule
+from valve_emulator.clients._run import client_main
+from valve_emulator.clients._schedule import next_or_retry, schedule_for
 from valve_emulator.errors import UserError
 from valve_emulator.recordings.recording import CsvRecordingWriter
 
@@ -74,16 +72,11 @@ PROG = "python -m valve_emulator.clients.recorder"
 
 
 @dataclass(frozen=True)
-class RecorderOptions:
+class RecorderOptions(ConnectionSettings):
     """Everything :func:`record` needs; :func:`options_from_args` builds it from the command line."""
 
     out: Path
     channels: Channels
-    host: str = "127.0.0.1"
-    port: int = DEFAULT_PORT
-    unit: int = 1
-    timeout: float = 1.0
-    word_order: str = ABCD
     period: float = 0.1             # s of wall time between polls
     step: float | None = None       # device s between rows, on the device's time grid (needs the t channel)
     duration: float | None = None   # s of wall time; None = until stopped
@@ -128,7 +121,7 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
     if opts.step is not None and ch.t is None:
         raise UserError("--step samples the device's time grid: it needs the --time channel")
     reader = ch.reader(word_order=opts.word_order, max_gap=opts.max_gap)
-    link = Link(opts.host, opts.port, opts.unit, timeout=opts.timeout)
+    link = opts.link()
     summary = RecordSummary(opts.out)
     tty = progress is not None and getattr(progress, "isatty", lambda: False)()
     writer = CsvRecordingWriter(opts.out, extra_columns=tuple(ch.extras), fsync=opts.fsync)
@@ -136,13 +129,17 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
     async def read() -> dict[str, float]:
         return await reader.read(link)
 
+    def failed(exc: Exception) -> None:   # counted; the first reported
+        summary.errors += 1
+        if progress is not None and summary.errors == 1:
+            print(("\n" if tty else "") + f"{prog}: {exc}; retrying", file=progress, flush=True)
+
     try:
         await link.connect()
         sample: dict[str, float] | None = await read()  # fail early: wrong port, unit or address
         writer.open()
         t0 = now = clock()
-        schedule = (GridSchedule(opts.step, clock=clock, hint=opts.period) if opts.step is not None
-                    else WallSchedule(opts.period, clock=clock))
+        schedule = schedule_for(opts.step, opts.period, clock)
         last_t, next_report = -math.inf, t0
         while True:
             if sample is not None:
@@ -170,14 +167,7 @@ async def record(opts: RecorderOptions, *, stop: asyncio.Event | None = None, pr
             if ((stop is not None and stop.is_set()) or (opts.until is not None and last_t >= opts.until)
                     or (opts.duration is not None and clock() - t0 >= opts.duration)):
                 break
-            try:
-                sample = await schedule.next(read, stop)
-            except (ConnectionError, DeviceError) as exc:
-                sample = None
-                summary.errors += 1
-                if progress is not None and summary.errors == 1:
-                    print(("\n" if tty else "") + f"{prog}: {exc}; retrying", file=progress, flush=True)
-                await pause(opts.period, stop)   # do not hammer a device that just failed
+            sample = await next_or_retry(schedule, read, stop, retry=opts.period, failed=failed)
             now = clock()
             if sample is None and stop is not None and stop.is_set():
                 break
@@ -231,10 +221,9 @@ def options_from_args(args: argparse.Namespace) -> RecorderOptions:
         raise UserError(f"--step must be > 0 s, got {args.step}")
     if args.until is not None and not math.isfinite(args.until):
         raise UserError(f"--until must be a finite time, got {args.until}")
-    return RecorderOptions(out=args.out, channels=channels_from_args(args), host=args.host, port=args.port,
-                           unit=args.unit, timeout=args.timeout, word_order=args.word_order, period=args.period,
-                           step=args.step,
-                           duration=args.duration, until=args.until, max_gap=args.max_gap, fsync=args.fsync)
+    return RecorderOptions(out=args.out, channels=channels_from_args(args), **connection_from_args(args),
+                           period=args.period, step=args.step, duration=args.duration, until=args.until,
+                           max_gap=args.max_gap, fsync=args.fsync)
 
 
 def run(args: argparse.Namespace, *, prog: str = PROG) -> int:

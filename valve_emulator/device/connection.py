@@ -46,8 +46,8 @@ from typing import Any
 from valve_emulator.device.registers import CommFault
 from valve_emulator.device.roles import UNAUTHENTICATED, Role
 
-__all__ = ["FRAMES_PER_ITERATION", "FRAMES_PER_TURN", "SOCKET_BUFFER", "VIOLATION_DELAY", "ModbusConnection",
-           "TurnBudget"]
+__all__ = ["FRAMES_PER_ITERATION", "FRAMES_PER_TURN", "SOCKET_BUFFER", "VIOLATION_DELAY", "AdmittedConnection",
+           "ModbusConnection", "TurnBudget"]
 
 #: Frames answered per connection per event-loop iteration.
 FRAMES_PER_TURN = 32
@@ -106,7 +106,48 @@ class TurnBudget:
             self.waiting.popleft()._serve()
 
 
-class ModbusConnection(asyncio.Protocol):
+class AdmittedConnection(asyncio.Protocol):
+    """What every client connection of the TCP port does, whatever it speaks (Modbus TCP, TLS, RTU frames):
+    admission by the server's guard (:class:`~valve_emulator.device.guard.ConnectionGuard`), its role, its
+    place in the server's ``connection_set``, and its slot given back when it goes.
+
+    ``server`` (set by the subclass's ``__init__``) provides ``guard``, ``plain_role(ip)`` and the set
+    ``connection_set``.
+    """
+
+    server: Any
+    transport: asyncio.Transport
+    peer_ip: str = ""
+    role: Role = UNAUTHENTICATED
+    slot: Any = None
+
+    def _admit(self, transport: asyncio.BaseTransport) -> bool:
+        """Take the transport and ask the guard for a slot for its peer; refused (at the connection limit), the
+        transport is aborted and False returned."""
+        self.transport = transport  # type: ignore[assignment]
+        peer = transport.get_extra_info("peername")
+        self.peer_ip = peer[0] if peer else ""
+        self.slot = self.server.guard.admit(f"{peer[0]}:{peer[1]}" if peer else "?", transport.abort)
+        if self.slot is None:
+            transport.abort()
+            return False
+        return True
+
+    def _enter(self) -> None:
+        """The admitted client's role, and its place among the server's connections."""
+        self.role = self.permission()
+        self.server.connection_set.add(self)
+
+    def permission(self) -> Role:
+        """This client's role (asked again when the server is reconfigured): the plain port's rule."""
+        return self.server.plain_role(self.peer_ip)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.server.connection_set.discard(self)
+        self.server.guard.release(self.slot)
+
+
+class ModbusConnection(AdmittedConnection):
     """One client of ``server``.
 
     ``server`` provides ``guard`` (:class:`~valve_emulator.device.guard.ConnectionGuard`), ``turns``
@@ -138,14 +179,9 @@ class ModbusConnection(asyncio.Protocol):
     # --- asyncio.Protocol -----------------------------------------------------------------------------
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
-        peer = transport.get_extra_info("peername")
-        self.peer_ip = peer[0] if peer else ""
-        guard = self.server.guard
-        self.slot = guard.admit(f"{peer[0]}:{peer[1]}" if peer else "?", transport.abort)
-        if self.slot is None:
-            transport.abort()
+        if not self._admit(transport):
             return
+        guard = self.server.guard
         self._tokens, self._stamp = float(guard.error_rate), guard.clock()
         sock = transport.get_extra_info("socket")
         if sock is not None:
@@ -155,16 +191,10 @@ class ModbusConnection(asyncio.Protocol):
             except OSError:  # not every transport (or platform) allows it; the defaults then apply
                 pass
         self.who = self.peer_ip
-        self.role = self.permission()
-        self.server.connection_set.add(self)
-
-    def permission(self) -> Role:
-        """This client's role (asked again when the server is reconfigured): the plain port's rule."""
-        return self.server.plain_role(self.peer_ip)
+        self._enter()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self.server.connection_set.discard(self)
-        self.server.guard.release(self.slot)
+        super().connection_lost(exc)
         self._buf.clear()
         for timer in (self._throttle, self._close_timer, self._delayed):
             if timer is not None:

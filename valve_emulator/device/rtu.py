@@ -37,6 +37,7 @@ import os
 from dataclasses import dataclass
 from typing import Any, Final
 
+from valve_emulator.device.connection import AdmittedConnection
 from valve_emulator.device.pdu import BIT_WRITE_FUNCTIONS, WRITE_FUNCTIONS
 from valve_emulator.device.registers import CommFault
 from valve_emulator.device.roles import UNAUTHENTICATED, Role
@@ -294,7 +295,7 @@ _MAX_FRAME: Final = 256
 STREAM_GAP: Final = 0.05
 
 
-class RtuStreamConnection(asyncio.Protocol):
+class RtuStreamConnection(AdmittedConnection):
     """One client of ``--framer rtu``: RTU frames (address, PDU, CRC) on a TCP stream.
 
     A frame whose CRC does not check is dropped with everything received so far (as a serial device drops
@@ -316,23 +317,11 @@ class RtuStreamConnection(asyncio.Protocol):
         self._pending: set[asyncio.TimerHandle] = set()
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
-        peer = transport.get_extra_info("peername")
-        self.slot = self.server.guard.admit(f"{peer[0]}:{peer[1]}" if peer else "?", transport.abort)
-        if self.slot is None:
-            transport.abort()
-            return
-        self.peer_ip = peer[0] if peer else ""
-        self.role = self.permission()
-        self.server.connection_set.add(self)
-
-    def permission(self) -> Role:
-        """This client's role (asked again when the server is reconfigured): the plain port's rule."""
-        return self.server.plain_role(self.peer_ip)
+        if self._admit(transport):
+            self._enter()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self.server.connection_set.discard(self)
-        self.server.guard.release(self.slot)
+        super().connection_lost(exc)
         for handle in self._pending:
             handle.cancel()
 

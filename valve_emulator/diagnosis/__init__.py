@@ -25,7 +25,7 @@ imported on first use (``import valve_emulator.diagnosis`` stays light).
 
 from __future__ import annotations
 
-import importlib
+from valve_emulator import _lazy
 
 _EXPORTS = {
     "diagnose": "valve_emulator.diagnosis.api",
@@ -49,9 +49,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(_EXPORTS[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = _lazy.exports(__name__, _EXPORTS, globals())

@@ -41,12 +41,7 @@ def plot_open_loop_rows(t: np.ndarray, op: np.ndarray, rows: Sequence[tuple[str,
         ax_xy.set_aspect("equal", adjustable="datalim")
     axes[0, 0].legend(loc="upper right", fontsize=8)
     axes[-1, 0].set_xlabel("time, s")
-    if title:
-        fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    return path
+    return _save(fig, path, title)
 
 
 def plot_closed_loop(rec: Recording, path: str | Path, *, title: str = "", last: float | None = None) -> Path:
@@ -81,6 +76,11 @@ def plot_closed_loop(rec: Recording, path: str | Path, *, title: str = "", last:
     a_pvop.set_xlabel("op, % travel")
     a_pvop.set_ylabel("pv")
     a_pvop.set_title("pv - op", fontsize=10)
+    return _save(fig, path, title)
+
+
+def _save(fig: Figure, path: str | Path, title: str) -> Path:
+    """Every figure's last step: the title (when there is one) over the laid-out axes, written to ``path``."""
     if title:
         fig.suptitle(title, fontsize=11)
     fig.tight_layout()

@@ -336,54 +336,40 @@ def split_delay(delay_samples: float) -> tuple[int, float]:
     return m, max(0.0, delay_samples - m)
 
 
-def _shift(z: np.ndarray, s: int) -> np.ndarray:
-    """``z_{k-s}``, holding the first value before the record starts."""
-    if s <= 0:
-        return z
-    out = np.empty_like(z)
-    out[s:] = z[:-s]
-    out[:s] = z[0]
-    return out
-
-
-def delayed_regressors(z: np.ndarray, delay_samples: float, ntaps: int) -> np.ndarray:
-    """Columns ``z_{k-d-j}`` for a possibly fractional delay ``d = m + f`` (linear interpolation).
-
-    Interpolating the filtered input between samples is the first-order (in Δt/τ) form of the exact
-    fractional-delay ZOH of Åström & Wittenmark; it is exact for the integer delays the grid uses.
-    """
-    m, f = split_delay(delay_samples)
-    cols = []
-    for j in range(ntaps):
-        col = _shift(z, m + j)
-        if f > 0.0:
-            col = (1.0 - f) * col + f * _shift(z, m + j + 1)
-        cols.append(col)
-    return np.stack(cols, axis=1)
-
-
-def _delayed_window(z: np.ndarray, delay_samples: float, out: np.ndarray, w0: int) -> None:
-    """``delayed_regressors(z, delay_samples, ntaps)[w0:w0 + len(out)]`` into ``out`` (rows, ntaps), ``z`` (T,):
-    the window's rows only, each the same numbers (the same shifts, the same interpolation of each sample)."""
-    m, f = split_delay(delay_samples)
-    w1 = w0 + out.shape[0]
-    for j in range(out.shape[1]):
-        col = _shifted_window(z, m + j, w0, w1)
-        if f > 0.0:
-            col = (1.0 - f) * col + f * _shifted_window(z, m + j + 1, w0, w1)
-        out[:, j] = col
-
-
-def _shifted_window(z: np.ndarray, s: int, w0: int, w1: int) -> np.ndarray:
-    """``_shift(z, s)[w0:w1]`` without shifting the whole record."""
+def _shift(z: np.ndarray, s: int, w0: int = 0, w1: int | None = None) -> np.ndarray:
+    """``z_{k-s}`` for the rows ``w0 <= k < w1`` (default: the whole record), holding the first value before the
+    record starts; a view of ``z`` where nothing is held."""
+    w1 = z.shape[0] if w1 is None else w1
     if s <= 0:
         return z[w0:w1]
     if w0 >= s:
         return z[w0 - s:w1 - s]
     held = min(s - w0, w1 - w0)
-    out = np.empty(w1 - w0)
+    out = np.empty((w1 - w0,) + z.shape[1:], dtype=z.dtype)
     out[:held] = z[0]
     out[held:] = z[w0 + held - s:w1 - s]
+    return out
+
+
+def delayed_regressors(z: np.ndarray, delay_samples: float, ntaps: int, window: tuple[int, int] | None = None, *,
+                       out: np.ndarray | None = None) -> np.ndarray:
+    """Columns ``z_{k-d-j}`` for a possibly fractional delay ``d = m + f`` (linear interpolation), of the rows
+    ``window`` = ``(w0, w1)`` (default: the whole record), into ``out`` (rows, ntaps, …) when given.
+
+    Interpolating the filtered input between samples is the first-order (in Δt/τ) form of the exact
+    fractional-delay ZOH of Åström & Wittenmark; it is exact for the integer delays the grid uses. A window's
+    rows are the whole record's rows there, the same numbers (the same shifts, the same interpolation of each
+    sample), without shifting the whole record.
+    """
+    w0, w1 = (0, z.shape[0]) if window is None else window
+    m, f = split_delay(delay_samples)
+    if out is None:
+        out = np.empty((w1 - w0, ntaps) + z.shape[1:], dtype=np.result_type(z.dtype, np.float64))
+    for j in range(ntaps):
+        col = _shift(z, m + j, w0, w1)
+        if f > 0.0:
+            col = (1.0 - f) * col + f * _shift(z, m + j + 1, w0, w1)
+        out[:, j] = col
     return out
 
 
@@ -430,8 +416,8 @@ def fit_filtered(z: np.ndarray, y: np.ndarray, window: tuple[int, int], structur
     regressors, an output candidate's grid rows) filter them once."""
     trend = structure.integrating and not prefiltered
     if structure.gain is not None:
-        return _fit_held_gain(delayed_regressors(z, structure.delay / dt, structure.ntaps), y, window, structure,
-                              trend, extra)
+        return _fit_held_gain(delayed_regressors(z, structure.delay / dt, structure.ntaps, window), y, window,
+                              structure, trend, extra)
     w0, w1 = window
     Xw, yw = _window_design(z, structure.delay / dt, structure.ntaps, window, trend, extra), kernel_array(y[w0:w1])
     G, b = normal_equations(Xw, yw)
@@ -439,7 +425,7 @@ def fit_filtered(z: np.ndarray, y: np.ndarray, window: tuple[int, int], structur
     nt = structure.ntaps
     if structure.sign * float(np.sum(beta[:nt])) < 0.0:
         # The gain has the sign the controller's action forbids: the constrained optimum has gain 0.
-        x = delayed_regressors(z, structure.delay / dt, structure.ntaps)
+        x = delayed_regressors(z, structure.delay / dt, structure.ntaps, window)
         held = _fit_held_gain(x, y, window, replace(structure, gain=0.0), trend, extra)
         return replace(held, structure=structure)
     res = yw - Xw @ beta
@@ -474,10 +460,9 @@ class FixedColumns:
     def __init__(self, y: np.ndarray, window: tuple[int, int], ntaps: int, trend: bool, extra: np.ndarray | None
                  ) -> None:
         w0, w1 = window
-        fixed = _regressors(np.zeros((y.shape[0], 0)), trend, extra)
         self.y, self.window, self.ntaps, self.trend, self.extra = y, window, ntaps, trend, extra
-        self.Xw = np.zeros((w1 - w0, ntaps + fixed.shape[1]))
-        self.Xw[:, ntaps:] = fixed[w0:w1]
+        self.Xw = _design(ntaps, trend, extra, y.shape[0], window)
+        self.Xw[:, :ntaps] = 0.0   # the taps' columns: each evaluation writes its own
         self.yw = kernel_array(y[w0:w1])
         self.G, self.b = normal_equations(self.Xw, self.yw)   # the fixed columns' entries; the taps' are redone
         q = self.Xw.shape[1]
@@ -487,19 +472,15 @@ class FixedColumns:
         """``fit_filtered(z, y, window, structure, dt, ...).sse`` (``structure``: this number of taps and trend)."""
         nt = self.ntaps
         if structure.gain is not None:
-            x = delayed_regressors(z, structure.delay / dt, nt)
+            x = delayed_regressors(z, structure.delay / dt, nt, self.window)
             return _fit_held_gain(x, self.y, self.window, structure, self.trend, self.extra).sse
-        w0, w1 = self.window
         Xw, yw = self.Xw, self.yw
-        if z.ndim == 1:   # the window's taps only, not the whole record's
-            _delayed_window(z, structure.delay / dt, Xw[:, :nt], w0)
-        else:
-            Xw[:, :nt] = delayed_regressors(z, structure.delay / dt, nt)[w0:w1]
+        delayed_regressors(z, structure.delay / dt, nt, self.window, out=Xw[:, :nt])   # the window's taps only
         G, b = self.G.copy(), self.b.copy()
         normal_equations_rows(Xw, yw, nt, G, b)
         beta = _ridge_solve(G, b, self._guard)
         if structure.sign * float(np.sum(beta[:nt])) < 0.0:
-            x = delayed_regressors(z, structure.delay / dt, nt)
+            x = delayed_regressors(z, structure.delay / dt, nt, self.window)
             return _fit_held_gain(x, self.y, self.window, replace(structure, gain=0.0), self.trend, self.extra).sse
         res = yw - Xw @ beta
         return float(res @ res)
@@ -517,57 +498,53 @@ def on_pv(fit: LinearFit, u: np.ndarray, y: np.ndarray, window: tuple[int, int],
     st = fit.structure
     if st.sign == 0 or st.sign * level.gain > 0.0 or st.sign * fit.gain <= 0.0:
         return level
-    x = delayed_regressors(filter_inputs(u, st, dt), st.delay / dt, st.ntaps)
-    X = _regressors(np.zeros((u.shape[0], 0)), st.integrating, None)
+    x = delayed_regressors(filter_inputs(u, st, dt), st.delay / dt, st.ntaps, window)
+    X = _design(0, st.integrating, None, u.shape[0], window)
     w0, w1 = window
-    rest = y[w0:w1] - x[w0:w1] @ fit.taps
-    beta, *_ = np.linalg.lstsq(X[w0:w1], rest, rcond=None)
-    res = rest - X[w0:w1] @ beta
+    rest = y[w0:w1] - x @ fit.taps
+    beta, *_ = np.linalg.lstsq(X, rest, rcond=None)
+    res = rest - X @ beta
     return LinearFit(st, fit.taps.copy(), float(beta[0]), float(beta[1]) if st.integrating else 0.0,
                      float(res @ res), w1 - w0)
 
 
 def _window_design(z: np.ndarray, delay_samples: float, ntaps: int, window: tuple[int, int], trend: bool,
                    extra: np.ndarray | None) -> np.ndarray:
-    """``_regressors(delayed_regressors(z, delay_samples, ntaps), trend, extra)[w0:w1]``, C-contiguous: the
-    window's rows only, each entry the same number (``z`` (T,))."""
+    """The least-squares columns of the rows ``window`` (``z`` (T,)): :func:`delayed_regressors`' taps, then
+    :func:`_design`'s offset, ramp and ``extra``; C-contiguous, each entry the whole record's number there."""
+    X = _design(ntaps, trend, extra, z.shape[0], window)
+    delayed_regressors(z, delay_samples, ntaps, window, out=X[:, :ntaps])
+    return X
+
+
+def _design(k: int, trend: bool, extra: np.ndarray | None, T: int, window: tuple[int, int]) -> np.ndarray:
+    """The rows ``window`` of the least-squares columns of a record of ``T`` samples, C-contiguous: ``k`` taps
+    (left for the caller to fill), an offset, a ramp ``k/T`` over the record when ``trend``, and ``extra``
+    ((T,) or (T, m))."""
     w0, w1 = window
-    if z.ndim != 1:
-        return kernel_array(_regressors(delayed_regressors(z, delay_samples, ntaps), trend, extra)[w0:w1])
-    T = z.shape[0]
     more = None if extra is None else np.asarray(extra, dtype=float).reshape(T, -1)
-    out = np.empty((w1 - w0, ntaps + 1 + int(trend) + (0 if more is None else more.shape[1])))
-    _delayed_window(z, delay_samples, out[:, :ntaps], w0)
-    out[:, ntaps] = 1.0
+    X = np.empty((w1 - w0, k + 1 + int(trend) + (0 if more is None else more.shape[1])))
+    X[:, k] = 1.0
     if trend:
-        out[:, ntaps + 1] = np.arange(w0, w1) / T
+        X[:, k + 1] = np.arange(w0, w1) / T
     if more is not None:
-        out[:, ntaps + 1 + int(trend):] = more[w0:w1]
-    return out
-
-
-def _regressors(taps: np.ndarray, trend: bool, extra: np.ndarray | None) -> np.ndarray:
-    """The least-squares columns: ``taps``, an offset, a ramp over the record when ``trend``, and ``extra``."""
-    T = taps.shape[0]
-    cols = [taps, np.ones((T, 1))]
-    if trend:
-        cols.append((np.arange(T) / T)[:, None])
-    if extra is not None:
-        cols.append(np.asarray(extra, dtype=float).reshape(T, -1))
-    return np.hstack(cols)
+        X[:, k + 1 + int(trend):] = more[w0:w1]
+    return X
 
 
 def _fit_held_gain(x: np.ndarray, y: np.ndarray, window: tuple[int, int], structure: LinearStructure,
                    trend: bool, extra: np.ndarray | None) -> LinearFit:
     """:func:`fit_one` with the taps' sum held at ``structure.gain``: the first tap is ``g − Σ_{j≥1} b_j``, so
-    ``y − g x_0`` is fitted on ``x_j − x_0`` (j ≥ 1), the offsets and ``extra`` by least squares."""
+    ``y − g x_0`` is fitted on ``x_j − x_0`` (j ≥ 1), the offsets and ``extra`` by least squares. ``x``: the
+    window's rows of :func:`delayed_regressors`."""
     g = float(structure.gain)
-    X = _regressors(x[:, 1:] - x[:, :1], trend, extra)
-    w0, w1 = window
-    yw = y[w0:w1] - g * x[w0:w1, 0]
-    beta, *_ = np.linalg.lstsq(X[w0:w1], yw, rcond=None)
-    res = yw - X[w0:w1] @ beta
     nt = structure.ntaps
+    w0, w1 = window
+    X = _design(nt - 1, trend, extra, y.shape[0], window)
+    X[:, :nt - 1] = x[:, 1:] - x[:, :1]
+    yw = y[w0:w1] - g * x[:, 0]
+    beta, *_ = np.linalg.lstsq(X, yw, rcond=None)
+    res = yw - X @ beta
     rest = beta[:nt - 1]
     taps = np.concatenate([[g - float(np.sum(rest))], rest])
     return LinearFit(structure, taps, float(beta[nt - 1]), float(beta[nt]) if trend else 0.0, float(res @ res),
