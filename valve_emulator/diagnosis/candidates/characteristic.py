@@ -18,7 +18,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register, said
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_RANGEABILITY, Characteristic
 
 __all__ = ["FlowCharacteristic", "R_GRID", "R_MAX", "R_MIN"]
@@ -78,10 +78,11 @@ class FlowCharacteristic(ChainCandidate):
         kind = CHARACTERISTICS[int(p[0])]
         return {"type": kind, "R": round(float(p[1]), 3) if kind == "equal_percentage" else None}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         kind = CHARACTERISTICS[int(p[0])]
         if kind == "equal_percentage":
-            return f"an equal-percentage flow characteristic: R ≈ {p[1]:.0f}"
+            return f"an equal-percentage flow characteristic: {said('R', 'R', p[1], '.0f', edges)}"
         return f"a {kind.replace('_', '-')} flow characteristic"
 
 
