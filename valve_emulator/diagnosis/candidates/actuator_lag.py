@@ -87,6 +87,9 @@ class ActuatorLag(ChainCandidate):
     def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
                  edges: dict | None = None) -> str:
         tau = said("τ", "tau", p[0], ".1f", edges, " s")
+        if edges and "tau" in edges:   # the top: longer than any positioner is slow
+            tau += (", longer than the range searched: a valve whose travel barely follows OP within the record "
+                    "(seized, a closed block valve or an open bypass) as likely as a slow actuator")
         if nominal is None:  # no model: nothing tells which of two lags in series is the actuator's
             return (f"an actuator lag or a second plant lag: {tau} (without a model the data cannot "
                     "separate the two)")

@@ -82,7 +82,11 @@ class FlowCharacteristic(ChainCandidate):
                  edges: dict | None = None) -> str:
         kind = CHARACTERISTICS[int(p[0])]
         if kind == "equal_percentage":
-            return f"an equal-percentage flow characteristic: {said('R', 'R', p[1], '.0f', edges)}"
+            curve = f"an equal-percentage flow characteristic: {said('R', 'R', p[1], '.0f', edges)}"
+            if edges and "R" in edges:   # the top: steeper than any valve's own curve
+                curve += (", steeper than any valve's inherent curve (catalogues give 20–100): a gain that rises "
+                          "with OP more than a valve explains, as likely the process's or the load's as the valve's")
+            return curve
         return f"a {kind.replace('_', '-')} flow characteristic"
 
 
