@@ -215,7 +215,8 @@ class Candidate(ABC):
 
         An estimate on such an end is not a value but a bound ("R ≥ 400"): the findings say so. An end that is
         a limit of the physics itself (a jump of 0, a dead time of 0) is no search edge: None. Default: none
-        declared.
+        declared. A candidate that declares one takes ``edges`` in :meth:`describe` (it is handed them where
+        its estimate sits on one).
         """
         return {}
 
