@@ -14,6 +14,8 @@ from valve_emulator.diagnosis.candidates import get, registry
 from valve_emulator.diagnosis.candidates.base import ChainContext
 from valve_emulator.diagnosis.candidates.characteristic import R_MAX
 from valve_emulator.diagnosis.explain.findings import _as_bounds, _edge_text, _on_edges
+from valve_emulator.diagnosis.explain.onset import LateOnset
+from valve_emulator.diagnosis.fit.fitter import _search_range
 from valve_emulator.physics.signal_chain import CHARACTERISTICS
 
 EQP = CHARACTERISTICS.index("equal_percentage")
@@ -53,7 +55,44 @@ def test_an_estimate_on_the_top_edge_becomes_a_lower_bound_with_an_open_interval
     assert edges == {"R": ("≥", R_MAX)}
     assert _on_edges(cand, ctx, np.array([EQP, 30.0])) == {}
     assert _as_bounds({"R": (300.0, R_MAX)}, edges) == {"R": (R_MAX, np.inf)}
-    assert f"R ≥ {R_MAX:.4g}" in _edge_text(edges) and _edge_text({}) == ""
+    assert _edge_text(edges) == " (R at the edge of the range searched: a bound, not a value)"
+    assert _edge_text({}) == ""
+
+
+def test_a_parameter_on_an_edge_is_said_as_the_bound_and_never_as_a_value():
+    eqp = get("characteristic").describe(np.array([EQP, R_MAX]), {"theta": 1.0}, edges={"R": ("≥", R_MAX)})
+    assert eqp.startswith(f"an equal-percentage flow characteristic: R ≥ {R_MAX:.0f}, steeper than any valve's")
+    assert "≈" not in eqp
+    assert get("characteristic").describe(np.array([EQP, 57.4]), {"theta": 1.0}) == (
+        "an equal-percentage flow characteristic: R ≈ 57")
+    lag = get("actuator_lag")
+    top = lag.describe(np.array([30.0]), {"theta": 1.0}, edges={"tau": ("≥", 30.0)})
+    assert top.startswith("an actuator lag: τ ≥ 30.0 s, longer than the range searched") and "≈" not in top
+    assert "τ ≥ 30.0 s" in lag.describe(np.array([30.0]), None, edges={"tau": ("≥", 30.0)})
+    assert lag.describe(np.array([4.25]), {"theta": 1.0}) == "an actuator lag: τ ≈ 4.2 s"
+
+
+def test_a_late_finding_keeps_its_physics_edges():
+    """A finding that starts part-way is its inner physics from the onset on: the inner candidate's search edges
+    are its own (the onset's range, the record, is no edge of the physics), and its phrase says the bound."""
+    inner = get("characteristic")
+    late = LateOnset(inner)
+    ctx = _ctx()
+    assert late.bounds(ctx) == inner.bounds(ctx)
+    assert _on_edges(late, ctx, np.array([EQP, R_MAX, 800.0])) == {"R": ("≥", R_MAX)}
+    said = late.describe(np.array([EQP, R_MAX, 800.0]), {"theta": 1.0}, edges={"R": ("≥", R_MAX)})
+    assert said.startswith(f"an equal-percentage flow characteristic: R ≥ {R_MAX:.0f}, steeper")
+    assert said.endswith(", from t ≈ 800 s on")
+
+
+def test_the_joint_polish_keeps_a_candidate_inside_the_range_searched():
+    """The joint polish (a Nelder–Mead on log τ with the poles) is bounded by the candidate's declared edges, as
+    its grids are: unbounded, it once walked an actuator lag on a held integrating plant to 2·10⁹ s."""
+    lag, ctx = get("actuator_lag"), _ctx()
+    lo, hi = _search_range(lag, ctx)
+    assert hi.tolist() == [lag.bounds(ctx)["tau"][1]] and lo.tolist() == [-np.inf]
+    lo, hi = _search_range(get("stiction"), ctx)
+    assert np.all(np.isinf(lo)) and np.all(np.isinf(hi))   # no declared edge: nothing clipped
 
 
 @pytest.mark.slow  # a whole diagnosis (about 20 s)

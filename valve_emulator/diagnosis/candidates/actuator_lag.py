@@ -23,7 +23,7 @@ from typing import ClassVar
 import numba
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register, said
 from valve_emulator.physics._arrays import kernel_array
 from valve_emulator.physics.actuator import lag_coefficients
 
@@ -84,11 +84,16 @@ class ActuatorLag(ChainCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"tau": round(float(p[0]), 3)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
+        tau = said("τ", "tau", p[0], ".1f", edges, " s")
+        if edges and "tau" in edges:   # the top: longer than any positioner is slow
+            tau += (", longer than the range searched: a valve whose travel barely follows OP within the record "
+                    "(seized, a closed block valve or an open bypass) as likely as a slow actuator")
         if nominal is None:  # no model: nothing tells which of two lags in series is the actuator's
-            return (f"an actuator lag or a second plant lag: τ ≈ {p[0]:.1f} s (without a model the data cannot "
+            return (f"an actuator lag or a second plant lag: {tau} (without a model the data cannot "
                     "separate the two)")
-        return f"an actuator lag: τ ≈ {p[0]:.1f} s"
+        return f"an actuator lag: {tau}"
 
     def identity(self) -> np.ndarray:
         return np.array([0.0])

@@ -215,7 +215,8 @@ class Candidate(ABC):
 
         An estimate on such an end is not a value but a bound ("R ≥ 400"): the findings say so. An end that is
         a limit of the physics itself (a jump of 0, a dead time of 0) is no search edge: None. Default: none
-        declared.
+        declared. A candidate that declares one takes ``edges`` in :meth:`describe` (it is handed them where
+        its estimate sits on one).
         """
         return {}
 
@@ -245,15 +246,27 @@ class Candidate(ABC):
         """The JSON ``parameters`` dict for one parameter vector (its keys are part of the JSON output)."""
 
     @abstractmethod
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         """A short phrase for the verdict, e.g. ``"valve stiction: S ≈ 4.8 %, J ≈ 2.1 % (undershoot)"``;
         ``p`` in OP's units (see :mod:`~valve_emulator.diagnosis.fit.frame`), ``units`` their label after a
-        number, with its space (``" %"``, ``" mA"``, ``" OP units"``)."""
+        number, with its space (``" %"``, ``" mA"``, ``" OP units"``); ``edges`` the parameters whose estimate
+        sits on an edge of the range searched (name → (``"≥"`` or ``"≤"``, the edge), in the units of ``p``):
+        such a parameter is said as the bound (:func:`said`), never as a value."""
 
     @property
     def kind(self) -> Kind:
         """The candidate's kind, from its slot (:data:`KINDS`)."""
         return next(Kind(k) for k, slots in KINDS.items() if self.slot in slots)
+
+
+def said(symbol: str, name: str, value: float, spec: str, edges: dict | None, unit: str = "") -> str:
+    """One parameter in a finding's phrase: ``"τ ≈ 4.2 s"``, or, when ``name`` sits on an edge of the range
+    searched (``edges``, as :meth:`Candidate.describe` takes them), the bound alone: ``"τ ≥ 30 s"``."""
+    if edges and name in edges:
+        sign, edge = edges[name]
+        return f"{symbol} {sign} {edge:{spec}}{unit}"
+    return f"{symbol} ≈ {value:{spec}}{unit}"
 
 
 class ChainCandidate(Candidate):

@@ -18,7 +18,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register
+from valve_emulator.diagnosis.candidates.base import ChainCandidate, ChainContext, TwinRole, register, said
 from valve_emulator.physics.signal_chain import CHARACTERISTICS, DEFAULT_RANGEABILITY, Characteristic
 
 __all__ = ["FlowCharacteristic", "R_GRID", "R_MAX", "R_MIN"]
@@ -78,10 +78,15 @@ class FlowCharacteristic(ChainCandidate):
         kind = CHARACTERISTICS[int(p[0])]
         return {"type": kind, "R": round(float(p[1]), 3) if kind == "equal_percentage" else None}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         kind = CHARACTERISTICS[int(p[0])]
         if kind == "equal_percentage":
-            return f"an equal-percentage flow characteristic: R ≈ {p[1]:.0f}"
+            curve = f"an equal-percentage flow characteristic: {said('R', 'R', p[1], '.0f', edges)}"
+            if edges and "R" in edges:   # the top: steeper than any valve's own curve
+                curve += (", steeper than any valve's inherent curve (catalogues give 20–100): a gain that rises "
+                          "with OP more than a valve explains, as likely the process's or the load's as the valve's")
+            return curve
         return f"a {kind.replace('_', '-')} flow characteristic"
 
 

@@ -35,7 +35,8 @@ class DeadTime(DelayCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"theta": round(float(p[0]), 3)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         extra = f" (nominal {nominal['theta']:.3g} s)" if nominal and "theta" in nominal else ""
         return f"a dead-time error: θ ≈ {p[0]:.1f} s{extra}"
 

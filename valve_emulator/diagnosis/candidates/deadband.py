@@ -67,7 +67,8 @@ class Deadband(ChainCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"S": round(float(p[0]), 3)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         return f"a valve deadband (backlash): S ≈ {p[0]:.3g}{units}"
 
     def identity(self) -> np.ndarray:

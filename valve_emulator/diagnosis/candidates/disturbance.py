@@ -130,7 +130,8 @@ class Disturbance(OutputCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"period": round(float(p[0]), 3), "amplitude": float(f"{float(p[1]):.4g}")}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         return (f"an external oscillating disturbance: period ≈ {p[0]:.3g} s, amplitude ≈ {p[1]:.3g} "
                 "PV units")
 

@@ -96,7 +96,8 @@ class Quantization(OutputCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"q": float(f"{float(p[0]):.4g}")}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         return f"a quantised PV (steps of about {p[0]:.3g} PV units)"
 
 

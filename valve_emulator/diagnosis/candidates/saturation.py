@@ -96,7 +96,8 @@ class Saturation(ChainCandidate):
         return {"lo": round(float(p[0]), 3) if p[0] > 0.0 else None,
                 "hi": round(float(p[1]), 3) if p[1] < 100.0 else None}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         """``p`` in OP's units, NaN for the side without a limit (see ``explain.findings``)."""
         where = " travel" if units.strip() == "%" else ""
         if np.isfinite(p[0]):

@@ -105,7 +105,8 @@ class Stiction(ChainCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"S": round(float(p[0]), 3), "J": round(float(p[1]), 3)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         return f"valve stiction: S ≈ {p[0]:.3g}{units}, J ≈ {p[1]:.3g}{units} ({stiction_kind(p[0], p[1])})"
 
     def identity(self) -> np.ndarray:

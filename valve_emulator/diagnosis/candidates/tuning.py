@@ -391,7 +391,8 @@ class Tuning(LoopCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"kc": float(p[0]), "ti": float(p[1])}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         return f"aggressive tuning: PI Kc ≈ {p[0]:.3g}, Ti ≈ {p[1]:.3g} s"
 
 

@@ -282,11 +282,21 @@ def _as_bounds(ivs: dict, edges: dict[str, tuple[str, float]]) -> dict:
 
 
 def _edge_text(edges: dict[str, tuple[str, float]]) -> str:
-    """``" (at the edge of the range searched: R ≥ 400, a bound, not a value)"``, or ``""``."""
+    """``" (R at the edge of the range searched: a bound, not a value)"``, or ``""``; the phrase before it says
+    the bound itself (``R ≥ 400``, :func:`~valve_emulator.diagnosis.candidates.base.said`)."""
     if not edges:
         return ""
-    said = ", ".join(f"{k} {sign} {edge:.4g}" for k, (sign, edge) in edges.items())
-    return f" (at the edge of the range searched: {said}, a bound, not a value)"
+    return f" ({', '.join(edges)} at the edge of the range searched: a bound, not a value)"
+
+
+def _described(cand: Candidate, p_user: np.ndarray, nominal_info: dict | None, units: str,
+               edges: dict[str, tuple[str, float]]) -> str:
+    """The finding's phrase: :meth:`~valve_emulator.diagnosis.candidates.base.Candidate.describe`, handed the
+    parameters on an edge only where there are some (only a candidate that declares search edges has any, and
+    one written before ``edges`` was added to ``describe`` keeps working), then :func:`_edge_text`."""
+    said = cand.describe(p_user, nominal_info, units=units, edges=edges) if edges else cand.describe(
+        p_user, nominal_info, units=units)
+    return said + _edge_text(edges)
 
 
 def parameter_intervals(fitter: Fitter, problem: Problem, model: Model, act, params: dict) -> tuple[dict, dict]:
@@ -378,7 +388,7 @@ def findings(fitter: Fitter, problem: Problem, model: Model, rounds: list[Round]
                 edges = {k: (sign, frame.convert(cand.dims, {k: v})[k]) for k, (sign, v) in edges.items()}
             out.append(Finding(physics=name, parameters=params, windows=loc.windows,
                                evidence=_evidence(dbic, without.heldout, chosen.model.heldout, ivs, loc, load),
-                               description=cand.describe(p_user, nominal_info, units=units) + _edge_text(edges),
+                               description=_described(cand, p_user, nominal_info, units, edges),
                                intervals=ivs,
                                delta_bic=dbic, fit_without=without.heldout, fit_with=chosen.model.heldout,
                                load_delta_bic=load, edges=edges))

@@ -200,8 +200,12 @@ class LateOnset(ChainCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {**self.inner.parameters(p[:-1]), "onset_s": round(float(p[-1]), 1)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
-        return f"{self.inner.describe(p[:-1], nominal, units)}, from t ≈ {p[-1]:.4g} s on"
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
+        return f"{self.inner.describe(p[:-1], nominal, units, edges)}, from t ≈ {p[-1]:.4g} s on"
+
+    def bounds(self, ctx: ChainContext) -> dict[str, tuple[float | None, float | None]]:
+        return self.inner.bounds(ctx)  # the onset runs over the record, whose ends are no edge of the physics
 
 
 def _as_slice(rows: np.ndarray) -> slice | np.ndarray:
