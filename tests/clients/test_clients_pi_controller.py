@@ -6,6 +6,7 @@ import asyncio
 import re
 import signal
 import sys
+import time
 
 import pytest
 
@@ -88,10 +89,14 @@ async def test_ctrl_c_stops_the_plc_and_leaves_op_where_it_was():
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         bank = srv.device.bank
         try:
-            for _ in range(600):                                  # bounded: up to 60 s simulated
+            # bounded in wall time, not ticks: on a loaded machine the PLC's interpreter may take seconds to
+            # import, and a SIGINT before its first write would test the import, not the PLC
+            deadline = time.monotonic() + 60.0
+            while time.monotonic() < deadline:
                 await srv.device.wait_for_tick(srv.device.ticks + 1)
                 if bank.op_external[0] != 50.0:                   # the PLC is writing
                     break
+            assert bank.op_external[0] != 50.0, "the PLC never wrote OP"
             await srv.device.wait_for_tick(srv.device.ticks + 20)
             proc.send_signal(signal.SIGINT)
             _, err = await asyncio.wait_for(proc.communicate(), timeout=20)
