@@ -260,6 +260,10 @@ HEALTHY_LEVEL_MORE = drawn("healthy_level", 7, 24, ("plant",))
 #: Sticky level loops with their exact nominal model, drawn with a seed no other set uses (the draws the rule was
 #: found on are COVERAGE's and STRENGTH's level loops): the held integrator's property test.
 LEVEL_MODEL = drawn("level_sticky", 14, 20, ("model",))
+#: Slow noisy valves (an actuator lag of 3–10 s, friction below 1 % travel, PV noise) with their nominal model,
+#: drawn with a seed no other set uses: where a band standing in for what the nominal model leaves out must not be
+#: called stiction (the drifting-load contest with a model, ``decision.MODEL_CONTEST_BIC``, was found on this set).
+SLOW_NOISY_MODEL = drawn("slow_noisy_valve", 15, 20, ("model",))
 #: Every draw of every set, once, in a stable order.
 ALL = list(dict.fromkeys(LEVEL + LATE_ONSET + AGGRESSIVE_MODEL + AGGRESSIVE_PLANT + COVERAGE + STRENGTH
-                         + HEALTHY_LEVEL + HEALTHY_LEVEL_MORE + LEVEL_MODEL))
+                         + HEALTHY_LEVEL + HEALTHY_LEVEL_MORE + LEVEL_MODEL + SLOW_NOISY_MODEL))
