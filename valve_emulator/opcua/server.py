@@ -1017,7 +1017,8 @@ class OpcUaServer:
                     self._refresh()
                     await self._hand(self._hand_ahead(seen, loop.time(), 0, 1, finite_period(source)))
                     continue
-                ran = source.tick_time
+                with source.sampling():   # the newest tick and its time, from one copy of the image
+                    seen, ran = max(seen, source.ticks), source.tick_time
                 arrived = loop.time() if ran is None else loop.time() - max(0.0, time.time() - ran)
                 anchors = grid.anchors
                 due = grid.due(seen, arrived, period)
