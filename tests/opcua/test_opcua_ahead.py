@@ -131,6 +131,15 @@ def _lost(order):
             for v, n in counts.items() if n != 1]
 
 
+async def test_after_a_hold_longer_than_the_hand_offs_registered_ahead_every_item_is_handed_once_an_interval_again():
+    """A hold past every registered hand-off (whose own registrations ahead were past by then) does not end the
+    hand-offs: the publisher registers them anew from the next tick's note."""
+    order, _ = await _run(25, seconds=4.0)
+    for k in range(len(PHASES)):
+        last = _windows(order, k)[-1]
+        assert set(last.values()) == {1}, k
+
+
 @pytest.mark.parametrize("hold_ticks", [0, 1, 3, 7])
 async def test_a_loop_held_k_ticks_still_hands_every_item_due_in_them_before_each_publish_due_after_its_hand_off(
         hold_ticks):

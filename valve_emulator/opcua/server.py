@@ -586,6 +586,8 @@ class OpcUaServer:
         self._grid = HandOffGrid()
         self._slots: dict[int, list[asyncio.TimerHandle]] = {}
         self._handing: set[asyncio.Task] = set()
+        #: the last tick whose hand-off began
+        self._fired = -1
         #: the tick the last hand-off of :meth:`_publish_ahead` sampled, and its wall and process CPU time
         self._sampled = (0, math.nan, 0.0)
         self._historized: list[ua.NodeId] = []
@@ -1022,11 +1024,14 @@ class OpcUaServer:
                 arrived = loop.time() if ran is None else loop.time() - max(0.0, time.time() - ran)
                 anchors = grid.anchors
                 due = grid.due(seen, arrived, period)
-                if grid.anchors != anchors or not self._slots:
+                if grid.anchors != anchors:   # the grid moved: the hand-offs ahead anew
                     self._cancel_slots()
-                    for tick in range(seen, seen + HAND_AHEAD):
-                        self._register(tick)
-                if not self._slots:   # the grid a tick or more behind the device (a resume): handed at once, late
+                    self._fired = min(self._fired, seen - 1)
+                # the hand-offs ahead kept registered: each registers the one HAND_AHEAD after it, but not once its
+                # time is past (a hold longer than them, a resume before the grid moved), and then these do
+                for tick in range(seen, seen + HAND_AHEAD):
+                    self._register(tick)
+                if seen > self._fired and seen not in self._slots:   # its time long past: handed at once, late
                     self._fire(seen, due, 0, 1)
         finally:
             self._cancel_slots()
@@ -1037,8 +1042,8 @@ class OpcUaServer:
         """Put tick number ``tick``'s hand-off chunks on the event loop's timer heap at their times on the grid."""
         grid, loop = self._grid, asyncio.get_running_loop()
         when, period = grid.at(tick), grid.period
-        if tick in self._slots or not math.isfinite(when) or when < loop.time() - period:
-            return   # registered, no grid, or a grid the device left behind (a resume: it moves after PATIENCE)
+        if tick in self._slots or tick <= self._fired or not math.isfinite(when) or when < loop.time() - period:
+            return   # registered or handed, no grid, or past by a tick or more (a hold, a resume before the grid moved)
         chunks = max(1, -(-len(self._active) // HAND_CHUNK))
         self._slots[tick] = [loop.call_at(at, self._fire, tick, when, k, chunks)
                              for k, at in enumerate(chunk_times(when, period, chunks, HAND_SPACING))]
@@ -1058,6 +1063,7 @@ class OpcUaServer:
 
     async def _hand_timed(self, tick: int, when: float, chunk: int, chunks: int) -> None:
         if chunk == 0:
+            self._fired = max(self._fired, tick)
             for old in [t for t in self._slots if t < tick]:   # fired (or never to fire: the grid moved on)
                 for handle in self._slots.pop(old):
                     handle.cancel()
