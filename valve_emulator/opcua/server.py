@@ -119,7 +119,8 @@ PUBLISH_BUDGET = 0.3
 #: tick is moved across the publish of every item whose publish falls between the two ticks (at 1 s sampling on a
 #: 0.1 s tick one item in ten), which then goes out without it and with a queue of one never carries it
 #: (docs/benchmarks.md §9.12). A publisher behind the device (its pass longer than a tick) takes the newest tick
-#: when it is done, unless that tick's hand-off is already past: then it waits for the next tick, so that a
+#: when it is done, unless that tick's hand-off is past by half a tick or more (``handoff.TAKE_LATE``; since
+#: 2026-11-28 the OPC UA process hands ahead instead, ``hand_ahead``): then it waits for the next tick, so that a
 #: publisher the machine cannot keep up with leaves the event loop to asyncua's publishes and the clients'
 #: requests between ticks (the ticks it skipped counted in ``skipped``); a group due at a skipped tick is sampled at
 #: the next one on its own grid (:func:`next_due`).
@@ -962,7 +963,8 @@ class OpcUaServer:
         instead of delaying the tick. In a process of its own nothing is deferred (:data:`PROCESS_PUBLISH_BUDGET`):
         a tick's due values are all handed at its hand-off, into the publishing interval they belong to; a
         publisher behind the device takes the newest tick once it is done with the last, or, if that tick's
-        hand-off is already past, the next one (the ticks it never sampled counted in :attr:`skipped`)."""
+        hand-off is past by half a tick or more (``TAKE_LATE``), the next one (the ticks it never sampled counted in
+        :attr:`skipped`). (The OPC UA process hands ahead instead: :meth:`_publish_ahead`.)"""
         source, seen, at = self.source, self.source.ticks, 0
         loop = asyncio.get_running_loop()
         grid = HandOffGrid()
