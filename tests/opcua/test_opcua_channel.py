@@ -2,6 +2,7 @@
 
 import asyncio
 import socket
+import time
 from multiprocessing import resource_tracker
 
 import numpy as np
@@ -94,6 +95,35 @@ def test_the_reader_sees_what_was_published_and_copies_only_a_new_publication():
         publisher.device.image[0] = 99
         publisher.publish()
         assert reader.read().image[0] == 99 and publisher.copies == 2
+        reader.close()
+    finally:
+        publisher.close()
+
+
+def test_a_pinned_reader_sees_one_tick_and_the_header_says_which_and_when_it_ran():
+    """A chunk of the OPC UA process's hand-off samples one tick however many the device publishes meanwhile
+    (never half of one and half of the next), stamped with the time the device first published that tick: a write
+    published later keeps the tick's time, a new tick gets its own."""
+    device = _Device()
+    device.image = bytearray(range(16))
+    publisher = ImagePublisher(device)
+    try:
+        publisher.publish()
+        reader = ImageReader(publisher.name, publisher.layout)
+        resource_tracker.register(publisher.shm._name, "shared_memory")
+        ran = reader.read().wall_time
+        device.image[0] = 50   # a write: the same tick
+        publisher.publish()
+        assert reader.read().image[0] == 50 and reader.read().wall_time == ran
+        with reader.pinned() as held:
+            time.sleep(0.01)
+            device.ticks, device.image[0] = 8, 60   # the device runs a tick meanwhile
+            publisher.publish()
+            with reader.pinned() as inner:
+                assert inner is held
+            assert reader.read() is held and (held.ticks, held.image[0]) == (7, 50)
+        newer = reader.read()
+        assert (newer.ticks, newer.image[0]) == (8, 60) and newer.wall_time > ran
         reader.close()
     finally:
         publisher.close()

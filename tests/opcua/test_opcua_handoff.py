@@ -19,6 +19,7 @@ from valve_emulator.opcua.handoff import (
     HAND_OFF_DELAY,
     HAND_SPREAD,
     PATIENCE,
+    TAKE_LATE,
     HandOffGrid,
     Wakeups,
     chunk_times,
@@ -59,16 +60,20 @@ def test_a_tick_later_than_its_hand_off_is_handed_at_once_and_a_schedule_that_mo
                                                  for k in range(PATIENCE - 1, PATIENCE + 1)])
 
 
-def test_a_tick_is_overdue_once_its_hand_off_on_the_grid_is_past_and_asking_does_not_move_the_grid():
-    """What the publisher asks of a tick that came while it was busy: skip it (its hand-off is past) or not."""
+def test_a_tick_is_overdue_once_its_hand_off_on_the_grid_is_past_by_half_a_tick_and_asking_does_not_move_the_grid():
+    """What the publisher asks of a tick that came while it was busy: skip it (its hand-off is past by half a tick
+    or more: wait for the next) or take it at once (less: the next is not due before then)."""
     grid = HandOffGrid()
     assert not grid.overdue(3, 99.0, TICK)   # no grid yet
     grid.due(0, 20.0, TICK)
     hand_off = 20.0 + (2 + HAND_OFF_DELAY) * TICK   # tick 2's
+    assert grid.at(2) == pytest.approx(hand_off)
     assert not grid.overdue(2, hand_off - 0.001, TICK)
-    assert grid.overdue(2, hand_off + 0.001, TICK)
-    assert not grid.overdue(2, hand_off + 0.001, 2 * TICK)   # another period: no grid for it
-    assert not grid.overdue(2, hand_off + 0.001, math.inf)   # no real-time period
+    assert not grid.overdue(2, hand_off + 0.001, TICK)   # past, by less than half a tick: taken at once
+    assert not grid.overdue(2, hand_off + (TAKE_LATE - 0.01) * TICK, TICK)
+    assert grid.overdue(2, hand_off + (TAKE_LATE + 0.01) * TICK, TICK)
+    assert not grid.overdue(2, hand_off + TICK, 2 * TICK)   # another period: no grid for it
+    assert not grid.overdue(2, hand_off + TICK, math.inf)   # no real-time period
     assert grid.due(1, 20.0 + TICK, TICK) == pytest.approx(20.0 + (1 + HAND_OFF_DELAY) * TICK)   # unmoved
 
 

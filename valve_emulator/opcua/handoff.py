@@ -33,7 +33,8 @@ import asyncio
 import math
 from collections.abc import Sequence
 
-__all__ = ["EARLY", "HAND_OFF_DELAY", "HAND_SPREAD", "PATIENCE", "HandOffGrid", "Wakeups", "chunk_times", "until"]
+__all__ = ["EARLY", "HAND_OFF_DELAY", "HAND_SPREAD", "PATIENCE", "TAKE_LATE", "HandOffGrid", "Wakeups", "chunk_times",
+           "until"]
 
 #: A tick's values are handed this share of the tick period after the tick's expected arrival: half way to the
 #: next tick, so that ticks up to half a period later than the earliest are still handed on the grid, sampling
@@ -48,6 +49,11 @@ HAND_OFF_DELAY = 0.5
 HAND_SPREAD = 0.25
 #: A tick this share of the period earlier than the grid expects moves the grid to it.
 EARLY = 0.25
+#: A tick that came while the publisher was busy is still taken at once when its hand-off on the grid is past by
+#: less than this share of the period (:meth:`HandOffGrid.overdue`): the next tick is not due before then, so
+#: waiting for it would lose the publishes due until its hand-off, while taking this one loses only those due in
+#: the few ms it is late (docs/benchmarks.md §9.16: a third of the runs of skipped ticks ended so).
+TAKE_LATE = 0.5
 #: After this many ticks in a row later than their hand-off was due, the grid moves to them (the device's
 #: schedule moved: a resume, a restored snapshot).
 PATIENCE = 3
@@ -94,13 +100,25 @@ class HandOffGrid:
             return self._anchor(tick, arrived, period)
         return arrived
 
+    @property
+    def period(self) -> float:
+        """The period of the grid (NaN without one)."""
+        return self._period
+
+    def at(self, tick: int) -> float:
+        """Tick number ``tick``'s hand-off time on the grid as it stands (NaN without a grid): for a tick not yet
+        come, where its hand-off is registered ahead."""
+        if not math.isfinite(self._period) or tick < self._tick:
+            return math.nan
+        return self._arrival + (tick - self._tick + self.delay) * self._period
+
     def overdue(self, tick: int, now: float, period: float) -> bool:
-        """Whether tick number ``tick``'s hand-off on the grid is already past at ``now`` (without moving the grid):
-        for a tick that came while the publisher was still busy with an earlier one. False without a grid (no
-        real-time period, a new period, a tick count that went back)."""
+        """Whether tick number ``tick``'s hand-off on the grid was past by :data:`TAKE_LATE` of a period or more at
+        ``now`` (without moving the grid): for a tick that came while the publisher was still busy with an earlier
+        one. False without a grid (no real-time period, a new period, a tick count that went back)."""
         if not (math.isfinite(period) and period > 0) or period != self._period or tick < self._tick:
             return False
-        return now > self._arrival + (tick - self._tick + self.delay) * period
+        return now >= self._arrival + (tick - self._tick + self.delay + TAKE_LATE) * period
 
     def _anchor(self, tick: int, arrived: float, period: float) -> float:
         self._period, self._tick, self._arrival, self._late = period, tick, arrived, 0

@@ -94,6 +94,16 @@ class RemoteSource:
     def period(self) -> float:
         return self._period
 
+    @property
+    def tick_time(self) -> float:
+        """When the device ran the tick of the image (POSIX seconds, the device process's clock)."""
+        return self.reader.read().wall_time
+
+    def sampling(self) -> contextlib.AbstractContextManager[Any]:
+        """A block of reads of one tick: the image as on entering it, whatever the device runs meanwhile
+        (``ImageReader.pinned``)."""
+        return self.reader.pinned()
+
     def computed(self, index: int, quantity: str) -> float | None:
         if quantity == "time":
             return self.sample_time
@@ -225,7 +235,7 @@ async def _serve_on(channel: Channel, source: RemoteSource, spec: ChildSpec) -> 
 
     server = OpcUaServer(source, loops=spec.loops, host=spec.host, port=spec.port, security=spec.security,
                          history=spec.history, history_path=spec.history_path,
-                         publish_budget=PROCESS_PUBLISH_BUDGET, yield_while_sampling=False)
+                         publish_budget=PROCESS_PUBLISH_BUDGET, yield_while_sampling=False, hand_ahead=True)
     try:
         try:
             with _without_errors("asyncua.server.server"), _built_out_of_the_collectors_sight():

@@ -119,7 +119,8 @@ PUBLISH_BUDGET = 0.3
 #: tick is moved across the publish of every item whose publish falls between the two ticks (at 1 s sampling on a
 #: 0.1 s tick one item in ten), which then goes out without it and with a queue of one never carries it
 #: (docs/benchmarks.md §9.12). A publisher behind the device (its pass longer than a tick) takes the newest tick
-#: when it is done, unless that tick's hand-off is already past: then it waits for the next tick, so that a
+#: when it is done, unless that tick's hand-off is past by half a tick or more (``handoff.TAKE_LATE``; since
+#: 2026-11-28 the OPC UA process hands ahead instead, ``hand_ahead``): then it waits for the next tick, so that a
 #: publisher the machine cannot keep up with leaves the event loop to asyncua's publishes and the clients'
 #: requests between ticks (the ticks it skipped counted in ``skipped``); a group due at a skipped tick is sampled at
 #: the next one on its own grid (:func:`next_due`).
@@ -130,6 +131,15 @@ HAND_CHUNK = 200
 #: 2-5 ms, a share of 0.05 is 5 ms at a 0.1 s tick), or closer where the chunks would spread over more than
 #: :data:`~valve_emulator.opcua.handoff.HAND_SPREAD` of the period (more than 6 chunks: over 1,200 variables).
 HAND_SPACING = 0.05
+#: In a process of its own (``hand_ahead``) the hand-off chunks of this many ticks ahead are on the event loop's
+#: timer heap, each sampling the shared image when it fires: so a loop held up to this many ticks (asyncua's publish
+#: of thousands of values, a core not given: 0.2-0.7 s measured, docs/benchmarks.md §9.16) still runs each
+#: hand-off before every publish due after it. A tick period of them, at 20 chunks (4,000 monitored variables), is
+#: 200 timers; a longer hold hands the ticks past the last registered one late, as before.
+HAND_AHEAD = 10
+#: A hand-off whose first chunk runs this share of the period after its time on the grid is kept as handed late
+#: (``OffGrid``, for ``--trace``).
+HANDED_LATE = 0.1
 #: A float32 register's two words (big-endian, as in the register image) and the float32 they make, high word first.
 _WORDS = struct.Struct(">HH")
 _FLOAT32 = struct.Struct(">f")
@@ -303,10 +313,12 @@ _EU_EXCEEDED = ua.StatusCode(ua.StatusCodes.UncertainEngineeringUnitsExceeded)
 class TickClock:
     """The wall-clock time of the tick that made the values served now: the SourceTimestamp.
 
-    A tick is stamped when the server first sees it -- the publisher waits for every tick and wakes right after
-    it, and a read between the two stamps it itself -- so the stamp is the tick's time to within the event
-    loop's latency, without a callback in the tick (``Device.on_tick`` would keep ``Device.advance`` from
-    running quiet ticks as one compiled call). A restored snapshot counts as a new tick."""
+    Where the source knows when the device ran the tick (``tick_time``: the OPC UA process, from the shared image's
+    header) that is the stamp, however late this process samples it. Otherwise (in the device's process) a tick is
+    stamped when the server first sees it -- the publisher waits for every tick and wakes right after it, and a
+    read between the two stamps it itself -- so the stamp is the tick's time to within the event loop's latency,
+    without a callback in the tick (``Device.on_tick`` would keep ``Device.advance`` from running quiet ticks as
+    one compiled call). A restored snapshot counts as a new tick."""
 
     def __init__(self, source: DeviceSource) -> None:
         self.source = source
@@ -314,10 +326,12 @@ class TickClock:
         self._at = datetime.now(UTC)
 
     def stamp(self) -> datetime:
-        """When the current tick ran (the first time this clock saw it)."""
-        seen = (self.source.ticks, self.source.sample_time)
+        """When the current tick ran (the device's time of it, or the first time this clock saw it)."""
+        source = self.source
+        seen = (source.ticks, source.sample_time)
         if seen != self._seen:
-            self._seen, self._at = seen, datetime.now(UTC)
+            ran = source.tick_time
+            self._seen, self._at = seen, datetime.now(UTC) if ran is None else datetime.fromtimestamp(ran, UTC)
         return self._at
 
 
@@ -549,12 +563,16 @@ class OpcUaServer:
         while it samples a tick (True, in the device's process: the tick and Modbus come first). False in a
         process of its own: a publish that ran in such a yield after the tick's hand-off was due would come before
         it (docs/benchmarks.md §9.6); sampling a tick there takes a few ms (2,000 variables: about 10 ms).
+    hand_ahead : register each tick's hand-off on the grid :data:`HAND_AHEAD` ticks ahead and sample each chunk
+        from the source when its timer fires (:meth:`_publish_ahead`; in a process of its own, where the source is
+        the shared image the device writes whatever this process does). False: sample each tick when it arrives
+        and hand it on the grid (:meth:`_publish`, in the device's process, with its budget).
     """
 
     def __init__(self, source: DeviceSource, *, loops: Sequence[Any], host: str = "127.0.0.1", port: int = 0,
                  security: OpcUaSecurity | None = None, history: float | None = None,
                  history_path: str = ":memory:", publish_budget: float = PUBLISH_BUDGET,
-                 yield_while_sampling: bool = True) -> None:
+                 yield_while_sampling: bool = True, hand_ahead: bool = False) -> None:
         if isinstance(source, Device):
             source = LocalSource(source)
         self.source, self.loops, self.host, self.port = source, list(loops), host, int(port)
@@ -563,6 +581,16 @@ class OpcUaServer:
         #: seconds of PV, OP, SP and MV kept for HistoryRead (None: no history), in SQLite at history_path
         self.history, self.history_path = history, history_path
         self.publish_budget, self.yield_while_sampling = publish_budget, yield_while_sampling
+        self.hand_ahead = hand_ahead
+        #: the hand-off grid of :meth:`_publish_ahead`, the timers it registered (tick -> handles) and the chunks'
+        #: tasks under way
+        self._grid = HandOffGrid()
+        self._slots: dict[int, list[asyncio.TimerHandle]] = {}
+        self._handing: set[asyncio.Task] = set()
+        #: the last tick whose hand-off began
+        self._fired = -1
+        #: the tick the last hand-off of :meth:`_publish_ahead` sampled, and its wall and process CPU time
+        self._sampled = (0, math.nan, 0.0)
         self._historized: list[ua.NodeId] = []
         self.security = security or OpcUaSecurity()
         self.security.check(host)
@@ -935,7 +963,8 @@ class OpcUaServer:
         instead of delaying the tick. In a process of its own nothing is deferred (:data:`PROCESS_PUBLISH_BUDGET`):
         a tick's due values are all handed at its hand-off, into the publishing interval they belong to; a
         publisher behind the device takes the newest tick once it is done with the last, or, if that tick's
-        hand-off is already past, the next one (the ticks it never sampled counted in :attr:`skipped`)."""
+        hand-off is past by half a tick or more (``TAKE_LATE``), the next one (the ticks it never sampled counted in
+        :attr:`skipped`). (The OPC UA process hands ahead instead: :meth:`_publish_ahead`.)"""
         source, seen, at = self.source, self.source.ticks, 0
         loop = asyncio.get_running_loop()
         grid = HandOffGrid()
@@ -962,6 +991,145 @@ class OpcUaServer:
             with Wakeups(chunk_times(due, period, chunks, HAND_SPACING)) as wakeups:
                 handing, at = await self._sample(at, sampled_at, period, self.publish_budget * period)
                 await self._hand_all(handing, wakeups)
+
+    async def _publish_ahead(self) -> None:
+        """The publisher of a process of its own: each tick's hand-off registered on the grid :data:`HAND_AHEAD`
+        ticks ahead, each chunk sampling its due groups from the source when its timer fires.
+
+        asyncua's publish timers and the hand-off's share the event loop's heap and run in the order of their due
+        times however late the loop runs (:class:`~valve_emulator.opcua.handoff.Wakeups`). :meth:`_publish` puts a
+        tick's hand-off there only when the tick's note is read and its pass begins -- after the pass before is
+        done -- so a loop held past a hand-off let the publishes due meanwhile run before it, without the values
+        due there (docs/benchmarks.md §9.16). Here the hand-offs of the next ticks are on the heap before the loop
+        is held: when it runs again each comes before every publish due after it, and each samples the newest tick
+        the device wrote to the shared image (its SourceTimestamp that tick's), so every publish holds the newest
+        value of each item due since the one before, whatever the loop's lateness. Each registered hand-off, when
+        its first chunk fires, registers the one :data:`HAND_AHEAD` ticks after it.
+
+        This loop only keeps the grid: it reads each tick's note for the time the device ran the tick (the image's,
+        not the note's arrival, which is late when this process was) and registers the hand-offs anew when the grid
+        moves (``HandOffGrid``: a resume, a restored snapshot, a new period). Without a real-time period (lockstep,
+        time frozen) each tick is sampled and handed when it arrives, at once."""
+        source, loop = self.source, asyncio.get_running_loop()
+        grid, seen = self._grid, source.ticks
+        try:
+            while True:
+                seen = await source.wait_for_tick(seen + 1)
+                period = source.period
+                if not (math.isfinite(period) and period > 0):
+                    self._cancel_slots()
+                    self._refresh()
+                    await self._hand(self._hand_ahead(seen, loop.time(), 0, 1, finite_period(source)))
+                    continue
+                with source.sampling():   # the newest tick and its time, from one copy of the image
+                    seen, ran = max(seen, source.ticks), source.tick_time
+                arrived = loop.time() if ran is None else loop.time() - max(0.0, time.time() - ran)
+                anchors = grid.anchors
+                due = grid.due(seen, arrived, period)
+                if grid.anchors != anchors:   # the grid moved: the hand-offs ahead anew
+                    self._cancel_slots()
+                    self._fired = min(self._fired, seen - 1)
+                # the hand-offs ahead kept registered: each registers the one HAND_AHEAD after it, but not once its
+                # time is past (a hold longer than them, a resume before the grid moved), and then these do
+                for tick in range(seen, seen + HAND_AHEAD):
+                    self._register(tick)
+                if seen > self._fired and seen not in self._slots:   # its time long past: handed at once, late
+                    self._fire(seen, due, 0, 1)
+        finally:
+            self._cancel_slots()
+            for task in list(self._handing):
+                task.cancel()
+
+    def _register(self, tick: int) -> None:
+        """Put tick number ``tick``'s hand-off chunks on the event loop's timer heap at their times on the grid."""
+        grid, loop = self._grid, asyncio.get_running_loop()
+        when, period = grid.at(tick), grid.period
+        if tick in self._slots or tick <= self._fired or not math.isfinite(when) or when < loop.time() - period:
+            return   # registered or handed, no grid, or past by a tick or more (a hold, a resume before the grid moved)
+        chunks = max(1, -(-len(self._active) // HAND_CHUNK))
+        self._slots[tick] = [loop.call_at(at, self._fire, tick, when, k, chunks)
+                             for k, at in enumerate(chunk_times(when, period, chunks, HAND_SPACING))]
+
+    def _cancel_slots(self) -> None:
+        for handles in self._slots.values():
+            for handle in handles:
+                handle.cancel()
+        self._slots.clear()
+
+    def _fire(self, tick: int, when: float, chunk: int, chunks: int) -> None:
+        """A registered chunk's timer: its hand-off in a task of its own, which the event loop runs in the order of
+        the timers (a publish woken by an earlier timer before it, one woken by a later timer after it)."""
+        task = asyncio.get_running_loop().create_task(self._hand_timed(tick, when, chunk, chunks))
+        self._handing.add(task)
+        task.add_done_callback(self._handing.discard)
+
+    async def _hand_timed(self, tick: int, when: float, chunk: int, chunks: int) -> None:
+        if chunk == 0:
+            self._fired = max(self._fired, tick)
+            for old in [t for t in self._slots if t < tick]:   # fired (or never to fire: the grid moved on)
+                for handle in self._slots.pop(old):
+                    handle.cancel()
+            if self._refresh():   # the monitored variables changed: register the hand-offs ahead in as many chunks
+                for ahead in [t for t in self._slots if t > tick]:
+                    for handle in self._slots.pop(ahead):
+                        handle.cancel()
+                for ahead in range(tick + 1, tick + HAND_AHEAD):
+                    self._register(ahead)
+            self._register(tick + HAND_AHEAD)
+        await self._hand(self._hand_ahead(tick, when, chunk, chunks, self._grid.period))
+
+    def _refresh(self) -> bool:
+        """Rebuild the list of monitored variables if a client changed it; whether it was rebuilt."""
+        if not self._dirty:
+            return False
+        self._dirty = False
+        self._active = self._watches()
+        return True
+
+    def _hand_ahead(self, tick: int, when: float, chunk: int, chunks: int,
+                    period: float) -> list[tuple[int, _Watch, ua.DataValue, list[_Group]]]:
+        """The values chunk ``chunk`` of ``chunks`` of tick ``tick``'s hand-off (due on the grid at ``when``) hands:
+        of the variables at its places (the last chunk: to the end of the list) whose groups are due at ``when``,
+        sampled from one tick of the source (``source.sampling``: never half of one tick and half of the next),
+        stamped with that tick's time. The first chunk keeps the ticks no hand-off sampled and a hand-off run late
+        (``OffGrid``)."""
+        active, slack = self._active, period / 2
+        low, high = chunk * HAND_CHUNK, len(active) if chunk == chunks - 1 else (chunk + 1) * HAND_CHUNK
+        handing = []
+        with self.source.sampling():
+            if chunk == 0:
+                self._note_sampled(tick, when, period)
+            if low >= len(active):
+                return handing
+            stamps = (self.tick_clock.stamp(), datetime.now(UTC))
+            for place in range(low, min(high, len(active))):
+                watch = active[place]
+                if when < watch.soonest - slack:   # none of its groups due: not even a call
+                    continue
+                changed = self._changed(watch, when, slack, stamps)
+                if changed:
+                    handing.append((place, watch, *changed))
+        return handing
+
+    def _note_sampled(self, tick: int, when: float, period: float) -> None:
+        """Count and keep the ticks between the last hand-off's and this one's (tick ``tick``'s, due at ``when``)
+        that none sampled (``skipped``) and this hand-off when it runs :data:`HANDED_LATE` of a period after
+        ``when`` (:class:`OffGrid`)."""
+        loop = asyncio.get_running_loop()
+        now, cpu, sampled = loop.time(), time.process_time(), self.source.ticks
+        last, last_wall, last_cpu = self._sampled
+        if sampled < last:   # a restored snapshot
+            last = sampled
+        busy = (cpu - last_cpu) / max(now - last_wall, 1e-9) if math.isfinite(last_wall) else 0.0
+        late = now - when
+        if sampled > last + 1 and last:
+            stamp = self.tick_clock.stamp().timestamp()
+            self.skipped += sampled - last - 1
+            self.off_grid.extend(OffGrid(k, stamp - (sampled - k) * period, True, late - (tick - k) * period,
+                                         busy) for k in range(last + 1, sampled))
+        if late > HANDED_LATE * period:
+            self.off_grid.append(OffGrid(sampled, self.tick_clock.stamp().timestamp(), False, late, busy))
+        self._sampled = (max(sampled, last), now, cpu)
 
     def _note_off_grid(self, previous: int, seen: int, stamp: float, period: float, done_late: float,
                        handed_late: bool, late: float, busy: float) -> None:
@@ -1204,7 +1372,8 @@ class OpcUaServer:
             await historize(server, self._historized, self.history, self.history_path)
         refuse_unhistorized(server, set(self._historized))
         self.port = int(server.bserver.port)
-        self._publisher = asyncio.get_running_loop().create_task(self._publish(), name="valve-emulator-opcua")
+        self._publisher = asyncio.get_running_loop().create_task(
+            self._publish_ahead() if self.hand_ahead else self._publish(), name="valve-emulator-opcua")
         _log.info("OPC UA on %s:%d", self.host, self.port)
 
     @property

@@ -9,7 +9,10 @@ UA, however many clients subscribe.
 The OPC UA process owns an :class:`ImageReader` on the same block. A sequence counter (odd while the publisher
 writes) lets it take a consistent copy: it retries when the counter moved or was odd, so it never serves half
 of one tick and half of the next. Both run single-threaded over x86's ordered stores; the counter is written
-last and read first.
+last and read first. The header says which tick the copy holds (``ticks``, ``sample_time``) and when the device
+ran it (``wall time``: the time of the copy that first held that tick, not of a later write's): the
+SourceTimestamp of every value sampled from it, whenever the OPC UA process samples it. :meth:`ImageReader.pinned`
+keeps one copy for a whole block of reads (a chunk of a hand-off), so a chunk never mixes two ticks.
 
 Layout: a header ``seq, ticks (uint64), sample_time, wall time (float64)``, then the image's bytes, then
 ``COMPUTED × n`` float64 (quantity-major).
@@ -17,8 +20,10 @@ Layout: a header ``seq, ticks (uint64), sample_time, wall time (float64)``, then
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from multiprocessing import resource_tracker, shared_memory
 from typing import Any
@@ -79,6 +84,8 @@ class ImagePublisher:
                                    offset=self.layout.doubles_at)
         self._no_controller = ~np.asarray(device.scaling.has_controller, dtype=bool)
         self._seq = 0
+        self._tick: tuple[int, float] | None = None
+        self._tick_wall = 0.0
         self.copies = 0
 
     @property
@@ -95,7 +102,10 @@ class ImagePublisher:
             self._doubles[row] = getattr(bank, quantity)
         self._doubles[COMPUTED.index("sp"), self._no_controller] = 0.0   # a loop without controller reads SP 0
         self._seq += 1
-        _HEADER.pack_into(buf, 0, self._seq, int(device.ticks), float(bank.sample_time), time.time())
+        tick = (int(device.ticks), float(bank.sample_time))
+        if tick != self._tick:   # a new tick (or a restored snapshot): its time; a write keeps the tick's
+            self._tick, self._tick_wall = tick, time.time()
+        _HEADER.pack_into(buf, 0, self._seq, tick[0], tick[1], self._tick_wall)
         self.copies += 1
 
     def close(self) -> None:
@@ -114,12 +124,16 @@ class ImageReader:
         # unlink it too when this process ends (and warn of a leak)
         resource_tracker.unregister(self.shm._name, "shared_memory")
         self._last: TickImage | None = None
+        self._pinned: TickImage | None = None
 
     def seq(self) -> int:
         return _SEQ.unpack_from(self.shm.buf, 0)[0]
 
     def read(self) -> TickImage:
-        """The latest published image (the same object as long as nothing new was published)."""
+        """The latest published image (the same object as long as nothing new was published); inside
+        :meth:`pinned`, the one taken on entering it."""
+        if self._pinned is not None:
+            return self._pinned
         last = self._last
         if last is not None and self.seq() == last.seq:
             return last
@@ -134,6 +148,19 @@ class ImageReader:
             if self.seq() == seq:
                 self._last = TickImage(image, computed.reshape(len(COMPUTED), lay.n), ticks, sample_time, wall, seq)
                 return self._last
+
+    @contextlib.contextmanager
+    def pinned(self) -> Iterator[TickImage]:
+        """Every :meth:`read` inside the block answers the latest image as on entering it (one tick, however
+        many the device runs meanwhile in its own process); nested blocks keep the outer one's."""
+        if self._pinned is not None:
+            yield self._pinned
+            return
+        self._pinned = self.read()
+        try:
+            yield self._pinned
+        finally:
+            self._pinned = None
 
     def close(self) -> None:
         self.shm.close()

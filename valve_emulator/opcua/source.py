@@ -56,6 +56,9 @@ class DeviceSource(Protocol):
     def sample_time(self) -> float: ...
     @property
     def period(self) -> float: ...
+    @property
+    def tick_time(self) -> float | None: ...
+    def sampling(self) -> contextlib.AbstractContextManager[Any]: ...
     def computed(self, index: int, quantity: str) -> float | None: ...
     async def wait_for_tick(self, k: int) -> int: ...
     async def write(self, index: int, address: int, words: Sequence[int], role: Any) -> None: ...
@@ -92,6 +95,17 @@ class LocalSource:
     @property
     def period(self) -> float:
         return self.device.period
+
+    @property
+    def tick_time(self) -> None:
+        """When the current tick ran (POSIX seconds): not kept in this process (the tick pays nothing for it);
+        the server stamps a tick when it first sees it (``TickClock``)."""
+        return None
+
+    def sampling(self) -> contextlib.AbstractContextManager[Any]:
+        """A block of reads of one tick: nothing to hold here, the tick runs in this event loop and a block that
+        does not yield sees one tick."""
+        return contextlib.nullcontext()
 
     def computed(self, index: int, quantity: str) -> float | None:
         """The double the last tick computed for a quantity the register image holds as float32."""
