@@ -374,8 +374,10 @@ def test_stiction_is_found_from_its_onset_with_its_band_at_the_rate_reached(mode
 @pytest.mark.slow
 @pytest.mark.parametrize(("mode", "least"), [("model", 12), ("plant", 12)])
 def test_onset_size_and_nothing_else_at_the_rate_reached(mode, least):
-    """The whole property, at the rate the search reaches: measured 13/20 with a model and 13/20 without (J
-    judged against the drawn J and the 2005 range, :func:`j_error`; 12/20 with a model before the grid of the
+    """The whole property, at the rate the search reaches: measured 12/20 with a model and 13/20 without (J
+    judged against the drawn J and the 2005 range, :func:`j_error`; with a model 13/20 before a level loop's
+    integrating plant was held (2026-11-28: draw 10 then locates no onset, docs/diagnosis.md *A level loop's model
+    is held*), 12/20 before the grid of the
     refinement around the nominal gain held that gain and a late valve was searched afresh there — draws 0 and
     10 hold, draw 8 misses on J, 1.80 for 2.69–2.87 at the nominal gain; 11/20 with a model before the findings were
     refined again around the nominal gain before its test, :mod:`~valve_emulator.diagnosis.explain.prior`;
@@ -415,7 +417,7 @@ def test_a_late_valve_answered_cannot_tell_would_not_have_met_the_property_as_a_
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured 13/20 with a model, 13/20 without (see the module docstring)")
+@pytest.mark.xfail(strict=True, reason="measured 12/20 with a model, 13/20 without (see the module docstring)")
 @pytest.mark.parametrize("mode", ["model", "plant"])
 def test_onset_and_size_within_tolerance_and_nothing_else_in_nine_draws_of_ten(mode):
     assert _count(mode, lambda o: o.holds) >= 0.9 * DRAWS
