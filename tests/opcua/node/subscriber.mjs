@@ -157,4 +157,7 @@ try {
   if (session) await session.close().catch(() => {});
   await client.disconnect();
 }
+// stdout to a pipe is written asynchronously: exit only once every line is out (a trace of a 100 ms row is one
+// line of megabytes, which an exit right after the write cut short)
+await new Promise((resolve) => process.stdout.write("", resolve));
 process.exit(exitCode);
