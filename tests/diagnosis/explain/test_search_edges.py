@@ -15,7 +15,6 @@ from valve_emulator.diagnosis.candidates.base import ChainContext
 from valve_emulator.diagnosis.candidates.characteristic import R_MAX
 from valve_emulator.diagnosis.explain.findings import _as_bounds, _edge_text, _on_edges
 from valve_emulator.diagnosis.explain.onset import LateOnset
-from valve_emulator.diagnosis.fit.fitter import _search_range
 from valve_emulator.physics.signal_chain import CHARACTERISTICS
 
 EQP = CHARACTERISTICS.index("equal_percentage")
@@ -89,9 +88,9 @@ def test_the_joint_polish_keeps_a_candidate_inside_the_range_searched():
     """The joint polish (a Nelder–Mead on log τ with the poles) is bounded by the candidate's declared edges, as
     its grids are: unbounded, it once walked an actuator lag on a held integrating plant to 2·10⁹ s."""
     lag, ctx = get("actuator_lag"), _ctx()
-    lo, hi = _search_range(lag, ctx)
+    lo, hi = lag.search_range(ctx)
     assert hi.tolist() == [lag.bounds(ctx)["tau"][1]] and lo.tolist() == [-np.inf]
-    lo, hi = _search_range(get("stiction"), ctx)
+    lo, hi = get("stiction").search_range(ctx)
     assert np.all(np.isinf(lo)) and np.all(np.isinf(hi))   # no declared edge: nothing clipped
 
 

@@ -220,6 +220,14 @@ class Candidate(ABC):
         """
         return {}
 
+    def search_range(self, ctx: ChainContext) -> tuple[np.ndarray, np.ndarray]:
+        """Per parameter (in :attr:`param_names`' order), the lower and upper ends of the range searched:
+        :meth:`bounds`, ``±inf`` where none is declared."""
+        ends = self.bounds(ctx)
+        lo = np.array([-np.inf if ends.get(k, (None, None))[0] is None else ends[k][0] for k in self.param_names])
+        hi = np.array([np.inf if ends.get(k, (None, None))[1] is None else ends[k][1] for k in self.param_names])
+        return lo, hi
+
     def burn_in(self, ctx: ChainContext) -> int:
         """Samples after which this candidate's unknown initial state no longer matters (default 0).
 

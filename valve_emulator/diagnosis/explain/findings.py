@@ -203,10 +203,9 @@ def _left_out(fitter: Fitter, model: Model, slot: str, cand: Candidate, surf: Su
 def _limits(cand: Candidate, ctx, surf: Surface, axis: int) -> tuple[float, float]:
     """Where a stretched grid must stop along ``axis``: 0 for a parameter the grid never takes negative (a
     band, a lag), and the candidate's declared search edges."""
-    name = cand.param_names[axis]
-    lo, hi = cand.bounds(ctx).get(name, (None, None))
+    lo, hi = cand.search_range(ctx)
     floor = 0.0 if surf.params[:, axis].min() >= 0.0 else -np.inf
-    return max(floor, -np.inf if lo is None else lo), np.inf if hi is None else hi
+    return max(floor, float(lo[axis])), float(hi[axis])
 
 
 def _profile(fitter: Fitter, model: Model, slot: str, cand: Candidate, best: np.ndarray, n_eff: float,

@@ -313,13 +313,13 @@ class Fitter:
         candidate held — creeps and stops short of the bottom, leaving a cost difference between the two
         orderings of the lags larger than the prior that should decide between them.
 
-        The candidate's parameters stay inside the range searched (:func:`_search_range`), as its grids and
+        The candidate's parameters stay inside the range searched (``Candidate.search_range``), as its grids and
         refinement do: unbounded, the simplex walked an actuator lag on a held integrating plant to 2·10⁹ s (a
         valve that never moves, reported as a lag), where the grids stop at their top.
         """
         n, k, nt = self.p.n_fit, best.size, 0 if st.taus_held else len(st.taus)
         lo_d, hi_d = 0.0, self.scorer.dmax
-        lo_p, hi_p = _search_range(cand, ctx)
+        lo_p, hi_p = cand.search_range(ctx)
 
         def make(x: np.ndarray) -> tuple[np.ndarray, LinearStructure]:
             taus = tuple(float(np.exp(v)) for v in x[k:k + nt]) or st.taus
@@ -638,15 +638,6 @@ class Fitter:
         delays = self.scorer.near(st.delay, 3) if model.delay_free else None
         sse, _ = self.scorer.sse_grid(rest, ctx, a.candidate, g, st, delays, aim)
         return self.surface(name, g, sse.min(axis=1))
-
-
-def _search_range(cand: Candidate, ctx) -> tuple[np.ndarray, np.ndarray]:
-    """Per parameter of ``cand``, the lower and upper ends of the range searched (its declared
-    :meth:`~valve_emulator.diagnosis.candidates.base.ChainCandidate.bounds`; ``±inf`` where none is declared)."""
-    bounds = cand.bounds(ctx)
-    lo = np.array([-np.inf if bounds.get(k, (None, None))[0] is None else bounds[k][0] for k in cand.param_names])
-    hi = np.array([np.inf if bounds.get(k, (None, None))[1] is None else bounds[k][1] for k in cand.param_names])
-    return lo, hi
 
 
 def _held_delay(scorer: Scorer, flows: np.ndarray, st: LinearStructure, aim: Aim, grid: tuple | None) -> tuple:
