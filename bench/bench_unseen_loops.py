@@ -13,6 +13,10 @@ Columns, per family and mode:
 * ``correct``: the answer is the expected one (``stiction`` where the valve has S >= 1 % travel, else
   ``no_stiction``; ``cannot_tell`` and ``no_response`` are never correct); for ``aggressive_pi`` the answer
   must also name the tuning (reason or finding ``tuning``). ``tuning`` gives that rate alone.
+* ``wrong``: the opposite call about the valve (``stiction`` on a valve expected ``no_stiction``, or
+  ``no_stiction`` on a sticky one). ``correct`` and ``wrong`` need not add up to the draws: ``cannot_tell``
+  (both explanations named) and ``no_response`` are neither right nor a wrong call — a hedge an engineer can act
+  on by testing the valve, where a wrong call sends them the wrong way.
 * ``S err``, ``J err``: median relative error of the friction estimate (in % travel) where friction was
   found on a loop that has it (J only where the true J >= 0.5 %).
 * ``S cov``, ``J cov``: how often the reported 95 % interval contains the true value (same loops).
@@ -45,6 +49,7 @@ from valve_emulator.benchmark.independent import FAMILIES, draw
 FRICTION = ("stiction", "deadband")
 MIN_J = 0.5        # % travel: below it J's relative error says nothing
 MODES = ("model", "plant")
+CALLS = ("stiction", "no_stiction")   # the answers that call the valve one way or the other
 
 
 def _warm_up() -> None:
@@ -102,8 +107,9 @@ def score(doc: dict, truth: dict) -> dict:
     answer, friction = doc["answer"], doc["friction"]
     tuning = _names_tuning(doc)
     correct = answer == truth["expected"] and (tuning or not truth["tuning"])
+    wrong = answer in CALLS and answer != truth["expected"]
     has_friction = friction is not None or any(f["physics"] in FRICTION for f in doc.get("findings") or ())
-    row = {"answer": answer, "correct": correct, "tuning": tuning, "strength": doc.get("strength"),
+    row = {"answer": answer, "correct": correct, "wrong": wrong, "tuning": tuning, "strength": doc.get("strength"),
            "disagree": (answer == "stiction") != has_friction, "reasons": [r["code"] for r in doc["reasons"]],
            "findings": [f["physics"] for f in doc.get("findings") or ()]}
     if friction is not None and friction["travel"] is not None:
@@ -155,20 +161,20 @@ def _median(rows: list[dict], key: str, fmt: str = "{:.0%}") -> str:
     return fmt.format(statistics.median(values)) if values else "–"
 
 
+def _row(label: str, mode: str, sel: list[dict]) -> tuple:
+    return (label, mode, len(sel), _rate(sel, "correct"), _rate(sel, "wrong"),
+            _rate([r for r in sel if r["family"] == "aggressive_pi"], "tuning"),
+            _median(sel, "S_err"), _median(sel, "J_err"), _rate(sel, "S_cov"), _rate(sel, "J_cov"),
+            _sum(sel, "edge", "found"), _rate([r for r in sel if r["strength"] == "strong"], "correct"),
+            _rate(sel, "disagree"), _median(sel, "seconds", "{:.1f}"),
+            " ".join(f"{a}:{n}" for a, n in sorted(_count(r["answer"] for r in sel).items())))
+
+
 def summary(rows: list[dict]) -> list[tuple]:
-    out = []
-    for family in FAMILIES:
-        for mode in MODES:
-            sel = [r for r in rows if r["family"] == family and r["mode"] == mode]
-            if not sel:
-                continue
-            out.append((family, mode, len(sel), _rate(sel, "correct"),
-                        _rate(sel, "tuning") if family == "aggressive_pi" else "",
-                        _median(sel, "S_err"), _median(sel, "J_err"), _rate(sel, "S_cov"), _rate(sel, "J_cov"),
-                        _sum(sel, "edge", "found"), _rate([r for r in sel if r["strength"] == "strong"], "correct"),
-                        _rate(sel, "disagree"), _median(sel, "seconds", "{:.1f}"),
-                        " ".join(f"{a}:{n}" for a, n in sorted(_count(r["answer"] for r in sel).items()))))
-    return out
+    """A row per family and mode, then one over every row (``all``)."""
+    out = [_row(family, mode, sel) for family in FAMILIES for mode in MODES
+           if (sel := [r for r in rows if r["family"] == family and r["mode"] == mode])]
+    return out + [_row("all", "both", rows)] if rows else out
 
 
 def _count(items) -> dict:
@@ -178,8 +184,8 @@ def _count(items) -> dict:
     return counts
 
 
-HEADER = ("family", "mode", "draws", "correct", "tuning", "S err", "J err", "S cov", "J cov", "edge", "strong ok",
-          "disagree", "s/diag", "answers")
+HEADER = ("family", "mode", "draws", "correct", "wrong", "tuning", "S err", "J err", "S cov", "J cov", "edge",
+          "strong ok", "disagree", "s/diag", "answers")
 
 
 def table(rows: list[tuple]) -> str:

@@ -52,7 +52,8 @@ class StrokeRate(ChainCandidate):
     def parameters(self, p: np.ndarray) -> dict:
         return {"rate": round(float(p[0]), 4)}
 
-    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %") -> str:
+    def describe(self, p: np.ndarray, nominal: dict | None = None, units: str = " %",
+                 edges: dict | None = None) -> str:
         return f"a valve stroking at most {p[0]:.3g}{units} per second"
 
 

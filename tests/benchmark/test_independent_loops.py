@@ -234,6 +234,10 @@ def test_the_benchmark_scores_answers_intervals_edges_and_disagreements_against_
     assert not score(_document("no_stiction", codes=["linear"]), tuned)["correct"]
     assert score(_document("no_stiction", codes=["tuning"]), tuned)["correct"]
     assert not score(_document("cannot_tell"), healthy)["correct"]
+    assert not any(score(_document("cannot_tell"), truth)["wrong"] for truth in (healthy, sticky))
+    assert score(_document("stiction", 1.0, 0.5), healthy)["wrong"]
+    assert score(_document("no_stiction"), sticky)["wrong"] and not score(_document("no_stiction"), healthy)["wrong"]
+    assert not score(_document("no_stiction", codes=["linear"]), tuned)["wrong"]   # not right (no tuning), not wrong
 
 
 def test_the_benchmark_counts_a_parameter_on_a_search_edge_reported_as_a_value():
@@ -259,3 +263,19 @@ def test_the_benchmark_counts_a_parameter_on_a_search_edge_reported_as_a_value()
     linear = Finding(physics="characteristic", parameters={"kind": "linear", "R": None}, windows=(), evidence="",
                      description="", intervals={})
     assert edges(doc(linear)) == (0, 1)   # a parameter without a value is no value on an edge
+
+
+def test_the_benchmark_table_counts_right_and_wrong_calls_apart_from_hedges():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
+    from bench_unseen_loops import HEADER, score, summary
+
+    sticky = {"expected": "stiction", "tuning": False, "S": 4.0, "J": 2.0}
+    healthy = {"expected": "no_stiction", "tuning": False, "S": 0.0, "J": 0.0}
+    rows = [{"family": "flow_sticky", "mode": "model", "seconds": 1.0, "edge": 0, "found": 1, **score(doc, truth)}
+            for doc, truth in [(_document("stiction", 4.1, 2.0, physics=["stiction"]), sticky),
+                               (_document("no_stiction"), sticky), (_document("cannot_tell"), sticky),
+                               (_document("stiction", 2.0, 1.0, physics=["stiction"]), healthy)]]
+    table = [dict(zip(HEADER, r)) for r in summary(rows)]
+    assert [t["family"] for t in table] == ["flow_sticky", "all"]
+    assert table[0]["correct"] == "1/4" and table[0]["wrong"] == "2/4"
+    assert table[0]["answers"] == "cannot_tell:1 no_stiction:1 stiction:2"

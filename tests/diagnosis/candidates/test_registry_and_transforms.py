@@ -88,7 +88,7 @@ def test_a_new_candidate_slots_in_by_registration():
         def parameters(self, p):
             return {"c": float(p[0])}
 
-        def describe(self, p, nominal=None):
+        def describe(self, p, nominal=None, units=" %", edges=None):
             return f"an offset {p[0]}"
 
     try:
@@ -348,7 +348,7 @@ def _toy(slot: str, params: tuple[str, ...], role, name: str = "toy_declared"):
         def parameters(self, p):
             return {}
 
-        def describe(self, p, nominal=None, units=" %"):
+        def describe(self, p, nominal=None, units=" %", edges=None):
             return "a toy"
 
     Toy.name, Toy.slot, Toy.param_names, Toy.n_params, Toy.twin_role = name, slot, params, len(params), role
@@ -365,3 +365,11 @@ def test_registration_refuses_a_declaration_the_package_could_not_act_on(slot, p
     with pytest.raises(ValueError, match=message):
         register(_toy(slot, params, role, name))
     assert name not in registry()
+
+
+def test_registration_refuses_a_describe_that_cannot_be_handed_the_search_edges():
+    toy = _toy("valve", ("S",), None, "toy_old_describe")
+    type(toy).describe = lambda self, p, nominal=None, units=" %": "a toy"
+    with pytest.raises(ValueError, match="must take edges"):
+        register(toy)
+    assert "toy_old_describe" not in registry()

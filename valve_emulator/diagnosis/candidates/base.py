@@ -36,6 +36,7 @@ every module in it (see its ``__init__``), and the reason codes
 
 from __future__ import annotations
 
+import inspect
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from enum import StrEnum
@@ -215,8 +216,8 @@ class Candidate(ABC):
 
         An estimate on such an end is not a value but a bound ("R ≥ 400"): the findings say so. An end that is
         a limit of the physics itself (a jump of 0, a dead time of 0) is no search edge: None. Default: none
-        declared. A candidate that declares one takes ``edges`` in :meth:`describe` (it is handed them where
-        its estimate sits on one).
+        declared. :meth:`describe` is handed the parameters whose estimate sits on one (``edges``), to say them as
+        bounds (:func:`said`).
         """
         return {}
 
@@ -360,7 +361,8 @@ def register(candidate: Candidate) -> Candidate:
 
     Raises ValueError for a declaration the package could not act on: a name that is no lower-case identifier
     (it is a reason code and a JSON word), an unknown slot, a method its kind needs, or a twin role in another
-    slot or reading a parameter the candidate does not have.
+    slot or reading a parameter the candidate does not have, or a ``describe`` that does not take ``units`` and
+    ``edges`` (the findings hand it both).
     """
     name = candidate.name
     if not (isinstance(name, str) and name.isidentifier() and name == name.lower()):
@@ -371,6 +373,12 @@ def register(candidate: Candidate) -> Candidate:
     if missing:
         raise ValueError(f"candidate {name!r}: a {candidate.kind} candidate (slot {candidate.slot!r}) "
                          f"must implement {', '.join(missing)}")
+    taken = inspect.signature(candidate.describe).parameters
+    lacking = [k for k in ("units", "edges") if k not in taken
+               and not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in taken.values())]
+    if lacking:
+        raise ValueError(f"candidate {name!r}: describe(self, p, nominal=None, units=' %', edges=None) must take "
+                         f"{' and '.join(lacking)} (the findings hand them)")
     role = candidate.twin_role
     if role is not None and (role.slot != candidate.slot or not set(role.reads) <= set(candidate.param_names)):
         raise ValueError(f"candidate {name!r}: twin role {role.name} needs slot {role.slot!r} and the parameters "

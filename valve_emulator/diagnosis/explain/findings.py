@@ -291,11 +291,8 @@ def _edge_text(edges: dict[str, tuple[str, float]]) -> str:
 def _described(cand: Candidate, p_user: np.ndarray, nominal_info: dict | None, units: str,
                edges: dict[str, tuple[str, float]]) -> str:
     """The finding's phrase: :meth:`~valve_emulator.diagnosis.candidates.base.Candidate.describe`, handed the
-    parameters on an edge only where there are some (only a candidate that declares search edges has any, and
-    one written before ``edges`` was added to ``describe`` keeps working), then :func:`_edge_text`."""
-    said = cand.describe(p_user, nominal_info, units=units, edges=edges) if edges else cand.describe(
-        p_user, nominal_info, units=units)
-    return said + _edge_text(edges)
+    parameters on an edge (empty where none is), then :func:`_edge_text`."""
+    return cand.describe(p_user, nominal_info, units=units, edges=edges) + _edge_text(edges)
 
 
 def parameter_intervals(fitter: Fitter, problem: Problem, model: Model, act, params: dict) -> tuple[dict, dict]:
