@@ -88,9 +88,9 @@ def drawn(family: str, seed: int, count: int, modes: Sequence[str] = MODES, *,
 
 @cache
 def loop(family: str, entropy: tuple[int, ...]) -> tuple:
-    """(recording, truth, nominal mapping) of one draw: simulated (about half a second of CPU), or under
-    pytest-xdist read from the run's folder where another worker simulated it already (the recording's columns,
-    the truth and the nominal mapping, pickled whole by the worker that simulated it; a few milliseconds)."""
+    """(recording, truth, nominal mapping) of one draw: simulated (about 0.15 s of CPU), or under pytest-xdist
+    read from the run's folder where another worker simulated it already (the recording's columns, the truth and
+    the nominal mapping, pickled whole by the worker that simulated it; a few milliseconds)."""
     folder = _folder()
     if folder is None:
         return draw(family, np.random.default_rng(list(entropy)))

@@ -83,6 +83,23 @@ def _run(friction, u: np.ndarray, h: float = 0.1) -> np.ndarray:
     return np.array([friction(x, k * h, h) for k, x in enumerate(u)])
 
 
+@pytest.mark.parametrize("order", ["lag_first", "friction_first"])
+def test_an_actuator_lag_moves_the_stem_as_a_first_order_lag_of_op(order):
+    """Known truth: OP steps 50 → 60 at sample 10 and is held; a healthy stem behind a 5-s lag, in either order,
+    is at 50 + 10·(1 − e^(−s/5)) once the new OP has been applied for s seconds. The recorded travel is the stem's
+    at the end of each sample's first substep (h = dt / substeps); the plant's PV follows the travel."""
+    dt, tau = 1.0, 5.0
+    loop = Loop(plant=Plant("fopdt", gain=1.0, tau=3.0), valve=Valve(actuator_lag=tau, order=order), dt=dt,
+                duration=60.0, manual_op=tuple(np.where(np.arange(61) >= 10, 60.0, 50.0)))
+    rec, truth = simulate(loop, record_mv=True)
+    h = dt / loop.substeps
+    applied = np.arange(61) * dt - 10 * dt + h
+    want = np.where(applied > 0, 50.0 + 10.0 * (1.0 - np.exp(-applied / tau)), 50.0)
+    assert rec.mv == pytest.approx(want, abs=1e-9)
+    assert np.array_equal(rec.mv, truth["mv"])
+    assert rec.pv[9] == pytest.approx(loop.plant.pv0) and rec.pv[-1] - loop.plant.pv0 == pytest.approx(10.0, abs=0.05)
+
+
 def test_without_friction_the_valve_tracks_its_input_exactly():
     u = 50.0 + np.cumsum(np.random.default_rng(0).normal(0, 0.3, 2000))
     assert np.array_equal(_run(DataDrivenFriction(0.0, 0.0, u[0], rest_time=0.15, onset=0.0), u), np.clip(u, 0, 100))

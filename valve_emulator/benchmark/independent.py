@@ -198,6 +198,11 @@ class Loop:
 
 # --- the valve's friction, from its definitions -------------------------------------------------------------
 
+def _clip(u: float) -> float:
+    """``u`` limited to 0..100 % travel (``min(max(u, 0), 100)``)."""
+    return 0.0 if u < 0.0 else 100.0 if u > 100.0 else u
+
+
 class DataDrivenFriction:
     """The stiction of Choudhury, Thornhill & Shah, from its definition, on an input sampled at any rate.
 
@@ -216,7 +221,7 @@ class DataDrivenFriction:
         self.stuck, self.rest = True, 0.0
 
     def __call__(self, u: float, t: float, h: float) -> float:
-        u = min(max(u, 0.0), 100.0)
+        u = _clip(u)
         du = u - self.u_prev
         if t < self.onset:
             if du:
@@ -232,7 +237,7 @@ class DataDrivenFriction:
             elif self.d * (u - self.u_s) > self.J:
                 self.stuck = False                     # along it: only the difference to kinetic friction
         if not self.stuck:
-            self.out = min(max(u - self.d * (self.S - self.J) / 2.0, 0.0), 100.0)
+            self.out = _clip(u - self.d * (self.S - self.J) / 2.0)
         self.u_prev = u
         return self.out
 
@@ -262,29 +267,30 @@ class KarnoppFriction:
         return self.x
 
     def __call__(self, u: float, t: float, h: float) -> float:
-        u = min(max(u, 0.0), 100.0)
+        u = _clip(u)
         if t < self.onset:
             self.x, self.v, self.stuck = u, 0.0, True
             return u
         if self.stuck and abs(u - self.x) <= self.fs:
             return self.x                             # held by static friction for the whole step
         w2, c, dh = self.w * self.w, 2.0 * self.w, h / self.inner
+        x, v_now, stuck, fs, fc, v_zero = self.x, self.v, self.stuck, self.fs, self.fc, self.v_zero   # local names
         for _ in range(self.inner):
-            force = u - self.x
-            if self.stuck:
-                if abs(force) <= self.fs:
+            force = u - x
+            if stuck:
+                if abs(force) <= fs:
                     continue
-                self.stuck = False
+                stuck = False
                 direction = 1.0 if force > 0 else -1.0
             else:
-                direction = 1.0 if self.v > 0 else -1.0
-            v = self.v + dh * (w2 * (force - self.fc * direction) - c * self.v)
-            if v * direction <= 0.0 or (abs(v) < self.v_zero and abs(force) <= self.fs):
-                self.v, self.stuck = 0.0, True          # the velocity reached zero: it sticks
+                direction = 1.0 if v_now > 0 else -1.0
+            v = v_now + dh * (w2 * (force - fc * direction) - c * v_now)
+            if v * direction <= 0.0 or (abs(v) < v_zero and abs(force) <= fs):
+                v_now, stuck = 0.0, True          # the velocity reached zero: it sticks
                 continue
-            self.v = v
-            self.x += dh * v
-        self.x = min(max(self.x, 0.0), 100.0)
+            v_now = v
+            x += dh * v
+        self.x, self.v, self.stuck = _clip(x), v_now, stuck
         return self.x
 
 
@@ -295,21 +301,7 @@ class Pass:
         self.out = u0
 
     def __call__(self, u: float, t: float, h: float) -> float:
-        return min(max(u, 0.0), 100.0)
-
-
-class Lag:
-    """First-order lag, exact for an input held over each step."""
-
-    def __init__(self, tau: float, y0: float):
-        self.tau, self.y = tau, y0
-
-    def __call__(self, u: float, t: float, h: float) -> float:
-        if self.tau <= 0:
-            self.y = u
-        else:
-            self.y += (u - self.y) * (1.0 - math.exp(-h / self.tau))
-        return self.y
+        return _clip(u)
 
 
 def _friction(valve: Valve, u0: float, dt: float) -> DataDrivenFriction | KarnoppFriction | Pass:
@@ -326,13 +318,25 @@ def _friction(valve: Valve, u0: float, dt: float) -> DataDrivenFriction | Karnop
                               direction=valve.initial_direction)
 
 
-def _stem(valve: Valve, u0: float, dt: float) -> tuple[Callable[[float, float, float], float], float]:
-    """The valve from OP to stem travel (lag and friction in the valve's order), and the stem's travel at
-    the start, at rest with OP at ``u0``."""
+@dataclass(frozen=True)
+class _Stem:
+    """The valve from OP to stem travel: the friction element and the actuator's first-order lag (time constant
+    ``lag``, 0 = none, output ``lag_start`` at first), the lag first or second (the valve's ``order``);
+    ``start`` the stem's travel at rest with OP at its starting value. :func:`simulate` steps the lag, exactly
+    for an input held over each substep."""
+
+    friction: DataDrivenFriction | KarnoppFriction | Pass
+    lag: float
+    lag_start: float
+    lag_first: bool
+    start: float
+
+
+def _stem(valve: Valve, u0: float, dt: float) -> _Stem:
+    """The valve's stem at rest with OP at ``u0``."""
     friction = _friction(valve, u0, dt)
-    lag = Lag(valve.actuator_lag, u0 if valve.order == "lag_first" else friction.out)
-    first, second = (lag, friction) if valve.order == "lag_first" else (friction, lag)
-    return (lambda u, t, h: second(first(u, t, h), t, h)), friction.out
+    lag_first = valve.order == "lag_first"
+    return _Stem(friction, valve.actuator_lag, u0 if lag_first else friction.out, lag_first, friction.out)
 
 
 # --- the plant: RK4 over a delayed, piecewise-linear input ---------------------------------------------------
@@ -341,7 +345,7 @@ class PlantState:
     """States z = (x₁, y): x₁ the first lag's output (the input itself without one), y the PV deviation;
     ż = A z + B u. One RK4 step of length h is linear in z and in the input at its start, middle and end, so
     its matrices are worked out once (the classical RK4 formula applied to unit vectors) and each step is a
-    few multiplications."""
+    few multiplications (:func:`simulate`: ``z ← m·z + b_start·u_start + b_mid·u_mid + b_end·u_end``)."""
 
     def __init__(self, plant: Plant, h: float):
         tau1 = plant.first_lag
@@ -355,13 +359,6 @@ class PlantState:
         inputs = [_rk4(A, B, np.zeros(2), h, *e) for e in np.eye(3)]
         self.m = [float(v) for v in M.ravel()]
         self.b = [[float(v) for v in col] for col in inputs]   # start, middle, end
-        self.x1, self.y = 0.0, 0.0
-
-    def step(self, u_start: float, u_mid: float, u_end: float) -> None:
-        (m00, m01, m10, m11), (b0, bm, b1) = self.m, self.b
-        x1, y = self.x1, self.y
-        self.x1 = m00 * x1 + m01 * y + b0[0] * u_start + bm[0] * u_mid + b1[0] * u_end
-        self.y = m10 * x1 + m11 * y + b0[1] * u_start + bm[1] * u_mid + b1[1] * u_end
 
 
 def _rk4(A: np.ndarray, B: np.ndarray, z: np.ndarray, h: float, u0: float, um: float, u1: float) -> np.ndarray:
@@ -373,26 +370,16 @@ def _rk4(A: np.ndarray, B: np.ndarray, z: np.ndarray, h: float, u0: float, um: f
     return z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
-class DelayLine:
-    """The plant input's history on the substep grid, read back θ seconds late by linear interpolation (the
-    input before the start is the starting value, 0)."""
-
-    def __init__(self, n: int, h: float, delay: float):
-        self.values, self.h, self.lag, self.n = [0.0] * n, h, delay / h, 0   # a list: fast to index
-
-    def push(self, value: float) -> None:
-        self.values[self.n] = value
-        self.n += 1
-
-    def at(self, index: float) -> float:
-        """The input at substep position ``index`` (fractional), delayed."""
-        pos = min(index - self.lag, self.n - 1)
-        if pos < 0:
-            return 0.0
-        i = int(pos)
-        frac = pos - i
-        return self.values[i] if frac == 0 or i + 1 >= self.n else (
-            self.values[i] * (1 - frac) + self.values[i + 1] * frac)
+def _delayed(line: list[float], pos: float, newest: int) -> float:
+    """The plant input read θ late: at substep position ``pos`` (fractional: the reading's position less θ in
+    substeps) on ``line``, the input's history on the substep grid pushed up to index ``newest``, interpolated
+    linearly; the input before the start is the starting value, 0, and none is read beyond the newest."""
+    pos = newest if newest < pos else pos
+    if pos < 0:
+        return 0.0
+    i = int(pos)
+    frac = pos - i
+    return line[i] if frac == 0 or i >= newest else line[i] * (1 - frac) + line[i + 1] * frac
 
 
 # --- loads, measurement, controller --------------------------------------------------------------------------
@@ -465,28 +452,55 @@ def simulate(loop: Loop, *, record_mv: bool = False) -> tuple[Recording, dict]:
     load = _load_series(loop.load, np.arange(n * m + 1) * h, rng)
     noise = rng.normal(0.0, loop.measurement.noise, n) if loop.measurement.noise else np.zeros(n)
     sp = set_point(loop, t)
-    stem, x0 = _stem(loop.valve, loop.op0, dt)
-    u_eq = loop.valve.flow(x0)   # the plant starts at rest at the stem's starting travel
-    plant, line = PlantState(loop.plant, h), DelayLine(n * m + 1, h, loop.plant.delay)
+    stem = _stem(loop.valve, loop.op0, dt)
+    u_eq = loop.valve.flow(stem.start)   # the plant starts at rest at the stem's starting travel
     pi = PI(loop.controller, loop.op0, dt) if loop.controller and loop.manual_op is None else None
     op, pv, mv = np.empty(n), np.empty(n), np.empty(n)
     q = loop.measurement.quantum
+    # The substep loop is most of a draw's time (48,000 substeps for 2,400 samples): it runs on local names,
+    # the actuator's lag and the plant's step written out.
+    friction, lag_first, tau = stem.friction, stem.lag_first, stem.lag
+    pull = 1.0 - math.exp(-h / tau) if tau > 0 else 0.0   # the lag's step: the same h every substep
+    y_lag = stem.lag_start
+    linear, flow = loop.valve.characteristic == "linear", loop.valve.flow
+    plant = PlantState(loop.plant, h)
+    (m00, m01, m10, m11), ((b00, b01), (bm0, bm1), (b10, b11)) = plant.m, plant.b
+    x1 = y = 0.0
+    line, late, last = [0.0] * (n * m + 1), loop.plant.delay / h, n * m
+    # With θ over one substep, the input at i + 1 that step i reads is the one step i + 1 reads at its start:
+    # the same position, i + 1 - θ < i, between values pushed before either step.
+    carry = late > 1
+    u1 = 0.0
+    loads = load.tolist()
+    pv0 = loop.plant.pv0
     for k in range(n):
-        value = loop.plant.pv0 + plant.y + noise[k]
+        value = pv0 + y + noise[k]
         pv[k] = q * round(value / q) if q else value
         if loop.manual_op is not None:
             op[k] = loop.manual_op[k]
         else:
             op[k] = loop.op0 if k == 0 or pi is None else pi(sp[k], pv[k - 1])
+        u = float(op[k])
         for j in range(m):
             i = k * m + j
-            x = stem(op[k], i * h, h)
+            ti = i * h
+            if lag_first:
+                y_lag = y_lag + (u - y_lag) * pull if tau > 0 else u
+                x = friction(y_lag, ti, h)
+            else:
+                y_lag = y_lag + (friction(u, ti, h) - y_lag) * pull if tau > 0 else friction(u, ti, h)
+                x = y_lag
             if j == 0:
                 mv[k] = x
-            line.push(loop.valve.flow(x) - u_eq + load[i])
-            if i + 1 >= n * m:
+            line[i] = (x if linear else flow(x)) - u_eq + loads[i]
+            if i + 1 >= last:
                 break
-            plant.step(line.at(i), line.at(i + 0.5), line.at(i + 1))
+            # one RK4 step over the input at substeps i, i + 1/2 and i + 1, read θ late
+            u0 = u1 if carry and i else _delayed(line, i - late, i)
+            um = _delayed(line, i + 0.5 - late, i)
+            u1 = _delayed(line, i + 1 - late, i)
+            x1, y = (m00 * x1 + m01 * y + b00 * u0 + bm0 * um + b10 * u1,
+                     m10 * x1 + m11 * y + b01 * u0 + bm1 * um + b11 * u1)
     recording = Recording(t=t, sp=sp, op=op, mv=mv if record_mv else None, pv=pv, source="independent")
     truth = {"sticky": loop.valve.sticky and loop.valve.S >= MATERIAL_S, "S": loop.valve.S if loop.valve.sticky
              else 0.0, "J": loop.valve.J if loop.valve.sticky else 0.0, "valve": asdict(loop.valve),
