@@ -7,13 +7,14 @@ import csv
 from pathlib import Path
 
 from valve_emulator.commands._files import user_files
-from valve_emulator.physics.stiction import DEFAULT_MODEL, MODELS
 
 NAME = "figure5"
 HELP = "reproduce Figure 5 of Choudhury, Thornhill & Shah (2003) (open-loop stiction cases) as PNG and CSV"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from valve_emulator.physics.stiction import DEFAULT_MODEL, MODELS
+
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="folder for figure5.png and figure5.csv")
     p.add_argument("--model", choices=MODELS, default=DEFAULT_MODEL, help="stiction model (default %(default)s)")
 

@@ -44,10 +44,13 @@ import math
 import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from valve_emulator.commands._files import user_files
-from valve_emulator.device.runtime import Attach, apply_overrides, opening, serve
 from valve_emulator.errors import UserError
+
+if TYPE_CHECKING:   # the device (numba's kernels) is imported when a server starts, not for --help
+    from valve_emulator.device.runtime import Attach
 
 NAME = "serve"
 HELP = "serve the valve and process as a Modbus TCP (and RTU) device on a real-time tick"
@@ -303,6 +306,7 @@ async def _start_services(srv, stack: contextlib.AsyncExitStack, args: argparse.
 async def _start_web(srv, station, config, args: argparse.Namespace, **_: object):
     """Start the instructor ``station``'s HTTP pages on ``--host``:``--web``; return its stop and the line
     announcing its URL."""
+    from valve_emulator.device.runtime import opening
     from valve_emulator.station.app import start_station
 
     users = web_users(args, config)
@@ -320,6 +324,7 @@ async def _start_opcua(srv, station, config, args: argparse.Namespace, *, port: 
     (:class:`~valve_emulator.opcua.OpcUaProcess`); return its stop and the line announcing its URL, printed
     once that process answers. A port in use is one error line. If the OPC UA process ends unasked, the server
     stops as at Ctrl-C (the recording is closed) and ``serve`` exits with status 1."""
+    from valve_emulator.device.runtime import opening
     from valve_emulator.opcua import OpcUaProcess
 
     def ended(code: int | None) -> None:
@@ -350,7 +355,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from valve_emulator.config.layout import server_slice
-    from valve_emulator.device.runtime import load_server_or_default
+    from valve_emulator.device.runtime import apply_overrides, load_server_or_default, serve
 
     process = None if args.process_index is None else (args.process_index, args.processes)
     fmt = "%(asctime)s %(levelname)s %(name)s: %(message)s"
