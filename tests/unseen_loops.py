@@ -264,6 +264,12 @@ LEVEL_MODEL = drawn("level_sticky", 14, 20, ("model",))
 #: drawn with a seed no other set uses: where a band standing in for what the nominal model leaves out must not be
 #: called stiction (the drifting-load contest with a model, ``decision.MODEL_CONTEST_BIC``, was found on this set).
 SLOW_NOISY_MODEL = drawn("slow_noisy_valve", 15, 20, ("model",))
+#: 24 level loops with a healthy valve as plant data, drawn with a seed no other set uses: where the test sets'
+#: rate of stiction calls (3 of ``HEALTHY_LEVEL`` + ``HEALTHY_LEVEL_MORE``) was measured again and did not carry
+#: over (6 of 24, 2026-11-28), and where the band's leak through the identified plant's short-time integrator
+#: (``decision.SHORT_TIME_FACTOR``) was found, with the 32 above and the 80 labelled plant windows.
+HEALTHY_LEVEL_FRESH = drawn("healthy_level", 50, 24, ("plant",))
 #: Every draw of every set, once, in a stable order.
 ALL = list(dict.fromkeys(LEVEL + LATE_ONSET + AGGRESSIVE_MODEL + AGGRESSIVE_PLANT + COVERAGE + STRENGTH
-                         + HEALTHY_LEVEL + HEALTHY_LEVEL_MORE + LEVEL_MODEL + SLOW_NOISY_MODEL))
+                         + HEALTHY_LEVEL + HEALTHY_LEVEL_MORE + LEVEL_MODEL + SLOW_NOISY_MODEL
+                         + HEALTHY_LEVEL_FRESH))

@@ -74,13 +74,15 @@ def test_a_level_loop_with_a_healthy_valve_gets_no_strong_stiction_call():
 
 def test_a_level_loop_with_a_healthy_valve_is_not_answered_stiction_as_plant_data_in_nine_of_ten():
     """32 healthy level loops as plant data (8 of ``HEALTHY_LEVEL``, 24 more with another seed). Measured
-    2026-11-27: 3 of 32 answered stiction (6 before a call whose band the record does not show became 'cannot
-    tell' on the interval and too-short signs too, ``decision.band_unshown``; 21 before the leak): two whose
-    swallowed moves explain PV neither way through the identified plant, and 7.7.16, which oscillates regularly.
-    About 5 s a diagnosis (the 24 are read by this test only)."""
+    2026-11-28: 1 of 32 answered stiction, 7.7.16, which oscillates regularly (3 before the swallowed moves were
+    asked through the identified plant's short-time integrator, ``decision._short_time_slope``: 7.7.2 and 7.7.9;
+    6 before a call whose band the record does not show became 'cannot tell' on the interval and too-short signs
+    too, ``decision.band_unshown``; 21 before the leak). The floor is the measured figure. About 5 s a diagnosis
+    (the 24 are read by this test only)."""
     keys = HEALTHY_LEVEL_AS_PLANT_DATA
     called = [d.draw.name for d in diagnosed_all(keys) if d.doc["answer"] == "stiction"]
     assert len(called) <= 0.1 * len(keys), f"{len(called)} of {len(keys)} answered stiction: {called}"
+    assert len(called) <= 1, f"{len(called)} of {len(keys)} answered stiction (measured 1): {called}"
 
 
 
@@ -105,7 +107,7 @@ def test_a_band_op_hardly_crosses_that_the_record_does_not_show_is_cannot_tell_n
     keys = HEALTHY_LEVEL_AS_PLANT_DATA
     taken = [d for d in diagnosed_all(keys) if d.doc["answer"] == "cannot_tell"
              and any("cross the band" in r["sentence"] for r in d.doc["reasons"])]
-    assert len(taken) >= 18, f"{len(taken)} calls taken back"
+    assert len(taken) >= 20, f"{len(taken)} calls taken back"   # measured 2026-11-28 (18 before the short-time leak)
     for d in taken:
         codes = [r["code"] for r in d.doc["reasons"]]
         assert codes[0] in VALVE_FRICTION and "weak_evidence" in codes, (d.draw.name, d.doc["reasons"])
@@ -115,11 +117,12 @@ def test_a_band_op_hardly_crosses_that_the_record_does_not_show_is_cannot_tell_n
     assert not unsigned, f"taken back without saying why: {unsigned}"
 
 
-def test_a_stiction_call_on_a_healthy_level_loop_says_that_op_hardly_crosses_its_band():
-    """The qualifier that stands in for the rule above: on every healthy level loop called stiction without a
-    regular oscillation, the reasons say that OP's swings hardly cross the band (at most 3 % did, measured)."""
+def test_no_healthy_level_loop_that_does_not_oscillate_regularly_is_called_stiction_as_plant_data():
+    """Of the 32, the two left called stiction without a regular oscillation (7.7.2, 7.7.9: bands OP hardly crosses,
+    the qualifier said so) are ``cannot tell`` since their swallowed moves were asked through the identified
+    first-order plant's short-time integrator (2026-11-28): where such a call is made, the reasons say OP hardly
+    crosses the band; none is left."""
     keys = HEALTHY_LEVEL_AS_PLANT_DATA
-    calls = [d for d in diagnosed_all(keys)
+    calls = [d.draw.name for d in diagnosed_all(keys)
              if d.doc["answer"] == "stiction" and not d.doc["oscillation"]["oscillating"]]
-    unsaid = [d.draw.name for d in calls if not any("cross the band" in r["sentence"] for r in d.doc["reasons"])]
-    assert calls and not unsaid, f"no band-crossing reason on {unsaid}"
+    assert not calls, f"healthy level loops without a regular cycle called stiction: {calls}"

@@ -51,7 +51,10 @@ run on each loop:
      a wandering load does not, or is not told from no band. Measured (plant data): 15 of the 21 healthy level
      loops called stiction taken back by the leak (2026-11-26), 3 of the 6 left by the other two signs
      (2026-11-27); none of the 29 sticky level calls, and 2 of the 80 shared plant windows, one of them the one
-     labelled healthy window called stiction. The same rule decides a stiction answer against a nominal model
+     labelled healthy window called stiction. The leak asked through the identified first-order plant's short-time
+     integrator (:func:`_short_time_slope`, 2026-11-28) took back 2 of the 3 left on the 32 test-set loops, 5 of 6
+     on 24 fresh ones and 1 of 4 on 24 more not looked at; no sticky level call and no plant window changed.
+     The same rule decides a stiction answer against a nominal model
      (:func:`answer_with_model`): with their exact nominal models, 7 of the 14 healthy loops called stiction among
      the independent simulator's shared draws were taken back, and 3 of the 70 sticky ones (weak late-onset calls).
    * ``cannot tell`` when no valve friction is accepted and the final model explains the loop neither way:
@@ -153,7 +156,8 @@ from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
-           "COARSE_SHARE", "CROSSING_SHARE", "MODEL_CONTEST_BIC", "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN",
+           "COARSE_SHARE", "CROSSING_SHARE", "MODEL_CONTEST_BIC", "SHORT_TIME_FACTOR", "MODEL_STRONG_GAIN",
+           "PLANT_STRONG_GAIN",
            "band_crossings", "band_leaks",
            "band_unshown",
            "coarse_pv", "Leak", "cycling", "strength_with_model", "answer_with_model"]
@@ -185,6 +189,14 @@ COARSE_SHARE = 0.5
 #: 3 % of OP's swings crossed the band found; on the sticky loops so called, at least 9 % (a flow loop whose band
 #: came out at 1.7 times the truth; 19 % on level loops). One swing in twenty sits between.
 CROSSING_SHARE = 0.05
+#: An integrator is the identified first-order plant seen over short times when its gain is within this factor
+#: of the plant's initial slope K/τ, either way (:func:`_short_time_slope`): the same order of magnitude, a
+#: tolerance chosen once, not fitted. Measured (2026-11-28, plant data, calls on loops that do not cycle and whose
+#: band OP hardly crosses, a self-regulating plant identified): on the independent simulator's healthy level loops
+#: (seeds 7, 2032, 50) 0.045–1.23 of K/τ, 0.43–1.23 on the seven calls it took back; on the 17 labelled sticky
+#: plant windows of that kind −0.0007 to 0.16, and 0.0036 on the one whose swallowed moves pass an integrator by
+#: ΔBIC ≥ 10 (2411FIC20102 1207_0004, ΔBIC 28.6), which keeps its call (``docs/diagnosis.md``).
+SHORT_TIME_FACTOR = 10.0
 #: Held-out fit (points) valve friction must buy over a nominal model for a strong stiction answer ...
 MODEL_STRONG_GAIN = 20.0
 #: ... and over the identified linear valve on plant data: twice what any candidate needs to be accepted (on the
@@ -733,12 +745,20 @@ class Leak:
     delta_bic: float
     share: float
     held: bool
+    slope: float | None = None
 
     @property
     def words(self) -> str:
-        through = ("through an integrating plant (the identified plant is self-regulating; through an integrator the "
-                   "valve with its swallowed moves explains PV at least as well as the valve alone through the "
-                   "identified plant)" if self.held else "through the identified plant")
+        if self.slope is not None:
+            through = ("through the integrator that the identified first-order plant is over times short against its "
+                       "time constant (its initial slope K/τ; the integrator fitted has "
+                       f"{self.slope:.2g} times that gain)")
+        elif self.held:
+            through = ("through an integrating plant (the identified plant is self-regulating; through an integrator "
+                       "the valve with its swallowed moves explains PV at least as well as the valve alone through the "
+                       "identified plant)")
+        else:
+            through = "through the identified plant"
         return (f"{through}: ΔBIC {self.delta_bic:.1f} under a drifting-load noise model, {100 * self.share:.0f} % "
                 "of their effect through the valve's own")
 
@@ -750,13 +770,20 @@ def band_leaks(d: Explanation, valve: Finding) -> Leak | None:
     it starts part-way) plus the plant's settling time (its dead time and three time constants) on,
 
     - through the identified plant (``d.plant``): they explain PV better by ΔBIC ≥
-      :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (a candidate's rule), or
+      :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` (a candidate's rule),
     - when that plant is self-regulating, through an integrator with its dead time: the valve with its swallowed
       moves explains PV at least as well (ΔBIC ≥ 0, the rule of an alternative explanation) as the valve alone
       through the identified plant. An integrating plant is hard to recognise on PV under a wandering load
-      (``docs/diagnosis.md``), and the healthy level loops called stiction were identified first-order,
+      (``docs/diagnosis.md``), and the healthy level loops called stiction were identified first-order;
+    - or, that plant self-regulating, through the integrator it is over short times: the swallowed moves explain
+      PV better through an integrator with its dead time by ΔBIC ≥
+      :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC` than the valve alone through that integrator
+      (the first test, on the time scale where the plant integrates), and the integrator's fitted gain is the
+      identified plant's initial slope K/τ within :data:`SHORT_TIME_FACTOR` (:func:`_short_time_slope`). A band
+      fitted jointly with a slow first-order plant can hide its leak through that plant (2026-11-28: five weak
+      calls of 24 fresh healthy level loops, τ 14–95 s), but not through the integrator the plant is at short times,
 
-    in either case with the sign of the valve's own moves."""
+    in each case with the sign of the valve's own moves."""
     tr, p = d.traces, d.plant
     if not p or tr.t.size < 3:
         return None
@@ -774,7 +801,28 @@ def band_leaks(d: Explanation, valve: Finding) -> Leak | None:
     held = swallowed(pv, op, mv, LinearStructure(integrating=True, delay=plant.delay), dt, start)
     if own.bic_valve - held.bic_leaking >= 0.0 and held.share > 0.0:
         return Leak(own.bic_valve - held.bic_leaking, held.share, held=True)
+    slope = _short_time_slope(held.gain, p)
+    if held.delta_bic >= DELTA_BIC and held.share > 0.0 and slope is not None:
+        return Leak(held.delta_bic, held.share, held=True, slope=slope)
     return None
+
+
+def _short_time_slope(gain: float, p: dict) -> float | None:
+    """``gain``, an integrator's fitted gain (PV's rate per unit of OP per second), over the initial slope K/τ of
+    the identified self-regulating plant ``p`` (its gain over its longest time constant), when the two agree in
+    sign and within :data:`SHORT_TIME_FACTOR` either way (None otherwise: that integrator is not the identified
+    plant).
+
+    Why: a first-order plant K/(τs + 1) answers a step with the slope K/τ and, over times short against τ, *is*
+    the integrator K/τ (the near-integrating approximation of a lag-dominant plant, Skogestad, *J. Process
+    Control* 13 (2003) 291–309, §3.2). A level whose wandering load made the search take it for a slow
+    first-order plant is such a plant; an integrator whose gain is orders of magnitude off K/τ is not the plant
+    at all (fitted to a flow loop, it fits nothing in particular)."""
+    taus = [float(t) for t in p["taus"]]
+    if not taus or not np.isfinite(gain) or max(taus) <= 0.0:
+        return None
+    ratio = gain / (float(p["gain"]) / max(taus))
+    return ratio if 1.0 / SHORT_TIME_FACTOR <= ratio <= SHORT_TIME_FACTOR else None
 
 
 def _identified(p: dict) -> LinearStructure:

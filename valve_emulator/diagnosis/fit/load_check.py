@@ -156,11 +156,14 @@ class Swallowed:
     share : how much of the swallowed moves reach PV, relative to the valve's own moves (the ratio of their
         fitted coefficients: 1 for a valve that passes every move, 0 for one that is stuck while OP moves
         inside its band).
+    gain : the valve's own coefficient in that regression (PV per unit of OP through the plant's unit-gain
+        response; for an integrator, PV's rate per unit of OP per second), at the λ that gives ``bic_leaking``.
     """
 
     bic_valve: float
     bic_leaking: float
     share: float
+    gain: float = float("nan")
 
     @property
     def delta_bic(self) -> float:
@@ -187,7 +190,7 @@ def swallowed(pv: np.ndarray, op: np.ndarray, valve: np.ndarray, structure: Line
     does not fool (the noise model of :func:`load_delta_bic`)."""
     through_valve, through_rest = _through(valve, structure, dt), _through(op - valve, structure, dt)
     best_without = best_with = float("inf")
-    share = float("nan")
+    share = gain = float("nan")
     for lam in LAMBDAS:
         y = highpass(pv, lam)[start:]
         a, b = highpass(through_valve, lam)[start:], highpass(through_rest, lam)[start:]
@@ -198,8 +201,9 @@ def swallowed(pv: np.ndarray, op: np.ndarray, valve: np.ndarray, structure: Line
         fit = bic(sse1, y.size, 4)
         if fit < best_with:
             best_with = fit
+            gain = float(with_[0])
             share = float(with_[1] / with_[0]) if with_[0] != 0.0 else float("nan")
-    return Swallowed(bic_valve=best_without, bic_leaking=best_with, share=share)
+    return Swallowed(bic_valve=best_without, bic_leaking=best_with, share=share, gain=gain)
 
 
 def _least_squares(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
@@ -248,7 +252,7 @@ def remembered(pv: np.ndarray, op: np.ndarray, valve: np.ndarray, structure: Lin
     static = [_through(c, structure, dt) for c in _static_columns(op, start).T]
     memory, own = _through(valve - op, structure, dt), _through(valve, structure, dt)
     best_map = best_with = float("inf")
-    share = float("nan")
+    share = gain = float("nan")
     for lam in LAMBDAS:
         y = highpass(pv, lam)[start:]
         one = np.ones_like(y)
