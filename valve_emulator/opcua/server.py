@@ -289,7 +289,10 @@ class OpcUaCounters:
     monitored item and change), ticks after which the publisher ran out of its budget (in the device's process),
     ticks the publisher never sampled because it was still busy with an earlier one (behind the device), writes
     accepted and refused, client certificates the trust list accepted and refused, alarm events sent; the last
-    :data:`OFF_GRID_KEPT` ticks not handed on the grid (:class:`OffGrid`, oldest first)."""
+    :data:`OFF_GRID_KEPT` ticks not handed on the grid (:class:`OffGrid`, oldest first); in the OPC UA process, the
+    hand-off chunks that sampled a tick newer than their own (run after the device published the next one, the
+    shared image keeping none at or before theirs) and those that sampled the same tick as that chunk of the hand-off
+    before (its items sampled every tick unchanged: none handed, a publish between the two without them)."""
 
     notifications: int = 0
     deferred: int = 0
@@ -300,6 +303,8 @@ class OpcUaCounters:
     trust_refused: int = 0
     alarm_events: int = 0
     off_grid: tuple[OffGrid, ...] = ()
+    sampled_newer: int = 0
+    sampled_again: int = 0
 
 
 #: A variable's value now: (value, variant type, status: None for Good).
@@ -623,6 +628,10 @@ class OpcUaServer:
         self.skipped = 0
         #: the last ticks not handed on the grid (:class:`OffGrid`)
         self.off_grid: deque[OffGrid] = deque(maxlen=OFF_GRID_KEPT)
+        #: hand-off chunks (:meth:`_hand_ahead`) that sampled a tick newer than their own, and those that sampled the
+        #: tick that chunk of the hand-off before sampled (:class:`OpcUaCounters`); the tick each chunk last sampled
+        self.sampled_newer = self.sampled_again = 0
+        self._chunk_ticks: dict[int, int] = {}
         self.writes = 0
         self.refused = 0
         #: refused writes and sessions, logged once per user (or client) and cause per interval
@@ -640,7 +649,8 @@ class OpcUaServer:
                              writes=self.writes,
                              refused=self.refused, trust_accepted=trust.accepted if trust else 0,
                              trust_refused=trust.refused if trust else 0,
-                             alarm_events=conditions.sent if conditions else 0, off_grid=tuple(self.off_grid))
+                             alarm_events=conditions.sent if conditions else 0, off_grid=tuple(self.off_grid),
+                             sampled_newer=self.sampled_newer, sampled_again=self.sampled_again)
 
     # --- values -----------------------------------------------------------------------------------------
 
@@ -1096,9 +1106,13 @@ class OpcUaServer:
         active, slack = self._active, period / 2
         low, high = chunk * HAND_CHUNK, len(active) if chunk == chunks - 1 else (chunk + 1) * HAND_CHUNK
         handing = []
-        with self.source.sampling():
+        with self.source.sampling(tick):
             if chunk == 0:
                 self._note_sampled(tick, when, period)
+            sampled = self.source.ticks
+            self.sampled_newer += sampled > tick
+            self.sampled_again += self._chunk_ticks.get(chunk) == sampled
+            self._chunk_ticks[chunk] = sampled
             if low >= len(active):
                 return handing
             stamps = (self.tick_clock.stamp(), datetime.now(UTC))
