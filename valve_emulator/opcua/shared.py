@@ -45,7 +45,7 @@ __all__ = ["COMPUTED", "SLOTS", "SharedLayout", "ImagePublisher", "ImageReader",
 #: The quantities whose doubles are published beside the image (the image holds them as float32).
 COMPUTED = ("pv", "op", "mv", "sp")
 #: The ticks the block keeps: a hand-off up to this many ticks late less one still samples its own tick (the OPC UA
-#: process registers hand-offs ``HAND_AHEAD`` = 10 ticks ahead; 1,000 loops: 16 slots of about 100 kB).
+#: process registers hand-offs ``HAND_AHEAD`` = 10 ticks ahead; 1,000 loops: 16 slots of 96 kB).
 SLOTS = 16
 _TOP = struct.Struct("<QQ")
 _HEADER = struct.Struct("<QQdd")
@@ -167,6 +167,8 @@ class ImageReader:
         self._last: TickImage | None = None
         self._generation = -1
         self._pinned: TickImage | None = None
+        #: the last copy of each slot (by slot number): a slot whose counter has not moved is not copied again
+        self._kept: dict[int, TickImage] = {}
 
     def seq(self) -> int:
         """The block's generation: it moves with every publication."""
@@ -200,10 +202,15 @@ class ImageReader:
             if seq % 2:
                 time.sleep(0)
                 continue
+            kept = self._kept.get(slot)
+            if kept is not None and kept.seq == seq:   # copied already (the chunks of one late hand-off)
+                return kept
             image = bytes(buf[at + lay.image_at:at + lay.image_at + lay.size])
             computed = np.frombuffer(bytes(buf[at + lay.doubles_at:at + lay.slot_size]), dtype=np.float64)
             if _SEQ.unpack_from(buf, at)[0] == seq:
-                return TickImage(image, computed.reshape(len(COMPUTED), lay.n), ticks, sample_time, wall, seq)
+                kept = self._kept[slot] = TickImage(image, computed.reshape(len(COMPUTED), lay.n), ticks,
+                                                    sample_time, wall, seq)
+                return kept
         return None
 
     def at_most(self, tick: int) -> TickImage:
