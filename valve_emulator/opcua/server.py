@@ -1011,9 +1011,12 @@ class OpcUaServer:
         tick's hand-off there only when the tick's note is read and its pass begins -- after the pass before is
         done -- so a loop held past a hand-off let the publishes due meanwhile run before it, without the values
         due there (docs/benchmarks.md §9.16). Here the hand-offs of the next ticks are on the heap before the loop
-        is held: when it runs again each comes before every publish due after it, and each samples the newest tick
-        the device wrote to the shared image (its SourceTimestamp that tick's), so every publish holds the newest
-        value of each item due since the one before, whatever the loop's lateness. Each registered hand-off, when
+        is held: when it runs again each comes before every publish due after it, and each samples its own tick
+        from the shared image, which keeps the device's last ``shared.SLOTS`` ticks (its SourceTimestamp that
+        tick's; the newest when it is older than those), so every publish holds one value of each item due since
+        the one before, whatever the loop's lateness. (Sampling the newest tick, a hand-off run after the device
+        published the next one took that tick from the next hand-off, which then handed its every-tick items
+        nothing: docs/benchmarks.md §9.19.) Each registered hand-off, when
         its first chunk fires, registers the one :data:`HAND_AHEAD` ticks after it.
 
         This loop only keeps the grid: it reads each tick's note for the time the device ran the tick (the image's,
@@ -1100,9 +1103,9 @@ class OpcUaServer:
                     period: float) -> list[tuple[int, _Watch, ua.DataValue, list[_Group]]]:
         """The values chunk ``chunk`` of ``chunks`` of tick ``tick``'s hand-off (due on the grid at ``when``) hands:
         of the variables at its places (the last chunk: to the end of the list) whose groups are due at ``when``,
-        sampled from one tick of the source (``source.sampling``: never half of one tick and half of the next),
-        stamped with that tick's time. The first chunk keeps the ticks no hand-off sampled and a hand-off run late
-        (``OffGrid``)."""
+        sampled from tick ``tick`` of the source, or the newest before it the source still keeps
+        (``source.sampling(tick)``: never half of one tick and half of the next), stamped with that tick's time. The
+        first chunk keeps the ticks no hand-off sampled and a hand-off run late (``OffGrid``)."""
         active, slack = self._active, period / 2
         low, high = chunk * HAND_CHUNK, len(active) if chunk == chunks - 1 else (chunk + 1) * HAND_CHUNK
         handing = []
