@@ -472,6 +472,8 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             sent = counters.notifications - sent0 if opc else 0
             deferred = counters.deferred - deferred0 if opc else 0
             skipped = counters.skipped - skipped0 if opc else 0
+            newer = counters.sampled_newer - counters0.sampled_newer if opc else 0
+            again = counters.sampled_again - counters0.sampled_again if opc else 0
             off_grid = [t for t in counters.off_grid if wall0 - 1 <= t.stamp <= wall1] if opc else []
             ticks, overruns = srv.device.ticks - ticks0, srv.device.overruns - overruns0
             lateness = srv.device.jitter.values()
@@ -500,7 +502,7 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             "client_main_cpu": statistics.median(r.cpu_main for r in results) if served else float("nan"),
             "read_p50": 1e3 * float(np.percentile(reads, 50)) if reads else float("nan"),
             "read_p99": 1e3 * float(np.percentile(reads, 99)) if reads else float("nan"),
-            "deferred": deferred, "skipped": skipped, "off_grid": off_grid,
+            "deferred": deferred, "skipped": skipped, "off_grid": off_grid, "newer": newer, "again": again,
             "trace": [r.missed for r in sorted(results, key=lambda r: r.capped)]}
 
 
@@ -663,6 +665,8 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
               + "during the window " + ", ".join(f"{r['lost']} {'/'.join(r['statuses'])}" for r in rs)
               + "; ticks the publisher deferred (out of its budget) " + ", ".join(f"{r['deferred']}" for r in rs)
               + "; ticks it skipped (behind the device) " + ", ".join(f"{r['skipped']}" for r in rs)
+              + "; hand-off chunks that sampled a tick newer than theirs / the tick the one before sampled "
+              + ", ".join(f"{r['newer']}/{r['again']}" for r in rs)
               + ("" if label == "none" else "; client CPU s/s (median client) "
                  + ", ".join(f"{r['client_cpu']:.2f}" for r in rs) + ", its event loop's thread "
                  + ", ".join(f"{r['client_main_cpu']:.3f}" for r in rs)))

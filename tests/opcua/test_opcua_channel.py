@@ -127,3 +127,34 @@ def test_a_pinned_reader_sees_one_tick_and_the_header_says_which_and_when_it_ran
         reader.close()
     finally:
         publisher.close()
+
+
+def test_a_reader_pinned_at_a_tick_sees_that_tick_after_the_device_published_newer_ones():
+    """A hand-off run late (after the device published the next ticks) samples the tick it is for while the block
+    keeps it, the newest before it where the device published none for that tick, and never a newer one while an
+    older is kept; a tick count that went back (a restored snapshot) leaves none of the ticks before it."""
+    device = _Device()
+    device.image = bytearray(16)
+    publisher = ImagePublisher(device, slots=4)
+    try:
+        reader = ImageReader(publisher.name, publisher.layout)
+        resource_tracker.register(publisher.shm._name, "shared_memory")
+        for tick in (7, 8, 9, 11):   # tick 10 ran without a publication (ticks run as one call)
+            device.ticks, device.image[0] = tick, tick
+            publisher.publish()
+        device.image[1] = 1   # a write after tick 11: the same tick's slot
+        publisher.publish()
+        assert (reader.read().ticks, reader.read().image[:2]) == (11, bytes([11, 1]))
+        for asked, got in ((8, 8), (9, 9), (10, 9), (11, 11), (12, 11)):
+            with reader.pinned(asked) as held:
+                assert (held.ticks, held.image[0]) == (got, got)
+                assert reader.read() is held
+        with reader.pinned(7) as held:   # 7's slot (7 % 4) now holds 11: the block keeps nothing at or before 7
+            assert held.ticks == 11
+        device.ticks, device.image[0] = 9, 90   # went back
+        publisher.publish()
+        with reader.pinned(8) as held:   # the old 8 is not this run's 8
+            assert (held.ticks, held.image[0]) == (9, 90)
+        reader.close()
+    finally:
+        publisher.close()

@@ -99,10 +99,11 @@ class RemoteSource:
         """When the device ran the tick of the image (POSIX seconds, the device process's clock)."""
         return self.reader.read().wall_time
 
-    def sampling(self) -> contextlib.AbstractContextManager[Any]:
+    def sampling(self, tick: int | None = None) -> contextlib.AbstractContextManager[Any]:
         """A block of reads of one tick: the image as on entering it, whatever the device runs meanwhile
-        (``ImageReader.pinned``)."""
-        return self.reader.pinned()
+        (``ImageReader.pinned``); with ``tick``, that tick's image while the shared block still holds it, though
+        the device has published newer ones (a hand-off run late samples the tick it is for)."""
+        return self.reader.pinned(tick)
 
     def computed(self, index: int, quantity: str) -> float | None:
         if quantity == "time":

@@ -289,7 +289,10 @@ class OpcUaCounters:
     monitored item and change), ticks after which the publisher ran out of its budget (in the device's process),
     ticks the publisher never sampled because it was still busy with an earlier one (behind the device), writes
     accepted and refused, client certificates the trust list accepted and refused, alarm events sent; the last
-    :data:`OFF_GRID_KEPT` ticks not handed on the grid (:class:`OffGrid`, oldest first)."""
+    :data:`OFF_GRID_KEPT` ticks not handed on the grid (:class:`OffGrid`, oldest first); in the OPC UA process, the
+    hand-off chunks that sampled a tick newer than their own (run after the device published the next one, the
+    shared image keeping none at or before theirs) and those that sampled the same tick as that chunk of the hand-off
+    before (its items sampled every tick unchanged: none handed, a publish between the two without them)."""
 
     notifications: int = 0
     deferred: int = 0
@@ -300,6 +303,8 @@ class OpcUaCounters:
     trust_refused: int = 0
     alarm_events: int = 0
     off_grid: tuple[OffGrid, ...] = ()
+    sampled_newer: int = 0
+    sampled_again: int = 0
 
 
 #: A variable's value now: (value, variant type, status: None for Good).
@@ -623,6 +628,10 @@ class OpcUaServer:
         self.skipped = 0
         #: the last ticks not handed on the grid (:class:`OffGrid`)
         self.off_grid: deque[OffGrid] = deque(maxlen=OFF_GRID_KEPT)
+        #: hand-off chunks (:meth:`_hand_ahead`) that sampled a tick newer than their own, and those that sampled the
+        #: tick that chunk of the hand-off before sampled (:class:`OpcUaCounters`); the tick each chunk last sampled
+        self.sampled_newer = self.sampled_again = 0
+        self._chunk_ticks: dict[int, int] = {}
         self.writes = 0
         self.refused = 0
         #: refused writes and sessions, logged once per user (or client) and cause per interval
@@ -640,7 +649,8 @@ class OpcUaServer:
                              writes=self.writes,
                              refused=self.refused, trust_accepted=trust.accepted if trust else 0,
                              trust_refused=trust.refused if trust else 0,
-                             alarm_events=conditions.sent if conditions else 0, off_grid=tuple(self.off_grid))
+                             alarm_events=conditions.sent if conditions else 0, off_grid=tuple(self.off_grid),
+                             sampled_newer=self.sampled_newer, sampled_again=self.sampled_again)
 
     # --- values -----------------------------------------------------------------------------------------
 
@@ -1001,9 +1011,12 @@ class OpcUaServer:
         tick's hand-off there only when the tick's note is read and its pass begins -- after the pass before is
         done -- so a loop held past a hand-off let the publishes due meanwhile run before it, without the values
         due there (docs/benchmarks.md §9.16). Here the hand-offs of the next ticks are on the heap before the loop
-        is held: when it runs again each comes before every publish due after it, and each samples the newest tick
-        the device wrote to the shared image (its SourceTimestamp that tick's), so every publish holds the newest
-        value of each item due since the one before, whatever the loop's lateness. Each registered hand-off, when
+        is held: when it runs again each comes before every publish due after it, and each samples its own tick
+        from the shared image, which keeps the device's last ``shared.SLOTS`` ticks (its SourceTimestamp that
+        tick's; the newest when it is older than those), so every publish holds one value of each item due since
+        the one before, whatever the loop's lateness. (Sampling the newest tick, a hand-off run after the device
+        published the next one took that tick from the next hand-off, which then handed its every-tick items
+        nothing: docs/benchmarks.md §9.19.) Each registered hand-off, when
         its first chunk fires, registers the one :data:`HAND_AHEAD` ticks after it.
 
         This loop only keeps the grid: it reads each tick's note for the time the device ran the tick (the image's,
@@ -1090,15 +1103,19 @@ class OpcUaServer:
                     period: float) -> list[tuple[int, _Watch, ua.DataValue, list[_Group]]]:
         """The values chunk ``chunk`` of ``chunks`` of tick ``tick``'s hand-off (due on the grid at ``when``) hands:
         of the variables at its places (the last chunk: to the end of the list) whose groups are due at ``when``,
-        sampled from one tick of the source (``source.sampling``: never half of one tick and half of the next),
-        stamped with that tick's time. The first chunk keeps the ticks no hand-off sampled and a hand-off run late
-        (``OffGrid``)."""
+        sampled from tick ``tick`` of the source, or the newest before it the source still keeps
+        (``source.sampling(tick)``: never half of one tick and half of the next), stamped with that tick's time. The
+        first chunk keeps the ticks no hand-off sampled and a hand-off run late (``OffGrid``)."""
         active, slack = self._active, period / 2
         low, high = chunk * HAND_CHUNK, len(active) if chunk == chunks - 1 else (chunk + 1) * HAND_CHUNK
         handing = []
-        with self.source.sampling():
+        with self.source.sampling(tick):
             if chunk == 0:
                 self._note_sampled(tick, when, period)
+            sampled = self.source.ticks
+            self.sampled_newer += sampled > tick
+            self.sampled_again += self._chunk_ticks.get(chunk) == sampled
+            self._chunk_ticks[chunk] = sampled
             if low >= len(active):
                 return handing
             stamps = (self.tick_clock.stamp(), datetime.now(UTC))
