@@ -32,10 +32,14 @@ def test_nine_slow_noisy_valves_of_ten_are_not_called_stiction_with_their_model(
 
 
 def test_a_band_the_drifting_load_explains_as_well_is_cannot_tell_naming_both():
-    """Every call taken back by the contest names the valve (with its S) and the drifting load, keeps no friction
-    finding and has no strength; and at least half the set is so answered (measured: 10 of 20)."""
+    """Every call taken back names the valve (with its S) and what explains the record as well — the drifting load
+    (the contest), or a healthy valve whose moves inside the band reach PV (``decision.band_leaks``, asked first) —
+    keeps no friction finding and has no strength; and at least half the set is so answered (measured: 10 of 20,
+    all by the contest; since the leak through the identified plant's short-time integrator, 2026-11-28, 9 by the
+    contest and 15.3.15 by that leak, ΔBIC 23.3 where the contest's was 0.5)."""
     contested = [d for d in diagnosed_all(SLOW_NOISY_MODEL)
-                 if d.doc["answer"] == "cannot_tell" and "drifting load explains the record" in d.doc["verdict"]]
+                 if d.doc["answer"] == "cannot_tell" and ("drifting load explains the record" in d.doc["verdict"]
+                                                          or "a healthy valve answering" in d.doc["verdict"])]
     assert len(contested) >= 0.5 * len(SLOW_NOISY_MODEL), len(contested)
     for d in contested:
         doc = d.doc
