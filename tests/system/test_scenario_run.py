@@ -125,7 +125,9 @@ async def test_player_attached_to_a_running_emulator_polls_its_tick():
         - {at: 1.0, event: stiction, S: 2.0, J: 0.5}
         - {at: 3.0, event: seize}
         """, duration=4)
-    async with EmulatorServer(level_device(instructor_writes=True), time_scale=20) as srv:
+    # time scale 5: a tick every 20 ms of wall time, so 3 ticks of lateness are 60 ms of the shared event loop's
+    # stalls (at 20, 5 ms a tick, a 25 ms stall of a machine busy with the other test worker failed it once)
+    async with EmulatorServer(level_device(instructor_writes=True), time_scale=5) as srv:
         await srv.device.wait_for_tick(5)                 # the scenario starts wherever the device is
         applied = await run_scenario(sc, attach=("127.0.0.1", srv.port))
         await srv.device.wait_for_tick(srv.device.ticks + 1)   # accepted writes apply at the next tick
