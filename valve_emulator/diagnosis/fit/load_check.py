@@ -252,7 +252,7 @@ def remembered(pv: np.ndarray, op: np.ndarray, valve: np.ndarray, structure: Lin
     static = [_through(c, structure, dt) for c in _static_columns(op, start).T]
     memory, own = _through(valve - op, structure, dt), _through(valve, structure, dt)
     best_map = best_with = float("inf")
-    share = gain = float("nan")
+    share = float("nan")
     for lam in LAMBDAS:
         y = highpass(pv, lam)[start:]
         one = np.ones_like(y)
