@@ -76,8 +76,12 @@ class Assessment:
 
     @property
     def statement(self) -> str:
-        """``"<decision>: <reason>"``."""
-        return f"{self.decision.words}: {self.reason}"
+        """``"<decision>: <reason>"``, or the reason alone where it opens with the decision's words (a stiction
+        call's reason opens with its kind: ``"stiction, S ≈ …"``, not ``"stiction: stiction, S ≈ …"``)."""
+        words = self.decision.words
+        if self.reason.startswith(words) and self.reason[len(words):len(words) + 1] in (",", " "):
+            return self.reason
+        return f"{words}: {self.reason}"
 
     @property
     def verdict(self) -> str:
