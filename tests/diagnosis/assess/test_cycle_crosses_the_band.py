@@ -6,7 +6,7 @@ Thornhill & Shah 2005). So a strong call, which asks for a regular cycle, asks t
 ``CYCLE_CROSSING`` (√(2/3), a triangle's swing read as a sine's) of the band's lower 95 % bound.
 
 Known truth: the independent simulator's sticky level loops (``tests/unseen_loops.py: LEVEL``) that cycle cross their
-true band (measured 2026-11-28: 34 of 34, OP's swing 1.0–2.9 times S); the unit tests build the cycle by hand.
+true band (measured 2026-11-28: 34 of 34, OP's swing 1.0–3.2 times S); the unit tests build the cycle by hand.
 """
 
 from __future__ import annotations
