@@ -646,7 +646,8 @@ def _inside_cycle_text(op: np.ndarray, facts: dict, dt: float, valve: Finding, f
     return (f"the loop oscillates regularly, but OP swings by only {_amount(swing, frame)} peak to peak in the cycle "
             f"(of {facts['period']:.3g} s), less than {CYCLE_CROSSING:.2g} of the band (S ≥ "
             f"{_amount(_crossed_band(valve), frame)} at 95 %): a sticky valve's limit cycle takes OP across its band "
-            "every half period, so this cycle is not the band's (a loop's own answer to a wandering load cycles too)")
+            "every half period, so either this cycle is not the band's (a loop's own answer to a wandering load "
+            "cycles too) or the band found is wider than the valve's")
 
 
 def _no_cycle_text(facts: dict) -> str:
