@@ -269,7 +269,11 @@ SLOW_NOISY_MODEL = drawn("slow_noisy_valve", 15, 20, ("model",))
 #: over (6 of 24, 2026-11-28), and where the band's leak through the identified plant's short-time integrator
 #: (``decision.SHORT_TIME_FACTOR``) was found, with the 32 above and the 80 labelled plant windows.
 HEALTHY_LEVEL_FRESH = drawn("healthy_level", 50, 24, ("plant",))
+#: 24 level loops with a healthy valve as plant data, seed 51: the held-out figure of the short-time integrator's leak
+#: (3 of 24 answered stiction, 2026-11-28), where a strong call on a regular cycle inside a wide band was studied
+#: with seeds 52 and 53 (``decision.CYCLE_CROSSING``; judged on seed 54, which no test uses).
+HEALTHY_LEVEL_HELD = drawn("healthy_level", 51, 24, ("plant",))
 #: Every draw of every set, once, in a stable order.
 ALL = list(dict.fromkeys(LEVEL + LATE_ONSET + AGGRESSIVE_MODEL + AGGRESSIVE_PLANT + COVERAGE + STRENGTH
                          + HEALTHY_LEVEL + HEALTHY_LEVEL_MORE + LEVEL_MODEL + SLOW_NOISY_MODEL
-                         + HEALTHY_LEVEL_FRESH))
+                         + HEALTHY_LEVEL_FRESH + HEALTHY_LEVEL_HELD))

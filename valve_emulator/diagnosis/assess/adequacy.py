@@ -40,8 +40,8 @@ from valve_emulator.diagnosis.fit.data import MIN_SAMPLES
 from valve_emulator.diagnosis.fit.frame import noise_sigma
 from valve_emulator.recordings.recording import Recording
 
-__all__ = ["Adequacy", "adequacy", "Cycle", "cycle", "longest_constant_run", "swings", "op_swings", "FLAT_SHARE",
-           "EXCITATION", "TURN_BANDS"]
+__all__ = ["Adequacy", "adequacy", "Cycle", "cycle", "cycle_swing", "longest_constant_run", "swings", "op_swings",
+           "FLAT_SHARE", "EXCITATION", "TURN_BANDS"]
 
 #: PV (or OP) constant over at least this share of the record is "flat".
 FLAT_SHARE = 0.5
@@ -209,7 +209,7 @@ def most_regular(rec: Recording):
     return max(tests.items(), key=lambda kv: kv[1].regularity if kv[1].regular else -1.0)
 
 
-def _swing(x: np.ndarray, samples: int) -> float:
+def cycle_swing(x: np.ndarray, samples: int) -> float:
     """Half the peak-to-peak swing of a cycle ``samples`` long in ``x``: √2 × the standard deviation of ``x``
     less its centred moving mean over one period (exact for a sine)."""
     x = np.asarray(x, dtype=float)
@@ -226,5 +226,5 @@ def cycle(rec: Recording) -> Cycle:
     if not osc.regular:
         return Cycle(False, float(osc.regularity), float("nan"))
     samples = int(round(osc.period))
-    return Cycle(True, float(osc.regularity), float(osc.period * rec.dt), _swing(pv, samples), _swing(op, samples),
-                 name)
+    return Cycle(True, float(osc.regularity), float(osc.period * rec.dt), cycle_swing(pv, samples),
+                 cycle_swing(op, samples), name)

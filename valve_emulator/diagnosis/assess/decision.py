@@ -133,7 +133,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from valve_emulator.diagnosis.answers import VALVE_FRICTION, Answer, Reason, Strength
-from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, op_swings
+from valve_emulator.diagnosis.assess.adequacy import Adequacy, adequacy, cycle_swing, op_swings
 from valve_emulator.diagnosis.assess.result import Assessment
 from valve_emulator.diagnosis.assess.ring import ring_check
 from valve_emulator.diagnosis.candidates import get, registry
@@ -156,11 +156,11 @@ from valve_emulator.recordings.recording import Recording
 from valve_emulator.recordings.resample import regularize
 
 __all__ = ["Assessment", "Decision", "assess", "assess_uniform", "NOISE_BANDS", "MIN_FIT", "CONTEST_BIC",
-           "COARSE_SHARE", "CROSSING_SHARE", "MODEL_CONTEST_BIC", "SHORT_TIME_FACTOR", "MODEL_STRONG_GAIN",
-           "PLANT_STRONG_GAIN",
+           "COARSE_SHARE", "CROSSING_SHARE", "CYCLE_CROSSING", "MODEL_CONTEST_BIC", "SHORT_TIME_FACTOR",
+           "MODEL_STRONG_GAIN", "PLANT_STRONG_GAIN",
            "band_crossings", "band_leaks",
            "band_unshown",
-           "coarse_pv", "Leak", "cycling", "strength_with_model", "answer_with_model"]
+           "coarse_pv", "Leak", "cycling", "cycle_crosses", "strength_with_model", "answer_with_model"]
 
 #: A valve band S must reach this many OP noise σ to be called stiction.
 NOISE_BANDS = 3.0
@@ -197,6 +197,15 @@ CROSSING_SHARE = 0.05
 #: plant windows of that kind −0.0007 to 0.16, and 0.0036 on the one whose swallowed moves pass an integrator by
 #: ΔBIC ≥ 10 (2411FIC20102 1207_0004, ΔBIC 28.6), which keeps its call (``docs/diagnosis.md``).
 SHORT_TIME_FACTOR = 10.0
+#: A regular cycle is the band's own limit cycle only when OP's swing in it crosses the band (:func:`cycle_crosses`):
+#: twice the oscillation summary's OP amplitude (√2 × OP's standard deviation about a moving mean one period long,
+#: a sine's amplitude) at least this share of S. By the describing function of the stiction model (Choudhury,
+#: Thornhill & Shah, *Control Eng. Practice* 13 (2005) 641–658) a valve whose OP swings by less than S peak to peak
+#: does not move at all (N(A) = 0 for A ≤ S/2); under integral action a stick-slip cycle's OP is a triangle, whose
+#: amplitude that reading gives as √(2/3) of its own. So the share is √(2/3): no limit cycle of the band swings OP
+#: less, whatever its shape between a sine and a triangle. Not fitted (``docs/diagnosis.md``, measured 2026-11-28:
+#: the strong calls on healthy level loops that cycle had 0.27–0.73; the right strong calls kept 0.88 and more).
+CYCLE_CROSSING = float(np.sqrt(2.0 / 3.0))
 #: Held-out fit (points) valve friction must buy over a nominal model for a strong stiction answer ...
 MODEL_STRONG_GAIN = 20.0
 #: ... and over the identified linear valve on plant data: twice what any candidate needs to be accepted (on the
@@ -316,7 +325,7 @@ def _decide(rec: Recording, d: Explanation, ad: Adequacy, noise: float, frame: F
         if NOISE_BANDS * noise <= S:
             contested = _contested(valve, S, fits, frame) or _healthy_alike(rec, d, valve, S, fits, frame, ad, noise)
             if contested is None:
-                return _stiction(valve, S, fits, frame, ad, _acting(rec, valve))
+                return _stiction(valve, S, fits, frame, ad, _acting(rec, valve), rec.dt)
             if tune is None or not tune.aggressive or _beyond(tune):
                 return contested
             unsure = (f"a valve band S ≈ {_amount(S, frame)} fits too, but a linear valve with a slowly drifting load "
@@ -527,8 +536,10 @@ def _tuning_decision(tune: TuningAssessment, also: str, fits: str,
                     tuning=tune)
 
 
-def _stiction(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy, op: np.ndarray) -> Decision:
-    """The stiction answer for valve friction whose band is beyond OP noise (``op``: OP where the friction acts)."""
+def _stiction(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy, op: np.ndarray,
+              dt: float) -> Decision:
+    """The stiction answer for valve friction whose band is beyond OP noise (``op``: OP where the friction acts;
+    ``dt`` the sample time)."""
     J = float(valve.parameters.get("J", 0.0))
     ivs = {k: v for k, v in valve.intervals.items() if k in ("S", "J")}
     iv = "; ".join(f"{k} 95 % {_fmt_iv(v)}" for k, v in ivs.items())
@@ -541,6 +552,8 @@ def _stiction(valve: Finding, S: float, fits: str, frame: Frame, ad: Adequacy, o
         reasons += ((Reason.WEAK_EVIDENCE, _coarse_text(ad.facts)),)
     if not cycling(ad.facts):
         reasons += ((Reason.WEAK_EVIDENCE, _no_cycle_text(ad.facts)),) + _uncrossed(op, S)
+    elif not cycle_crosses(op, ad.facts, dt, valve):
+        reasons += ((Reason.WEAK_EVIDENCE, _inside_cycle_text(op, ad.facts, dt, valve, frame)),)
     gain = valve.fit_with - valve.fit_without
     if gain < PLANT_STRONG_GAIN:
         reasons += ((Reason.WEAK_EVIDENCE, f"the friction buys only {gain:.2g} points of held-out fit, less than "
@@ -599,6 +612,44 @@ def cycling(facts: dict) -> bool:
     return bool(facts.get("oscillating", True))
 
 
+def cycle_crosses(op: np.ndarray, facts: dict, dt: float, valve: Finding) -> bool:
+    """Whether the loop's regular cycle (adequacy's ``period``) can be the limit cycle of ``valve``'s band: OP's
+    swing in it, ``op`` being OP where the friction acts (:func:`_acting`), is at least :data:`CYCLE_CROSSING` ×
+    the band — the lower end of S's 95 % interval, so that the band's own uncertainty counts for the call (S itself
+    without one). OP's swing is twice :func:`~valve_emulator.diagnosis.assess.adequacy.cycle_swing` at the cycle's
+    period, the oscillation summary's OP amplitude. True when there is no cycle to judge.
+
+    Why: a sticky valve under a PI makes a limit cycle by sticking until OP has crossed its band and slipping
+    (:func:`cycling`), so OP's swing in that cycle crosses the band every half period; a valve whose OP swings by
+    less than S does not move (the stiction model's describing function is zero there, Choudhury, Thornhill & Shah
+    2005). A regular cycle whose OP stays inside the band found is not that band's cycle: on a PI-controlled level
+    under a wandering load the loop's own answer to the load cycles (r up to 2.5 on the independent simulator's
+    healthy level loops), and a wide band standing in for the controller's answers fits the record. The cycle then
+    says nothing for the band, and a call resting on it is weak (measured, ``docs/diagnosis.md``)."""
+    period = facts.get("period", float("nan"))
+    op = np.asarray(op, dtype=float)
+    if not facts.get("oscillating") or not np.isfinite(period) or op.size < 2:
+        return True
+    band = _crossed_band(valve)
+    return 2.0 * cycle_swing(op, int(round(period / dt))) >= CYCLE_CROSSING * band
+
+
+def _crossed_band(valve: Finding) -> float:
+    """The band a limit cycle must cross (:func:`cycle_crosses`): the lower end of S's 95 % interval, else S."""
+    low = valve.intervals.get("S", (np.nan, np.nan))[0]
+    S = float(valve.parameters["S"])
+    return float(low) if np.isfinite(low) else S
+
+
+def _inside_cycle_text(op: np.ndarray, facts: dict, dt: float, valve: Finding, frame: Frame) -> str:
+    swing = 2.0 * cycle_swing(np.asarray(op, dtype=float), int(round(facts["period"] / dt)))
+    return (f"the loop oscillates regularly, but OP swings by only {_amount(swing, frame)} peak to peak in the cycle "
+            f"(of {facts['period']:.3g} s), less than {CYCLE_CROSSING:.2g} of the band (S ≥ "
+            f"{_amount(_crossed_band(valve), frame)} at 95 %): a sticky valve's limit cycle takes OP across its band "
+            "every half period, so either this cycle is not the band's (a loop's own answer to a wandering load "
+            "cycles too) or the band found is wider than the valve's")
+
+
 def _no_cycle_text(facts: dict) -> str:
     r = facts.get("regularity", float("nan"))
     shown = f" (regularity r = {r:.2f} ≤ 1)" if np.isfinite(r) else ""
@@ -611,11 +662,13 @@ def _coarse_text(facts: dict) -> str:
             "archive's compression), whose steps imitate a valve's stick-slip")
 
 
-def strength_with_model(friction: Finding, facts: dict, fit_before: float, fit_after: float) -> Strength:
+def strength_with_model(friction: Finding, facts: dict, fit_before: float, fit_after: float,
+                        rec: Recording | None = None) -> Strength:
     """How strong a stiction answer against a nominal model is: strong when the friction buys at least
     :data:`MODEL_STRONG_GAIN` points of held-out fit, the final model predicts held-out PV better than the
     nominal one (``fit_after > fit_before``), PV is not coarse (:func:`coarse_pv`), the loop oscillates
-    regularly (:func:`cycling`) and, as on plant data, the
+    regularly (:func:`cycling`) in a cycle that crosses the band (:func:`cycle_crosses`, on ``rec``'s OP where the
+    friction acts; not asked without ``rec``) and, as on plant data, the
     friction survives the drifting-load noise model (its ``load_delta_bic`` at least
     :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`), else weak. A nominal model that is not quite
     right (an aggressive PI, a slow actuator) lets small friction buy a few points, and a slow actuator in PV
@@ -625,6 +678,7 @@ def strength_with_model(friction: Finding, facts: dict, fit_before: float, fit_a
     gain = friction.fit_with - friction.fit_without
     load = friction.load_delta_bic
     strong = (gain >= MODEL_STRONG_GAIN and fit_after > fit_before and not coarse_pv(facts) and cycling(facts)
+              and (rec is None or cycle_crosses(_acting(rec, friction), facts, rec.dt, friction))
               and (load is None or load >= DELTA_BIC))
     return Strength.STRONG if strong else Strength.WEAK
 

@@ -113,7 +113,8 @@ class Diagnosis:
             return self.assessment.strength
         if self.friction is None:
             return None
-        return strength_with_model(self.friction, adequacy(self.recording).facts, self.fit_before, self.fit_after)
+        return strength_with_model(self.friction, adequacy(self.recording).facts, self.fit_before, self.fit_after,
+                                   self.recording)
 
     @property
     def findings(self) -> tuple[Finding, ...]:
