@@ -412,6 +412,9 @@ _STATUS_VALUE = ua.DataChangeTrigger.StatusValue
 #: the tables of asyncua 2.1.0's MonitoredItemService that :func:`notify` reads
 _SERVICE_TABLES = frozenset({"_monitored_datachange", "_monitored_items", "isub"})
 _DISABLED = ua.MonitoringMode.Disabled
+_IS_DATA_CHANGED = MonitoredItemService._is_data_changed
+#: a handle not resolved yet (:attr:`OpcUaServer._resolved`)
+_UNRESOLVED = object()
 
 
 #: per monitored-item service: whether :func:`notify` may read its tables (decided at its first notification;
@@ -425,9 +428,66 @@ def _readable(service: Any) -> bool:
     return vars(service).keys() >= _SERVICE_TABLES and hasattr(service, "_is_data_changed")
 
 
-async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue) -> None:
+class _Item:
+    """The monitored item behind a data-change callback handle, resolved once (:func:`resolve`) rather than at each
+    notification: asyncua 2.1.0's item record (``MonitoredItemData``, whose mode, filter and queue size a client's
+    ModifyMonitoredItems/SetMonitoringMode change in place), its values, its id and its subscription's
+    ``enqueue_datachange_event``. A handle names one item for as long as it exists (asyncua never reuses one)."""
+
+    __slots__ = ("mdata", "values", "mid", "enqueue", "_filter", "_filtered")
+
+    def __init__(self, mdata: Any, mid: int, enqueue: Callable[..., Any]) -> None:
+        self.mdata, self.values, self.mid, self.enqueue = mdata, mdata.mvalue, mid, enqueue
+        self._filter, self._filtered = mdata.filter, bool(mdata.filter)
+
+    def filtered(self) -> bool:
+        """Whether the item has a filter (a deadband): its values then go through asyncua's callback. The filter's
+        truth (a Python call on an ExtensionObject) is taken again only when a client replaced it."""
+        current = self.mdata.filter
+        if current is not self._filter:
+            self._filter, self._filtered = current, bool(current)
+        return self._filtered
+
+
+def resolve(callback: Callable[..., Any], handle: int) -> _Item | None:
+    """The monitored item behind the data-change ``callback`` registered under ``handle``, or None where
+    :func:`notify` must call the callback itself: a callback that is not asyncua 2.1.0's
+    ``MonitoredItemService.datachange_callback``, or a service without the tables this reads (another asyncua;
+    decided at the service's first notification, :func:`_readable`). A handle the service does not know raises
+    KeyError, as its callback would."""
+    if getattr(callback, "__func__", None) is not MonitoredItemService.datachange_callback:
+        return None   # not the service's callback: its own way
+    service = callback.__self__
+    readable = _READABLE.get(service)
+    if readable is None:   # the service's first notification: decided once, not at each of its notifications
+        readable = _READABLE[service] = _readable(service)
+    if not readable:
+        return None   # not the service this was written against (another asyncua): its own way
+    mid = service._monitored_datachange[handle]
+    return _Item(service._monitored_items[mid], mid, service.isub.enqueue_datachange_event)
+
+
+def _notification(item: _Item, dv: ua.DataValue) -> ua.MonitoredItemNotification | None:
+    """Make ``dv`` the item's current value (the one before its old) and answer its notification, or None: the item
+    is disabled, or its change test (``_is_data_changed``, status or value, as asyncua's callback's for an item
+    without a filter) says no change."""
+    mdata = item.mdata
+    if mdata.mode == _DISABLED:
+        return None
+    values = item.values
+    if isinstance(dv, _SharedDataValue):   # never changed: its deep copy would be itself, at 2 µs
+        values.old_dvalue, values.current_dvalue = values.current_dvalue, dv
+    else:
+        values.set_current_datavalue(dv)
+    if _IS_DATA_CHANGED(values, _STATUS_VALUE):
+        return ua.MonitoredItemNotification(ClientHandle=mdata.client_handle, Value=dv)
+    return None
+
+
+async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue, item: _Item | None = None) -> None:
     """Hand ``dv`` to the monitored item behind the data-change ``callback`` registered under ``handle``: what
     asyncua 2.1.0's ``MonitoredItemService.datachange_callback`` does for an item without a filter, less one object.
+    ``item``: the item as :func:`resolve` answered it before (the publisher keeps it per handle); None: resolved now.
 
     That callback builds ``ua.MonitoredItemNotification()`` with its default DataValue -- which builds a Variant
     whose type it guesses, and a StatusCode -- and then replaces that DataValue with the one it was handed: 13 µs
@@ -440,31 +500,14 @@ async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue) ->
     (``enqueue_datachange_event``, with the item's queue size). An item with a filter (a deadband), or a callback
     that is not that service's, goes through the callback itself; asyncua is not patched. Whether a service is
     the one this was written against is decided at its first notification (:func:`_readable`), not at each."""
-    if getattr(callback, "__func__", None) is not MonitoredItemService.datachange_callback:
-        await callback(handle, dv)   # not the service's callback: its own way
-        return
-    service = callback.__self__
-    readable = _READABLE.get(service)
-    if readable is None:   # the service's first notification: decided once, not at each of its notifications
-        readable = _READABLE[service] = _readable(service)
-    if not readable:
-        await callback(handle, dv)   # not the service this was written against (another asyncua): its own way
-        return
-    mid = service._monitored_datachange[handle]
-    mdata = service._monitored_items[mid]
-    if mdata.filter:
+    if item is None:
+        item = resolve(callback, handle)
+    if item is None or item.filtered():
         await callback(handle, dv)
         return
-    if mdata.mode == _DISABLED:
-        return
-    values = mdata.mvalue
-    if isinstance(dv, _SharedDataValue):   # never changed: its deep copy would be itself, at 2 µs
-        values.old_dvalue, values.current_dvalue = values.current_dvalue, dv
-    else:
-        values.set_current_datavalue(dv)
-    if service._is_data_changed(values, _STATUS_VALUE):
-        event = ua.MonitoredItemNotification(ClientHandle=mdata.client_handle, Value=dv)
-        await service.isub.enqueue_datachange_event(mid, event, mdata.queue_size)
+    event = _notification(item, dv)
+    if event is not None:
+        await item.enqueue(item.mid, event, item.mdata.queue_size)
 
 
 class _SharedDataValue(ua.DataValue):
@@ -611,6 +654,9 @@ class OpcUaServer:
         self._states: dict[tuple[int, float], _GroupState] = {}
         #: the seconds handing one variable's value to its monitored items takes (a running mean)
         self._hand_cost = 20e-6
+        #: data-change callback handle -> its monitored item (:func:`resolve`; None: through the callback), resolved at
+        #: its first notification; a deleted handle's is dropped with it
+        self._resolved: dict[int, _Item | None] = {}
         #: data-change callback handle -> the sampling interval (s) its monitored item is honoured at
         self._intervals: dict[int, float] = {}
         #: when the tick that made the served values ran (their SourceTimestamp)
@@ -1251,8 +1297,10 @@ class OpcUaServer:
 
     async def _hand(self, items: list[tuple[int, _Watch, ua.DataValue, list[_Group]]]) -> None:
         """Hand each of ``items`` (place, variable, value, groups) to the monitored items of its groups, in order and
-        without yielding between them (one coroutine for them all, not one per variable)."""
+        without yielding between them (one coroutine for them all, not one per variable), as :func:`notify` hands a
+        value, each item resolved once per handle (:attr:`_resolved`) rather than at each notification."""
         handed = 0
+        resolved = self._resolved
         try:
             for _, watch, dv, groups in items:
                 callbacks = watch.attval.datachange_callbacks
@@ -1263,7 +1311,15 @@ class OpcUaServer:
                             continue
                         handed += 1
                         try:
-                            await notify(callback, handle, dv)
+                            item = resolved.get(handle, _UNRESOLVED)
+                            if item is _UNRESOLVED:
+                                item = resolved[handle] = resolve(callback, handle)
+                            if item is None or item.filtered():
+                                await callback(handle, dv)
+                                continue
+                            event = _notification(item, dv)   # (notify's steps, without a coroutine of its own)
+                            if event is not None:
+                                await item.enqueue(item.mid, event, item.mdata.queue_size)
                         except Exception:   # one broken subscription must not stop the others
                             _log.exception("OPC UA: a data-change notification failed")
         finally:
@@ -1323,6 +1379,7 @@ class OpcUaServer:
         def deleted(handle: int, *args: Any, **kwargs: Any) -> Any:
             self._dirty = True
             self._intervals.pop(handle, None)
+            self._resolved.pop(handle, None)
             return delete(handle, *args, **kwargs)
 
         aspace.add_datachange_callback, aspace.delete_datachange_callback = added, deleted
