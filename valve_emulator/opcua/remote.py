@@ -30,7 +30,7 @@ from typing import Any
 
 from valve_emulator.device.alarms import AlarmChange
 from valve_emulator.opcua.channel import Channel, read_first
-from valve_emulator.opcua.shared import COMPUTED, ImageReader, SharedLayout
+from valve_emulator.opcua.shared import COMPUTED, ImageReader, SharedLayout, TickImage
 
 __all__ = ["ChildSpec", "RemoteSource", "child_main"]
 
@@ -104,6 +104,18 @@ class RemoteSource:
         (``ImageReader.pinned``); with ``tick``, that tick's image while the shared block still holds it, though
         the device has published newer ones (a hand-off run late samples the tick it is for)."""
         return self.reader.pinned(tick)
+
+    @property
+    def snapshot(self) -> TickImage:
+        """The :class:`~valve_emulator.opcua.shared.TickImage` served now (inside :meth:`sampling`, the pinned one):
+        a new object whenever anything was published, never changed, so what the server decodes from it may be kept
+        as long as it is the one served (``OpcUaServer._column``)."""
+        return self.reader.read()
+
+    def computed_column(self, quantity: str) -> Any:
+        """Every loop's double of ``quantity`` (one of ``shared.COMPUTED``) in the :attr:`snapshot`, or None."""
+        row = self._rows.get(quantity)
+        return None if row is None else self.reader.read().computed[row]
 
     def computed(self, index: int, quantity: str) -> float | None:
         if quantity == "time":
