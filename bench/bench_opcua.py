@@ -650,7 +650,7 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
                  row("notifications handed to subscriptions per second", "", "{sent:,.0f}"),
                  row("device process CPU (s per s)", f"{base['device_cpu']:.2f}", "{device_cpu:.2f}"),
                  row("OPC UA process CPU (s per s)", "", "{opcua_cpu:.2f}"),
-                 row("OPC UA CPU per notification", "", "{per_notification:.0f} µs"),
+                 row("OPC UA CPU per notification", "", "{per_notification:.1f} µs"),
                  row("publish responses more than 1.5 intervals after the one before (the client's Publish "
                      "request came late)", "", "{late:.1%}"),
                  row("OPC UA client process CPU (s per s), median client", "", "{client_cpu:.2f}"),

@@ -64,7 +64,7 @@ import time
 import weakref
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -522,6 +522,35 @@ class _SharedDataValue(ua.DataValue):
         return self
 
 
+_new = object.__new__
+#: the fields of asyncua's Variant and DataValue that :func:`scalar_data_value` sets (asyncua 2.1.0's: all of them)
+_VARIANT_FIELDS = ("Value", "VariantType", "Dimensions", "is_array")
+_DATA_VALUE_FIELDS = ("Encoding", "Value", "StatusCode", "SourceTimestamp", "ServerTimestamp", "SourcePicoseconds",
+                      "ServerPicoseconds")
+#: whether asyncua's Variant and DataValue have exactly those fields (another asyncua: built by their constructors)
+_BUILT_DIRECTLY = (tuple(f.name for f in fields(ua.Variant)) == _VARIANT_FIELDS
+                   and tuple(f.name for f in fields(ua.DataValue)) == _DATA_VALUE_FIELDS)
+
+
+def scalar_data_value(value: float | int | bool, variant: ua.VariantType, status: ua.StatusCode,
+                      source_ts: datetime, server_ts: datetime) -> _SharedDataValue:
+    """``_SharedDataValue(Value=ua.Variant(value, variant), StatusCode=status, SourceTimestamp=source_ts,
+    ServerTimestamp=server_ts)`` for a scalar number or Boolean of a given built-in ``variant``: the same object,
+    field by field, built without the constructors' checks, which for such a value change nothing (the Variant's
+    ``__post_init__`` guesses a missing type, unwraps a Variant, refuses None and measures a list; the DataValue's
+    wraps a value that is not a Variant): 1.25 -> 0.7 µs in timeit, once per sampled value. Where asyncua's classes
+    have other fields than asyncua 2.1.0's, their constructors build it."""
+    if not _BUILT_DIRECTLY:
+        return _SharedDataValue(Value=ua.Variant(value, variant, None, False), StatusCode=status,
+                                SourceTimestamp=source_ts, ServerTimestamp=server_ts)
+    v = _new(ua.Variant)
+    v.Value, v.VariantType, v.Dimensions, v.is_array = value, variant, None, False
+    dv = _new(_SharedDataValue)
+    dv.Encoding, dv.Value, dv.StatusCode, dv.SourceTimestamp, dv.ServerTimestamp = 0, v, status, source_ts, server_ts
+    dv.SourcePicoseconds = dv.ServerPicoseconds = None
+    return dv
+
+
 class RepeatFilter(logging.Filter):
     """Let through at most one log record per logging call site every ``interval`` seconds.
 
@@ -784,9 +813,7 @@ class OpcUaServer:
         """The DataValue of a read or a notification: SourceTimestamp the tick that made the value, ServerTimestamp
         now; ``stamps``: the two, taken once for a publisher's pass over a tick's values (sampled together)."""
         source_ts, server_ts = stamps or (self.tick_clock.stamp(), datetime.now(UTC))
-        # a scalar (is_array False, positionally): the Variant skips its guesses of a list's shape (2.3 -> 1.5 µs)
-        return _SharedDataValue(Value=ua.Variant(value, variant, None, False), StatusCode=status or _GOOD,
-                                SourceTimestamp=source_ts, ServerTimestamp=server_ts)
+        return scalar_data_value(value, variant, status or _GOOD, source_ts, server_ts)
 
     def _sampler(self, index: int, var: Variable, eu_range: tuple[float, float] | None) -> Sampler:
         """The sampler of an analog or integer variable; a value outside ``eu_range`` is Uncertain."""
