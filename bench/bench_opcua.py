@@ -24,7 +24,9 @@ request at the server when the publish was due (asyncua's client keeps one at a 
 taken in the last response), so the server publishes when the request comes, and with a queue of one the values
 handed meanwhile replace the ones waiting. Also the CPU time of the device process, of the OPC UA process and of the
 median client process per second, and the OPC UA process's CPU per notification handed to a subscription (the cost
-of a notification, and so the cores a load needs), the ticks the publisher deferred (out of its budget: in the
+of a notification, and so the cores a load needs) and of it the hand-off's (``OpcUaCounters.handing_cpu``: sampling
+and handing to the items' queues; the process's figure also holds the encoding of what the clients took, so it moves
+with their delivery, this one does not), the ticks the publisher deferred (out of its budget: in the
 device's process) and those it skipped (behind the device: a newer tick came before it was done with the last).
 Medians over ``--rounds``. ``--client``: the sessions' client stack, asyncua (Python, the default) or node
 (node-opcua, ``tests/opcua/node/subscriber.mjs``, started by each session's process; ``npm ci`` in
