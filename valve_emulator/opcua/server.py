@@ -663,7 +663,7 @@ class OpcUaServer:
         self.publish_budget, self.yield_while_sampling = publish_budget, yield_while_sampling
         self.hand_ahead = hand_ahead
         #: the source's snapshot the float32 variables were last decoded from, their columns by name (:meth:`_column`)
-        self._snapshot: object | None = None
+        self._decoded_from: object | None = None
         self._columns: dict[str, list[float] | None] = {}
         #: the hand-off grid of :meth:`_publish_ahead`, the timers it registered (tick -> handles) and the chunks'
         #: tasks under way
@@ -791,8 +791,8 @@ class OpcUaServer:
         snapshot = source.snapshot
         if snapshot is None:
             return None
-        if snapshot is not self._snapshot:
-            self._snapshot, self._columns = snapshot, {}
+        if snapshot is not self._decoded_from:
+            self._decoded_from, self._columns = snapshot, {}
         columns = self._columns
         if var.name in columns:
             return columns[var.name]
