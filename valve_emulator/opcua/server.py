@@ -487,10 +487,10 @@ def _notification(item: _Item, dv: ua.DataValue) -> ua.MonitoredItemNotification
     return None
 
 
-async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue, item: _Item | None = None) -> None:
+async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue) -> None:
     """Hand ``dv`` to the monitored item behind the data-change ``callback`` registered under ``handle``: what
     asyncua 2.1.0's ``MonitoredItemService.datachange_callback`` does for an item without a filter, less one object.
-    ``item``: the item as :func:`resolve` answered it before (the publisher keeps it per handle); None: resolved now.
+    (The publisher's :meth:`OpcUaServer._hand` takes the same steps with each item resolved once per handle.)
 
     That callback builds ``ua.MonitoredItemNotification()`` with its default DataValue -- which builds a Variant
     whose type it guesses, and a StatusCode -- and then replaces that DataValue with the one it was handed: 13 µs
@@ -503,8 +503,7 @@ async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue, it
     (``enqueue_datachange_event``, with the item's queue size). An item with a filter (a deadband), or a callback
     that is not that service's, goes through the callback itself; asyncua is not patched. Whether a service is
     the one this was written against is decided at its first notification (:func:`_readable`), not at each."""
-    if item is None:
-        item = resolve(callback, handle)
+    item = resolve(callback, handle)
     if item is None or item.filtered():
         await callback(handle, dv)
         return
