@@ -24,7 +24,9 @@ request at the server when the publish was due (asyncua's client keeps one at a 
 taken in the last response), so the server publishes when the request comes, and with a queue of one the values
 handed meanwhile replace the ones waiting. Also the CPU time of the device process, of the OPC UA process and of the
 median client process per second, and the OPC UA process's CPU per notification handed to a subscription (the cost
-of a notification, and so the cores a load needs), the ticks the publisher deferred (out of its budget: in the
+of a notification, and so the cores a load needs) and of it the hand-off's (``OpcUaCounters.handing_cpu``: sampling
+and handing to the items' queues; the process's figure also holds the encoding of what the clients took, so it moves
+with their delivery, this one does not), the ticks the publisher deferred (out of its budget: in the
 device's process) and those it skipped (behind the device: a newer tick came before it was done with the last).
 Medians over ``--rounds``. ``--client``: the sessions' client stack, asyncua (Python, the default) or node
 (node-opcua, ``tests/opcua/node/subscriber.mjs``, started by each session's process; ``npm ci`` in
@@ -474,6 +476,7 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             skipped = counters.skipped - skipped0 if opc else 0
             newer = counters.sampled_newer - counters0.sampled_newer if opc else 0
             again = counters.sampled_again - counters0.sampled_again if opc else 0
+            handing = counters.handing_cpu - counters0.handing_cpu if opc else 0.0
             off_grid = [t for t in counters.off_grid if wall0 - 1 <= t.stamp <= wall1] if opc else []
             ticks, overruns = srv.device.ticks - ticks0, srv.device.overruns - overruns0
             lateness = srv.device.jitter.values()
@@ -494,6 +497,7 @@ async def _load_round(mode: str, n: int, clients: int, sub: Subscribing, seconds
             "per_interval": statistics.median(raw) / expected if served else float("nan"),
             "device_cpu": cpu / elapsed, "opcua_cpu": opc_cpu / elapsed if mode == "process" else float("nan"),
             "per_notification": 1e6 * opc_cpu / sent if sent and mode == "process" else float("nan"),
+            "handing": 1e6 * handing / sent if sent and mode == "process" else float("nan"),
             "sent": sent / elapsed, "polled": polled / seconds,
             "lost": sum(len(r.lost) for r in results), "statuses": sorted({x for r in results for x in r.lost}),
             "late": sum(r.late for r in results) / max(sum(r.responses for r in results), 1) if served
@@ -650,7 +654,9 @@ def _load(args: argparse.Namespace, sub: Subscribing) -> None:
                  row("notifications handed to subscriptions per second", "", "{sent:,.0f}"),
                  row("device process CPU (s per s)", f"{base['device_cpu']:.2f}", "{device_cpu:.2f}"),
                  row("OPC UA process CPU (s per s)", "", "{opcua_cpu:.2f}"),
-                 row("OPC UA CPU per notification", "", "{per_notification:.0f} µs"),
+                 row("OPC UA CPU per notification", "", "{per_notification:.1f} µs"),
+                 row("of it the hand-off's (sampling, handing to the items' queues), per notification", "",
+                     "{handing:.1f} µs"),
                  row("publish responses more than 1.5 intervals after the one before (the client's Publish "
                      "request came late)", "", "{late:.1%}"),
                  row("OPC UA client process CPU (s per s), median client", "", "{client_cpu:.2f}"),

@@ -170,3 +170,27 @@ async def test_a_service_whose_tables_notify_cannot_read_is_remembered_as_such(i
         await notify(bound, handle, value)
     assert through == values and looked == [ours.__self__]
     assert [n.Value.Value.Value for n in _queued(internal, ours, handle)[1]] == [2.0]
+
+
+async def test_an_item_resolved_once_follows_a_clients_later_filter_and_mode(items):
+    """The publisher resolves each item once per handle (``resolve``) and keeps it: a deadband or a monitoring mode a
+    client sets afterwards (asyncua changes the item's record in place) still decides how the next values go."""
+    from valve_emulator.opcua.server import _notification, resolve
+
+    internal, callbacks = items
+    ours, handle = callbacks["ours"]
+    item = resolve(ours, handle)
+    assert item is not None and not item.filtered()
+    event = _notification(item, _value(1.0))
+    assert event is not None and event.Value.Value.Value == 1.0
+    mdata = ours.__self__._monitored_items[item.mid]
+    mdata.filter = ua.DataChangeFilter(Trigger=ua.DataChangeTrigger.StatusValue,
+                                       DeadbandType=ua.DeadbandType.Absolute, DeadbandValue=10.0)
+    assert item.filtered()   # a deadband set later: through asyncua's callback
+    mdata.filter = None
+    assert not item.filtered()
+    mdata.mode = ua.MonitoringMode.Disabled
+    assert _notification(item, _value(2.0)) is None   # disabled: nothing, its values not moved on
+    assert mdata.mvalue.get_current_datavalue().Value.Value == 1.0
+    mdata.mode = ua.MonitoringMode.Reporting
+    assert _notification(item, _value(2.0)).Value.Value.Value == 2.0

@@ -30,7 +30,7 @@ from typing import Any
 
 from valve_emulator.device.alarms import AlarmChange
 from valve_emulator.opcua.channel import Channel, read_first
-from valve_emulator.opcua.shared import COMPUTED, ImageReader, SharedLayout
+from valve_emulator.opcua.shared import COMPUTED, ImageReader, SharedLayout, TickImage
 
 __all__ = ["ChildSpec", "RemoteSource", "child_main"]
 
@@ -104,6 +104,18 @@ class RemoteSource:
         (``ImageReader.pinned``); with ``tick``, that tick's image while the shared block still holds it, though
         the device has published newer ones (a hand-off run late samples the tick it is for)."""
         return self.reader.pinned(tick)
+
+    @property
+    def snapshot(self) -> TickImage:
+        """The :class:`~valve_emulator.opcua.shared.TickImage` served now (inside :meth:`sampling`, the pinned one):
+        a new object whenever anything was published, never changed, so what the server decodes from it may be kept
+        as long as it is the one served (``OpcUaServer._column``)."""
+        return self.reader.read()
+
+    def computed_column(self, quantity: str) -> Any:
+        """Every loop's double of ``quantity`` (one of ``shared.COMPUTED``) in the :attr:`snapshot`, or None."""
+        row = self._rows.get(quantity)
+        return None if row is None else self.reader.read().computed[row]
 
     def computed(self, index: int, quantity: str) -> float | None:
         if quantity == "time":
@@ -251,18 +263,28 @@ async def _serve_on(channel: Channel, source: RemoteSource, spec: ChildSpec) -> 
         await server.stop()
 
 
+#: The collector's thresholds in the OPC UA process once it serves (Python's default: 700, 10, 10). What a
+#: notification makes (its DataValue, the item's queue entry) is freed by its reference count, not by the collector;
+#: but with 700 the collector ran on the peaks of each hand-off (thousands of values in the items' queues until the
+#: next publish), walked them and moved them to the older generations, whose collections then walked them again:
+#: at 10 clients of 1,000 loops at 100 ms, 1,658 young, 151 middle and 14 full collections in 15 s (82 ms each), 15 % of
+#: the process's CPU; with 20,000, 40 and 4 and none (docs/benchmarks.md §9.21).
+SERVING_GC_THRESHOLDS = (20_000, 10, 10)
+
+
 @contextlib.contextmanager
 def _built_out_of_the_collectors_sight() -> Iterator[None]:
     """Build the address space with the garbage collector off, then move what was built out of its sight
     (:func:`gc.freeze`). A large address space is a few million objects that live as long as this process; each
     full collection walked them all: 0.1-1.3 s at 500 loops, twelve of them during the build and then one now
     and then while serving, each a stall of every session's requests and of the publisher (measured: another
-    session's read p99 1.4 s)."""
+    session's read p99 1.4 s). Serving, the collector runs at :data:`SERVING_GC_THRESHOLDS`."""
     gc.disable()
     try:
         yield
     finally:
         gc.freeze()
+        gc.set_threshold(*SERVING_GC_THRESHOLDS)
         gc.enable()
 
 

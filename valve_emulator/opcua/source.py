@@ -60,6 +60,9 @@ class DeviceSource(Protocol):
     def tick_time(self) -> float | None: ...
     def sampling(self, tick: int | None = None) -> contextlib.AbstractContextManager[Any]: ...
     def computed(self, index: int, quantity: str) -> float | None: ...
+    @property
+    def snapshot(self) -> object | None: ...
+    def computed_column(self, quantity: str) -> Any: ...
     async def wait_for_tick(self, k: int) -> int: ...
     async def write(self, index: int, address: int, words: Sequence[int], role: Any) -> None: ...
     def raised_alarms(self) -> list[AlarmChange]: ...
@@ -116,6 +119,16 @@ class LocalSource:
             return 0.0   # the controller's registers read 0 on a loop without one
         values = getattr(bank, quantity, None)
         return None if values is None else float(values[index])
+
+    @property
+    def snapshot(self) -> None:
+        """What stands for the image and doubles served now, unchanged for as long as they are (None here: the
+        device changes them in place, so nothing decoded from them may be kept)."""
+        return None
+
+    def computed_column(self, quantity: str) -> None:
+        """Every loop's doubles of a quantity at once: only with a :attr:`snapshot` (none here)."""
+        return None
 
     async def wait_for_tick(self, k: int) -> int:
         return await self.device.wait_for_tick(k)
