@@ -694,9 +694,10 @@ def strength_with_model(friction: Finding, facts: dict, fit_before: float, fit_a
 def answer_with_model(rec: Recording, d: Explanation, frame: Frame) -> Decision:
     """The answer against a nominal model (``d``: the explain step's record with it): ``stiction`` when valve
     friction was accepted, unless a healthy valve fits the record too — the rule of plant data
-    (:func:`_healthy_alike`: no regular cycle, OP's swings hardly cross the band, and the record does not show the
-    band, :func:`band_unshown`), then ``cannot tell``, naming the sticky valve and the healthy one; ``no
-    stiction`` when no friction was accepted (the findings say what the model leaves out). A call the
+    (:func:`_healthy_alike`: no regular cycle, the record does not show the band, :func:`band_unshown`, and OP's
+    swings hardly cross it or a drifting load explains the record at least as well), then ``cannot tell``, naming
+    the sticky valve and the healthy one; ``no stiction`` when no friction was accepted (the findings say what the
+    model leaves out). A call the
     drifting-load alternative explains at least as well (:func:`_contested` at :data:`MODEL_CONTEST_BIC`: a linear
     valve with a slowly drifting load scores the record no worse than the valve) is ``cannot tell`` too, naming
     both: an imperfect nominal model (a slow actuator, PV noise the controller passes to OP) lets a band buy fit
