@@ -13,7 +13,14 @@ diagnosed once per test run and shared (``tests/unseen_loops.py``).
 from __future__ import annotations
 
 import pytest
-from unseen_loops import HEALTHY_LEVEL, HEALTHY_LEVEL_FRESH, HEALTHY_LEVEL_HELD, HEALTHY_LEVEL_MORE, diagnosed_all
+from unseen_loops import (
+    HEALTHY_LEVEL,
+    HEALTHY_LEVEL_FRESH,
+    HEALTHY_LEVEL_HELD,
+    HEALTHY_LEVEL_MORE,
+    answered_stiction,
+    diagnosed_all,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -32,10 +39,8 @@ MEASURED_STRONG = 1
 
 
 def test_a_held_out_healthy_level_loop_is_answered_stiction_no_more_often_than_measured():
-    docs = diagnosed_all(HEALTHY_LEVEL_HELD)
-    assert all(d.truth["expected"] == "no_stiction" for d in docs)
-    called = [d.draw.name for d in docs if d.doc["answer"] == "stiction"]
-    assert len(called) <= MEASURED_CALLS, f"{len(called)} of {len(docs)} answered stiction: {called}"
+    called = answered_stiction(HEALTHY_LEVEL_HELD)
+    assert len(called) <= MEASURED_CALLS, f"{len(called)} of {len(HEALTHY_LEVEL_HELD)} answered stiction: {called}"
 
 
 def test_a_healthy_level_loop_whose_cycle_stays_inside_its_band_gets_no_strong_call():
