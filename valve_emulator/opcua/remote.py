@@ -112,10 +112,11 @@ class RemoteSource:
         as long as it is the one served (``OpcUaServer._column``)."""
         return self.reader.read()
 
-    def computed_column(self, quantity: str) -> Any:
-        """Every loop's double of ``quantity`` (one of ``shared.COMPUTED``) in the :attr:`snapshot`, or None."""
+    def computed_column(self, snapshot: TickImage, quantity: str) -> Any:
+        """Every loop's double of ``quantity`` (one of ``shared.COMPUTED``) in ``snapshot`` (a :attr:`snapshot`
+        taken before: the device may have published another since), or None."""
         row = self._rows.get(quantity)
-        return None if row is None else self.reader.read().computed[row]
+        return None if row is None else snapshot.computed[row]
 
     def computed(self, index: int, quantity: str) -> float | None:
         if quantity == "time":

@@ -63,7 +63,7 @@ import struct
 import time
 import weakref
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field, fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -97,6 +97,7 @@ from valve_emulator.errors import UserError
 from valve_emulator.opcua.alarms import AlarmConditions
 from valve_emulator.opcua.handoff import HandOffGrid, Wakeups, chunk_times
 from valve_emulator.opcua.history import HISTORIZED, historize, refuse_unhistorized
+from valve_emulator.opcua.shared import TickImage
 from valve_emulator.opcua.source import DeviceSource, LocalSource, StationRefusal, finite_period
 from valve_emulator.opcua.trust import TrustList
 from valve_emulator.opcua.units import eu_information
@@ -503,13 +504,22 @@ async def notify(callback: Callable[..., Any], handle: int, dv: ua.DataValue) ->
     (``enqueue_datachange_event``, with the item's queue size). An item with a filter (a deadband), or a callback
     that is not that service's, goes through the callback itself; asyncua is not patched. Whether a service is
     the one this was written against is decided at its first notification (:func:`_readable`), not at each."""
-    item = resolve(callback, handle)
+    step = hand_over(resolve(callback, handle), callback, handle, dv)
+    if step is not None:
+        await step
+
+
+def hand_over(item: _Item | None, callback: Callable[..., Any], handle: int,
+              dv: ua.DataValue) -> Awaitable[Any] | None:
+    """The one step that hands ``dv`` to the monitored item behind ``callback``'s ``handle`` (``item``, from
+    :func:`resolve`), for :func:`notify` and the publisher's :meth:`OpcUaServer._hand` alike: the callback itself
+    for an item it must take (None, or one with a filter), else the item's subscription queue's call with the
+    notification (:func:`_notification`), or None where the item wants none. Returned to be awaited by the caller,
+    so the publisher hands a value without a coroutine of its own per notification."""
     if item is None or item.filtered():
-        await callback(handle, dv)
-        return
+        return callback(handle, dv)
     event = _notification(item, dv)
-    if event is not None:
-        await item.enqueue(item.mid, event, item.mdata.queue_size)
+    return None if event is None else item.enqueue(item.mid, event, item.mdata.queue_size)
 
 
 class _SharedDataValue(ua.DataValue):
@@ -662,7 +672,7 @@ class OpcUaServer:
         self.publish_budget, self.yield_while_sampling = publish_budget, yield_while_sampling
         self.hand_ahead = hand_ahead
         #: the source's snapshot the float32 variables were last decoded from, their columns by name (:meth:`_column`)
-        self._decoded_from: object | None = None
+        self._decoded_from: TickImage | None = None
         self._columns: dict[str, list[float] | None] = {}
         #: the hand-off grid of :meth:`_publish_ahead`, the timers it registered (tick -> handles) and the chunks'
         #: tasks under way
@@ -795,8 +805,8 @@ class OpcUaServer:
         columns = self._columns
         if var.name in columns:
             return columns[var.name]
-        computed = source.computed_column(var.first.quantity)
-        column = columns[var.name] = None if computed is None else self._doubles(var, source.image, computed)
+        computed = source.computed_column(snapshot, var.first.quantity)
+        column = columns[var.name] = None if computed is None else self._doubles(var, snapshot.image, computed)
         return column
 
     def _doubles(self, var: Variable, image: bytes, computed: np.ndarray) -> list[float]:
@@ -1389,12 +1399,9 @@ class OpcUaServer:
                             item = resolved.get(handle, _UNRESOLVED)
                             if item is _UNRESOLVED:
                                 item = resolved[handle] = resolve(callback, handle)
-                            if item is None or item.filtered():
-                                await callback(handle, dv)
-                                continue
-                            event = _notification(item, dv)   # (notify's steps, without a coroutine of its own)
-                            if event is not None:
-                                await item.enqueue(item.mid, event, item.mdata.queue_size)
+                            step = hand_over(item, callback, handle, dv)
+                            if step is not None:
+                                await step
                         except Exception:   # one broken subscription must not stop the others
                             _log.exception("OPC UA: a data-change notification failed")
         finally:

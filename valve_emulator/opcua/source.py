@@ -21,6 +21,7 @@ from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Any, Protocol
 
 from valve_emulator.device.alarms import AlarmChange
+from valve_emulator.opcua.shared import TickImage
 
 __all__ = ["DeviceSource", "LocalSource", "StationRefusal", "STATION_ACTIONS"]
 
@@ -61,8 +62,8 @@ class DeviceSource(Protocol):
     def sampling(self, tick: int | None = None) -> contextlib.AbstractContextManager[Any]: ...
     def computed(self, index: int, quantity: str) -> float | None: ...
     @property
-    def snapshot(self) -> object | None: ...
-    def computed_column(self, quantity: str) -> Any: ...
+    def snapshot(self) -> TickImage | None: ...
+    def computed_column(self, snapshot: TickImage, quantity: str) -> Any: ...
     async def wait_for_tick(self, k: int) -> int: ...
     async def write(self, index: int, address: int, words: Sequence[int], role: Any) -> None: ...
     def raised_alarms(self) -> list[AlarmChange]: ...
@@ -126,8 +127,8 @@ class LocalSource:
         device changes them in place, so nothing decoded from them may be kept)."""
         return None
 
-    def computed_column(self, quantity: str) -> None:
-        """Every loop's doubles of a quantity at once: only with a :attr:`snapshot` (none here)."""
+    def computed_column(self, snapshot: TickImage, quantity: str) -> None:
+        """Every loop's doubles of a quantity in ``snapshot``: only with a :attr:`snapshot` (none here)."""
         return None
 
     async def wait_for_tick(self, k: int) -> int:
