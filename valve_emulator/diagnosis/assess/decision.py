@@ -671,12 +671,12 @@ def _coarse_text(facts: dict) -> str:
 
 
 def strength_with_model(friction: Finding, facts: dict, fit_before: float, fit_after: float,
-                        rec: Recording | None = None) -> Strength:
+                        rec: Recording) -> Strength:
     """How strong a stiction answer against a nominal model is: strong when the friction buys at least
     :data:`MODEL_STRONG_GAIN` points of held-out fit, the final model predicts held-out PV better than the
     nominal one (``fit_after > fit_before``), PV is not coarse (:func:`coarse_pv`), the loop oscillates
-    regularly (:func:`cycling`) in a cycle that crosses the band (:func:`cycle_crosses`, on ``rec``'s OP where the
-    friction acts; not asked without ``rec``) and, as on plant data, the
+    regularly (:func:`cycling`) in a cycle that crosses the band (:func:`cycle_crosses`, on the recording ``rec``'s
+    OP where the friction acts) and, as on plant data, the
     friction survives the drifting-load noise model (its ``load_delta_bic`` at least
     :data:`~valve_emulator.diagnosis.explain.search.DELTA_BIC`), else weak. A nominal model that is not quite
     right (an aggressive PI, a slow actuator) lets small friction buy a few points, and a slow actuator in PV
@@ -686,7 +686,7 @@ def strength_with_model(friction: Finding, facts: dict, fit_before: float, fit_a
     gain = friction.fit_with - friction.fit_without
     load = friction.load_delta_bic
     strong = (gain >= MODEL_STRONG_GAIN and fit_after > fit_before and not coarse_pv(facts) and cycling(facts)
-              and (rec is None or cycle_crosses(_acting(rec, friction), facts, rec.dt, friction))
+              and cycle_crosses(_acting(rec, friction), facts, rec.dt, friction)
               and (load is None or load >= DELTA_BIC))
     return Strength.STRONG if strong else Strength.WEAK
 
