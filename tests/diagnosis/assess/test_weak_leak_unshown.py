@@ -1,8 +1,8 @@
 """A band whose swallowed moves reach PV through the identified plant with strong evidence (ΔBIC ≥
 ``decision.LEAK_BIC``, Kass & Raftery's "strong"), not only very strong evidence (``DELTA_BIC``), is a band the record
-does not show (``decision.band_leaks``; heal19, 2026-11-28). Known truth: a level (an integrating plant) under a random-walk load,
-its PV measured with much noise (σ 1, so that what leaks shows only weakly), fed through a valve that is either
-healthy or holds OP's moves inside a real dead band S = 3 %. The band asked about is the same in both.
+does not show (``decision.band_leaks``; heal19, 2026-11-28). Known truth: a level (an integrating plant) under a
+random-walk load, its PV measured with much noise (σ 1, so that what leaks shows only weakly), fed through a valve
+that is either healthy or holds OP's moves inside a real dead band S = 3 %. The band asked about is the same in both.
 """
 
 from __future__ import annotations

@@ -54,6 +54,9 @@ run on each loop:
      labelled healthy window called stiction. The leak asked through the identified first-order plant's short-time
      integrator (:func:`_short_time_slope`, 2026-11-28) took back 2 of the 3 left on the 32 test-set loops, 5 of 6
      on 24 fresh ones and 1 of 4 on 24 more not looked at; no sticky level call and no plant window changed.
+     The leak through the identified plant asked at strong evidence (:data:`LEAK_BIC`, 2026-11-28) took back 2 of
+     the 13 calls left on the 120 held-out loops it was studied on and none of the 6 on 72 not looked at; no plant
+     window changed.
      The same rule decides a stiction answer against a nominal model
      (:func:`answer_with_model`): with their exact nominal models, 7 of the 14 healthy loops called stiction among
      the independent simulator's shared draws were taken back, and 3 of the 70 sticky ones (weak late-onset calls).
