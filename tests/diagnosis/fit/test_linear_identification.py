@@ -212,3 +212,83 @@ def test_columns_scored_together_score_as_each_column_alone_bit_for_bit(structur
     for j in range(u.shape[1]):
         alone = input_grid_sse(u[:, j], y, window, delays, structure, DT, prefilter=lam)
         assert alone[0].tobytes() == together[j].tobytes()
+
+
+def _one_system_sse(G, r, yy, ntaps, sign, held):
+    """One system's constrained least-squares SSE as written for one system (the textbook Cholesky, then the
+    Lawson–Hanson correction for a gain of the wrong sign or a held gain), in Python floats."""
+    q = len(r)
+    L = [[0.0] * q for _ in range(q)]
+    moves = False
+    for i in range(q):
+        for j in range(i + 1):
+            s = float(G[j, i])
+            if i == j:
+                s += 1e-10 * (float(G[i, i]) + 1e-300)
+            for m in range(j):
+                s -= L[i][m] * L[j][m]
+            if i == j:
+                L[i][i] = float(np.sqrt(s)) if s > 1e-9 * (float(G[i, i]) + 1e-300) else 1e150
+                moves = moves or (i < ntaps and L[i][i] != 1e150)
+            else:
+                L[i][j] = s / L[j][j]
+    w = [0.0] * q
+    for i in range(q):
+        s = float(r[i])
+        for m in range(i):
+            s -= L[i][m] * w[m]
+        w[i] = s / L[i][i]
+    beta = [0.0] * q
+    for i in range(q - 1, -1, -1):
+        s = w[i]
+        for m in range(i + 1, q):
+            s -= L[m][i] * beta[m]
+        beta[i] = s / L[i][i]
+    sse = yy
+    for i in range(q):
+        sse -= beta[i] * float(r[i])
+    g = 0.0
+    for i in range(ntaps):
+        g += beta[i]
+    gap = (g - held if moves else 0.0) if held == held else (g if sign * g < 0.0 else 0.0)
+    if gap != 0.0:
+        cgc = 0.0
+        for i in range(q):
+            s = 1.0 if i < ntaps else 0.0
+            for m in range(i):
+                s -= L[i][m] * w[m]
+            w[i] = s / L[i][i]
+            cgc += w[i] * w[i]
+        if cgc > 0.0:
+            sse += gap * gap / cgc
+    return max(sse, 0.0)
+
+
+@pytest.mark.parametrize("ntaps,trend", [(1, 0), (1, 1), (2, 1), (3, 0), (4, 1)])
+@pytest.mark.parametrize("sign,held", [(0, np.nan), (1, np.nan), (-1, np.nan), (0, 0.7), (1, -0.3)])
+def test_systems_solved_side_by_side_score_as_each_system_alone_bit_for_bit(ntaps, trend, sign, held):
+    # The grid kernel solves a column's systems (one per dead time) stage by stage over all of them; each SSE
+    # must be the one its system gets alone: well-posed systems, a regressor in the span of the others (a valve
+    # that never moves: the huge pivot), a column of zeros, NaN, scales far apart.
+    from valve_emulator.diagnosis.fit.linear_kernels import _solve_room, _solve_sses
+
+    rng = np.random.default_rng(ntaps * 10 + trend)
+    q, n = ntaps + 1 + trend, 40
+    G, r = np.zeros((q, q, n)), np.zeros((q, n))
+    yy = 0.0
+    for k in range(n):
+        X = rng.normal(size=(200, q)) * 10.0 ** rng.integers(-6, 7)
+        X[:, ntaps] = 1.0
+        if k % 7 == 1:
+            X[:, 0] = 1.0                   # a tap that never moves: in the span of the offset
+        if k % 7 == 2:
+            X[:, :ntaps] = 0.0              # every tap zero
+        y = X @ rng.normal(size=q) + rng.normal(size=200)
+        G[:, :, k], r[:, k] = X.T @ X, X.T @ y
+        yy = float(y @ y) if k == 0 else yy
+    G[0, 0, 3] = np.nan
+    r[0, 5] = np.nan
+    out = np.zeros(n)
+    _solve_sses(G, r, yy, q, ntaps, float(sign), float(held), _solve_room(q, n), out)
+    alone = np.array([_one_system_sse(G[:, :, k], r[:, k], yy, ntaps, sign, held) for k in range(n)])
+    assert out.tobytes() == alone.tobytes()
