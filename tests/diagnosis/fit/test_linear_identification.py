@@ -292,3 +292,69 @@ def test_systems_solved_side_by_side_score_as_each_system_alone_bit_for_bit(ntap
     _solve_sses(G, r, yy, q, ntaps, float(sign), float(held), _solve_room(q, n), out)
     alone = np.array([_one_system_sse(G[:, :, k], r[:, k], yy, ntaps, sign, held) for k in range(n)])
     assert out.tobytes() == alone.tobytes()
+
+
+def _column_pass(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, sign):
+    """The column pass written plainly in Python floats: the filter stages sample by sample (the all-pole
+    part's past read back from its outputs), the normal equations summed entry by entry in time order."""
+    mean = 0.0
+    for v in u:
+        mean += float(v)
+    mean /= u.size
+    p, gain = len(alpha) - 1, float(sum(float(a) for a in alpha))
+    start = min(max(p, 1), u.size)
+    R, Z = [], []
+    acc = v0 = hstate = hprev = 0.0
+    q = ntaps + 1
+    G = [[0.0] * q for _ in range(q)]
+    r = [0.0] * q
+    yy = 0.0
+    for k in range(w1):
+        if k < start:
+            s = float(u[0]) - mean
+        else:
+            s = gain * (float(u[k - 1]) - mean)
+            for i in range(1, p + 1):
+                s -= float(alpha[i]) * R[k - i]
+        R.append(s)
+        if integ:
+            acc += dt * s
+            s = acc
+        if lam is not None:
+            if k == 0:
+                v0 = s
+            xk = s - v0
+            h = xk + hstate
+            hstate = -xk + lam * h
+            s = h
+        if frac > 0.0:
+            h = s
+            if k > 0:
+                s = (1.0 - frac) * h + frac * hprev
+            hprev = h
+        Z.append(s)
+        if k >= w0:
+            x = [Z[k - m - i] for i in range(ntaps)] + [1.0]
+            yk = float(y[k])
+            yy += yk * yk
+            for i in range(q):
+                r[i] += x[i] * yk
+                for jj in range(i, q):
+                    G[i][jj] += x[i] * x[jj]
+    return _one_system_sse(np.array(G), np.array(r), yy, ntaps, sign, np.nan)
+
+
+@pytest.mark.parametrize("alpha", [[1.0, -0.9], [1.0, -1.6, 0.66], [1.0, -2.2, 1.6, -0.39], [1.0]])
+@pytest.mark.parametrize("m,ntaps,frac", [(0, 1, 0.0), (3, 1, 0.4), (0, 2, 0.0), (2, 2, 0.25)])
+@pytest.mark.parametrize("integ,lam", [(False, None), (False, 0.9), (True, 0.95)])
+def test_the_polish_pass_is_the_plain_column_pass_bit_for_bit(alpha, m, ntaps, frac, integ, lam):
+    # The polish's compiled pass keeps the all-pole part's last outputs and the sums of one or two taps in
+    # registers; its SSE must be the plain pass's, every filter stage and dead time.
+    rng = np.random.default_rng(len(alpha) * 100 + m * 10 + ntaps)
+    u = 50.0 + np.cumsum(rng.normal(size=400)) * 0.3
+    y = rng.normal(size=400) + 0.02 * u
+    y_cost = y if lam is None else highpass(y, lam)
+    for sign in (0, 1, -1):
+        got = column_sse(u, np.array(alpha), integ, DT, lam, frac, y_cost, 40, 300, m, ntaps, 0, sign)
+        want = _column_pass(u, alpha, integ, DT, lam, frac, y_cost, 40, 300, m, ntaps, sign)
+        assert np.float64(got).tobytes() == np.float64(want).tobytes()

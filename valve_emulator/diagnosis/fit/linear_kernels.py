@@ -428,19 +428,33 @@ def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, nt
     ring, mask = _ring(m + ntaps + 1)
     Z = np.zeros(ring)
     R = np.zeros(rring)
-    acc = v0 = hstate = hprev = 0.0
+    acc = v0 = hstate = hprev = last = last2 = 0.0
+    a1 = alpha[1] if p >= 1 else 0.0
+    a2 = alpha[2] if p >= 2 else 0.0
     G = np.zeros((q, q, 1))
+    g02 = g12 = g22 = r2 = 0.0
     r = np.zeros((q, 1))
     x = np.zeros(q)
     yy = g00 = g01 = g11 = r0 = r1 = 0.0
     for k in range(w1):
         if k < start:
             s = u[0] - mean
+        elif p == 1:
+            # One or two poles: the last outputs from registers (the same operations in the same order). Read
+            # back from R, the recursion waited on the store at every sample; it is what bounds this loop.
+            s = gain * (u[k - 1] - mean)
+            s -= a1 * last
+        elif p == 2:
+            s = gain * (u[k - 1] - mean)
+            s -= a1 * last
+            s -= a2 * last2
         else:
             s = gain * (u[k - 1] - mean)
             for i in range(1, p + 1):
                 s -= alpha[i] * R[(k - i) & rmask]
         R[k & rmask] = s
+        last2 = last
+        last = s
         if integ:
             acc += dt * s
             s = acc
@@ -460,7 +474,7 @@ def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, nt
         if k >= w0 and q == 2:
             # One tap and the offset (a first-order plant, the common case): the same sums in registers. The
             # offset's regressor is 1, and x·1 is x exactly, so these are the general branch's numbers.
-            x0 = Z[(k - m) & mask]
+            x0 = s if m == 0 else Z[(k - m) & mask]   # (with no dead time, the value just stored)
             yk = y[k]
             yy += yk * yk
             g00 += x0 * x0
@@ -468,6 +482,21 @@ def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, nt
             g11 += 1.0
             r0 += x0 * yk
             r1 += yk
+        elif k >= w0 and ntaps == 2 and not trend:
+            # Two taps and the offset (a second-order plant or a fractional dead time): the same, in registers.
+            x0 = s if m == 0 else Z[(k - m) & mask]
+            x1 = Z[(k - m - 1) & mask]
+            yk = y[k]
+            yy += yk * yk
+            r0 += x0 * yk
+            g00 += x0 * x0
+            g01 += x0 * x1
+            g02 += x0
+            r1 += x1 * yk
+            g11 += x1 * x1
+            g12 += x1
+            r2 += yk
+            g22 += 1.0
         elif k >= w0:
             for i in range(ntaps):
                 x[i] = Z[(k - m - i) & mask]
@@ -482,6 +511,10 @@ def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, nt
                     G[i, jj, 0] += x[i] * x[jj]
     if q == 2:
         G[0, 0, 0], G[0, 1, 0], G[1, 1, 0], r[0, 0], r[1, 0] = g00, g01, g11, r0, r1
+    elif ntaps == 2 and not trend:
+        G[0, 0, 0], G[0, 1, 0], G[0, 2, 0], r[0, 0] = g00, g01, g02, r0
+        G[1, 1, 0], G[1, 2, 0], r[1, 0] = g11, g12, r1
+        G[2, 2, 0], r[2, 0] = g22, r2
     out = np.zeros(1)
     _solve_sses(G, r, yy, q, ntaps, sign, np.nan, _solve_room(q, 1), out)
     return out[0]
