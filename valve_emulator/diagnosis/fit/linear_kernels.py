@@ -48,6 +48,9 @@ _TILE = 8
 # copy of 64 columns, copy included, a 256-column input scored in 0.4 of the time at 10⁴ samples (fresh data,
 # two threads).
 _GROUP = 64
+# Fewest systems solved side by side where a grid column has fewer dead times (_grid_block): the columns of a block
+# are taken together until there are this many, so that the loops over the systems are long enough to vectorise.
+_SYSTEMS = 64
 
 @numba.njit(cache=True, nogil=True)
 def _solve_sses(G, r, yy, q, ntaps, sign, held, room, out):  # pragma: no cover - compiled
@@ -201,17 +204,17 @@ def column_means(u: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, room, out):  # pragma: no cover - compiled
-    """SSE of column ``j`` for every dead time into ``out``: its normal equations from the running sums kept
-    near w0 (``lo``) and w1 (``hi``), the cross terms ``X`` and the window ``sums`` (into ``G`` (q, q, nd) and ``r``
-    (q, nd), one system per dead time), solved together."""
-    _, w0, w1, delays, ntaps, trend, sign, held = fit
-    yy, sy, ty, tt, st = sums
+def _column_systems(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, at):  # pragma: no cover - compiled
+    """The normal equations of column ``j`` for every dead time, from the running sums kept near w0 (``lo``) and
+    w1 (``hi``), the cross terms ``X`` and the window ``sums``: system ``at + di`` of ``G`` (q, q, ·) and ``r``
+    (q, ·) for dead time ``di``."""
+    _, w0, w1, delays, ntaps, trend, _, _ = fit
+    _, sy, ty, tt, st = sums
     loP, loP1, loPK = lo
     hiP, hiP1, hiPK = hi
-    q = ntaps + 1 + trend
-    for di in range(delays.shape[0]):
-        d = delays[di]
+    for di_ in range(delays.shape[0]):
+        d = delays[di_]
+        di = at + di_
         for i in range(ntaps):
             o = dmax - d + ntaps - 1 - i     # a0 - lo0 = a1 - hi0, with a0 = w0 - d - i, a1 = w1 - d - i
             for jj in range(i, ntaps):
@@ -228,7 +231,6 @@ def _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, room, out):  # p
             G[ntaps, ntaps + 1, di] = st
             G[ntaps + 1, ntaps + 1, di] = tt
             r[ntaps + 1, di] = ty
-    _solve_sses(G, r, yy, q, ntaps, sign, held, room, out)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -395,13 +397,25 @@ def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse, means):  # pra
                 add_cross_terms(tile0, k)
             tile0 = k + 1
     q = ntaps + 1 + trend
+    # The columns' systems (one per dead time) solved side by side, at least _SYSTEMS at a time where a column
+    # has fewer dead times (see _solve_sses).
     nd = delays.shape[0]
-    G = np.zeros((q, q, nd))
-    r = np.zeros((q, nd))
-    room = _solve_room(q, nd)
+    per = max(1, _SYSTEMS // nd)
+    G = np.zeros((q, q, per * nd))
+    r = np.zeros((q, per * nd))
+    room = _solve_room(q, per * nd)
+    out = np.empty(per * nd)
     lo, hi = (loP, loP1, loPK), (hiP, hiP1, hiPK)
-    for j in range(nb):
-        _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, room, sse[b0 + j])
+    _, _, _, _, _, _, sign, held = fit
+    for j0 in range(0, nb, per):
+        jn = min(per, nb - j0)
+        for jj in range(jn):
+            _column_systems(j0 + jj, lo, hi, X, sums, fit, T, dmin, dmax, G, r, jj * nd)
+        done = out[:jn * nd]
+        _solve_sses(G, r, sums[0], q, ntaps, sign, held, room, done)
+        for jj in range(jn):
+            for di in range(nd):
+                sse[b0 + j0 + jj, di] = done[jj * nd + di]
 
 
 @numba.njit(cache=True, nogil=True)
