@@ -58,11 +58,12 @@ def _solve_sses(G, r, yy, q, ntaps, sign, held, room, out):  # pragma: no cover 
 
     The systems are independent (one per dead time of a grid column), and each is solved with its own numbers
     through the operations written for one system — the same products, sums, divisions and square roots in the
-    same order, so the same bits — but stage by stage over all of them (the loops over n innermost): one
-    system's solve is a chain of about a dozen dependent divisions and square roots, which left alone kept the
-    core waiting on each (about 80 ns per system at q = 3); side by side the systems fill the pipelines and
-    the vector units. ``room`` (:func:`_solve_room`): the factor, the forward and back substitutions and the
-    taps' flags, allocated once by the caller; every entry read is written first.
+    same order, so the same bits — but stage by stage over all of them (each entry of the factor, of the forward
+    and of the back substitution for every system before the next entry): one system's solve is a chain of
+    about a dozen dependent divisions and square roots, which left alone kept the core waiting on each (about
+    80 ns per system at q = 3, and two allocations); side by side the systems' chains overlap. ``room``
+    (:func:`_solve_room`): the factor, the forward and back substitutions and the taps' flags, allocated once by
+    the caller; every entry read is written first.
 
     With ``sign`` (+1 or −1; 0: free) the sum of the first ``ntaps`` coefficients (the gain) must have that
     sign: when the free solution's does not, the constrained least-squares optimum has gain 0 (a single
