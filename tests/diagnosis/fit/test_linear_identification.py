@@ -212,3 +212,149 @@ def test_columns_scored_together_score_as_each_column_alone_bit_for_bit(structur
     for j in range(u.shape[1]):
         alone = input_grid_sse(u[:, j], y, window, delays, structure, DT, prefilter=lam)
         assert alone[0].tobytes() == together[j].tobytes()
+
+
+def _one_system_sse(G, r, yy, ntaps, sign, held):
+    """One system's constrained least-squares SSE as written for one system (the textbook Cholesky, then the
+    Lawson–Hanson correction for a gain of the wrong sign or a held gain), in Python floats."""
+    q = len(r)
+    L = [[0.0] * q for _ in range(q)]
+    moves = False
+    for i in range(q):
+        for j in range(i + 1):
+            s = float(G[j, i])
+            if i == j:
+                s += 1e-10 * (float(G[i, i]) + 1e-300)
+            for m in range(j):
+                s -= L[i][m] * L[j][m]
+            if i == j:
+                L[i][i] = float(np.sqrt(s)) if s > 1e-9 * (float(G[i, i]) + 1e-300) else 1e150
+                moves = moves or (i < ntaps and L[i][i] != 1e150)
+            else:
+                L[i][j] = s / L[j][j]
+    w = [0.0] * q
+    for i in range(q):
+        s = float(r[i])
+        for m in range(i):
+            s -= L[i][m] * w[m]
+        w[i] = s / L[i][i]
+    beta = [0.0] * q
+    for i in range(q - 1, -1, -1):
+        s = w[i]
+        for m in range(i + 1, q):
+            s -= L[m][i] * beta[m]
+        beta[i] = s / L[i][i]
+    sse = yy
+    for i in range(q):
+        sse -= beta[i] * float(r[i])
+    g = 0.0
+    for i in range(ntaps):
+        g += beta[i]
+    gap = (g - held if moves else 0.0) if held == held else (g if sign * g < 0.0 else 0.0)
+    if gap != 0.0:
+        cgc = 0.0
+        for i in range(q):
+            s = 1.0 if i < ntaps else 0.0
+            for m in range(i):
+                s -= L[i][m] * w[m]
+            w[i] = s / L[i][i]
+            cgc += w[i] * w[i]
+        if cgc > 0.0:
+            sse += gap * gap / cgc
+    return max(sse, 0.0)
+
+
+@pytest.mark.parametrize("ntaps,trend", [(1, 0), (1, 1), (2, 1), (3, 0), (4, 1)])
+@pytest.mark.parametrize("sign,held", [(0, np.nan), (1, np.nan), (-1, np.nan), (0, 0.7), (1, -0.3)])
+def test_systems_solved_side_by_side_score_as_each_system_alone_bit_for_bit(ntaps, trend, sign, held):
+    # The grid kernel solves a column's systems (one per dead time) stage by stage over all of them; each SSE
+    # must be the one its system gets alone: well-posed systems, a regressor in the span of the others (a valve
+    # that never moves: the huge pivot), a column of zeros, NaN, scales far apart.
+    from valve_emulator.diagnosis.fit.linear_kernels import _solve_room, _solve_sses
+
+    rng = np.random.default_rng(ntaps * 10 + trend)
+    q, n = ntaps + 1 + trend, 40
+    G, r = np.zeros((q, q, n)), np.zeros((q, n))
+    yy = 0.0
+    for k in range(n):
+        X = rng.normal(size=(200, q)) * 10.0 ** rng.integers(-6, 7)
+        X[:, ntaps] = 1.0
+        if k % 7 == 1:
+            X[:, 0] = 1.0                   # a tap that never moves: in the span of the offset
+        if k % 7 == 2:
+            X[:, :ntaps] = 0.0              # every tap zero
+        y = X @ rng.normal(size=q) + rng.normal(size=200)
+        G[:, :, k], r[:, k] = X.T @ X, X.T @ y
+        yy = float(y @ y) if k == 0 else yy
+    G[0, 0, 3] = np.nan
+    r[0, 5] = np.nan
+    out = np.zeros(n)
+    _solve_sses(G, r, yy, q, ntaps, float(sign), float(held), _solve_room(q, n), out)
+    alone = np.array([_one_system_sse(G[:, :, k], r[:, k], yy, ntaps, sign, held) for k in range(n)])
+    assert out.tobytes() == alone.tobytes()
+
+
+def _column_pass(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, sign):
+    """The column pass written plainly in Python floats: the filter stages sample by sample (the all-pole
+    part's past read back from its outputs), the normal equations summed entry by entry in time order."""
+    mean = 0.0
+    for v in u:
+        mean += float(v)
+    mean /= u.size
+    p, gain = len(alpha) - 1, float(sum(float(a) for a in alpha))
+    start = min(max(p, 1), u.size)
+    R, Z = [], []
+    acc = v0 = hstate = hprev = 0.0
+    q = ntaps + 1
+    G = [[0.0] * q for _ in range(q)]
+    r = [0.0] * q
+    yy = 0.0
+    for k in range(w1):
+        if k < start:
+            s = float(u[0]) - mean
+        else:
+            s = gain * (float(u[k - 1]) - mean)
+            for i in range(1, p + 1):
+                s -= float(alpha[i]) * R[k - i]
+        R.append(s)
+        if integ:
+            acc += dt * s
+            s = acc
+        if lam is not None:
+            if k == 0:
+                v0 = s
+            xk = s - v0
+            h = xk + hstate
+            hstate = -xk + lam * h
+            s = h
+        if frac > 0.0:
+            h = s
+            if k > 0:
+                s = (1.0 - frac) * h + frac * hprev
+            hprev = h
+        Z.append(s)
+        if k >= w0:
+            x = [Z[k - m - i] for i in range(ntaps)] + [1.0]
+            yk = float(y[k])
+            yy += yk * yk
+            for i in range(q):
+                r[i] += x[i] * yk
+                for jj in range(i, q):
+                    G[i][jj] += x[i] * x[jj]
+    return _one_system_sse(np.array(G), np.array(r), yy, ntaps, sign, np.nan)
+
+
+@pytest.mark.parametrize("alpha", [[1.0, -0.9], [1.0, -1.6, 0.66], [1.0, -2.2, 1.6, -0.39], [1.0]])
+@pytest.mark.parametrize("m,ntaps,frac", [(0, 1, 0.0), (3, 1, 0.4), (0, 2, 0.0), (2, 2, 0.25)])
+@pytest.mark.parametrize("integ,lam", [(False, None), (False, 0.9), (True, 0.95)])
+def test_the_polish_pass_is_the_plain_column_pass_bit_for_bit(alpha, m, ntaps, frac, integ, lam):
+    # The polish's compiled pass keeps the all-pole part's last outputs and the sums of one or two taps in
+    # registers; its SSE must be the plain pass's, every filter stage and dead time.
+    rng = np.random.default_rng(len(alpha) * 100 + m * 10 + ntaps)
+    u = 50.0 + np.cumsum(rng.normal(size=400)) * 0.3
+    y = rng.normal(size=400) + 0.02 * u
+    y_cost = y if lam is None else highpass(y, lam)
+    for sign in (0, 1, -1):
+        got = column_sse(u, np.array(alpha), integ, DT, lam, frac, y_cost, 40, 300, m, ntaps, 0, sign)
+        want = _column_pass(u, alpha, integ, DT, lam, frac, y_cost, 40, 300, m, ntaps, sign)
+        assert np.float64(got).tobytes() == np.float64(want).tobytes()

@@ -48,10 +48,22 @@ _TILE = 8
 # copy of 64 columns, copy included, a 256-column input scored in 0.4 of the time at 10⁴ samples (fresh data,
 # two threads).
 _GROUP = 64
+# Fewest systems solved side by side where a grid column has fewer dead times (_grid_block): the columns of a block
+# are taken together until there are this many, so that the loops over the systems are long enough to vectorise.
+_SYSTEMS = 64
 
 @numba.njit(cache=True, nogil=True)
-def _solve_sse(G, r, yy, q, beta, ntaps, sign, held):  # pragma: no cover - compiled
-    """Cholesky solve of G beta = r (upper triangle of G filled); return yy - beta·r.
+def _solve_sses(G, r, yy, q, ntaps, sign, held, room, out):  # pragma: no cover - compiled
+    """For each n: Cholesky solve of G[:, :, n] beta = r[:, n] (upper triangle of G filled); ``out[n]`` = yy - beta·r.
+
+    The systems are independent (one per dead time of a grid column), and each is solved with its own numbers
+    through the operations written for one system — the same products, sums, divisions and square roots in the
+    same order, so the same bits — but stage by stage over all of them (each entry of the factor, of the forward
+    and of the back substitution for every system before the next entry): one system's solve is a chain of
+    about a dozen dependent divisions and square roots, which left alone kept the core waiting on each (about
+    80 ns per system at q = 3, and two allocations); side by side the systems' chains overlap. ``room``
+    (:func:`_solve_room`): the factor, the forward and back substitutions and the taps' flags, allocated once by
+    the caller; every entry read is written first.
 
     With ``sign`` (+1 or −1; 0: free) the sum of the first ``ntaps`` coefficients (the gain) must have that
     sign: when the free solution's does not, the constrained least-squares optimum has gain 0 (a single
@@ -61,55 +73,70 @@ def _solve_sse(G, r, yy, q, beta, ntaps, sign, held):  # pragma: no cover - comp
     With ``held`` (not NaN) the gain is held there instead (``sign`` is then moot): the equality-constrained
     optimum's SSE exceeds the free one by ``(cᵀβ − held)² / (cᵀG⁻¹c)`` (the same theorem). A column whose taps
     all drop out (it never moves) is fitted by the offset alone whatever the gain, and scores the free SSE."""
-    L = np.zeros((q, q))
-    moves = False
+    L, w, beta, moves = room
+    N = out.shape[0]
+    for n in range(N):
+        moves[n] = False
     for i in range(q):
         for j in range(i + 1):
-            s = G[j, i] if j <= i else G[i, j]
             if i == j:
-                s += RIDGE * (G[i, i] + 1e-300)
-            for m in range(j):
-                s -= L[i, m] * L[j, m]
-            if i == j:
-                # A regressor (numerically) in the span of the earlier ones, e.g. a valve that never
-                # moves: drop it (a huge pivot makes its coefficient zero) instead of dividing by ~0.
-                L[i, i] = np.sqrt(s) if s > 1e-9 * (G[i, i] + 1e-300) else 1e150
-                moves = moves or (i < ntaps and L[i, i] != 1e150)
+                for n in range(N):
+                    s = G[i, i, n]
+                    s += RIDGE * (G[i, i, n] + 1e-300)
+                    for m in range(j):
+                        s -= L[i, m, n] * L[j, m, n]
+                    # A regressor (numerically) in the span of the earlier ones, e.g. a valve that never
+                    # moves: drop it (a huge pivot makes its coefficient zero) instead of dividing by ~0.
+                    L[i, i, n] = np.sqrt(s) if s > 1e-9 * (G[i, i, n] + 1e-300) else 1e150
+                    moves[n] = moves[n] or (i < ntaps and L[i, i, n] != 1e150)
             else:
-                L[i, j] = s / L[j, j]
-    w = np.empty(q)
+                for n in range(N):
+                    s = G[j, i, n]
+                    for m in range(j):
+                        s -= L[i, m, n] * L[j, m, n]
+                    L[i, j, n] = s / L[j, j, n]
     for i in range(q):
-        s = r[i]
-        for m in range(i):
-            s -= L[i, m] * w[m]
-        w[i] = s / L[i, i]
-    for i in range(q - 1, -1, -1):
-        s = w[i]
-        for m in range(i + 1, q):
-            s -= L[m, i] * beta[m]
-        beta[i] = s / L[i, i]
-    sse = yy
-    for i in range(q):
-        sse -= beta[i] * r[i]
-    g = 0.0
-    for i in range(ntaps):
-        g += beta[i]
-    if held == held:
-        gap = g - held if moves else 0.0
-    else:
-        gap = g if sign * g < 0.0 else 0.0
-    if gap != 0.0:
-        # c^T G^-1 c = |L^-1 c|^2, c = (1, …, 1, 0, …) over the taps.
-        cgc = 0.0
-        for i in range(q):
-            s = 1.0 if i < ntaps else 0.0
+        for n in range(N):
+            s = r[i, n]
             for m in range(i):
-                s -= L[i, m] * w[m]
-            w[i] = s / L[i, i]
-            cgc += w[i] * w[i]
-        if cgc > 0.0:
-            sse += gap * gap / cgc
-    return max(sse, 0.0)
+                s -= L[i, m, n] * w[m, n]
+            w[i, n] = s / L[i, i, n]
+    for i in range(q - 1, -1, -1):
+        for n in range(N):
+            s = w[i, n]
+            for m in range(i + 1, q):
+                s -= L[m, i, n] * beta[m, n]
+            beta[i, n] = s / L[i, i, n]
+    for n in range(N):
+        sse = yy
+        for i in range(q):
+            sse -= beta[i, n] * r[i, n]
+        g = 0.0
+        for i in range(ntaps):
+            g += beta[i, n]
+        if held == held:
+            gap = g - held if moves[n] else 0.0
+        else:
+            gap = g if sign * g < 0.0 else 0.0
+        if gap != 0.0:
+            # c^T G^-1 c = |L^-1 c|^2, c = (1, …, 1, 0, …) over the taps.
+            cgc = 0.0
+            for i in range(q):
+                s = 1.0 if i < ntaps else 0.0
+                for m in range(i):
+                    s -= L[i, m, n] * w[m, n]
+                w[i, n] = s / L[i, i, n]
+                cgc += w[i, n] * w[i, n]
+            if cgc > 0.0:
+                sse += gap * gap / cgc
+        out[n] = max(sse, 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_room(q, n):  # pragma: no cover - compiled
+    """Room for :func:`_solve_sses` of ``n`` systems of size ``q``: the factor L (its strictly upper triangle never
+    read), the forward and back substitutions, and whether a tap moves."""
+    return np.zeros((q, q, n)), np.zeros((q, n)), np.zeros((q, n)), np.zeros(n, dtype=np.bool_)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -178,33 +205,33 @@ def column_means(u: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, beta, out):  # pragma: no cover - compiled
-    """SSE of column ``j`` for every dead time into ``out``: its normal equations from the running sums kept
-    near w0 (``lo``) and w1 (``hi``), the cross terms ``X`` and the window ``sums``, solved."""
-    _, w0, w1, delays, ntaps, trend, sign, held = fit
-    yy, sy, ty, tt, st = sums
+def _column_systems(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, at):  # pragma: no cover - compiled
+    """The normal equations of column ``j`` for every dead time, from the running sums kept near w0 (``lo``) and
+    w1 (``hi``), the cross terms ``X`` and the window ``sums``: system ``at + di`` of ``G`` (q, q, ·) and ``r``
+    (q, ·) for dead time ``di``."""
+    _, w0, w1, delays, ntaps, trend, _, _ = fit
+    _, sy, ty, tt, st = sums
     loP, loP1, loPK = lo
     hiP, hiP1, hiPK = hi
-    q = ntaps + 1 + trend
-    for di in range(delays.shape[0]):
-        d = delays[di]
+    for di_ in range(delays.shape[0]):
+        d = delays[di_]
+        di = at + di_
         for i in range(ntaps):
             o = dmax - d + ntaps - 1 - i     # a0 - lo0 = a1 - hi0, with a0 = w0 - d - i, a1 = w1 - d - i
             for jj in range(i, ntaps):
-                G[i, jj] = hiP[jj - i, o, j] - loP[jj - i, o, j]
-            G[i, ntaps] = hiP1[o, j] - loP1[o, j]
+                G[i, jj, di] = hiP[jj - i, o, j] - loP[jj - i, o, j]
+            G[i, ntaps, di] = hiP1[o, j] - loP1[o, j]
             if trend:
                 # sum_k (k/T) z[k-s] = sum_m (m+s) z[m] / T
                 s_ = d + i
-                G[i, ntaps + 1] = (hiPK[o, j] - loPK[o, j] + s_ * (hiP1[o, j] - loP1[o, j])) / T
-            r[i] = X[d - dmin + i, j]
-        G[ntaps, ntaps] = w1 - w0
-        r[ntaps] = sy
+                G[i, ntaps + 1, di] = (hiPK[o, j] - loPK[o, j] + s_ * (hiP1[o, j] - loP1[o, j])) / T
+            r[i, di] = X[d - dmin + i, j]
+        G[ntaps, ntaps, di] = w1 - w0
+        r[ntaps, di] = sy
         if trend:
-            G[ntaps, ntaps + 1] = st
-            G[ntaps + 1, ntaps + 1] = tt
-            r[ntaps + 1] = ty
-        out[di] = _solve_sse(G, r, yy, q, beta, ntaps, sign, held)
+            G[ntaps, ntaps + 1, di] = st
+            G[ntaps + 1, ntaps + 1, di] = tt
+            r[ntaps + 1, di] = ty
 
 
 @numba.njit(cache=True, nogil=True)
@@ -371,12 +398,25 @@ def _grid_block(u, b0, nb, filtered, filt, rring, fit, sums, sse, means):  # pra
                 add_cross_terms(tile0, k)
             tile0 = k + 1
     q = ntaps + 1 + trend
-    G = np.zeros((q, q))
-    r = np.zeros(q)
-    beta = np.zeros(q)
+    # The columns' systems (one per dead time) solved side by side, at least _SYSTEMS at a time where a column
+    # has fewer dead times (see _solve_sses).
+    nd = delays.shape[0]
+    per = max(1, _SYSTEMS // nd)
+    G = np.zeros((q, q, per * nd))
+    r = np.zeros((q, per * nd))
+    room = _solve_room(q, per * nd)
+    out = np.empty(per * nd)
     lo, hi = (loP, loP1, loPK), (hiP, hiP1, hiPK)
-    for j in range(nb):
-        _solve_column(j, lo, hi, X, sums, fit, T, dmin, dmax, G, r, beta, sse[b0 + j])
+    _, _, _, _, _, _, sign, held = fit
+    for j0 in range(0, nb, per):
+        jn = min(per, nb - j0)
+        for jj in range(jn):
+            _column_systems(j0 + jj, lo, hi, X, sums, fit, T, dmin, dmax, G, r, jj * nd)
+        done = out[:jn * nd]
+        _solve_sses(G, r, sums[0], q, ntaps, sign, held, room, done)
+        for jj in range(jn):
+            for di in range(nd):
+                sse[b0 + j0 + jj, di] = done[jj * nd + di]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -403,20 +443,33 @@ def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, nt
     ring, mask = _ring(m + ntaps + 1)
     Z = np.zeros(ring)
     R = np.zeros(rring)
-    acc = v0 = hstate = hprev = 0.0
-    G = np.zeros((q, q))
-    r = np.zeros(q)
-    beta = np.zeros(q)
+    acc = v0 = hstate = hprev = last = last2 = 0.0
+    a1 = alpha[1] if p >= 1 else 0.0
+    a2 = alpha[2] if p >= 2 else 0.0
+    G = np.zeros((q, q, 1))
+    g02 = g12 = g22 = r2 = 0.0
+    r = np.zeros((q, 1))
     x = np.zeros(q)
     yy = g00 = g01 = g11 = r0 = r1 = 0.0
     for k in range(w1):
         if k < start:
             s = u[0] - mean
+        elif p == 1:
+            # One or two poles: the last outputs from registers (the same operations in the same order). Read
+            # back from R, the recursion waited on the store at every sample; it is what bounds this loop.
+            s = gain * (u[k - 1] - mean)
+            s -= a1 * last
+        elif p == 2:
+            s = gain * (u[k - 1] - mean)
+            s -= a1 * last
+            s -= a2 * last2
         else:
             s = gain * (u[k - 1] - mean)
             for i in range(1, p + 1):
                 s -= alpha[i] * R[(k - i) & rmask]
         R[k & rmask] = s
+        last2 = last
+        last = s
         if integ:
             acc += dt * s
             s = acc
@@ -436,7 +489,7 @@ def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, nt
         if k >= w0 and q == 2:
             # One tap and the offset (a first-order plant, the common case): the same sums in registers. The
             # offset's regressor is 1, and x·1 is x exactly, so these are the general branch's numbers.
-            x0 = Z[(k - m) & mask]
+            x0 = s if m == 0 else Z[(k - m) & mask]   # (with no dead time, the value just stored)
             yk = y[k]
             yy += yk * yk
             g00 += x0 * x0
@@ -444,6 +497,21 @@ def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, nt
             g11 += 1.0
             r0 += x0 * yk
             r1 += yk
+        elif k >= w0 and ntaps == 2 and not trend:
+            # Two taps and the offset (a second-order plant or a fractional dead time): the same, in registers.
+            x0 = s if m == 0 else Z[(k - m) & mask]
+            x1 = Z[(k - m - 1) & mask]
+            yk = y[k]
+            yy += yk * yk
+            r0 += x0 * yk
+            g00 += x0 * x0
+            g01 += x0 * x1
+            g02 += x0
+            r1 += x1 * yk
+            g11 += x1 * x1
+            g12 += x1
+            r2 += yk
+            g22 += 1.0
         elif k >= w0:
             for i in range(ntaps):
                 x[i] = Z[(k - m - i) & mask]
@@ -453,12 +521,18 @@ def _column_sse(u, mean, alpha, integ, dt, highpass, lam, frac, y, w0, w1, m, nt
             yk = y[k]
             yy += yk * yk
             for i in range(q):
-                r[i] += x[i] * yk
+                r[i, 0] += x[i] * yk
                 for jj in range(i, q):
-                    G[i, jj] += x[i] * x[jj]
+                    G[i, jj, 0] += x[i] * x[jj]
     if q == 2:
-        G[0, 0], G[0, 1], G[1, 1], r[0], r[1] = g00, g01, g11, r0, r1
-    return _solve_sse(G, r, yy, q, beta, ntaps, sign, np.nan)
+        G[0, 0, 0], G[0, 1, 0], G[1, 1, 0], r[0, 0], r[1, 0] = g00, g01, g11, r0, r1
+    elif ntaps == 2 and not trend:
+        G[0, 0, 0], G[0, 1, 0], G[0, 2, 0], r[0, 0] = g00, g01, g02, r0
+        G[1, 1, 0], G[1, 2, 0], r[1, 0] = g11, g12, r1
+        G[2, 2, 0], r[2, 0] = g22, r2
+    out = np.zeros(1)
+    _solve_sses(G, r, yy, q, ntaps, sign, np.nan, _solve_room(q, 1), out)
+    return out[0]
 
 
 def column_sse(u, alpha, integ, dt, lam, frac, y, w0, w1, m, ntaps, trend, sign=0, mean=None) -> float:
@@ -499,7 +573,7 @@ def grid_sse(u, y, w0, w1, delays, ntaps, trend, sse, *, filtered=False, alpha=N
     ``dt``), the high-pass prefilter of pole ``lam`` (None: none) and a fractional delay ``frac`` (0 ≤ f < 1).
     ``sign`` (+1, −1; 0: free): the sign the gain (sum of the taps) must have; a column whose free fit has the
     other sign scores the SSE of the best fit with gain 0. ``gain`` (None: free): the gain held, every column
-    scored at it (see :func:`_solve_sse`). ``means``: the column means of ``u`` (:func:`column_means`) when known.
+    scored at it (see :func:`_solve_sses`). ``means``: the column means of ``u`` (:func:`column_means`) when known.
     """
     u = kernel_array(u)
     means = (np.zeros(u.shape[1]) if filtered else column_means(u)) if means is None else kernel_array(means)
