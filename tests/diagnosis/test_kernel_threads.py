@@ -3,6 +3,7 @@ overlap; every BLAS keeps to one thread while a diagnosis runs."""
 
 import functools
 import threading
+import time
 
 import numba
 import pytest
@@ -36,6 +37,24 @@ def test_an_error_in_any_range_reaches_the_caller_after_all_ranges_ran():
     def work(a, b):
         if a == 0:
             raise ValueError("range 0")
+        done.append(a)
+
+    with pytest.raises(ValueError, match="range 0"):
+        run_split(work, [0, 10, 20, 30])
+    assert sorted(done) == [10, 20]
+
+
+def test_an_error_in_the_first_range_waits_for_a_slower_range_of_the_pool():
+    """The range that raises ends first and another pool range is still running: the caller gets the error only
+    once that range has ended too (on a loaded machine the pool's second range started late, and the error was
+    raised while it ran)."""
+    done = []
+
+    def work(a, b):
+        if a == 0:
+            raise ValueError("range 0")
+        if a == 10:
+            time.sleep(0.3)
         done.append(a)
 
     with pytest.raises(ValueError, match="range 0"):

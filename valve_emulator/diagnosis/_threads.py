@@ -20,7 +20,7 @@ from __future__ import annotations
 import functools
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 
 import numba
 from threadpoolctl import ThreadpoolController
@@ -75,6 +75,7 @@ def run_split(work: Callable[[int, int], object], cuts: list[int]) -> None:
     try:
         _in_split(work, *ranges[-1])
     finally:
+        wait(futures)   # every range ends before any error is raised: the first future's error must not cut this short
         for f in futures:
             f.result()
 
