@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from band_valve import held
+from band_valve import level_through_band
 
 from valve_emulator.diagnosis.assess.decision import _short_time_slope
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
@@ -22,16 +22,8 @@ PLANT = LinearStructure(integrating=True, delay=2.0)
 
 
 def _level(seed: int, healthy: bool, S: float = 3.0, n: int = 2000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """OP wandering over about ten times the band with small fast moves on top, the claimed band's output, and
-    the level PV: the integral of the valve's flow (healthy: OP itself), delayed 2 s, plus a random-walk load
-    and measurement noise."""
-    rng = np.random.default_rng(seed)
-    op = 50 + np.cumsum(rng.normal(0, 0.4, n)) + rng.normal(0, 0.5, n)
-    claimed = held(op, S)
-    flow = op if healthy else claimed
-    load = np.cumsum(rng.normal(0, 0.01, n))
-    pv = np.cumsum(0.03 * DT * np.concatenate([np.full(3, flow[0]), flow[:-3]])) + np.cumsum(load) * 0.01
-    return pv + rng.normal(0, 0.05, n), op, claimed
+    """The level's PV, OP and the claimed band's output (:func:`band_valve.level_through_band`, PV noise σ 0.05)."""
+    return level_through_band(seed, healthy, S, n, DT)
 
 
 @pytest.mark.parametrize("seed", range(5))

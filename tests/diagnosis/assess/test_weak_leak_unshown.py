@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from band_valve import held
+from band_valve import level_through_band
 
 from valve_emulator.diagnosis.assess.decision import LEAK_BIC, band_leaks
 from valve_emulator.diagnosis.explain.result import Finding
@@ -27,13 +27,8 @@ SEEDS = range(20)
 def _explained(seed: int, healthy: bool) -> SimpleNamespace:
     """An explained loop (traces, an identified integrating plant with a 2 s dead time) whose valve is healthy (PV
     integrates OP) or holds OP's moves inside the band (PV integrates the band's output)."""
-    rng = np.random.default_rng(seed)
-    op = 50 + np.cumsum(rng.normal(0, 0.4, N)) + rng.normal(0, 0.5, N)
-    claimed = held(op, S)
-    flow = op if healthy else claimed
-    load = np.cumsum(rng.normal(0, 0.01, N))
-    pv = np.cumsum(0.03 * DT * np.concatenate([np.full(3, flow[0]), flow[:-3]])) + np.cumsum(load) * 0.01
-    traces = SimpleNamespace(t=np.arange(N) * DT, pv=pv + rng.normal(0, PV_NOISE, N), op=op, mv_after=claimed)
+    pv, op, claimed = level_through_band(seed, healthy, S, N, DT, noise=PV_NOISE)
+    traces = SimpleNamespace(t=np.arange(N) * DT, pv=pv, op=op, mv_after=claimed)
     return SimpleNamespace(traces=traces, plant={"gain": 0.03, "taus": [], "integrating": True, "delay": 2.0})
 
 
