@@ -31,10 +31,11 @@ def test_a_fresh_healthy_level_loop_is_not_answered_stiction_as_plant_data_in_ni
 
 def test_a_band_whose_moves_pass_the_plant_s_short_time_integrator_is_cannot_tell_naming_both():
     """Where the call was taken back by the band's leak (the short-time integrator's, or since heal19 the identified
-    plant's at positive evidence, ``decision.LEAK_BIC``, which is asked first), the answer names the sticky valve
+    plant's at strong evidence, ``decision.LEAK_BIC``; the stronger is named), the answer names the sticky valve
     (with S) and the healthy one, says why, and keeps no friction finding; measured on 4 of the 24 (of main's five
     weak calls; the fifth, 50.7.7, a call on one half of its record, is now ``cannot_tell`` because neither half
-    answers). Since heal19 three of the four (50.7.11, .19, .23) give the identified plant's leak (ΔBIC 6.2–7.4)."""
+    answers). Three of the four (50.7.11, .19, .23) leak through the identified plant too (ΔBIC 6.2–7.4) and name
+    the short-time integrator's (ΔBIC 177–717)."""
     taken = [d for d in diagnosed_all(HEALTHY_LEVEL_FRESH)
              if any("reach PV" in r["sentence"] for r in d.doc["reasons"])]
     assert len(taken) >= 4, [d.draw.name for d in taken]

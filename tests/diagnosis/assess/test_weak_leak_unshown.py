@@ -13,9 +13,11 @@ import numpy as np
 import pytest
 from band_valve import level_through_band
 
+from valve_emulator.diagnosis.assess import decision
 from valve_emulator.diagnosis.assess.decision import LEAK_BIC, band_leaks
 from valve_emulator.diagnosis.explain.result import Finding
 from valve_emulator.diagnosis.explain.search import DELTA_BIC
+from valve_emulator.diagnosis.fit.load_check import Swallowed
 
 DT = 1.0
 S = 3.0
@@ -53,3 +55,30 @@ def test_a_stuck_valve_s_band_is_shown(seed):
     """The other side of the lower threshold, on the same noisy record: a valve that really holds its band leaks
     nothing (none of 40 seeds reached ΔBIC 2, measured: at most −4.4), at the lower threshold as at the higher."""
     assert band_leaks(_explained(seed, healthy=False), BAND) is None
+
+
+@pytest.mark.parametrize(("through_plant", "through_integrator", "named"), [
+    (7.0, 700.0, "integrator"),     # the strong leak through the plant must not stand for the very strong one
+    (50.0, 20.0, "plant"),
+])
+def test_the_strongest_leak_found_is_the_one_named(monkeypatch, through_plant, through_integrator, named):
+    """Where the swallowed moves reach PV both through the identified self-regulating plant (ΔBIC ≥ ``LEAK_BIC``)
+    and through the integrator it is over short times (ΔBIC ≥ ``DELTA_BIC``, the gain its K/τ), the answer's reason
+    names the stronger. Only the regressions are stood in for (their ΔBIC given); the plant, the settling start and
+    the short-time slope are the decision's own. Before, the plant's leak was named whenever it held: healthy level
+    loops whose reason cited ΔBIC 717 through the integrator cited 6.6 once the plant's threshold was lowered."""
+    tau, gain = 20.0, 0.6
+    explained = _explained(0, healthy=True)
+    explained.plant = {"gain": gain, "taus": [tau], "integrating": False, "delay": 2.0}
+
+    def regressions(pv, op, valve, structure, dt, start):
+        if structure.integrating:     # the valve alone explains less than through the plant: the slope's case
+            return Swallowed(bic_valve=1000.0, bic_leaking=1000.0 - through_integrator, share=0.6, gain=gain / tau)
+        return Swallowed(bic_valve=100.0, bic_leaking=100.0 - through_plant, share=0.2)
+
+    monkeypatch.setattr(decision, "swallowed", regressions)
+    leak = band_leaks(explained, BAND)
+    assert leak is not None
+    assert leak.delta_bic == max(through_plant, through_integrator)
+    assert (leak.slope is not None) == (named == "integrator")
+    assert leak.held == (named == "integrator")
