@@ -116,8 +116,11 @@ def test_trainee_and_instructor_in_a_real_browser(station, tmp_path):
         _wait(lambda: len(driver.execute_script("return window.stationTrend()")) > 20, what="trend samples")
 
         # --- instructor: a sensor drift on the trainee's loop -----------------------------------------------------
-        driver.execute_script("window.open(arguments[0], 'instructor')", url + "instructor")
-        driver.switch_to.window("instructor")
+        # A second window, opened and loaded through the driver (get waits for the page): switching to a window that a
+        # script opened can meet it still navigating ("aborted by navigation", Chromium 156, 2026-11-28).
+        trainee_window = driver.current_window_handle
+        driver.switch_to.new_window("window")
+        driver.get(url + "instructor")
         _wait(lambda: driver.find_element(By.ID, "mode").text == "MANUAL", what="the instructor faceplate")
         from selenium.webdriver.support.ui import Select
 
@@ -132,7 +135,7 @@ def test_trainee_and_instructor_in_a_real_browser(station, tmp_path):
         driver.save_screenshot(str(shots / "station-instructor.png"))
 
         # --- back on the trainee page: the trend shows the drift ---------------------------------------------------
-        driver.switch_to.window(driver.window_handles[0])
+        driver.switch_to.window(trainee_window)
         def jumped():
             pv = [p["pv"] for p in driver.execute_script("return window.stationTrend()")]
             return len(pv) > 10 and max(pv) - pv[0] > 3.5
