@@ -232,13 +232,13 @@ def diagnosed_all(keys: Iterable[Draw]) -> list[Diagnosed]:
     return [diagnosed(key) for key in keys]
 
 
-
 def answered_stiction(keys: Iterable[Draw]) -> list[str]:
     """The names of the draws of ``keys``, loops with a healthy valve all (asserted on their truth), answered
     ``stiction``."""
     docs = diagnosed_all(keys)
     assert all(d.truth["expected"] == "no_stiction" for d in docs), [d.draw.name for d in docs]
     return [d.draw.name for d in docs if d.doc["answer"] == "stiction"]
+
 
 # The sets the property tests judge (each test says why its size). Sets overlap on purpose: a draw named twice
 # is diagnosed once.
